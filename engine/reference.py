@@ -1,0 +1,594 @@
+"""Reference renderer: the yardstick every image-based method is measured against.
+
+Whitted-style ray tracing with shadow rays, energy-normalised Phong highlights,
+ideal-mirror recursion, glossy reflection by sampling the Phong lobe, rectangular
+area lights by stratified sampling, box-filtered antialiasing, and an optional
+path-traced indirect term. Organised as a wavefront: every stage handles a whole
+batch of rays (Embree queries on arrays, numba kernels for shading), and the
+image is processed in chunks so progress and cancellation get a say between them.
+
+Shading model (ALGORITHMS.md, shared conventions), at a point with shading normal
+n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
+- lights:   (kd/pi + ks (s+2)/(2 pi) max(0, wl.wr)^s) * E_l, with E_l the light's
+            irradiance (I cos/d^2, E cos, or L_e cos cos'/d^2 dA), gated by a shadow ray;
+- ambient:  kd * ambient (camera and specular chains only; path vertices skip it);
+- emission: added where a camera or specular-chain ray lands (lights are the only
+            sources of illumination: emission lights nothing by itself);
+- mirror:   kr * L(wr);
+- glossy:   kg * integral (g+2)/(2 pi) cos^g(angle(wi, wr)) L(wi) cos(theta_i) dwi,
+            sampled with M directions from the cos^g lobe around wr;
+- indirect: K diffuse paths per pixel (spread over the antialiasing samples), each
+            with ``indirect_bounces`` bounces and next-event estimation at every vertex.
+
+Randomness: every random number comes from numpy generators seeded with
+(seed, chunk, stage), so a render is deterministic for a given seed and chunk size.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numba as nb
+import numpy as np
+
+from .camera import camera_rays, pixel_centers, stratified_pixel_samples
+from .errors import InvalidInputError, NonFiniteOutputError
+from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
+from .scene import CameraParams, RuntimeScene
+
+INV_PI = 1.0 / math.pi
+
+# ray kinds in a wavefront batch
+KIND_CHAIN = 0  # camera ray or a mirror / glossy continuation of one
+KIND_PATH = 1  # an indirect (diffuse path) ray
+
+
+@dataclass(frozen=True)
+class ReferenceParams:
+    """Reference renderer settings.
+
+    spp: antialiasing samples per pixel (N), stratified, box filter.
+    max_depth: mirror / glossy recursion depth (0 = no reflections).
+    glossy_samples: M lobe samples per glossy hit (only the first glossy bounce
+        of a chain branches; deeper glossy bounces take one sample).
+    area_light_samples: samples per rectangular light per shading point, on a g x g
+        jittered grid with g = round(sqrt(value)).
+    indirect_samples: K indirect paths per pixel (0 = direct lighting only).
+    indirect_bounces: diffuse bounces per indirect path (>= 1).
+    seed: random seed; equal seeds give identical images.
+    chunk_pixels: pixels per wavefront chunk (memory bound and progress granularity).
+    """
+
+    spp: int = 4
+    max_depth: int = 4
+    glossy_samples: int = 16
+    area_light_samples: int = 16
+    indirect_samples: int = 0
+    indirect_bounces: int = 2
+    seed: int = 0
+    chunk_pixels: int = 16384
+
+    def __post_init__(self) -> None:
+        checks = {
+            "spp": (1, 4096), "max_depth": (0, 64), "glossy_samples": (1, 4096),
+            "area_light_samples": (1, 4096), "indirect_samples": (0, 1 << 16),
+            "indirect_bounces": (1, 64), "chunk_pixels": (1, 1 << 22),
+        }
+        for name, (lo, hi) in checks.items():
+            v = getattr(self, name)
+            if not isinstance(v, int) or not (lo <= v <= hi):
+                raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class RenderOutput:
+    """radiance (h, w, 3) float32 linear; depth (h, w) float32 distance along the pixel-centre
+    ray (0 where nothing is hit); normal (h, w, 3) float32 world shading normal facing the
+    camera; object_id / material_id (h, w) int32 (-1 where nothing is hit); timings in
+    seconds per stage; counts of rays per kind."""
+
+    radiance: np.ndarray
+    depth: np.ndarray
+    normal: np.ndarray
+    object_id: np.ndarray
+    material_id: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def coverage(self) -> np.ndarray:
+        return self.object_id >= 0
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.t: dict[str, float] = {}
+
+    def add(self, name: str, dt: float) -> None:
+        self.t[name] = self.t.get(name, 0.0) + dt
+
+
+# ============================================================================ kernels
+
+
+@nb.njit(cache=True, inline="always")
+def _dot(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@nb.njit(cache=True)
+def _offset_mag(px, py, pz, center, extent):
+    m = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
+    return OFFSET_REL * (m + OFFSET_EXTENT * extent)
+
+
+@nb.njit(cache=True)
+def _phong_pow(c, s):
+    # cos^s without 0/0 or overflow for huge s (HARD_CASES 8)
+    if c <= 0.0:
+        return 0.0
+    if c >= 1.0:
+        return 1.0
+    return math.exp(s * math.log(c))
+
+
+@nb.njit(cache=True, parallel=True)
+def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
+    """Hit point, and geometric / shading normals flipped to face the incoming ray."""
+    for i in nb.prange(prim.shape[0]):
+        t = prim[i]
+        w0 = 1.0 - u[i] - v[i]
+        for k in range(3):
+            p_out[i, k] = w0 * tri_p[t, 0, k] + u[i] * tri_p[t, 1, k] + v[i] * tri_p[t, 2, k]
+        g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
+        s0 = w0 * tri_n[t, 0, 0] + u[i] * tri_n[t, 1, 0] + v[i] * tri_n[t, 2, 0]
+        s1 = w0 * tri_n[t, 0, 1] + u[i] * tri_n[t, 1, 1] + v[i] * tri_n[t, 2, 1]
+        s2 = w0 * tri_n[t, 0, 2] + u[i] * tri_n[t, 1, 2] + v[i] * tri_n[t, 2, 2]
+        ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if ls > 1e-12:
+            s0 /= ls
+            s1 /= ls
+            s2 /= ls
+        else:
+            s0, s1, s2 = g0, g1, g2
+        if _dot(g0, g1, g2, d[i, 0], d[i, 1], d[i, 2]) > 0.0:  # back side: flip both
+            g0, g1, g2 = -g0, -g1, -g2
+            s0, s1, s2 = -s0, -s1, -s2
+        if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:  # shading normal on the wrong side
+            s0, s1, s2 = g0, g1, g2
+        ng_out[i, 0], ng_out[i, 1], ng_out[i, 2] = g0, g1, g2
+        ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
+
+
+@nb.njit(cache=True, parallel=True)
+def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
+                pt_pos, pt_int, dir_dir, dir_irr,
+                rc, ru, rv, rL, r2s, r_g, rnd,
+                center, extent, o_out, d_out, tmax_out, c_out):
+    """One shadow ray per (hit, light sample) with its unshadowed contribution.
+
+    Row layout per hit: point lights, directional lights, then rect lights x g*g samples.
+    rnd: (n, n_rect * g * g, 2) uniforms for the area-light jitter.
+    """
+    n = p.shape[0]
+    npt = pt_pos.shape[0]
+    ndir = dir_dir.shape[0]
+    nrect = rc.shape[0]
+    gg = r_g * r_g
+    per = npt + ndir + nrect * gg
+    for i in nb.prange(n):
+        m = mat[i]
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        wo0, wo1, wo2 = -d[i, 0], -d[i, 1], -d[i, 2]
+        c = _dot(n0, n1, n2, wo0, wo1, wo2)
+        wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
+        mag = _offset_mag(px, py, pz, center, extent)
+        ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
+        spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
+        has_spec = ks[m, 0] > 0 or ks[m, 1] > 0 or ks[m, 2] > 0
+        base = i * per
+        for j in range(per):
+            row = base + j
+            # direction to the light, distance, irradiance at the point (before BRDF)
+            if j < npt:
+                lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
+                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+                if dist <= 0.0:
+                    c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
+                    tmax_out[row] = 0.0
+                    continue
+                lx /= dist
+                ly /= dist
+                lz /= dist
+                inv_d2 = 1.0 / (dist * dist)
+                e0, e1, e2 = pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2, pt_int[j, 2] * inv_d2
+                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            elif j < npt + ndir:
+                q = j - npt
+                lx, ly, lz = -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2]
+                e0, e1, e2 = dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2]
+                tmax = 3.0e38
+            else:
+                q = (j - npt - ndir) // gg
+                s = (j - npt - ndir) % gg
+                sx = (s % r_g + rnd[i, q * gg + s, 0]) / r_g
+                sy = (s // r_g + rnd[i, q * gg + s, 1]) / r_g
+                yx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0]
+                yy = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1]
+                yz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2]
+                lx, ly, lz = yx - ox, yy - oy, yz - oz
+                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+                # light normal and area
+                a0 = ru[q, 1] * rv[q, 2] - ru[q, 2] * rv[q, 1]
+                a1 = ru[q, 2] * rv[q, 0] - ru[q, 0] * rv[q, 2]
+                a2 = ru[q, 0] * rv[q, 1] - ru[q, 1] * rv[q, 0]
+                area = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                if dist <= 0.0 or area <= 0.0:
+                    c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
+                    tmax_out[row] = 0.0
+                    continue
+                lx /= dist
+                ly /= dist
+                lz /= dist
+                cos_l = -(a0 * lx + a1 * ly + a2 * lz) / area
+                if r2s[q]:
+                    cos_l = abs(cos_l)
+                if cos_l <= 0.0:
+                    cos_l = 0.0
+                geo = cos_l * area / (dist * dist * gg)
+                e0, e1, e2 = rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo
+                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            cos_g = _dot(g0, g1, g2, lx, ly, lz)
+            cos_s = _dot(n0, n1, n2, lx, ly, lz)
+            o_out[row, 0], o_out[row, 1], o_out[row, 2] = ox, oy, oz
+            d_out[row, 0], d_out[row, 1], d_out[row, 2] = lx, ly, lz
+            tmax_out[row] = tmax
+            if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
+                c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
+                continue
+            fs = 0.0
+            if has_spec:
+                fs = spec_norm * _phong_pow(_dot(wr0, wr1, wr2, lx, ly, lz), shin[m])
+            c_out[row, 0] = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
+            c_out[row, 1] = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
+            c_out[row, 2] = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
+
+
+@nb.njit(cache=True)
+def _frame(n0, n1, n2):
+    # orthonormal basis around (n0, n1, n2) (Duff et al. 2017)
+    sign = 1.0 if n2 >= 0.0 else -1.0
+    a = -1.0 / (sign + n2)
+    b = n0 * n1 * a
+    return (1.0 + sign * n0 * n0 * a, sign * b, -sign * n0,
+            b, sign + n1 * n1 * a, -n1)
+
+
+@nb.njit(cache=True)
+def _lobe_dir(a0, a1, a2, cos_t, phi):
+    sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
+    t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
+    x = sin_t * math.cos(phi)
+    y = sin_t * math.sin(phi)
+    return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
+
+
+@nb.njit(cache=True, parallel=True)
+def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, count, lobe, rnd,
+           kd, kr, kg, gexp, center, extent,
+           o_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
+    """Secondary rays. For hit i, rows first[i] .. first[i] + count[i], lobe per row:
+    0 mirror, 1 glossy, 2 diffuse (cosine-weighted). Weights already include the
+    division by the number of samples and by lobe-choice probabilities (baked into
+    ``lobe`` planning on the Python side via the weight scale in rnd[..., 2])."""
+    for i in nb.prange(p.shape[0]):
+        m = mat[i]
+        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        wo0, wo1, wo2 = -d[i, 0], -d[i, 1], -d[i, 2]
+        c = _dot(n0, n1, n2, wo0, wo1, wo2)
+        wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
+        lr = math.sqrt(wr0 * wr0 + wr1 * wr1 + wr2 * wr2)
+        wr0 /= lr
+        wr1 /= lr
+        wr2 /= lr
+        mag = _offset_mag(p[i, 0], p[i, 1], p[i, 2], center, extent)
+        for r in range(first[i], first[i] + count[i]):
+            lb = lobe[r]
+            scale = rnd[r, 2]
+            f0 = f1 = f2 = 0.0
+            x0, x1, x2 = wr0, wr1, wr2
+            if lb == 0:
+                f0, f1, f2 = kr[m, 0], kr[m, 1], kr[m, 2]
+            elif lb == 1:
+                ge = gexp[m]
+                cos_a = math.exp(math.log(max(rnd[r, 0], 1e-300)) / (ge + 1.0))
+                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * rnd[r, 1])
+                cos_i = _dot(n0, n1, n2, x0, x1, x2)
+                if cos_i > 0.0:
+                    k = (ge + 2.0) / (ge + 1.0) * cos_i
+                    f0, f1, f2 = kg[m, 0] * k, kg[m, 1] * k, kg[m, 2] * k
+            else:
+                cos_t = math.sqrt(rnd[r, 0])
+                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * rnd[r, 1])
+                f0, f1, f2 = kd[m, 0], kd[m, 1], kd[m, 2]
+            if _dot(g0, g1, g2, x0, x1, x2) <= 0.0:  # below the geometric surface
+                f0 = f1 = f2 = 0.0
+            ln = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+            x0 /= ln
+            x1 /= ln
+            x2 /= ln
+            o_out[r, 0] = p[i, 0] + mag * g0
+            o_out[r, 1] = p[i, 1] + mag * g1
+            o_out[r, 2] = p[i, 2] + mag * g2
+            d_out[r, 0], d_out[r, 1], d_out[r, 2] = x0, x1, x2
+            w_out[r, 0] = weight[i, 0] * f0 * scale
+            w_out[r, 1] = weight[i, 1] * f1 * scale
+            w_out[r, 2] = weight[i, 2] * f2 * scale
+            pix_out[r] = pix[i]
+            # every diffuse bounce and every continuation of a path uses up one bounce
+            if kind[i] == KIND_PATH or lb == 2:
+                bounces_out[r] = bounces[i] - 1
+            else:
+                bounces_out[r] = bounces[i]
+            kind_out[r] = KIND_PATH if lb == 2 else kind[i]
+            depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
+
+
+# ============================================================================ driver
+
+
+def _accumulate(acc: np.ndarray, pix: np.ndarray, contrib: np.ndarray) -> None:
+    if pix.size == 0:
+        return
+    n = acc.shape[0]
+    for c in range(3):
+        acc[:, c] += np.bincount(pix, weights=contrib[:, c], minlength=n)
+
+
+class ReferenceRenderer:
+    """Reusable renderer bound to one scene (keeps its Embree scene warm)."""
+
+    def __init__(self, scene: RuntimeScene, caster: RayCaster | None = None):
+        self.scene = scene
+        self.caster = caster if caster is not None else make_caster(scene, "embree")
+
+    # ------------------------------------------------------------------ public
+    def render(self, camera: CameraParams, params: ReferenceParams | None = None,
+               progress: Callable[[float, str], None] | None = None) -> RenderOutput:
+        """Render ``camera`` view; raises NonFiniteOutputError if any pixel is NaN/Inf."""
+        params = params or ReferenceParams()
+        timer = _Timer()
+        counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
+        t0 = time.perf_counter()
+        if hasattr(self.caster, "_get"):
+            self.caster._get()  # build the BVH now so its cost is reported on its own
+        timer.add("bvh_build", time.perf_counter() - t0)
+
+        w, h = camera.width, camera.height
+        npix = w * h
+        acc = np.zeros((npix, 3))
+        aov = self._aovs(camera, timer)
+        chunk = params.chunk_pixels
+        n_chunks = (npix + chunk - 1) // chunk
+        for ci in range(n_chunks):
+            ids = np.arange(ci * chunk, min(npix, (ci + 1) * chunk))
+            self._render_chunk(camera, params, ids, ci, acc, timer, counts)
+            if progress is not None:
+                progress((ci + 1) / n_chunks, "render")
+        radiance = (acc / params.spp).reshape(h, w, 3)
+        bad = ~np.isfinite(radiance)
+        if np.any(bad):
+            raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
+        timer.add("total", time.perf_counter() - t0)
+        depth, normal, oid, mid = aov
+        return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts)
+
+    # ------------------------------------------------------------------ stages
+    def _aovs(self, camera: CameraParams, timer: _Timer):
+        sc = self.scene
+        px, py = pixel_centers(camera)
+        o, d = camera_rays(camera, px, py)
+        t0 = time.perf_counter()
+        hits = self.caster.intersect(o, d)
+        timer.add("intersect", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        h, w = camera.height, camera.width
+        hit = hits.prim >= 0
+        depth = np.where(hit, hits.t, 0.0).astype(np.float32).reshape(h, w)
+        prim = np.where(hit, hits.prim, 0)
+        oid = np.where(hit, sc.tri_object[prim] if sc.n_triangles else -1, -1).astype(np.int32).reshape(h, w)
+        mid = np.where(hit, sc.tri_material[prim] if sc.n_triangles else -1, -1).astype(np.int32).reshape(h, w)
+        normal = np.zeros((h * w, 3))
+        if np.any(hit):
+            idx = np.nonzero(hit)[0]
+            p = np.empty((idx.size, 3))
+            ng = np.empty((idx.size, 3))
+            ns = np.empty((idx.size, 3))
+            _surface(d[idx], hits.prim[idx], hits.u[idx], hits.v[idx], sc.tri_p, sc.tri_n, sc.tri_ng,
+                     p, ng, ns)
+            normal[idx] = ns
+        timer.add("aov", time.perf_counter() - t0)
+        return depth, normal.reshape(h, w, 3).astype(np.float32), oid, mid
+
+    def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts) -> None:
+        sc = self.scene
+        mt = sc.materials
+        lt = sc.lights
+        t0 = time.perf_counter()
+        rng_cam = np.random.default_rng([params.seed, ci, 0])
+        px, py, pix = stratified_pixel_samples(camera, ids, params.spp, rng_cam)
+        o, d = camera_rays(camera, px, py)
+        n = o.shape[0]
+        weight = np.ones((n, 3))
+        kind = np.zeros(n, np.int8)
+        depth = np.zeros(n, np.int32)
+        bounces = np.full(n, params.indirect_bounces, np.int32)
+        counts["camera"] += n
+        timer.add("camera_rays", time.perf_counter() - t0)
+        # K paths per pixel spread over the spp camera samples
+        k_per_hit = 0
+        if params.indirect_samples > 0:
+            k_per_hit = max(1, math.ceil(params.indirect_samples / params.spp))
+        r_g = max(1, int(round(math.sqrt(params.area_light_samples))))
+        it = 0
+        while n > 0:
+            it += 1
+            t0 = time.perf_counter()
+            hits = self.caster.intersect(o, d)
+            timer.add("intersect", time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            hit = hits.prim >= 0
+            miss = ~hit
+            if np.any(miss) and np.any(sc.background > 0):
+                _accumulate(acc, pix[miss], weight[miss] * sc.background[None, :])
+            idx = np.nonzero(hit)[0]
+            if idx.size == 0:
+                timer.add("shading", time.perf_counter() - t0)
+                break
+            d_h, w_h, kind_h, depth_h = d[idx], weight[idx], kind[idx], depth[idx]
+            bnc_h, pix_h, prim_h = bounces[idx], pix[idx], hits.prim[idx]
+            m = len(idx)
+            p = np.empty((m, 3))
+            ng = np.empty((m, 3))
+            ns = np.empty((m, 3))
+            _surface(d_h, prim_h, hits.u[idx], hits.v[idx], sc.tri_p, sc.tri_n, sc.tri_ng, p, ng, ns)
+            mat = sc.tri_material[prim_h]
+            chain = kind_h == KIND_CHAIN
+            # emission and ambient where camera / specular chains land
+            if np.any(chain):
+                em = mt.emission[mat[chain]] + mt.kd[mat[chain]] * sc.ambient[None, :]
+                if np.any(em > 0):
+                    _accumulate(acc, pix_h[chain], w_h[chain] * em)
+            timer.add("shading", time.perf_counter() - t0)
+
+            # ---- direct light (next-event estimation) at every hit
+            if lt.count:
+                self._direct(params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts)
+
+            # ---- secondary rays
+            t0 = time.perf_counter()
+            nxt = self._plan_secondary(params, ci, it, mat, kind_h, depth_h, bnc_h, k_per_hit)
+            if nxt is None:
+                timer.add("shading", time.perf_counter() - t0)
+                break
+            first, count, lobe, rnd = nxt
+            tot = int(count.sum())
+            o2 = np.empty((tot, 3))
+            d2 = np.empty((tot, 3))
+            w2 = np.empty((tot, 3))
+            kind2 = np.empty(tot, np.int8)
+            depth2 = np.empty(tot, np.int32)
+            bnc2 = np.empty(tot, np.int32)
+            pix2 = np.empty(tot, np.int64)
+            _spawn(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, count, lobe, rnd,
+                   mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
+                   o2, d2, w2, kind2, depth2, bnc2, pix2)
+            live = np.any(w2 > 0, axis=1)
+            o, d, weight = o2[live], d2[live], w2[live]
+            kind, depth, bounces, pix = kind2[live], depth2[live], bnc2[live], pix2[live]
+            n = o.shape[0]
+            counts["reflection"] += int(np.sum(kind == KIND_CHAIN))
+            counts["indirect"] += int(np.sum(kind == KIND_PATH))
+            timer.add("shading", time.perf_counter() - t0)
+
+    def _direct(self, params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts):
+        sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
+        gg = r_g * r_g
+        per = lt.n_point + lt.n_directional + lt.n_rect * gg
+        m = p.shape[0]
+        # bound memory: process hits in slices of at most ~2M shadow rays
+        step = max(1, (1 << 21) // per)
+        for s in range(0, m, step):
+            t0 = time.perf_counter()
+            sl = slice(s, min(m, s + step))
+            k = sl.stop - sl.start
+            rnd = np.random.default_rng([params.seed, ci, it, 1, s]).random((k, lt.n_rect * gg, 2))
+            rows = k * per
+            so = np.empty((rows, 3))
+            sd = np.empty((rows, 3))
+            tmax = np.empty(rows)
+            contrib = np.empty((rows, 3))
+            _light_rays(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
+                        lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
+                        lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, lt.rect_radiance, lt.rect_two_sided,
+                        r_g, rnd, sc.center, sc.extent, so, sd, tmax, contrib)
+            live = np.nonzero(np.any(contrib > 0, axis=1))[0]
+            timer.add("shading", time.perf_counter() - t0)
+            if live.size == 0:
+                continue
+            t0 = time.perf_counter()
+            occ = self.caster.occluded(so[live], sd[live], tmax[live])
+            timer.add("shadow", time.perf_counter() - t0)
+            counts["shadow"] += int(live.size)
+            t0 = time.perf_counter()
+            vis = live[~occ]
+            _accumulate(acc, np.repeat(pix_h[sl], per)[vis], contrib[vis])
+            timer.add("shading", time.perf_counter() - t0)
+
+    def _plan_secondary(self, params, ci, it, mat, kind_h, depth_h, bnc_h, k_per_hit):
+        """Decide how many secondary rays each hit spawns and with which lobe."""
+        mt = self.scene.materials
+        chain = kind_h == KIND_CHAIN
+        has_kr = np.any(mt.kr[mat] > 0, axis=1)
+        has_kg = np.any(mt.kg[mat] > 0, axis=1)
+        has_kd = np.any(mt.kd[mat] > 0, axis=1)
+        can_reflect = depth_h < params.max_depth
+        # chain rays: mirror (1), glossy (M at the first glossy bounce, then 1), indirect (K')
+        n_mirror = (chain & has_kr & can_reflect).astype(np.int64)
+        m_gl = np.where(depth_h == 0, params.glossy_samples, 1)
+        n_glossy = np.where(chain & has_kg & can_reflect, m_gl, 0).astype(np.int64)
+        n_ind = np.where(chain & has_kd, k_per_hit, 0).astype(np.int64)
+        # path rays continue with one ray while bounces remain, lobe chosen by albedo
+        path = (~chain) & (bnc_h > 0)
+        n_path = (path & (has_kd | has_kr | has_kg)).astype(np.int64)
+        count = n_mirror + n_glossy + n_ind + n_path
+        tot = int(count.sum())
+        if tot == 0:
+            return None
+        first = np.zeros(count.shape[0], np.int64)
+        np.cumsum(count[:-1], out=first[1:])
+        lobe = np.empty(tot, np.int8)
+        scale = np.ones(tot)
+        rng = np.random.default_rng([params.seed, ci, it, 2])
+        rnd = np.empty((tot, 3))
+        rnd[:, :2] = rng.random((tot, 2))
+        # fill lobes: for each hit rows are [mirror][glossy...][indirect...] or [path]
+        row_hit = np.repeat(np.arange(count.shape[0]), count)
+        local = np.arange(tot) - first[row_hit]
+        nm, ngl, nin = n_mirror[row_hit], n_glossy[row_hit], n_ind[row_hit]
+        is_mirror = local < nm
+        is_glossy = (~is_mirror) & (local < nm + ngl)
+        is_ind = (~is_mirror) & (~is_glossy) & (local < nm + ngl + nin)
+        is_path = ~(is_mirror | is_glossy | is_ind)
+        lobe[is_mirror] = 0
+        lobe[is_glossy] = 1
+        scale[is_glossy] = 1.0 / ngl[is_glossy]
+        lobe[is_ind] = 2
+        scale[is_ind] = 1.0 / nin[is_ind]
+        if np.any(is_path):
+            pm = mat[row_hit[is_path]]
+            a = np.stack([mt.kd[pm].mean(1), mt.kr[pm].mean(1), mt.kg[pm].mean(1)], axis=1)
+            a /= a.sum(axis=1, keepdims=True)
+            u = rng.random(a.shape[0])
+            choice = np.where(u < a[:, 0], 2, np.where(u < a[:, 0] + a[:, 1], 0, 1)).astype(np.int8)
+            prob = np.where(choice == 2, a[:, 0], np.where(choice == 0, a[:, 1], a[:, 2]))
+            lobe[is_path] = choice
+            scale[is_path] = 1.0 / prob
+        rnd[:, 2] = scale
+        return first, count, lobe, rnd
+
+
+def render_reference(scene: RuntimeScene, camera: CameraParams, params: ReferenceParams | None = None,
+                     backend: str = "embree",
+                     progress: Callable[[float, str], None] | None = None) -> RenderOutput:
+    """Convenience wrapper: build a caster for ``scene`` and render one view."""
+    return ReferenceRenderer(scene, make_caster(scene, backend)).render(camera, params, progress)
