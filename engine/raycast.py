@@ -247,7 +247,7 @@ class ReferenceCaster:
                 qvec = np.cross(tvec, e1[None])
                 v = np.einsum("ijk,ijk->ij", np.broadcast_to(dd, qvec.shape), qvec) * inv
                 t = np.einsum("ijk,jk->ij", qvec, e2) * inv
-            ok = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & np.isfinite(t)
+                ok = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & np.isfinite(t)
             t = np.where(ok, t, np.inf)
             j = np.argmin(t, axis=1)
             rows = np.arange(t.shape[0])

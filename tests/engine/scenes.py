@@ -1,0 +1,72 @@
+"""Small hand-built runtime scenes for engine tests (no schema, no files)."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from engine.geometry.mesh import TriMesh
+from engine.scene import LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
+
+
+def mat(name="m", kd=(0.5, 0.5, 0.5), ks=(0, 0, 0), shininess=0.0, kr=(0, 0, 0), kg=(0, 0, 0),
+        gloss_exponent=0.0, emission=(0, 0, 0)) -> dict:
+    return dict(name=name, kd=kd, ks=ks, shininess=shininess, kr=kr, kg=kg,
+                gloss_exponent=gloss_exponent, emission=emission)
+
+
+def from_trimesh(m: trimesh.Trimesh, smooth: bool = True) -> TriMesh:
+    v = np.asarray(m.vertices, dtype=np.float64)
+    f = np.asarray(m.faces, dtype=np.int32)
+    n = np.asarray(m.vertex_normals if smooth else np.zeros_like(v), dtype=np.float64)
+    if not smooth:
+        # flat: unshare vertices so every corner carries its face normal
+        v = v[f].reshape(-1, 3)
+        n = np.repeat(np.asarray(m.face_normals, dtype=np.float64), 3, axis=0)
+        f = np.arange(v.shape[0], dtype=np.int32).reshape(-1, 3)
+    return TriMesh(np.ascontiguousarray(v), np.ascontiguousarray(f), np.ascontiguousarray(n))
+
+
+def quad(center, size, normal_axis=1, flip=False) -> TriMesh:
+    """Axis-aligned square facing +axis (or -axis when flip)."""
+    c = np.asarray(center, dtype=np.float64)
+    a, b = [k for k in range(3) if k != normal_axis]
+    h = 0.5 * size
+    corners = []
+    for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        p = c.copy()
+        p[a] += sa * h
+        p[b] += sb * h
+        corners.append(p)
+    v = np.array(corners)
+    f = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+    e = np.cross(v[1] - v[0], v[2] - v[0])
+    want = np.zeros(3)
+    want[normal_axis] = -1.0 if flip else 1.0
+    if np.dot(e, want) < 0:
+        f = f[:, ::-1].copy()
+    n = np.tile(want, (4, 1))
+    return TriMesh(v, f, n)
+
+
+def scene(parts: list[tuple[TriMesh, dict]], lights: list[dict] | None = None, ambient=(0, 0, 0),
+          background=(0, 0, 0)):
+    mats = [p[1] for p in parts]
+    names = []
+    rows = []
+    for m in mats:
+        if m["name"] not in names:
+            names.append(m["name"])
+            rows.append(m)
+    objs = [SceneObjectPart(f"o{i}", mesh, names.index(m["name"])) for i, (mesh, m) in enumerate(parts)]
+    return build_runtime_scene(objs, MaterialTable.from_rows(rows), LightTable.from_rows(lights or []),
+                               ambient=ambient, background=background)
+
+
+def sphere_mesh(center=(0, 0, 0), radius=1.0, subdivisions=4, jitter=0.0, seed=0) -> TriMesh:
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    if jitter:
+        rng = np.random.default_rng(seed)
+        m.vertices = m.vertices * (1.0 + jitter * rng.uniform(-1, 1, (len(m.vertices), 1)))
+    m.apply_translation(center)
+    return from_trimesh(m)
