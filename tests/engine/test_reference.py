@@ -1,0 +1,198 @@
+"""Reference renderer against closed-form answers, and HARD_CASES 7, 8, 12, 13."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from engine.errors import NonFiniteOutputError
+from engine.reference import ReferenceParams, render_reference
+from engine.scene import CameraParams
+from tests.engine.scenes import mat, quad, scene, sphere_mesh
+
+DOWN = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 16, 16, ortho_height=1.0)
+
+
+def test_directional_light_on_diffuse_plane_is_exact():
+    kd = (0.2, 0.5, 0.8)
+    E = np.array([1.0, 2.0, 3.0])
+    d = np.array([0.3, -1.0, 0.2])
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=kd))],
+               [dict(type="directional", direction=tuple(d), irradiance=tuple(E))])
+    out = render_reference(sc, DOWN, ReferenceParams(spp=1))
+    cos = 1.0 / np.linalg.norm(d)
+    want = np.array(kd) / math.pi * E * cos
+    np.testing.assert_allclose(out.radiance.reshape(-1, 3), np.tile(want, (256, 1)), rtol=1e-5)
+    assert out.coverage.all()
+    np.testing.assert_allclose(out.depth, 5.0, rtol=1e-6)
+    np.testing.assert_allclose(out.normal[..., 1], 1.0, rtol=1e-6)
+
+
+def test_point_light_inverse_square_and_cosine():
+    I, h = 7.0, 0.8
+    cam = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 64, 64, ortho_height=2.0)
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))],
+               [dict(type="point", position=(0.0, h, 0.0), intensity=(I, I, I))])
+    out = render_reference(sc, cam, ReferenceParams(spp=16))
+    # analytic radiance averaged over each pixel footprint (8x8 sub-samples)
+    px = (np.arange(64 * 8) + 0.5) / (64 * 8) * 2.0 - 1.0
+    X, Z = np.meshgrid(px, px)
+    d2 = X ** 2 + Z ** 2 + h ** 2
+    L = I / math.pi * h / d2 ** 1.5
+    want = L.reshape(64, 8, 64, 8).mean(axis=(1, 3))
+    np.testing.assert_allclose(out.radiance[..., 0], want, rtol=5e-3)
+
+
+def _corner_factor(a, b, c):
+    """Form factor from a point to an a x b rectangle above one corner at height c (parallel)."""
+    A, B = a / math.hypot(a, c), b / math.hypot(b, c)
+    return (A * math.atan(b / math.hypot(a, c)) + B * math.atan(a / math.hypot(b, c))) / (2 * math.pi)
+
+
+@pytest.mark.parametrize("two_sided", [False, True])
+def test_rect_light_matches_form_factor(two_sided):
+    Le, a, b, h = 3.0, 1.0, 0.6, 0.5
+    cam = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 8, 8, ortho_height=0.01)
+    # edges chosen so cross(edge_u, edge_v) points down (-y): the light faces the floor
+    light = dict(type="rect", corner=(-a / 2, h, -b / 2), edge_u=(a, 0.0, 0.0), edge_v=(0.0, 0.0, b),
+                 radiance=(Le, Le, Le), two_sided=two_sided)
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))], [light])
+    out = render_reference(sc, cam, ReferenceParams(spp=16, area_light_samples=64))
+    E = math.pi * Le * 4 * _corner_factor(a / 2, b / 2, h)
+    assert out.radiance[..., 0].mean() == pytest.approx(E / math.pi, rel=1e-2)
+    # the back of a one-sided light emits nothing
+    flipped = dict(light, edge_u=light["edge_v"], edge_v=light["edge_u"])
+    sc2 = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))], [flipped])
+    out2 = render_reference(sc2, cam, ReferenceParams(spp=4, area_light_samples=16))
+    if two_sided:
+        assert out2.radiance.mean() > 0
+    else:
+        assert out2.radiance.max() == 0.0
+
+
+@pytest.mark.parametrize("n", [1.0, 50.0, 1e4, 1e6])
+def test_phong_peak_is_normalised_for_any_exponent(n):
+    """HARD_CASES 8: peak = ks (n+2)/(2 pi) E, finite even for n = 1e6."""
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(0, 0, 0), ks=(1, 1, 1), shininess=n))],
+               [dict(type="directional", direction=(0.0, -1.0, 0.0), irradiance=(1.0, 1.0, 1.0))])
+    out = render_reference(sc, DOWN, ReferenceParams(spp=1))
+    assert np.all(np.isfinite(out.radiance))
+    np.testing.assert_allclose(out.radiance, (n + 2) / (2 * math.pi), rtol=1e-5)
+    # tilted light: far off the lobe the highlight vanishes without NaN
+    sc2 = scene([(quad((0, 0, 0), 4.0), mat(kd=(0, 0, 0), ks=(1, 1, 1), shininess=n))],
+                [dict(type="directional", direction=(1.0, -1.0, 0.0), irradiance=(1.0, 1.0, 1.0))])
+    out2 = render_reference(sc2, DOWN, ReferenceParams(spp=1))
+    assert np.all(np.isfinite(out2.radiance))
+    expect = (n + 2) / (2 * math.pi) * math.cos(math.pi / 4) ** n * math.cos(math.pi / 4)
+    np.testing.assert_allclose(out2.radiance, expect, rtol=1e-5, atol=1e-300)
+
+
+def _mirror_setup(**floor):
+    """A lit diffuse wall seen in a reflecting floor."""
+    wall = quad((0.0, 0.0, -1.0), 20.0, normal_axis=2)
+    floor_mesh = quad((0.0, -0.5, 0.0), 20.0)
+    lights = [dict(type="directional", direction=(0.0, 0.0, -1.0), irradiance=(2.0, 2.0, 2.0))]
+    return scene([(wall, mat("w", kd=(0.8, 0.4, 0.2))), (floor_mesh, mat("f", kd=(0, 0, 0), **floor))],
+                 lights)
+
+
+def test_glossy_with_huge_exponent_converges_to_mirror():
+    cam = CameraParams("perspective", (0.0, 0.0, 2.0), (0.0, -0.5, 0.0), (0, 1, 0), 24, 24, fov_y_deg=20)
+    mirror = render_reference(_mirror_setup(kr=(0.9, 0.9, 0.9)), cam, ReferenceParams(spp=1))
+    glossy = render_reference(_mirror_setup(kg=(0.9, 0.9, 0.9), gloss_exponent=1e6), cam,
+                              ReferenceParams(spp=1, glossy_samples=4))
+    assert np.all(np.isfinite(glossy.radiance))
+    floor_px = mirror.object_id == 1
+    assert floor_px.sum() > 50
+    # glossy weight carries cos(theta_i); the ideal mirror doesn't (ALGORITHMS.md material model)
+    d = glossy.radiance[floor_px] / np.maximum(mirror.radiance[floor_px], 1e-12)
+    assert np.all(d > 0.1) and np.all(d <= 1.0 + 1e-3)
+
+
+def test_mirror_facing_mirror_stops_at_depth_and_stays_bounded():
+    """HARD_CASES 7: two parallel mirrors; energy grows with depth but never past the limit."""
+    kr = 0.8
+    m = mat("mir", kd=(0.1, 0.1, 0.1), kr=(kr, kr, kr))
+    a = quad((0.0, 0.0, -1.0), 50.0, normal_axis=2)
+    b = quad((0.0, 0.0, 1.0), 50.0, normal_axis=2, flip=True)
+    lights = [dict(type="point", position=(0.0, 0.0, 0.0), intensity=(1.0, 1.0, 1.0))]
+    sc = scene([(a, m), (b, m)], lights)
+    cam = CameraParams("perspective", (0.0, 0.3, 0.5), (0.2, 0.3, -1.0), (0, 1, 0), 8, 8, fov_y_deg=30)
+    prev = None
+    l0 = None
+    for depth in (0, 1, 2, 4, 8, 16):
+        out = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=depth))
+        assert np.all(np.isfinite(out.radiance))
+        assert out.counts["reflection"] <= depth * 64
+        if l0 is None:
+            l0 = out.radiance.max()
+        if prev is not None:
+            assert np.all(out.radiance >= prev - 1e-7)
+        # every bounce picks up at most kr^k of the brightest directly lit radiance
+        assert out.radiance.max() <= l0 / (1 - kr) + 1e-6
+        prev = out.radiance
+
+
+def test_empty_scene_is_background():
+    sc = scene([], background=(0.1, 0.2, 0.3))
+    out = render_reference(sc, DOWN, ReferenceParams(spp=2))
+    np.testing.assert_allclose(out.radiance.reshape(-1, 3), np.tile([0.1, 0.2, 0.3], (256, 1)), rtol=1e-6)
+    assert not out.coverage.any()
+    assert (out.depth == 0).all()
+
+
+def test_no_lights_gives_ambient_only_and_zero_light_gives_black():
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(0.5, 0.25, 1.0)))], [], ambient=(0.2, 0.2, 0.2))
+    out = render_reference(sc, DOWN, ReferenceParams(spp=1, indirect_samples=2))
+    np.testing.assert_allclose(out.radiance[..., 0], 0.1, rtol=1e-6)
+    np.testing.assert_allclose(out.radiance[..., 2], 0.2, rtol=1e-6)
+    sc0 = scene([(quad((0, 0, 0), 4.0), mat())], [dict(type="point", position=(0, 1, 0), intensity=(0, 0, 0))])
+    assert render_reference(sc0, DOWN, ReferenceParams(spp=1)).radiance.max() == 0.0
+
+
+def test_non_finite_result_fails_the_render():
+    """HARD_CASES 13: an overflowing light makes the render fail loudly, never an Inf image."""
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))],
+               [dict(type="point", position=(0, 1e-3, 0), intensity=(1e307, 1e307, 1e307))])
+    with pytest.raises(NonFiniteOutputError):
+        render_reference(sc, DOWN, ReferenceParams(spp=1))
+
+
+def test_deterministic_for_a_seed():
+    lights = [dict(type="rect", corner=(-0.5, 1.0, -0.5), edge_u=(1.0, 0, 0), edge_v=(0, 0, 1.0),
+                   radiance=(2, 2, 2))]
+    sc = scene([(quad((0, 0, 0), 4.0), mat()), (sphere_mesh((0, 0.3, 0), 0.2, 2), mat())], lights)
+    p = ReferenceParams(spp=2, area_light_samples=4, indirect_samples=2, seed=3)
+    a = render_reference(sc, DOWN, p).radiance
+    b = render_reference(sc, DOWN, p).radiance
+    c = render_reference(sc, DOWN, ReferenceParams(spp=2, area_light_samples=4, indirect_samples=2, seed=4))
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c.radiance)
+
+
+def test_embree_and_reference_backends_render_the_same_image():
+    lights = [dict(type="point", position=(1.0, 2.0, 1.0), intensity=(3, 3, 3))]
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kr=(0.3, 0.3, 0.3))),
+                (sphere_mesh((0, 0.3, 0), 0.3, 2), mat("s", kd=(0.6, 0.2, 0.2), ks=(0.3, 0.3, 0.3),
+                                                        shininess=20))], lights)
+    cam = CameraParams("perspective", (0, 1, 2), (0, 0.2, 0), (0, 1, 0), 12, 12, fov_y_deg=40)
+    p = ReferenceParams(spp=1)
+    a = render_reference(sc, cam, p, backend="embree")
+    b = render_reference(sc, cam, p, backend="reference")
+    np.testing.assert_allclose(a.radiance, b.radiance, rtol=1e-4, atol=1e-6)
+    assert np.array_equal(a.object_id, b.object_id)
+
+
+@pytest.mark.parametrize("bounces", [1, 3])
+def test_indirect_light_inside_a_sphere_matches_the_series(bounces):
+    """Inside a closed diffuse sphere of albedo a with a point light at its centre, every
+    bounce adds a^k of the direct radiance: L_B = a/pi * I/R^2 * sum_{k=0..B} a^k."""
+    a, I, R = 0.5, 1.0, 1.0
+    sc = scene([(sphere_mesh(radius=R, subdivisions=5), mat(kd=(a, a, a)))],
+               [dict(type="point", position=(0, 0, 0), intensity=(I, I, I))])
+    cam = CameraParams("perspective", (0, 0, 0.2), (0, 0, -1), (0, 1, 0), 8, 8, fov_y_deg=60)
+    out = render_reference(sc, cam, ReferenceParams(spp=4, indirect_samples=256, indirect_bounces=bounces))
+    want = a / math.pi * I / R ** 2 * sum(a ** k for k in range(bounces + 1))
+    assert out.radiance.mean() == pytest.approx(want, rel=0.02)
