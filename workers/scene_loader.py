@@ -1,0 +1,131 @@
+"""Turn a validated ``api_schemas.Scene`` into the engine's runtime scene.
+
+This is the one place where schema types meet engine types: primitives are
+tessellated, mesh files loaded and validated (with their reports kept for the
+job result), transforms applied, and materials / lights flattened to arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from api_schemas.scene import (
+    BoxObject,
+    CylinderObject,
+    DiskObject,
+    InlineMeshObject,
+    MeshFileObject,
+    OrthographicCamera,
+    PlaneObject,
+    Scene,
+    SphereObject,
+    scene_hash,
+)
+from engine.errors import InvalidInputError, MeshValidationError
+from engine.geometry import meshio, primitives
+from engine.geometry.mesh import TriMesh
+from engine.scene import (
+    CameraParams,
+    LightTable,
+    MaterialTable,
+    RuntimeScene,
+    SceneObjectPart,
+    build_runtime_scene,
+)
+
+# Resolves a mesh_file path to (bytes, file type); lets the service serve uploads
+# from the object store while the CLI reads from a directory.
+MeshResolver = Callable[[str], tuple[bytes, str]]
+
+
+@dataclass
+class LoadedScene:
+    """A runtime scene plus what loading it found out."""
+
+    runtime: RuntimeScene
+    camera: CameraParams
+    scene_hash: str
+    mesh_reports: list[dict] = field(default_factory=list)
+
+
+def camera_params(cam) -> CameraParams:
+    """Engine camera parameters from a schema camera."""
+    if isinstance(cam, OrthographicCamera):
+        return CameraParams("orthographic", tuple(cam.eye), tuple(cam.look_at), tuple(cam.up),
+                            cam.width, cam.height, ortho_height=cam.ortho_height)
+    return CameraParams("perspective", tuple(cam.eye), tuple(cam.look_at), tuple(cam.up),
+                        cam.width, cam.height, fov_y_deg=cam.fov_y_deg)
+
+
+def directory_resolver(base_dir: str | Path) -> MeshResolver:
+    """Resolve mesh paths inside ``base_dir`` only (the schema already forbids '..' and
+    absolute paths; this re-checks after symlink resolution)."""
+    root = Path(base_dir).resolve()
+
+    def resolve(rel: str) -> tuple[bytes, str]:
+        p = (root / PurePosixPath(rel)).resolve()
+        if root not in p.parents and p != root:
+            raise MeshValidationError(f"{rel}: path leaves the scene directory", source=rel)
+        if not p.is_file():
+            raise MeshValidationError(f"{rel}: mesh file not found", source=rel)
+        size = p.stat().st_size
+        if size > meshio.DEFAULT_MAX_MESH_BYTES:
+            raise MeshValidationError(f"{rel}: file is {size} bytes, over the {meshio.DEFAULT_MAX_MESH_BYTES} limit",
+                                      source=rel)
+        return p.read_bytes(), p.suffix.lower().lstrip(".")
+
+    return resolve
+
+
+def _object_mesh(obj, resolver: MeshResolver | None, reports: list[dict], index: int) -> TriMesh:
+    if isinstance(obj, SphereObject):
+        return primitives.sphere(obj.center, obj.radius, obj.subdivisions)
+    if isinstance(obj, BoxObject):
+        return primitives.box(obj.center, obj.size)
+    if isinstance(obj, CylinderObject):
+        return primitives.cylinder(obj.center, obj.radius, obj.height, obj.segments, obj.capped)
+    if isinstance(obj, PlaneObject):
+        return primitives.plane(obj.center, obj.size, obj.segments)
+    if isinstance(obj, DiskObject):
+        return primitives.disk(obj.center, obj.radius, obj.segments)
+    if isinstance(obj, InlineMeshObject):
+        mesh, rep = meshio.validate_mesh(np.asarray(obj.vertices, dtype=np.float64),
+                                         np.asarray(obj.faces, dtype=np.int64),
+                                         None if obj.normals is None else np.asarray(obj.normals, np.float64),
+                                         source=f"objects.{index}", on_invalid="clean")
+        reports.append(rep.to_dict())
+        return mesh
+    if isinstance(obj, MeshFileObject):
+        if resolver is None:
+            raise MeshValidationError(f"objects.{index}.path: no mesh files available to resolve {obj.path!r}",
+                                      source=obj.path)
+        data, ftype = resolver(obj.path)
+        mesh, rep = meshio.load_mesh_bytes(data, file_type=ftype, source=obj.path, on_invalid=obj.on_invalid)
+        reports.append(rep.to_dict())
+        return mesh
+    raise InvalidInputError(f"objects.{index}: unsupported object type {type(obj).__name__}")
+
+
+def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScene:
+    """Build the runtime scene. Raises MeshValidationError / InvalidInputError naming the object."""
+    mat_index = {m.name: i for i, m in enumerate(scene.materials)}
+    materials = MaterialTable.from_rows([m.model_dump() for m in scene.materials])
+    parts: list[SceneObjectPart] = []
+    reports: list[dict] = []
+    for i, obj in enumerate(scene.objects):
+        try:
+            mesh = _object_mesh(obj, resolver, reports, i)
+        except (MeshValidationError, InvalidInputError) as exc:
+            if str(exc).startswith("objects."):
+                raise
+            raise type(exc)(f"objects.{i}: {exc}") from exc
+        mesh = mesh.transformed(obj.transform.to_matrix())
+        parts.append(SceneObjectPart(obj.name or f"object{i}", mesh, mat_index[obj.material]))
+    lights = LightTable.from_rows([lt.model_dump() for lt in scene.lights])
+    runtime = build_runtime_scene(parts, materials, lights, ambient=tuple(scene.ambient),
+                                  background=tuple(scene.background))
+    return LoadedScene(runtime, camera_params(scene.camera), scene_hash(scene), reports)
