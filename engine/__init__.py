@@ -4,4 +4,14 @@ Pure arrays in, arrays out. Shared by every worker type. Never imports
 ``api_schemas``, ``service`` or ``workers`` and never reads the environment.
 """
 
+import numba as _numba
+
 ENGINE_VERSION = "0.1.0"
+
+# Numba's default pick on Linux is GNU OpenMP, whose idle worker threads spin after each
+# parallel region. The renderer alternates numba kernels with single-threaded Embree
+# calls, and on 2 cores the spinning threads steal the core Embree needs: shading time
+# measured 4x longer than with the workqueue layer (docs/performance.md). GNU OpenMP is
+# also not fork-safe, and RQ bake workers fork. An explicit NUMBA_THREADING_LAYER wins.
+if _numba.config.THREADING_LAYER == "default":
+    _numba.config.THREADING_LAYER = "workqueue"

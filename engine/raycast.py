@@ -15,6 +15,7 @@ Conventions
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -74,6 +75,10 @@ class RayCaster(Protocol):
     scene: RuntimeScene
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits: ...
+
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray: ...
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray: ...
 
@@ -154,9 +159,12 @@ class EmbreeCaster:
         self.scene = scene
         self._key = scene.geometry_hash() if scene.n_triangles else ""
         self._embree = None
+        self.embree_seconds = 0.0  # wall time inside Embree calls (benchmarks read it)
+        self.embree_rays = 0
 
     def __getstate__(self) -> dict:  # never pickle native Embree handles
-        return {"scene": self.scene, "_key": self._key, "_embree": None}
+        return {"scene": self.scene, "_key": self._key, "_embree": None, "embree_seconds": 0.0,
+                "embree_rays": 0}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
@@ -176,6 +184,32 @@ class EmbreeCaster:
                     _EMBREE_CACHE[self._key] = es
                 self._embree = es
         return self._embree
+
+    # Fast path for engine kernels that already hold float32 rays relative to scene.center.
+    # No validation: callers are engine code that produced finite rays themselves.
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(prim int32, u float32, v float32) for local float32 rays (n, 3)."""
+        n = o32.shape[0]
+        es = self._get()
+        if es is None or n == 0:
+            return np.full(n, -1, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+        t0 = time.perf_counter()
+        r = es.run(o32, d32, output=1)
+        self.embree_seconds += time.perf_counter() - t0
+        self.embree_rays += n
+        return r["primID"], r["u"], r["v"]
+
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray:
+        """(n,) bool: something lies strictly between the origin and tmax32."""
+        n = o32.shape[0]
+        es = self._get()
+        if es is None or n == 0:
+            return np.zeros(n, dtype=np.bool_)
+        t0 = time.perf_counter()
+        r = es.run(o32, d32, dists=tmax32, query="OCCLUDED")
+        self.embree_seconds += time.perf_counter() - t0
+        self.embree_rays += n
+        return np.asarray(r) != -1
 
     def _local(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (np.ascontiguousarray((o - self.scene.center).astype(np.float32)),
@@ -263,6 +297,17 @@ class ReferenceCaster:
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         h = self.intersect(origins, directions)
         return h.t < np.asarray(tmax, dtype=np.float64)
+
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        o = o32.astype(np.float64) + self.scene.center
+        d = d32.astype(np.float64)
+        h = self.intersect(o, d / np.linalg.norm(d, axis=1, keepdims=True))
+        return h.prim, h.u.astype(np.float32), h.v.astype(np.float32)
+
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray:
+        o = o32.astype(np.float64) + self.scene.center
+        d = d32.astype(np.float64)
+        return self.occluded(o, d / np.linalg.norm(d, axis=1, keepdims=True), tmax32.astype(np.float64))
 
 
 def make_caster(scene: RuntimeScene, backend: str = "embree") -> RayCaster:

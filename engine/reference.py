@@ -170,11 +170,12 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
 def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 pt_pos, pt_int, dir_dir, dir_irr,
                 rc, ru, rv, rL, r2s, r_g, rnd,
-                center, extent, o_out, d_out, tmax_out, c_out):
+                center, extent, o_out, d_out, tmax_out, c_out, alive):
     """One shadow ray per (hit, light sample) with its unshadowed contribution.
 
     Row layout per hit: point lights, directional lights, then rect lights x g*g samples.
-    rnd: (n, n_rect * g * g, 2) uniforms for the area-light jitter.
+    rnd: (n, n_rect * g * g, 2) uniforms for the area-light jitter. Origins are written
+    in float32 relative to ``center`` (Embree's frame); ``alive`` marks rows worth casting.
     """
     n = p.shape[0]
     npt = pt_pos.shape[0]
@@ -197,13 +198,13 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
         base = i * per
         for j in range(per):
             row = base + j
+            alive[row] = False
+            c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
             # direction to the light, distance, irradiance at the point (before BRDF)
             if j < npt:
                 lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
                 dist = math.sqrt(lx * lx + ly * ly + lz * lz)
                 if dist <= 0.0:
-                    c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-                    tmax_out[row] = 0.0
                     continue
                 lx /= dist
                 ly /= dist
@@ -232,8 +233,6 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 a2 = ru[q, 0] * rv[q, 1] - ru[q, 1] * rv[q, 0]
                 area = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
                 if dist <= 0.0 or area <= 0.0:
-                    c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-                    tmax_out[row] = 0.0
                     continue
                 lx /= dist
                 ly /= dist
@@ -242,24 +241,28 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 if r2s[q]:
                     cos_l = abs(cos_l)
                 if cos_l <= 0.0:
-                    cos_l = 0.0
+                    continue
                 geo = cos_l * area / (dist * dist * gg)
                 e0, e1, e2 = rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo
                 tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
             cos_g = _dot(g0, g1, g2, lx, ly, lz)
             cos_s = _dot(n0, n1, n2, lx, ly, lz)
-            o_out[row, 0], o_out[row, 1], o_out[row, 2] = ox, oy, oz
-            d_out[row, 0], d_out[row, 1], d_out[row, 2] = lx, ly, lz
-            tmax_out[row] = tmax
             if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
-                c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
                 continue
             fs = 0.0
             if has_spec:
                 fs = spec_norm * _phong_pow(_dot(wr0, wr1, wr2, lx, ly, lz), shin[m])
-            c_out[row, 0] = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
-            c_out[row, 1] = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
-            c_out[row, 2] = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
+            c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
+            c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
+            c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
+            if c0 > 0.0 or c1 > 0.0 or c2 > 0.0 or not (c0 == c0 and c1 == c1 and c2 == c2):
+                alive[row] = True
+                c_out[row, 0], c_out[row, 1], c_out[row, 2] = c0, c1, c2
+                o_out[row, 0] = ox - center[0]
+                o_out[row, 1] = oy - center[1]
+                o_out[row, 2] = oz - center[2]
+                d_out[row, 0], d_out[row, 1], d_out[row, 2] = lx, ly, lz
+                tmax_out[row] = min(tmax, 3.0e38)
 
 
 @nb.njit(cache=True)
@@ -282,14 +285,46 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
 
 
 @nb.njit(cache=True, parallel=True)
-def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, count, lobe, rnd,
-           kd, kr, kg, gexp, center, extent,
-           o_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
-    """Secondary rays. For hit i, rows first[i] .. first[i] + count[i], lobe per row:
-    0 mirror, 1 glossy, 2 diffuse (cosine-weighted). Weights already include the
-    division by the number of samples and by lobe-choice probabilities (baked into
-    ``lobe`` planning on the Python side via the weight scale in rnd[..., 2])."""
+def _plan(mat, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
+          n_mirror, n_glossy, n_ind, count):
+    """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
+    glossy rays and K' indirect rays; path hits continue with one ray while bounces remain."""
+    for i in nb.prange(mat.shape[0]):
+        m = mat[i]
+        has_kr = kr[m, 0] > 0 or kr[m, 1] > 0 or kr[m, 2] > 0
+        has_kg = kg[m, 0] > 0 or kg[m, 1] > 0 or kg[m, 2] > 0
+        has_kd = kd[m, 0] > 0 or kd[m, 1] > 0 or kd[m, 2] > 0
+        nm = 0
+        ngl = 0
+        nin = 0
+        npath = 0
+        if kind[i] == KIND_CHAIN:
+            if depth[i] < max_depth:
+                if has_kr:
+                    nm = 1
+                if has_kg:
+                    ngl = glossy_samples if depth[i] == 0 else 1
+            if has_kd:
+                nin = k_per_hit
+        elif bounces[i] > 0 and (has_kd or has_kr or has_kg):
+            npath = 1
+        n_mirror[i] = nm
+        n_glossy[i] = ngl
+        n_ind[i] = nin
+        count[i] = nm + ngl + nin + npath
+
+
+@nb.njit(cache=True, parallel=True)
+def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
+           count, rnd, kd, kr, kg, gexp, center, extent,
+           o_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
+    """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
+    mirror direction, weight kg (g+2)/(g+1) cos_i / M), diffuse (cosine-weighted, weight kd / K').
+    Path vertices pick one lobe with probability proportional to its mean albedo.
+    rnd: (total, 3) uniforms. Origins are written float32 relative to ``center``."""
     for i in nb.prange(p.shape[0]):
+        if count[i] == 0:
+            continue
         m = mat[i]
         g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
         n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
@@ -301,9 +336,30 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, count, l
         wr1 /= lr
         wr2 /= lr
         mag = _offset_mag(p[i, 0], p[i, 1], p[i, 2], center, extent)
+        ox = p[i, 0] + mag * g0 - center[0]
+        oy = p[i, 1] + mag * g1 - center[1]
+        oz = p[i, 2] + mag * g2 - center[2]
+        ad = (kd[m, 0] + kd[m, 1] + kd[m, 2]) / 3.0
+        ar = (kr[m, 0] + kr[m, 1] + kr[m, 2]) / 3.0
+        ag = (kg[m, 0] + kg[m, 1] + kg[m, 2]) / 3.0
         for r in range(first[i], first[i] + count[i]):
-            lb = lobe[r]
-            scale = rnd[r, 2]
+            local = r - first[i]
+            if kind[i] == KIND_CHAIN:
+                if local < n_mirror[i]:
+                    lb, scale = 0, 1.0
+                elif local < n_mirror[i] + n_glossy[i]:
+                    lb, scale = 1, 1.0 / n_glossy[i]
+                else:
+                    lb, scale = 2, 1.0 / n_ind[i]
+            else:
+                tot = ad + ar + ag
+                u = rnd[r, 2] * tot
+                if u < ad:
+                    lb, scale = 2, tot / ad
+                elif u < ad + ar:
+                    lb, scale = 0, tot / ar
+                else:
+                    lb, scale = 1, tot / ag
             f0 = f1 = f2 = 0.0
             x0, x1, x2 = wr0, wr1, wr2
             if lb == 0:
@@ -323,16 +379,13 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, count, l
             if _dot(g0, g1, g2, x0, x1, x2) <= 0.0:  # below the geometric surface
                 f0 = f1 = f2 = 0.0
             ln = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-            x0 /= ln
-            x1 /= ln
-            x2 /= ln
-            o_out[r, 0] = p[i, 0] + mag * g0
-            o_out[r, 1] = p[i, 1] + mag * g1
-            o_out[r, 2] = p[i, 2] + mag * g2
-            d_out[r, 0], d_out[r, 1], d_out[r, 2] = x0, x1, x2
-            w_out[r, 0] = weight[i, 0] * f0 * scale
-            w_out[r, 1] = weight[i, 1] * f1 * scale
-            w_out[r, 2] = weight[i, 2] * f2 * scale
+            o_out[r, 0], o_out[r, 1], o_out[r, 2] = ox, oy, oz
+            d_out[r, 0], d_out[r, 1], d_out[r, 2] = x0 / ln, x1 / ln, x2 / ln
+            w0 = weight[i, 0] * f0 * scale
+            w1 = weight[i, 1] * f1 * scale
+            w2 = weight[i, 2] * f2 * scale
+            w_out[r, 0], w_out[r, 1], w_out[r, 2] = w0, w1, w2
+            alive[r] = w0 > 0.0 or w1 > 0.0 or w2 > 0.0
             pix_out[r] = pix[i]
             # every diffuse bounce and every continuation of a path uses up one bounce
             if kind[i] == KIND_PATH or lb == 2:
@@ -343,15 +396,95 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, count, l
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
+@nb.njit(cache=True, parallel=True)
+def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n, tri_ng, tri_mat,
+                 p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
+    """Compact the rays that hit something and compute their surface frames."""
+    for j in nb.prange(idx.shape[0]):
+        i = idx[j]
+        t = prim[i]
+        uu = np.float64(u[i])
+        vv = np.float64(v[i])
+        w0 = 1.0 - uu - vv
+        for k in range(3):
+            p_out[j, k] = w0 * tri_p[t, 0, k] + uu * tri_p[t, 1, k] + vv * tri_p[t, 2, k]
+            d_out[j, k] = d[i, k]
+            w_out[j, k] = w[i, k]
+        g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
+        s0 = w0 * tri_n[t, 0, 0] + uu * tri_n[t, 1, 0] + vv * tri_n[t, 2, 0]
+        s1 = w0 * tri_n[t, 0, 1] + uu * tri_n[t, 1, 1] + vv * tri_n[t, 2, 1]
+        s2 = w0 * tri_n[t, 0, 2] + uu * tri_n[t, 1, 2] + vv * tri_n[t, 2, 2]
+        ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if ls > 1e-12:
+            s0 /= ls
+            s1 /= ls
+            s2 /= ls
+        else:
+            s0, s1, s2 = g0, g1, g2
+        if _dot(g0, g1, g2, d[i, 0], d[i, 1], d[i, 2]) > 0.0:
+            g0, g1, g2 = -g0, -g1, -g2
+            s0, s1, s2 = -s0, -s1, -s2
+        if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:
+            s0, s1, s2 = g0, g1, g2
+        ng_out[j, 0], ng_out[j, 1], ng_out[j, 2] = g0, g1, g2
+        ns_out[j, 0], ns_out[j, 1], ns_out[j, 2] = s0, s1, s2
+        mat_out[j] = tri_mat[t]
+        kind_out[j] = kind[i]
+        depth_out[j] = depth[i]
+        bounces_out[j] = bounces[i]
+        pix_out[j] = pix[i]
+
+
+@nb.njit(cache=True)
+def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_h, kind_h, w_h, pix_h,
+                                    emission, kd, ambient):
+    """Background where rays escape; emission + kd * ambient where camera/specular chains land.
+    Serial on purpose: many rays share a pixel."""
+    if background[0] > 0 or background[1] > 0 or background[2] > 0:
+        for i in range(prim.shape[0]):
+            if prim[i] < 0:
+                q = pix[i]
+                for k in range(3):
+                    acc[q, k] += w[i, k] * background[k]
+    for j in range(idx_hit.shape[0]):
+        if kind_h[j] != KIND_CHAIN:
+            continue
+        m = mat_h[j]
+        q = pix_h[j]
+        for k in range(3):
+            e = emission[m, k] + kd[m, k] * ambient[k]
+            if e != 0.0:
+                acc[q, k] += w_h[j, k] * e
+
+
+@nb.njit(cache=True)
+def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
+    for k in range(live.shape[0]):
+        if not occ[k]:
+            row = live[k]
+            q = pix_h[row // per]
+            acc[q, 0] += contrib[row, 0]
+            acc[q, 1] += contrib[row, 1]
+            acc[q, 2] += contrib[row, 2]
+
+
+@nb.njit(cache=True, parallel=True)
+def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
+                  o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out):
+    for j in nb.prange(idx.shape[0]):
+        i = idx[j]
+        for k in range(3):
+            o_out[j, k] = o[i, k]
+            d_out[j, k] = d[i, k]
+            d32_out[j, k] = d[i, k]
+            w_out[j, k] = w[i, k]
+        kind_out[j] = kind[i]
+        depth_out[j] = depth[i]
+        bounces_out[j] = bounces[i]
+        pix_out[j] = pix[i]
+
+
 # ============================================================================ driver
-
-
-def _accumulate(acc: np.ndarray, pix: np.ndarray, contrib: np.ndarray) -> None:
-    if pix.size == 0:
-        return
-    n = acc.shape[0]
-    for c in range(3):
-        acc[:, c] += np.bincount(pix, weights=contrib[:, c], minlength=n)
 
 
 class ReferenceRenderer:
@@ -423,11 +556,14 @@ class ReferenceRenderer:
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
+        caster = self.caster
         t0 = time.perf_counter()
         rng_cam = np.random.default_rng([params.seed, ci, 0])
         px, py, pix = stratified_pixel_samples(camera, ids, params.spp, rng_cam)
         o, d = camera_rays(camera, px, py)
         n = o.shape[0]
+        o32 = (o - sc.center).astype(np.float32)
+        d32 = d.astype(np.float32)
         weight = np.ones((n, 3))
         kind = np.zeros(n, np.int8)
         depth = np.zeros(n, np.int32)
@@ -443,32 +579,28 @@ class ReferenceRenderer:
         while n > 0:
             it += 1
             t0 = time.perf_counter()
-            hits = self.caster.intersect(o, d)
+            prim, u, v = caster.intersect_local(o32, d32)
             timer.add("intersect", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            hit = hits.prim >= 0
-            miss = ~hit
-            if np.any(miss) and np.any(sc.background > 0):
-                _accumulate(acc, pix[miss], weight[miss] * sc.background[None, :])
-            idx = np.nonzero(hit)[0]
-            if idx.size == 0:
-                timer.add("shading", time.perf_counter() - t0)
-                break
-            d_h, w_h, kind_h, depth_h = d[idx], weight[idx], kind[idx], depth[idx]
-            bnc_h, pix_h, prim_h = bounces[idx], pix[idx], hits.prim[idx]
-            m = len(idx)
+            idx = np.flatnonzero(prim >= 0)
+            m = idx.size
             p = np.empty((m, 3))
             ng = np.empty((m, 3))
             ns = np.empty((m, 3))
-            _surface(d_h, prim_h, hits.u[idx], hits.v[idx], sc.tri_p, sc.tri_n, sc.tri_ng, p, ng, ns)
-            mat = sc.tri_material[prim_h]
-            chain = kind_h == KIND_CHAIN
-            # emission and ambient where camera / specular chains land
-            if np.any(chain):
-                em = mt.emission[mat[chain]] + mt.kd[mat[chain]] * sc.ambient[None, :]
-                if np.any(em > 0):
-                    _accumulate(acc, pix_h[chain], w_h[chain] * em)
+            mat = np.empty(m, np.int32)
+            d_h = np.empty((m, 3))
+            w_h = np.empty((m, 3))
+            kind_h = np.empty(m, np.int8)
+            depth_h = np.empty(m, np.int32)
+            bnc_h = np.empty(m, np.int32)
+            pix_h = np.empty(m, np.int64)
+            _gather_hits(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sc.tri_p, sc.tri_n, sc.tri_ng,
+                         sc.tri_material, p, ng, ns, mat, d_h, w_h, kind_h, depth_h, bnc_h, pix_h)
+            _accumulate_misses_and_emission(acc, prim, weight, pix, sc.background, idx, mat, kind_h, w_h, pix_h,
+                                            mt.emission, mt.kd, sc.ambient)
             timer.add("shading", time.perf_counter() - t0)
+            if m == 0:
+                break
 
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
@@ -476,28 +608,45 @@ class ReferenceRenderer:
 
             # ---- secondary rays
             t0 = time.perf_counter()
-            nxt = self._plan_secondary(params, ci, it, mat, kind_h, depth_h, bnc_h, k_per_hit)
-            if nxt is None:
+            n_mirror = np.empty(m, np.int64)
+            n_glossy = np.empty(m, np.int64)
+            n_ind = np.empty(m, np.int64)
+            count = np.empty(m, np.int64)
+            _plan(mat, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
+                  k_per_hit, n_mirror, n_glossy, n_ind, count)
+            first = np.zeros(m, np.int64)
+            np.cumsum(count[:-1], out=first[1:])
+            tot = int(first[-1] + count[-1])
+            if tot == 0:
                 timer.add("shading", time.perf_counter() - t0)
                 break
-            first, count, lobe, rnd = nxt
-            tot = int(count.sum())
-            o2 = np.empty((tot, 3))
+            rnd = np.random.default_rng([params.seed, ci, it, 2]).random((tot, 3))
+            o2 = np.empty((tot, 3), np.float32)
             d2 = np.empty((tot, 3))
             w2 = np.empty((tot, 3))
             kind2 = np.empty(tot, np.int8)
             depth2 = np.empty(tot, np.int32)
             bnc2 = np.empty(tot, np.int32)
             pix2 = np.empty(tot, np.int64)
-            _spawn(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, count, lobe, rnd,
-                   mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
-                   o2, d2, w2, kind2, depth2, bnc2, pix2)
-            live = np.any(w2 > 0, axis=1)
-            o, d, weight = o2[live], d2[live], w2[live]
-            kind, depth, bounces, pix = kind2[live], depth2[live], bnc2[live], pix2[live]
-            n = o.shape[0]
-            counts["reflection"] += int(np.sum(kind == KIND_CHAIN))
-            counts["indirect"] += int(np.sum(kind == KIND_PATH))
+            alive = np.empty(tot, np.bool_)
+            _spawn(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, n_mirror, n_glossy, n_ind,
+                   count, rnd, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
+                   o2, d2, w2, kind2, depth2, bnc2, pix2, alive)
+            live = np.flatnonzero(alive)
+            n = live.size
+            o32 = np.empty((n, 3), np.float32)
+            d = np.empty((n, 3))
+            d32 = np.empty((n, 3), np.float32)
+            weight = np.empty((n, 3))
+            kind = np.empty(n, np.int8)
+            depth = np.empty(n, np.int32)
+            bounces = np.empty(n, np.int32)
+            pix = np.empty(n, np.int64)
+            _compact_rays(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
+                          o32, d, d32, weight, kind, depth, bounces, pix)
+            n_path = int(np.count_nonzero(kind))
+            counts["indirect"] += n_path
+            counts["reflection"] += n - n_path
             timer.add("shading", time.perf_counter() - t0)
 
     def _direct(self, params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts):
@@ -513,78 +662,29 @@ class ReferenceRenderer:
             k = sl.stop - sl.start
             rnd = np.random.default_rng([params.seed, ci, it, 1, s]).random((k, lt.n_rect * gg, 2))
             rows = k * per
-            so = np.empty((rows, 3))
-            sd = np.empty((rows, 3))
-            tmax = np.empty(rows)
+            so = np.empty((rows, 3), np.float32)
+            sd = np.empty((rows, 3), np.float32)
+            tmax = np.empty(rows, np.float32)
             contrib = np.empty((rows, 3))
+            alive = np.empty(rows, np.bool_)
             _light_rays(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
                         lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
                         lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, lt.rect_radiance, lt.rect_two_sided,
-                        r_g, rnd, sc.center, sc.extent, so, sd, tmax, contrib)
-            live = np.nonzero(np.any(contrib > 0, axis=1))[0]
+                        r_g, rnd, sc.center, sc.extent, so, sd, tmax, contrib, alive)
+            live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)
             if live.size == 0:
                 continue
             t0 = time.perf_counter()
-            occ = self.caster.occluded(so[live], sd[live], tmax[live])
+            so_l, sd_l, tm_l = so[live], sd[live], tmax[live]
+            timer.add("shading", time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            occ = self.caster.occluded_local(so_l, sd_l, tm_l)
             timer.add("shadow", time.perf_counter() - t0)
             counts["shadow"] += int(live.size)
             t0 = time.perf_counter()
-            vis = live[~occ]
-            _accumulate(acc, np.repeat(pix_h[sl], per)[vis], contrib[vis])
+            _accumulate_shadow(acc, live, occ, contrib, pix_h[sl], per)
             timer.add("shading", time.perf_counter() - t0)
-
-    def _plan_secondary(self, params, ci, it, mat, kind_h, depth_h, bnc_h, k_per_hit):
-        """Decide how many secondary rays each hit spawns and with which lobe."""
-        mt = self.scene.materials
-        chain = kind_h == KIND_CHAIN
-        has_kr = np.any(mt.kr[mat] > 0, axis=1)
-        has_kg = np.any(mt.kg[mat] > 0, axis=1)
-        has_kd = np.any(mt.kd[mat] > 0, axis=1)
-        can_reflect = depth_h < params.max_depth
-        # chain rays: mirror (1), glossy (M at the first glossy bounce, then 1), indirect (K')
-        n_mirror = (chain & has_kr & can_reflect).astype(np.int64)
-        m_gl = np.where(depth_h == 0, params.glossy_samples, 1)
-        n_glossy = np.where(chain & has_kg & can_reflect, m_gl, 0).astype(np.int64)
-        n_ind = np.where(chain & has_kd, k_per_hit, 0).astype(np.int64)
-        # path rays continue with one ray while bounces remain, lobe chosen by albedo
-        path = (~chain) & (bnc_h > 0)
-        n_path = (path & (has_kd | has_kr | has_kg)).astype(np.int64)
-        count = n_mirror + n_glossy + n_ind + n_path
-        tot = int(count.sum())
-        if tot == 0:
-            return None
-        first = np.zeros(count.shape[0], np.int64)
-        np.cumsum(count[:-1], out=first[1:])
-        lobe = np.empty(tot, np.int8)
-        scale = np.ones(tot)
-        rng = np.random.default_rng([params.seed, ci, it, 2])
-        rnd = np.empty((tot, 3))
-        rnd[:, :2] = rng.random((tot, 2))
-        # fill lobes: for each hit rows are [mirror][glossy...][indirect...] or [path]
-        row_hit = np.repeat(np.arange(count.shape[0]), count)
-        local = np.arange(tot) - first[row_hit]
-        nm, ngl, nin = n_mirror[row_hit], n_glossy[row_hit], n_ind[row_hit]
-        is_mirror = local < nm
-        is_glossy = (~is_mirror) & (local < nm + ngl)
-        is_ind = (~is_mirror) & (~is_glossy) & (local < nm + ngl + nin)
-        is_path = ~(is_mirror | is_glossy | is_ind)
-        lobe[is_mirror] = 0
-        lobe[is_glossy] = 1
-        scale[is_glossy] = 1.0 / ngl[is_glossy]
-        lobe[is_ind] = 2
-        scale[is_ind] = 1.0 / nin[is_ind]
-        if np.any(is_path):
-            pm = mat[row_hit[is_path]]
-            a = np.stack([mt.kd[pm].mean(1), mt.kr[pm].mean(1), mt.kg[pm].mean(1)], axis=1)
-            a /= a.sum(axis=1, keepdims=True)
-            u = rng.random(a.shape[0])
-            choice = np.where(u < a[:, 0], 2, np.where(u < a[:, 0] + a[:, 1], 0, 1)).astype(np.int8)
-            prob = np.where(choice == 2, a[:, 0], np.where(choice == 0, a[:, 1], a[:, 2]))
-            lobe[is_path] = choice
-            scale[is_path] = 1.0 / prob
-        rnd[:, 2] = scale
-        return first, count, lobe, rnd
 
 
 def render_reference(scene: RuntimeScene, camera: CameraParams, params: ReferenceParams | None = None,
