@@ -285,7 +285,7 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
 
 
 @nb.njit(cache=True, parallel=True)
-def _plan(mat, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
+def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
           n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
     glossy rays and K' indirect rays; path hits continue with one ray while bounces remain."""
@@ -298,6 +298,10 @@ def _plan(mat, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_pe
         ngl = 0
         nin = 0
         npath = 0
+        if weight[i, 0] <= 0.0 and weight[i, 1] <= 0.0 and weight[i, 2] <= 0.0:
+            count[i] = 0
+            n_mirror[i] = n_glossy[i] = n_ind[i] = 0
+            continue
         if kind[i] == KIND_CHAIN:
             if depth[i] < max_depth:
                 if has_kr:
@@ -317,7 +321,7 @@ def _plan(mat, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_pe
 @nb.njit(cache=True, parallel=True)
 def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
            count, rnd, kd, kr, kg, gexp, center, extent,
-           o_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
+           o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
     """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
     mirror direction, weight kg (g+2)/(g+1) cos_i / M), diffuse (cosine-weighted, weight kd / K').
     Path vertices pick one lobe with probability proportional to its mean albedo.
@@ -380,7 +384,9 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
                 f0 = f1 = f2 = 0.0
             ln = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
             o_out[r, 0], o_out[r, 1], o_out[r, 2] = ox, oy, oz
-            d_out[r, 0], d_out[r, 1], d_out[r, 2] = x0 / ln, x1 / ln, x2 / ln
+            x0, x1, x2 = x0 / ln, x1 / ln, x2 / ln
+            d_out[r, 0], d_out[r, 1], d_out[r, 2] = x0, x1, x2
+            d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = x0, x1, x2
             w0 = weight[i, 0] * f0 * scale
             w1 = weight[i, 1] * f1 * scale
             w2 = weight[i, 2] * f2 * scale
@@ -612,7 +618,7 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            _plan(mat, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
+            _plan(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
                   k_per_hit, n_mirror, n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
@@ -629,21 +635,28 @@ class ReferenceRenderer:
             bnc2 = np.empty(tot, np.int32)
             pix2 = np.empty(tot, np.int64)
             alive = np.empty(tot, np.bool_)
+            d2_32 = np.empty((tot, 3), np.float32)
             _spawn(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, n_mirror, n_glossy, n_ind,
                    count, rnd, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
-                   o2, d2, w2, kind2, depth2, bnc2, pix2, alive)
-            live = np.flatnonzero(alive)
-            n = live.size
-            o32 = np.empty((n, 3), np.float32)
-            d = np.empty((n, 3))
-            d32 = np.empty((n, 3), np.float32)
-            weight = np.empty((n, 3))
-            kind = np.empty(n, np.int8)
-            depth = np.empty(n, np.int32)
-            bounces = np.empty(n, np.int32)
-            pix = np.empty(n, np.int64)
-            _compact_rays(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
-                          o32, d, d32, weight, kind, depth, bounces, pix)
+                   o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, alive)
+            n_alive = int(np.count_nonzero(alive))
+            if n_alive >= 0.95 * tot:
+                # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy
+                o32, d, d32, weight, kind, depth, bounces, pix = o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2
+                n = tot
+            else:
+                live = np.flatnonzero(alive)
+                n = live.size
+                o32 = np.empty((n, 3), np.float32)
+                d = np.empty((n, 3))
+                d32 = np.empty((n, 3), np.float32)
+                weight = np.empty((n, 3))
+                kind = np.empty(n, np.int8)
+                depth = np.empty(n, np.int32)
+                bounces = np.empty(n, np.int32)
+                pix = np.empty(n, np.int64)
+                _compact_rays(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
+                              o32, d, d32, weight, kind, depth, bounces, pix)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path

@@ -51,7 +51,7 @@ def test_embree_agrees_with_reference_backend_on_random_rays(name):
     e = EmbreeCaster(rt).intersect(o, d)
     ref = ReferenceCaster(rt, chunk=64).intersect(o, d)
     assert np.array_equal(e.hit, ref.hit)
-    assert e.hit.mean() > 0.5
+    assert e.hit.mean() > 0.3
     h = ref.hit
     np.testing.assert_allclose(e.t[h], ref.t[h], rtol=1e-5)
     diff = np.flatnonzero(h & (e.prim != ref.prim))
