@@ -237,7 +237,8 @@ class Material(FrozenModel):
     gloss_exponent: Exponent = 0.0
     """Phong exponent of the glossy reflection lobe; >= 1 whenever kg > 0."""
     emission: RGB = (0.0, 0.0, 0.0)
-    """Emitted radiance (linear RGB)."""
+    """Radiance the surface shows to camera and mirror/glossy rays (linear RGB). It does not
+    light other surfaces: declare a light (e.g. a rect light at the same place) for that."""
 
     @model_validator(mode="after")
     def _check_coefficients(self) -> Self:
@@ -829,7 +830,7 @@ class Scene(FrozenModel):
     objects: Annotated[list[SceneObject], Field(max_length=MAX_OBJECTS)] = []
     """Shapes; each names its material."""
     lights: Annotated[list[Light], Field(max_length=MAX_LIGHTS)] = []
-    """Light sources (emissive materials also emit)."""
+    """Light sources: the only things that illuminate (emissive materials are only seen)."""
     ambient: RGB = (0.0, 0.0, 0.0)
     """Ambient radiance; adds kd * ambient at every visible surface."""
     background: RGB = (0.0, 0.0, 0.0)
