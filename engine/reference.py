@@ -27,8 +27,11 @@ Randomness: every random number comes from numpy generators seeded with
 from __future__ import annotations
 
 import math
+import threading
 import time
+import types
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numba as nb
@@ -59,7 +62,11 @@ class ReferenceParams:
     indirect_samples: K indirect paths per pixel (0 = direct lighting only).
     indirect_bounces: diffuse bounces per indirect path (>= 1).
     seed: random seed; equal seeds give identical images.
-    chunk_pixels: pixels per wavefront chunk (memory bound and progress granularity).
+    chunk_pixels: upper bound on pixels per wavefront chunk (memory bound and progress
+        granularity); images are split into at least 8 chunks of >= 1024 pixels.
+    pipelines: chunks rendered concurrently in threads (serial kernels that release the
+        GIL overlap with Embree calls); 1 = one chunk at a time with parallel kernels.
+        The image does not depend on it.
     """
 
     spp: int = 4
@@ -70,12 +77,13 @@ class ReferenceParams:
     indirect_bounces: int = 2
     seed: int = 0
     chunk_pixels: int = 16384
+    pipelines: int = 2
 
     def __post_init__(self) -> None:
         checks = {
             "spp": (1, 4096), "max_depth": (0, 64), "glossy_samples": (1, 4096),
             "area_light_samples": (1, 4096), "indirect_samples": (0, 1 << 16),
-            "indirect_bounces": (1, 64), "chunk_pixels": (1, 1 << 22),
+            "indirect_bounces": (1, 64), "chunk_pixels": (1, 1 << 22), "pipelines": (1, 64),
         }
         for name, (lo, hi) in checks.items():
             v = getattr(self, name)
@@ -115,6 +123,29 @@ class _Timer:
 
 
 # ============================================================================ kernels
+
+
+class _DualKernel:
+    """One kernel source, compiled twice: ``par`` (parallel over prange, for a single
+    pipeline) and ``ser`` (serial, nogil, for several pipelines in threads). Both release
+    the GIL, so one pipeline's shading runs while another holds the GIL inside Embree."""
+
+    def __init__(self, fn):
+        self.par = nb.njit(cache=True, parallel=True, nogil=True)(fn)
+        ser = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
+                                 fn.__closure__)
+        ser.__qualname__ = fn.__qualname__ + "_serial"  # its own on-disk cache entry
+        ser.__module__ = fn.__module__
+        ser.__doc__ = fn.__doc__
+        self.ser = nb.njit(cache=True, nogil=True)(ser)
+
+    def pick(self, serial: bool):
+        return self.ser if serial else self.par
+
+
+def _dual(fn) -> _DualKernel:
+    return _DualKernel(fn)
+
 
 
 @nb.njit(cache=True, inline="always")
@@ -166,7 +197,7 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
 
-@nb.njit(cache=True, parallel=True)
+@_dual
 def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 pt_pos, pt_int, dir_dir, dir_irr,
                 rc, ru, rv, rL, r2s, r_g, rnd,
@@ -284,7 +315,7 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
     return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
 
 
-@nb.njit(cache=True, parallel=True)
+@_dual
 def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
           n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
@@ -318,7 +349,7 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
         count[i] = nm + ngl + nin + npath
 
 
-@nb.njit(cache=True, parallel=True)
+@_dual
 def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
            count, rnd, kd, kr, kg, gexp, center, extent,
            o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
@@ -402,7 +433,7 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
-@nb.njit(cache=True, parallel=True)
+@_dual
 def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n, tri_ng, tri_mat,
                  p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
     """Compact the rays that hit something and compute their surface frames."""
@@ -441,7 +472,7 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n,
         pix_out[j] = pix[i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_h, kind_h, w_h, pix_h,
                                     emission, kd, ambient):
     """Background where rays escape; emission + kd * ambient where camera/specular chains land.
@@ -463,7 +494,7 @@ def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_
                 acc[q, k] += w_h[j, k] * e
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
     for k in range(live.shape[0]):
         if not occ[k]:
@@ -474,7 +505,7 @@ def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
             acc[q, 2] += contrib[row, 2]
 
 
-@nb.njit(cache=True, parallel=True)
+@_dual
 def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
                   o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out):
     for j in nb.prange(idx.shape[0]):
@@ -516,13 +547,19 @@ class ReferenceRenderer:
         npix = w * h
         acc = np.zeros((npix, 3))
         aov = self._aovs(camera, timer)
-        chunk = params.chunk_pixels
+        # The chunking depends only on the image size, never on the number of pipelines, so
+        # the image is identical for any ``pipelines`` (each chunk seeds its own generators).
+        chunk = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
         n_chunks = (npix + chunk - 1) // chunk
-        for ci in range(n_chunks):
-            ids = np.arange(ci * chunk, min(npix, (ci + 1) * chunk))
-            self._render_chunk(camera, params, ids, ci, acc, timer, counts)
-            if progress is not None:
-                progress((ci + 1) / n_chunks, "render")
+        chunks = [np.arange(ci * chunk, min(npix, (ci + 1) * chunk)) for ci in range(n_chunks)]
+        pipelines = min(params.pipelines, n_chunks)
+        if pipelines <= 1:
+            for ci, ids in enumerate(chunks):
+                self._render_chunk(camera, params, ids, ci, acc, timer, counts, serial=False)
+                if progress is not None:
+                    progress((ci + 1) / n_chunks, "render")
+        else:
+            self._render_pipelined(camera, params, chunks, pipelines, acc, timer, counts, progress)
         radiance = (acc / params.spp).reshape(h, w, 3)
         bad = ~np.isfinite(radiance)
         if np.any(bad):
@@ -530,6 +567,42 @@ class ReferenceRenderer:
         timer.add("total", time.perf_counter() - t0)
         depth, normal, oid, mid = aov
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts)
+
+    def _render_pipelined(self, camera, params, chunks, pipelines, acc, timer, counts, progress) -> None:
+        """Several chunks in flight, one per thread, with serial nogil kernels: while one
+        pipeline holds the GIL inside Embree the others shade. Chunks own disjoint pixels,
+        so they accumulate into ``acc`` without locks."""
+        lock = threading.Lock()
+        done = [0]
+        stop = threading.Event()
+
+        def run(ci: int) -> None:
+            if stop.is_set():
+                return
+            t_local = _Timer()
+            c_local = dict.fromkeys(counts, 0)
+            self._render_chunk(camera, params, chunks[ci], ci, acc, t_local, c_local, serial=True)
+            with lock:
+                for k, v in t_local.t.items():
+                    timer.add(k, v)
+                for k, v in c_local.items():
+                    counts[k] += v
+                done[0] += 1
+
+        with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
+            futures = [pool.submit(run, ci) for ci in range(len(chunks))]
+            try:
+                for f in futures:
+                    f.result()
+                    if progress is not None:
+                        with lock:
+                            frac = done[0] / len(chunks)
+                        progress(frac, "render")
+            except BaseException:
+                stop.set()  # cancellation / errors: let in-flight chunks finish, start no more
+                for f in futures:
+                    f.cancel()
+                raise
 
     # ------------------------------------------------------------------ stages
     def _aovs(self, camera: CameraParams, timer: _Timer):
@@ -558,7 +631,8 @@ class ReferenceRenderer:
         timer.add("aov", time.perf_counter() - t0)
         return depth, normal.reshape(h, w, 3).astype(np.float32), oid, mid
 
-    def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts) -> None:
+    def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts,
+                      serial: bool) -> None:
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
@@ -600,7 +674,7 @@ class ReferenceRenderer:
             depth_h = np.empty(m, np.int32)
             bnc_h = np.empty(m, np.int32)
             pix_h = np.empty(m, np.int64)
-            _gather_hits(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sc.tri_p, sc.tri_n, sc.tri_ng,
+            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sc.tri_p, sc.tri_n, sc.tri_ng,
                          sc.tri_material, p, ng, ns, mat, d_h, w_h, kind_h, depth_h, bnc_h, pix_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix, sc.background, idx, mat, kind_h, w_h, pix_h,
                                             mt.emission, mt.kd, sc.ambient)
@@ -610,7 +684,7 @@ class ReferenceRenderer:
 
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
-                self._direct(params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts)
+                self._direct(params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts, serial)
 
             # ---- secondary rays
             t0 = time.perf_counter()
@@ -618,7 +692,7 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            _plan(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
+            _plan.pick(serial)(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
                   k_per_hit, n_mirror, n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
@@ -636,7 +710,7 @@ class ReferenceRenderer:
             pix2 = np.empty(tot, np.int64)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _spawn(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, n_mirror, n_glossy, n_ind,
+            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, n_mirror, n_glossy, n_ind,
                    count, rnd, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
                    o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, alive)
             n_alive = int(np.count_nonzero(alive))
@@ -655,14 +729,14 @@ class ReferenceRenderer:
                 depth = np.empty(n, np.int32)
                 bounces = np.empty(n, np.int32)
                 pix = np.empty(n, np.int64)
-                _compact_rays(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
+                _compact_rays.pick(serial)(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
                               o32, d, d32, weight, kind, depth, bounces, pix)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path
             timer.add("shading", time.perf_counter() - t0)
 
-    def _direct(self, params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts):
+    def _direct(self, params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts, serial):
         sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
         gg = r_g * r_g
         per = lt.n_point + lt.n_directional + lt.n_rect * gg
@@ -680,7 +754,7 @@ class ReferenceRenderer:
             tmax = np.empty(rows, np.float32)
             contrib = np.empty((rows, 3))
             alive = np.empty(rows, np.bool_)
-            _light_rays(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
+            _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
                         lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
                         lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, lt.rect_radiance, lt.rect_two_sided,
                         r_g, rnd, sc.center, sc.extent, so, sd, tmax, contrib, alive)

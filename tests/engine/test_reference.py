@@ -196,3 +196,34 @@ def test_indirect_light_inside_a_sphere_matches_the_series(bounces):
     out = render_reference(sc, cam, ReferenceParams(spp=4, indirect_samples=256, indirect_bounces=bounces))
     want = a / math.pi * I / R ** 2 * sum(a ** k for k in range(bounces + 1))
     assert out.radiance.mean() == pytest.approx(want, rel=0.02)
+
+
+def test_image_does_not_depend_on_pipelines():
+    lights = [dict(type="rect", corner=(-0.5, 1.0, -0.5), edge_u=(1.0, 0, 0), edge_v=(0, 0, 1.0),
+                   radiance=(2, 2, 2))]
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kg=(0.3, 0.3, 0.3), gloss_exponent=20)),
+                (sphere_mesh((0, 0.3, 0), 0.2, 2), mat("s", kr=(0.5, 0.5, 0.5), kd=(0.3, 0.3, 0.3)))], lights)
+    cam = CameraParams("perspective", (0, 1, 2), (0, 0.2, 0), (0, 1, 0), 64, 48, fov_y_deg=40)
+    imgs = [render_reference(sc, cam, ReferenceParams(spp=2, area_light_samples=4, indirect_samples=2,
+                                                      glossy_samples=4, pipelines=k)).radiance
+            for k in (1, 2, 3)]
+    assert np.array_equal(imgs[0], imgs[1]) and np.array_equal(imgs[0], imgs[2])
+
+
+def test_progress_is_reported_and_cancellation_stops_the_render():
+    sc = scene([(quad((0, 0, 0), 4.0), mat())], [dict(type="point", position=(0, 1, 0), intensity=(1, 1, 1))])
+    cam = CameraParams("perspective", (0, 1, 2), (0, 0, 0), (0, 1, 0), 128, 128, fov_y_deg=40)
+    seen = []
+    render_reference(sc, cam, ReferenceParams(spp=1), progress=lambda f, s: seen.append(f))
+    assert seen[-1] == 1.0 and all(a <= b for a, b in zip(seen, seen[1:], strict=False)) and len(seen) >= 8
+
+    class Cancelled(Exception):
+        pass
+
+    def cancel(frac, stage):
+        if frac > 0.2:
+            raise Cancelled
+
+    for pipelines in (1, 2):
+        with pytest.raises(Cancelled):
+            render_reference(sc, cam, ReferenceParams(spp=1, pipelines=pipelines), progress=cancel)
