@@ -674,7 +674,8 @@ class ReferenceRenderer:
             depth_h = np.empty(m, np.int32)
             bnc_h = np.empty(m, np.int32)
             pix_h = np.empty(m, np.int64)
-            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sc.tri_p, sc.tri_n, sc.tri_ng,
+            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix,
+                                      sc.tri_p, sc.tri_n, sc.tri_ng,
                          sc.tri_material, p, ng, ns, mat, d_h, w_h, kind_h, depth_h, bnc_h, pix_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix, sc.background, idx, mat, kind_h, w_h, pix_h,
                                             mt.emission, mt.kd, sc.ambient)
@@ -692,7 +693,8 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            _plan.pick(serial)(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth, params.glossy_samples,
+            _plan.pick(serial)(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth,
+                               params.glossy_samples,
                   k_per_hit, n_mirror, n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
@@ -710,7 +712,8 @@ class ReferenceRenderer:
             pix2 = np.empty(tot, np.int64)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first, n_mirror, n_glossy, n_ind,
+            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first,
+                                n_mirror, n_glossy, n_ind,
                    count, rnd, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
                    o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, alive)
             n_alive = int(np.count_nonzero(alive))
