@@ -20,8 +20,9 @@ n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
 - indirect: K diffuse paths per pixel (spread over the antialiasing samples), each
             with ``indirect_bounces`` bounces and next-event estimation at every vertex.
 
-Randomness: every random number comes from numpy generators seeded with
-(seed, chunk, stage), so a render is deterministic for a given seed and chunk size.
+Randomness: every random number is a counter-based hash (engine/rng.py) of
+(seed, chunk, bounce, stage, ray index), so a render is bit-for-bit deterministic for
+a given seed, whatever the number of threads or pipelines.
 """
 
 from __future__ import annotations
@@ -37,9 +38,10 @@ from dataclasses import asdict, dataclass, field
 import numba as nb
 import numpy as np
 
-from .camera import camera_rays, pixel_centers, stratified_pixel_samples
+from .camera import camera_rays, pixel_centers
 from .errors import InvalidInputError, NonFiniteOutputError
 from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
+from .rng import stream_key, uniform
 from .scene import CameraParams, RuntimeScene
 
 INV_PI = 1.0 / math.pi
@@ -200,12 +202,12 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
 @_dual
 def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, rL, r2s, r_g, rnd,
+                rc, ru, rv, rL, r2s, r_g, stream, row0,
                 center, extent, o_out, d_out, tmax_out, c_out, alive):
     """One shadow ray per (hit, light sample) with its unshadowed contribution.
 
     Row layout per hit: point lights, directional lights, then rect lights x g*g samples.
-    rnd: (n, n_rect * g * g, 2) uniforms for the area-light jitter. Origins are written
+    Area-light jitter comes from the counter-based stream (index = row0 + row). Origins are written
     in float32 relative to ``center`` (Embree's frame); ``alive`` marks rows worth casting.
     """
     n = p.shape[0]
@@ -251,8 +253,8 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
             else:
                 q = (j - npt - ndir) // gg
                 s = (j - npt - ndir) % gg
-                sx = (s % r_g + rnd[i, q * gg + s, 0]) / r_g
-                sy = (s // r_g + rnd[i, q * gg + s, 1]) / r_g
+                sx = (s % r_g + uniform(stream, row0 + row, 0)) / r_g
+                sy = (s // r_g + uniform(stream, row0 + row, 1)) / r_g
                 yx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0]
                 yy = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1]
                 yz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2]
@@ -351,12 +353,12 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
 
 @_dual
 def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
-           count, rnd, kd, kr, kg, gexp, center, extent,
+           count, stream, kd, kr, kg, gexp, center, extent,
            o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
     """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
     mirror direction, weight kg (g+2)/(g+1) cos_i / M), diffuse (cosine-weighted, weight kd / K').
     Path vertices pick one lobe with probability proportional to its mean albedo.
-    rnd: (total, 3) uniforms. Origins are written float32 relative to ``center``."""
+    Random numbers: uniform(stream, row, 0..2). Origins are written float32 relative to ``center``."""
     for i in nb.prange(p.shape[0]):
         if count[i] == 0:
             continue
@@ -388,7 +390,7 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
                     lb, scale = 2, 1.0 / n_ind[i]
             else:
                 tot = ad + ar + ag
-                u = rnd[r, 2] * tot
+                u = uniform(stream, r, 2) * tot
                 if u < ad:
                     lb, scale = 2, tot / ad
                 elif u < ad + ar:
@@ -401,15 +403,15 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
                 f0, f1, f2 = kr[m, 0], kr[m, 1], kr[m, 2]
             elif lb == 1:
                 ge = gexp[m]
-                cos_a = math.exp(math.log(max(rnd[r, 0], 1e-300)) / (ge + 1.0))
-                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * rnd[r, 1])
+                cos_a = math.exp(math.log(max(uniform(stream, r, 0), 1e-300)) / (ge + 1.0))
+                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * uniform(stream, r, 1))
                 cos_i = _dot(n0, n1, n2, x0, x1, x2)
                 if cos_i > 0.0:
                     k = (ge + 2.0) / (ge + 1.0) * cos_i
                     f0, f1, f2 = kg[m, 0] * k, kg[m, 1] * k, kg[m, 2] * k
             else:
-                cos_t = math.sqrt(rnd[r, 0])
-                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * rnd[r, 1])
+                cos_t = math.sqrt(uniform(stream, r, 0))
+                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * uniform(stream, r, 1))
                 f0, f1, f2 = kd[m, 0], kd[m, 1], kd[m, 2]
             if _dot(g0, g1, g2, x0, x1, x2) <= 0.0:  # below the geometric surface
                 f0 = f1 = f2 = 0.0
@@ -519,6 +521,55 @@ def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
         depth_out[j] = depth[i]
         bounces_out[j] = bounces[i]
         pix_out[j] = pix[i]
+
+
+@_dual
+def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, stream, center,
+                  o_out, d_out, d32_out, pix_out):
+    """spp jittered camera rays per pixel on a gx x gy stratified grid (box filter).
+    The jitter of sample j of pixel q is uniform(stream, q * spp + j, 0..1): independent of chunking.
+    Perspective: sx_scale = tan(fov/2) * aspect, sy_scale = tan(fov/2); orthographic: half extents."""
+    for a in nb.prange(ids.shape[0]):
+        q = ids[a]
+        qx = q % width
+        qy = q // width
+        for j in range(spp):
+            r = a * spp + j
+            k = q * spp + j
+            fx = (qx + ((j % gx) + uniform(stream, k, 0)) / gx) / width
+            fy = (qy + ((j // gx) + uniform(stream, k, 1)) / gy) / height
+            sx = (2.0 * fx - 1.0) * sx_scale
+            sy = (1.0 - 2.0 * fy) * sy_scale
+            if ortho:
+                ox = eye[0] + sx * right[0] + sy * up[0]
+                oy = eye[1] + sx * right[1] + sy * up[1]
+                oz = eye[2] + sx * right[2] + sy * up[2]
+                dx, dy, dz = fwd[0], fwd[1], fwd[2]
+            else:
+                ox, oy, oz = eye[0], eye[1], eye[2]
+                dx = fwd[0] + sx * right[0] + sy * up[0]
+                dy = fwd[1] + sx * right[1] + sy * up[1]
+                dz = fwd[2] + sx * right[2] + sy * up[2]
+                ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+                dx /= ln
+                dy /= ln
+                dz /= ln
+            o_out[r, 0] = ox - center[0]
+            o_out[r, 1] = oy - center[1]
+            o_out[r, 2] = oz - center[2]
+            d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
+            d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
+            pix_out[r] = q
+
+
+@_dual
+def _compact_shadow(live, so, sd, tmax, so_out, sd_out, tm_out):
+    for j in nb.prange(live.shape[0]):
+        i = live[j]
+        for k in range(3):
+            so_out[j, k] = so[i, k]
+            sd_out[j, k] = sd[i, k]
+        tm_out[j] = tmax[i]
 
 
 # ============================================================================ driver
@@ -638,12 +689,22 @@ class ReferenceRenderer:
         lt = sc.lights
         caster = self.caster
         t0 = time.perf_counter()
-        rng_cam = np.random.default_rng([params.seed, ci, 0])
-        px, py, pix = stratified_pixel_samples(camera, ids, params.spp, rng_cam)
-        o, d = camera_rays(camera, px, py)
-        n = o.shape[0]
-        o32 = (o - sc.center).astype(np.float32)
-        d32 = d.astype(np.float32)
+        n = ids.shape[0] * params.spp
+        o32 = np.empty((n, 3), np.float32)
+        d = np.empty((n, 3))
+        d32 = np.empty((n, 3), np.float32)
+        pix = np.empty(n, np.int64)
+        right, up, fwd = camera.basis()
+        if camera.kind == "perspective":
+            th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
+            sxs, sys_ = th * camera.width / camera.height, th
+        else:
+            sxs, sys_ = 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
+        gx = int(math.ceil(math.sqrt(params.spp)))
+        gy = -(-params.spp // gx)
+        _camera_batch.pick(serial)(ids, params.spp, gx, gy, camera.width, camera.height,
+                                   camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
+                                   sxs, sys_, stream_key(params.seed, 0), sc.center, o32, d, d32, pix)
         weight = np.ones((n, 3))
         kind = np.zeros(n, np.int8)
         depth = np.zeros(n, np.int32)
@@ -702,7 +763,7 @@ class ReferenceRenderer:
             if tot == 0:
                 timer.add("shading", time.perf_counter() - t0)
                 break
-            rnd = np.random.default_rng([params.seed, ci, it, 2]).random((tot, 3))
+            stream = stream_key(params.seed, ci, it, 2)
             o2 = np.empty((tot, 3), np.float32)
             d2 = np.empty((tot, 3))
             w2 = np.empty((tot, 3))
@@ -714,7 +775,7 @@ class ReferenceRenderer:
             d2_32 = np.empty((tot, 3), np.float32)
             _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first,
                                 n_mirror, n_glossy, n_ind,
-                   count, rnd, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
+                   count, stream, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
                    o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
@@ -750,7 +811,6 @@ class ReferenceRenderer:
             t0 = time.perf_counter()
             sl = slice(s, min(m, s + step))
             k = sl.stop - sl.start
-            rnd = np.random.default_rng([params.seed, ci, it, 1, s]).random((k, lt.n_rect * gg, 2))
             rows = k * per
             so = np.empty((rows, 3), np.float32)
             sd = np.empty((rows, 3), np.float32)
@@ -760,13 +820,17 @@ class ReferenceRenderer:
             _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
                         lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
                         lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, lt.rect_radiance, lt.rect_two_sided,
-                        r_g, rnd, sc.center, sc.extent, so, sd, tmax, contrib, alive)
+                        r_g, stream_key(params.seed, ci, it, 1), s * per, sc.center, sc.extent, so, sd, tmax,
+                        contrib, alive)
             live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)
             if live.size == 0:
                 continue
             t0 = time.perf_counter()
-            so_l, sd_l, tm_l = so[live], sd[live], tmax[live]
+            so_l = np.empty((live.size, 3), np.float32)
+            sd_l = np.empty((live.size, 3), np.float32)
+            tm_l = np.empty(live.size, np.float32)
+            _compact_shadow.pick(serial)(live, so, sd, tmax, so_l, sd_l, tm_l)
             timer.add("shading", time.perf_counter() - t0)
             t0 = time.perf_counter()
             occ = self.caster.occluded_local(so_l, sd_l, tm_l)
