@@ -1,0 +1,239 @@
+"""Every exception the API can meet, mapped to an RFC 9457 problem in ONE place.
+
+``application/problem+json`` bodies follow ``api_schemas.service.Problem``; invalid
+input lists one ``errors[]`` entry per field, located with ``api_schemas.errors`` (the
+leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
+``scene.objects.2.radius``; query / path / header errors keep their source:
+``query.wait``).
+
+| exception | status |
+|---|---|
+| RequestValidationError, ValidationProblem | 422 (400 for an unparseable body) |
+| AuthError | 401 + ``WWW-Authenticate: Bearer`` |
+| workers.store.NotFound, queues.UnknownScene / JobNotFound | 404 (same answer for another key's resource) |
+| workers.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
+| BodyTooLarge | 413 |
+| MultipartError | 400 |
+| RateLimited | 429 + ``Retry-After`` |
+| StoreUnavailable, redis ConnectionError / TimeoutError | 503 + ``Retry-After`` |
+| HTTPException | its status |
+| anything else | 500, logged with the request id |
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping, Sequence
+from http import HTTPStatus
+from typing import Any
+
+import redis.exceptions
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from api_schemas.errors import FieldError, format_error_details
+from api_schemas.service import Problem, ProblemField
+from service.api.limits import BodyTooLarge, MultipartError
+from service.core.security import AuthError, RateLimited
+from workers.queues import JobNotFound, UnknownScene
+from workers.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
+
+__all__ = [
+    "PROBLEM_MEDIA_TYPE",
+    "RETRY_AFTER_S",
+    "ValidationProblem",
+    "install_exception_handlers",
+    "problem_response",
+    "problem_responses",
+]
+
+log = logging.getLogger("ibr.api")
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+RETRY_AFTER_S = 5
+"""Seconds a client should wait after a 503 (store or Redis unreachable)."""
+
+
+class ValidationProblem(Exception):
+    """Invalid input found by a route itself (not by FastAPI's parameter validation)."""
+
+    def __init__(self, errors: Sequence[FieldError], detail: str = "", status: int = 422) -> None:
+        super().__init__(detail or "; ".join(f"{e['field'] or '(body)'}: {e['message']}" for e in errors))
+        self.errors = list(errors)
+        self.detail = detail
+        self.status = status
+
+    @classmethod
+    def from_pydantic(
+        cls, exc: ValidationError, root: type[BaseModel] | None, prefix: Sequence[str | int] = ()
+    ) -> ValidationProblem:
+        """Locate ``exc``'s errors relative to ``root`` and put them under ``prefix``."""
+        formatted = format_error_details(exc.errors(include_url=False), root)
+        if prefix:
+            pre = ".".join(str(p) for p in prefix)
+            formatted = [FieldError(field=f"{pre}.{f['field']}" if f["field"] else pre, message=f["message"],
+                                    type=f["type"]) for f in formatted]
+        return cls(formatted)
+
+
+def problem_response(
+    status: int,
+    detail: str = "",
+    *,
+    title: str | None = None,
+    errors: Iterable[Mapping[str, Any]] = (),
+    headers: Mapping[str, str] | None = None,
+    type_: str = "about:blank",
+) -> JSONResponse:
+    body = Problem(
+        type=type_,
+        title=title or _phrase(status),
+        status=status,
+        detail=detail,
+        errors=[ProblemField(field=str(e["field"]), message=str(e["message"]), type=str(e["type"])) for e in errors],
+    )
+    return JSONResponse(
+        body.model_dump(mode="json"), status_code=status, headers=dict(headers or {}), media_type=PROBLEM_MEDIA_TYPE
+    )
+
+
+def _phrase(status: int) -> str:
+    try:
+        return HTTPStatus(status).phrase
+    except ValueError:
+        return "Error"
+
+
+def _body_root(request: Request) -> Any:
+    """The model FastAPI validated the body against (for tag-aware field paths)."""
+    route = request.scope.get("route")
+    body_field = getattr(route, "body_field", None)
+    if body_field is None:
+        return None
+    return getattr(body_field.field_info, "annotation", None)
+
+
+def validation_errors(request: Request, exc: RequestValidationError) -> list[FieldError]:
+    root = _body_root(request)
+    out: list[FieldError] = []
+    for err in exc.errors():
+        loc = tuple(err.get("loc", ()))
+        if err.get("type") == "json_invalid":
+            ctx = err.get("ctx") or {}
+            pos = loc[1] if len(loc) > 1 else "?"
+            out.append(
+                FieldError(field="", message=f"invalid JSON at character {pos}: {ctx.get('error', '')}".strip(),
+                           type="json_invalid")
+            )
+            continue
+        if loc and loc[0] == "body":
+            out.extend(format_error_details([{**err, "loc": loc[1:]}], root))
+        else:
+            # query / path / header / cookie: keep the source so "query.wait" is unambiguous
+            out.extend(format_error_details([err], None))
+    return out
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries for problem statuses (so clients and schemathesis know them)."""
+    descriptions = {
+        400: "Malformed request (unparseable body or multipart)",
+        401: "Missing or invalid API key",
+        404: "No such resource (or it belongs to another API key)",
+        409: "Conflict with the resource's current state",
+        413: "Request body or an uploaded file over the size limit",
+        415: "Unsupported Content-Type",
+        422: "Invalid input; `errors[]` names each field",
+        429: "Rate limit exceeded; see Retry-After",
+        503: "Redis or the object store is unreachable; see Retry-After",
+    }
+    return {
+        s: {"model": Problem, "description": descriptions.get(s, _phrase(s)), "content": {PROBLEM_MEDIA_TYPE: {}}}
+        for s in statuses
+    }
+
+
+def install_exception_handlers(app: FastAPI) -> None:
+    """Register the mapping above on ``app``."""
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = validation_errors(request, exc)
+        return problem_response(422, f"{len(errors)} invalid field(s)", title="Invalid input", errors=errors)
+
+    @app.exception_handler(ValidationProblem)
+    async def _validation_problem(request: Request, exc: ValidationProblem) -> JSONResponse:
+        title = "Invalid input" if exc.status == 422 else _phrase(exc.status)
+        detail = exc.detail or f"{len(exc.errors)} invalid field(s)"
+        return problem_response(exc.status, detail, title=title, errors=exc.errors)
+
+    @app.exception_handler(AuthError)
+    async def _auth(request: Request, exc: AuthError) -> JSONResponse:
+        return problem_response(
+            401, exc.detail, headers={"WWW-Authenticate": 'Bearer realm="ibr", error="invalid_token"'}
+        )
+
+    @app.exception_handler(RateLimited)
+    async def _rate(request: Request, exc: RateLimited) -> JSONResponse:
+        return problem_response(429, str(exc), headers={"Retry-After": str(int(exc.retry_after_s))})
+
+    async def _not_found(request: Request, exc: Exception) -> JSONResponse:
+        # The message stays generic: it must read the same for "absent" and "another key's".
+        return problem_response(404, f"no such resource: {request.url.path}")
+
+    for cls in (NotFound, UnknownScene, JobNotFound):
+        app.add_exception_handler(cls, _not_found)
+
+    @app.exception_handler(ChecksumMismatch)
+    async def _corrupt(request: Request, exc: ChecksumMismatch) -> JSONResponse:
+        log.error("checksum mismatch: %s", exc)
+        return problem_response(
+            404,
+            f"{exc}. The corrupt copy is never served: request the render again to rebake it "
+            "(or upload the scene again)",
+            title="Stored data corrupt",
+            type_="urn:ibr:problem:corrupt",
+        )
+
+    @app.exception_handler(StoreError)
+    async def _store_error(request: Request, exc: StoreError) -> JSONResponse:
+        rid = getattr(request.state, "request_id", None)
+        log.error("store error: %s", exc, extra={"request_id": rid})
+        return problem_response(500, f"stored data could not be read ({exc}); request id {rid}")
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_down(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        log.warning("object store unavailable: %s", exc)
+        return problem_response(
+            503, "the object store is unreachable; retry later", headers={"Retry-After": str(RETRY_AFTER_S)}
+        )
+
+    async def _redis_down(request: Request, exc: Exception) -> JSONResponse:
+        log.warning("redis unavailable: %s", exc)
+        return problem_response(
+            503, "the job queue (Redis) is unreachable; retry later", headers={"Retry-After": str(RETRY_AFTER_S)}
+        )
+
+    app.add_exception_handler(redis.exceptions.ConnectionError, _redis_down)
+    app.add_exception_handler(redis.exceptions.TimeoutError, _redis_down)
+
+    @app.exception_handler(MultipartError)
+    async def _multipart(request: Request, exc: MultipartError) -> JSONResponse:
+        return problem_response(400, str(exc))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        errors: list[FieldError] = []
+        if isinstance(exc, BodyTooLarge) and exc.field:
+            errors.append(FieldError(field=exc.field, message=str(exc.detail), type="too_large"))
+        title = "Request body too large" if exc.status_code == 413 else None
+        return problem_response(exc.status_code, str(exc.detail), title=title, errors=errors, headers=exc.headers)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        rid = getattr(request.state, "request_id", None)
+        log.exception("unhandled error", extra={"request_id": rid})
+        return problem_response(500, f"internal error; quote request id {rid} when reporting it")

@@ -1,0 +1,57 @@
+"""``/v1/jobs``: RQ jobs (renders and bakes), their progress, results and cancellation."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Query
+from redis import Redis
+
+from api_schemas.service import JobId, JobList, JobPublic, JobState
+from service.api.deps import OwnerDep, RedisDep
+from service.api.errors import problem_responses
+from workers.queues import JobNotCancelable, JobNotFound, cancel, fetch_job, job_owners, job_public, list_jobs
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+JobIdPath = Annotated[JobId, Path(description="Job id, e.g. render-<artifact key>")]
+
+
+def _visible_job_or_404(redis: Redis, job_id: str, owner: str | None) -> JobPublic:
+    job = fetch_job(redis, job_id)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id}")
+    if owner is not None and job.meta.get("owner") != owner and owner not in job_owners(redis, job_id):
+        raise HTTPException(404, f"no job {job_id}")  # another key's job: do not reveal it exists
+    return job_public(job)
+
+
+@router.get("", response_model=JobList, responses=problem_responses(401, 422, 429, 503))
+def list_my_jobs(
+    redis: RedisDep,
+    owner: OwnerDep,
+    state: Annotated[list[JobState] | None, Query(description="Only jobs in these states")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> JobList:
+    """Jobs this API key asked for, newest first."""
+    return JobList(items=list_jobs(redis, owner=owner, states=state, limit=limit))
+
+
+@router.get("/{job_id}", response_model=JobPublic, responses=problem_responses(401, 404, 422, 429, 503))
+def read_job(job_id: JobIdPath, redis: RedisDep, owner: OwnerDep) -> JobPublic:
+    """One job: state, progress, error or result."""
+    return _visible_job_or_404(redis, job_id, owner)
+
+
+@router.post(
+    "/{job_id}/cancel", response_model=JobPublic, responses=problem_responses(401, 404, 409, 422, 429, 503)
+)
+def cancel_job(job_id: JobIdPath, redis: RedisDep, owner: OwnerDep) -> JobPublic:
+    """Cancel a queued or running job (409 when it already ended)."""
+    _visible_job_or_404(redis, job_id, owner)
+    try:
+        return cancel(redis, job_id)
+    except JobNotFound:
+        raise HTTPException(404, f"no job {job_id}") from None
+    except JobNotCancelable as exc:
+        raise HTTPException(409, str(exc)) from None

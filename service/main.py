@@ -1,0 +1,123 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+Run with ``uvicorn --factory service.main:create_app`` (or ``service.main:app``, built on
+first access from the ``IBR_*`` environment). This process never imports numba or the
+engine: jobs are enqueued by import path (``workers.queues``) and run in workers.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from redis import Redis
+
+from service.api.errors import install_exception_handlers
+from service.api.limits import BodyLimitMiddleware
+from service.api.routes import artifacts, batches, health, jobs, renders, scenes
+from service.core.config import Settings, get_settings
+from service.core.logging import RequestContextMiddleware, configure_logging
+from service.core.metrics import MetricsMiddleware, ServiceMetrics
+from service.core.security import KeyRing, RateLimiter
+from workers.queues import redis_from_url
+from workers.store import ObjectStore, open_store
+
+__all__ = ["create_app"]
+
+API_VERSION = "1.0.0"
+log = logging.getLogger("ibr.api")
+
+TAGS = [
+    {"name": "scenes", "description": "Content-addressed scenes; mesh files are uploaded with them (multipart)."},
+    {"name": "renders", "description": "Render requests: served from the artifact cache or by a shared job."},
+    {"name": "jobs", "description": "Queued and running work, progress, errors, cancellation."},
+    {"name": "artifacts", "description": "Results: manifests and images, verified against their checksums."},
+    {"name": "batches", "description": "Many scenes and renders in one request."},
+    {"name": "health", "description": "Liveness, readiness and Prometheus metrics."},
+]
+
+
+def _open_store(settings: Settings) -> ObjectStore:
+    url = settings.effective_store_url
+    if url.startswith("s3://"):
+        return open_store(
+            url,
+            endpoint_url=settings.s3_endpoint_url,
+            region=settings.s3_region,
+            access_key=settings.s3_access_key,
+            secret_key=settings.s3_secret_key,
+        )
+    return open_store(url)
+
+
+def create_app(
+    settings: Settings | None = None, *, store: ObjectStore | None = None, redis: Redis | None = None
+) -> FastAPI:
+    """Build the API. ``settings`` defaults to the environment (exits with a message naming
+    the bad variable); ``store`` / ``redis`` override the clients the settings name (tests)."""
+    settings = settings if settings is not None else get_settings()
+    configure_logging(settings.log_level, settings.log_json)
+    try:
+        store = store if store is not None else _open_store(settings)
+        redis = redis if redis is not None else redis_from_url(settings.effective_redis_url)
+    except ValueError as exc:
+        raise SystemExit(f"invalid configuration: {exc}") from None
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        log.info(
+            "api starting",
+            extra={"store": type(store).__name__, "redis": settings.effective_redis_url.split("@")[-1],
+                   "auth": settings.auth_enabled, "rate_limit_per_minute": settings.rate_limit_per_minute},
+        )
+        yield
+        redis.close()
+
+    app = FastAPI(
+        title="ibr-service",
+        version=API_VERSION,
+        summary="Image-based rendering as a service: scenes in, rendered images out.",
+        description="Errors are `application/problem+json` (RFC 9457) with `errors[].field` naming each "
+                    "invalid field. See docs/api.md.",
+        openapi_tags=TAGS,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.store = store
+    app.state.redis = redis
+    app.state.keyring = KeyRing(settings.api_keys)
+    app.state.limiter = RateLimiter(settings.rate_limit_per_minute, settings.rate_limit_burst)
+    metrics = ServiceMetrics(lambda: redis)
+    app.state.metrics = metrics
+
+    install_exception_handlers(app)
+    for module in (scenes, renders, jobs, artifacts, batches, health):
+        app.include_router(module.router)
+
+    # add_middleware wraps: the LAST added is the outermost.
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
+            expose_headers=["Location", "Retry-After", "X-Request-ID"],
+        )
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.add_middleware(RequestContextMiddleware)
+    return app
+
+
+def __getattr__(name: str) -> Any:
+    # ``service.main:app`` for uvicorn without --factory: built on first access, not at import
+    # (importing this module must not read the environment or connect anywhere).
+    if name == "app":
+        app = create_app()
+        globals()["app"] = app
+        return app
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
