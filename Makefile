@@ -18,9 +18,9 @@ install: $(STAMP)
 
 # The main job: render the sample scenes with the reference renderer into ./out/
 run: install
-	$(BIN)/ibr render mirror_box -o out/mirror_box.png
-	$(BIN)/ibr render cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
-	$(BIN)/ibr render cornell_box -o out/cornell_box.png --indirect 16 --bounces 3
+	$(BIN)/ibr render-local mirror_box -o out/mirror_box.png
+	$(BIN)/ibr render-local cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
+	$(BIN)/ibr render-local cornell_box -o out/cornell_box.png --indirect 16 --bounces 3
 
 test: install
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --timeout=900 -q tests

@@ -1,10 +1,14 @@
 """The ``ibr`` command line.
 
-Engine-side commands for now (the service commands arrive with the API):
-``ibr render`` renders a scene file with the reference renderer, ``ibr validate``
-checks a scene, ``ibr schema`` writes the scene JSON Schema, ``ibr samples``
-lists the shipped sample scenes. Exit code 2 on bad input, with a message that
-names the field or file.
+Service: ``ibr up`` (everything on one machine), ``ibr api``, ``ibr worker --queue
+bake|render``. Client (talks to the API at ``--api`` / ``IBR_API_URL``, default
+http://127.0.0.1:8000, key from ``IBR_API_KEY``): ``ibr scenes add|list|show|delete``,
+``ibr render`` (request a render, follow it with a progress bar, fetch the image),
+``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``. Local, no service:
+``ibr render-local``, ``ibr validate``, ``ibr schema``, ``ibr samples``.
+
+Exit codes: 0 ok, 2 bad input (with a message naming the field or file), 3 the
+service could not be reached or failed the request, 4 the job failed.
 """
 
 from __future__ import annotations
@@ -48,8 +52,8 @@ def _load(scene_arg: str):
     return scene, base
 
 
-@app.command()
-def render(
+@app.command("render-local")
+def render_local(
     scene: Annotated[str, typer.Argument(help="Scene JSON file, or a sample scene name")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Image file (.exr .hdr .png .jpg .tif)")] = Path(
         "out/render.png"),
@@ -65,7 +69,7 @@ def render(
     exposure: Annotated[float, typer.Option(help="Exposure in stops for 8-bit outputs")] = 0.0,
     aovs: Annotated[bool, typer.Option(help="Also write depth/normal/id EXRs beside the image")] = False,
 ) -> None:
-    """Render a scene with the reference renderer and write the image."""
+    """Render a scene in this process with the reference renderer (no service) and write the image."""
     from dataclasses import replace
 
     from engine.errors import EngineError
@@ -144,6 +148,288 @@ def samples() -> None:
 
     for n in sample_names():
         typer.echo(f"{n}\t{sample_path(n)}")
+
+
+# ============================================================================ service processes
+
+DEFAULT_API = "http://127.0.0.1:8000"
+ApiOpt = Annotated[str, typer.Option("--api", envvar="IBR_API_URL", help="API base URL")]
+KeyOpt = Annotated[str | None, typer.Option("--api-key", envvar="IBR_API_KEY", help="API key (Bearer)")]
+
+
+@app.command()
+def up(
+    data_dir: Annotated[Path, typer.Option(envvar="IBR_DATA_DIR", help="Data directory")] = Path("~/.ibr"),
+    port: Annotated[int, typer.Option(help="API port on 127.0.0.1")] = 8000,
+    samples_: Annotated[bool, typer.Option("--samples/--no-samples", help="Load the sample scenes")] = True,
+    demo: Annotated[str | None, typer.Option(help="Render this sample scene once ready, save a PNG")] = None,
+    demo_output: Annotated[Path, typer.Option(help="Where --demo writes its PNG")] = Path("out/demo.png"),
+    exit_after_demo: Annotated[bool, typer.Option(help="Stop everything after the demo render")] = False,
+) -> None:
+    """Start Redis (embedded unless IBR_REDIS_URL is set), a bake and a render worker and the API."""
+    from service.up import load_samples, run_forever, start_stack
+
+    try:
+        stack = start_stack(data_dir, port=port, log=typer.echo)
+    except Exception as exc:  # start-up problems are reported, not tracebacks
+        _fail(str(exc), code=3)
+    ids: dict[str, str] = {}
+    try:
+        if samples_ or demo:
+            ids = load_samples(stack.api_url, stack.env.get("IBR_API_KEY"), log=typer.echo)
+        if demo:
+            if demo not in ids:
+                raise typer.Exit(_fail_code(f"--demo {demo}: not a sample scene ({', '.join(sorted(ids))})", 2))
+            _render_and_fetch(stack.api_url, stack.env.get("IBR_API_KEY"), ids[demo], {}, demo_output, "png",
+                              wait=True)
+    except BaseException:
+        stack.stop(timeout=10)
+        raise
+    if exit_after_demo:
+        stack.stop()
+        return
+    typer.echo(f"ready: {stack.api_url}  (Ctrl-C to stop)")
+    raise typer.Exit(run_forever(stack, log=typer.echo))
+
+
+@app.command()
+def api(
+    host: Annotated[str, typer.Option(help="Bind address")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="Port")] = 8000,
+    workers: Annotated[int, typer.Option(help="uvicorn worker processes")] = 1,
+) -> None:
+    """Run the HTTP API (settings from IBR_* environment variables)."""
+    import uvicorn
+
+    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, workers=workers)
+
+
+@app.command()
+def worker(
+    queue: Annotated[str, typer.Option(help="bake or render")],
+    burst: Annotated[bool, typer.Option(help="Exit when the queue is empty")] = False,
+    name: Annotated[str | None, typer.Option(help="Worker name")] = None,
+) -> None:
+    """Run one RQ worker on the bake or render queue (settings from IBR_* variables)."""
+    if queue not in ("bake", "render"):
+        _fail(f"--queue must be bake or render, got {queue!r}")
+    from workers.runner import main as run_worker
+
+    argv = ["--queue", queue] + (["--burst"] if burst else []) + (["--name", name] if name else [])
+    raise typer.Exit(run_worker(argv))
+
+
+# ============================================================================ client commands
+
+scenes_app = typer.Typer(help="Scenes stored in the service", no_args_is_help=True)
+jobs_app = typer.Typer(help="Jobs in the queues", no_args_is_help=True)
+app.add_typer(scenes_app, name="scenes")
+app.add_typer(jobs_app, name="jobs")
+
+
+def _fail_code(msg: str, code: int) -> int:
+    typer.echo(f"error: {msg}", err=True)
+    return code
+
+
+def _client(api_url: str, api_key: str | None):
+    from service.client import Client
+
+    return Client(api_url, api_key=api_key)
+
+
+def _call(fn):
+    """Run a client call; map API and connection errors to exit codes 2 / 3."""
+    import httpx
+
+    from service.client import ApiError
+
+    try:
+        return fn()
+    except ApiError as exc:
+        _fail(str(exc), code=2 if 400 <= exc.status < 500 and exc.status not in (401, 403, 429) else 3)
+    except httpx.HTTPError as exc:
+        _fail(f"cannot reach the API: {exc}", code=3)
+
+
+def _scene_doc(scene_arg: str) -> tuple[dict, dict[str, Path]]:
+    """Scene JSON (validated locally first) and its mesh files, from a path or sample name."""
+    sc, base = _load(scene_arg)
+    doc = sc.model_dump(mode="json", exclude_defaults=False)
+    meshes = {o.path: base / o.path for o in sc.objects if getattr(o, "type", "") == "mesh_file"}
+    for rel, p in meshes.items():
+        if not p.is_file():
+            _fail(f"mesh file {rel} not found next to the scene ({p})")
+    return doc, meshes
+
+
+@scenes_app.command("add")
+def scenes_add(scene: Annotated[str, typer.Argument(help="Scene JSON file or sample name")],
+               api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Upload a scene (and its mesh files); prints the scene id."""
+    doc, meshes = _scene_doc(scene)
+    with _client(api_url, api_key) as c:
+        pub = _call(lambda: c.create_scene(doc, meshes or None))
+    typer.echo(pub.id)
+
+
+@scenes_app.command("list")
+def scenes_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """List stored scenes."""
+    with _client(api_url, api_key) as c:
+        res = _call(c.list_scenes)
+    for s in res.items:
+        typer.echo(f"{s.id}  {s.name}  objects={s.n_objects} lights={s.n_lights}")
+
+
+@scenes_app.command("show")
+def scenes_show(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Show one scene as JSON."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.get_scene(scene_id)).model_dump_json(indent=2))
+
+
+@scenes_app.command("delete")
+def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Delete a scene (refused while a job uses it)."""
+    with _client(api_url, api_key) as c:
+        _call(lambda: c.delete_scene(scene_id))
+
+
+def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict, output: Path | None,
+                      fmt: str, wait: bool, camera: dict | None = None) -> None:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with _client(api_url, api_key) as c:
+        r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0))
+        typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
+        if r.artifact is None and not wait:
+            if r.job is not None:
+                typer.echo(r.job.id)
+            return
+        if r.artifact is None:
+            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+                          TimeRemainingColumn(), transient=True) as bar:
+                task = bar.add_task("render", total=1.0)
+
+                def show(j) -> None:
+                    bar.update(task, completed=j.progress.fraction, description=j.progress.stage or j.state)
+
+                from service.client import ApiError
+
+                try:
+                    manifest = _call(lambda: c.wait_render(r, on_progress=show))
+                except ApiError as exc:  # the job itself failed
+                    _fail(str(exc), code=4)
+        else:
+            manifest = r.artifact
+        if manifest.result.get("timings"):
+            t = manifest.result["timings"]
+            typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in t.items()), err=True)
+        if output is not None:
+            data = _call(lambda: c.download(manifest.key, fmt))
+            output.parent.mkdir(parents=True, exist_ok=True)
+            output.write_bytes(data)
+            typer.echo(str(output))
+
+
+@app.command()
+def render(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Save the image (.png or .exr)")] = None,
+    spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel")] = None,
+    indirect: Annotated[int | None, typer.Option(help="Indirect paths per pixel")] = None,
+    bounces: Annotated[int | None, typer.Option(help="Bounces per indirect path")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed")] = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")] = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Request a render from the service, follow it with a progress bar and fetch the image."""
+    import re
+
+    params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
+                                "seed": seed}.items() if v is not None}
+    if re.fullmatch(r"[0-9a-f]{64}", scene):
+        scene_id = scene
+    else:
+        doc, meshes = _scene_doc(scene)
+        with _client(api_url, api_key) as c:
+            scene_id = _call(lambda: c.create_scene(doc, meshes or None)).id
+    fmt = "exr" if output is not None and output.suffix.lower() == ".exr" else "png"
+    if output is not None and output.suffix.lower() not in (".png", ".exr"):
+        _fail(f"{output}: the service delivers .png or .exr")
+    _render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait)
+
+
+@app.command()
+def fetch(key: Annotated[str, typer.Argument(help="Artifact key")],
+          output: Annotated[Path, typer.Option("-o", "--output", help=".png or .exr")],
+          api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Download a rendered image."""
+    if output.suffix.lower() not in (".png", ".exr"):
+        _fail(f"{output}: the service delivers .png or .exr")
+    with _client(api_url, api_key) as c:
+        data = _call(lambda: c.download(key, output.suffix.lower()[1:]))
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_bytes(data)
+    typer.echo(str(output))
+
+
+@jobs_app.command("list")
+def jobs_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """List jobs with their state and progress."""
+    with _client(api_url, api_key) as c:
+        res = _call(c.jobs)
+    for j in res.items:
+        typer.echo(f"{j.id}  {j.kind:<6} {j.state:<9} {j.progress.fraction * 100:5.1f}%  {j.error or ''}")
+
+
+@jobs_app.command("show")
+def jobs_show(job_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Show one job as JSON."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.job(job_id)).model_dump_json(indent=2))
+
+
+@jobs_app.command("cancel")
+def jobs_cancel(job_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Cancel a queued or running job."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.cancel(job_id)).state)
+
+
+@app.command()
+def batch(
+    scenes: Annotated[list[str], typer.Argument(help="Scene JSON files or sample names (inline meshes only)")],
+    render_them: Annotated[bool, typer.Option("--render/--no-render", help="Also request a render of each")] = True,
+    spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel for the renders")] = None,
+    follow: Annotated[bool, typer.Option(help="Follow the batch until every job ended")] = False,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Submit many scenes (and renders of them) in one call; prints the batch id."""
+    import time
+
+    docs = []
+    for s in scenes:
+        doc, meshes = _scene_doc(s)
+        if meshes:
+            _fail(f"{s}: scenes with mesh files can't go in a batch; upload them with 'ibr scenes add'")
+        docs.append(doc)
+    with _client(api_url, api_key) as c:
+        b = _call(lambda: c.batch(scenes=docs))
+        if render_them:
+            params = {"spp": spp} if spp else {}
+            b = _call(lambda: c.batch(renders=[{"scene_id": sid, "params": params} for sid in b.scene_ids]))
+        typer.echo(b.id)
+        batch_id = b.id
+        while follow:
+            b = _call(lambda: c.get_batch(batch_id))
+            typer.echo(f"  {b.progress.fraction * 100:5.1f}%  {b.counts}", err=True)
+            if not any(b.counts.get(k, 0) for k in ("queued", "started")):
+                break
+            time.sleep(1.0)
 
 
 if __name__ == "__main__":

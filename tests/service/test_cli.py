@@ -14,7 +14,7 @@ runner = CliRunner()
 
 def test_render_sample_writes_image_with_metadata(tmp_path):
     out = tmp_path / "mirror.exr"
-    r = runner.invoke(app, ["render", "mirror_box", "-o", str(out), "--width", "24", "--height", "16",
+    r = runner.invoke(app, ["render-local", "mirror_box", "-o", str(out), "--width", "24", "--height", "16",
                             "--spp", "1", "--aovs"])
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout[r.stdout.index("{"):])
@@ -34,7 +34,7 @@ def test_invalid_scene_exits_2_naming_the_field(tmp_path):
         "camera": {"type": "perspective", "eye": [0, 0, 1], "look_at": [0, 0, 0], "width": 8, "height": 8},
         "materials": [{"name": "m", "kd": [0.5, -1, 0.5]}],
     }))
-    r = runner.invoke(app, ["render", str(bad), "-o", str(tmp_path / "x.png")])
+    r = runner.invoke(app, ["render-local", str(bad), "-o", str(tmp_path / "x.png")])
     assert r.exit_code == 2
     assert "materials.0.kd" in r.output
     assert not (tmp_path / "x.png").exists()
