@@ -1,0 +1,150 @@
+"""Real forking bake workers (``python -m workers.runner --queue bake``): a SIGKILLed worker's job
+is retried or failed -- never 'started' forever -- and publishes nothing (HARD_CASES 20); stop
+requests kill the work horse; time limits (HARD_CASES 24)."""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable
+from typing import Any
+
+import psutil
+import pytest
+from redis import Redis
+from rq import Retry
+
+from tests.fixtures.redis import WorkerProcess
+from tests.workers.queue.jobs_for_tests import slow_artifact_key
+from workers import queues
+from workers.artifacts import read_blob, read_manifest
+from workers.store import ObjectStore
+
+StartWorker = Callable[..., WorkerProcess]
+SLOW = "tests.workers.queue.jobs_for_tests.slow_artifact"
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 0.05) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def step(redis: Redis, job_id: str) -> int:
+    job = queues.fetch_job(redis, job_id)
+    return int(job.meta.get("step", -1)) if job is not None else -1
+
+
+def state(redis: Redis, job_id: str) -> str:
+    job = queues.fetch_job(redis, job_id)
+    assert job is not None
+    return queues.job_public(job).state
+
+
+def gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+@pytest.mark.parametrize("retries", [0, 1], ids=["no-retry-fails", "retry-reruns"])
+def test_sigkilled_bake_worker_job_is_failed_or_rerun_never_started_forever(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker, retries: int
+) -> None:
+    label, steps = f"killed-{retries}", 50  # 5 s of work: an orphaned horse could not finish below
+    key = slow_artifact_key(label, steps)
+    q = queues.get_queue(redis_conn, "bake")
+    job = q.enqueue(SLOW, {"steps": steps, "dt": 0.1, "label": label}, job_id=f"bake-{label}", job_timeout=120,
+                    retry=Retry(max=retries) if retries else None)
+    w = worker_process("bake")
+    wait_for(lambda: step(redis_conn, job.id) >= 3, 30, "the horse to be working")
+    family = [p.pid for p in psutil.Process(w.pid).children(recursive=True)]
+    assert family, "a forking worker runs its job in a child process"
+
+    w.kill()  # SIGKILL to the worker's process group (worker + scheduler)
+    wait_for(lambda: all(gone(p) for p in family), 3, "the work horse to die with its worker (PDEATHSIG)")
+    assert state(redis_conn, job.id) == "started"  # stale: nobody has noticed yet
+    assert read_manifest(worker_store, key) is None
+    assert worker_store.list(f"artifacts/{key}/") == []
+
+    t0 = time.monotonic()
+    w2 = worker_process("bake")
+    final = wait_for(lambda: (s := state(redis_conn, job.id)) in ("failed", "finished") and s, 40,
+                     "maintenance to deal with the abandoned job")
+    took = time.monotonic() - t0
+    if retries:
+        assert final == "finished", w2.log()
+        manifest = read_manifest(worker_store, key)
+        assert manifest is not None
+        expected = "".join(f"{label}:{i}\n" for i in range(1000)).encode()
+        assert read_blob(worker_store, key, "data.txt") == expected  # the rerun's result is the normal one
+    else:
+        assert final == "failed", w2.log()
+        pub = queues.job_public(queues.fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
+        assert pub.error is not None and "stopped responding" in pub.error
+        assert read_manifest(worker_store, key) is None
+    assert took < 30
+    assert w2.alive()
+
+
+def test_canceling_a_started_bake_job_kills_its_horse(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    label, steps = "canceled", 100
+    q = queues.get_queue(redis_conn, "bake")
+    job = q.enqueue(SLOW, {"steps": steps, "dt": 0.1, "label": label}, job_id=f"bake-{label}", job_timeout=120,
+                    retry=Retry(max=2))
+    w = worker_process("bake")
+    wait_for(lambda: step(redis_conn, job.id) >= 2, 30, "the horse to be working")
+    queues.cancel(redis_conn, job.id)
+    wait_for(lambda: state(redis_conn, job.id) == "canceled", 10, "the stop command")
+    assert q.count == 0 and q.scheduled_job_registry.get_job_count(cleanup=False) == 0  # not retried
+    assert read_manifest(worker_store, slow_artifact_key(label, steps)) is None
+    assert w.alive()
+
+
+@pytest.mark.parametrize("queue", ["bake", "render"])
+def test_timeout_fails_the_job_and_the_worker_takes_the_next(
+    redis_conn: Redis, worker_process: StartWorker, queue: queues.QueueName
+) -> None:
+    """HARD_CASES 24 on both worker kinds (forked horse / in-process job)."""
+    q = queues.get_queue(redis_conn, queue)
+    slow = q.enqueue("tests.workers.queue.jobs_for_tests.sleepy", {"seconds": 30}, job_id=f"{queue}-slow",
+                     job_timeout=1, retry=Retry(max=2))
+    after = q.enqueue("tests.workers.queue.jobs_for_tests.quick", {}, job_id=f"{queue}-after")
+    w = worker_process(queue)
+    wait_for(lambda: state(redis_conn, after.id) == "finished", 30, "the next job")
+    pub = queues.job_public(queues.fetch_job(redis_conn, slow.id))  # type: ignore[arg-type]
+    assert pub.state == "failed"
+    assert pub.error == "the job exceeded its time limit of 1 s and was stopped"
+    assert q.scheduled_job_registry.get_job_count(cleanup=False) == 0  # a timeout is not retried
+    assert w.alive()
+
+
+def test_transient_failure_is_retried_after_its_interval_by_the_scheduler(
+    redis_conn: Redis, worker_process: StartWorker
+) -> None:
+    """StoreUnavailable keeps the job's retries; the interval needs the worker's scheduler."""
+    q = queues.get_queue(redis_conn, "render")
+    job = q.enqueue("tests.workers.queue.jobs_for_tests.flaky", {"failures": 1}, job_id="render-flaky",
+                    retry=Retry(max=2, interval=[1]))
+    worker_process("render")
+    wait_for(lambda: state(redis_conn, job.id) == "finished", 30, "the retried job")
+    done = queues.fetch_job(redis_conn, job.id)
+    assert done is not None and done.return_value() == {"attempts": 2} and done.retries_left == 1
+
+
+@pytest.mark.parametrize("queue", ["bake", "render"])
+def test_sigterm_is_a_warm_shutdown(redis_conn: Redis, worker_process: StartWorker, queue: queues.QueueName) -> None:
+    q = queues.get_queue(redis_conn, queue)
+    job = q.enqueue("tests.workers.queue.jobs_for_tests.sleepy", {"seconds": 3}, job_id=f"{queue}-warm")
+    w = worker_process(queue)
+    wait_for(lambda: state(redis_conn, job.id) == "started", 60, "the job to start")
+    w.kill(signal.SIGTERM)
+    assert w.wait(60) == 0, w.log()
+    assert state(redis_conn, job.id) == "finished", w.log()  # the running job was allowed to finish

@@ -1,0 +1,246 @@
+"""The render job: one reference render of a stored scene, written as a content-addressed artifact.
+
+``render_job(payload) -> dict`` runs inside an RQ render worker (``rq.SimpleWorker``, so the
+scene cache below stays warm across jobs):
+
+1. validate the payload (:class:`RenderJobPayload`); a bad payload, a key that does not match
+   the request, or a scene that is not stored fails the job at once (never retried);
+2. if the artifact's manifest already exists (a retry after the commit, or a duplicate), return
+   its result: jobs are at-least-once, artifacts are written once;
+3. load the scene from the store (``get_scene`` + ``blob_reader`` + ``load_scene``) through the
+   per-process :class:`RendererCache`, apply the request's camera;
+4. render with a progress callback that saves ``job.meta["progress"]`` a few times per second
+   and raises :class:`JobCanceled` once cancellation was requested (flag key or RQ status);
+5. write ``radiance.exr`` (float32, linear), ``preview.png`` (sRGB, exposure 0) and the AOVs
+   ``depth.exr``, ``normal.exr``, ``object_id.exr``, ``material_id.exr`` (engine.imageio
+   writes 1/3/4-channel images only, so each AOV is its own file; ids are stored as float32,
+   exact below 2**24, -1 where nothing is hit), each with ``ibr:`` metadata (camera, scene id
+   and hash, render parameters, engine version), then the manifest LAST via ``write_artifact``.
+
+A render that produces NaN/Inf raises ``engine.errors.NonFiniteOutputError`` before anything is
+written: the job fails with that message and no manifest exists (HARD_CASES 13). Images are
+byte-deterministic (engine.imageio suppresses timestamps, the renderer is deterministic per
+seed), so a re-run writes identical blobs under the same key.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import ValidationError
+from rq import get_current_job
+
+from engine import ENGINE_VERSION
+from engine.errors import NonFiniteOutputError
+from engine.imageio import write_image
+from engine.reference import ReferenceParams
+from workers.cache import RendererCache
+from workers.jobs.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
+from workers.queues import cancel_key, engine_version, render_artifact_key, render_params
+from workers.scene_loader import LoadedScene, camera_params, load_scene
+from workers.settings import get_settings, open_worker_store
+
+if TYPE_CHECKING:
+    from rq.job import Job
+
+    from workers.store import ObjectStore
+
+__all__ = [
+    "AOV_BLOBS",
+    "JobCanceled",
+    "NonFiniteOutputError",
+    "ProgressReporter",
+    "SceneNotFound",
+    "render_job",
+    "renderer_cache",
+]
+
+EXR = "image/x-exr"
+PNG = "image/png"
+AOV_BLOBS = ("depth.exr", "normal.exr", "object_id.exr", "material_id.exr")
+
+# Share of the job's progress bar per stage (loading and writing are short next to rendering).
+_LOAD_END = 0.05
+_RENDER_END = 0.95
+
+
+class JobCanceled(Exception):
+    """Raised from the progress callback when the job's cancellation was requested."""
+
+
+class SceneNotFound(LookupError):
+    """The payload names a scene the store does not hold."""
+
+
+_cache: RendererCache | None = None
+_store: ObjectStore | None = None
+
+
+def renderer_cache() -> RendererCache:
+    """This process's LRU of warm renderers (budget ``WorkerSettings.cache_bytes``)."""
+    global _cache
+    if _cache is None:
+        _cache = RendererCache(get_settings().cache_bytes)
+    return _cache
+
+
+def _worker_store() -> ObjectStore:
+    global _store
+    if _store is None:
+        _store = open_worker_store()
+    return _store
+
+
+class ProgressReporter:
+    """``progress(fraction, stage)`` for the engine: writes ``job.meta["progress"]`` (fraction,
+    stage, eta_s from the elapsed time) at most every ``min_interval`` seconds and raises
+    :class:`JobCanceled` when the job's cancel flag is set or RQ marked it canceled.
+
+    Without a current RQ job (direct calls, tests) it only keeps the numbers.
+    """
+
+    def __init__(self, job: Job | None, min_interval: float = 0.25):
+        self.job = job
+        self.min_interval = min_interval
+        self.t0 = time.monotonic()
+        self._last_save = -1e9
+        self._last_check = -1e9
+        self.fraction = 0.0
+        self.stage = "starting"
+
+    def __call__(self, fraction: float, stage: str) -> None:
+        self.report(_LOAD_END + (_RENDER_END - _LOAD_END) * fraction, stage)
+
+    def report(self, fraction: float, stage: str, force: bool = False, check: bool = True) -> None:
+        self.fraction = min(1.0, max(0.0, float(fraction)))
+        self.stage = stage
+        now = time.monotonic()
+        if self.job is None:
+            return
+        if check and (force or now - self._last_check >= self.min_interval):
+            self._last_check = now
+            self.check_canceled()
+        if force or now - self._last_save >= self.min_interval:
+            self._last_save = now
+            self._save(now)
+
+    def _save(self, now: float) -> None:
+        assert self.job is not None
+        elapsed = now - self.t0
+        eta = elapsed * (1.0 - self.fraction) / self.fraction if self.fraction > 1e-6 else None
+        self.job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": self.stage,
+                                     "eta_s": None if eta is None else round(eta, 2)}
+        self.job.save_meta()
+
+    def check_canceled(self) -> None:
+        job = self.job
+        if job is None:
+            return
+        with job.connection.pipeline(transaction=False) as p:
+            p.exists(cancel_key(job.id))
+            p.hget(job.key, "status")
+            flag, status = p.execute()
+        if flag or status in (b"canceled", "canceled"):
+            job.meta["cancel_requested"] = True
+            job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": "canceled", "eta_s": None}
+            job.save_meta()
+            raise JobCanceled(f"job {job.id} was canceled on request")
+
+
+def _json_safe(value: Any) -> Any:
+    """Plain JSON types only (numpy scalars and tuples come out of engine reports)."""
+    return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+def _image_bytes(tmp: Path, name: str, pixels: Any, metadata: dict[str, Any]) -> bytes:
+    path = tmp / name
+    write_image(path, pixels, metadata=metadata)
+    return path.read_bytes()
+
+
+def _load(store: ObjectStore, scene_id: str) -> LoadedScene:
+    from workers.artifacts import blob_reader, get_scene
+    from workers.store import NotFound
+
+    try:
+        scene, mesh_shas, _public = get_scene(store, scene_id)
+    except NotFound as exc:
+        raise SceneNotFound(f"scene {scene_id} is not in the store") from exc
+    return load_scene(scene, blob_reader(store, mesh_shas))
+
+
+def render_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Render one view of a stored scene and publish it as an artifact.
+
+    Returns ``{"artifact_key", "timings", "counts", "mesh_reports"}``.
+    """
+    t_start = time.perf_counter()
+    try:
+        p = RenderJobPayload.model_validate(payload)
+    except ValidationError as exc:
+        raise InvalidPayload(f"invalid render job payload: {describe_validation_error(exc)}") from None
+    if engine_version() != ENGINE_VERSION:
+        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
+    key = render_artifact_key(p.request)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+
+    from workers.artifacts import read_manifest, write_artifact
+
+    store = _worker_store()
+    existing = read_manifest(store, key)
+    if existing is not None:  # already published (retry after commit, or a duplicate run)
+        return {"artifact_key": key, **{k: existing.result.get(k) for k in ("timings", "counts", "mesh_reports")}}
+
+    job = get_current_job()
+    progress = ProgressReporter(job)
+    progress.report(0.0, "loading scene", force=True)
+
+    req = p.request
+    t0 = time.perf_counter()
+    entry, cache_hit = renderer_cache().get_or_load(req.scene_id, lambda: _load(store, req.scene_id))
+    t_load = time.perf_counter() - t0
+    loaded = entry.loaded
+    camera = camera_params(req.camera) if req.camera is not None else loaded.camera
+    params = ReferenceParams(**req.params.model_dump())
+    progress.report(_LOAD_END, "render", force=True)
+
+    out = entry.renderer.render(camera, params, progress)  # NonFiniteOutputError: nothing is written
+
+    progress.report(_RENDER_END, "writing", force=True)
+    t0 = time.perf_counter()
+    meta: dict[str, Any] = {
+        "camera": camera.to_dict(),
+        "scene_id": req.scene_id,
+        "scene_hash": loaded.scene_hash,
+        "method": req.method,
+        "render_params": params.to_dict(),
+        "engine_version": ENGINE_VERSION,
+        "artifact_key": key,
+    }
+    with tempfile.TemporaryDirectory(prefix="ibr-render-") as tmpdir:
+        tmp = Path(tmpdir)
+        blobs: dict[str, tuple[bytes, str]] = {
+            "radiance.exr": (_image_bytes(tmp, "radiance.exr", out.radiance, meta), EXR),
+            "preview.png": (_image_bytes(tmp, "preview.png", out.radiance, {**meta, "exposure_stops": 0.0}), PNG),
+            "depth.exr": (_image_bytes(tmp, "depth.exr", out.depth, {**meta, "aov": "depth"}), EXR),
+            "normal.exr": (_image_bytes(tmp, "normal.exr", out.normal, {**meta, "aov": "normal"}), EXR),
+            "object_id.exr": (_image_bytes(tmp, "object_id.exr", out.object_id.astype("float32"),
+                                           {**meta, "aov": "object_id"}), EXR),
+            "material_id.exr": (_image_bytes(tmp, "material_id.exr", out.material_id.astype("float32"),
+                                             {**meta, "aov": "material_id"}), EXR),
+        }
+    progress.check_canceled()  # last chance before the commit
+    timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
+    counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
+    result = _json_safe({"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports})
+    t0 = time.perf_counter()
+    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result)
+    result["timings"]["store"] = time.perf_counter() - t0
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)  # committed: too late to cancel
+    return {"artifact_key": key, **result}

@@ -1,0 +1,266 @@
+"""Worker processes: ``python -m workers.runner --queue render|bake [--burst] [--name NAME]``.
+
+- ``--queue render`` -> :class:`RenderWorker` (an ``rq.SimpleWorker``): jobs run in the worker
+  process itself, so compiled numba kernels, Embree scenes and the scene LRU
+  (workers/cache.py) stay warm from one job to the next.
+- ``--queue bake`` -> :class:`BakeWorker` (an ``rq.Worker``): a work horse is forked per job,
+  so a crash in a job cannot take the worker down. The parent never imports the engine or runs
+  a numba kernel (GNU OpenMP / TBB are not fork-safe, ARCHITECTURE "Known traps"); each horse
+  imports what its job needs, and numba's on-disk cache (``cache=True``) saves the compiles.
+
+Both run RQ's scheduler (retries with intervals need it) and install RQ's signal handlers:
+SIGTERM / SIGINT -> warm shutdown (finish the current job, then exit); a second signal -> cold
+shutdown.
+
+Liveness and abandoned jobs (HARD_CASES 20). RQ marks a running job's execution in the queue's
+StartedJobRegistry with an expiry; the busy worker refreshes it every
+``job_monitoring_interval`` seconds. When a worker dies (SIGKILL, OOM, machine loss) the
+refreshes stop, and the next maintenance pass of ANY worker on that queue (every
+``maintenance_interval`` seconds) retries the job (if it has retries left) or moves it to
+failed. Stock RQ 3.0 makes that slow: the expiry is ``interval + 60`` s, an idle worker only
+wakes for maintenance when its blocking dequeue times out (``worker_ttl - 15`` = 405 s by
+default), and a ``SimpleWorker`` never refreshes during a job (expiry = job timeout + 60 s).
+So here:
+
+- expiry = ``job_monitoring_interval + heartbeat_grace`` (defaults 10 + 20 s, settings
+  ``IBR_JOB_MONITORING_INTERVAL_S`` / ``IBR_HEARTBEAT_GRACE_S``);
+- the blocking dequeue waits at most ``maintenance_interval`` (default 30 s,
+  ``IBR_MAINTENANCE_INTERVAL_S``), so idle workers do run maintenance on time;
+- :class:`RenderWorker` refreshes the heartbeat from a small thread while its job runs, and
+  stops refreshing once the job is ``heartbeat_grace`` past its timeout (a job stuck in native
+  code then counts as abandoned instead of 'started' forever);
+- a bake work horse asks the kernel (``PR_SET_PDEATHSIG``) to be killed with its parent, so a
+  SIGKILLed worker leaves no unsupervised horse behind that could publish late.
+
+A dead worker's job is therefore noticed within about
+``job_monitoring_interval + heartbeat_grace + maintenance_interval`` (~60 s by default), as
+long as one worker of that queue is alive. Worker registration TTL: ``worker_ttl`` (RQ's 420 s),
+refreshed while the worker lives.
+
+Retries: jobs are enqueued with ``Retry(max=2, interval=[5, 30])``; the exception handler
+:func:`retry_policy` keeps the retries only for transient failures (store unavailable, Redis
+connection trouble, a dead worker); anything else -- invalid payload or scene, NaN output,
+time limit exceeded, cancellation -- fails the job at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from types import TracebackType
+from typing import Any
+
+from pydantic import ValidationError
+from redis import Redis
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import RedisError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+from rq import SimpleWorker, Worker
+from rq.exceptions import AbandonedJobError
+from rq.job import Job
+from rq.queue import Queue
+from rq.serializers import JSONSerializer
+from rq.worker import BaseWorker, WorkerStatus
+
+from workers.queues import QUEUE_NAMES, QueueName, get_queue, redis_from_url
+from workers.settings import WorkerSettings
+from workers.store import StoreUnavailable
+
+__all__ = [
+    "TRANSIENT_ERRORS",
+    "BakeWorker",
+    "RenderWorker",
+    "build_worker",
+    "main",
+    "retry_policy",
+]
+
+log = logging.getLogger("workers.runner")
+
+TRANSIENT_ERRORS: tuple[type[BaseException], ...] = (
+    StoreUnavailable,
+    RedisConnectionError,
+    RedisTimeoutError,
+    AbandonedJobError,
+)
+"""Failures worth a retry; every other exception fails the job at once."""
+
+
+def retry_policy(job: Job, exc_type: type[BaseException] | None, exc_value: BaseException | None,
+                 tb: TracebackType | None) -> bool:
+    """RQ exception handler: drop the job's remaining retries unless the failure is transient.
+
+    RQ calls the worker's exception handlers before it decides between retry and failure, with
+    the same ``Job`` object it then inspects (``job.retries_left``), both for exceptions raised by
+    the job and for jobs found abandoned by maintenance. Returns True: later handlers still run.
+    """
+    transient = exc_type is not None and issubclass(exc_type, TRANSIENT_ERRORS)
+    if not transient and job.retries_left:
+        log.info("job %s: %s is not transient, not retrying", job.id, exc_type.__name__ if exc_type else "failure")
+        job.retries_left = 0
+    return True
+
+
+class _TunedWorkerMixin:
+    """Shorter liveness timings (module docstring); shared by both worker classes."""
+
+    heartbeat_grace: int = 20
+    maintenance_interval: int
+    worker_ttl: int
+    job_monitoring_interval: int
+
+    @property
+    def dequeue_timeout(self) -> int:
+        # Wake up for maintenance on time even when idle (stock RQ blocks worker_ttl - 15 s).
+        return max(1, min(self.worker_ttl - 15, int(self.maintenance_interval)))
+
+    def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
+        interval = int(self.job_monitoring_interval)
+        if job.timeout and job.timeout > 0:
+            remaining = int(job.timeout - working_time)
+            interval = max(1, min(remaining, interval))
+        return interval + int(self.heartbeat_grace)
+
+
+def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
+    """Linux: have the kernel send ``sig`` to this process when its parent dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, sig, 0, 0, 0)
+    except (OSError, AttributeError):
+        log.warning("prctl(PR_SET_PDEATHSIG) unavailable; a horse may outlive a killed worker")
+
+
+class BakeWorker(_TunedWorkerMixin, Worker):
+    """Forking worker (isolation per job) with the liveness timings above."""
+
+    def main_work_horse(self, job: Job, queue: Queue) -> None:
+        parent = os.getppid()
+        _set_parent_death_signal()
+        if os.getppid() != parent:  # the parent died before prctl took effect
+            os._exit(1)
+        super().main_work_horse(job, queue)
+
+
+class RenderWorker(_TunedWorkerMixin, SimpleWorker):
+    """In-process worker (warm caches) whose running job keeps a heartbeat from a thread."""
+
+    def execute_job(self, job: Job, queue: Queue) -> None:
+        execution = self.prepare_execution(job)
+        stop = threading.Event()
+        beat = threading.Thread(target=self._keep_alive, args=(job, execution, stop),
+                                name="ibr-job-heartbeat", daemon=True)
+        beat.start()
+        try:
+            self.perform_job(job, queue, execution)
+        finally:
+            stop.set()
+            beat.join(timeout=10)
+        self.set_state(WorkerStatus.IDLE)
+
+    def _keep_alive(self, job: Job, execution: Any, stop: threading.Event) -> None:
+        started = time.monotonic()
+        while not stop.wait(self.job_monitoring_interval):
+            elapsed = time.monotonic() - started
+            if job.timeout and job.timeout > 0 and elapsed > job.timeout + self.heartbeat_grace:
+                self.log.warning("job %s is %.0f s past its %s s timeout and still running (stuck in native "
+                                 "code?); heartbeats stop so maintenance treats it as abandoned",
+                                 job.id, elapsed - job.timeout, job.timeout)
+                return
+            try:
+                self.maintain_heartbeats(job, execution)
+            except RedisError as exc:
+                self.log.warning("heartbeat for job %s failed: %s", job.id, exc)
+
+
+def build_worker(
+    queue: QueueName,
+    redis: Redis,
+    *,
+    name: str | None = None,
+    maintenance_interval: int = 30,
+    job_monitoring_interval: int = 10,
+    heartbeat_grace: int = 20,
+    worker_ttl: int = 420,
+) -> BaseWorker:
+    """The worker for ``queue`` ('render' -> RenderWorker, 'bake' -> BakeWorker), with the
+    JSON serializer and :func:`retry_policy` installed."""
+    if queue not in QUEUE_NAMES:
+        raise ValueError(f"unknown queue {queue!r}; queues are {QUEUE_NAMES}")
+    cls: type[BaseWorker] = RenderWorker if queue == "render" else BakeWorker
+    worker = cls(
+        [get_queue(redis, queue)],
+        name=name,
+        connection=redis,
+        serializer=JSONSerializer,
+        exception_handlers=[retry_policy],
+        maintenance_interval=maintenance_interval,
+        job_monitoring_interval=job_monitoring_interval,
+        worker_ttl=worker_ttl,
+    )
+    worker.heartbeat_grace = heartbeat_grace  # type: ignore[attr-defined]
+    return worker
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m workers.runner", description="Run an ibr-service RQ worker.")
+    p.add_argument("--queue", required=True, choices=QUEUE_NAMES, help="queue to work on")
+    p.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    p.add_argument("--name", default=None, help="worker name (unique among live workers; default: random)")
+    p.add_argument("--max-jobs", type=int, default=None, help="exit after this many jobs")
+    p.add_argument("--maintenance-interval", type=int, default=None, metavar="S",
+                   help="seconds between registry clean-ups (default: IBR_MAINTENANCE_INTERVAL_S or 30)")
+    p.add_argument("--job-monitoring-interval", type=int, default=None, metavar="S",
+                   help="seconds between heartbeats of a running job (default: IBR_JOB_MONITORING_INTERVAL_S or 10)")
+    p.add_argument("--heartbeat-grace", type=int, default=None, metavar="S",
+                   help="extra seconds before a silent job counts as abandoned (default: IBR_HEARTBEAT_GRACE_S or 20)")
+    p.add_argument("--worker-ttl", type=int, default=None, metavar="S", help="worker registration TTL (default 420)")
+    p.add_argument("--no-scheduler", action="store_true", help="do not run RQ's scheduler in this worker")
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        settings = WorkerSettings()
+    except ValidationError as exc:
+        print(f"invalid worker settings (IBR_* environment variables):\n{exc}", file=sys.stderr)
+        return 2
+    redis = redis_from_url(settings.effective_redis_url)
+    try:
+        redis.ping()
+    except (RedisError, OSError) as exc:
+        print(f"cannot reach Redis at {settings.effective_redis_url}: {exc}", file=sys.stderr)
+        return 3
+    if args.queue == "render":
+        # Import the job module (and the engine) now, so a broken install fails at start-up.
+        # No kernel runs here; the first job compiles or loads them from numba's disk cache.
+        import workers.jobs.render  # noqa: F401
+    worker = build_worker(
+        args.queue,
+        redis,
+        name=args.name,
+        maintenance_interval=args.maintenance_interval or settings.maintenance_interval_s,
+        job_monitoring_interval=args.job_monitoring_interval or settings.job_monitoring_interval_s,
+        heartbeat_grace=args.heartbeat_grace or settings.heartbeat_grace_s,
+        worker_ttl=args.worker_ttl or settings.worker_ttl_s,
+    )
+    worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
+                max_jobs=args.max_jobs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
