@@ -20,3 +20,17 @@ def test_dockerfile_copies_every_package():
     text = (ROOT / "Dockerfile").read_text()
     for pkg in ("api_schemas", "engine", "workers", "service", "samples"):
         assert f"COPY {pkg} {pkg}" in text
+
+
+def test_compose_has_the_service_stack():
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    services = doc["services"]
+    for name in ("redis", "minio", "api", "bake-worker", "render-worker"):
+        assert name in services, name
+    assert "--appendonly" in services["redis"]["command"]  # persistence on (HARD_CASES 22)
+    assert services["bake-worker"]["command"] == ["worker", "--queue", "bake"]
+    assert services["render-worker"]["command"] == ["worker", "--queue", "render"]
+    env = doc["x-ibr-env"]
+    assert env["IBR_STORE_URL"].startswith("s3://") and env["IBR_S3_ENDPOINT_URL"] == "http://minio:9000"
