@@ -14,6 +14,7 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 | workers.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
 | BodyTooLarge | 413 |
 | MultipartError | 400 |
+| OverflowError (a validator overflowing on numbers near 1e308) | 422 |
 | RateLimited | 429 + ``Retry-After`` |
 | StoreUnavailable, redis ConnectionError / TimeoutError | 503 + ``Retry-After`` |
 | HTTPException | its status |
@@ -219,6 +220,17 @@ def install_exception_handlers(app: FastAPI) -> None:
 
     app.add_exception_handler(redis.exceptions.ConnectionError, _redis_down)
     app.add_exception_handler(redis.exceptions.TimeoutError, _redis_down)
+
+    @app.exception_handler(OverflowError)
+    async def _overflow(request: Request, exc: OverflowError) -> JSONResponse:
+        # Only input reaches float arithmetic that can overflow (validators summing numbers near
+        # 1e308); pydantic does not wrap ArithmeticError into a ValidationError, so it lands here.
+        rid = getattr(request.state, "request_id", None)
+        log.warning("numeric overflow while validating input: %s", exc, extra={"request_id": rid})
+        return problem_response(
+            422, f"a number in the request is too large to process ({exc})", title="Invalid input",
+            errors=[FieldError(field="", message=f"numeric overflow: {exc}", type="overflow")],
+        )
 
     @app.exception_handler(MultipartError)
     async def _multipart(request: Request, exc: MultipartError) -> JSONResponse:

@@ -67,7 +67,7 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, owner: str | 
     "",
     response_model=BatchPublic,
     status_code=202,
-    responses={**problem_responses(401, 413, 422, 429, 503)},
+    responses={**problem_responses(400, 401, 413, 422, 429, 503)},
 )
 async def create_batch(
     batch: Annotated[BatchRequest, Body(openapi_examples={"default": {"summary": "One scene, no renders yet",

@@ -72,7 +72,7 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels
         200: {"description": "The artifact: cached, or rendered within `wait` seconds (or the job failed)"},
         202: {"model": RenderPublic, "description": "Queued or running; poll the job named by Location",
               "headers": {"Location": {"schema": {"type": "string"}, "description": "The job's URL"}}},
-        **problem_responses(401, 404, 413, 422, 429, 503),
+        **problem_responses(400, 401, 404, 413, 422, 429, 503),
     },
 )
 async def request_render(

@@ -239,7 +239,7 @@ def _check_ply(data: bytes) -> str | None:
                 if len(tri) == n:
                     try:
                         faces = np.array(tri, dtype=np.int64).reshape(-1, 3)
-                    except ValueError:
+                    except (ValueError, OverflowError):
                         return "ASCII PLY face rows hold non-integer indices"
                     return _index_problem(faces, n_vertices)
                 return None
@@ -256,6 +256,8 @@ def _check_ply(data: bytes) -> str | None:
             _, itype, ctype = props[0]
             if itype not in _PLY_TYPES or ctype not in _PLY_TYPES:
                 return f"PLY face list has an unknown type ({ctype} / {itype})"
+            if _PLY_TYPES[itype][0] == "f" or _PLY_TYPES[ctype][0] == "f":
+                return None  # float indices: the worker's loader decides
             dt = np.dtype([("n", order + _PLY_TYPES[ctype]), ("i", order + _PLY_TYPES[itype], (3,))])
             need = offset + dt.itemsize * n
             if len(body) < need:
