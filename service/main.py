@@ -49,7 +49,7 @@ def _open_store(settings: Settings) -> ObjectStore:
             endpoint_url=settings.s3_endpoint_url,
             region=settings.s3_region,
             access_key=settings.s3_access_key,
-            secret_key=settings.s3_secret_key,
+            secret_key=settings.s3_secret_key.get_secret_value() if settings.s3_secret_key else None,
         )
     return open_store(url)
 

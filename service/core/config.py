@@ -10,7 +10,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 __all__ = ["Settings", "get_settings"]
@@ -46,7 +46,7 @@ class Settings(BaseSettings):
     """``file:///path``, ``/path`` or ``s3://bucket/prefix``; None = ``<data_dir>/store``."""
     s3_endpoint_url: str | None = None
     s3_access_key: str | None = None
-    s3_secret_key: str | None = None
+    s3_secret_key: SecretStr | None = None
     s3_region: str | None = None
     data_dir: Path = Field(default_factory=lambda: Path.home() / ".ibr")
     """Local state: the default object store and the embedded Redis socket."""
