@@ -262,10 +262,10 @@ def _check_ply(data: bytes) -> str | None:
             need = offset + dt.itemsize * n
             if len(body) < need:
                 return None if n == 0 else _ply_truncated(len(body), need, elements)
-            rows = np.frombuffer(body, dtype=dt, count=n, offset=offset)
-            if not np.all(rows["n"] == 3):
+            table = np.frombuffer(body, dtype=dt, count=n, offset=offset)
+            if not np.all(table["n"] == 3):
                 return None  # polygons: the worker triangulates and checks them
-            return _index_problem(rows["i"], n_vertices)
+            return _index_problem(table["i"], n_vertices)
         size = 0
         for _, ptype, _ in props:
             if ptype not in _PLY_TYPES:

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from pydantic import ValidationError
+from pydantic import SecretStr, ValidationError
 
 from service.core.config import Settings, get_settings
 from service.core.security import hash_key
@@ -31,8 +31,8 @@ def _closed_port() -> int:
 
 def test_s3_store_unreachable_gives_503(embedded_redis: str, redis_conn: Any, tmp_path: Path) -> None:
     settings = Settings(redis_url=embedded_redis, store_url="s3://bucket/ibr",
-                        s3_endpoint_url=f"http://127.0.0.1:{_closed_port()}", s3_access_key="a", s3_secret_key="b",
-                        s3_region="us-east-1", data_dir=tmp_path)
+                        s3_endpoint_url=f"http://127.0.0.1:{_closed_port()}", s3_access_key="a",
+                        s3_secret_key=SecretStr("b"), s3_region="us-east-1", data_dir=tmp_path)
     with TestClient(create_app(settings)) as c:
         for method, path, body in (("POST", "/v1/scenes", {"scene": small_scene()}), ("GET", "/v1/scenes", None),
                                    ("GET", "/v1/scenes/" + "a" * 64, None),

@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import struct
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -137,7 +138,7 @@ def test_unsupported_mesh_type_and_pixel_limit(make_app: Any) -> None:
 # ------------------------------------------------------------------ HARD_CASES 15 at upload
 
 
-def _binary_ply(vertices: list[tuple[float, float, float]], faces: list[tuple[int, ...]]) -> bytes:
+def _binary_ply(vertices: Sequence[tuple[float, float, float]], faces: Sequence[tuple[int, ...]]) -> bytes:
     header = (
         "ply\nformat binary_little_endian 1.0\n"
         f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
