@@ -246,7 +246,9 @@ class Material(FrozenModel):
         problems = []
         for c, channel in enumerate("rgb"):
             parts = (self.kd[c], self.ks[c], self.kr[c], self.kg[c])
-            total = math.fsum(parts)
+            # any coefficient above 1 already breaks the budget; checking it first also keeps
+            # fsum away from values near 1e308, whose sum overflows (a 500 instead of a 422)
+            total = max(parts) if max(parts) > 1 + _ENERGY_TOL else math.fsum(parts)
             if total > 1 + _ENERGY_TOL:
                 terms = " + ".join(_fmt(p) for p in parts)
                 problems.append(f"channel {channel}: kd + ks + kr + kg = {terms} = {_fmt(total)} > 1")

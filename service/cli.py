@@ -201,7 +201,8 @@ def api(
     """Run the HTTP API (settings from IBR_* environment variables)."""
     import uvicorn
 
-    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, workers=workers)
+    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, workers=workers,
+                access_log=False)  # the app logs every request itself (structured)
 
 
 @app.command()

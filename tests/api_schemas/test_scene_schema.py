@@ -659,3 +659,14 @@ def test_documented_example_is_valid() -> None:
     example = text.split("```json\n", 1)[1].split("```", 1)[0]
     scene = load_scene_json(example)
     assert [o.type for o in scene.objects] == ["plane", "sphere"] and scene.lights[0].type == "point"
+
+
+def test_huge_coefficients_are_a_field_error_not_an_overflow():
+    import pydantic
+
+    from api_schemas import Material, format_validation_error
+
+    with pytest.raises(pydantic.ValidationError) as e:
+        Material(name="m", kd=(1.7e308, 0.1, 0.1), ks=(1.7e308, 0.0, 0.0), shininess=1.0)
+    errs = format_validation_error(e.value)
+    assert any(err["type"] == "energy_conservation" for err in errs)
