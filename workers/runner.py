@@ -121,6 +121,16 @@ class _TunedWorkerMixin:
         # Wake up for maintenance on time even when idle (stock RQ blocks worker_ttl - 15 s).
         return max(1, min(self.worker_ttl - 15, int(self.maintenance_interval)))
 
+    def run_maintenance_tasks(self) -> None:
+        # RQ 3.0 restarts a stopped scheduler here even after a warm shutdown was requested
+        # (SIGTERM stops the scheduler, the running job ends, maintenance starts a new one),
+        # and the worker then hangs joining it. Once stopping, only clean the registries.
+        if getattr(self, "_stop_requested", False):
+            self.clean_registries()  # type: ignore[attr-defined]
+            self.clean_group_registries()  # type: ignore[attr-defined]
+            return
+        super().run_maintenance_tasks()  # type: ignore[misc]
+
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         interval = int(self.job_monitoring_interval)
         if job.timeout and job.timeout > 0:

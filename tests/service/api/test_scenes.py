@@ -123,11 +123,12 @@ def test_validation_errors_name_the_field(client: TestClient) -> None:
     r = client.post("/v1/scenes", content=b"x", headers={"content-type": "text/plain"})
     assert r.status_code == 415
 
-    # numbers near the float limit: a validator's sum overflows (OverflowError), still a 422, never a 500
+    # numbers near the float limit: an energy_conservation field error, never a 500
     huge = small_scene()
     huge["materials"][0] = {"name": "white", "kd": [1.7e308, 0, 0], "ks": [1.7e308, 0, 0]}
     r = client.post("/v1/scenes", json={"scene": huge})
-    assert r.status_code == 422 and "overflow" in r.json()["detail"]
+    assert r.status_code == 422
+    assert [(e["field"], e["type"]) for e in r.json()["errors"]] == [("scene.materials.0", "energy_conservation")]
 
 
 def test_unsupported_mesh_type_and_pixel_limit(make_app: Any) -> None:
