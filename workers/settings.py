@@ -99,7 +99,7 @@ class WorkerSettings(BaseSettings):
         """The object store URL to use: ``store_url`` or ``<data_dir>/store``."""
         if self.store_url:
             return self.store_url
-        return f"file://{(self.data_dir / 'store').expanduser().resolve()}"
+        return (self.data_dir / 'store').expanduser().resolve().as_uri()  # percent-encodes '%', spaces
 
 
 @lru_cache(maxsize=1)

@@ -139,7 +139,7 @@ class Settings(BaseSettings):
     def effective_store_url(self) -> str:
         if self.store_url:
             return self.store_url
-        return f"file://{(self.data_dir / 'store').expanduser().resolve()}"
+        return (self.data_dir / 'store').expanduser().resolve().as_uri()  # percent-encodes '%', spaces
 
 
 def get_settings() -> Settings:
