@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 # Parallel test workers (2 cores here).
 PYTEST_WORKERS ?= 2
 
-.PHONY: install run test bench lint compose-check clean
+.PHONY: install run demo render-local test bench lint compose-check clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -16,11 +16,20 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The main job: render the sample scenes with the reference renderer into ./out/
+# The main job: start the service with its embedded defaults (private Redis, local object
+# store under ./.ibr-data), load the sample scenes, render one through the queue into
+# out/mirror_box.png, and keep serving on http://127.0.0.1:8000 until Ctrl-C.
 run: install
-	$(BIN)/ibr render-local mirror_box -o out/mirror_box.png
+	$(BIN)/ibr up --data-dir .ibr-data --demo mirror_box --demo-output out/mirror_box.png
+
+# The same, stopping after the demo render (for scripted checks).
+demo: install
+	$(BIN)/ibr up --data-dir .ibr-data --demo mirror_box --demo-output out/mirror_box.png --exit-after-demo
+
+# Render sample scenes in-process with the reference renderer (no service).
+render-local: install
+	$(BIN)/ibr render-local mirror_box -o out/mirror_box_local.png
 	$(BIN)/ibr render-local cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
-	$(BIN)/ibr render-local cornell_box -o out/cornell_box.png --indirect 16 --bounces 3
 
 test: install
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --timeout=900 -q tests
@@ -36,4 +45,4 @@ compose-check:
 	docker-compose -f docker-compose.yml config -q
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out .ibr-data
