@@ -133,13 +133,13 @@ class _DualKernel:
     the GIL, so one pipeline's shading runs while another holds the GIL inside Embree."""
 
     def __init__(self, fn):
-        self.par = nb.njit(cache=True, parallel=True, nogil=True)(fn)
+        self.par = nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")(fn)
         ser = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
                                  fn.__closure__)
         ser.__qualname__ = fn.__qualname__ + "_serial"  # its own on-disk cache entry
         ser.__module__ = fn.__module__
         ser.__doc__ = fn.__doc__
-        self.ser = nb.njit(cache=True, nogil=True)(ser)
+        self.ser = nb.njit(cache=True, nogil=True, error_model="numpy")(ser)
 
     def pick(self, serial: bool):
         return self.ser if serial else self.par
@@ -150,18 +150,18 @@ def _dual(fn) -> _DualKernel:
 
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _offset_mag(px, py, pz, center, extent):
     m = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
     return OFFSET_REL * (m + OFFSET_EXTENT * extent)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _phong_pow(c, s):
     # cos^s without 0/0 or overflow for huge s (HARD_CASES 8)
     if c <= 0.0:
@@ -200,9 +200,9 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
 
 
 @_dual
-def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
+def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
                 pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, rL, r2s, r_g, stream, row0,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, row0,
                 center, extent, o_out, d_out, tmax_out, c_out, alive):
     """One shadow ray per (hit, light sample) with its unshadowed contribution.
 
@@ -260,17 +260,14 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 yz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2]
                 lx, ly, lz = yx - ox, yy - oy, yz - oz
                 dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                # light normal and area
-                a0 = ru[q, 1] * rv[q, 2] - ru[q, 2] * rv[q, 1]
-                a1 = ru[q, 2] * rv[q, 0] - ru[q, 0] * rv[q, 2]
-                a2 = ru[q, 0] * rv[q, 1] - ru[q, 1] * rv[q, 0]
-                area = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                area = r_area[q]
                 if dist <= 0.0 or area <= 0.0:
                     continue
-                lx /= dist
-                ly /= dist
-                lz /= dist
-                cos_l = -(a0 * lx + a1 * ly + a2 * lz) / area
+                inv = 1.0 / dist
+                lx *= inv
+                ly *= inv
+                lz *= inv
+                cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
                 if r2s[q]:
                     cos_l = abs(cos_l)
                 if cos_l <= 0.0:
@@ -284,7 +281,9 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 continue
             fs = 0.0
             if has_spec:
-                fs = spec_norm * _phong_pow(_dot(wr0, wr1, wr2, lx, ly, lz), shin[m])
+                ca = _dot(wr0, wr1, wr2, lx, ly, lz)
+                if ca > spec_cut[m]:  # below it cos^s < e^-40: skip the exp/log
+                    fs = spec_norm * _phong_pow(ca, shin[m])
             c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
             c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
             c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
@@ -298,7 +297,7 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin,
                 tmax_out[row] = min(tmax, 3.0e38)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _frame(n0, n1, n2):
     # orthonormal basis around (n0, n1, n2) (Duff et al. 2017)
     sign = 1.0 if n2 >= 0.0 else -1.0
@@ -308,7 +307,7 @@ def _frame(n0, n1, n2):
             b, sign + n1 * n1 * a, -n1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _lobe_dir(a0, a1, a2, cos_t, phi):
     sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
     t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
@@ -474,7 +473,7 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n,
         pix_out[j] = pix[i]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_h, kind_h, w_h, pix_h,
                                     emission, kd, ambient):
     """Background where rays escape; emission + kd * ambient where camera/specular chains land.
@@ -496,7 +495,7 @@ def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_
                 acc[q, k] += w_h[j, k] * e
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
     for k in range(live.shape[0]):
         if not occ[k]:
@@ -581,6 +580,13 @@ class ReferenceRenderer:
     def __init__(self, scene: RuntimeScene, caster: RayCaster | None = None):
         self.scene = scene
         self.caster = caster if caster is not None else make_caster(scene, "embree")
+        lt = scene.lights
+        a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
+        self._rect_area = np.linalg.norm(a, axis=1)
+        self._rect_n = a / np.where(self._rect_area > 0, self._rect_area, 1.0)[:, None]
+        # cos(alpha) below which cos^s < e^-40 (negligible next to the lobe's peak (s+2)/2pi)
+        shin = scene.materials.shininess
+        self._spec_cut = np.where(shin > 0, np.exp(-40.0 / np.maximum(shin, 1e-300)), -1.0)
 
     # ------------------------------------------------------------------ public
     def render(self, camera: CameraParams, params: ReferenceParams | None = None,
@@ -818,8 +824,9 @@ class ReferenceRenderer:
             contrib = np.empty((rows, 3))
             alive = np.empty(rows, np.bool_)
             _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
-                        lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
-                        lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, lt.rect_radiance, lt.rect_two_sided,
+                        self._spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
+                        lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
+                        lt.rect_radiance, lt.rect_two_sided,
                         r_g, stream_key(params.seed, ci, it, 1), s * per, sc.center, sc.extent, so, sd, tmax,
                         contrib, alive)
             live = np.flatnonzero(alive)
