@@ -15,20 +15,27 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn, TypeVar
 
 import typer
+
+if TYPE_CHECKING:
+    from api_schemas.scene import Scene
+    from service.client import Client
+
+T = TypeVar("T")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="ibr-service: image-based rendering")
 
 
-def _fail(msg: str, code: int = 2) -> None:
+def _fail(msg: str, code: int = 2) -> NoReturn:
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
 
 
-def _load(scene_arg: str):
+def _load(scene_arg: str) -> tuple[Scene, Path]:
     """A scene file path or the name of a sample scene -> (Scene, base directory)."""
     import pydantic
 
@@ -233,13 +240,13 @@ def _fail_code(msg: str, code: int) -> int:
     return code
 
 
-def _client(api_url: str, api_key: str | None):
+def _client(api_url: str, api_key: str | None) -> Client:
     from service.client import Client
 
     return Client(api_url, api_key=api_key)
 
 
-def _call(fn):
+def _call(fn: Callable[[], T]) -> T:
     """Run a client call; map API and connection errors to exit codes 2 / 3."""
     import httpx
 
@@ -253,11 +260,13 @@ def _call(fn):
         _fail(f"cannot reach the API: {exc}", code=3)
 
 
-def _scene_doc(scene_arg: str) -> tuple[dict, dict[str, Path]]:
+def _scene_doc(scene_arg: str) -> tuple[dict[str, Any], dict[str, Path]]:
     """Scene JSON (validated locally first) and its mesh files, from a path or sample name."""
     sc, base = _load(scene_arg)
     doc = sc.model_dump(mode="json", exclude_defaults=False)
-    meshes = {o.path: base / o.path for o in sc.objects if getattr(o, "type", "") == "mesh_file"}
+    from api_schemas.scene import MeshFileObject
+
+    meshes = {o.path: base / o.path for o in sc.objects if isinstance(o, MeshFileObject)}
     for rel, p in meshes.items():
         if not p.is_file():
             _fail(f"mesh file {rel} not found next to the scene ({p})")
@@ -297,9 +306,11 @@ def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt 
         _call(lambda: c.delete_scene(scene_id))
 
 
-def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict, output: Path | None,
-                      fmt: str, wait: bool, camera: dict | None = None) -> None:
+def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict[str, Any],
+                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from api_schemas.service import JobPublic
 
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0))
@@ -313,7 +324,7 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                           TimeRemainingColumn(), transient=True) as bar:
                 task = bar.add_task("render", total=1.0)
 
-                def show(j) -> None:
+                def show(j: JobPublic) -> None:
                     bar.update(task, completed=j.progress.fraction, description=j.progress.stage or j.state)
 
                 from service.client import ApiError
@@ -328,7 +339,7 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
             t = manifest.result["timings"]
             typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in t.items()), err=True)
         if output is not None:
-            data = _call(lambda: c.download(manifest.key, fmt))
+            data = _call(lambda: c.download(manifest.key, "exr" if fmt == "exr" else "png"))
             output.parent.mkdir(parents=True, exist_ok=True)
             output.write_bytes(data)
             typer.echo(str(output))
@@ -371,7 +382,7 @@ def fetch(key: Annotated[str, typer.Argument(help="Artifact key")],
     if output.suffix.lower() not in (".png", ".exr"):
         _fail(f"{output}: the service delivers .png or .exr")
     with _client(api_url, api_key) as c:
-        data = _call(lambda: c.download(key, output.suffix.lower()[1:]))
+        data = _call(lambda: c.download(key, "exr" if output.suffix.lower() == ".exr" else "png"))
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_bytes(data)
     typer.echo(str(output))
@@ -412,7 +423,7 @@ def batch(
     """Submit many scenes (and renders of them) in one call; prints the batch id."""
     import time
 
-    docs = []
+    docs: list[Mapping[str, Any]] = []
     for s in scenes:
         doc, meshes = _scene_doc(s)
         if meshes:

@@ -190,7 +190,7 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
     """The artifact parameters of a render: the request without its scene id (JSON types)."""
     params = req.model_dump(mode="json")
     params.pop("scene_id")
-    return cast(dict[str, Any], params)
+    return params
 
 
 def render_artifact_key(req: RenderRequest) -> str:
@@ -439,7 +439,7 @@ def job_public(job: Job) -> JobPublic:
     batch_id = job.meta.get("batch_id")
     return JobPublic(
         id=job.id,
-        kind=kind,
+        kind="bake" if kind == "bake" else "render",
         state=state,
         progress=_progress(job, state),
         created_at=job.created_at,
@@ -573,7 +573,7 @@ def enqueue_batch(
         "renders": json.dumps(members),
     }
     with redis.pipeline() as p:
-        p.hset(_batch_key(bid), mapping=record)
+        p.hset(_batch_key(bid), mapping=record)  # type: ignore[arg-type]  # redis-py Mapping key invariance
         p.expire(_batch_key(bid), BATCH_TTL_S)
         p.execute()
     status = batch_status(redis, bid, store=store)

@@ -10,11 +10,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
+from typing import Any
 
 import numpy as np
 
 from api_schemas.scene import (
     BoxObject,
+    Camera,
     CylinderObject,
     DiskObject,
     InlineMeshObject,
@@ -22,6 +24,7 @@ from api_schemas.scene import (
     OrthographicCamera,
     PlaneObject,
     Scene,
+    SceneObject,
     SphereObject,
     scene_hash,
 )
@@ -49,15 +52,19 @@ class LoadedScene:
     runtime: RuntimeScene
     camera: CameraParams
     scene_hash: str
-    mesh_reports: list[dict] = field(default_factory=list)
+    mesh_reports: list[dict[str, Any]] = field(default_factory=list)
 
 
-def camera_params(cam) -> CameraParams:
+def _v3(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def camera_params(cam: Camera) -> CameraParams:
     """Engine camera parameters from a schema camera."""
     if isinstance(cam, OrthographicCamera):
-        return CameraParams("orthographic", tuple(cam.eye), tuple(cam.look_at), tuple(cam.up),
+        return CameraParams("orthographic", _v3(cam.eye), _v3(cam.look_at), _v3(cam.up),
                             cam.width, cam.height, ortho_height=cam.ortho_height)
-    return CameraParams("perspective", tuple(cam.eye), tuple(cam.look_at), tuple(cam.up),
+    return CameraParams("perspective", _v3(cam.eye), _v3(cam.look_at), _v3(cam.up),
                         cam.width, cam.height, fov_y_deg=cam.fov_y_deg)
 
 
@@ -81,7 +88,8 @@ def directory_resolver(base_dir: str | Path) -> MeshResolver:
     return resolve
 
 
-def _object_mesh(obj, resolver: MeshResolver | None, reports: list[dict], index: int) -> TriMesh:
+def _object_mesh(obj: SceneObject, resolver: MeshResolver | None, reports: list[dict[str, Any]],
+                 index: int) -> TriMesh:
     if isinstance(obj, SphereObject):
         return primitives.sphere(obj.center, obj.radius, obj.subdivisions)
     if isinstance(obj, BoxObject):
@@ -115,7 +123,7 @@ def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScen
     mat_index = {m.name: i for i, m in enumerate(scene.materials)}
     materials = MaterialTable.from_rows([m.model_dump() for m in scene.materials])
     parts: list[SceneObjectPart] = []
-    reports: list[dict] = []
+    reports: list[dict[str, Any]] = []
     for i, obj in enumerate(scene.objects):
         try:
             mesh = _object_mesh(obj, resolver, reports, i)
@@ -126,6 +134,6 @@ def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScen
         mesh = mesh.transformed(obj.transform.to_matrix())
         parts.append(SceneObjectPart(obj.name or f"object{i}", mesh, mat_index[obj.material]))
     lights = LightTable.from_rows([lt.model_dump() for lt in scene.lights])
-    runtime = build_runtime_scene(parts, materials, lights, ambient=tuple(scene.ambient),
-                                  background=tuple(scene.background))
+    runtime = build_runtime_scene(parts, materials, lights, ambient=_v3(scene.ambient),
+                                  background=_v3(scene.background))
     return LoadedScene(runtime, camera_params(scene.camera), scene_hash(scene), reports)

@@ -134,7 +134,7 @@ class ProgressReporter:
         eta = elapsed * (1.0 - self.fraction) / self.fraction if self.fraction > 1e-6 else None
         self.job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": self.stage,
                                      "eta_s": None if eta is None else round(eta, 2)}
-        self.job.save_meta()
+        self.job.save_meta()  # type: ignore[no-untyped-call]
 
     def check_canceled(self) -> None:
         job = self.job
@@ -147,7 +147,7 @@ class ProgressReporter:
         if flag or status in (b"canceled", "canceled"):
             job.meta["cancel_requested"] = True
             job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": "canceled", "eta_s": None}
-            job.save_meta()
+            job.save_meta()  # type: ignore[no-untyped-call]
             raise JobCanceled(f"job {job.id} was canceled on request")
 
 
