@@ -1,0 +1,411 @@
+"""Layered depth cube (LDC): three LDIs along +x, +y, +z with per-sample attributes.
+
+Per sample (CSR order of its LDI): shading normal (interpolated, unflipped, float32),
+geometric normal (float32), ``facing`` (+1 when the geometric normal faces the LDI's
+reference plane, i.e. n_g . w < 0, else -1), material id, object id, diffuse radiance for
+BOTH sides of the surface (``diffuse`` (n, 2, 3) float32; side 0 is the side the geometric
+normal points to, side 1 the other; surfaces are two-sided as in the reference renderer)
+and a light-visibility bitmask per side (``visibility`` (n, 2, W) uint64, W =
+ceil(n_lights / 64) words, bit i of word i // 64 set when light i lies in front of that
+side and is unoccluded from it; for a rect light: when any of its samples is). When the
+effect plan finds no occludable light, W = 0: no bits are stored and no shadow rays cast.
+
+``diffuse`` holds everything view-independent the reference renderer shows at a camera
+hit: direct diffuse ``kd/pi sum E cos`` over the lights (point and directional exact,
+rect lights on a g x g jittered grid from a fixed seeded counter-based pattern, g =
+round(sqrt(area_light_samples))) + ``kd * ambient`` + ``emission``. Light conventions
+(offset origins, shadow shortening, shading-normal fallback) copy ``engine/reference.py``.
+
+Baking is split per axis (``bake_ldc_axis``) so a job can run the axes separately;
+``merge_ldc`` puts three axes together.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+
+from .effects import EffectPlan, analyze
+from .errors import InvalidInputError
+from .ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
+from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster
+from .rng import stream_key, uniform
+from .scene import RuntimeScene
+
+INV_PI = 1.0 / math.pi
+MAX_RESOLUTION = 8192
+# bytes per sample of the LDC attributes on top of the LDI (normals 24, facing 1, ids 8, diffuse 24)
+LDC_ATTR_BYTES = 57
+
+
+@dataclass(frozen=True)
+class LDCAxis:
+    axis: int
+    ldi: LDI
+    normal: np.ndarray  # (n, 3) float32 shading normal, unflipped
+    geo_normal: np.ndarray  # (n, 3) float32
+    facing: np.ndarray  # (n,) int8
+    material: np.ndarray  # (n,) int32
+    object: np.ndarray  # (n,) int32
+    diffuse: np.ndarray  # (n, 2, 3) float32
+    visibility: np.ndarray  # (n, 2, W) uint64
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def n_samples(self) -> int:
+        return self.ldi.n_samples
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.ldi.nbytes + sum(a.nbytes for a in (self.normal, self.geo_normal, self.facing, self.material,
+                                                             self.object, self.diffuse, self.visibility)))
+
+
+@dataclass(frozen=True)
+class LDC:
+    axes: tuple[LDCAxis, LDCAxis, LDCAxis]
+    h: float
+    resolution: int
+    n_lights: int
+    background: np.ndarray
+    closed_objects: tuple[bool, ...]
+    plan: dict
+
+    @property
+    def n_samples(self) -> int:
+        return sum(a.n_samples for a in self.axes)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.axes)
+
+    @property
+    def visibility_words(self) -> int:
+        return int(self.axes[0].visibility.shape[2])
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, dir_irr,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, row0, center, extent,
+                o_out, d_out, tmax_out, c_out, side_out, state):
+    """One row per (sample, light sample). The light lies in front of at most one side of
+    the surface (the side whose geometric normal has cos > 0 to it): the row belongs to that
+    side. state: 0 = nothing, 1 = needs a shadow ray, 2 = visible without one."""
+    n = p.shape[0]
+    npt = pt_pos.shape[0]
+    ndir = dir_dir.shape[0]
+    nrect = rc.shape[0]
+    gg = r_g * r_g
+    per = npt + ndir + nrect * gg
+    for i in nb.prange(n):
+        m = mat[i]
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        mx = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
+        mag = OFFSET_REL * (mx + OFFSET_EXTENT * extent)
+        for j in range(per):
+            row = i * per + j
+            state[row] = 0
+            side_out[row] = 0
+            c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
+            # light position / direction from the point (sign of the side fixed below)
+            if j < npt:
+                lx, ly, lz = pt_pos[j, 0] - px, pt_pos[j, 1] - py, pt_pos[j, 2] - pz
+                li = j
+            elif j < npt + ndir:
+                q = j - npt
+                lx, ly, lz = -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2]
+                li = j
+            else:
+                q = (j - npt - ndir) // gg
+                s = (j - npt - ndir) % gg
+                sx = (s % r_g + uniform(stream, row0 + row, 0)) / r_g
+                sy = (s // r_g + uniform(stream, row0 + row, 1)) / r_g
+                lx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0] - px
+                ly = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1] - py
+                lz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2] - pz
+                li = npt + ndir + q
+            g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+            side = 0
+            if g0 * lx + g1 * ly + g2 * lz < 0.0:
+                side = 1
+                g0, g1, g2 = -g0, -g1, -g2
+            s0, s1, s2 = ns[i, 0], ns[i, 1], ns[i, 2]
+            if side == 1:
+                s0, s1, s2 = -s0, -s1, -s2
+            if s0 * g0 + s1 * g1 + s2 * g2 <= 0.0:
+                s0, s1, s2 = g0, g1, g2
+            ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
+            if j < npt:
+                lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
+                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+                if dist <= 0.0:
+                    continue
+                lx /= dist
+                ly /= dist
+                lz /= dist
+                inv_d2 = 1.0 / (dist * dist)
+                e0, e1, e2 = pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2, pt_int[j, 2] * inv_d2
+                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            elif j < npt + ndir:
+                q = j - npt
+                e0, e1, e2 = dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2]
+                tmax = 3.0e38
+            else:
+                q = (j - npt - ndir) // gg
+                lx, ly, lz = lx + px - ox, ly + py - oy, lz + pz - oz
+                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+                area = r_area[q]
+                if dist <= 0.0 or area <= 0.0:
+                    continue
+                lx /= dist
+                ly /= dist
+                lz /= dist
+                cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
+                if r2s[q]:
+                    cos_l = abs(cos_l)
+                if cos_l <= 0.0:
+                    continue
+                geo = cos_l * area / (dist * dist * gg)
+                e0, e1, e2 = rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo
+                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            cos_g = g0 * lx + g1 * ly + g2 * lz
+            if cos_g <= 0.0 or tmax <= 0.0:
+                continue
+            cos_s = s0 * lx + s1 * ly + s2 * lz
+            if cos_s < 0.0:
+                cos_s = 0.0
+            side_out[row] = side
+            c_out[row, 0] = kd[m, 0] * INV_PI * e0 * cos_s
+            c_out[row, 1] = kd[m, 1] * INV_PI * e1 * cos_s
+            c_out[row, 2] = kd[m, 2] * INV_PI * e2 * cos_s
+            if occl[li] or force_all:
+                state[row] = 1
+                o_out[row, 0] = ox - center[0]
+                o_out[row, 1] = oy - center[1]
+                o_out[row, 2] = oz - center[2]
+                d_out[row, 0], d_out[row, 1], d_out[row, 2] = lx, ly, lz
+                tmax_out[row] = min(tmax, 3.0e38)
+            elif side == 0:  # occlusion-free light (convex closed scene): outer side sees it
+                state[row] = 2
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _accumulate(state, occ_rows, c, side, npt, ndir, gg, diffuse, vis, store_bits):
+    n = diffuse.shape[0]
+    per = c.shape[0] // max(n, 1)
+    for i in nb.prange(n):
+        for j in range(per):
+            row = i * per + j
+            st = state[row]
+            if st == 0:
+                continue
+            if st == 1 and occ_rows[row]:
+                continue
+            s = side[row]
+            diffuse[i, s, 0] += c[row, 0]
+            diffuse[i, s, 1] += c[row, 1]
+            diffuse[i, s, 2] += c[row, 2]
+            if store_bits:
+                if j < npt + ndir:
+                    li = j
+                else:
+                    li = npt + ndir + (j - npt - ndir) // gg
+                vis[i, s, li // 64] |= np.uint64(1) << np.uint64(li % 64)
+
+
+def surface_attributes(scene: RuntimeScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray):
+    """(p float64, geometric normal float64, shading normal float64 unflipped) per hit."""
+    pr = prim.astype(np.int64)
+    uu = u.astype(np.float64)[:, None]
+    vv = v.astype(np.float64)[:, None]
+    w0 = 1.0 - uu - vv
+    tp = scene.tri_p[pr]
+    p = w0 * tp[:, 0] + uu * tp[:, 1] + vv * tp[:, 2]
+    tn = scene.tri_n[pr]
+    ns = w0 * tn[:, 0] + uu * tn[:, 1] + vv * tn[:, 2]
+    ln = np.linalg.norm(ns, axis=1, keepdims=True)
+    ng = scene.tri_ng[pr]
+    ns = np.where(ln > 1e-12, ns / np.where(ln > 1e-12, ln, 1.0), ng)
+    return np.ascontiguousarray(p), np.ascontiguousarray(ng), np.ascontiguousarray(ns)
+
+
+def shade_samples(scene: RuntimeScene, caster: RayCaster, p: np.ndarray, ng: np.ndarray, ns: np.ndarray,
+                  mat: np.ndarray, occludable: np.ndarray, *, store_bits: bool, force_all: bool = False,
+                  area_light_samples: int = 16, seed: int = 0, stream_id: int = 0,
+                  rows_per_slice: int = 1 << 21) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Two-sided view-independent radiance (n, 2, 3) float32 and visibility bits (n, 2, W).
+
+    Shadow rays only for occludable lights (or every light with ``force_all``); work in
+    slices of at most ``rows_per_slice`` light rows (bounded memory)."""
+    lt, mt = scene.lights, scene.materials
+    n = p.shape[0]
+    n_l = lt.count
+    words = (n_l + 63) // 64 if store_bits else 0
+    vis = np.zeros((n, 2, words), dtype=np.uint64)
+    acc = np.zeros((n, 2, 3), dtype=np.float64)
+    r_g = max(1, int(round(math.sqrt(area_light_samples))))
+    gg = r_g * r_g
+    per = lt.n_point + lt.n_directional + lt.n_rect * gg
+    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
+    r_area = np.linalg.norm(a, axis=1)
+    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
+    occl = np.ascontiguousarray(np.asarray(occludable, dtype=np.bool_).reshape(-1))
+    if occl.shape[0] != n_l:
+        raise InvalidInputError(f"occludable must have one flag per light ({n_l}), got {occl.shape[0]}")
+    stream = stream_key(seed, stream_id, 7)
+    t_shade = t_shadow = 0.0
+    n_shadow = 0
+    if per and n:
+        step = max(1, rows_per_slice // per)
+        for s in range(0, n, step):
+            t0 = time.perf_counter()
+            sl = slice(s, min(n, s + step))
+            k = sl.stop - sl.start
+            rows = k * per
+            so = np.empty((rows, 3), np.float32)
+            sd = np.empty((rows, 3), np.float32)
+            tm = np.empty(rows, np.float32)
+            c = np.empty((rows, 3))
+            side = np.empty(rows, np.int8)
+            state = np.empty(rows, np.int8)
+            _light_rows(p[sl], ng[sl], ns[sl], mat[sl], mt.kd, occl, force_all, lt.point_position,
+                        lt.point_intensity, lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u,
+                        lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, r_g, stream, s * per,
+                        scene.center, scene.extent, so, sd, tm, c, side, state)
+            live = np.flatnonzero(state == 1)
+            t_shade += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            occ_rows = np.zeros(rows, dtype=np.bool_)
+            if live.size:
+                occ_rows[live] = caster.occluded_local(np.ascontiguousarray(so[live]), np.ascontiguousarray(sd[live]),
+                                                       np.ascontiguousarray(tm[live]))
+            n_shadow += int(live.size)
+            t_shadow += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            _accumulate(state, occ_rows, c, side, lt.n_point, lt.n_directional, gg, acc[sl], vis[sl], store_bits)
+            t_shade += time.perf_counter() - t0
+    # view-independent constant terms (both sides)
+    base = mt.kd[mat] * scene.ambient[None] + mt.emission[mat]
+    acc += base[:, None, :]
+    return acc.astype(np.float32), vis, {"shade": t_shade, "shadow": t_shadow, "shadow_rays": n_shadow}
+
+
+# ----------------------------------------------------------------------------- bake
+
+
+def ldc_pixel_size(scene: RuntimeScene, resolution: int) -> float:
+    lo, hi = scene.bounds
+    ext = float(np.max(hi - lo))
+    if not ext > 0:
+        ext = max(scene.extent, 1e-6)
+    return ext / resolution
+
+
+def _check_resolution(resolution: int) -> None:
+    if not isinstance(resolution, (int, np.integer)) or not (1 <= resolution <= MAX_RESOLUTION):
+        raise InvalidInputError(f"LDC resolution must be an integer in [1, {MAX_RESOLUTION}], got {resolution!r}")
+
+
+def estimate_ldc_bytes(scene: RuntimeScene, resolution: int, max_layers: int = 32) -> int:
+    """Worst-case bytes of the three LDIs plus attributes (every pixel full to max_layers)."""
+    _check_resolution(resolution)
+    h = ldc_pixel_size(scene, resolution)
+    lo, hi = scene.bounds
+    words = (scene.lights.count + 63) // 64
+    per = LDI_SAMPLE_BYTES + LDC_ATTR_BYTES + 16 * words
+    return sum(estimate_ldi_bytes(f.n_pixels, max_layers, per)
+               for f in (axis_frame(lo, hi, a, h) for a in range(3)))
+
+
+def _resolve_visibility(plan: EffectPlan, n_lights: int, lights_visibility) -> tuple[np.ndarray, bool, bool]:
+    """(occludable flags, store bits?, force shadow rays for every light?)."""
+    if lights_visibility == "force":
+        return np.ones(n_lights, dtype=np.bool_), n_lights > 0, True
+    occl = np.asarray(plan.occludable_lights, dtype=np.bool_).reshape(-1)
+    if lights_visibility is True or lights_visibility == "auto":
+        return occl, bool(occl.any()), False
+    if lights_visibility is False or lights_visibility == "none":
+        return occl, False, False
+    raise InvalidInputError(f"lights_visibility must be True, False or 'force', got {lights_visibility!r}")
+
+
+def bake_ldc_axis(scene: RuntimeScene, caster: RayCaster, axis: int, resolution: int, *,
+                  lights_visibility=True, plan: EffectPlan | None = None, area_light_samples: int = 16,
+                  seed: int = 0, max_layers: int = 32, max_bytes: int = DEFAULT_MAX_BYTES) -> LDCAxis:
+    """Bake one of the three LDIs of the LDC (axis 0, 1, 2 = +x, +y, +z) with its attributes.
+
+    ``lights_visibility``: True (store bits when the effect plan finds an occludable light),
+    False (no bits; shadow rays still cast for occludable lights), 'force' (shadow rays and
+    bits for every light, ignoring the plan; for tests of the plan)."""
+    _check_resolution(resolution)
+    if axis not in (0, 1, 2):
+        raise InvalidInputError(f"axis must be 0, 1 or 2, got {axis!r}")
+    if scene.n_triangles == 0:
+        raise InvalidInputError("cannot bake an LDC of an empty scene")
+    plan = plan if plan is not None else analyze(scene)
+    n_l = scene.lights.count
+    occl, store, force = _resolve_visibility(plan, n_l, lights_visibility)
+    words = (n_l + 63) // 64 if store else 0
+    h = ldc_pixel_size(scene, resolution)
+    lo, hi = scene.bounds
+    frame = axis_frame(lo, hi, axis, h)
+    est = estimate_ldi_bytes(frame.n_pixels, max_layers, LDI_SAMPLE_BYTES + LDC_ATTR_BYTES + 16 * words)
+    if est > max_bytes:
+        raise InvalidInputError(f"LDC axis {axis} at resolution {resolution} x {max_layers} layers needs up to "
+                                f"{est / 2**20:.1f} MiB, over the limit of {max_bytes / 2**20:.1f} MiB; "
+                                "lower the resolution or max_layers")
+    t0 = time.perf_counter()
+    ldi = build_ldi(caster, frame, max_layers=max_layers, max_bytes=max_bytes)
+    t_ldi = time.perf_counter() - t0
+    p, ng, ns = surface_attributes(scene, ldi.prim, ldi.u, ldi.v)
+    mat = scene.tri_material[ldi.prim].astype(np.int32)
+    diffuse, vis, st = shade_samples(scene, caster, p, ng, ns, mat, occl, store_bits=store, force_all=force,
+                                     area_light_samples=area_light_samples, seed=seed, stream_id=axis)
+    facing = np.where(ng @ frame.w < 0.0, 1, -1).astype(np.int8)
+    return LDCAxis(axis=axis, ldi=ldi, normal=ns.astype(np.float32), geo_normal=ng.astype(np.float32),
+                   facing=facing, material=mat, object=scene.tri_object[ldi.prim].astype(np.int32),
+                   diffuse=diffuse, visibility=vis,
+                   timings={"ldi": t_ldi, "shade": st["shade"], "shadow": st["shadow"],
+                            "total": time.perf_counter() - t0, "shadow_rays": st["shadow_rays"],
+                            "truncated_pixels": ldi.n_truncated})
+
+
+def merge_ldc(scene: RuntimeScene, parts: list[LDCAxis], resolution: int, plan: EffectPlan | None = None) -> LDC:
+    """Assemble three per-axis bakes (any order) into an LDC; checks they belong together."""
+    by_axis = {p.axis: p for p in parts}
+    if sorted(by_axis) != [0, 1, 2] or len(parts) != 3:
+        raise InvalidInputError(f"merge_ldc needs exactly one part per axis 0, 1, 2; got {[p.axis for p in parts]}")
+    h = ldc_pixel_size(scene, resolution)
+    words = {p.visibility.shape[2] for p in parts}
+    if len(words) != 1:
+        raise InvalidInputError("LDC parts disagree on the visibility bitmask width")
+    for p in parts:
+        if abs(p.ldi.frame.h - h) > 1e-12 * h:
+            raise InvalidInputError(f"LDC part for axis {p.axis} was baked at another resolution")
+    plan = plan if plan is not None else analyze(scene)
+    return LDC(axes=(by_axis[0], by_axis[1], by_axis[2]), h=h, resolution=int(resolution),
+               n_lights=scene.lights.count, background=np.asarray(scene.background, dtype=np.float64),
+               closed_objects=plan.closed_objects, plan=plan.to_dict())
+
+
+def bake_ldc(scene: RuntimeScene, caster: RayCaster, resolution: int, *, lights_visibility=True,
+             plan: EffectPlan | None = None, area_light_samples: int = 16, seed: int = 0, max_layers: int = 32,
+             max_bytes: int = DEFAULT_MAX_BYTES) -> LDC:
+    """Bake the whole LDC (three axes, then merge). ``max_bytes`` bounds the worst case of all three."""
+    est = estimate_ldc_bytes(scene, resolution, max_layers)
+    if est > max_bytes:
+        raise InvalidInputError(f"LDC at resolution {resolution} x {max_layers} layers needs up to "
+                                f"{est / 2**20:.1f} MiB, over the limit of {max_bytes / 2**20:.1f} MiB; "
+                                "lower the resolution or max_layers")
+    plan = plan if plan is not None else analyze(scene)
+    parts = [bake_ldc_axis(scene, caster, a, resolution, lights_visibility=lights_visibility, plan=plan,
+                           area_light_samples=area_light_samples, seed=seed, max_layers=max_layers,
+                           max_bytes=max_bytes) for a in range(3)]
+    return merge_ldc(scene, parts, resolution, plan)

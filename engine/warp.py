@@ -1,0 +1,307 @@
+"""3D warp of a layered depth cube into a camera (the first rendering stage of the LDC method).
+
+Every sample of the three LDIs is rebuilt in float64 (frame origin + pixel centre + depth
+along w; HARD_CASES 6), projected into the camera (``engine/camera.py`` conventions) and
+splatted with a z-buffer (distance along the pixel ray, like the reference's depth):
+
+- **Footprint.** A sample stands for an ``h x h`` cell of its LDI's reference plane. Its
+  surface patch is spanned by ``e_u = h (u - (n.u / n.w) w)`` and ``e_v`` (the cell lifted
+  onto the tangent plane, n the geometric normal); both are projected through the camera's
+  Jacobian at the sample, and the sample covers every pixel whose centre lies in the
+  axis-aligned box of half-size ``0.5 (|a| + |b|)`` around its projection (plus always the
+  nearest pixel). Half-sizes are capped at ``max_footprint`` pixels (close-ups: beyond it
+  the image is under-sampled anyway and the hole detector takes over).
+- **Grazing samples are dropped.** A sample whose LDI direction makes ``|n_g . w| <
+  min_cos`` (0.5) with the surface is left to the other two LDIs: every normal has a
+  component >= 1/sqrt(3) = 0.577 along some axis, so one LDI always keeps it; this stops
+  edge-on surfaces (thin walls, a wall parallel to an axis) from smearing.
+- **Sides.** Surfaces are two-sided like the reference; the side facing the eye picks the
+  sample's ``diffuse[:, side]``. Back faces of CLOSED objects (the inner side; effect plan
+  ``closed_objects``) are culled.
+- **Holes.** A pixel is a hole when no sample covers it, or when at least ``hole_neighbors``
+  (6) of its 8 neighbours are covered and nearer than ``(1 - hole_rel_depth)`` (0.95) times
+  its depth: a far surface showing through a crack in a near one. (Six, because a pixel
+  just outside a concave corner of a silhouette legitimately has five nearer neighbours.)
+  Uncovered background pixels are holes too: the warp cannot tell "nothing there" from "not
+  sampled"; ``fill="raycast"`` resolves them.
+- **Filling.** ``fill="none"``: holes keep the background and are flagged. ``fill="raycast"``
+  is an INTERIM fill: Embree rays from the eye for the hole pixels, shaded with the same
+  diffuse model as the bake. It is NOT the paper's image-based ray tracing through the LDC
+  (later work, issue 4), and it needs the caster.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+
+from .camera import camera_rays
+from .errors import InvalidInputError, NonFiniteOutputError
+from .ldc import LDC, shade_samples, surface_attributes
+from .raycast import RayCaster
+from .scene import CameraParams
+
+PROV_NONE = 0
+PROV_WARPED = 1
+PROV_FILLED = 2
+
+
+@dataclass
+class WarpResult:
+    """radiance (h, w, 3) float32 view-independent (diffuse) radiance; depth (h, w) float32
+    distance along the pixel ray (0 where empty); normal (h, w, 3) float32 shading normal
+    facing the camera; material_id / object_id (h, w) int32 (-1 where empty); sample_axis
+    (h, w) int8 and sample_index (h, w) int64: the LDC sample shown (-1: none / ray-filled);
+    sample_side (h, w) int8; hole_mask (h, w) bool (before filling); provenance (h, w) uint8
+    (0 background, 1 warped, 2 hole-filled)."""
+
+    radiance: np.ndarray
+    depth: np.ndarray
+    normal: np.ndarray
+    material_id: np.ndarray
+    object_id: np.ndarray
+    sample_axis: np.ndarray
+    sample_index: np.ndarray
+    sample_side: np.ndarray
+    hole_mask: np.ndarray
+    provenance: np.ndarray
+    n_holes: int
+    n_filled: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
+           ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
+           zbuf, win_axis, win_idx, win_side):
+    aspect = W / H
+    npix = offsets.shape[0] - 1
+    for k in range(npix):
+        s0 = offsets[k]
+        s1 = offsets[k + 1]
+        if s0 == s1:
+            continue
+        a = (k % nu + 0.5) * h
+        b = (k // nu + 0.5) * h
+        bx = origin[0] + a * fu[0] + b * fv[0]
+        by = origin[1] + a * fu[1] + b * fv[1]
+        bz = origin[2] + a * fu[2] + b * fv[2]
+        for s in range(s0, s1):
+            n0, n1, n2 = ng[s, 0], ng[s, 1], ng[s, 2]
+            nw = n0 * fw[0] + n1 * fw[1] + n2 * fw[2]
+            if abs(nw) < min_cos:
+                continue
+            px_ = bx + depth[s] * fw[0]
+            py_ = by + depth[s] * fw[1]
+            pz_ = bz + depth[s] * fw[2]
+            rx, ry, rz = px_ - eye[0], py_ - eye[1], pz_ - eye[2]
+            xc = rx * right[0] + ry * right[1] + rz * right[2]
+            yc = rx * up[0] + ry * up[1] + rz * up[2]
+            zc = rx * fwd[0] + ry * fwd[1] + rz * fwd[2]
+            if ortho:
+                if zc < 0.0:
+                    continue
+                vd = n0 * fwd[0] + n1 * fwd[1] + n2 * fwd[2]
+                dist = zc
+            else:
+                dist = math.sqrt(rx * rx + ry * ry + rz * rz)
+                if zc <= 1e-12 * dist or dist == 0.0:
+                    continue
+                vd = n0 * rx + n1 * ry + n2 * rz
+            if vd == 0.0:
+                continue
+            side = 0 if vd < 0.0 else 1
+            if side == 1 and closed[obj[s]]:
+                continue  # inner side of a closed object: back face
+            # projection and Jacobian (pixels per world unit) at the sample
+            if ortho:
+                kx = W / (2.0 * hh * aspect)
+                ky = H / (2.0 * hh)
+                pxf = (xc * kx / W * 2.0 + 1.0) * 0.5 * W
+                pyf = (1.0 - yc * ky / H * 2.0) * 0.5 * H
+            else:
+                kx = W / (2.0 * th * aspect)
+                ky = H / (2.0 * th)
+                pxf = (xc / zc * kx / W * 2.0 + 1.0) * 0.5 * W
+                pyf = (1.0 - yc / zc * ky / H * 2.0) * 0.5 * H
+            if not (abs(pxf) < 1e9 and abs(pyf) < 1e9):
+                continue
+            # tangent edges of the cell
+            cu = (n0 * fu[0] + n1 * fu[1] + n2 * fu[2]) / nw
+            cv = (n0 * fv[0] + n1 * fv[1] + n2 * fv[2]) / nw
+            ex = 0.0
+            ey = 0.0
+            for e in range(2):
+                if e == 0:
+                    dx = h * (fu[0] - cu * fw[0])
+                    dy = h * (fu[1] - cu * fw[1])
+                    dz = h * (fu[2] - cu * fw[2])
+                else:
+                    dx = h * (fv[0] - cv * fw[0])
+                    dy = h * (fv[1] - cv * fw[1])
+                    dz = h * (fv[2] - cv * fw[2])
+                ex_ = dx * right[0] + dy * right[1] + dz * right[2]
+                ey_ = dx * up[0] + dy * up[1] + dz * up[2]
+                ez_ = dx * fwd[0] + dy * fwd[1] + dz * fwd[2]
+                if ortho:
+                    ex += abs(kx * ex_)
+                    ey += abs(ky * ey_)
+                else:
+                    ex += abs(kx * (ex_ / zc - xc * ez_ / (zc * zc)))
+                    ey += abs(ky * (ey_ / zc - yc * ez_ / (zc * zc)))
+            ex = 0.5 * ex * fp_scale
+            ey = 0.5 * ey * fp_scale
+            if not (ex <= max_fp):
+                ex = max_fp
+            if not (ey <= max_fp):
+                ey = max_fp
+            ix = int(math.floor(pxf))
+            iy = int(math.floor(pyf))
+            x0 = min(int(math.ceil(pxf - ex - 0.5)), ix)
+            x1 = max(int(math.floor(pxf + ex - 0.5)), ix)
+            y0 = min(int(math.ceil(pyf - ey - 0.5)), iy)
+            y1 = max(int(math.floor(pyf + ey - 0.5)), iy)
+            x0 = max(x0, 0)
+            y0 = max(y0, 0)
+            x1 = min(x1, W - 1)
+            y1 = min(y1, H - 1)
+            for y in range(y0, y1 + 1):
+                for x in range(x0, x1 + 1):
+                    if dist < zbuf[y, x]:
+                        zbuf[y, x] = dist
+                        win_axis[y, x] = axis_id
+                        win_idx[y, x] = s
+                        win_side[y, x] = side
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _detect_holes(zbuf, rel, need, out):
+    H, W = zbuf.shape
+    for y in nb.prange(H):
+        for x in range(W):
+            d = zbuf[y, x]
+            if not d < np.inf:
+                out[y, x] = True
+                continue
+            lim = d * (1.0 - rel)
+            c = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    if dx == 0 and dy == 0:
+                        continue
+                    yy = y + dy
+                    xx = x + dx
+                    if 0 <= yy < H and 0 <= xx < W and zbuf[yy, xx] < lim:
+                        c += 1
+            out[y, x] = c >= need
+
+
+def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayCaster | None = None,
+             min_cos: float = 0.5, max_footprint: float = 8.0, footprint_scale: float = 1.0,
+             hole_rel_depth: float = 0.05, hole_neighbors: int = 6, area_light_samples: int = 16,
+             seed: int = 0) -> WarpResult:
+    """Warp every LDC sample into ``camera`` with a depth test; detect (and optionally fill) holes."""
+    if fill not in ("none", "raycast"):
+        raise InvalidInputError(f"fill must be 'none' or 'raycast', got {fill!r}")
+    if fill == "raycast" and caster is None:
+        raise InvalidInputError("fill='raycast' needs the scene's caster")
+    if not (0.0 <= min_cos < 1.0 / math.sqrt(3.0)):
+        raise InvalidInputError("min_cos must be in [0, 1/sqrt(3)) so every surface keeps one LDI")
+    if not (0.0 < max_footprint <= 64.0) or not (0.0 < footprint_scale <= 4.0):
+        raise InvalidInputError("max_footprint must be in (0, 64] and footprint_scale in (0, 4]")
+    if not (0.0 < hole_rel_depth < 1.0) or not (1 <= hole_neighbors <= 8):
+        raise InvalidInputError("hole_rel_depth must be in (0, 1) and hole_neighbors in [1, 8]")
+    t_start = time.perf_counter()
+    W, H = camera.width, camera.height
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    ortho = camera.kind == "orthographic"
+    th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
+    hh = 0.5 * camera.ortho_height
+    zbuf = np.full((H, W), np.inf)
+    win_axis = np.full((H, W), -1, np.int8)
+    win_idx = np.full((H, W), -1, np.int64)
+    win_side = np.zeros((H, W), np.int8)
+    n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
+    closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
+    closed[:len(ldc.closed_objects)] = ldc.closed_objects
+    t0 = time.perf_counter()
+    for ax in ldc.axes:
+        f = ax.ldi.frame
+        _splat(ax.axis, f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth,
+               np.ascontiguousarray(ax.geo_normal, dtype=np.float64), ax.object, closed, ortho, eye, right, up, fwd,
+               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, win_axis, win_idx, win_side)
+    t_splat = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    holes = np.zeros((H, W), np.bool_)
+    _detect_holes(zbuf, hole_rel_depth, hole_neighbors, holes)
+    t_holes = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    radiance = np.empty((H, W, 3), np.float32)
+    radiance[:] = ldc.background.astype(np.float32)
+    depth = np.zeros((H, W), np.float32)
+    normal = np.zeros((H, W, 3), np.float32)
+    mat_id = np.full((H, W), -1, np.int32)
+    obj_id = np.full((H, W), -1, np.int32)
+    prov = np.zeros((H, W), np.uint8)
+    for ax in ldc.axes:
+        sel = win_axis == ax.axis
+        idx = win_idx[sel]
+        side = win_side[sel].astype(np.int64)
+        radiance[sel] = ax.diffuse[idx, side]
+        depth[sel] = zbuf[sel]
+        sign = np.where(side == 0, 1.0, -1.0).astype(np.float32)[:, None]
+        normal[sel] = ax.normal[idx] * sign
+        mat_id[sel] = ax.material[idx]
+        obj_id[sel] = ax.object[idx]
+        prov[sel] = PROV_WARPED
+    t_resolve = time.perf_counter() - t0
+    n_holes = int(holes.sum())
+    n_filled = 0
+    t_fill = 0.0
+    if fill == "raycast" and n_holes:
+        t0 = time.perf_counter()
+        ys, xs = np.nonzero(holes)
+        o, d = camera_rays(camera, xs + 0.5, ys + 0.5)
+        hit = caster.intersect(o, d)
+        ok = hit.prim >= 0
+        # misses: background, no sample
+        miss = ~ok
+        radiance[ys[miss], xs[miss]] = ldc.background.astype(np.float32)
+        depth[ys[miss], xs[miss]] = 0.0
+        normal[ys[miss], xs[miss]] = 0.0
+        mat_id[ys[miss], xs[miss]] = -1
+        obj_id[ys[miss], xs[miss]] = -1
+        prov[ys[miss], xs[miss]] = PROV_NONE
+        win_axis[ys[miss], xs[miss]] = -1
+        win_idx[ys[miss], xs[miss]] = -1
+        if ok.any():
+            sc = caster.scene
+            yh, xh = ys[ok], xs[ok]
+            p, ng, ns = surface_attributes(sc, hit.prim[ok], hit.u[ok], hit.v[ok])
+            mat = sc.tri_material[hit.prim[ok]].astype(np.int32)
+            occl = np.asarray(ldc.plan.get("occludable_lights", [True] * sc.lights.count), dtype=np.bool_)
+            rad, _, _ = shade_samples(sc, caster, p, ng, ns, mat, occl, store_bits=False,
+                                      area_light_samples=area_light_samples, seed=seed, stream_id=3)
+            side = (np.einsum("ij,ij->i", ng, d[ok]) >= 0).astype(np.int64)
+            radiance[yh, xh] = rad[np.arange(side.shape[0]), side]
+            depth[yh, xh] = hit.t[ok].astype(np.float32)
+            normal[yh, xh] = (ns * np.where(side == 0, 1.0, -1.0)[:, None]).astype(np.float32)
+            mat_id[yh, xh] = mat
+            obj_id[yh, xh] = sc.tri_object[hit.prim[ok]]
+            prov[yh, xh] = PROV_FILLED
+            win_axis[yh, xh] = -1
+            win_idx[yh, xh] = -1
+            n_filled = int(ok.sum())
+        t_fill = time.perf_counter() - t0
+    if not np.all(np.isfinite(radiance)) or not np.all(np.isfinite(depth)):
+        raise NonFiniteOutputError("LDC warp produced non-finite values")
+    return WarpResult(radiance=radiance, depth=depth, normal=normal, material_id=mat_id, object_id=obj_id,
+                      sample_axis=win_axis, sample_index=win_idx, sample_side=win_side, hole_mask=holes,
+                      provenance=prov, n_holes=n_holes, n_filled=n_filled,
+                      timings={"splat": t_splat, "holes": t_holes, "resolve": t_resolve, "fill": t_fill,
+                               "total": time.perf_counter() - t_start})
