@@ -77,7 +77,7 @@ class WarpResult:
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
            ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
-           zbuf, win_axis, win_idx, win_side):
+           zbuf, best_d2, win_axis, win_idx, win_side):
     aspect = W / H
     npix = offsets.shape[0] - 1
     for k in range(npix):
@@ -114,6 +114,10 @@ def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
                 vd = n0 * rx + n1 * ry + n2 * rz
             if vd == 0.0:
                 continue
+            # depth slack within which two samples count as the same surface: about one
+            # LDC cell along the surface at this slope to the view ray
+            cosv = abs(vd) / (dist if not ortho else 1.0)
+            tol = 1.5 * h / max(cosv, 0.25)
             side = 0 if vd < 0.0 else 1
             if side == 1 and closed[obj[s]]:
                 continue  # inner side of a closed object: back face
@@ -171,8 +175,13 @@ def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
             y1 = min(y1, H - 1)
             for y in range(y0, y1 + 1):
                 for x in range(x0, x1 + 1):
-                    if dist < zbuf[y, x]:
+                    ddx = x + 0.5 - pxf
+                    ddy = y + 0.5 - pyf
+                    d2 = ddx * ddx + ddy * ddy
+                    z = zbuf[y, x]
+                    if dist < z - tol or (dist <= z + tol and d2 < best_d2[y, x]):
                         zbuf[y, x] = dist
+                        best_d2[y, x] = d2
                         win_axis[y, x] = axis_id
                         win_idx[y, x] = s
                         win_side[y, x] = side
@@ -226,6 +235,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     win_axis = np.full((H, W), -1, np.int8)
     win_idx = np.full((H, W), -1, np.int64)
     win_side = np.zeros((H, W), np.int8)
+    best_d2 = np.full((H, W), np.inf)
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
@@ -234,7 +244,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         f = ax.ldi.frame
         _splat(ax.axis, f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth,
                np.ascontiguousarray(ax.geo_normal, dtype=np.float64), ax.object, closed, ortho, eye, right, up, fwd,
-               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, win_axis, win_idx, win_side)
+               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, best_d2, win_axis, win_idx, win_side)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)

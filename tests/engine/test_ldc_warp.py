@@ -1,0 +1,200 @@
+"""LDC bake and 3D warp: reference agreement, HARD_CASES 4 and 11, holes on mirror_box, many-light bits."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.ndimage import binary_erosion
+
+from api_schemas import load_scene_file
+from engine.errors import InvalidInputError
+from engine.ldc import bake_ldc, bake_ldc_axis, estimate_ldc_bytes, ldc_pixel_size, merge_ldc
+from engine.metrics import lrms
+from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, EmbreeCaster
+from engine.reference import ReferenceParams, render_reference
+from engine.scene import CameraParams
+from engine.warp import PROV_FILLED, warp_ldc
+from samples import SAMPLES_DIR, sample_path
+from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
+from workers.scene_loader import directory_resolver, load_scene
+
+LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
+          dict(type="point", position=(-2.0, 1.5, 1.0), intensity=(1.0, 2.0, 3.0)),
+          dict(type="directional", direction=(0.2, -1.0, -0.5), irradiance=(0.5, 0.4, 0.3))]
+
+
+def _box(extents, center, smooth=False):
+    return from_trimesh(trimesh.creation.box(extents=extents).apply_translation(center), smooth=smooth)
+
+
+def _diffuse_scene(lights=LIGHTS):
+    return scene([(quad((0, -0.5, 0), 3.0, normal_axis=1), mat("floor", kd=(0.6, 0.6, 0.55))),
+                  (_box((0.8, 0.8, 0.8), (0.6, -0.1, -0.2)), mat("box", kd=(0.7, 0.2, 0.2))),
+                  (sphere_mesh((-0.6, 0.0, 0.3), 0.5, subdivisions=3), mat("ball", kd=(0.2, 0.3, 0.7)))],
+                 lights, ambient=(0.02, 0.02, 0.02))
+
+
+@pytest.fixture(scope="module")
+def mirror_box():
+    ls = load_scene(load_scene_file(sample_path("mirror_box")), directory_resolver(SAMPLES_DIR))
+    return ls.runtime
+
+
+def test_axis_view_reproduces_reference_visibility_and_diffuse():
+    sc = _diffuse_scene()
+    caster = EmbreeCaster(sc)
+    ldc = bake_ldc(sc, caster, 96)
+    # orthographic camera looking along -z, one camera pixel per LDC pixel
+    cam = CameraParams("orthographic", (0.0, 0.0, 10.0), (0.0, 0.0, 0.0), (0, 1, 0), 96, 96,
+                       ortho_height=96 * ldc.h)
+    w = warp_ldc(ldc, cam)
+    ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0), backend="embree")
+    cov = ref.object_id >= 0
+    agree = (w.object_id == ref.object_id)[cov].mean()
+    assert agree >= 0.98, agree
+    assert (w.material_id == ref.material_id)[cov].mean() >= 0.98
+    same = cov & (w.object_id == ref.object_id)
+    inner = np.zeros_like(same)
+    for o in range(3):
+        inner |= binary_erosion(ref.object_id == o) & same
+    # Residual: the LDC shades its own sample point, the reference (spp=1) a jittered point in
+    # the pixel, up to a pixel apart: on the sphere's limb and at shadow edges that is a large
+    # difference, so silhouette pixels are left out (measured: 0.18 with them, 0.023 without;
+    # against a 16-spp reference 0.005 without)
+    err1 = lrms(w.radiance, ref.radiance, inner)
+    assert err1 < 0.05, err1
+    ref16 = render_reference(sc, cam, ReferenceParams(spp=16, max_depth=0))
+    err16 = lrms(w.radiance, ref16.radiance, inner)
+    assert err16 < 0.015, err16
+    assert np.all(np.isfinite(w.radiance))
+    assert np.all(w.hole_mask[cov] == (w.object_id[cov] < 0))  # every covered pixel warped or flagged
+
+
+def test_parallel_surfaces_and_thin_wall_hard_case_4():
+    res = 64
+    wall_t = 0.2 * 3.0 / res  # thinner than the LDC pixel (scene extent 3)
+    sc = scene([(quad((0, 0, -1.0), 3.0, normal_axis=2), mat("back", kd=(0.5, 0.5, 0.5))),
+                (_box((1.5, 1.0, wall_t), (0.0, 0.0, 0.0)), mat("wall", kd=(0.8, 0.3, 0.1)))],
+               LIGHTS[:1] + LIGHTS[2:])
+    caster = EmbreeCaster(sc)
+    ldc = bake_ldc(sc, caster, res)
+    assert ldc.h > wall_t
+    # the wall's big faces (normal +-z) are parallel to x and y: only the z LDI samples them
+    for ax in ldc.axes:
+        big = (ax.object == 1) & (np.abs(ax.geo_normal[:, 2]) > 0.99)
+        assert big.any() == (ax.axis == 2)
+    assert (ldc.axes[2].object == 0).sum() > 0 and (ldc.axes[0].object == 0).sum() == 0
+    for eye in ((1.2, 0.7, 3.0), (-2.0, -0.4, 2.0), (-0.4, 1.5, 1.5)):
+        cam = CameraParams("perspective", eye, (0, 0, -0.2), (0, 1, 0), 128, 128, 50.0)
+        w = warp_ldc(ldc, cam)
+        ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
+        wall = ref.object_id == 1
+        assert wall.sum() > 500
+        assert not (w.hole_mask & wall).any()
+        assert (w.object_id == ref.object_id)[ref.object_id >= 0].mean() >= 0.97
+
+
+def test_mirror_box_holes_below_two_percent(mirror_box):
+    sc = mirror_box
+    caster = EmbreeCaster(sc)
+    ldc = bake_ldc(sc, caster, 256)
+    cam = CameraParams("perspective", (1.3, 2.0, 4.6), (0.1, 0.5, -0.3), (0, 1, 0), 256, 256, 45.0)
+    w = warp_ldc(ldc, cam)
+    ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
+    cov = ref.object_id >= 0
+    frac = (w.hole_mask & cov).sum() / cov.sum()
+    print(f"mirror_box hole fraction among covered pixels: {frac:.5f} "
+          f"(all flagged incl. background: {w.n_holes / w.hole_mask.size:.4f})")
+    assert frac < 0.02
+    assert (w.object_id == ref.object_id)[cov].mean() >= 0.98
+    wf = warp_ldc(ldc, cam, fill="raycast", caster=caster)
+    assert wf.n_holes == w.n_holes
+    assert not ((wf.object_id < 0) & cov).any()
+    assert np.all(wf.provenance[wf.provenance == PROV_FILLED] == PROV_FILLED)
+
+
+def test_degenerate_cameras_hard_case_11():
+    sc = _diffuse_scene()
+    caster = EmbreeCaster(sc)
+    ldc = bake_ldc(sc, caster, 48)
+    fz = ldc.axes[2].ldi.frame
+    cams = [
+        CameraParams("perspective", (0.6, -0.1, -0.2), (0.6, -0.1, -2.0), (0, 1, 0), 40, 30, 60.0),  # inside box
+        CameraParams("perspective", (0.0, 0.2, float(fz.origin[2])), (0.0, 0.0, 0.5), (0, 1, 0), 40, 30, 60.0),
+        CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 45.0),  # along -x
+        CameraParams("orthographic", (0.0, 6.0, 0.0), (0.0, 0.0, 0.0), (0, 0, -1), 40, 30, ortho_height=3.0),
+        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 1e-4),
+        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 179.99),
+        CameraParams("perspective", (float(fz.origin[0]), float(fz.origin[1]), float(fz.origin[2])),
+                     (0.0, 0.0, 0.0), (0, 1, 0), 16, 16, 90.0),  # on the frame corner
+    ]
+    for cam in cams:
+        for fill in ("none", "raycast"):
+            w = warp_ldc(ldc, cam, fill=fill, caster=caster)
+            assert np.all(np.isfinite(w.radiance)) and np.all(np.isfinite(w.depth))
+            assert np.all(np.isfinite(w.normal))
+            assert w.radiance.shape == (cam.height, cam.width, 3)
+    # along -x with fill: matches reference visibility almost everywhere
+    cam = CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), 96, 72, 45.0)
+    w = warp_ldc(ldc, cam, fill="raycast", caster=caster)
+    ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
+    assert (w.object_id == ref.object_id).mean() >= 0.95
+
+
+def test_visibility_bits_with_70_lights():
+    rng = np.random.default_rng(3)
+    pos = np.column_stack([rng.uniform(-2, 2, 70), rng.uniform(-0.4, 2.5, 70), rng.uniform(-2, 2, 70)])
+    lights = [dict(type="point", position=tuple(p), intensity=(0.1, 0.1, 0.1)) for p in pos]
+    sc = _diffuse_scene(lights)
+    caster = EmbreeCaster(sc)
+    part = bake_ldc_axis(sc, caster, 1, 12)
+    vis = part.visibility
+    assert vis.shape == (part.n_samples, 2, 2) and vis.dtype == np.uint64
+    # brute force: one occlusion query per (sample, light) through the public API
+    from engine.ldc import surface_attributes
+
+    p, ng, _ = surface_attributes(sc, part.ldi.prim, part.ldi.u, part.ldi.v)
+    mag = OFFSET_REL * (np.abs(p - sc.center).max(axis=1) + OFFSET_EXTENT * sc.extent)
+    n_set = 0
+    for li in range(70):
+        to = pos[li][None] - p
+        side = (np.einsum("ij,ij->i", ng, to) < 0).astype(int)
+        g = np.where(side[:, None] == 0, ng, -ng)
+        o = p + mag[:, None] * g
+        d = pos[li][None] - o
+        dist = np.linalg.norm(d, axis=1)
+        d /= dist[:, None]
+        front = np.einsum("ij,ij->i", g, d) > 0
+        tmax = dist * (1 - SHADOW_SHORTEN) - mag
+        occ = caster.occluded(o, d, tmax)
+        want = front & ~occ & (tmax > 0)
+        bit = (vis[np.arange(p.shape[0]), side, li // 64] >> np.uint64(li % 64)) & np.uint64(1)
+        other = (vis[np.arange(p.shape[0]), 1 - side, li // 64] >> np.uint64(li % 64)) & np.uint64(1)
+        assert np.array_equal(bit.astype(bool), want), li
+        assert not other.any()
+        n_set += int(want.sum())
+    assert 0 < n_set < 70 * p.shape[0]  # some lights are blocked, some visible
+
+
+def test_split_bake_merge_and_limits():
+    sc = _diffuse_scene()
+    caster = EmbreeCaster(sc)
+    parts = [bake_ldc_axis(sc, caster, a, 32) for a in (2, 0, 1)]
+    ldc = merge_ldc(sc, parts, 32)
+    whole = bake_ldc(sc, caster, 32)
+    for a, b in zip(ldc.axes, whole.axes, strict=True):
+        assert a.axis == b.axis
+        assert np.array_equal(a.ldi.depth, b.ldi.depth) and np.array_equal(a.diffuse, b.diffuse)
+    assert ldc.h == pytest.approx(ldc_pixel_size(sc, 32))
+    with pytest.raises(InvalidInputError):
+        merge_ldc(sc, parts[:2], 32)
+    with pytest.raises(InvalidInputError):
+        merge_ldc(sc, parts, 64)
+    with pytest.raises(InvalidInputError):
+        bake_ldc(sc, caster, 0)
+    est = estimate_ldc_bytes(sc, 32)
+    with pytest.raises(InvalidInputError, match="MiB"):
+        bake_ldc(sc, caster, 32, max_bytes=est // 2)
+    with pytest.raises(InvalidInputError):
+        warp_ldc(ldc, CameraParams("perspective", (0, 0, 5), (0, 0, 0), (0, 1, 0), 8, 8), fill="raycast")
