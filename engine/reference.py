@@ -171,6 +171,31 @@ def _phong_pow(c, s):
     return math.exp(s * math.log(c))
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _surface_frame(t, uu, vv, dx, dy, dz, tri_n, tri_ng):
+    """Geometric and shading normals of triangle t at barycentrics (uu, vv), both flipped to
+    face a ray travelling along (dx, dy, dz); a shading normal on the wrong side of the
+    geometric one falls back to it. Returns (g0, g1, g2, s0, s1, s2)."""
+    w0 = 1.0 - uu - vv
+    g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
+    s0 = w0 * tri_n[t, 0, 0] + uu * tri_n[t, 1, 0] + vv * tri_n[t, 2, 0]
+    s1 = w0 * tri_n[t, 0, 1] + uu * tri_n[t, 1, 1] + vv * tri_n[t, 2, 1]
+    s2 = w0 * tri_n[t, 0, 2] + uu * tri_n[t, 1, 2] + vv * tri_n[t, 2, 2]
+    ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    if ls > 1e-12:
+        s0 /= ls
+        s1 /= ls
+        s2 /= ls
+    else:
+        s0, s1, s2 = g0, g1, g2
+    if _dot(g0, g1, g2, dx, dy, dz) > 0.0:  # back side: flip both
+        g0, g1, g2 = -g0, -g1, -g2
+        s0, s1, s2 = -s0, -s1, -s2
+    if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:  # shading normal on the wrong side
+        s0, s1, s2 = g0, g1, g2
+    return g0, g1, g2, s0, s1, s2
+
+
 @nb.njit(cache=True, parallel=True)
 def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
     """Hit point, and geometric / shading normals flipped to face the incoming ray."""
@@ -179,22 +204,8 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
         w0 = 1.0 - u[i] - v[i]
         for k in range(3):
             p_out[i, k] = w0 * tri_p[t, 0, k] + u[i] * tri_p[t, 1, k] + v[i] * tri_p[t, 2, k]
-        g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
-        s0 = w0 * tri_n[t, 0, 0] + u[i] * tri_n[t, 1, 0] + v[i] * tri_n[t, 2, 0]
-        s1 = w0 * tri_n[t, 0, 1] + u[i] * tri_n[t, 1, 1] + v[i] * tri_n[t, 2, 1]
-        s2 = w0 * tri_n[t, 0, 2] + u[i] * tri_n[t, 1, 2] + v[i] * tri_n[t, 2, 2]
-        ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        if ls > 1e-12:
-            s0 /= ls
-            s1 /= ls
-            s2 /= ls
-        else:
-            s0, s1, s2 = g0, g1, g2
-        if _dot(g0, g1, g2, d[i, 0], d[i, 1], d[i, 2]) > 0.0:  # back side: flip both
-            g0, g1, g2 = -g0, -g1, -g2
-            s0, s1, s2 = -s0, -s1, -s2
-        if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:  # shading normal on the wrong side
-            s0, s1, s2 = g0, g1, g2
+        g0, g1, g2, s0, s1, s2 = _surface_frame(t, np.float64(u[i]), np.float64(v[i]), d[i, 0], d[i, 1], d[i, 2],
+                                                tri_n, tri_ng)
         ng_out[i, 0], ng_out[i, 1], ng_out[i, 2] = g0, g1, g2
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
@@ -448,22 +459,7 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n,
             p_out[j, k] = w0 * tri_p[t, 0, k] + uu * tri_p[t, 1, k] + vv * tri_p[t, 2, k]
             d_out[j, k] = d[i, k]
             w_out[j, k] = w[i, k]
-        g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
-        s0 = w0 * tri_n[t, 0, 0] + uu * tri_n[t, 1, 0] + vv * tri_n[t, 2, 0]
-        s1 = w0 * tri_n[t, 0, 1] + uu * tri_n[t, 1, 1] + vv * tri_n[t, 2, 1]
-        s2 = w0 * tri_n[t, 0, 2] + uu * tri_n[t, 1, 2] + vv * tri_n[t, 2, 2]
-        ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        if ls > 1e-12:
-            s0 /= ls
-            s1 /= ls
-            s2 /= ls
-        else:
-            s0, s1, s2 = g0, g1, g2
-        if _dot(g0, g1, g2, d[i, 0], d[i, 1], d[i, 2]) > 0.0:
-            g0, g1, g2 = -g0, -g1, -g2
-            s0, s1, s2 = -s0, -s1, -s2
-        if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:
-            s0, s1, s2 = g0, g1, g2
+        g0, g1, g2, s0, s1, s2 = _surface_frame(t, uu, vv, d[i, 0], d[i, 1], d[i, 2], tri_n, tri_ng)
         ng_out[j, 0], ng_out[j, 1], ng_out[j, 2] = g0, g1, g2
         ns_out[j, 0], ns_out[j, 1], ns_out[j, 2] = s0, s1, s2
         mat_out[j] = tri_mat[t]
