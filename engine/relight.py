@@ -1,0 +1,981 @@
+"""Relighting from an illumination dataset (ALGORITHMS.md part B; the paper's section 2).
+
+A fixed camera sees an object lit, image by image, by K point lights (or K distant
+lights). With the 3-D surface point ``P`` of every pixel known, the pixel under a new
+light is interpolated from the three dataset images whose lights form the triangle that
+the ray from ``P`` through the new light crosses on the light sphere (paper eq. 1).
+
+Public, checked wrappers: :class:`IlluminationDataset`, :func:`points_from_depth`,
+:func:`bake_dataset`, :func:`locate_directions`, :func:`relight`. The numba kernels
+(``_locate``, ``_relight_kernel``) are private and do no validation (CONVENTIONS 6).
+The math, the coverage rule and the storage layout are in ``docs/relighting.md``.
+
+Radiometric normalisation (decision, docs/relighting.md "Math"): the stored images are the
+raw dataset images ``V_k``; the kernel interpolates the *distance- and intensity-normalised*
+responses ``R_k(p) = V_k(p) |P - s_k|^2 / I_k`` (per channel; ``V_k / E_k`` for a distant
+dataset), which depend on the light direction only, and multiplies by the new light's
+irradiance factor ``I / |P - l|^2`` (``E`` for a directional light). At a vertex this is
+exactly eq. 1; inside a triangle it interpolates the smoother quantity, and lights that
+are not exactly on the fitted sphere are handled without a second approximation.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import types
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+from numba.core import types as nbtypes
+from numba.extending import overload
+
+from .errors import InvalidInputError
+from .scene import CameraParams
+
+HALF_MAX = 65504.0
+HALF_MIN_NORMAL = 6.103515625e-05
+LAYOUTS = ("pixel_major",)
+
+# light kinds inside the kernel
+_K_POINT, _K_DIRECTIONAL, _K_ORIENTED, _K_TWO_SIDED = 0, 1, 2, 3
+
+# ============================================================================ dataset
+
+
+def _as_array(name: str, a, dtype, ndim: int | None = None) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=dtype)
+    except (TypeError, ValueError) as e:
+        raise InvalidInputError(f"{name}: not a numeric array ({e})") from None
+    if ndim is not None and arr.ndim != ndim:
+        raise InvalidInputError(f"{name}: expected {ndim} dimensions, got shape {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True)
+class IlluminationDataset:
+    """K images of one fixed view, image k lit only by light k, plus the surface points.
+
+    images: (K, h, w, 3) float32 linear radiance.
+    light_positions: (K, 3) float64; world positions of isotropic point lights, or, when
+        ``distant`` is True, directions *toward* distant lights (normalised on entry).
+    intensities: (K, 3) float64 > 0; W/sr for point lights, irradiance for distant lights.
+    points: (h, w, 3) float64 surface point of every pixel, in the lights' frame.
+    mask: (h, w) bool or None; pixels without a surface point (background) are False.
+        Points of masked-out pixels are ignored (they may be NaN).
+    distant: one flag for the whole dataset (a photometric-stereo rig has only distant
+        lights, a light stage only near ones; mixed datasets are not supported).
+    """
+
+    images: np.ndarray
+    light_positions: np.ndarray
+    intensities: np.ndarray
+    points: np.ndarray
+    mask: np.ndarray | None = None
+    distant: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.images, (list, tuple)):
+            shapes = [np.shape(a) for a in self.images]
+            for i, sh in enumerate(shapes):
+                if sh != shapes[0]:
+                    raise InvalidInputError(f"images[{i}]: shape {sh} differs from images[0] {shapes[0]} "
+                                            "(all images must have the same size)")
+        imgs = _as_array("images", self.images, np.float32, 4)
+        if imgs.shape[-1] != 3:
+            raise InvalidInputError(f"images: expected (K, h, w, 3), got shape {imgs.shape}")
+        k, h, w = imgs.shape[:3]
+        if k < 3:
+            raise InvalidInputError(f"images: at least 3 lit images are needed, got {k}")
+        if h < 1 or w < 1:
+            raise InvalidInputError(f"images: empty image size {h}x{w}")
+        if not np.all(np.isfinite(imgs)):
+            bad = np.unique(np.nonzero(~np.isfinite(imgs))[0])
+            raise InvalidInputError(f"images: non-finite values in image(s) {bad[:10].tolist()}")
+        pos = _as_array("light_positions", self.light_positions, np.float64, 2)
+        if pos.shape != (k, 3):
+            raise InvalidInputError(f"light_positions: light count {pos.shape[0] if pos.ndim else 0} "
+                                    f"does not match image count {k} (shape {pos.shape}, expected ({k}, 3))")
+        if not np.all(np.isfinite(pos)):
+            bad = np.nonzero(~np.all(np.isfinite(pos), axis=1))[0]
+            raise InvalidInputError(f"light_positions: NaN/Inf in light(s) {bad[:10].tolist()}")
+        if self.distant:
+            n = np.linalg.norm(pos, axis=1)
+            if np.any(n == 0):
+                raise InvalidInputError(f"light_positions: zero direction for distant light(s) "
+                                        f"{np.nonzero(n == 0)[0][:10].tolist()}")
+            pos = pos / n[:, None]
+        inten = _as_array("intensities", self.intensities, np.float64)
+        if inten.ndim == 1 and inten.shape == (k,):
+            inten = np.repeat(inten[:, None], 3, axis=1)
+        if inten.shape != (k, 3):
+            raise InvalidInputError(f"intensities: expected ({k}, 3) or ({k},), got shape {inten.shape}")
+        if not np.all(np.isfinite(inten)) or np.any(inten <= 0):
+            raise InvalidInputError("intensities: must be finite and > 0 in every channel")
+        pts = _as_array("points", self.points, np.float64, 3)
+        if pts.shape != (h, w, 3):
+            raise InvalidInputError(f"points: surface points of shape {pts.shape} do not match the "
+                                    f"image size {h}x{w} (expected ({h}, {w}, 3))")
+        if self.mask is None:
+            m = np.ones((h, w), dtype=bool)
+        else:
+            m = np.asarray(self.mask)
+            if m.shape != (h, w):
+                raise InvalidInputError(f"mask: shape {m.shape} does not match the image size {h}x{w}")
+            m = m.astype(bool)
+        finite = np.all(np.isfinite(pts), axis=2)
+        if np.any(m & ~finite):
+            raise InvalidInputError(f"points: {int(np.sum(m & ~finite))} masked-in pixel(s) have NaN/Inf "
+                                    "surface points (mask them out)")
+        if not np.any(m):
+            raise InvalidInputError("mask: no pixel has a surface point")
+        pts = np.where(m[:, :, None], pts, 0.0)
+        object.__setattr__(self, "images", np.ascontiguousarray(imgs))
+        object.__setattr__(self, "light_positions", np.ascontiguousarray(pos))
+        object.__setattr__(self, "intensities", np.ascontiguousarray(inten))
+        object.__setattr__(self, "points", np.ascontiguousarray(pts))
+        object.__setattr__(self, "mask", m)
+        object.__setattr__(self, "distant", bool(self.distant))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.images.shape[1]), int(self.images.shape[2])
+
+
+def points_from_depth(depth, camera: CameraParams | None = None, *, depth_kind: str = "z",
+                      intrinsics=None, world_from_camera=None) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points (h, w, 3) float64 and validity (h, w) bool from a depth map (h, w).
+
+    Either ``camera`` (this project's :class:`CameraParams`, perspective or orthographic;
+    pixel centres as in ``engine.camera``) or ``intrinsics`` = 3x3 pinhole matrix K in the
+    OpenCV camera frame (x right, y down, z forward) with optional ``world_from_camera``
+    (4, 4). ``depth_kind``: ``"z"`` = distance along the optical axis, ``"distance"`` =
+    distance along the pixel's ray. For an orthographic camera both are the same. Pixels
+    whose depth is NaN, Inf or <= 0 are invalid (their point is NaN).
+    """
+    from .camera import camera_rays, pixel_centers
+
+    d = _as_array("depth", depth, np.float64, 2)
+    h, w = d.shape
+    if depth_kind not in ("z", "distance"):
+        raise InvalidInputError(f"depth_kind must be 'z' or 'distance', got {depth_kind!r}")
+    if (camera is None) == (intrinsics is None):
+        raise InvalidInputError("points_from_depth: give exactly one of camera or intrinsics")
+    valid = np.isfinite(d) & (d > 0)
+    dd = np.where(valid, d, np.nan)
+    if camera is not None:
+        if (camera.height, camera.width) != (h, w):
+            raise InvalidInputError(f"depth: depth map is {h}x{w} but the camera is "
+                                    f"{camera.height}x{camera.width}")
+        px, py = pixel_centers(camera)
+        o, dirs = camera_rays(camera, px, py)
+        if camera.kind == "perspective" and depth_kind == "z":
+            fwd = camera.basis()[2]
+            t = dd.ravel() / (dirs @ fwd)
+        else:
+            t = dd.ravel()
+        pts = o + dirs * t[:, None]
+        return pts.reshape(h, w, 3), valid
+    kmat = _as_array("intrinsics", intrinsics, np.float64, 2)
+    if kmat.shape != (3, 3) or kmat[0, 0] == 0 or kmat[1, 1] == 0:
+        raise InvalidInputError("intrinsics: expected a 3x3 pinhole matrix with fx, fy != 0")
+    ys, xs = np.mgrid[0:h, 0:w]
+    x = (xs + 0.5 - kmat[0, 2]) / kmat[0, 0]
+    y = (ys + 0.5 - kmat[1, 2]) / kmat[1, 1]
+    rays = np.stack([x, y, np.ones_like(x)], axis=-1)
+    if depth_kind == "distance":
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    pts = rays * dd[:, :, None]
+    if world_from_camera is not None:
+        m = _as_array("world_from_camera", world_from_camera, np.float64, 2)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise InvalidInputError("world_from_camera: expected a finite (4, 4) matrix")
+        pts = pts @ m[:3, :3].T + m[:3, 3]
+    return pts, valid
+
+
+# ============================================================================ bake
+
+
+@dataclass(frozen=True)
+class BakedDataset:
+    """A dataset ready for relighting. Arrays are read-only in spirit; do not mutate.
+
+    store: (n_valid, K', 3) float16 or float32, pixel-major: row r holds the K' kept
+        lights' values of pixel ``pixel_index[r]``.
+    pixel_index: (n_valid,) int64 flat (row-major) pixel index of each store row.
+    points: (n_valid, 3) float64 surface points.
+    light_positions (K', 3), intensities (K', 3): the kept (deduplicated) lights;
+    kept_from: (K',) int64 index of each kept light in the input dataset.
+    store_scale: (K',) float64 power-of-two factor each light's values were multiplied by
+        before storing (1 for float32).
+    directions (K', 3): unit light directions from the sphere centre (the triangulated points).
+    triangles: (T, 3) int64 covered triangles (indices into the kept lights), outward-wound.
+    tri_inverse: (T, 3, 3) float64; ``tri_inverse[t] @ u`` gives the cone coordinates of a
+        direction u with respect to the triangle's vertices.
+    grid_*: cube-map point location (6 faces x n x n cells, CSR list of candidate triangles).
+    report: counts and choices (duplicates, coverage, dtype, ...), JSON-serialisable.
+    """
+
+    shape: tuple[int, int]
+    distant: bool
+    store: np.ndarray
+    pixel_index: np.ndarray
+    points: np.ndarray
+    light_positions: np.ndarray
+    intensities: np.ndarray
+    kept_from: np.ndarray
+    directions: np.ndarray
+    store_scale: np.ndarray
+    sphere_center: np.ndarray
+    sphere_radius: float
+    triangles: np.ndarray
+    tri_inverse: np.ndarray
+    grid_n: int
+    grid_start: np.ndarray
+    grid_items: np.ndarray
+    report: dict = field(default_factory=dict)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.store.nbytes + self.points.nbytes + self.pixel_index.nbytes)
+
+
+def _dedupe(dirs: np.ndarray, pos: np.ndarray, tol_rad: float):
+    """Keep the first of every group of lights whose direction is within ``tol_rad``."""
+    k = dirs.shape[0]
+    keep = np.ones(k, dtype=bool)
+    n_exact = n_near = 0
+    # exact duplicates by value, then near duplicates by angle (O(K^2) in blocks; K is small)
+    _, first = np.unique(pos, axis=0, return_index=True)
+    exact_dup = np.ones(k, dtype=bool)
+    exact_dup[first] = False
+    n_exact = int(exact_dup.sum())
+    keep &= ~exact_dup
+    cos_tol = math.cos(tol_rad)
+    idx = np.nonzero(keep)[0]
+    for a_pos, a in enumerate(idx):
+        if not keep[a]:
+            continue
+        rest = idx[a_pos + 1:]
+        rest = rest[keep[rest]]
+        if rest.size == 0:
+            continue
+        close = rest[dirs[rest] @ dirs[a] >= cos_tol]
+        keep[close] = False
+        n_near += int(close.size)
+    return np.nonzero(keep)[0], n_exact, n_near
+
+
+def _triangulate(dirs: np.ndarray, max_face_radius_deg: float | None):
+    """Convex hull of unit directions -> (covered triangles (T, 3), report dict)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    k = dirs.shape[0]
+    _, sv, vt = np.linalg.svd(dirs - dirs.mean(axis=0))
+    centroid_plane = abs(float(np.mean(dirs @ vt[2])))  # distance of the best-fit plane from the centre
+    if k == 3 or sv[2] < 1e-9 * max(sv[0], 1e-300):
+        # all directions in one plane: the hull is flat
+        if k == 3:
+            tri = np.array([[0, 1, 2]], dtype=np.int64)
+            n = np.cross(dirs[1] - dirs[0], dirs[2] - dirs[0])
+            if np.linalg.norm(n) < 1e-12 or abs(np.dot(n / np.linalg.norm(n), dirs[0])) < 1e-9:
+                raise InvalidInputError("light_positions: the 3 light directions lie on one great circle "
+                                        "of the light sphere (they enclose no area)")
+            if np.dot(n, dirs[0]) < 0:
+                tri = tri[:, ::-1].copy()
+            return tri, {"n_hull_faces": 1, "n_uncovered_faces": 0, "max_face_radius_deg": None}
+        where = "one great circle through the sphere centre" if centroid_plane < 1e-9 else "one circle"
+        raise InvalidInputError(f"light_positions: the {k} light directions are coplanar (they lie on {where} "
+                                "of the light sphere), so they do not span a triangulated area; add lights "
+                                "off that circle")
+    try:
+        hull = ConvexHull(dirs)
+    except (QhullError, ValueError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InvalidInputError(f"light_positions: the light directions cannot be triangulated ({msg})") from None
+    tri = hull.simplices.astype(np.int64)
+    normals = hull.equations[:, :3]
+    offsets = -hull.equations[:, 3]  # plane n.x = d, n outward
+    # wind every triangle counter-clockwise seen from outside
+    a, b, c = dirs[tri[:, 0]], dirs[tri[:, 1]], dirs[tri[:, 2]]
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), normals) < 0
+    tri[flip] = tri[flip][:, ::-1]
+    # coverage rule: a hull face's plane cuts the unit sphere in its circumcircle, of angular
+    # radius acos(d). Spherical Delaunay faces have empty circumcircles, so a face with a large
+    # circumcircle bridges a region with no lights: it is outside the coverage.
+    radius_deg = np.degrees(np.arccos(np.clip(offsets, -1.0, 1.0)))
+    auto = max_face_radius_deg is None
+    thr = float(min(85.0, 3.0 * float(np.median(radius_deg)))) if auto else float(max_face_radius_deg)
+    covered = radius_deg <= thr
+    if not np.any(covered):
+        raise InvalidInputError("light_positions: no triangle of the light triangulation is within the coverage "
+                                f"rule (max circumradius {thr:.3g} deg); the lights are too sparse")
+    return tri[covered], {"n_hull_faces": int(tri.shape[0]), "n_uncovered_faces": int((~covered).sum()),
+                          "max_face_radius_deg": thr, "face_radius_rule": "auto" if auto else "given"}
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+@nb.njit(cache=True)
+def _cube_cell(x, y, z, n):
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        f = 0 if x > 0 else 1
+        u, v = y / ax, z / ax
+    elif ay >= az:
+        f = 2 if y > 0 else 3
+        u, v = x / ay, z / ay
+    else:
+        f = 4 if z > 0 else 5
+        u, v = x / az, y / az
+    i = int((u + 1.0) * 0.5 * n)
+    j = int((v + 1.0) * 0.5 * n)
+    i = min(max(i, 0), n - 1)
+    j = min(max(j, 0), n - 1)
+    return (f * n + j) * n + i
+
+
+def _cell_caps(n: int):
+    """Centre direction and angular radius (cos) of every cube-map cell, in _cube_cell order."""
+    g = np.linspace(-1.0, 1.0, n + 1)
+    centres = np.empty((6, n, n, 3))
+    cosr = np.empty((6, n, n))
+    for f in range(6):
+        uu, vv = np.meshgrid(g, g)  # [j, i]
+        axis, sign = f // 2, 1.0 if f % 2 == 0 else -1.0
+
+        def dir_of(u, v, axis=axis, sign=sign):
+            d = np.empty(u.shape + (3,))
+            if axis == 0:
+                d[..., 0], d[..., 1], d[..., 2] = sign, u, v
+            elif axis == 1:
+                d[..., 0], d[..., 1], d[..., 2] = u, sign, v
+            else:
+                d[..., 0], d[..., 1], d[..., 2] = u, v, sign
+            return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+        uc = 0.5 * (uu[:-1, :-1] + uu[1:, 1:])
+        vc = 0.5 * (vv[:-1, :-1] + vv[1:, 1:])
+        c = dir_of(uc, vc)
+        corners = dir_of(uu, vv)
+        cmin = np.minimum.reduce([np.einsum("jik,jik->ji", c, corners[dj:dj + n, di:di + n])
+                                  for dj in (0, 1) for di in (0, 1)])
+        centres[f], cosr[f] = c, cmin
+    return centres.reshape(-1, 3), cosr.ravel()
+
+
+def _build_grid(dirs: np.ndarray, tri: np.ndarray):
+    t = tri.shape[0]
+    n = int(np.clip(np.ceil(np.sqrt(t / 6.0)) * 2, 4, 128))
+    centres, cos_cell = _cell_caps(n)
+    a, b, c = dirs[tri[:, 0]], dirs[tri[:, 1]], dirs[tri[:, 2]]
+    cc = _unit_rows(np.cross(b - a, c - a))  # circumcentre direction (outward: CCW winding)
+    cos_tri = np.einsum("ij,ij->i", cc, a)
+    ang_cell = np.arccos(np.clip(cos_cell, -1, 1))
+    ang_tri = np.arccos(np.clip(cos_tri, -1, 1))
+    starts = [0]
+    items: list[np.ndarray] = []
+    pad = 1e-7
+    for lo in range(0, centres.shape[0], 2048):
+        cen = centres[lo:lo + 2048]
+        ang = np.arccos(np.clip(cen @ cc.T, -1, 1))
+        hit = ang <= ang_cell[lo:lo + 2048, None] + ang_tri[None, :] + pad
+        for row in hit:
+            ids = np.nonzero(row)[0]
+            items.append(ids)
+            starts.append(starts[-1] + ids.size)
+    grid_items = np.concatenate(items).astype(np.int64) if items else np.zeros(0, np.int64)
+    return n, np.asarray(starts, dtype=np.int64), grid_items
+
+
+def _unit_rows(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _choose_dtype(stack: np.ndarray, half: bool, rel_floor: float) -> tuple[type, np.ndarray, str]:
+    """Storage dtype and per-light power-of-two scales for the (K, n, 3) stack.
+
+    float16 is used when, after scaling light k by ``2^e_k`` (max near 2^15; a power of two,
+    so the scaling is exact and reversible), no value overflows and no value that matters
+    (``|v| >= rel_floor x`` that light's max) falls below float16's smallest normal.
+    """
+    k = stack.shape[0]
+    ones = np.ones(k)
+    if not half:
+        return np.float32, ones, "float32 requested"
+    vmax = np.max(np.abs(stack.reshape(k, -1)), axis=1) if stack.size else np.zeros(k)
+    if not np.all(np.isfinite(vmax)):
+        return np.float32, ones, "float32: non-finite values"
+    scale = np.where(vmax > 0, np.exp2(np.floor(np.log2(32768.0 / np.where(vmax > 0, vmax, 1.0)))), 1.0)
+    for j in range(k):
+        a = np.abs(stack[j])
+        if vmax[j] * scale[j] > HALF_MAX:
+            return np.float32, ones, f"float32: light {j} overflows float16 even after scaling"
+        small = (a > 0) & (a >= rel_floor * vmax[j]) & (a * scale[j] < HALF_MIN_NORMAL)
+        if np.any(small):
+            return np.float32, ones, (f"float32: light {j} has values down to {float(a[small].min()):.3g} "
+                                      f"(>= {rel_floor:g} x its max {vmax[j]:.3g}) that float16 would not keep "
+                                      "to 2^-11 relative precision")
+    return np.float16, scale, (f"float16 with per-light power-of-two scales (every value >= {rel_floor:g} x its "
+                               "light's max kept to 2^-11 relative precision)")
+
+
+def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: float | None = None,
+                 layout: str = "pixel_major", half: bool = True, dedupe_tol_deg: float = 1e-3,
+                 max_face_radius_deg: float | None = None, half_rel_floor: float = 0.0) -> BakedDataset:
+    """Deduplicate, triangulate and reorganise a dataset for relighting.
+
+    sphere_center: default the centroid of the masked surface points (ignored for distant
+        datasets, whose sphere is at infinity). sphere_radius: default the mean distance of
+        the lights from the centre; it must enclose every surface point.
+    dedupe_tol_deg: lights whose directions from the centre are closer than this are
+        duplicates; the first (in input order) is kept, the others are dropped and counted.
+    max_face_radius_deg: coverage rule (docs/relighting.md); None = min(85, 3 x median).
+    half: store float16 when every value fits (else float32; the choice is in ``report``);
+        ``half_rel_floor``: values below this fraction of their light's max may lose precision
+        (default 0: every non-zero value keeps float16's 2^-11 relative precision, HARD_CASES 9).
+    """
+    if not isinstance(ds, IlluminationDataset):
+        raise InvalidInputError("bake_dataset: expected an IlluminationDataset")
+    if layout not in LAYOUTS:
+        raise InvalidInputError(f"layout must be one of {LAYOUTS}, got {layout!r} (tiled layouts are not built)")
+    if not (dedupe_tol_deg >= 0 and math.isfinite(dedupe_tol_deg)):
+        raise InvalidInputError("dedupe_tol_deg must be finite and >= 0")
+    t0 = time.perf_counter()
+    h, w = ds.shape
+    m = ds.mask.ravel()
+    pix = np.nonzero(m)[0].astype(np.int64)
+    pts = np.ascontiguousarray(ds.points.reshape(-1, 3)[pix])
+    report: dict = {"n_lights_input": int(ds.light_positions.shape[0]), "n_pixels": int(pix.size)}
+    if ds.distant:
+        center = np.zeros(3)
+        radius = math.inf
+        dirs = ds.light_positions.copy()
+    else:
+        center = pts.mean(axis=0) if sphere_center is None else _as_array("sphere_center", sphere_center,
+                                                                          np.float64, 1)
+        if center.shape != (3,) or not np.all(np.isfinite(center)):
+            raise InvalidInputError("sphere_center: expected 3 finite numbers")
+        off = ds.light_positions - center
+        dist = np.linalg.norm(off, axis=1)
+        if np.any(dist == 0):
+            raise InvalidInputError(f"light_positions: light(s) {np.nonzero(dist == 0)[0][:10].tolist()} "
+                                    "sit exactly at the sphere centre")
+        radius = float(dist.mean()) if sphere_radius is None else float(sphere_radius)
+        if not (math.isfinite(radius) and radius > 0):
+            raise InvalidInputError("sphere_radius: must be finite and > 0")
+        far = float(np.max(np.linalg.norm(pts - center, axis=1)))
+        if far >= radius:
+            raise InvalidInputError(f"sphere_radius: the light sphere (radius {radius:.6g}) does not enclose the "
+                                    f"surface (farthest point at {far:.6g} from the centre)")
+        dirs = off / dist[:, None]
+        report["light_radius_deviation_max"] = float(np.max(np.abs(dist - radius)) / radius)
+    keep, n_exact, n_near = _dedupe(dirs, ds.light_positions, math.radians(dedupe_tol_deg))
+    report.update(n_exact_duplicates=n_exact, n_near_duplicates=n_near, n_lights=int(keep.size))
+    if keep.size < 3:
+        raise InvalidInputError(f"light_positions: only {keep.size} distinct light(s) after deduplication; "
+                                "at least 3 are needed")
+    dirs_k = np.ascontiguousarray(dirs[keep])
+    tri, tri_report = _triangulate(dirs_k, max_face_radius_deg)
+    report.update(tri_report)
+    report["n_triangles"] = int(tri.shape[0])
+    mats = np.stack([dirs_k[tri[:, 0]], dirs_k[tri[:, 1]], dirs_k[tri[:, 2]]], axis=2)  # columns = vertices
+    try:
+        inv = np.linalg.inv(mats)
+    except np.linalg.LinAlgError:
+        raise InvalidInputError("light_positions: a degenerate light triangle (3 directions on a great "
+                                "circle)") from None
+    grid_n, grid_start, grid_items = _build_grid(dirs_k, tri)
+    report["grid_n"] = grid_n
+    report["grid_mean_candidates"] = float(grid_items.size / max(grid_start.size - 1, 1))
+    t1 = time.perf_counter()
+    stack = ds.images[keep].reshape(keep.size, h * w, 3)[:, pix, :]  # (K', n, 3)
+    dt, scale, why = _choose_dtype(stack, half, half_rel_floor)
+    if dt is np.float16:
+        stack = stack * scale[:, None, None].astype(np.float32)
+    store = np.ascontiguousarray(np.transpose(stack, (1, 0, 2))).astype(dt, copy=False)
+    report.update(dtype=np.dtype(dt).name, dtype_reason=why, layout=layout,
+                  store_bytes=int(store.nbytes), compression="none")
+    report["time_triangulate_s"] = t1 - t0
+    report["time_store_s"] = time.perf_counter() - t1
+    return BakedDataset(shape=(h, w), distant=ds.distant, store=store, pixel_index=pix, points=pts,
+                        light_positions=np.ascontiguousarray(ds.light_positions[keep]),
+                        intensities=np.ascontiguousarray(ds.intensities[keep]),
+                        kept_from=keep.astype(np.int64), directions=dirs_k, store_scale=scale,
+                        sphere_center=center, sphere_radius=radius, triangles=np.ascontiguousarray(tri),
+                        tri_inverse=np.ascontiguousarray(inv), grid_n=grid_n, grid_start=grid_start,
+                        grid_items=grid_items, report=report)
+
+
+# ============================================================================ kernels
+
+_CONE_EPS = 1e-12
+# numba has no CPU float16 type: half stores reach the kernel as uint16 bits, decoded through
+# a 256 KiB table (stays in L2; one load per sample)
+_HALF_LUT = np.arange(65536, dtype=np.uint16).view(np.float16).astype(np.float32)
+
+
+def _fetch(store, lut, i, k, c):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_fetch, inline="always")
+def _fetch_impl(store, lut, i, k, c):
+    if store.dtype == nbtypes.uint16:
+        return lambda store, lut, i, k, c: lut[store[i, k, c]]
+    return lambda store, lut, i, k, c: store[i, k, c]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _locate(x, y, z, inv, grid_n, grid_start, grid_items):
+    """(triangle, w0, w1, w2) for direction (x, y, z) (not necessarily unit); triangle -1 = none.
+
+    Cone coordinates a = inv[t] @ u; u is inside when all are >= -eps. The first candidate
+    in the cell's (fixed) list wins, so edge and vertex hits are deterministic. Weights are
+    clamped to >= 0 and normalised: the barycentrics of the point where the ray along u
+    meets the flat triangle (a gnomonic projection, exact at vertices and along edges).
+    """
+    cell = _cube_cell(x, y, z, grid_n)
+    for q in range(grid_start[cell], grid_start[cell + 1]):
+        t = grid_items[q]
+        a0 = inv[t, 0, 0] * x + inv[t, 0, 1] * y + inv[t, 0, 2] * z
+        a1 = inv[t, 1, 0] * x + inv[t, 1, 1] * y + inv[t, 1, 2] * z
+        a2 = inv[t, 2, 0] * x + inv[t, 2, 1] * y + inv[t, 2, 2] * z
+        s = a0 + a1 + a2
+        if s <= 0.0:
+            continue
+        e = _CONE_EPS * s
+        if a0 >= -e and a1 >= -e and a2 >= -e:
+            a0 = max(a0, 0.0)
+            a1 = max(a1, 0.0)
+            a2 = max(a2, 0.0)
+            s = a0 + a1 + a2
+            return t, a0 / s, a1 / s, a2 / s
+    return -1, 0.0, 0.0, 0.0
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
+    for i in nb.prange(dirs.shape[0]):
+        t, w0, w1, w2 = _locate(dirs[i, 0], dirs[i, 1], dirs[i, 2], inv, grid_n, grid_start, grid_items)
+        tri_out[i] = t
+        w_out[i, 0], w_out[i, 1], w_out[i, 2] = w0, w1, w2
+
+
+def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
+                    grid_items, kinds, lp, lint, lnorm, min_dist2, out, outside, singular):
+    """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
+
+    points (n, 3) f64; store (n, K, 3) f16/f32; lpos (K, 3); inv_int (K, 3) = 1 / dataset
+    intensity; kinds (M,) int64; lp (M, 3) light position or direction toward the light;
+    lint (M, 3) intensity (point, oriented) or irradiance (directional); lnorm (M, 3)
+    emitter normal (oriented). out (n, 3) f32; outside / singular (n,) bool.
+    """
+    n = points.shape[0]
+    m = kinds.shape[0]
+    cx, cy, cz = center[0], center[1], center[2]
+    r2 = radius * radius
+    for i in nb.prange(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        acc0 = 0.0
+        acc1 = 0.0
+        acc2 = 0.0
+        out_i = False
+        sing_i = False
+        for j in range(m):
+            kd = kinds[j]
+            if kd == 1:
+                dx, dy, dz = lp[j, 0], lp[j, 1], lp[j, 2]
+                g0, g1, g2 = lint[j, 0], lint[j, 1], lint[j, 2]
+            else:
+                dx, dy, dz = lp[j, 0] - px, lp[j, 1] - py, lp[j, 2] - pz
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < min_dist2:
+                    sing_i = True
+                    continue
+                f = 1.0 / d2
+                if kd >= 2:
+                    # area-light sample: intensity I cos(theta_emitter), one- or two-sided
+                    c = -(dx * lnorm[j, 0] + dy * lnorm[j, 1] + dz * lnorm[j, 2]) / math.sqrt(d2)
+                    if kd == 3:
+                        c = abs(c)
+                    if c <= 0.0:
+                        continue
+                    f *= c
+                g0, g1, g2 = lint[j, 0] * f, lint[j, 1] * f, lint[j, 2] * f
+            if distant_ds:
+                sx, sy, sz = dx, dy, dz
+            else:
+                # exit point of the ray P + t u (P inside the sphere) from the light sphere
+                inv_len = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+                ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
+                ox, oy, oz = px - cx, py - cy, pz - cz
+                b = ox * ux + oy * uy + oz * uz
+                cc = ox * ox + oy * oy + oz * oz - r2
+                t = -b + math.sqrt(max(b * b - cc, 0.0))
+                sx, sy, sz = ox + t * ux, oy + t * uy, oz + t * uz
+            tri, w0, w1, w2 = _locate(sx, sy, sz, inv, grid_n, grid_start, grid_items)
+            if tri < 0:
+                out_i = True
+                continue
+            v0 = 0.0
+            v1 = 0.0
+            v2 = 0.0
+            for q in range(3):
+                k = tris[tri, q]
+                wq = w0 if q == 0 else (w1 if q == 1 else w2)
+                if wq == 0.0:
+                    continue
+                if distant_ds:
+                    fk = wq
+                else:
+                    ex, ey, ez = lpos[k, 0] - px, lpos[k, 1] - py, lpos[k, 2] - pz
+                    fk = wq * (ex * ex + ey * ey + ez * ez)
+                v0 += fk * inv_int[k, 0] * _fetch(store, lut, i, k, 0)
+                v1 += fk * inv_int[k, 1] * _fetch(store, lut, i, k, 1)
+                v2 += fk * inv_int[k, 2] * _fetch(store, lut, i, k, 2)
+            acc0 += v0 * g0
+            acc1 += v1 * g1
+            acc2 += v2 * g2
+        out[i, 0] = acc0
+        out[i, 1] = acc1
+        out[i, 2] = acc2
+        outside[i] = out_i
+        singular[i] = sing_i
+
+
+class _DualKernel:
+    """Parallel and serial compilations of one kernel source (as in ``engine.reference``):
+    ``ser`` for callers that run several relights in Python threads (both release the GIL;
+    the workqueue threading layer must not be entered from two threads at once)."""
+
+    def __init__(self, fn):
+        self.par = nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")(fn)
+        ser = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
+                                 fn.__closure__)
+        ser.__qualname__ = fn.__qualname__ + "_serial"
+        ser.__module__ = fn.__module__
+        self.ser = nb.njit(cache=True, nogil=True, error_model="numpy")(ser)
+
+    def pick(self, serial: bool):
+        return self.ser if serial else self.par
+
+
+_RELIGHT = _DualKernel(_relight_kernel)
+
+
+def locate_directions(baked: BakedDataset, dirs) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle index (n,) int64 (-1 = outside coverage) and barycentric weights (n, 3)
+    float64 for directions (n, 3) from the sphere centre (need not be unit)."""
+    d = _as_array("dirs", dirs, np.float64, 2)
+    if d.shape[1] != 3 or not np.all(np.isfinite(d)) or np.any(np.linalg.norm(d, axis=1) == 0):
+        raise InvalidInputError("dirs: expected finite, non-zero (n, 3) directions")
+    d = np.ascontiguousarray(d)
+    tri = np.empty(d.shape[0], np.int64)
+    w = np.zeros((d.shape[0], 3))
+    _locate_many(d, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, tri, w)
+    return tri, w
+
+
+# ============================================================================ lights
+
+
+def _vec3(name, v, *, positive=False, nonzero=False) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 0:
+        a = np.full(3, float(a))
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise InvalidInputError(f"{name}: expected 3 finite numbers, got {v!r}")
+    if positive and np.any(a < 0):
+        raise InvalidInputError(f"{name}: must be >= 0")
+    if nonzero and np.linalg.norm(a) == 0:
+        raise InvalidInputError(f"{name}: must be non-zero")
+    return a
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """Isotropic point light: position (3,), intensity (3,) W/sr (or a scalar)."""
+
+    position: tuple
+    intensity: tuple = (1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """Distant light: ``direction`` (3,) the way the light travels (as in the scene format),
+    ``irradiance`` (3,) on a surface facing it."""
+
+    direction: tuple
+    irradiance: tuple = (1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class RectLight:
+    """One-sided rectangle ``corner + a edge_u + b edge_v``, (a, b) in [0, 1]^2, emitting radiance
+    ``radiance`` toward ``cross(edge_u, edge_v)`` (both ways if ``two_sided``); sampled with
+    ``samples`` stratified, seeded points, each a point light of intensity L A / N cos(theta)."""
+
+    corner: tuple
+    edge_u: tuple
+    edge_v: tuple
+    radiance: tuple = (1.0, 1.0, 1.0)
+    two_sided: bool = False
+    samples: int = 16
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class EnvironmentLight:
+    """Equirectangular radiance map (H, W, 3) (row 0 = +y, the zenith; column u at azimuth
+    phi = 2 pi (u + 0.5) / W, direction (sin th cos phi, cos th, sin th sin phi)), turned into
+    ``n_lights`` directional lights: ``method="downsample"`` (blocks of equal angular size,
+    energy-weighted direction; deterministic) or ``"importance"`` (pixels drawn with probability
+    ~ luminance x solid angle, seeded)."""
+
+    image: np.ndarray
+    n_lights: int = 64
+    method: str = "downsample"
+    seed: int = 0
+    scale: float = 1.0
+
+
+LIGHT_TYPES = {"point": PointLight, "directional": DirectionalLight, "rect": RectLight,
+               "environment": EnvironmentLight}
+
+
+def light_from_dict(d: dict):
+    """``{"type": "point", "position": [...], ...}`` -> light spec (unknown fields are errors)."""
+    d = dict(d)
+    kind = d.pop("type", None)
+    cls = LIGHT_TYPES.get(kind)
+    if cls is None:
+        raise InvalidInputError(f"light type must be one of {sorted(LIGHT_TYPES)}, got {kind!r}")
+    try:
+        return cls(**d)
+    except TypeError as e:
+        raise InvalidInputError(f"{kind} light: {e}") from None
+
+
+def _env_to_directional(env: EnvironmentLight):
+    img = np.asarray(env.image, dtype=np.float64)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise InvalidInputError(f"environment image: expected (H, W, 3), got {img.shape}")
+    if not np.all(np.isfinite(img)) or np.any(img < 0):
+        raise InvalidInputError("environment image: values must be finite and >= 0")
+    n = int(env.n_lights)
+    if n < 1:
+        raise InvalidInputError("environment n_lights must be >= 1")
+    hh, ww = img.shape[:2]
+    th = np.pi * (np.arange(hh) + 0.5) / hh
+    ph = 2 * np.pi * (np.arange(ww) + 0.5) / ww
+    st = np.sin(th)
+    dirs = np.stack([st[:, None] * np.cos(ph)[None, :], np.repeat(np.cos(th)[:, None], ww, 1),
+                     st[:, None] * np.sin(ph)[None, :]], axis=-1)  # (H, W, 3)
+    domega = (np.pi / hh) * (2 * np.pi / ww) * st  # (H,)
+    e_pix = img * domega[:, None, None] * env.scale  # irradiance contribution of each pixel
+    if env.method == "downsample":
+        n_lat = max(1, int(round(math.sqrt(n / 2.0))))
+        n_lon = max(1, n // n_lat)
+        rows = np.array_split(np.arange(hh), n_lat)
+        cols = np.array_split(np.arange(ww), n_lon)
+        out_d, out_e = [], []
+        for r in rows:
+            for c in cols:
+                if r.size == 0 or c.size == 0:
+                    continue
+                e = e_pix[np.ix_(r, c)].reshape(-1, 3)
+                dd = dirs[np.ix_(r, c)].reshape(-1, 3)
+                wgt = e.sum(axis=1)
+                tot = e.sum(axis=0)
+                if wgt.sum() <= 0:
+                    continue
+                v = (dd * wgt[:, None]).sum(axis=0)
+                nv = np.linalg.norm(v)
+                v = v / nv if nv > 0 else dd[len(dd) // 2]
+                out_d.append(v)
+                out_e.append(tot)
+        return np.array(out_d).reshape(-1, 3), np.array(out_e).reshape(-1, 3)
+    if env.method == "importance":
+        lum = (0.2126 * e_pix[..., 0] + 0.7152 * e_pix[..., 1] + 0.0722 * e_pix[..., 2]).ravel()
+        if lum.sum() <= 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        p = lum / lum.sum()
+        rng = np.random.default_rng(env.seed)
+        idx = rng.choice(p.size, size=n, p=p)
+        e = e_pix.reshape(-1, 3)[idx] / (p[idx, None] * n)
+        return dirs.reshape(-1, 3)[idx], e
+    raise InvalidInputError(f"environment method must be 'downsample' or 'importance', got {env.method!r}")
+
+
+def _rect_samples(r: RectLight):
+    c = _vec3("rect corner", r.corner)
+    eu, ev = _vec3("rect edge_u", r.edge_u, nonzero=True), _vec3("rect edge_v", r.edge_v, nonzero=True)
+    rad = _vec3("rect radiance", r.radiance, positive=True)
+    ns = int(r.samples)
+    if ns < 1:
+        raise InvalidInputError("rect samples must be >= 1")
+    nrm = np.cross(eu, ev)
+    area = float(np.linalg.norm(nrm))
+    if area == 0:
+        raise InvalidInputError("rect: edge_u and edge_v are parallel")
+    nrm /= area
+    gx = int(math.ceil(math.sqrt(ns)))
+    gy = int(math.ceil(ns / gx))
+    j = np.arange(ns)
+    jit = np.random.default_rng(r.seed).random((ns, 2))
+    a = ((j % gx) + jit[:, 0]) / gx
+    b = ((j // gx) + jit[:, 1]) / gy
+    pos = c + a[:, None] * eu + b[:, None] * ev
+    inten = np.broadcast_to(rad * area / ns, (ns, 3))  # I(theta) = L A/N cos(theta)
+    return pos, inten, np.broadcast_to(nrm, (ns, 3))
+
+
+def _expand_lights(lights) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    kinds, lp, li, ln = [], [], [], []
+    if isinstance(lights, (PointLight, DirectionalLight, RectLight, EnvironmentLight, dict)):
+        lights = [lights]
+    for idx, spec in enumerate(lights):
+        if isinstance(spec, dict):
+            spec = light_from_dict(spec)
+        if isinstance(spec, PointLight):
+            kinds.append([_K_POINT])
+            lp.append(_vec3(f"lights[{idx}].position", spec.position)[None])
+            li.append(_vec3(f"lights[{idx}].intensity", spec.intensity, positive=True)[None])
+            ln.append(np.zeros((1, 3)))
+        elif isinstance(spec, DirectionalLight):
+            d = _vec3(f"lights[{idx}].direction", spec.direction, nonzero=True)
+            kinds.append([_K_DIRECTIONAL])
+            lp.append((-d / np.linalg.norm(d))[None])  # the kernel wants the direction toward the light
+            li.append(_vec3(f"lights[{idx}].irradiance", spec.irradiance, positive=True)[None])
+            ln.append(np.zeros((1, 3)))
+        elif isinstance(spec, RectLight):
+            p, i, n = _rect_samples(spec)
+            kinds.append([_K_TWO_SIDED if spec.two_sided else _K_ORIENTED] * p.shape[0])
+            lp.append(p)
+            li.append(i)
+            ln.append(n)
+        elif isinstance(spec, EnvironmentLight):
+            d, e = _env_to_directional(spec)
+            kinds.append([_K_DIRECTIONAL] * d.shape[0])
+            lp.append(d)
+            li.append(e)
+            ln.append(np.zeros_like(d))
+        else:
+            raise InvalidInputError(f"lights[{idx}]: unsupported light spec {type(spec).__name__}")
+    if not kinds:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    return (np.concatenate([np.asarray(k, np.int64) for k in kinds]), np.ascontiguousarray(np.concatenate(lp)),
+            np.ascontiguousarray(np.concatenate(li)), np.ascontiguousarray(np.concatenate(ln)))
+
+
+# ============================================================================ relight
+
+
+@dataclass(frozen=True)
+class RelightResult:
+    """image (h, w, 3) float32 (0 outside the dataset mask); outside_mask (h, w) bool: some light
+    direction fell outside the covered part of the sphere (that light contributes 0 there);
+    singular_mask (h, w) bool: a point light closer than ``min_light_distance`` to the surface
+    point (contributes 0, see docs/relighting.md); timings in seconds; ``exact`` True when the
+    exact-hit path (stored images, no interpolation) produced the image."""
+
+    image: np.ndarray
+    outside_mask: np.ndarray
+    n_outside: int
+    singular_mask: np.ndarray
+    n_singular: int
+    timings: dict
+    exact: bool = False
+    n_lights: int = 0
+
+
+def _exact_indices(baked: BakedDataset, kinds, lp) -> np.ndarray | None:
+    """Dataset light index of every expanded light when all match dataset lights exactly."""
+    want = _K_DIRECTIONAL if baked.distant else _K_POINT
+    if kinds.size == 0 or np.any(kinds != want):
+        return None
+    out = np.empty(kinds.size, np.int64)
+    for j in range(kinds.size):
+        hit = np.nonzero(np.all(baked.light_positions == lp[j], axis=1))[0]
+        if hit.size == 0:
+            return None
+        out[j] = hit[0]
+    return out
+
+
+def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: bool = False,
+            min_light_distance: float | None = None, exact_fast_path: bool = True) -> RelightResult:
+    """Relight a baked dataset with any number of lights (superposed).
+
+    lights: a light spec or a list of them (:class:`PointLight`, :class:`DirectionalLight`,
+        :class:`RectLight`, :class:`EnvironmentLight`, or their ``{"type": ...}`` dicts).
+    threads: numba threads for the parallel kernel (None = numba's current setting);
+        serial=True runs the serial nogil kernel (for callers with their own threads).
+    min_light_distance: a point light nearer than this to a surface point contributes 0 there
+        and the pixel is marked singular; default 1e-6 x the sphere radius (x the scene extent
+        for distant datasets).
+    """
+    if not isinstance(baked, BakedDataset):
+        raise InvalidInputError("relight: expected a BakedDataset (see bake_dataset)")
+    t0 = time.perf_counter()
+    kinds, lp, li, ln = _expand_lights(lights)
+    h, w = baked.shape
+    if min_light_distance is None:
+        scale = baked.sphere_radius if math.isfinite(baked.sphere_radius) else float(
+            np.max(np.ptp(baked.points, axis=0)) or 1.0)
+        min_light_distance = 1e-6 * scale
+    if not (min_light_distance >= 0 and math.isfinite(min_light_distance)):
+        raise InvalidInputError("min_light_distance must be finite and >= 0")
+    t1 = time.perf_counter()
+    timings = {"expand_lights_s": t1 - t0}
+    n = baked.pixel_index.size
+    img = np.zeros((h * w, 3), np.float32)
+    outside = np.zeros(h * w, bool)
+    singular = np.zeros(h * w, bool)
+    exact = _exact_indices(baked, kinds, lp) if exact_fast_path else None
+    if exact is not None:
+        # light(s) exactly at dataset lights: the stored images, scaled, no interpolation
+        rows = np.zeros((n, 3), np.float32)
+        for j, k in enumerate(exact):
+            ratio = (li[j] / baked.intensities[k]).astype(np.float32)
+            v = baked.store[:, k, :].astype(np.float32)
+            if baked.store_scale[k] != 1.0:
+                v = v / np.float32(baked.store_scale[k])  # a power of two: exact
+            rows += v if np.all(ratio == 1.0) else v * ratio
+        img[baked.pixel_index] = rows
+        timings["kernel_s"] = time.perf_counter() - t1
+    else:
+        rows = np.empty((n, 3), np.float32)
+        o_rows = np.empty(n, bool)
+        s_rows = np.empty(n, bool)
+        inv_int = np.ascontiguousarray(1.0 / (baked.intensities * baked.store_scale[:, None]))
+        radius = baked.sphere_radius if math.isfinite(baked.sphere_radius) else 1.0
+        kern = _RELIGHT.pick(serial)
+        prev = nb.get_num_threads()
+        if threads is not None and not serial:
+            if not (1 <= int(threads) <= nb.config.NUMBA_NUM_THREADS):
+                raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}]")
+            nb.set_num_threads(int(threads))
+        try:
+            store = baked.store.view(np.uint16) if baked.store.dtype == np.float16 else baked.store
+            kern(baked.points, store, _HALF_LUT, baked.light_positions, inv_int, baked.distant, baked.sphere_center,
+                 radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items,
+                 kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows)
+        finally:
+            if threads is not None and not serial:
+                nb.set_num_threads(prev)
+        timings["kernel_s"] = time.perf_counter() - t1
+        img[baked.pixel_index] = rows
+        outside[baked.pixel_index] = o_rows
+        singular[baked.pixel_index] = s_rows
+    timings["total_s"] = time.perf_counter() - t0
+    return RelightResult(image=img.reshape(h, w, 3), outside_mask=outside.reshape(h, w),
+                         n_outside=int(outside.sum()), singular_mask=singular.reshape(h, w),
+                         n_singular=int(singular.sum()), timings=timings, exact=exact is not None,
+                         n_lights=int(kinds.size))

@@ -1,0 +1,440 @@
+"""Relighting engine (issue 5 core): exactness, limits, linearity, HARD_CASES 10 (and 9), naive cross-check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.errors import InvalidInputError
+from engine.relight import (
+    DirectionalLight,
+    EnvironmentLight,
+    IlluminationDataset,
+    PointLight,
+    RectLight,
+    bake_dataset,
+    light_from_dict,
+    locate_directions,
+    points_from_depth,
+    relight,
+)
+from engine.scene import CameraParams
+from tests.engine.relight_naive import (
+    ALBEDO,
+    lambert_directional,
+    lambert_point,
+    lat_long_lights,
+    naive_relight,
+    sphere_points,
+)
+
+R = 5.0
+H = 40
+
+
+def make_ds(spacing=20.0, h=H, radius=R, intensity=1.0, **kw):
+    pts, mask = sphere_points(h)
+    lights = lat_long_lights(spacing, radius, **kw)
+    imgs = np.stack([lambert_point(pts, mask, lt, intensity) for lt in lights])
+    return IlluminationDataset(imgs, lights, np.full((len(lights), 3), intensity), pts, mask), pts, mask
+
+
+@pytest.fixture(scope="module")
+def full20():
+    ds, pts, mask = make_ds(20.0)
+    return ds, bake_dataset(ds, sphere_center=[0, 0, 0], half=False), pts, mask
+
+
+@pytest.fixture(scope="module")
+def hemi():
+    ds, pts, mask = make_ds(15.0, lat_min=0.0, lat_max=90.0)
+    return ds, bake_dataset(ds, sphere_center=[0, 0, 0], half=False), pts, mask
+
+
+def rel_err(img, gt, mask):
+    return float(np.abs(img - gt)[mask].mean() / gt[mask].mean())
+
+
+# ---------------------------------------------------------------- exactness, limits, linearity
+
+
+def test_light_at_dataset_light_is_bit_exact(full20):
+    ds, b, pts, mask = full20
+    for k in (0, 7, len(ds.light_positions) - 1):
+        r = relight(b, PointLight(ds.light_positions[k], 1.0))
+        assert r.exact and r.n_outside == 0
+        assert np.array_equal(r.image, ds.images[k])
+        r2 = relight(b, PointLight(ds.light_positions[k], (2.0, 3.0, 0.5)))
+        assert np.array_equal(r2.image, ds.images[k] * np.float32([2.0, 3.0, 0.5]))
+        # the interpolating kernel agrees at the vertex (weights (1, 0, 0))
+        r3 = relight(b, PointLight(ds.light_positions[k], 1.0), exact_fast_path=False)
+        np.testing.assert_allclose(r3.image, ds.images[k], rtol=1e-5, atol=1e-9)
+
+
+def test_exact_hit_half_store_returns_stored_values():
+    ds, pts, mask = make_ds(30.0)
+    b = bake_dataset(ds, sphere_center=[0, 0, 0], half=True)
+    assert b.report["dtype"] == "float16"
+    r = relight(b, PointLight(ds.light_positions[3], 1.0))
+    np.testing.assert_allclose(r.image, ds.images[3], rtol=2 ** -11, atol=0)
+
+
+def test_directional_is_far_limit_of_point(full20):
+    _, b, pts, mask = full20
+    toward = np.array([0.3, 0.5, 0.8])
+    toward /= np.linalg.norm(toward)
+    e = np.array([1.0, 2.0, 0.5])
+    d = 1e6
+    far = relight(b, PointLight(toward * d, e * d * d)).image
+    dirl = relight(b, DirectionalLight(-toward, e)).image
+    np.testing.assert_allclose(far, dirl, rtol=1e-4, atol=1e-7)
+    assert rel_err(dirl, lambert_directional(pts, mask, toward, e), mask) < 0.05
+
+
+def test_superposition_is_linear(full20):
+    _, b, _, mask = full20
+    a = PointLight((1.0, 2.0, 3.5), (1.0, 0.5, 2.0))
+    c = PointLight((-2.0, 0.5, 2.0), 3.0)
+    d = DirectionalLight((0.2, -0.3, -1.0), 0.7)
+    both = relight(b, [a, c, d]).image
+    parts = relight(b, a).image + relight(b, c).image + relight(b, d).image
+    np.testing.assert_allclose(both, parts, rtol=1e-5, atol=1e-8)
+    double = relight(b, PointLight(a.position, 2 * np.asarray(a.intensity))).image
+    np.testing.assert_allclose(double, 2 * relight(b, a).image, rtol=1e-6)
+
+
+def test_kernel_matches_naive_reference(full20):
+    ds, _, _, _ = full20
+    small, pts, mask = make_ds(20.0, h=12)
+    b = bake_dataset(small, sphere_center=[0, 0, 0], half=False)
+    pl = [((1.0, 2.0, 3.5), (1.0, 0.5, 2.0)), ((0.3, -0.2, 1.8), (1.0, 1.0, 1.0)),
+          ((400.0, 30.0, -20.0), (1e4, 1e4, 1e4)), (tuple(ds.light_positions[5]), (1.0, 1.0, 1.0))]
+    tl = [((0.1, 0.9, 0.4), (0.5, 0.5, 0.5))]
+    want, w_out = naive_relight(b, pl, tl)
+    got = relight(b, [PointLight(p, i) for p, i in pl] + [DirectionalLight(-np.asarray(d), e) for d, e in tl])
+    np.testing.assert_allclose(got.image, want, rtol=1e-5, atol=1e-9)
+    assert np.array_equal(got.outside_mask, w_out)
+
+
+def test_error_decreases_with_light_density():
+    errs = {}
+    lights = [PointLight((1.3, 2.1, 3.7), 1.0), PointLight((-2.9, -1.1, 3.0), 1.0)]
+    for spacing in (20.0, 5.0):
+        ds, pts, mask = make_ds(spacing, h=32)
+        b = bake_dataset(ds, sphere_center=[0, 0, 0])
+        gt = sum(lambert_point(pts, mask, lt.position) for lt in lights)
+        errs[spacing] = rel_err(relight(b, lights).image, gt, mask)
+    assert errs[5.0] < errs[20.0] / 4, errs
+    assert errs[5.0] < 0.01, errs
+
+
+def test_inside_and_far_outside_the_sphere(full20):
+    _, b, pts, mask = full20
+    for pos in [(0.5, 0.8, 2.0), (0.0, 0.0, 1.5), (300.0, 200.0, 900.0), (1e5, -3e4, 2e5)]:
+        r = relight(b, PointLight(pos, 1.0))
+        gt = lambert_point(pts, mask, pos)
+        assert np.all(np.isfinite(r.image)) and r.n_outside == 0 and r.n_singular == 0
+        lit = gt[..., 0] > 0.05 * gt.max()  # away from the terminator
+        assert np.abs(r.image - gt)[lit].max() / gt.max() < 0.1, pos
+
+
+def test_far_side_of_object(full20):
+    _, b, pts, mask = full20
+    pos = (0.3, 0.4, -4.0)  # behind the sphere, as seen from the camera
+    r = relight(b, PointLight(pos, 1.0))
+    gt = lambert_point(pts, mask, pos)
+    assert r.n_outside == 0 and np.all(np.isfinite(r.image))
+    assert np.abs(r.image - gt).max() < 0.1 * lambert_point(pts, mask, (0, 0, 4.0)).max()
+
+
+def test_light_at_and_near_a_surface_point(full20):
+    _, b, pts, mask = full20
+    iy, ix = np.argwhere(mask)[len(np.argwhere(mask)) // 2]
+    p0 = pts[iy, ix]
+    for offset in (0.0, 1e-12):
+        r = relight(b, PointLight(p0 + offset, 1.0))
+        assert np.all(np.isfinite(r.image))
+        assert r.singular_mask[iy, ix] and r.n_singular == 1
+        assert np.all(r.image[iy, ix] == 0)
+    # just beyond the cutoff the value is large but finite
+    r = relight(b, PointLight(p0 + np.array([0, 0, 1e-3]), 1.0))
+    assert r.n_singular == 0 and np.all(np.isfinite(r.image))
+
+
+def test_directions_outside_coverage_are_masked_and_counted(hemi):
+    ds, b, pts, mask = hemi
+    assert b.report["n_uncovered_faces"] > 0
+    below = relight(b, PointLight((0.0, -4.0, 0.5), 1.0))
+    assert below.n_outside == int(mask.sum()) and np.all(below.image == 0)
+    assert np.array_equal(below.outside_mask, mask)
+    above = relight(b, PointLight((0.5, 3.0, 2.0), 1.0))
+    assert above.n_outside == 0
+    # a light near the horizon: only some pixels see it inside the covered half
+    side = relight(b, PointLight((0.0, 0.2, 4.0), 1.0))
+    assert 0 < side.n_outside < mask.sum()
+    assert np.all(side.image[side.outside_mask & (side.image[..., 0] > 0)] >= 0)
+
+
+def test_upper_front_quarter_coverage():
+    ds, pts, mask = make_ds(10.0, lat_min=0.0, lat_max=80.0, lon_min=0.0, lon_max=180.0)
+    b = bake_dataset(ds, sphere_center=[0, 0, 0])
+    assert b.report["n_uncovered_faces"] > 0
+    assert relight(b, PointLight((0.5, 2.0, 3.0), 1.0)).n_outside == 0
+    assert relight(b, PointLight((0.5, 2.0, -3.0), 1.0)).n_outside == int(mask.sum())
+
+
+# ---------------------------------------------------------------- barycentrics and point location
+
+
+def test_barycentric_weights(full20):
+    _, b, _, _ = full20
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(20000, 3))
+    tri, w = locate_directions(b, d)
+    assert np.all(tri >= 0)
+    assert np.all(w >= 0) and np.all(np.abs(w.sum(axis=1) - 1) < 1e-6)
+    tri2, w2 = locate_directions(b, d)
+    assert np.array_equal(tri, tri2) and np.array_equal(w, w2)
+    # the located triangle really contains the direction (no missed candidates)
+    v = b.directions[b.triangles[tri]]  # (n, 3, 3)
+    recon = np.einsum("ni,nij->nj", w, v)
+    cosang = np.einsum("nj,nj->n", recon / np.linalg.norm(recon, axis=1, keepdims=True),
+                       d / np.linalg.norm(d, axis=1, keepdims=True))
+    assert np.all(cosang > 1 - 1e-9)
+
+
+def test_vertex_and_edge_hits(full20):
+    _, b, _, _ = full20
+    tri, w = locate_directions(b, b.directions)
+    for k in range(len(b.directions)):
+        q = list(b.triangles[tri[k]]).index(k)
+        assert abs(w[k, q] - 1) < 1e-9
+    t0 = b.triangles[:50]
+    mids = b.directions[t0[:, 0]] + b.directions[t0[:, 1]]
+    tri, w = locate_directions(b, mids)
+    for i in range(50):
+        got = dict(zip(b.triangles[tri[i]], w[i], strict=True))
+        assert abs(got.get(t0[i, 0], 0) - 0.5) < 1e-9 and abs(got.get(t0[i, 1], 0) - 0.5) < 1e-9
+    # a light on an edge and at a vertex, through the whole pipeline, against the naive reference
+    small, pts, mask = make_ds(20.0, h=10)
+    bs = bake_dataset(small, sphere_center=[0, 0, 0], half=False)
+    e = bs.light_positions[bs.triangles[0, 0]] + bs.light_positions[bs.triangles[0, 1]]
+    e = e / np.linalg.norm(e) * 7.0
+    v = bs.light_positions[bs.triangles[3, 2]] * 1.5
+    want, _ = naive_relight(bs, [(e, (1, 1, 1)), (v, (1, 1, 1))])
+    got = relight(bs, [PointLight(e, 1.0), PointLight(v, 1.0)]).image
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
+
+
+# ---------------------------------------------------------------- dataset problems
+
+
+def test_duplicate_lights_are_removed_and_counted():
+    ds, pts, mask = make_ds(30.0)
+    lp = ds.light_positions
+    near = lp[4] + np.array([1e-7, 0, 0])
+    pos = np.concatenate([lp, lp[2:3], near[None]])
+    imgs = np.concatenate([ds.images, ds.images[2:3], ds.images[4:5]])
+    dup = IlluminationDataset(imgs, pos, np.ones((len(pos), 3)), pts, mask)
+    b = bake_dataset(dup, sphere_center=[0, 0, 0])
+    assert b.report["n_exact_duplicates"] == 1 and b.report["n_near_duplicates"] == 1
+    assert b.report["n_lights"] == len(lp)
+    ref = bake_dataset(ds, sphere_center=[0, 0, 0])
+    lt = PointLight((1.0, 2.0, 3.0), 1.0)
+    assert np.array_equal(relight(b, lt).image, relight(ref, lt).image)
+
+
+@pytest.mark.parametrize("lights, match", [
+    (np.array([[np.cos(a), 0, np.sin(a)] for a in np.linspace(0, 6, 12)]) * R, "great circle"),
+    (np.array([[np.cos(a), 0.5, np.sin(a)] for a in np.linspace(0, 6, 12)]) * R, "coplanar"),
+    (np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0]]) * R, "great circle"),
+    (np.array([[1, 0, 0]] * 5) * R, "distinct"),
+])
+def test_degenerate_light_sets_give_clear_errors(lights, match):
+    pts, mask = sphere_points(8)
+    imgs = np.zeros((len(lights), 8, 8, 3), np.float32)
+    ds = IlluminationDataset(imgs, lights, np.ones((len(lights), 3)), pts, mask)
+    with pytest.raises(InvalidInputError, match=match):
+        bake_dataset(ds, sphere_center=[0, 0, 0])
+
+
+def test_three_lights_make_one_triangle():
+    pts, mask = sphere_points(8)
+    lights = np.array([[1, 1, 1], [-1, 1, 1], [0, -1, 1.0]]) * 3
+    imgs = np.stack([lambert_point(pts, mask, lt) for lt in lights])
+    b = bake_dataset(IlluminationDataset(imgs, lights, np.ones((3, 3)), pts, mask), sphere_center=[0, 0, 0])
+    assert b.triangles.shape == (1, 3)
+    r = relight(b, [PointLight((0, 0, 5.0), 1.0), PointLight((0, 0, -5.0), 1.0)])
+    assert r.n_outside == int(mask.sum())  # the back light is outside the single triangle
+    assert np.all(np.isfinite(r.image)) and r.image.max() > 0
+
+
+def test_random_light_sets_never_leak_qhull_errors():
+    rng = np.random.default_rng(3)
+    pts, mask = sphere_points(6)
+    for trial in range(30):
+        k = int(rng.integers(3, 9))
+        lights = rng.normal(size=(k, 3))
+        if trial % 3 == 0:
+            lights[:, 2] = 0.0  # coplanar through the centre
+        if trial % 5 == 0:
+            lights[1:] = lights[0]  # all the same
+        lights = lights / np.linalg.norm(lights, axis=1, keepdims=True) * R
+        ds = IlluminationDataset(np.zeros((k, 6, 6, 3), np.float32), lights, np.ones((k, 3)), pts, mask)
+        try:
+            b = bake_dataset(ds, sphere_center=[0, 0, 0])
+        except InvalidInputError:
+            continue
+        assert np.all(np.isfinite(relight(b, PointLight((0, 0, 3.0), 1.0)).image))
+
+
+def test_validation_names_the_field():
+    pts, mask = sphere_points(8)
+    imgs = np.zeros((4, 8, 8, 3), np.float32)
+    lights = lat_long_lights(90, R)[:4]
+    ones = np.ones((4, 3))
+    with pytest.raises(InvalidInputError, match=r"images\[2\].*differs"):
+        IlluminationDataset([imgs[0], imgs[1], np.zeros((8, 7, 3)), imgs[3]], lights, ones, pts, mask)
+    with pytest.raises(InvalidInputError, match="light count 3 does not match image count 4"):
+        IlluminationDataset(imgs, lights[:3], ones, pts, mask)
+    bad = lights.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(InvalidInputError, match=r"light_positions: NaN/Inf in light\(s\) \[1\]"):
+        IlluminationDataset(imgs, bad, ones, pts, mask)
+    with pytest.raises(InvalidInputError, match="points: .*do not match the image size"):
+        IlluminationDataset(imgs, lights, ones, pts[:, :7], mask)
+    with pytest.raises(InvalidInputError, match="mask: shape"):
+        IlluminationDataset(imgs, lights, ones, pts, mask[:7])
+    with pytest.raises(InvalidInputError, match="points: .*NaN/Inf"):
+        IlluminationDataset(imgs, lights, ones, pts, None)
+    with pytest.raises(InvalidInputError, match="intensities"):
+        IlluminationDataset(imgs, lights, -ones, pts, mask)
+    cam = CameraParams("orthographic", (0, 0, 5), (0, 0, 0), (0, 1, 0), 8, 8, ortho_height=2.4)
+    with pytest.raises(InvalidInputError, match="depth: depth map is 8x9 but the camera is 8x8"):
+        points_from_depth(np.ones((8, 9)), cam)
+    ds = IlluminationDataset(imgs, lights, ones, pts, mask)
+    with pytest.raises(InvalidInputError, match="does not enclose"):
+        bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=0.5)
+    with pytest.raises(InvalidInputError, match="layout"):
+        bake_dataset(ds, layout="tiled")
+    with pytest.raises(InvalidInputError, match="light type"):
+        light_from_dict({"type": "spot"})
+
+
+# ---------------------------------------------------------------- storage (HARD_CASES 9)
+
+
+def test_float16_only_where_safe():
+    ds, pts, mask = make_ds(45.0, h=12)
+    hdr = IlluminationDataset(ds.images * 1e7, ds.light_positions, ds.intensities, ds.points, ds.mask)
+    b = bake_dataset(hdr, sphere_center=[0, 0, 0])  # 1e7 > float16 max, but a power-of-two scale fits it
+    assert b.report["dtype"] == "float16"
+    k = 2
+    out = relight(b, PointLight(ds.light_positions[k], 1.0)).image
+    assert np.all(np.isfinite(out))
+    np.testing.assert_allclose(out, hdr.images[k], rtol=2 ** -11)
+    # values 1e-8 .. 1 survive float16 thanks to the per-light power-of-two scale
+    imgs = ds.images.copy()
+    imgs[:, mask] = np.where(imgs[:, mask] > 0, np.clip(imgs[:, mask], 1e-8, None), 0)
+    (y0, x0), (y1, x1) = np.argwhere(mask)[:2]
+    imgs[:, y0, x0] = 1e-8
+    tiny = IlluminationDataset(imgs, ds.light_positions, ds.intensities, ds.points, ds.mask)
+    b = bake_dataset(tiny, sphere_center=[0, 0, 0])
+    assert b.report["dtype"] == "float16"
+    out = relight(b, PointLight(ds.light_positions[k], 1.0)).image
+    np.testing.assert_allclose(out[mask], imgs[k][mask], rtol=2 ** -10)
+    # 1e-8 next to 1e6 in one light: float32
+    imgs[:, y1, x1] = 1e6
+    mixed = IlluminationDataset(imgs, ds.light_positions, ds.intensities, ds.points, ds.mask)
+    b = bake_dataset(mixed, sphere_center=[0, 0, 0])
+    assert b.report["dtype"] == "float32" and "1e-08" in b.report["dtype_reason"]
+    assert np.array_equal(relight(b, PointLight(ds.light_positions[k], 1.0)).image, imgs[k])
+    # the knob: values below 1e-8 x the light's max (here 1e-2) may lose precision -> float16 again
+    assert bake_dataset(mixed, sphere_center=[0, 0, 0], half_rel_floor=1e-8).report["dtype"] == "float16"
+
+
+# ---------------------------------------------------------------- light kinds, geometry, scale
+
+
+def test_rect_and_environment_lights(full20):
+    _, b, pts, mask = full20
+    tiny = RectLight(corner=(0.99, 1.99, 3.99), edge_u=(0.02, 0, 0), edge_v=(0, 0.02, 0), radiance=1.0 / 4e-4,
+                     samples=4)  # area 4e-4, facing -z: away from the sphere
+    assert relight(b, tiny).image.max() == 0
+    tiny2 = RectLight(corner=(0.99, 1.99, 3.99), edge_u=(0, 0.02, 0), edge_v=(0.02, 0, 0), radiance=1.0 / 4e-4,
+                      samples=4)  # normal -z: facing the sphere
+    two = RectLight(corner=(0.99, 1.99, 3.99), edge_u=(0.02, 0, 0), edge_v=(0, 0.02, 0), radiance=1.0 / 4e-4,
+                    samples=4, two_sided=True)
+    pt = relight(b, PointLight((1.0, 2.0, 3.99), 1.0)).image
+    lit = pt[..., 0] > 0.1 * pt.max()
+    for rl in (tiny2, two):
+        img = relight(b, rl).image
+        # intensity L A cos(theta_emitter): close to a point light with I = cos(theta) ~ 0.9
+        ratio = img[lit, 0] / pt[lit, 0]
+        assert 0.6 < ratio.min() and ratio.max() <= 1.0 + 1e-5
+    env = np.ones((16, 32, 3), np.float32)
+    for method, n in (("downsample", 64), ("importance", 256)):
+        img = relight(b, EnvironmentLight(env, n_lights=n, method=method, seed=2)).image
+        # uniform radiance L=1 on an unoccluded convex Lambertian surface: albedo x L
+        assert abs(np.median(img[mask, 1]) - ALBEDO) < 0.08 * ALBEDO, method
+    a = relight(b, light_from_dict({"type": "environment", "image": env, "n_lights": 32, "method": "importance",
+                                    "seed": 5})).image
+    c = relight(b, EnvironmentLight(env, n_lights=32, method="importance", seed=5)).image
+    assert np.array_equal(a, c)
+
+
+def test_distant_dataset():
+    pts, mask = sphere_points(24)
+    toward = lat_long_lights(15.0, 1.0, lat_min=-90, lat_max=90)
+    e = np.full((len(toward), 3), 2.0)
+    imgs = np.stack([lambert_directional(pts, mask, t, 2.0) for t in toward])
+    b = bake_dataset(IlluminationDataset(imgs, toward * 3.0, e, pts, mask, distant=True))
+    assert b.distant
+    t = np.array([0.2, 0.4, 0.9])
+    r = relight(b, DirectionalLight(-t, 1.0))
+    assert rel_err(r.image, lambert_directional(pts, mask, t), mask) < 0.03
+    k = 11
+    ex = relight(b, DirectionalLight(-b.light_positions[k], 2.0))
+    assert ex.exact and np.array_equal(ex.image, imgs[b.kept_from[k]])
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_scale_invariance(scale):
+    ds, pts, mask = make_ds(30.0, h=12)
+    # jitter the lights: a lat-long grid has cocircular quads whose diagonal Qhull picks by rounding
+    lp = ds.light_positions + np.random.default_rng(0).normal(scale=0.05, size=ds.light_positions.shape)
+    ds = IlluminationDataset(np.stack([lambert_point(pts, mask, p) for p in lp]), lp, ds.intensities, pts, mask)
+    s = IlluminationDataset(ds.images, ds.light_positions * scale, ds.intensities * scale ** 2,
+                            ds.points * scale, ds.mask)
+    b0 = bake_dataset(ds, sphere_center=[0, 0, 0])
+    b1 = bake_dataset(s, sphere_center=[0, 0, 0])
+    lt = np.array([0.7, 1.9, 3.1])
+    np.testing.assert_allclose(relight(b1, PointLight(lt * scale, scale ** 2)).image,
+                               relight(b0, PointLight(lt, 1.0)).image, rtol=1e-4, atol=1e-9)
+
+
+def test_points_from_depth_cameras():
+    ortho = CameraParams("orthographic", (0, 0, 5), (0, 0, 0), (0, 1, 0), 6, 4, ortho_height=2.0)
+    p, ok = points_from_depth(np.full((4, 6), 5.0), ortho)
+    assert ok.all() and np.allclose(p[..., 2], 0.0)
+    persp = CameraParams("perspective", (0, 0, 5), (0, 0, 0), (0, 1, 0), 6, 4, fov_y_deg=40)
+    p, _ = points_from_depth(np.full((4, 6), 5.0), persp, depth_kind="z")
+    assert np.allclose(p[..., 2], 0.0)
+    pd, _ = points_from_depth(np.full((4, 6), 5.0), persp, depth_kind="distance")
+    assert np.allclose(np.linalg.norm(pd - np.array([0, 0, 5.0]), axis=-1), 5.0)
+    k = np.array([[10.0, 0, 3.0], [0, 10.0, 2.0], [0, 0, 1]])
+    depth = np.full((4, 6), 2.0)
+    depth[0, 0] = np.nan
+    depth[1, 1] = -1
+    p, ok = points_from_depth(depth, intrinsics=k, world_from_camera=np.eye(4))
+    assert not ok[0, 0] and not ok[1, 1] and ok.sum() == 22
+    assert np.allclose(p[ok][:, 2], 2.0)
+    np.testing.assert_allclose(p[2, 3], [(3.5 - 3.0) / 10 * 2, (2.5 - 2.0) / 10 * 2, 2.0])
+
+
+def test_serial_kernel_and_threads_agree(full20):
+    _, b, _, _ = full20
+    lt = [PointLight((1.0, 2.0, 3.5), 1.0), DirectionalLight((0, 0, -1), 1.0)]
+    a = relight(b, lt).image
+    assert np.array_equal(a, relight(b, lt, serial=True).image)
+    assert np.array_equal(a, relight(b, lt, threads=1).image)
