@@ -9,7 +9,7 @@ splatted with a z-buffer (distance along the pixel ray, like the reference's dep
   onto the tangent plane, n the geometric normal); both are projected through the camera's
   Jacobian at the sample, and the sample covers every pixel whose centre lies in the
   axis-aligned box of half-size ``0.5 (|a| + |b|)`` around its projection (plus always the
-  nearest pixel). Half-sizes are capped at ``max_footprint`` pixels (close-ups: beyond it
+  nearest pixel). Half-sizes are capped at ``max_footprint`` (16) pixels (close-ups: beyond it
   the image is under-sampled anyway and the hole detector takes over).
 - **Grazing samples are dropped.** A sample whose LDI direction makes ``|n_g . w| <
   min_cos`` (0.5) with the surface is left to the other two LDIs: every normal has a
@@ -210,7 +210,7 @@ def _detect_holes(zbuf, rel, need, out):
 
 
 def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayCaster | None = None,
-             min_cos: float = 0.5, max_footprint: float = 8.0, footprint_scale: float = 1.0,
+             min_cos: float = 0.5, max_footprint: float = 16.0, footprint_scale: float = 1.0,
              hole_rel_depth: float = 0.05, hole_neighbors: int = 6, area_light_samples: int = 16,
              seed: int = 0) -> WarpResult:
     """Warp every LDC sample into ``camera`` with a depth test; detect (and optionally fill) holes."""
