@@ -1,0 +1,178 @@
+"""The browser preview page (issue 7) in a real browser (Debian's chromium driven by Playwright)
+against a live local stack: embedded Redis, real bake and render workers, uvicorn API."""
+
+from __future__ import annotations
+
+import io
+import os
+import socket
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from PIL import Image
+from playwright.sync_api import Browser, Page, expect, sync_playwright
+
+from service.up import Stack, load_samples, start_stack
+
+CHROMIUM = "/usr/bin/chromium"
+LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+               "--disable-sync", "--no-first-run"]
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "preview"
+SIZE = 128
+SCENE = "mirror_box"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def stack() -> Iterator[Stack]:
+    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS") if k in os.environ}
+    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:  # short path for the unix socket
+        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+        try:
+            load_samples(st.api_url, log=lambda s: None)
+            yield st
+        finally:
+            st.stop()
+            os.environ.update(saved)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=LAUNCH_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def page(stack: Stack, browser: Browser) -> Iterator[Page]:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    pg = ctx.new_page()
+    pg.set_default_timeout(30_000)
+    pg.goto(f"{stack.api_url}/?size={SIZE}&spp=1")
+    try:
+        yield pg
+    finally:
+        ctx.close()
+
+
+def shot(page: Page, name: str) -> None:
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
+
+
+def image_pixels(page: Page) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(page.locator("#view").screenshot())).convert("RGB"), dtype=np.int16)
+
+
+def wait_for_load(page: Page, loads_before: int) -> dict[str, Any]:
+    page.wait_for_function(
+        f"window.__preview.loads > {loads_before} && document.querySelector('#view').naturalWidth > 0",
+        timeout=60_000)
+    return page.evaluate("window.__preview.last")  # type: ignore[no-any-return]
+
+
+def test_page_loads_and_lists_sample_scenes(page: Page) -> None:
+    assert page.url.endswith(f"/preview/?size={SIZE}&spp=1")  # / redirects to the page
+    page.wait_for_selector("body[data-ready=true]")
+    names = page.locator("#scene-list button").all_inner_texts()
+    assert {"teapot_glossy", "mirror_box", "cornell_box"} <= set(names)
+    # only the methods that exist: today just the reference renderer
+    assert page.locator("#method option").all_inner_texts() == ["reference"]
+    expect(page.locator("#error")).to_be_hidden()
+    shot(page, "01-scene-list")
+
+
+def test_open_scene_shows_image_and_timings(page: Page) -> None:
+    loads = page.evaluate("window.__preview.loads")
+    page.get_by_role("button", name=SCENE, exact=True).click()
+    last = wait_for_load(page, loads)
+    assert page.evaluate("document.querySelector('#view').naturalWidth") == SIZE
+    assert last["latency"] > 0
+    expect(page.locator("#timings")).to_contain_text("total")
+    expect(page.locator("#timings")).to_contain_text("round trip")
+    shot(page, "02-scene-open")
+
+
+def test_drag_orbits_and_changes_the_image(page: Page) -> None:
+    before = image_pixels(page)
+    key_before = page.locator("#view").get_attribute("data-key")
+    src_before = page.locator("#view").get_attribute("src")
+    loads = page.evaluate("window.__preview.loads")
+    box = page.locator("#viewport").bounding_box()
+    assert box is not None
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 60, y + 10, steps=4)
+    page.mouse.up()
+    wait_for_load(page, loads)
+    page.wait_for_function("window.__preview.requests > 0")
+    # latest request wins: wait until the shown image is the last one asked for
+    page.wait_for_function("window.__preview.last && window.__preview.last.seq === window.__preview.requests")
+    assert page.locator("#view").get_attribute("src") != src_before
+    assert page.locator("#view").get_attribute("data-key") != key_before
+    after = image_pixels(page)
+    assert after.shape == before.shape
+    assert np.abs(after - before).mean() > 1.0
+    shot(page, "03-orbited")
+
+
+def test_keyboard_zoom_requests_a_new_view(page: Page) -> None:
+    key_before = page.locator("#view").get_attribute("data-key")
+    loads = page.evaluate("window.__preview.loads")
+    page.locator("#viewport").focus()
+    page.keyboard.press("+")
+    wait_for_load(page, loads)
+    assert page.locator("#view").get_attribute("data-key") != key_before
+    shot(page, "04-zoomed")
+
+
+def test_jobs_panel_shows_finished_jobs(page: Page) -> None:
+    rows = page.locator("#jobs tbody tr[data-state=finished]")
+    expect(rows.first).to_be_visible(timeout=10_000)
+    # the scene's first view, the orbited one and the zoomed one (stale drag views may be canceled)
+    page.wait_for_function("document.querySelectorAll('#jobs tbody tr[data-state=finished]').length >= 3",
+                           timeout=10_000)
+    expect(rows.first.locator("progress")).to_have_attribute("value", "1")
+    shot(page, "05-jobs")
+
+
+def test_api_error_is_shown_as_readable_message(page: Page) -> None:
+    page.fill("#spp", "99999")
+    page.locator("#spp").dispatch_event("change")
+    err = page.locator("#error")
+    expect(err).to_be_visible()
+    expect(err).to_contain_text("params.spp")
+    expect(err).to_contain_text("4096")
+    text = err.inner_text()
+    assert "{" not in text and '"' not in text  # words, not a JSON dump
+    shot(page, "06-error")
+    page.fill("#spp", "1")
+    page.locator("#spp").dispatch_event("change")
+    expect(err).to_be_hidden()
+
+
+def test_api_key_is_kept_in_session_storage_and_sent(page: Page) -> None:
+    seen: list[str | None] = []
+    page.on("request", lambda r: seen.append(r.headers.get("authorization")) if "/v1/scenes" in r.url else None)
+    page.fill("#api-key", "k-test")
+    page.click("#key-form button[type=submit]")
+    page.wait_for_function("document.querySelector('#key-state').textContent.includes('key set')")
+    assert page.evaluate("sessionStorage.getItem('ibr.apiKey')") == "k-test"
+    page.wait_for_timeout(300)
+    assert "Bearer k-test" in seen
+    page.fill("#api-key", "")
+    page.click("#key-form button[type=submit]")
+    page.wait_for_function("sessionStorage.getItem('ibr.apiKey') === null")
