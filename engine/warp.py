@@ -77,7 +77,7 @@ class WarpResult:
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
            ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
-           zbuf, best_d2, win_axis, win_idx, win_side):
+           zbuf, best_off, win_axis, win_idx, win_side):
     aspect = W / H
     npix = offsets.shape[0] - 1
     for k in range(npix):
@@ -177,11 +177,14 @@ def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
                 for x in range(x0, x1 + 1):
                     ddx = x + 0.5 - pxf
                     ddy = y + 0.5 - pyf
-                    d2 = ddx * ddx + ddy * ddy
+                    off = math.sqrt(ddx * ddx + ddy * ddy)
                     z = zbuf[y, x]
-                    if dist < z - tol or (dist <= z + tol and d2 < best_d2[y, x]):
+                    b = best_off[y, x]
+                    # same surface (within tol): the better-centred sample wins; a tie within
+                    # 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer
+                    if dist < z - tol or (dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))):
                         zbuf[y, x] = dist
-                        best_d2[y, x] = d2
+                        best_off[y, x] = off
                         win_axis[y, x] = axis_id
                         win_idx[y, x] = s
                         win_side[y, x] = side
@@ -235,7 +238,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     win_axis = np.full((H, W), -1, np.int8)
     win_idx = np.full((H, W), -1, np.int64)
     win_side = np.zeros((H, W), np.int8)
-    best_d2 = np.full((H, W), np.inf)
+    best_off = np.full((H, W), np.inf)
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
@@ -244,7 +247,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         f = ax.ldi.frame
         _splat(ax.axis, f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth,
                np.ascontiguousarray(ax.geo_normal, dtype=np.float64), ax.object, closed, ortho, eye, right, up, fwd,
-               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, best_d2, win_axis, win_idx, win_side)
+               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, best_off, win_axis, win_idx, win_side)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)

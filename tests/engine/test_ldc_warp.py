@@ -221,3 +221,20 @@ def test_cracks_are_detected_and_filled():
     # with the default footprint cap there are no cracks at all
     wn = warp_ldc(ldc, cam)
     assert not (wn.hole_mask & front).any() and (wn.object_id[inner] == 1).all()
+
+
+def test_close_layers_far_away_warp_hard_case_6():
+    base = np.array([1e4, 1e4, 1e4])
+    sc = scene([(quad(base, 1.0, normal_axis=2), mat("back", kd=(0.2, 0.2, 0.2))),
+                (quad(base + [0, 0, 1e-3], 1.0, normal_axis=2), mat("front", kd=(0.9, 0.1, 0.1)))], LIGHTS[2:])
+    ldc = bake_ldc(sc, EmbreeCaster(sc), 32)
+    assert all(np.all(np.diff(a.ldi.depth.reshape(-1, 2), axis=1) > 5e-4) for a in ldc.axes if a.n_samples)
+    for cam in (CameraParams("orthographic", tuple(base + [0, 0, 10.0]), tuple(base), (0, 1, 0), 48, 48,
+                             ortho_height=1.2),
+                CameraParams("perspective", tuple(base + [0.1, 0.05, 3.0]), tuple(base), (0, 1, 0), 48, 48, 30.0)):
+        w = warp_ldc(ldc, cam)
+        ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
+        cov = ref.object_id >= 0
+        assert np.all(ref.object_id[cov] == 1)
+        assert (w.object_id[cov] == 1).mean() >= 0.98
+        assert not (w.object_id == 0).any()
