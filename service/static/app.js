@@ -254,7 +254,10 @@ async function render(me, body) {
     if (me !== current) return;
     const now = performance.now();
     perf.loads += 1;
-    perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status };
+    const timings = { ...((manifest.result && manifest.result.timings) || {}),
+      ...((r.job && r.job.result && r.job.result.timings) || {}) };
+    perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status,
+      timings };
     perf.latencies.push(now - me.inputAt);
     setStatus("");
   };
