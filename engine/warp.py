@@ -212,6 +212,27 @@ def _detect_holes(zbuf, rel, need, out):
             out[y, x] = c >= need
 
 
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _resolve(axis_id, win_axis, win_idx, win_side, zbuf, diffuse, nrm, material, obj,
+             radiance, depth, normal, mat_id, obj_id, prov):
+    H, W = win_axis.shape
+    for y in nb.prange(H):
+        for x in range(W):
+            if win_axis[y, x] != axis_id:
+                continue
+            i = win_idx[y, x]
+            s = win_side[y, x]
+            sign = 1.0 if s == 0 else -1.0
+            for c in range(3):
+                radiance[y, x, c] = diffuse[i, s, c]
+                normal[y, x, c] = sign * nrm[i, c]
+            depth[y, x] = zbuf[y, x]
+            mat_id[y, x] = material[i]
+            obj_id[y, x] = obj[i]
+            prov[y, x] = 1
+
+
 def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayCaster | None = None,
              min_cos: float = 0.5, max_footprint: float = 16.0, footprint_scale: float = 1.0,
              hole_rel_depth: float = 0.05, hole_neighbors: int = 6, area_light_samples: int = 16,
@@ -246,7 +267,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     for ax in ldc.axes:
         f = ax.ldi.frame
         _splat(ax.axis, f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth,
-               np.ascontiguousarray(ax.geo_normal, dtype=np.float64), ax.object, closed, ortho, eye, right, up, fwd,
+               ax.geo_normal, ax.object, closed, ortho, eye, right, up, fwd,
                W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, best_off, win_axis, win_idx, win_side)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -262,16 +283,8 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     obj_id = np.full((H, W), -1, np.int32)
     prov = np.zeros((H, W), np.uint8)
     for ax in ldc.axes:
-        sel = win_axis == ax.axis
-        idx = win_idx[sel]
-        side = win_side[sel].astype(np.int64)
-        radiance[sel] = ax.diffuse[idx, side]
-        depth[sel] = zbuf[sel]
-        sign = np.where(side == 0, 1.0, -1.0).astype(np.float32)[:, None]
-        normal[sel] = ax.normal[idx] * sign
-        mat_id[sel] = ax.material[idx]
-        obj_id[sel] = ax.object[idx]
-        prov[sel] = PROV_WARPED
+        _resolve(ax.axis, win_axis, win_idx, win_side, zbuf, ax.diffuse, ax.normal, ax.material, ax.object,
+                 radiance, depth, normal, mat_id, obj_id, prov)
     t_resolve = time.perf_counter() - t0
     n_holes = int(holes.sum())
     n_filled = 0
