@@ -547,10 +547,8 @@ def _locate(x, y, z, inv, grid_n, grid_start, grid_items):
         a1 = inv[t, 1, 0] * x + inv[t, 1, 1] * y + inv[t, 1, 2] * z
         a2 = inv[t, 2, 0] * x + inv[t, 2, 1] * y + inv[t, 2, 2] * z
         s = a0 + a1 + a2
-        if s <= 0.0:
-            continue
-        e = _CONE_EPS * s
-        if a0 >= -e and a1 >= -e and a2 >= -e:
+        # one combined test (branch mispredictions dominate the candidate loop)
+        if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
             a0 = max(a0, 0.0)
             a1 = max(a1, 0.0)
             a2 = max(a2, 0.0)
