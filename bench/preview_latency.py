@@ -126,9 +126,9 @@ def report(res: dict[str, Any], argv: str) -> str:
         "",
         "Only the `reference` method exists today, so every new camera is a full reference render: there is "
         "no bake to warp and the artifact cache only serves views seen before. The latency is therefore the "
-        "reference render time plus queueing, the page's polling (the API waits up to 1 s server-side, then the "
-        "page polls the job every 150 ms) and the PNG transfer and decode. This is the baseline the `ldc` "
-        "methods must beat once they land.",
+        "reference render time plus queueing, the page's polling (the API waits up to 0.25 s server-side, then "
+        "the page polls the job every 50 ms, backing off to 250 ms) and the PNG transfer and decode. This is the "
+        "baseline the `ldc` methods must beat once they land.",
     ])
 
 

@@ -4,8 +4,9 @@
 const KEY_STORAGE = "ibr.apiKey";
 const FALLBACK_METHODS = ["reference"]; // used only when /openapi.json cannot be read
 const DEFAULT_CAMERA = { type: "perspective", eye: [0, 1, 4], look_at: [0, 0.5, 0], up: [0, 1, 0], fov_y_deg: 45 };
-const RENDER_WAIT_S = 1; // server-side wait of POST /v1/renders; then the page polls the job
-const JOB_POLL_MS = 150;
+const RENDER_WAIT_S = 0.25; // server-side wait of POST /v1/renders; then the page polls the job
+const JOB_POLL_MS = [50, 250]; // first and longest interval between polls of a running job
+const MIN_REQUEST_GAP_MS = 100; // during a drag, at most one new view request per this interval
 const JOBS_LIST_MS = 1000;
 
 const $ = (id) => document.getElementById(id);
@@ -163,6 +164,7 @@ function zoom(factor) {
 let current = null; // {seq, controller, jobId, body}
 let seq = 0;
 let scheduled = false;
+let lastStart = -Infinity;
 
 function viewSize() { return Number($("size").value) || 256; }
 
@@ -184,7 +186,17 @@ function changed(inputAt = performance.now()) {
   perf.inputAt = inputAt;
   if (scheduled) return;
   scheduled = true;
-  requestAnimationFrame(() => { scheduled = false; startRender(perf.inputAt); });
+  const go = () => { scheduled = false; lastStart = performance.now(); startRender(perf.inputAt); };
+  const gap = MIN_REQUEST_GAP_MS - (performance.now() - lastStart);
+  if (gap > 0) setTimeout(go, gap); else requestAnimationFrame(go);
+}
+
+// Cancel a superseded view's job so the worker moves on to the latest one.
+function cancelStale(req) {
+  if (!req.jobId || req.done || req.canceled) return;
+  if (current && current.bodyText === req.bodyText) return; // the same job may serve the new request
+  req.canceled = true;
+  api(`/v1/jobs/${encodeURIComponent(req.jobId)}/cancel`, { method: "POST" }).catch(() => {});
 }
 
 function startRender(inputAt) {
@@ -194,13 +206,10 @@ function startRender(inputAt) {
   if (prev) {
     if (prev.bodyText === bodyText && !prev.done) return; // the same view is already on its way
     prev.controller.abort();
-    // free the worker for the new view; not when the same job might be shared (same body)
-    if (prev.jobId && !prev.done && prev.bodyText !== bodyText) {
-      api(`/v1/jobs/${encodeURIComponent(prev.jobId)}/cancel`, { method: "POST" }).catch(() => {});
-    }
   }
   const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt };
   current = me;
+  if (prev) cancelStale(prev);
   perf.requests += 1;
   render(me, body).catch((err) => {
     if (isAbort(err) || me !== current) return;
@@ -225,16 +234,24 @@ async function render(me, body) {
   const { signal } = me.controller;
   const t0 = performance.now();
   setStatus("rendering…");
-  let { data: r } = await api(`/v1/renders?wait=${RENDER_WAIT_S}`, { method: "POST", body, signal });
+  // The POST is short (wait <= 0.25 s) and not aborted: its answer names the job, which is
+  // canceled when a newer view superseded this one meanwhile.
+  let { data: r } = await api(`/v1/renders?wait=${RENDER_WAIT_S}`, { method: "POST", body });
   if (r.job) me.jobId = r.job.id;
+  if (signal.aborted) {
+    if (r.status === "queued" || r.status === "running") cancelStale(me);
+    throw ABORTED;
+  }
   let manifest = r.artifact;
+  let delay = JOB_POLL_MS[0];
   while (!manifest) {
     if (r.status === "failed" || (r.job && (r.job.state === "failed" || r.job.state === "canceled"))) {
       const job = r.job || {};
       throw new ApiError(0, { title: "Render failed", detail: job.error || `job ${job.state}` });
     }
     if (r.job) showProgress(r.job);
-    await sleep(JOB_POLL_MS, signal);
+    await sleep(delay, signal);
+    delay = Math.min(JOB_POLL_MS[1], delay * 1.3);
     const { data: job } = await api(`/v1/jobs/${encodeURIComponent(me.jobId)}`, { signal });
     if (job.state === "finished") {
       manifest = (await api(`/v1/artifacts/${r.artifact_key}`, { signal })).data;
