@@ -515,6 +515,7 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
 # ============================================================================ kernels
 
 _CONE_EPS = 1e-12
+_CHUNK = 256
 # numba has no CPU float16 type: half stores reach the kernel as uint16 bits, decoded through
 # a 256 KiB table (stays in L2; one load per sample)
 _HALF_LUT = np.arange(65536, dtype=np.uint16).view(np.float16).astype(np.float32)
@@ -557,6 +558,25 @@ def _locate(x, y, z, inv, grid_n, grid_start, grid_items):
     return -1, 0.0, 0.0, 0.0
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _locate_hint(x, y, z, hint, inv, grid_n, grid_start, grid_items):
+    """``_locate`` that first tries triangle ``hint`` (the one the same light hit at the previous
+    pixel: neighbouring pixels see a light in nearly the same direction)."""
+    if hint >= 0:
+        t = hint
+        a0 = inv[t, 0, 0] * x + inv[t, 0, 1] * y + inv[t, 0, 2] * z
+        a1 = inv[t, 1, 0] * x + inv[t, 1, 1] * y + inv[t, 1, 2] * z
+        a2 = inv[t, 2, 0] * x + inv[t, 2, 1] * y + inv[t, 2, 2] * z
+        s = a0 + a1 + a2
+        if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
+            a0 = max(a0, 0.0)
+            a1 = max(a1, 0.0)
+            a2 = max(a2, 0.0)
+            s = a0 + a1 + a2
+            return t, a0 / s, a1 / s, a2 / s
+    return _locate(x, y, z, inv, grid_n, grid_start, grid_items)
+
+
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
     for i in nb.prange(dirs.shape[0]):
@@ -578,73 +598,79 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
     m = kinds.shape[0]
     cx, cy, cz = center[0], center[1], center[2]
     r2 = radius * radius
-    for i in nb.prange(n):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        acc0 = 0.0
-        acc1 = 0.0
-        acc2 = 0.0
-        out_i = False
-        sing_i = False
-        for j in range(m):
-            kd = kinds[j]
-            if kd == 1:
-                dx, dy, dz = lp[j, 0], lp[j, 1], lp[j, 2]
-                g0, g1, g2 = lint[j, 0], lint[j, 1], lint[j, 2]
-            else:
-                dx, dy, dz = lp[j, 0] - px, lp[j, 1] - py, lp[j, 2] - pz
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 < min_dist2:
-                    sing_i = True
-                    continue
-                f = 1.0 / d2
-                if kd >= 2:
-                    # area-light sample: intensity I cos(theta_emitter), one- or two-sided
-                    c = -(dx * lnorm[j, 0] + dy * lnorm[j, 1] + dz * lnorm[j, 2]) / math.sqrt(d2)
-                    if kd == 3:
-                        c = abs(c)
-                    if c <= 0.0:
-                        continue
-                    f *= c
-                g0, g1, g2 = lint[j, 0] * f, lint[j, 1] * f, lint[j, 2] * f
-            if distant_ds:
-                sx, sy, sz = dx, dy, dz
-            else:
-                # exit point of the ray P + t u (P inside the sphere) from the light sphere
-                inv_len = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
-                ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
-                ox, oy, oz = px - cx, py - cy, pz - cz
-                b = ox * ux + oy * uy + oz * uz
-                cc = ox * ox + oy * oy + oz * oz - r2
-                t = -b + math.sqrt(max(b * b - cc, 0.0))
-                sx, sy, sz = ox + t * ux, oy + t * uy, oz + t * uz
-            tri, w0, w1, w2 = _locate(sx, sy, sz, inv, grid_n, grid_start, grid_items)
-            if tri < 0:
-                out_i = True
-                continue
-            v0 = 0.0
-            v1 = 0.0
-            v2 = 0.0
-            for q in range(3):
-                k = tris[tri, q]
-                wq = w0 if q == 0 else (w1 if q == 1 else w2)
-                if wq == 0.0:
-                    continue
-                if distant_ds:
-                    fk = wq
+    # fixed-size chunks of consecutive pixels (the same for any thread count, so results do not
+    # depend on it); within a chunk each light remembers its last triangle
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    for ci in nb.prange(n_chunks):
+        last = np.full(m, -1, np.int64)
+        for i in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            acc0 = 0.0
+            acc1 = 0.0
+            acc2 = 0.0
+            out_i = False
+            sing_i = False
+            for j in range(m):
+                kd = kinds[j]
+                if kd == 1:
+                    dx, dy, dz = lp[j, 0], lp[j, 1], lp[j, 2]
+                    g0, g1, g2 = lint[j, 0], lint[j, 1], lint[j, 2]
                 else:
-                    ex, ey, ez = lpos[k, 0] - px, lpos[k, 1] - py, lpos[k, 2] - pz
-                    fk = wq * (ex * ex + ey * ey + ez * ez)
-                v0 += fk * inv_int[k, 0] * _fetch(store, lut, i, k, 0)
-                v1 += fk * inv_int[k, 1] * _fetch(store, lut, i, k, 1)
-                v2 += fk * inv_int[k, 2] * _fetch(store, lut, i, k, 2)
-            acc0 += v0 * g0
-            acc1 += v1 * g1
-            acc2 += v2 * g2
-        out[i, 0] = acc0
-        out[i, 1] = acc1
-        out[i, 2] = acc2
-        outside[i] = out_i
-        singular[i] = sing_i
+                    dx, dy, dz = lp[j, 0] - px, lp[j, 1] - py, lp[j, 2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < min_dist2:
+                        sing_i = True
+                        continue
+                    f = 1.0 / d2
+                    if kd >= 2:
+                        # area-light sample: intensity I cos(theta_emitter), one- or two-sided
+                        c = -(dx * lnorm[j, 0] + dy * lnorm[j, 1] + dz * lnorm[j, 2]) / math.sqrt(d2)
+                        if kd == 3:
+                            c = abs(c)
+                        if c <= 0.0:
+                            continue
+                        f *= c
+                    g0, g1, g2 = lint[j, 0] * f, lint[j, 1] * f, lint[j, 2] * f
+                if distant_ds:
+                    sx, sy, sz = dx, dy, dz
+                else:
+                    # exit point of the ray P + t u (P inside the sphere) from the light sphere
+                    inv_len = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+                    ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
+                    ox, oy, oz = px - cx, py - cy, pz - cz
+                    b = ox * ux + oy * uy + oz * uz
+                    cc = ox * ox + oy * oy + oz * oz - r2
+                    t = -b + math.sqrt(max(b * b - cc, 0.0))
+                    sx, sy, sz = ox + t * ux, oy + t * uy, oz + t * uz
+                tri, w0, w1, w2 = _locate_hint(sx, sy, sz, last[j], inv, grid_n, grid_start, grid_items)
+                if tri < 0:
+                    out_i = True
+                    continue
+                last[j] = tri
+                v0 = 0.0
+                v1 = 0.0
+                v2 = 0.0
+                for q in range(3):
+                    k = tris[tri, q]
+                    wq = w0 if q == 0 else (w1 if q == 1 else w2)
+                    if wq == 0.0:
+                        continue
+                    if distant_ds:
+                        fk = wq
+                    else:
+                        ex, ey, ez = lpos[k, 0] - px, lpos[k, 1] - py, lpos[k, 2] - pz
+                        fk = wq * (ex * ex + ey * ey + ez * ez)
+                    v0 += fk * inv_int[k, 0] * _fetch(store, lut, i, k, 0)
+                    v1 += fk * inv_int[k, 1] * _fetch(store, lut, i, k, 1)
+                    v2 += fk * inv_int[k, 2] * _fetch(store, lut, i, k, 2)
+                acc0 += v0 * g0
+                acc1 += v1 * g1
+                acc2 += v2 * g2
+            out[i, 0] = acc0
+            out[i, 1] = acc1
+            out[i, 2] = acc2
+            outside[i] = out_i
+            singular[i] = sing_i
 
 
 class _DualKernel:
