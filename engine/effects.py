@@ -12,7 +12,8 @@
   rect light) lies strictly outside one of its face planes (directional lights always
   do). Then, from the outer side of any surface point, a light in front of the tangent
   plane is visible (a convex body lies behind each of its face planes), and from the
-  inner side it is not. Everything else is occludable. A scene without occludable lights
+  inner side it is not. Everything else is occludable (also a single object of
+  more than ``CONVEX_TEST_MAX_TRIANGLES`` triangles: the test is O(V x F)). A scene without occludable lights
   stores no visibility bits and casts no shadow rays;
 - ``closed_objects``: per object, closed and outward oriented; the warp culls the
   inner side of those (back-face culling), other surfaces are two-sided;
@@ -29,6 +30,8 @@ import numpy as np
 from .scene import RuntimeScene
 
 KINDS = ("diffuse", "highlight", "glossy", "mirror")
+# the convexity test is O(vertices x faces); above this many triangles we don't try (occludable)
+CONVEX_TEST_MAX_TRIANGLES = 20000
 
 
 @dataclass(frozen=True)
@@ -120,7 +123,8 @@ def analyze(scene: RuntimeScene) -> EffectPlan:
     present = np.unique(scene.tri_object)
     single = present.size == 1
     tol = 1e-9 * max(scene.extent, 1e-300) + 1e-12 * float(np.abs(scene.center).max(initial=0.0))
-    convex = bool(single and closed[int(present[0])] and _convex(scene.tri_p, scene.tri_ng, tol))
+    convex = bool(single and closed[int(present[0])] and scene.n_triangles <= CONVEX_TEST_MAX_TRIANGLES
+                  and _convex(scene.tri_p, scene.tri_ng, tol))
     lt = scene.lights
     occ = []
     for i in range(lt.n_point):
