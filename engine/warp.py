@@ -74,13 +74,15 @@ class WarpResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
-           ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
-           zbuf, best_off, win_axis, win_idx, win_side):
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
+             ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
+             out_f, out_side, out_ok):
+    """Per sample (in parallel): projected position, footprint half-sizes, distance, depth
+    slack and visible side into out_f (n, 6) = (px, py, ex, ey, dist, tol); out_ok marks kept ones."""
     aspect = W / H
     npix = offsets.shape[0] - 1
-    for k in range(npix):
+    for k in nb.prange(npix):
         s0 = offsets[k]
         s1 = offsets[k + 1]
         if s0 == s1:
@@ -91,6 +93,7 @@ def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
         by = origin[1] + a * fu[1] + b * fv[1]
         bz = origin[2] + a * fu[2] + b * fv[2]
         for s in range(s0, s1):
+            out_ok[s] = False
             n0, n1, n2 = ng[s, 0], ng[s, 1], ng[s, 2]
             nw = n0 * fw[0] + n1 * fw[1] + n2 * fw[2]
             if abs(nw) < min_cos:
@@ -163,31 +166,50 @@ def _splat(axis_id, origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
                 ex = max_fp
             if not (ey <= max_fp):
                 ey = max_fp
-            ix = int(math.floor(pxf))
-            iy = int(math.floor(pyf))
-            x0 = min(int(math.ceil(pxf - ex - 0.5)), ix)
-            x1 = max(int(math.floor(pxf + ex - 0.5)), ix)
-            y0 = min(int(math.ceil(pyf - ey - 0.5)), iy)
-            y1 = max(int(math.floor(pyf + ey - 0.5)), iy)
-            x0 = max(x0, 0)
-            y0 = max(y0, 0)
-            x1 = min(x1, W - 1)
-            y1 = min(y1, H - 1)
-            for y in range(y0, y1 + 1):
-                for x in range(x0, x1 + 1):
-                    ddx = x + 0.5 - pxf
-                    ddy = y + 0.5 - pyf
-                    off = math.sqrt(ddx * ddx + ddy * ddy)
-                    z = zbuf[y, x]
-                    b = best_off[y, x]
-                    # same surface (within tol): the better-centred sample wins; a tie within
-                    # 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer
-                    if dist < z - tol or (dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))):
-                        zbuf[y, x] = dist
-                        best_off[y, x] = off
-                        win_axis[y, x] = axis_id
-                        win_idx[y, x] = s
-                        win_side[y, x] = side
+            out_f[s, 0] = pxf
+            out_f[s, 1] = pyf
+            out_f[s, 2] = ex
+            out_f[s, 3] = ey
+            out_f[s, 4] = dist
+            out_f[s, 5] = tol
+            out_side[s] = side
+            out_ok[s] = True
+
+
+@nb.njit(cache=True, nogil=True)
+def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side):
+    """Serial z-buffer writes in CSR order (deterministic)."""
+    for s in range(out_ok.shape[0]):
+        if not out_ok[s]:
+            continue
+        pxf = out_f[s, 0]
+        pyf = out_f[s, 1]
+        ex = out_f[s, 2]
+        ey = out_f[s, 3]
+        dist = out_f[s, 4]
+        tol = out_f[s, 5]
+        side = out_side[s]
+        ix = int(math.floor(pxf))
+        iy = int(math.floor(pyf))
+        x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
+        x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
+        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0)
+        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
+        for y in range(y0, y1 + 1):
+            for x in range(x0, x1 + 1):
+                ddx = x + 0.5 - pxf
+                ddy = y + 0.5 - pyf
+                off = math.sqrt(ddx * ddx + ddy * ddy)
+                z = zbuf[y, x]
+                b = best_off[y, x]
+                # same surface (within tol): the better-centred sample wins; a tie within
+                # 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer
+                if dist < z - tol or (dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))):
+                    zbuf[y, x] = dist
+                    best_off[y, x] = off
+                    win_axis[y, x] = axis_id
+                    win_idx[y, x] = s
+                    win_side[y, x] = side
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
@@ -266,9 +288,14 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     t0 = time.perf_counter()
     for ax in ldc.axes:
         f = ax.ldi.frame
-        _splat(ax.axis, f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth,
-               ax.geo_normal, ax.object, closed, ortho, eye, right, up, fwd,
-               W, H, th, hh, min_cos, max_footprint, footprint_scale, zbuf, best_off, win_axis, win_idx, win_side)
+        n = ax.n_samples
+        out_f = np.empty((n, 6))
+        out_side = np.empty(n, np.int8)
+        out_ok = np.empty(n, np.bool_)
+        _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
+                 ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
+                 out_f, out_side, out_ok)
+        _write(ax.axis, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
