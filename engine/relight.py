@@ -248,24 +248,24 @@ def _dedupe(dirs: np.ndarray, pos: np.ndarray, tol_rad: float):
     k = dirs.shape[0]
     keep = np.ones(k, dtype=bool)
     n_exact = n_near = 0
-    # exact duplicates by value, then near duplicates by angle (O(K^2) in blocks; K is small)
+    # exact duplicates by value (np.unique returns first occurrences)
     _, first = np.unique(pos, axis=0, return_index=True)
     exact_dup = np.ones(k, dtype=bool)
     exact_dup[first] = False
     n_exact = int(exact_dup.sum())
     keep &= ~exact_dup
-    cos_tol = math.cos(tol_rad)
+    # near duplicates: pairs within the chord of tol_rad (k-d tree), greedily in input order
+    from scipy.spatial import cKDTree
+
     idx = np.nonzero(keep)[0]
-    for a_pos, a in enumerate(idx):
-        if not keep[a]:
-            continue
-        rest = idx[a_pos + 1:]
-        rest = rest[keep[rest]]
-        if rest.size == 0:
-            continue
-        close = rest[dirs[rest] @ dirs[a] >= cos_tol]
-        keep[close] = False
-        n_near += int(close.size)
+    if tol_rad > 0 and idx.size > 1:
+        pairs = cKDTree(dirs[idx]).query_pairs(2.0 * math.sin(0.5 * tol_rad), output_type="ndarray")
+        if pairs.size:
+            pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+            for a, b in idx[pairs]:
+                if keep[a] and keep[b]:
+                    keep[b] = False
+                    n_near += 1
     return np.nonzero(keep)[0], n_exact, n_near
 
 
@@ -274,7 +274,7 @@ def _triangulate(dirs: np.ndarray, max_face_radius_deg: float | None):
     from scipy.spatial import ConvexHull, QhullError
 
     k = dirs.shape[0]
-    _, sv, vt = np.linalg.svd(dirs - dirs.mean(axis=0))
+    _, sv, vt = np.linalg.svd(dirs - dirs.mean(axis=0), full_matrices=False)
     centroid_plane = abs(float(np.mean(dirs @ vt[2])))  # distance of the best-fit plane from the centre
     if k == 3 or sv[2] < 1e-9 * max(sv[0], 1e-300):
         # all directions in one plane: the hull is flat
@@ -378,17 +378,22 @@ def _build_grid(dirs: np.ndarray, tri: np.ndarray):
     cos_tri = np.einsum("ij,ij->i", cc, a)
     ang_cell = np.arccos(np.clip(cos_cell, -1, 1))
     ang_tri = np.arccos(np.clip(cos_tri, -1, 1))
+    pad = 1e-7
+    # candidates by a k-d tree on the circumcentres (chord radius of the largest possible angle),
+    # then the exact cap-overlap test per pair: O(cells x candidates), not O(cells x triangles)
+    from scipy.spatial import cKDTree
+
+    reach = np.minimum(ang_cell + ang_tri.max() + pad, np.pi)
+    near = cKDTree(cc).query_ball_point(centres, r=2.0 * np.sin(0.5 * reach) + 1e-12)
     starts = [0]
     items: list[np.ndarray] = []
-    pad = 1e-7
-    for lo in range(0, centres.shape[0], 2048):
-        cen = centres[lo:lo + 2048]
-        ang = np.arccos(np.clip(cen @ cc.T, -1, 1))
-        hit = ang <= ang_cell[lo:lo + 2048, None] + ang_tri[None, :] + pad
-        for row in hit:
-            ids = np.nonzero(row)[0]
-            items.append(ids)
-            starts.append(starts[-1] + ids.size)
+    for ci, cand in enumerate(near):
+        cand = np.asarray(sorted(cand), dtype=np.int64)
+        if cand.size:
+            ang = np.arccos(np.clip(cc[cand] @ centres[ci], -1, 1))
+            cand = cand[ang <= ang_cell[ci] + ang_tri[cand] + pad]
+        items.append(cand)
+        starts.append(starts[-1] + cand.size)
     grid_items = np.concatenate(items).astype(np.int64) if items else np.zeros(0, np.int64)
     return n, np.asarray(starts, dtype=np.int64), grid_items
 
