@@ -107,6 +107,10 @@ def report(res: dict[str, Any], argv: str) -> str:
         return "n/a" if v is None else f"{v:,.0f} ms"
 
     return "\n".join([
+        "## Browser preview: orbit latency",
+        "",
+        "`python -m bench.preview_latency` (issue 7; loopback only, bounded).",
+        "",
         f"Measured with `python -m bench.preview_latency {argv}` ({date.today().isoformat()}, "
         f"{os.cpu_count()} cores, {platform.machine()}; headless chromium, the API, Redis and the workers share "
         "the machine).",

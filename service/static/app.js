@@ -376,6 +376,7 @@ let jobsBusy = false;
 async function pollJobs() {
   if (jobsBusy || document.hidden) return;
   jobsBusy = true;
+  const keyUsed = apiKey();
   try {
     const { data } = await api("/v1/jobs?limit=25");
     $("jobs").tBodies[0].replaceChildren(...data.items.map((j) => {
@@ -401,7 +402,7 @@ async function pollJobs() {
       return tr;
     }));
   } catch (err) {
-    if (err instanceof ApiError && err.status === 401) showError(err);
+    if (err instanceof ApiError && err.status === 401 && keyUsed === apiKey()) showError(err);
   } finally {
     jobsBusy = false;
   }

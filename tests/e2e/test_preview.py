@@ -3,6 +3,7 @@ against a live local stack: embedded Redis, real bake and render workers, uvicor
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import socket
@@ -176,3 +177,53 @@ def test_api_key_is_kept_in_session_storage_and_sent(page: Page) -> None:
     page.fill("#api-key", "")
     page.click("#key-form button[type=submit]")
     page.wait_for_function("sessionStorage.getItem('ibr.apiKey') === null")
+
+
+AUTH_KEY = "preview-test-key"
+
+
+@pytest.fixture(scope="module")
+def auth_stack() -> Iterator[Stack]:
+    """A second stack with API keys on: the page must say what is wrong, then work with the key."""
+    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS") if k in os.environ}
+    os.environ["IBR_API_KEYS"] = hashlib.sha256(AUTH_KEY.encode()).hexdigest()
+    try:
+        with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
+            st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+            try:
+                load_samples(st.api_url, api_key=AUTH_KEY, log=lambda s: None)
+                yield st
+            finally:
+                st.stop()
+    finally:
+        os.environ.pop("IBR_API_KEYS", None)
+        os.environ.update(saved)
+
+
+def test_missing_or_wrong_api_key_is_a_readable_message(auth_stack: Stack, browser: Browser) -> None:
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    pg = ctx.new_page()
+    pg.set_default_timeout(30_000)
+    try:
+        pg.goto(f"{auth_stack.api_url}/preview/?size={SIZE}")
+        err = pg.locator("#error")
+        expect(err).to_be_visible()
+        expect(err).to_contain_text("401")
+        expect(err).to_contain_text("API key")
+        assert "{" not in err.inner_text()
+        shot(pg, "07-missing-key")
+        pg.fill("#api-key", "wrong-key")
+        pg.click("#key-form button[type=submit]")
+        expect(err).to_contain_text("401")
+        pg.fill("#api-key", AUTH_KEY)
+        pg.click("#key-form button[type=submit]")
+        expect(err).to_be_hidden()
+        expect(pg.get_by_role("button", name="teapot_glossy", exact=True)).to_be_visible()
+        shot(pg, "08-with-key")
+        pg.reload()  # kept for the session
+        pg.wait_for_selector("body[data-ready=true]")
+        assert pg.input_value("#api-key") == AUTH_KEY
+        expect(pg.get_by_role("button", name="teapot_glossy", exact=True)).to_be_visible()
+        expect(err).to_be_hidden()
+    finally:
+        ctx.close()
