@@ -931,7 +931,10 @@ def _exact_indices(baked: BakedDataset, kinds, lp) -> np.ndarray | None:
         return None
     out = np.empty(kinds.size, np.int64)
     for j in range(kinds.size):
-        hit = np.nonzero(np.all(baked.light_positions == lp[j], axis=1))[0]
+        if baked.distant:  # unit directions: allow the last-bit difference of renormalising
+            hit = np.nonzero(np.all(np.abs(baked.light_positions - lp[j]) <= 1e-15, axis=1))[0]
+        else:
+            hit = np.nonzero(np.all(baked.light_positions == lp[j], axis=1))[0]
         if hit.size == 0:
             return None
         out[j] = hit[0]

@@ -396,6 +396,8 @@ def test_distant_dataset():
     k = 11
     ex = relight(b, DirectionalLight(-b.light_positions[k], 2.0))
     assert ex.exact and np.array_equal(ex.image, imgs[b.kept_from[k]])
+    ex = relight(b, DirectionalLight(-3.7 * toward[k], 2.0))  # renormalised: may differ in the last bit
+    assert ex.exact
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
@@ -438,3 +440,46 @@ def test_serial_kernel_and_threads_agree(full20):
     a = relight(b, lt).image
     assert np.array_equal(a, relight(b, lt, serial=True).image)
     assert np.array_equal(a, relight(b, lt, threads=1).image)
+
+
+# ---------------------------------------------------------------- end to end with the reference renderer
+
+
+def test_reference_rendered_dataset_with_cast_shadows():
+    """A sphere on a floor rendered by engine.reference under 53 lights on the upper cap (a partly
+    covered sphere), points from the renderer's depth map; novel light vs a ground-truth render."""
+    from engine.reference import ReferenceParams, render_reference
+    from tests.engine.scenes import mat, quad, scene, sphere_mesh
+
+    cam = CameraParams("perspective", (0, 3.0, 3.0), (0, 0.3, 0), (0, 1, 0), 24, 24, fov_y_deg=40)
+    centre = np.array([0, 0.3, 0])
+    lights = lat_long_lights(20.0, 6.0, lat_min=10.0, lat_max=90.0) + centre
+    parts = [(sphere_mesh((0, 0.5, 0), 0.5, subdivisions=3), mat(kd=(0.6, 0.6, 0.6))),
+             (quad((0, 0, 0), 3.0), mat(name="floor", kd=(0.5, 0.4, 0.3)))]
+
+    def render(pos):
+        sc = scene(parts, [dict(type="point", position=tuple(pos), intensity=(30.0, 30.0, 30.0))])
+        return render_reference(sc, cam, ReferenceParams(spp=1))
+
+    outs = [render(p) for p in lights]
+    pts, valid = points_from_depth(outs[0].depth, cam, depth_kind="distance")
+    mask = valid & outs[0].coverage
+    ds = IlluminationDataset(np.stack([o.radiance for o in outs]), lights, np.full((len(lights), 3), 30.0), pts,
+                             mask)
+    b = bake_dataset(ds, sphere_center=centre, sphere_radius=6.0, half=False)
+    assert b.report["n_uncovered_faces"] > 0
+    assert np.array_equal(relight(b, PointLight(lights[7], 30.0)).image[mask], outs[7].radiance[mask])
+    novel = centre + np.array([1.7, 3.9, 2.3])
+    gt = render(novel).radiance
+    got = relight(b, PointLight(novel, 30.0))
+    assert got.n_outside == 0 and got.n_singular == 0
+    err = rel_err(got.image, gt, mask)
+    print(f"reference scene: mean abs error / mean = {err:.4f}")
+    assert err < 0.1
+    # the cast shadow on the floor is reproduced: dark where the ground truth is dark
+    floor = mask & (np.abs(pts[..., 1]) < 1e-3)
+    lum = gt[..., 1]
+    shadow = floor & (lum < 0.2 * np.median(lum[floor]))
+    lit = floor & (lum > 0.8 * np.median(lum[floor]))
+    assert shadow.sum() >= 3
+    assert got.image[shadow, 1].mean() < 0.5 * got.image[lit, 1].mean()
