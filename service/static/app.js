@@ -13,7 +13,7 @@ const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
 
 // Instrumentation read by tests and bench/preview_latency.py.
-const perf = { inputAt: null, requests: 0, loads: 0, latencies: [], last: null };
+const perf = { inputAt: null, requests: 0, loads: 0, latencies: [], last: null, scheduled: false };
 window.__preview = perf;
 
 // ------------------------------------------------------------------ API access and errors
@@ -168,6 +168,12 @@ let lastStart = -Infinity;
 
 function viewSize() { return Number($("size").value) || 256; }
 
+function sizeViewport() {
+  const px = `${viewSize()}px`;
+  $("viewport").style.width = px;
+  $("viewport").style.height = px;
+}
+
 function requestBody() {
   const size = viewSize();
   const cam = { ...view.cam, width: size, height: size };
@@ -185,8 +191,8 @@ function changed(inputAt = performance.now()) {
   if (!view.scene) return;
   perf.inputAt = inputAt;
   if (scheduled) return;
-  scheduled = true;
-  const go = () => { scheduled = false; lastStart = performance.now(); startRender(perf.inputAt); };
+  scheduled = perf.scheduled = true;
+  const go = () => { scheduled = perf.scheduled = false; lastStart = performance.now(); startRender(perf.inputAt); };
   const gap = MIN_REQUEST_GAP_MS - (performance.now() - lastStart);
   if (gap > 0) setTimeout(go, gap); else requestAnimationFrame(go);
 }
@@ -470,7 +476,7 @@ function bindViewport() {
 function bindControls() {
   $("method").addEventListener("change", () => changed());
   $("spp").addEventListener("change", () => changed());
-  $("size").addEventListener("change", () => changed());
+  $("size").addEventListener("change", () => { sizeViewport(); changed(); });
   $("reset-camera").addEventListener("click", () => { if (view.base) { setCamera(view.base); changed(); } });
   const applyBrightness = () => {
     const v = Number($("brightness").value);
@@ -501,6 +507,7 @@ async function main() {
     $("size").value = v;
   }
   if (params.get("spp")) $("spp").value = params.get("spp");
+  sizeViewport();
   bindControls();
   bindViewport();
   const [, , scenes] = await Promise.all([loadMethods(), loadSampleCameras(), loadScenes()]);

@@ -84,6 +84,11 @@ def wait_for_load(page: Page, loads_before: int) -> dict[str, Any]:
     return page.evaluate("window.__preview.last")  # type: ignore[no-any-return]
 
 
+SETTLED = ("!window.__preview.scheduled && window.__preview.last && "
+           "window.__preview.last.seq === window.__preview.requests")
+"""No view request waiting to start, and the image shown is the latest one asked for."""
+
+
 def test_page_loads_and_lists_sample_scenes(page: Page) -> None:
     assert page.url.endswith(f"/preview/?size={SIZE}&spp=1")  # / redirects to the page
     page.wait_for_selector("body[data-ready=true]")
@@ -121,7 +126,7 @@ def test_drag_orbits_and_changes_the_image(page: Page) -> None:
     wait_for_load(page, loads)
     page.wait_for_function("window.__preview.requests > 0")
     # latest request wins: wait until the shown image is the last one asked for
-    page.wait_for_function("window.__preview.last && window.__preview.last.seq === window.__preview.requests")
+    page.wait_for_function(SETTLED)
     assert page.locator("#view").get_attribute("src") != src_before
     assert page.locator("#view").get_attribute("data-key") != key_before
     after = image_pixels(page)
@@ -138,6 +143,25 @@ def test_keyboard_zoom_requests_a_new_view(page: Page) -> None:
     wait_for_load(page, loads)
     assert page.locator("#view").get_attribute("data-key") != key_before
     shot(page, "04-zoomed")
+
+
+def test_fast_drag_and_arrow_keys_latest_view_wins(page: Page) -> None:
+    box = page.locator("#viewport").bounding_box()
+    assert box is not None
+    x, y = box["x"] + 20, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    for i in range(12):  # faster than the renders: stale requests are aborted and their jobs canceled
+        page.mouse.move(x + 6 * (i + 1), y - 2 * i)
+        page.wait_for_timeout(30)
+    page.mouse.up()
+    page.locator("#viewport").focus()
+    page.keyboard.press("ArrowLeft")
+    page.keyboard.press("ArrowUp")
+    page.wait_for_function(SETTLED, timeout=60_000)
+    expect(page.locator("#error")).to_be_hidden()
+    assert page.evaluate("document.querySelector('#view').naturalWidth") == SIZE
+    shot(page, "04b-fast-drag")
 
 
 def test_jobs_panel_shows_finished_jobs(page: Page) -> None:
