@@ -352,6 +352,7 @@ function openScene(s) {
     b.setAttribute("aria-current", String(b.dataset.sceneId === s.id));
   }
   $("scene-name").textContent = `— ${s.name}`;
+  $("reset-camera").disabled = false;
   const sample = sampleCameras[s.name];
   setCamera(sample ? { camera: sample.camera, pivot: sample.pivot } : { camera: DEFAULT_CAMERA, pivot: null });
   changed();
