@@ -623,7 +623,7 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                 else:
                     dx, dy, dz = lp[j, 0] - px, lp[j, 1] - py, lp[j, 2] - pz
                     d2 = dx * dx + dy * dy + dz * dz
-                    if d2 < min_dist2:
+                    if d2 <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
                         sing_i = True
                         continue
                     f = 1.0 / d2
@@ -873,8 +873,11 @@ def _expand_lights(lights) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
         if isinstance(spec, dict):
             spec = light_from_dict(spec)
         if isinstance(spec, PointLight):
+            pos = _vec3(f"lights[{idx}].position", spec.position)
+            if np.max(np.abs(pos)) > 1e100:  # |l - P|^2 would overflow; the limit is a directional light
+                raise InvalidInputError(f"lights[{idx}].position: farther than 1e100; use a directional light")
             kinds.append([_K_POINT])
-            lp.append(_vec3(f"lights[{idx}].position", spec.position)[None])
+            lp.append(pos[None])
             li.append(_vec3(f"lights[{idx}].intensity", spec.intensity, positive=True)[None])
             ln.append(np.zeros((1, 3)))
         elif isinstance(spec, DirectionalLight):

@@ -156,6 +156,10 @@ def test_light_at_and_near_a_surface_point(full20):
         assert np.all(np.isfinite(r.image))
         assert r.singular_mask[iy, ix] and r.n_singular == 1
         assert np.all(r.image[iy, ix] == 0)
+    r = relight(b, PointLight(p0, 1.0), min_light_distance=0.0)  # a zero cutoff still catches d = 0
+    assert np.all(np.isfinite(r.image)) and r.n_singular == 1
+    with pytest.raises(InvalidInputError, match="directional"):
+        relight(b, PointLight((1e200, 0, 0), 1.0))
     # just beyond the cutoff the value is large but finite
     r = relight(b, PointLight(p0 + np.array([0, 0, 1e-3]), 1.0))
     assert r.n_singular == 0 and np.all(np.isfinite(r.image))
