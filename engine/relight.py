@@ -402,30 +402,99 @@ def _unit_rows(v):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def _choose_dtype(stack: np.ndarray, half: bool, rel_floor: float) -> tuple[type, np.ndarray, str]:
-    """Storage dtype and per-light power-of-two scales for the (K, n, 3) stack.
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _light_stats(images, keep, pix, rel_floor, vmax, vmin):
+    """Per kept light j: max |v| and the smallest |v| > 0 that is >= rel_floor x max, over the
+    stored pixels. images (K, h*w, 3) float32."""
+    for j in nb.prange(keep.size):
+        k = keep[j]
+        m = 0.0
+        for r in range(pix.size):
+            for c in range(3):
+                m = max(m, abs(images[k, pix[r], c]))
+        vmax[j] = m
+        fl = rel_floor * m
+        mn = np.inf
+        for r in range(pix.size):
+            for c in range(3):
+                a = abs(images[k, pix[r], c])
+                if a > 0.0 and a >= fl and a < mn:
+                    mn = a
+        vmin[j] = mn
+
+
+@nb.njit(cache=True, inline="always")
+def _f32_to_f16_bits(f):
+    """float32 bits (uint32) -> float16 bits, round to nearest even (numpy's
+    ``npy_floatbits_to_halfbits``); the caller guarantees no overflow (values <= 65504)."""
+    h_sgn = np.uint16((f & np.uint32(0x80000000)) >> np.uint32(16))
+    f_exp = f & np.uint32(0x7F800000)
+    if f_exp <= np.uint32(0x38000000):
+        if f_exp < np.uint32(0x33000000):
+            return h_sgn
+        e = f_exp >> np.uint32(23)
+        f_sig = np.uint32(0x00800000) + (f & np.uint32(0x007FFFFF))
+        f_sig = f_sig >> (np.uint32(113) - e)
+        if (f_sig & np.uint32(0x3FFF)) != np.uint32(0x1000) or (f & np.uint32(0x7FF)) != np.uint32(0):
+            f_sig += np.uint32(0x1000)
+        return np.uint16(h_sgn + np.uint16(f_sig >> np.uint32(13)))
+    h_exp = np.uint16((f_exp - np.uint32(0x38000000)) >> np.uint32(13))
+    f_sig = f & np.uint32(0x007FFFFF)
+    if (f_sig & np.uint32(0x3FFF)) != np.uint32(0x1000):
+        f_sig += np.uint32(0x1000)
+    return np.uint16(h_sgn + np.uint16(np.uint16(f_sig >> np.uint32(13)) + h_exp))
+
+
+_BLOCK = 2048
+
+
+def _gather_kernel(images, keep, pix, scale, out, out16, half):
+    """Pixel-major store: row r, light j = images[keep[j], pix[r], :] x scale[j], written as float32
+    (``out``) or as float16 bits (``out16``). Blocks of pixels keep the reads contiguous per light
+    and the writes inside one L2-sized block."""
+    n = pix.size
+    for bi in nb.prange((n + _BLOCK - 1) // _BLOCK):
+        r0 = bi * _BLOCK
+        r1 = min(n, r0 + _BLOCK)
+        for j in range(keep.size):
+            k = keep[j]
+            s = np.float32(scale[j])
+            for r in range(r0, r1):
+                p = pix[r]
+                for c in range(3):
+                    v = np.float32(images[k, p, c] * s)
+                    if half:
+                        out16[r, j, c] = _f32_to_f16_bits(np.uint32(v.view(np.uint32)))
+                    else:
+                        out[r, j, c] = v
+
+
+_gather_pixel_major = nb.njit(cache=True, parallel=True, nogil=True)(_gather_kernel)
+
+
+def _choose_dtype(vmax: np.ndarray, vmin: np.ndarray, half: bool, rel_floor: float
+                  ) -> tuple[type, np.ndarray, str]:
+    """Storage dtype and per-light power-of-two scales from per-light statistics.
 
     float16 is used when, after scaling light k by ``2^e_k`` (max near 2^15; a power of two,
     so the scaling is exact and reversible), no value overflows and no value that matters
     (``|v| >= rel_floor x`` that light's max) falls below float16's smallest normal.
     """
-    k = stack.shape[0]
+    k = vmax.shape[0]
     ones = np.ones(k)
     if not half:
         return np.float32, ones, "float32 requested"
-    vmax = np.max(np.abs(stack.reshape(k, -1)), axis=1) if stack.size else np.zeros(k)
     if not np.all(np.isfinite(vmax)):
         return np.float32, ones, "float32: non-finite values"
     scale = np.where(vmax > 0, np.exp2(np.floor(np.log2(32768.0 / np.where(vmax > 0, vmax, 1.0)))), 1.0)
-    for j in range(k):
-        a = np.abs(stack[j])
-        if vmax[j] * scale[j] > HALF_MAX:
-            return np.float32, ones, f"float32: light {j} overflows float16 even after scaling"
-        small = (a > 0) & (a >= rel_floor * vmax[j]) & (a * scale[j] < HALF_MIN_NORMAL)
-        if np.any(small):
-            return np.float32, ones, (f"float32: light {j} has values down to {float(a[small].min()):.3g} "
-                                      f"(>= {rel_floor:g} x its max {vmax[j]:.3g}) that float16 would not keep "
-                                      "to 2^-11 relative precision")
+    if np.any(vmax * scale > HALF_MAX):
+        return np.float32, ones, "float32: a light overflows float16 even after scaling"
+    small = np.isfinite(vmin) & (vmin * scale < HALF_MIN_NORMAL)
+    if np.any(small):
+        j = int(np.nonzero(small)[0][0])
+        return np.float32, ones, (f"float32: light {j} has values down to {float(vmin[j]):.3g} "
+                                  f"(>= {rel_floor:g} x its max {vmax[j]:.3g}) that float16 would not keep "
+                                  "to 2^-11 relative precision")
     return np.float16, scale, (f"float16 with per-light power-of-two scales (every value >= {rel_floor:g} x its "
                                "light's max kept to 2^-11 relative precision)")
 
@@ -451,6 +520,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         raise InvalidInputError(f"layout must be one of {LAYOUTS}, got {layout!r} (tiled layouts are not built)")
     if not (dedupe_tol_deg >= 0 and math.isfinite(dedupe_tol_deg)):
         raise InvalidInputError("dedupe_tol_deg must be finite and >= 0")
+    if not (0 <= half_rel_floor < 1):
+        raise InvalidInputError("half_rel_floor must be in [0, 1)")
     t0 = time.perf_counter()
     h, w = ds.shape
     m = ds.mask.ravel()
@@ -499,11 +570,17 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     report["grid_n"] = grid_n
     report["grid_mean_candidates"] = float(grid_items.size / max(grid_start.size - 1, 1))
     t1 = time.perf_counter()
-    stack = ds.images[keep].reshape(keep.size, h * w, 3)[:, pix, :]  # (K', n, 3)
-    dt, scale, why = _choose_dtype(stack, half, half_rel_floor)
-    if dt is np.float16:
-        stack = stack * scale[:, None, None].astype(np.float32)
-    store = np.ascontiguousarray(np.transpose(stack, (1, 0, 2))).astype(dt, copy=False)
+    flat = ds.images.reshape(ds.images.shape[0], h * w, 3)
+    vmax = np.empty(keep.size)
+    vmin = np.empty(keep.size)
+    _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin)
+    dt, scale, why = _choose_dtype(vmax, vmin, half, half_rel_floor)
+    is_half = dt is np.float16
+    store = np.empty((pix.size, keep.size, 3), np.float16 if is_half else np.float32)
+    dummy32 = np.empty((1, 1, 3), np.float32)
+    dummy16 = np.empty((1, 1, 3), np.uint16)
+    _gather_pixel_major(flat, keep, pix, scale, dummy32 if is_half else store,
+                        store.view(np.uint16) if is_half else dummy16, is_half)
     report.update(dtype=np.dtype(dt).name, dtype_reason=why, layout=layout,
                   store_bytes=int(store.nbytes), compression="none")
     report["time_triangulate_s"] = t1 - t0

@@ -487,3 +487,17 @@ def test_reference_rendered_dataset_with_cast_shadows():
     lit = floor & (lum > 0.8 * np.median(lum[floor]))
     assert shadow.sum() >= 3
     assert got.image[shadow, 1].mean() < 0.5 * got.image[lit, 1].mean()
+
+
+def test_store_layout_and_half_rounding_match_numpy():
+    ds, pts, mask = make_ds(30.0, h=16)
+    imgs = ds.images * np.float32(3.7)
+    imgs[:, mask] += np.random.default_rng(4).random(imgs[:, mask].shape).astype(np.float32) * 1e-3
+    ds = IlluminationDataset(imgs, ds.light_positions, ds.intensities, pts, mask)
+    b = bake_dataset(ds, sphere_center=[0, 0, 0], half=True)
+    assert b.report["dtype"] == "float16" and b.report["layout"] == "pixel_major"
+    flat = imgs.reshape(len(imgs), -1, 3)[b.kept_from][:, b.pixel_index]  # (K, n, 3)
+    want = (flat * b.store_scale[:, None, None].astype(np.float32)).astype(np.float16).transpose(1, 0, 2)
+    assert np.array_equal(b.store.view(np.uint16), want.view(np.uint16))
+    b32 = bake_dataset(ds, sphere_center=[0, 0, 0], half=False)
+    assert np.array_equal(b32.store, flat.transpose(1, 0, 2))
