@@ -520,6 +520,9 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         raise InvalidInputError(f"layout must be one of {LAYOUTS}, got {layout!r} (tiled layouts are not built)")
     if not (dedupe_tol_deg >= 0 and math.isfinite(dedupe_tol_deg)):
         raise InvalidInputError("dedupe_tol_deg must be finite and >= 0")
+    if max_face_radius_deg is not None and not (0 < max_face_radius_deg <= 89.0):
+        # the cone test and the cube-map caps need every covered face's circumcap < 90 deg
+        raise InvalidInputError("max_face_radius_deg must be in (0, 89]")
     if not (0 <= half_rel_floor < 1):
         raise InvalidInputError("half_rel_floor must be in [0, 1)")
     t0 = time.perf_counter()

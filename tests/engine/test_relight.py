@@ -179,6 +179,16 @@ def test_directions_outside_coverage_are_masked_and_counted(hemi):
     assert np.all(side.image[side.outside_mask & (side.image[..., 0] > 0)] >= 0)
 
 
+def test_coverage_threshold_parameter(hemi):
+    ds, b, pts, mask = hemi
+    strict = bake_dataset(ds, sphere_center=[0, 0, 0], max_face_radius_deg=89.0)
+    assert strict.report["n_uncovered_faces"] == b.report["n_uncovered_faces"]  # cover faces are at 90 deg
+    assert relight(strict, PointLight((0.0, -4.0, 0.5), 1.0)).n_outside == int(mask.sum())
+    for bad in (0.0, 90.0, 120.0):
+        with pytest.raises(InvalidInputError, match="max_face_radius_deg"):
+            bake_dataset(ds, sphere_center=[0, 0, 0], max_face_radius_deg=bad)
+
+
 def test_upper_front_quarter_coverage():
     ds, pts, mask = make_ds(10.0, lat_min=0.0, lat_max=80.0, lon_min=0.0, lon_max=180.0)
     b = bake_dataset(ds, sphere_center=[0, 0, 0])
