@@ -36,7 +36,9 @@ from .scene import CameraParams
 
 HALF_MAX = 65504.0
 HALF_MIN_NORMAL = 6.103515625e-05
-LAYOUTS = ("pixel_major",)
+LAYOUTS = ("pixel_major", "tiled")
+TILE = 256  # pixels per tile of the "tiled" layout (a power of two: the kernel shifts and masks)
+_TILE_SHIFT = 8
 
 # light kinds inside the kernel
 _K_POINT, _K_DIRECTIONAL, _K_ORIENTED, _K_TWO_SIDED = 0, 1, 2, 3
@@ -203,8 +205,10 @@ def points_from_depth(depth, camera: CameraParams | None = None, *, depth_kind: 
 class BakedDataset:
     """A dataset ready for relighting. Arrays are read-only in spirit; do not mutate.
 
-    store: (n_valid, K', 3) float16 or float32, pixel-major: row r holds the K' kept
-        lights' values of pixel ``pixel_index[r]``.
+    store: float16 or float32; ``layout="pixel_major"``: (n_valid, K', 3), row r holds the K'
+        kept lights' values of pixel ``pixel_index[r]``; ``layout="tiled"``: (ceil(n_valid / TILE),
+        K', TILE, 3), each tile of TILE consecutive rows stored light-major (the last tile padded
+        with zeros). Use :meth:`light_values` rather than indexing it directly.
     pixel_index: (n_valid,) int64 flat (row-major) pixel index of each store row.
     points: (n_valid, 3) float64 surface points.
     light_positions (K', 3), intensities (K', 3): the kept (deduplicated) lights;
@@ -237,6 +241,17 @@ class BakedDataset:
     grid_start: np.ndarray
     grid_items: np.ndarray
     report: dict = field(default_factory=dict)
+
+    @property
+    def layout(self) -> str:
+        return "tiled" if self.store.ndim == 4 else "pixel_major"
+
+    def light_values(self, k: int) -> np.ndarray:
+        """(n_valid, 3) float32 stored values of kept light k, unscaled (as in the input)."""
+        v = self.store[:, k].reshape(-1, 3)[: self.pixel_index.size].astype(np.float32)
+        if self.store_scale[k] != 1.0:
+            v /= np.float32(self.store_scale[k])  # a power of two: exact
+        return v
 
     @property
     def nbytes(self) -> int:
@@ -464,9 +479,9 @@ def _gather_kernel(images, keep, pix, scale, out, out16, half):
                 for c in range(3):
                     v = np.float32(images[k, p, c] * s)
                     if half:
-                        out16[r, j, c] = _f32_to_f16_bits(np.uint32(v.view(np.uint32)))
+                        _put(out16, r, j, c, _f32_to_f16_bits(np.uint32(v.view(np.uint32))))
                     else:
-                        out[r, j, c] = v
+                        _put(out, r, j, c, v)
 
 
 _gather_pixel_major = nb.njit(cache=True, parallel=True, nogil=True)(_gather_kernel)
@@ -517,7 +532,7 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     if not isinstance(ds, IlluminationDataset):
         raise InvalidInputError("bake_dataset: expected an IlluminationDataset")
     if layout not in LAYOUTS:
-        raise InvalidInputError(f"layout must be one of {LAYOUTS}, got {layout!r} (tiled layouts are not built)")
+        raise InvalidInputError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     if not (dedupe_tol_deg >= 0 and math.isfinite(dedupe_tol_deg)):
         raise InvalidInputError("dedupe_tol_deg must be finite and >= 0")
     if max_face_radius_deg is not None and not (0 < max_face_radius_deg <= 89.0):
@@ -579,9 +594,13 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin)
     dt, scale, why = _choose_dtype(vmax, vmin, half, half_rel_floor)
     is_half = dt is np.float16
-    store = np.empty((pix.size, keep.size, 3), np.float16 if is_half else np.float32)
-    dummy32 = np.empty((1, 1, 3), np.float32)
-    dummy16 = np.empty((1, 1, 3), np.uint16)
+    if layout == "tiled":
+        n_tiles = (pix.size + TILE - 1) // TILE
+        store = np.zeros((n_tiles, keep.size, TILE, 3), np.float16 if is_half else np.float32)
+    else:
+        store = np.empty((pix.size, keep.size, 3), np.float16 if is_half else np.float32)
+    dummy32 = np.empty((1,) * (store.ndim - 1) + (3,), np.float32)
+    dummy16 = np.empty((1,) * (store.ndim - 1) + (3,), np.uint16)
     _gather_pixel_major(flat, keep, pix, scale, dummy32 if is_half else store,
                         store.view(np.uint16) if is_half else dummy16, is_half)
     report.update(dtype=np.dtype(dt).name, dtype_reason=why, layout=layout,
@@ -612,9 +631,29 @@ def _fetch(store, lut, i, k, c):  # pragma: no cover - replaced by the overload 
 
 @overload(_fetch, inline="always")
 def _fetch_impl(store, lut, i, k, c):
+    if store.ndim == 4:  # tiled: (tile, light, row in tile, channel)
+        if store.dtype == nbtypes.uint16:
+            return lambda store, lut, i, k, c: lut[store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]]
+        return lambda store, lut, i, k, c: store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]
     if store.dtype == nbtypes.uint16:
         return lambda store, lut, i, k, c: lut[store[i, k, c]]
     return lambda store, lut, i, k, c: store[i, k, c]
+
+
+def _put(out, r, j, c, v):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_put, inline="always")
+def _put_impl(out, r, j, c, v):
+    if out.ndim == 4:
+        def put4(out, r, j, c, v):
+            out[r >> _TILE_SHIFT, j, r & (TILE - 1), c] = v
+        return put4
+
+    def put3(out, r, j, c, v):
+        out[r, j, c] = v
+    return put3
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -674,7 +713,8 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                     grid_items, kinds, lp, lint, lnorm, min_dist2, out, outside, singular):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
-    points (n, 3) f64; store (n, K, 3) f16/f32; lpos (K, 3); inv_int (K, 3) = 1 / dataset
+    points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16);
+    lpos (K, 3); inv_int (K, 3) = 1 / dataset
     intensity; kinds (M,) int64; lp (M, 3) light position or direction toward the light;
     lint (M, 3) intensity (point, oriented) or irradiance (directional); lnorm (M, 3)
     emitter normal (oriented). out (n, 3) f32; outside / singular (n,) bool.
@@ -732,22 +772,27 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                     out_i = True
                     continue
                 last[j] = tri
-                v0 = 0.0
-                v1 = 0.0
-                v2 = 0.0
-                for q in range(3):
-                    k = tris[tri, q]
-                    wq = w0 if q == 0 else (w1 if q == 1 else w2)
-                    if wq == 0.0:
-                        continue
-                    if distant_ds:
-                        fk = wq
-                    else:
-                        ex, ey, ez = lpos[k, 0] - px, lpos[k, 1] - py, lpos[k, 2] - pz
-                        fk = wq * (ex * ex + ey * ey + ez * ez)
-                    v0 += fk * inv_int[k, 0] * _fetch(store, lut, i, k, 0)
-                    v1 += fk * inv_int[k, 1] * _fetch(store, lut, i, k, 1)
-                    v2 += fk * inv_int[k, 2] * _fetch(store, lut, i, k, 2)
+                ka = tris[tri, 0]
+                kb = tris[tri, 1]
+                kc = tris[tri, 2]
+                if distant_ds:
+                    fa, fb, fc = w0, w1, w2
+                else:
+                    ex, ey, ez = lpos[ka, 0] - px, lpos[ka, 1] - py, lpos[ka, 2] - pz
+                    fa = w0 * (ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = lpos[kb, 0] - px, lpos[kb, 1] - py, lpos[kb, 2] - pz
+                    fb = w1 * (ex * ex + ey * ey + ez * ez)
+                    ex, ey, ez = lpos[kc, 0] - px, lpos[kc, 1] - py, lpos[kc, 2] - pz
+                    fc = w2 * (ex * ex + ey * ey + ez * ez)
+                v0 = (fa * inv_int[ka, 0] * _fetch(store, lut, i, ka, 0)
+                      + fb * inv_int[kb, 0] * _fetch(store, lut, i, kb, 0)
+                      + fc * inv_int[kc, 0] * _fetch(store, lut, i, kc, 0))
+                v1 = (fa * inv_int[ka, 1] * _fetch(store, lut, i, ka, 1)
+                      + fb * inv_int[kb, 1] * _fetch(store, lut, i, kb, 1)
+                      + fc * inv_int[kc, 1] * _fetch(store, lut, i, kc, 1))
+                v2 = (fa * inv_int[ka, 2] * _fetch(store, lut, i, ka, 2)
+                      + fb * inv_int[kb, 2] * _fetch(store, lut, i, kb, 2)
+                      + fc * inv_int[kc, 2] * _fetch(store, lut, i, kc, 2))
                 acc0 += v0 * g0
                 acc1 += v1 * g1
                 acc2 += v2 * g2
@@ -1059,9 +1104,7 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         rows = np.zeros((n, 3), np.float32)
         for j, k in enumerate(exact):
             ratio = (li[j] / baked.intensities[k]).astype(np.float32)
-            v = baked.store[:, k, :].astype(np.float32)
-            if baked.store_scale[k] != 1.0:
-                v = v / np.float32(baked.store_scale[k])  # a power of two: exact
+            v = baked.light_values(k)
             rows += v if np.all(ratio == 1.0) else v * ratio
         img[baked.pixel_index] = rows
         timings["kernel_s"] = time.perf_counter() - t1

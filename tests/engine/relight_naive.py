@@ -76,7 +76,7 @@ def naive_relight(baked, point_lights=(), toward_lights=()):
     h, w = baked.shape
     out = np.zeros((h * w, 3))
     outside = np.zeros(h * w, bool)
-    store = baked.store.astype(np.float64) / baked.store_scale[None, :, None]
+    store = np.stack([baked.light_values(k) for k in range(len(baked.light_positions))], axis=1).astype(np.float64)
     c, r = baked.sphere_center, baked.sphere_radius
     lights = [(np.asarray(p, float), np.asarray(i, float), False) for p, i in point_lights]
     lights += [(np.asarray(d, float) / np.linalg.norm(d), np.asarray(e, float), True) for d, e in toward_lights]

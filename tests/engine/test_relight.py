@@ -103,10 +103,12 @@ def test_superposition_is_linear(full20):
     np.testing.assert_allclose(double, 2 * relight(b, a).image, rtol=1e-6)
 
 
-def test_kernel_matches_naive_reference(full20):
+@pytest.mark.parametrize("layout", ["pixel_major", "tiled"])
+def test_kernel_matches_naive_reference(full20, layout):
     ds, _, _, _ = full20
     small, pts, mask = make_ds(20.0, h=12)
-    b = bake_dataset(small, sphere_center=[0, 0, 0], half=False)
+    b = bake_dataset(small, sphere_center=[0, 0, 0], half=False, layout=layout)
+    assert b.layout == layout
     pl = [((1.0, 2.0, 3.5), (1.0, 0.5, 2.0)), ((0.3, -0.2, 1.8), (1.0, 1.0, 1.0)),
           ((400.0, 30.0, -20.0), (1e4, 1e4, 1e4)), (tuple(ds.light_positions[5]), (1.0, 1.0, 1.0))]
     tl = [((0.1, 0.9, 0.4), (0.5, 0.5, 0.5))]
@@ -330,7 +332,7 @@ def test_validation_names_the_field():
     with pytest.raises(InvalidInputError, match="does not enclose"):
         bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=0.5)
     with pytest.raises(InvalidInputError, match="layout"):
-        bake_dataset(ds, layout="tiled")
+        bake_dataset(ds, layout="tiles")
     with pytest.raises(InvalidInputError, match="light type"):
         light_from_dict({"type": "spot"})
 
@@ -511,3 +513,17 @@ def test_store_layout_and_half_rounding_match_numpy():
     assert np.array_equal(b.store.view(np.uint16), want.view(np.uint16))
     b32 = bake_dataset(ds, sphere_center=[0, 0, 0], half=False)
     assert np.array_equal(b32.store, flat.transpose(1, 0, 2))
+
+
+@pytest.mark.parametrize("half", [True, False])
+def test_tiled_layout_equals_pixel_major(full20, half):
+    ds, _, _, mask = full20
+    bp = bake_dataset(ds, sphere_center=[0, 0, 0], half=half)
+    bt = bake_dataset(ds, sphere_center=[0, 0, 0], half=half, layout="tiled")
+    assert bt.store.shape[2] == 256 and bt.store.shape[0] == -(-int(mask.sum()) // 256)
+    for k in (0, 5, len(bp.light_positions) - 1):
+        assert np.array_equal(bt.light_values(k), bp.light_values(k))
+    lights = [PointLight((1.0, 2.0, 3.5), 1.0), DirectionalLight((0.3, -0.2, -1.0), 0.5)]
+    assert np.array_equal(relight(bt, lights).image, relight(bp, lights).image)
+    assert np.array_equal(relight(bt, PointLight(ds.light_positions[4], 1.0)).image,
+                          relight(bp, PointLight(ds.light_positions[4], 1.0)).image)
