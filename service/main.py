@@ -24,7 +24,7 @@ from service.core.logging import RequestContextMiddleware, configure_logging
 from service.core.metrics import MetricsMiddleware, ServiceMetrics
 from service.core.security import KeyRing, RateLimiter
 from workers.queues import redis_from_url
-from workers.store import ObjectStore, open_store
+from workers.store import ObjectStore, open_configured_store
 
 __all__ = ["create_app"]
 
@@ -42,16 +42,7 @@ TAGS = [
 
 
 def _open_store(settings: Settings) -> ObjectStore:
-    url = settings.effective_store_url
-    if url.startswith("s3://"):
-        return open_store(
-            url,
-            endpoint_url=settings.s3_endpoint_url,
-            region=settings.s3_region,
-            access_key=settings.s3_access_key,
-            secret_key=settings.s3_secret_key.get_secret_value() if settings.s3_secret_key else None,
-        )
-    return open_store(url)
+    return open_configured_store(settings)
 
 
 def create_app(

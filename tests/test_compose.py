@@ -1,5 +1,6 @@
 """docker-compose.yml is checked by docker-compose itself (no Docker engine here to run it)."""
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -9,7 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.skipif(shutil.which("docker-compose") is None, reason=".ci/run installs docker-compose")
+@pytest.mark.skipif(not os.environ.get("CI") and shutil.which("docker-compose") is None,
+                    reason=".ci/run installs docker-compose (under CI a missing one fails)")
 def test_compose_file_is_valid():
     r = subprocess.run(["docker-compose", "-f", str(ROOT / "docker-compose.yml"), "config", "-q"],
                        capture_output=True, text=True, timeout=120)

@@ -20,7 +20,7 @@ from urllib.parse import urlsplit
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from workers.store import ObjectStore, open_store
+from workers.store import ObjectStore, open_configured_store
 
 __all__ = ["WorkerSettings", "get_settings", "open_worker_store", "reset_settings_cache"]
 
@@ -115,14 +115,4 @@ def reset_settings_cache() -> None:
 
 def open_worker_store(settings: WorkerSettings | None = None) -> ObjectStore:
     """The object store named by the worker's settings (never by a job payload)."""
-    s = settings or get_settings()
-    url = s.effective_store_url
-    if url.startswith("s3://"):
-        return open_store(
-            url,
-            endpoint_url=s.s3_endpoint_url,
-            region=s.s3_region,
-            access_key=s.s3_access_key,
-            secret_key=s.s3_secret_key.get_secret_value() if s.s3_secret_key else None,
-        )
-    return open_store(url)
+    return open_configured_store(settings or get_settings())

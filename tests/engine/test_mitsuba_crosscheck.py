@@ -17,6 +17,7 @@ Cornell box at this size. The whole file takes about a minute on 2 cores.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -32,8 +33,9 @@ from workers.scene_loader import load_scene  # noqa: E402
 
 _NEEDED = (mb.CBOX_XML, mb.DIRECTIONAL_XML, mb.DIRECTIONAL_REF)
 _root = mb.shared_data_dir()
+# Skipped only off CI: .ci/run runs beside ../shared, so there a missing folder must fail.
 pytestmark = pytest.mark.skipif(
-    _root is None or not all((_root / p).is_file() for p in _NEEDED),
+    not os.environ.get("CI") and (_root is None or not all((_root / p).is_file() for p in _NEEDED)),
     reason="../shared/data (or $IBR_SHARED_DATA) with the Mitsuba scenes is not available",
 )
 

@@ -9,7 +9,7 @@ endpoint_url=..., access_key=..., ...)`` -> :class:`S3Store`. What lives under w
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import unquote, urlsplit
 
 from workers.store.base import (
@@ -40,6 +40,7 @@ __all__ = [
     "StoreError",
     "StoreUnavailable",
     "is_valid_key",
+    "open_configured_store",
     "open_store",
     "validate_key",
     "validate_prefix",
@@ -86,3 +87,30 @@ def open_store(url: str, **s3_kwargs: Any) -> ObjectStore:
 
         return S3Store(parts.netloc, prefix=unquote(parts.path).strip("/"), **s3_kwargs)
     raise ValueError(f"unsupported store URL scheme {parts.scheme!r} in {url!r} (use file:// or s3://)")
+
+
+class _SecretLike(Protocol):
+    def get_secret_value(self) -> str: ...
+
+
+class StoreSettings(Protocol):
+    """What the API's ``Settings`` and the workers' ``WorkerSettings`` both carry."""
+
+    @property
+    def effective_store_url(self) -> str: ...
+    @property
+    def s3_endpoint_url(self) -> str | None: ...
+    @property
+    def s3_region(self) -> str | None: ...
+    @property
+    def s3_access_key(self) -> str | None: ...
+    @property
+    def s3_secret_key(self) -> _SecretLike | None: ...
+
+
+def open_configured_store(settings: StoreSettings) -> ObjectStore:
+    """The store a process's settings name (the S3 fields are ignored for a local store)."""
+    secret = settings.s3_secret_key
+    return open_store(settings.effective_store_url, endpoint_url=settings.s3_endpoint_url,
+                      region=settings.s3_region, access_key=settings.s3_access_key,
+                      secret_key=secret.get_secret_value() if secret is not None else None)
