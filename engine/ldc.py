@@ -32,7 +32,8 @@ import numpy as np
 from .effects import EffectPlan, analyze
 from .errors import InvalidInputError
 from .ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
-from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster
+from .lights import light_sample
+from .raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
 from .rng import stream_key, uniform
 from .scene import RuntimeScene
 
@@ -114,23 +115,17 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             state[row] = 0
             side_out[row] = 0
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-            # light position / direction from the point (sign of the side fixed below)
-            if j < npt:
-                lx, ly, lz = pt_pos[j, 0] - px, pt_pos[j, 1] - py, pt_pos[j, 2] - pz
-                li = j
-            elif j < npt + ndir:
-                q = j - npt
-                lx, ly, lz = -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2]
-                li = j
-            else:
-                q = (j - npt - ndir) // gg
-                s = (j - npt - ndir) % gg
-                sx = (s % r_g + uniform(stream, row0 + row, 0)) / r_g
-                sy = (s // r_g + uniform(stream, row0 + row, 1)) / r_g
-                lx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0] - px
-                ly = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1] - py
-                lz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2] - pz
-                li = npt + ndir + q
+            su = sv = 0.0
+            li = j
+            if j >= npt + ndir:  # rect-light jitter from the counter-based stream
+                su = uniform(stream, row0 + row, 0)
+                sv = uniform(stream, row0 + row, 1)
+                li = npt + ndir + (j - npt - ndir) // gg
+            # the side the light is on, seen from the point itself
+            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, px, py, pz, 0.0, su, sv, pt_pos, pt_int, dir_dir,
+                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if not ok:
+                continue
             g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
             side = 0
             if g0 * lx + g1 * ly + g2 * lz < 0.0:
@@ -142,39 +137,10 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             if s0 * g0 + s1 * g1 + s2 * g2 <= 0.0:
                 s0, s1, s2 = g0, g1, g2
             ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
-            if j < npt:
-                lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                if dist <= 0.0:
-                    continue
-                lx /= dist
-                ly /= dist
-                lz /= dist
-                inv_d2 = 1.0 / (dist * dist)
-                e0, e1, e2 = pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2, pt_int[j, 2] * inv_d2
-                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
-            elif j < npt + ndir:
-                q = j - npt
-                e0, e1, e2 = dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2]
-                tmax = 3.0e38
-            else:
-                q = (j - npt - ndir) // gg
-                lx, ly, lz = lx + px - ox, ly + py - oy, lz + pz - oz
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                area = r_area[q]
-                if dist <= 0.0 or area <= 0.0:
-                    continue
-                lx /= dist
-                ly /= dist
-                lz /= dist
-                cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
-                if r2s[q]:
-                    cos_l = abs(cos_l)
-                if cos_l <= 0.0:
-                    continue
-                geo = cos_l * area / (dist * dist * gg)
-                e0, e1, e2 = rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo
-                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
+                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if not ok:
+                continue
             cos_g = g0 * lx + g1 * ly + g2 * lz
             if cos_g <= 0.0 or tmax <= 0.0:
                 continue

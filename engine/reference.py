@@ -40,7 +40,8 @@ import numpy as np
 
 from .camera import camera_rays, pixel_centers
 from .errors import InvalidInputError, NonFiniteOutputError
-from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
+from .lights import light_sample
+from .raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
 from .rng import stream_key, uniform
 from .scene import CameraParams, RuntimeScene
 
@@ -244,48 +245,14 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
             row = base + j
             alive[row] = False
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-            # direction to the light, distance, irradiance at the point (before BRDF)
-            if j < npt:
-                lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                if dist <= 0.0:
-                    continue
-                lx /= dist
-                ly /= dist
-                lz /= dist
-                inv_d2 = 1.0 / (dist * dist)
-                e0, e1, e2 = pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2, pt_int[j, 2] * inv_d2
-                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
-            elif j < npt + ndir:
-                q = j - npt
-                lx, ly, lz = -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2]
-                e0, e1, e2 = dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2]
-                tmax = 3.0e38
-            else:
-                q = (j - npt - ndir) // gg
-                s = (j - npt - ndir) % gg
-                sx = (s % r_g + uniform(stream, row0 + row, 0)) / r_g
-                sy = (s // r_g + uniform(stream, row0 + row, 1)) / r_g
-                yx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0]
-                yy = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1]
-                yz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2]
-                lx, ly, lz = yx - ox, yy - oy, yz - oz
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                area = r_area[q]
-                if dist <= 0.0 or area <= 0.0:
-                    continue
-                inv = 1.0 / dist
-                lx *= inv
-                ly *= inv
-                lz *= inv
-                cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
-                if r2s[q]:
-                    cos_l = abs(cos_l)
-                if cos_l <= 0.0:
-                    continue
-                geo = cos_l * area / (dist * dist * gg)
-                e0, e1, e2 = rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo
-                tmax = dist * (1.0 - SHADOW_SHORTEN) - mag
+            su = sv = 0.0
+            if j >= npt + ndir:  # rect-light jitter from the counter-based stream
+                su = uniform(stream, row0 + row, 0)
+                sv = uniform(stream, row0 + row, 1)
+            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
+                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if not ok:
+                continue
             cos_g = _dot(g0, g1, g2, lx, ly, lz)
             cos_s = _dot(n0, n1, n2, lx, ly, lz)
             if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:

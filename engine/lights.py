@@ -1,0 +1,66 @@
+"""Light sampling shared by every kernel that shades with the scene's lights.
+
+One row index ``j`` per light sample, in the engine's fixed light order: point lights,
+directional lights, then rectangular lights x ``r_g * r_g`` jittered samples
+(docs/reference-renderer.md). Used by the reference renderer and the LDC bake so both
+shade with exactly the same light model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+from .raycast import SHADOW_SHORTEN
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL,
+                 r2s, r_g):
+    """Light sample ``j`` seen from the origin o (a surface point moved off its surface by ``mag``).
+
+    su, sv: the jitter in [0, 1) of a rect-light sample (ignored for other lights);
+    r_n, r_area: unit normal and area of each rect light.
+    Returns (ok, lx, ly, lz, e0, e1, e2, tmax): the unit direction to the light, the
+    irradiance it delivers on a surface facing it (before the receiver's cosine) and the
+    shadow ray's length, stopping short of the light; ok is False when the sample cannot
+    light o (zero distance, or o behind a one-sided rect light).
+    """
+    npt = pt_pos.shape[0]
+    ndir = dir_dir.shape[0]
+    if j < npt:
+        lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
+        dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+        if dist <= 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        inv_d2 = 1.0 / (dist * dist)
+        return (True, lx / dist, ly / dist, lz / dist, pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2,
+                pt_int[j, 2] * inv_d2, dist * (1.0 - SHADOW_SHORTEN) - mag)
+    if j < npt + ndir:
+        q = j - npt
+        return (True, -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2], dir_irr[q, 0], dir_irr[q, 1],
+                dir_irr[q, 2], 3.0e38)
+    gg = r_g * r_g
+    q = (j - npt - ndir) // gg
+    s = (j - npt - ndir) % gg
+    sx = (s % r_g + su) / r_g
+    sy = (s // r_g + sv) / r_g
+    lx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0] - ox
+    ly = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1] - oy
+    lz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2] - oz
+    dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+    area = r_area[q]
+    if dist <= 0.0 or area <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inv = 1.0 / dist
+    lx *= inv
+    ly *= inv
+    lz *= inv
+    cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
+    if r2s[q]:
+        cos_l = abs(cos_l)
+    if cos_l <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    geo = cos_l * area / (dist * dist * gg)
+    return True, lx, ly, lz, rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo, dist * (1.0 - SHADOW_SHORTEN) - mag
