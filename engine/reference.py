@@ -33,7 +33,7 @@ import time
 import types
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numba as nb
 import numpy as np
@@ -624,6 +624,52 @@ class ReferenceRenderer:
                     f.cancel()
                 raise
 
+    def shade_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions: np.ndarray,
+                   params: ReferenceParams | None = None, *, stream_id: int = 0, chunk: int = 1 << 15,
+                   progress: Callable[[float], None] | None = None) -> np.ndarray:
+        """Radiance (n, 3) float64 leaving given surface hits toward ``-directions``.
+
+        Each hit (triangle ``prim`` int32, barycentrics ``u``, ``v`` float32) is treated as the
+        first intersection of a camera ray travelling along ``directions`` (n, 3) unit float64,
+        and shaded exactly as the renderer shades a camera hit: emission + kd ambient, direct
+        light with shadow rays (diffuse + Phong highlights), mirror / glossy recursion up to
+        ``max_depth`` and indirect paths when ``indirect_samples`` > 0 (``spp`` is ignored: one
+        chain per hit). Surfaces are two-sided: the side the ray arrives on is shaded.
+        Deterministic for a given (seed, stream_id); hits are processed ``chunk`` at a time."""
+        params = replace(params or ReferenceParams(), spp=1)
+        prim = np.ascontiguousarray(prim, dtype=np.int32).reshape(-1)
+        n = prim.shape[0]
+        u = np.ascontiguousarray(u, dtype=np.float32).reshape(-1)
+        v = np.ascontiguousarray(v, dtype=np.float32).reshape(-1)
+        d_all = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+        if u.shape[0] != n or v.shape[0] != n or d_all.shape[0] != n:
+            raise InvalidInputError("shade_hits: prim, u, v and directions must have the same length")
+        if n and (prim.min() < 0 or prim.max() >= self.scene.n_triangles):
+            raise InvalidInputError("shade_hits: prim holds triangle ids outside the scene")
+        if not np.all(np.isfinite(d_all)):
+            raise InvalidInputError("shade_hits: directions must be finite")
+        acc = np.zeros((n, 3))
+        timer = _Timer()
+        counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
+        chunk = max(1, int(chunk))
+        n_chunks = -(-n // chunk)
+        for ci in range(n_chunks):
+            sl = slice(ci * chunk, min(n, (ci + 1) * chunk))
+            k = sl.stop - sl.start
+            d = np.ascontiguousarray(d_all[sl])
+            o32 = np.zeros((k, 3), np.float32)  # never cast: the first hit is given
+            pix = np.arange(sl.start, sl.stop, dtype=np.int64)
+            # chunk ids far from the renderer's own keep the random streams apart
+            self._trace(params, (1 << 40) + (int(stream_id) << 20) + ci, o32, d, d.astype(np.float32),
+                        np.ones((k, 3)), np.zeros(k, np.int8), np.zeros(k, np.int32),
+                        np.full(k, params.indirect_bounces, np.int32), pix, acc, timer, counts, serial=False,
+                        first_hits=(prim[sl], u[sl], v[sl]))
+            if progress is not None:
+                progress((ci + 1) / n_chunks)
+        if not np.all(np.isfinite(acc)):
+            raise NonFiniteOutputError("shade_hits produced non-finite radiance")
+        return acc
+
     # ------------------------------------------------------------------ stages
     def _aovs(self, camera: CameraParams, timer: _Timer):
         sc = self.scene
@@ -654,9 +700,6 @@ class ReferenceRenderer:
     def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts,
                       serial: bool) -> None:
         sc = self.scene
-        mt = sc.materials
-        lt = sc.lights
-        caster = self.caster
         t0 = time.perf_counter()
         n = ids.shape[0] * params.spp
         o32 = np.empty((n, 3), np.float32)
@@ -680,6 +723,18 @@ class ReferenceRenderer:
         bounces = np.full(n, params.indirect_bounces, np.int32)
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
+        self._trace(params, ci, o32, d, d32, weight, kind, depth, bounces, pix, acc, timer, counts, serial)
+
+    def _trace(self, params: ReferenceParams, ci, o32, d, d32, weight, kind, depth, bounces, pix, acc, timer,
+               counts, serial: bool, first_hits=None) -> None:
+        """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix].
+        ``first_hits`` = (prim int32, u, v float32): the first intersection of every ray is given
+        (no Embree query for it), e.g. a sample of a layered depth image."""
+        sc = self.scene
+        mt = sc.materials
+        lt = sc.lights
+        caster = self.caster
+        n = d.shape[0]
         # K paths per pixel spread over the spp camera samples
         k_per_hit = 0
         if params.indirect_samples > 0:
@@ -689,7 +744,10 @@ class ReferenceRenderer:
         while n > 0:
             it += 1
             t0 = time.perf_counter()
-            prim, u, v = caster.intersect_local(o32, d32)
+            if it == 1 and first_hits is not None:
+                prim, u, v = first_hits
+            else:
+                prim, u, v = caster.intersect_local(o32, d32)
             timer.add("intersect", time.perf_counter() - t0)
             t0 = time.perf_counter()
             idx = np.flatnonzero(prim >= 0)
