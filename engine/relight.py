@@ -69,6 +69,10 @@ class IlluminationDataset:
         Points of masked-out pixels are ignored (they may be NaN).
     distant: one flag for the whole dataset (a photometric-stereo rig has only distant
         lights, a light stage only near ones; mixed datasets are not supported).
+    sphere_center: (3,) or None; the centre of the sphere the lights were placed on, when
+        known (a light stage, a generated dataset); the bake's default centre.
+    meta: JSON-serialisable facts about where the dataset came from (generation placement,
+        render parameters, timings); not used by the bake.
     """
 
     images: np.ndarray
@@ -77,6 +81,8 @@ class IlluminationDataset:
     points: np.ndarray
     mask: np.ndarray | None = None
     distant: bool = False
+    sphere_center: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if isinstance(self.images, (list, tuple)):
@@ -134,6 +140,11 @@ class IlluminationDataset:
         if not np.any(m):
             raise InvalidInputError("mask: no pixel has a surface point")
         pts = np.where(m[:, :, None], pts, 0.0)
+        if self.sphere_center is not None:
+            sc = _as_array("sphere_center", self.sphere_center, np.float64, 1)
+            if sc.shape != (3,) or not np.all(np.isfinite(sc)):
+                raise InvalidInputError("sphere_center: expected 3 finite numbers")
+            object.__setattr__(self, "sphere_center", sc)
         object.__setattr__(self, "images", np.ascontiguousarray(imgs))
         object.__setattr__(self, "light_positions", np.ascontiguousarray(pos))
         object.__setattr__(self, "intensities", np.ascontiguousarray(inten))
@@ -519,9 +530,10 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
                  max_face_radius_deg: float | None = None, half_rel_floor: float = 0.0) -> BakedDataset:
     """Deduplicate, triangulate and reorganise a dataset for relighting.
 
-    sphere_center: default the centroid of the masked surface points (ignored for distant
-        datasets, whose sphere is at infinity). sphere_radius: default the mean distance of
-        the lights from the centre; it must enclose every surface point.
+    sphere_center: default the dataset's ``sphere_center``, else the centroid of the masked
+        surface points (ignored for distant datasets, whose sphere is at infinity).
+    sphere_radius: default the mean distance of the lights from the centre; it must enclose
+        every surface point.
     dedupe_tol_deg: lights whose directions from the centre are closer than this are
         duplicates; the first (in input order) is kept, the others are dropped and counted.
     max_face_radius_deg: coverage rule (docs/relighting.md); None = min(85, 3 x median).
@@ -551,6 +563,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         radius = math.inf
         dirs = ds.light_positions.copy()
     else:
+        if sphere_center is None:
+            sphere_center = ds.sphere_center
         center = pts.mean(axis=0) if sphere_center is None else _as_array("sphere_center", sphere_center,
                                                                           np.float64, 1)
         if center.shape != (3,) or not np.all(np.isfinite(center)):
