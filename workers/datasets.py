@@ -1,0 +1,674 @@
+"""Illumination datasets in the object store: validated image blobs and dataset documents.
+
+Imported by the API process, so it never imports numba or the engine: images are decoded with
+OpenImageIO directly (the same library ``engine.imageio`` wraps).
+
+Key layout (next to docs/service-design.md's):
+
+- ``blobs/<sha256>``: an uploaded file (image, depth map, mask, environment map, plate), by content;
+- ``blob-info/<sha256>.json``: its header facts and pixel statistics, written after the blob once
+  it decoded as an image (its presence means "received and readable");
+- ``dataset-pending/<id>.json``: a manifest whose files are being uploaded separately;
+- ``datasets/<id>.json``: ``{"manifest", "files", "width", "height", "created_at", "source"}``,
+  written LAST (its presence commits the dataset);
+- ``dataset-owners/<id>/<owner>``: one empty marker per API key that stored the dataset (``_``
+  with auth off).
+
+A dataset id is the sha256 of the canonical JSON of its manifest with every file's sha256 filled
+in (:func:`dataset_id_for`). Nothing half-stored is visible: blobs are content-addressed and
+unreferenced until a document names them, and the document is checked completely before it is
+written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import ValidationError
+
+from api_schemas.common import FrozenModel
+from api_schemas.datasets import (
+    BakeParams,
+    CompositeRequest,
+    DatasetFileInfo,
+    DatasetManifest,
+    DatasetPublic,
+    FileUploadPublic,
+    GenerateRequest,
+    MissingFile,
+    RelightEnvironmentLight,
+    RelightRequest,
+    parse_transfer,
+)
+from api_schemas.errors import FieldError
+from api_schemas.service import Sha256
+from workers.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
+from workers.store.base import ChecksumMismatch, NotFound, ObjectStore
+
+__all__ = [
+    "BAKE_JOB",
+    "BAKE_KIND",
+    "COMPOSITE_JOB",
+    "COMPOSITE_KIND",
+    "GENERATE_JOB",
+    "GENERATE_KIND",
+    "RELIGHT_JOB",
+    "RELIGHT_KIND",
+    "BakeJobPayload",
+    "CompositeJobPayload",
+    "DatasetInvalid",
+    "GenerateJobPayload",
+    "RelightJobPayload",
+    "bake_artifact_key",
+    "composite_artifact_key",
+    "generate_artifact_key",
+    "job_id_for",
+    "manifest_errors",
+    "relight_artifact_key",
+    "FileProblem",
+    "ImageFile",
+    "add_dataset_owner",
+    "blob_info",
+    "commit_dataset",
+    "dataset_id_for",
+    "dataset_key",
+    "dataset_owners",
+    "dataset_visible",
+    "decode_image",
+    "delete_dataset",
+    "fill_shas",
+    "get_dataset",
+    "linearise",
+    "list_datasets",
+    "missing_files",
+    "put_pending",
+    "read_file_blob",
+    "read_pending",
+    "remove_dataset_owner",
+    "store_file",
+]
+
+log = logging.getLogger(__name__)
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+_INTEGER_TYPES = {"uint8", "int8", "uint16", "int16", "uint", "int", "uint32", "int32"}
+ANON_OWNER = "_"
+
+# magic bytes -> (extension OpenImageIO picks its reader by, format label)
+_MAGIC: tuple[tuple[bytes, str], ...] = (
+    (b"\x76\x2f\x31\x01", ".exr"),
+    (b"\x89PNG\r\n\x1a\n", ".png"),
+    (b"II*\x00", ".tif"),
+    (b"MM\x00*", ".tif"),
+    (b"#?RADIANCE", ".hdr"),
+    (b"#?RGBE", ".hdr"),
+    (b"\xff\xd8\xff", ".jpg"),
+)
+SUPPORTED_FORMATS = "OpenEXR, Radiance HDR, PNG, TIFF, JPEG"
+
+
+class FileProblem(ValueError):
+    """An uploaded file is not a usable image (the message says why, without the file name)."""
+
+
+class DatasetInvalid(ValueError):
+    """A dataset cannot be stored; ``errors`` names each field or file (HTTP 422)."""
+
+    def __init__(self, errors: Sequence[FieldError], status: int = 422):
+        super().__init__("; ".join(f"{e['field']}: {e['message']}" for e in errors))
+        self.errors = list(errors)
+        self.status = status
+
+
+# ------------------------------------------------------------------------------ keys
+
+
+def _require_sha(value: str, what: str) -> str:
+    if not isinstance(value, str) or _SHA256.fullmatch(value) is None:
+        raise NotFound(f"{what} {value!r}")
+    return value
+
+
+def dataset_key(dataset_id: str) -> str:
+    return f"datasets/{_require_sha(dataset_id, 'dataset')}.json"
+
+
+def _pending_key(dataset_id: str) -> str:
+    return f"dataset-pending/{_require_sha(dataset_id, 'dataset')}.json"
+
+
+def _info_key(sha: str) -> str:
+    return f"blob-info/{_require_sha(sha, 'file')}.json"
+
+
+def _owner_marker(dataset_id: str, owner: str | None) -> str:
+    return f"dataset-owners/{_require_sha(dataset_id, 'dataset')}/{owner or ANON_OWNER}"
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+# ------------------------------------------------------------------------------ images
+
+
+@dataclass(frozen=True)
+class ImageFile:
+    """A decoded image: ``pixels`` (h, w, c) float32 as stored (integer files scaled to [0, 1],
+    not linearised) and its header facts."""
+
+    pixels: np.ndarray
+    width: int
+    height: int
+    channels: int
+    format: str
+    pixel_type: str
+
+    @property
+    def is_integer(self) -> bool:
+        return self.pixel_type in _INTEGER_TYPES
+
+
+def sniff_extension(data: bytes) -> str | None:
+    for magic, ext in _MAGIC:
+        if data.startswith(magic):
+            return ext
+    return None
+
+
+def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> ImageFile:
+    """Decode an image file's bytes with OpenImageIO. The declared resolution is checked against
+    ``max_pixels`` before any pixel is read (HARD_CASES 16). Raises :class:`FileProblem`."""
+    import OpenImageIO as oiio
+
+    if not data:
+        raise FileProblem("the file is empty")
+    ext = sniff_extension(data)
+    if ext is None:
+        raise FileProblem(f"not an image in a supported format ({SUPPORTED_FORMATS}): unrecognised file signature")
+    fd, path = tempfile.mkstemp(suffix=ext, prefix="ibr-upload-")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        inp = oiio.ImageInput.open(path)
+        if inp is None:
+            raise FileProblem(f"cannot read the image: {_oiio_error(oiio.geterror(), path)}")
+        try:
+            spec = inp.spec()
+            w, h, c = int(spec.width), int(spec.height), int(spec.nchannels)
+            if w < 1 or h < 1 or c < 1:
+                raise FileProblem(f"the header declares an empty image ({w}x{h}, {c} channels)")
+            if int(spec.depth) != 1 or spec.deep:
+                raise FileProblem("volume and deep images are not supported")
+            if w * h > max_pixels:
+                raise FileProblem(f"the header declares {w}x{h} = {w * h} pixels, more than this server's limit "
+                                  f"of {max_pixels}")
+            if c > 16:
+                raise FileProblem(f"the header declares {c} channels; at most 16 are supported")
+            pixel_type = str(spec.format)
+            fmt = str(inp.format_name())
+            if header_only:
+                return ImageFile(np.zeros((0, 0, 0), np.float32), w, h, c, fmt, pixel_type)
+            raw = inp.read_image(0, 0, 0, c, oiio.FLOAT)
+            if raw is None or inp.has_error:
+                raise FileProblem(f"cannot read the pixels (truncated or corrupt?): "
+                                  f"{_oiio_error(inp.geterror(), path)}")
+            pixels = np.array(raw, dtype=np.float32).reshape(h, w, c)
+        finally:
+            inp.close()
+    finally:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return ImageFile(pixels, w, h, c, fmt, pixel_type)
+
+
+def _oiio_error(msg: str, path: str) -> str:
+    text = (msg or "unknown error").strip().splitlines()[0] if (msg or "").strip() else "unknown error"
+    return text.replace(path, "<file>")[:300]
+
+
+def linearise(img: ImageFile, transfer: str) -> np.ndarray:
+    """(h, w, 3) float32 linear RGB: grey is repeated, alpha dropped; integer files decoded with
+    ``transfer`` (``srgb``, ``linear``, ``gamma:<g>``), float files taken as linear."""
+    px = img.pixels
+    rgb = np.repeat(px[:, :, :1], 3, axis=2) if px.shape[2] < 3 else px[:, :, :3]
+    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
+    if not img.is_integer:
+        return rgb
+    kind, g = parse_transfer(transfer)
+    v = rgb.astype(np.float64)
+    if kind == "srgb":
+        v = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    elif kind == "gamma":
+        v = np.power(v, g)
+    return v.astype(np.float32)
+
+
+def _pixel_stats(img: ImageFile) -> dict[str, int]:
+    px = img.pixels
+    finite = np.isfinite(px)
+    return {"n_nonfinite": int(px.size - np.count_nonzero(finite)),
+            "n_negative": int(np.count_nonzero(np.where(finite, px, 0.0) < 0))}
+
+
+# ------------------------------------------------------------------------------ file blobs
+
+
+def blob_info(store: ObjectStore, sha: str) -> dict[str, Any] | None:
+    """The stored facts of a received file, or None when it was not received (or not an image)."""
+    try:
+        raw = store.get_bytes(_info_key(sha))
+    except NotFound:
+        return None
+    try:
+        info: dict[str, Any] = json.loads(raw)
+        FileUploadPublic.model_validate({k: info[k] for k in FileUploadPublic.model_fields})
+    except (ValueError, KeyError, TypeError):
+        log.error("file %s: unreadable info record deleted", sha)
+        store.delete(_info_key(sha))
+        return None
+    if not store.exists(blob_key(sha)):
+        store.delete(_info_key(sha))
+        return None
+    return info
+
+
+def store_file(store: ObjectStore, data: bytes, *, max_pixels: int, expected_sha: str | None = None
+               ) -> dict[str, Any]:
+    """Validate ``data`` as an image and store it under its sha256 (blob first, then its info
+    record). Returns the info record. Raises :class:`FileProblem`; nothing is stored then."""
+    sha = sha256_hex(data)
+    if expected_sha is not None and sha != expected_sha:
+        raise FileProblem(f"the content's sha256 is {sha}, not {expected_sha} as the URL / manifest says")
+    existing = blob_info(store, sha)
+    if existing is not None:
+        return existing
+    img = decode_image(data, max_pixels=max_pixels)
+    info: dict[str, Any] = {"sha256": sha, "size": len(data), "width": img.width, "height": img.height,
+                            "channels": img.channels, "format": img.format, "pixel_type": img.pixel_type,
+                            **_pixel_stats(img)}
+    if not store.exists(blob_key(sha)):
+        store.put_bytes(blob_key(sha), data)
+    store.put_bytes(_info_key(sha), canonical_json(info).encode(), "application/json")
+    return info
+
+
+def read_file_blob(store: ObjectStore, sha: str) -> bytes:
+    """A stored file's bytes, verified (a corrupt blob is deleted with its info record and raises
+    ChecksumMismatch: upload it again)."""
+    data = store.get_bytes(blob_key(sha))
+    if sha256_hex(data) != sha:
+        log.error("blob %s does not match its checksum; deleted", sha)
+        store.delete(blob_key(sha))
+        store.delete(_info_key(sha))
+        raise ChecksumMismatch(f"file {sha}: stored copy is corrupt and was removed; upload it again")
+    return data
+
+
+# ------------------------------------------------------------------------------ manifests
+
+
+def fill_shas(manifest: DatasetManifest, shas: Mapping[str, str]) -> DatasetManifest:
+    """The manifest with the sha256 of every file named in ``shas`` filled in."""
+    doc = manifest.model_dump(mode="json")
+    for img in doc["images"]:
+        if img["file"] in shas:
+            img["sha256"] = shas[img["file"]]
+    for part in ("geometry", "mask"):
+        ref = doc.get(part)
+        if isinstance(ref, dict) and "file" in ref and ref["file"] in shas:
+            ref["sha256"] = shas[ref["file"]]
+    return DatasetManifest.model_validate(doc)
+
+
+def dataset_id_for(manifest: DatasetManifest) -> str:
+    """sha256 of the canonical JSON of the manifest; every file must have its sha256."""
+    unset = [f for f, _, sha, _ in manifest.file_refs() if sha is None]
+    if unset:
+        raise ValueError(f"file sha256 not set for {unset[:5]}")
+    return hashlib.sha256(canonical_json(manifest.model_dump(mode="json")).encode("utf-8")).hexdigest()
+
+
+def missing_files(store: ObjectStore, manifest: DatasetManifest, dataset_id: str) -> tuple[list[MissingFile], int]:
+    """Files of the manifest not received yet (one entry per distinct sha256), and the count received."""
+    missing: list[MissingFile] = []
+    seen: set[str] = set()
+    received = 0
+    for field, name, sha, _ in manifest.file_refs():
+        assert sha is not None
+        if sha in seen:
+            continue
+        seen.add(sha)
+        if blob_info(store, sha) is None:
+            missing.append(MissingFile(field=field, name=name, sha256=sha,
+                                       upload_url=f"/v1/datasets/uploads/{sha}"))
+        else:
+            received += 1
+    return missing, received
+
+
+def put_pending(store: ObjectStore, manifest: DatasetManifest, dataset_id: str) -> None:
+    if not store.exists(_pending_key(dataset_id)):
+        doc = {"manifest": manifest.model_dump(mode="json"), "created_at": _now().isoformat()}
+        store.put_bytes(_pending_key(dataset_id), canonical_json(doc).encode(), "application/json")
+
+
+def read_pending(store: ObjectStore, dataset_id: str) -> DatasetManifest | None:
+    try:
+        raw = store.get_bytes(_pending_key(dataset_id))
+    except NotFound:
+        return None
+    try:
+        manifest = DatasetManifest.model_validate(json.loads(raw)["manifest"])
+        ok = dataset_id_for(manifest) == dataset_id
+    except (ValueError, KeyError, TypeError):
+        ok = False
+    if not ok:
+        store.delete(_pending_key(dataset_id))
+        return None
+    return manifest
+
+
+# ------------------------------------------------------------------------------ commit
+
+
+def _check_files(store: ObjectStore, manifest: DatasetManifest) -> tuple[list[DatasetFileInfo], int, int]:
+    """Cross-file checks; DatasetInvalid naming every bad file. Returns (files, width, height)."""
+    errors: list[FieldError] = []
+    cam = manifest.camera
+    width, height = cam.width, cam.height
+    files: list[DatasetFileInfo] = []
+    missing: list[FieldError] = []
+    for field, name, sha, role in manifest.file_refs():
+        assert sha is not None
+        info = blob_info(store, sha)
+        if info is None:
+            missing.append(FieldError(field=f"{field}.file",
+                                      message=f"file {name!r} (sha256 {sha}) has not been uploaded",
+                                      type="missing_file"))
+            continue
+        where = f"files.{name}"
+        w, h = int(info["width"]), int(info["height"])
+        if (w, h) != (width, height):
+            errors.append(FieldError(field=where, message=f"{role} {name!r} is {w}x{h} but the camera (and every "
+                                     f"image of the dataset) is {width}x{height}", type="wrong_size"))
+        if role == "image":
+            if info["n_nonfinite"]:
+                errors.append(FieldError(field=where, message=f"image {name!r} holds {info['n_nonfinite']} NaN/Inf "
+                                         "sample(s)", type="non_finite"))
+            if info["n_negative"]:
+                errors.append(FieldError(field=where, message=f"image {name!r} holds {info['n_negative']} negative "
+                                         "sample(s); radiance must be >= 0", type="negative"))
+        elif role == "depth":
+            if info["pixel_type"] in _INTEGER_TYPES:
+                errors.append(FieldError(field=where, message=f"depth map {name!r} is a {info['pixel_type']} "
+                                         "image; depth must be a float image (EXR, float TIFF, HDR) in world units",
+                                         type="depth_not_float"))
+        files.append(DatasetFileInfo(field=field, name=name, sha256=sha, size=int(info["size"]), width=w, height=h,
+                                     pixel_type=str(info["pixel_type"])))
+    if missing:
+        raise DatasetInvalid(missing, status=409)
+    if errors:
+        raise DatasetInvalid(errors)
+    return files, width, height
+
+
+def _public(dataset_id: str, doc: Mapping[str, Any]) -> DatasetPublic:
+    manifest = DatasetManifest.model_validate(doc["manifest"])
+    return DatasetPublic(
+        id=dataset_id,
+        name=manifest.name,
+        created_at=doc["created_at"],
+        n_images=len(manifest.images),
+        width=int(doc["width"]),
+        height=int(doc["height"]),
+        distant=manifest.distant,
+        transfer=manifest.transfer,
+        geometry=manifest.geometry.type,
+        has_mask=manifest.mask is not None,
+        total_bytes=sum(int(f["size"]) for f in doc["files"]),
+        manifest=manifest,
+        source=dict(doc.get("source") or {"kind": "upload"}),
+        links={"self": f"/v1/datasets/{dataset_id}", "bake": f"/v1/datasets/{dataset_id}/bake"},
+    )
+
+
+def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | None,
+                   source: Mapping[str, Any] | None = None, *, scene_exists: bool | None = None,
+                   add_owner: bool = True) -> tuple[DatasetPublic, bool]:
+    """Check every file of the manifest (received, same size as the camera, finite, >= 0, depth a
+    float image) and write the dataset document LAST; add ``owner``'s marker. Returns (public view,
+    new document?). DatasetInvalid (status 409 when files are missing, 422 otherwise)."""
+    dataset_id = dataset_id_for(manifest)
+    existing = _read_doc(store, dataset_id)
+    if existing is not None:
+        if add_owner:
+            add_dataset_owner(store, dataset_id, owner)
+        return _public(dataset_id, existing), False
+    if manifest.geometry.type == "scene":
+        present = scene_exists if scene_exists is not None else store.exists(
+            f"scenes/{manifest.geometry.scene_id}.json")
+        if not present:
+            raise DatasetInvalid([FieldError(field="geometry.scene_id", message=f"no stored scene "
+                                             f"{manifest.geometry.scene_id}", type="unknown_scene")])
+    files, width, height = _check_files(store, manifest)
+    doc = {"manifest": manifest.model_dump(mode="json"), "files": [f.model_dump(mode="json") for f in files],
+           "width": width, "height": height, "created_at": _now().isoformat(),
+           "source": dict(source or {"kind": "upload"})}
+    store.put_bytes(dataset_key(dataset_id), canonical_json(doc).encode("utf-8"), "application/json")
+    if add_owner:
+        add_dataset_owner(store, dataset_id, owner)
+    store.delete(_pending_key(dataset_id))
+    return _public(dataset_id, doc), True
+
+
+def _read_doc(store: ObjectStore, dataset_id: str) -> dict[str, Any] | None:
+    try:
+        raw = store.get_bytes(dataset_key(dataset_id))
+    except NotFound:
+        return None
+    try:
+        doc: dict[str, Any] = json.loads(raw)
+        manifest = DatasetManifest.model_validate(doc["manifest"])
+        if dataset_id_for(manifest) != dataset_id:
+            raise ValueError("content does not hash to its id")
+        _public(dataset_id, doc)
+    except (ValueError, KeyError, TypeError) as exc:  # ValidationError is a ValueError
+        log.error("dataset %s: stored document corrupt (%s); deleted", dataset_id, exc)
+        store.delete(dataset_key(dataset_id))
+        raise ChecksumMismatch(f"dataset {dataset_id}: stored document is corrupt and was removed; "
+                               "upload it again") from None
+    return doc
+
+
+def get_dataset(store: ObjectStore, dataset_id: str) -> tuple[DatasetManifest, DatasetPublic]:
+    """(canonical manifest, public view); NotFound when absent."""
+    doc = _read_doc(store, _require_sha(dataset_id, "dataset"))
+    if doc is None:
+        raise NotFound(f"dataset {dataset_id}")
+    public = _public(dataset_id, doc)
+    return public.manifest, public
+
+
+def list_datasets(store: ObjectStore, owner: str | None) -> list[DatasetPublic]:
+    """Datasets ``owner`` may see (all with auth off), oldest first."""
+    visible: set[str] | None = None
+    if owner is not None:
+        visible = set()
+        for key in store.list("dataset-owners/"):
+            did, _, who = key[len("dataset-owners/"):].partition("/")
+            if who == owner:
+                visible.add(did)
+    out: list[DatasetPublic] = []
+    for key in store.list("datasets/"):
+        did = key[len("datasets/"):-len(".json")] if key.endswith(".json") else ""
+        if _SHA256.fullmatch(did) is None or (visible is not None and did not in visible):
+            continue
+        try:
+            doc = _read_doc(store, did)
+        except ChecksumMismatch:
+            continue
+        if doc is not None:
+            out.append(_public(did, doc))
+    out.sort(key=lambda d: (d.created_at, d.id))
+    return out
+
+
+def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
+    store.put_bytes(_owner_marker(dataset_id, owner), b"", "text/plain")
+
+
+def remove_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
+    store.delete(_owner_marker(dataset_id, owner))
+
+
+def dataset_owners(store: ObjectStore, dataset_id: str) -> list[str]:
+    prefix = f"dataset-owners/{_require_sha(dataset_id, 'dataset')}/"
+    return [k[len(prefix):] for k in store.list(prefix)]
+
+
+def dataset_visible(store: ObjectStore, dataset_id: str, owner: str | None) -> bool:
+    """With auth off (owner None) every dataset is visible."""
+    if _SHA256.fullmatch(dataset_id or "") is None:
+        return False
+    return owner is None or store.exists(_owner_marker(dataset_id, owner))
+
+
+def delete_dataset(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
+    """Remove ``owner``'s marker (every marker with auth off); the document goes with the last
+    marker. Blobs stay (content-addressed, possibly shared). NotFound when not visible."""
+    if not dataset_visible(store, dataset_id, owner) or not store.exists(dataset_key(dataset_id)):
+        raise NotFound(f"dataset {dataset_id}")
+    if owner is None:
+        for who in dataset_owners(store, dataset_id):
+            store.delete(f"dataset-owners/{dataset_id}/{who}")
+    else:
+        remove_dataset_owner(store, dataset_id, owner)
+    if not dataset_owners(store, dataset_id):
+        store.delete(dataset_key(dataset_id))
+
+
+def manifest_errors(exc: ValidationError, prefix: str = "") -> list[FieldError]:
+    """A manifest's validation errors as field errors (``images.2.intensity.0``)."""
+    from api_schemas.errors import format_error_details
+
+    out = format_error_details(exc.errors(include_url=False), DatasetManifest)
+    if prefix:
+        out = [FieldError(field=f"{prefix}.{e['field']}" if e["field"] else prefix, message=e["message"],
+                          type=e["type"]) for e in out]
+    return out
+
+
+# ------------------------------------------------------------------------------ jobs: names, keys, payloads
+#
+# The job functions live in workers/jobs/datasets.py (they import the engine); the service
+# enqueues them by these import paths with payloads validated by the models below.
+
+BAKE_JOB = "workers.jobs.datasets.bake_job"
+RELIGHT_JOB = "workers.jobs.datasets.relight_job"
+GENERATE_JOB = "workers.jobs.datasets.generate_job"
+COMPOSITE_JOB = "workers.jobs.datasets.composite_job"
+
+BAKE_KIND = "relight-bake"
+RELIGHT_KIND = "relight"
+GENERATE_KIND = "dataset-generation"
+COMPOSITE_KIND = "composite"
+
+
+class BakeJobPayload(FrozenModel):
+    """Payload of :data:`BAKE_JOB`."""
+
+    v: Literal[1] = 1
+    dataset_id: Sha256
+    params: BakeParams
+    artifact_key: Sha256
+
+
+class RelightJobPayload(FrozenModel):
+    """Payload of :data:`RELIGHT_JOB`."""
+
+    v: Literal[1] = 1
+    request: RelightRequest
+    artifact_key: Sha256
+
+
+class GenerateJobPayload(FrozenModel):
+    """Payload of :data:`GENERATE_JOB`."""
+
+    v: Literal[1] = 1
+    request: GenerateRequest
+    artifact_key: Sha256
+    owner: str | None = None
+    """Who asked (the generated dataset gets this owner's marker, and every other requester's)."""
+
+
+class CompositeJobPayload(FrozenModel):
+    """Payload of :data:`COMPOSITE_JOB`."""
+
+    v: Literal[1] = 1
+    request: CompositeRequest
+    artifact_key: Sha256
+
+
+def bake_artifact_key(dataset_id: str, params: BakeParams) -> str:
+    from workers.queues import engine_version
+
+    return artifact_key(BAKE_KIND, {"dataset": dataset_id}, params.model_dump(mode="json"), engine_version())
+
+
+def _relight_inputs(req: RelightRequest | CompositeRequest, dataset_ids: Mapping[str, str]) -> dict[str, str]:
+    inputs = dict(dataset_ids)
+    for role, did in dataset_ids.items():
+        inputs[f"bake.{role}"] = bake_artifact_key(did, req.bake)
+    for i, light in enumerate(req.lights):
+        if isinstance(light, RelightEnvironmentLight):
+            inputs[f"environment.{i}"] = light.image_sha256
+    return inputs
+
+
+def relight_artifact_key(req: RelightRequest) -> str:
+    from workers.queues import engine_version
+
+    params = req.model_dump(mode="json")
+    params.pop("dataset_id")
+    return artifact_key(RELIGHT_KIND, _relight_inputs(req, {"dataset": req.dataset_id}), params, engine_version())
+
+
+def composite_artifact_key(req: CompositeRequest) -> str:
+    from workers.queues import engine_version
+
+    params = req.model_dump(mode="json")
+    inputs = _relight_inputs(req, {"dataset": req.object_dataset_id, "background": req.background_dataset_id})
+    inputs["plate"] = req.plate_sha256
+    for role in ("object_mask_sha256", "active_region_sha256"):
+        sha = params.pop(role)
+        if sha is not None:
+            inputs[role.removesuffix("_sha256")] = sha
+    for role in ("object_dataset_id", "background_dataset_id", "plate_sha256"):
+        params.pop(role)
+    return artifact_key(COMPOSITE_KIND, inputs, params, engine_version())
+
+
+def generate_artifact_key(req: GenerateRequest) -> str:
+    from workers.queues import engine_version
+
+    params = req.model_dump(mode="json")
+    params.pop("scene_id")
+    return artifact_key(GENERATE_KIND, {"scene": req.scene_id}, params, engine_version())
+
+
+def job_id_for(kind: str, key: str) -> str:
+    """``relight-<key>``, ``relight-bake-<key>``, ``dataset-generation-<key>``, ``composite-<key>``."""
+    return f"{kind}-{key}"

@@ -1,0 +1,541 @@
+"""Jobs on illumination datasets: generate (bake queue), bake (bake queue), relight and composite
+(render queue).
+
+- :func:`generate_job`: render a stored scene once per point light (``engine.relight_gen``) and
+  store the result as a dataset in exactly the upload format (float EXR images, a float EXR
+  distance map, a PNG mask, the manifest), plus a small artifact mapping the request to the
+  dataset id (so the same request is a cache hit).
+- :func:`bake_job`: ``engine.relight.bake_dataset`` on a stored dataset; the baked stack and the
+  lookup structures become one content-addressed artifact (``baked.npz``).
+- :func:`relight_job`: the baked dataset (kept warm in this process's LRU, :func:`baked_cache`)
+  under new lights -> ``radiance.exr`` (linear float), ``preview.png`` (sRGB), ``outside.png``
+  (coverage mask, white = some light direction outside the dataset's coverage), counts and
+  timings.
+- :func:`composite_job`: ``engine.composite`` when that module is present.
+
+Every job validates its payload, recomputes the artifact key and refuses a mismatch, returns the
+stored result when the artifact already exists, reports progress and honours cancellation
+(``ProgressReporter``).
+"""
+
+from __future__ import annotations
+
+import io
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pydantic import BaseModel, ValidationError
+from rq import get_current_job
+
+from engine import ENGINE_VERSION
+from engine.imageio import write_image
+from workers.cache import LRUBytesCache
+from workers.datasets import (
+    BAKE_KIND,
+    COMPOSITE_KIND,
+    GENERATE_KIND,
+    RELIGHT_KIND,
+    BakeJobPayload,
+    CompositeJobPayload,
+    GenerateJobPayload,
+    RelightJobPayload,
+    add_dataset_owner,
+    bake_artifact_key,
+    commit_dataset,
+    composite_artifact_key,
+    decode_image,
+    generate_artifact_key,
+    get_dataset,
+    linearise,
+    read_file_blob,
+    relight_artifact_key,
+    store_file,
+)
+from workers.jobs.payloads import InvalidPayload, describe_validation_error
+from workers.jobs.render import JobCanceled, ProgressReporter, _json_safe
+from workers.queues import engine_version, job_owners
+from workers.settings import get_settings, open_worker_store
+
+if TYPE_CHECKING:
+    from engine.relight import BakedDataset, IlluminationDataset
+    from workers.store import ObjectStore
+
+__all__ = ["JobCanceled", "bake_job", "baked_cache", "composite_job", "generate_job", "load_illumination_dataset",
+           "relight_job"]
+
+EXR = "image/x-exr"
+PNG = "image/png"
+NPZ = "application/x-npz"
+MAX_FILE_PIXELS = 64_000_000
+
+_store: ObjectStore | None = None
+_baked: LRUBytesCache[BakedDataset] | None = None
+_env: LRUBytesCache[np.ndarray] | None = None
+_lock = threading.Lock()
+
+
+def _worker_store() -> ObjectStore:
+    global _store
+    if _store is None:
+        _store = open_worker_store()
+    return _store
+
+
+def baked_cache() -> LRUBytesCache[BakedDataset]:
+    """This process's LRU of baked datasets by bake artifact key (budget ``cache_bytes``)."""
+    global _baked, _env
+    with _lock:
+        if _baked is None:
+            _baked = LRUBytesCache(get_settings().cache_bytes)
+            _env = LRUBytesCache(256 << 20)
+    return _baked
+
+
+def _validate(model: type[BaseModel], payload: dict[str, Any], what: str) -> Any:
+    try:
+        return model.model_validate(payload)
+    except ValidationError as exc:
+        raise InvalidPayload(f"invalid {what} job payload: {describe_validation_error(exc)}") from None
+
+
+def _check_engine() -> None:
+    if engine_version() != ENGINE_VERSION:
+        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
+
+
+def _image_bytes(tmp: Path, name: str, pixels: Any, **kw: Any) -> bytes:
+    path = tmp / name
+    write_image(path, pixels, **kw)
+    return path.read_bytes()
+
+
+# ------------------------------------------------------------------------------ dataset loading
+
+
+def load_illumination_dataset(store: ObjectStore, dataset_id: str,
+                              progress: ProgressReporter | None = None, frac: tuple[float, float] = (0.0, 1.0)
+                              ) -> IlluminationDataset:
+    """A stored dataset as an ``engine.relight.IlluminationDataset``: images linearised with the
+    manifest's transfer function, surface points from the depth map (or by ray-casting the stored
+    scene), the mask combined with the valid depth pixels."""
+    from api_schemas.datasets import DepthGeometry, PinholeCamera, SceneGeometry
+    from engine.errors import InvalidInputError
+    from engine.relight import IlluminationDataset, points_from_depth
+    from workers.scene_loader import camera_params
+
+    manifest, public = get_dataset(store, dataset_id)
+    k, h, w = len(manifest.images), public.height, public.width
+    images = np.empty((k, h, w, 3), np.float32)
+    for i, img in enumerate(manifest.images):
+        assert img.sha256 is not None
+        data = read_file_blob(store, img.sha256)
+        images[i] = linearise(decode_image(data, max_pixels=MAX_FILE_PIXELS), manifest.transfer)
+        if progress is not None:
+            progress.report(frac[0] + (frac[1] - frac[0]) * 0.9 * (i + 1) / k, "reading images")
+    distant = manifest.distant
+    lights = np.array([img.direction if distant else img.position for img in manifest.images], np.float64)
+    inten = np.array([img.intensity for img in manifest.images], np.float64)
+    cam = manifest.camera
+    geo = manifest.geometry
+    if isinstance(geo, DepthGeometry):
+        assert geo.sha256 is not None
+        depth_img = decode_image(read_file_blob(store, geo.sha256), max_pixels=MAX_FILE_PIXELS)
+        depth = depth_img.pixels[:, :, 0].astype(np.float64)
+        if isinstance(cam, PinholeCamera):
+            kmat = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+            pose = np.array(cam.world_from_camera, np.float64) if cam.world_from_camera is not None else None
+            pts, valid = points_from_depth(depth, intrinsics=kmat, world_from_camera=pose, depth_kind=geo.depth_kind)
+        else:
+            pts, valid = points_from_depth(depth, camera_params(cam), depth_kind=geo.depth_kind)
+    else:
+        assert isinstance(geo, SceneGeometry) and not isinstance(cam, PinholeCamera)
+        pts, valid = _points_from_scene(store, geo.scene_id, camera_params(cam))
+    mask = valid
+    if manifest.mask is not None:
+        assert manifest.mask.sha256 is not None
+        m = decode_image(read_file_blob(store, manifest.mask.sha256), max_pixels=MAX_FILE_PIXELS)
+        mask = valid & (m.pixels[:, :, 0] > 0.5)
+    if not np.any(mask):
+        raise InvalidInputError("mask: no pixel has both a surface point (valid depth) and the object mask")
+    center = None
+    if manifest.sphere_center is not None and not distant:
+        center = np.array(manifest.sphere_center, np.float64)
+    return IlluminationDataset(images, lights, inten, pts, mask=mask, distant=distant, sphere_center=center,
+                               meta={"dataset_id": dataset_id})
+
+
+def _points_from_scene(store: ObjectStore, scene_id: str, camera: Any) -> tuple[np.ndarray, np.ndarray]:
+    from engine.camera import camera_rays, pixel_centers
+    from engine.raycast import hit_points, make_caster
+    from workers.jobs.render import _load
+
+    loaded = _load(store, scene_id)
+    o, d = camera_rays(camera, *pixel_centers(camera))
+    hits = make_caster(loaded.runtime).intersect(o, d)
+    pts = hit_points(loaded.runtime, hits).reshape(camera.height, camera.width, 3)
+    return pts, hits.hit.reshape(camera.height, camera.width)
+
+
+# ------------------------------------------------------------------------------ baked datasets <-> bytes
+
+_BAKED_ARRAYS = ("store", "pixel_index", "points", "light_positions", "intensities", "kept_from", "directions",
+                 "store_scale", "sphere_center", "triangles", "tri_inverse", "grid_start", "grid_items")
+
+
+def baked_to_bytes(baked: BakedDataset) -> bytes:
+    arrays = {name: np.asarray(getattr(baked, name)) for name in _BAKED_ARRAYS}
+    arrays["shape"] = np.asarray(baked.shape, np.int64)
+    arrays["scalars"] = np.asarray([float(baked.distant), float(baked.sphere_radius), float(baked.grid_n)])
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)  # uncompressed: loading is a copy, not a decompression
+    return buf.getvalue()
+
+
+def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
+    from engine.relight import BakedDataset
+
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        arrays = {name: np.ascontiguousarray(z[name]) for name in _BAKED_ARRAYS}
+        shape = tuple(int(x) for x in z["shape"])
+        distant, radius, grid_n = (float(x) for x in z["scalars"])
+    return BakedDataset(shape=(shape[0], shape[1]), distant=bool(distant), sphere_radius=radius, grid_n=int(grid_n),
+                        report=dict(report), **arrays)
+
+
+def _load_baked(store: ObjectStore, bake_key: str) -> tuple[BakedDataset, bool]:
+    from workers.artifacts import read_blob, read_manifest
+    from workers.store import NotFound
+
+    def factory() -> tuple[BakedDataset, int]:
+        manifest = read_manifest(store, bake_key)
+        if manifest is None:
+            raise NotFound(f"baked dataset {bake_key} is not in the store (bake the dataset first)")
+        baked = baked_from_bytes(read_blob(store, bake_key, "baked.npz"), manifest.result.get("report", {}))
+        return baked, baked.nbytes + int(baked.tri_inverse.nbytes + baked.grid_items.nbytes)
+
+    return baked_cache().get_or_create(bake_key, factory)
+
+
+# ------------------------------------------------------------------------------ bake
+
+
+def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Bake a stored dataset; returns ``{"artifact_key", "dataset_id", "report", "timings"}``."""
+    t_start = time.perf_counter()
+    p: BakeJobPayload = _validate(BakeJobPayload, payload, "bake")
+    _check_engine()
+    key = bake_artifact_key(p.dataset_id, p.params)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    from engine.relight import bake_dataset
+    from workers.artifacts import read_manifest, write_artifact
+
+    store = _worker_store()
+    existing = read_manifest(store, key)
+    if existing is not None:
+        return {"artifact_key": key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.0, "reading images", force=True)
+    t0 = time.perf_counter()
+    ds = load_illumination_dataset(store, p.dataset_id, progress, (0.0, 0.5))
+    t_load = time.perf_counter() - t0
+    progress.report(0.5, "bake", force=True)
+    bp = p.params
+    t0 = time.perf_counter()
+    baked = bake_dataset(ds, layout=bp.layout, half=bp.half, dedupe_tol_deg=bp.dedupe_tol_deg,
+                         max_face_radius_deg=bp.max_face_radius_deg, half_rel_floor=bp.half_rel_floor)
+    t_bake = time.perf_counter() - t0
+    progress.report(0.85, "writing", force=True)
+    t0 = time.perf_counter()
+    blob = baked_to_bytes(baked)
+    progress.check_canceled()
+    result = _json_safe({
+        "dataset_id": p.dataset_id,
+        "report": baked.report,
+        "counts": {"n_lights": int(baked.light_positions.shape[0]), "n_pixels": int(baked.pixel_index.size),
+                   "n_triangles": int(baked.triangles.shape[0]), "store_bytes": int(baked.store.nbytes),
+                   "width": baked.shape[1], "height": baked.shape[0]},
+        "timings": {"load_dataset": t_load, "bake": t_bake, "serialize": time.perf_counter() - t0},
+    })
+    write_artifact(store, key, BAKE_KIND, {"dataset": p.dataset_id}, bp.model_dump(mode="json"), ENGINE_VERSION,
+                   {"baked.npz": (blob, NPZ)}, result)
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": key, **result}
+
+
+# ------------------------------------------------------------------------------ relight
+
+
+def _env_image(store: ObjectStore, sha: str, transfer: str) -> np.ndarray:
+    baked_cache()
+    assert _env is not None
+
+    def factory() -> tuple[np.ndarray, int]:
+        img = linearise(decode_image(read_file_blob(store, sha), max_pixels=MAX_FILE_PIXELS), transfer)
+        return img, int(img.nbytes)
+
+    value, _ = _env.get_or_create(f"{sha}:{transfer}", factory)
+    return value
+
+
+def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
+    from api_schemas.datasets import (
+        RelightDirectionalLight,
+        RelightEnvironmentLight,
+        RelightPointLight,
+        RelightRectLight,
+    )
+    from engine.relight import DirectionalLight, EnvironmentLight, PointLight, RectLight
+
+    out: list[Any] = []
+    for light in lights:
+        if isinstance(light, RelightPointLight):
+            out.append(PointLight(tuple(light.position), tuple(light.intensity)))
+        elif isinstance(light, RelightDirectionalLight):
+            out.append(DirectionalLight(tuple(light.direction), tuple(light.irradiance)))
+        elif isinstance(light, RelightRectLight):
+            out.append(RectLight(tuple(light.corner), tuple(light.edge_u), tuple(light.edge_v), tuple(light.radiance),
+                                 light.two_sided, light.samples, light.seed))
+        elif isinstance(light, RelightEnvironmentLight):
+            out.append(EnvironmentLight(_env_image(store, light.image_sha256, light.transfer), light.n_lights,
+                                        light.method, light.seed, light.scale))
+        else:  # pragma: no cover - the payload model admits nothing else
+            raise InvalidPayload(f"unsupported light {type(light).__name__}")
+    return out
+
+
+def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: dict[str, Any]
+                 ) -> dict[str, tuple[bytes, str]]:
+    with tempfile.TemporaryDirectory(prefix="ibr-relight-") as tmpdir:
+        tmp = Path(tmpdir)
+        return {
+            "radiance.exr": (_image_bytes(tmp, "radiance.exr", image, metadata=meta), EXR),
+            "preview.png": (_image_bytes(tmp, "preview.png", image, exposure_stops=exposure,
+                                         metadata={**meta, "exposure_stops": exposure}), PNG),
+            "outside.png": (_image_bytes(tmp, "outside.png", outside.astype(np.float32)[:, :, None]), PNG),
+        }
+
+
+def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Relight a baked dataset; returns ``{"artifact_key", "counts", "timings", ...}``."""
+    t_start = time.perf_counter()
+    p: RelightJobPayload = _validate(RelightJobPayload, payload, "relight")
+    _check_engine()
+    req = p.request
+    key = relight_artifact_key(req)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    from engine.relight import relight
+    from workers.artifacts import read_manifest, write_artifact
+
+    store = _worker_store()
+    existing = read_manifest(store, key)
+    if existing is not None:
+        return {"artifact_key": key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    bake_key = bake_artifact_key(req.dataset_id, req.bake)
+    t0 = time.perf_counter()
+    baked, hit = _load_baked(store, bake_key)
+    lights = _engine_lights(store, list(req.lights))
+    t_load = time.perf_counter() - t0
+    out = relight(baked, lights, min_light_distance=req.min_light_distance)
+    t0 = time.perf_counter()
+    meta = {"dataset_id": req.dataset_id, "bake_key": bake_key, "artifact_key": key, "engine_version": ENGINE_VERSION}
+    blobs = _relit_blobs(out.image, out.outside_mask, req.exposure_stops, meta)
+    t_encode = time.perf_counter() - t0
+    progress.check_canceled()
+    h, w = baked.shape
+    result = _json_safe({
+        "dataset_id": req.dataset_id,
+        "bake_key": bake_key,
+        "exact": out.exact,
+        "counts": {"n_outside": out.n_outside, "n_singular": out.n_singular, "n_lights_expanded": out.n_lights,
+                   "width": w, "height": h, "bake_cache_hit": int(hit)},
+        "timings": {**out.timings, "load": t_load, "encode": t_encode},
+    })
+    t0 = time.perf_counter()
+    params = req.model_dump(mode="json")
+    params.pop("dataset_id")
+    from workers.datasets import _relight_inputs
+
+    write_artifact(store, key, RELIGHT_KIND, _relight_inputs(req, {"dataset": req.dataset_id}), params,
+                   ENGINE_VERSION, blobs, result)
+    result["timings"]["store"] = time.perf_counter() - t0
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    return {"artifact_key": key, **result}
+
+
+# ------------------------------------------------------------------------------ generate
+
+
+def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Render a stored scene under placed point lights and store the dataset (upload format)."""
+    t_start = time.perf_counter()
+    p: GenerateJobPayload = _validate(GenerateJobPayload, payload, "generate")
+    _check_engine()
+    req = p.request
+    key = generate_artifact_key(req)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    from api_schemas.datasets import DatasetManifest
+    from engine.errors import InvalidInputError
+    from engine.reference import ReferenceParams
+    from engine.relight_gen import LightPlacement, generate_dataset, surface_aovs
+    from workers.artifacts import read_manifest, write_artifact
+    from workers.jobs.render import _load
+    from workers.scene_loader import camera_params
+
+    store = _worker_store()
+    job = get_current_job()
+    owners = {p.owner} if p.owner else set()
+    if job is not None:
+        owners |= job_owners(job.connection, job.id)
+    existing = read_manifest(store, key)
+    if existing is not None:
+        did = str(existing.result["dataset_id"])
+        for who in owners or {None}:
+            add_dataset_owner(store, did, who)
+        return {"artifact_key": key, **existing.result}
+    progress = ProgressReporter(job)
+    progress.report(0.0, "loading scene", force=True)
+    loaded = _load(store, req.scene_id)
+    camera = camera_params(req.camera) if req.camera is not None else loaded.camera
+    placement = LightPlacement.from_dict(req.placement.model_dump(mode="python"))
+    n = placement.light_count()
+    if n > req.max_lights:
+        raise InvalidInputError(f"placement.spacing_deg: the placement makes {n} lights, more than max_lights="
+                                f"{req.max_lights}; raise max_lights or the spacing")
+    params = ReferenceParams(**req.params.model_dump())
+    progress.report(0.02, "render dataset images", force=True)
+
+    def on_progress(fraction: float, stage: str) -> None:
+        progress.report(0.02 + 0.88 * fraction, stage)
+
+    t0 = time.perf_counter()
+    ds = generate_dataset(loaded.runtime, camera, placement, params, on_progress)
+    t_render = time.perf_counter() - t0
+    progress.report(0.9, "storing dataset", force=True)
+    t0 = time.perf_counter()
+    depth_name, mask_name = "distance.exr", "mask.png"
+    shas: dict[str, str] = {}
+    with tempfile.TemporaryDirectory(prefix="ibr-generate-") as tmpdir:
+        tmp = Path(tmpdir)
+        # the renderer's depth AOV (distance along the pixel-centre ray, 0 = no hit): the loader's
+        # points_from_depth(depth, camera, "distance") then gives exactly the generator's points
+        depth, _ = surface_aovs(loaded.runtime, camera)
+        depth = np.where(ds.mask, depth, 0.0).astype(np.float32)
+        files: dict[str, bytes] = {
+            depth_name: _image_bytes(tmp, depth_name, depth[:, :, None]),
+            mask_name: _image_bytes(tmp, mask_name, ds.mask.astype(np.float32)[:, :, None]),
+        }
+        names = [f"image_{i:04d}.exr" for i in range(ds.images.shape[0])]
+        for name, img in zip(names, ds.images, strict=True):
+            files[name] = _image_bytes(tmp, name, img)
+    for name, data in files.items():
+        shas[name] = str(store_file(store, data, max_pixels=MAX_FILE_PIXELS)["sha256"])
+    cam_doc = req.camera.model_dump(mode="json") if req.camera is not None else _scene_camera_doc(store, req.scene_id)
+    manifest = DatasetManifest.model_validate({
+        "name": f"generated-{req.scene_id[:12]}",
+        "images": [{"file": nm, "sha256": shas[nm], "position": [float(x) for x in pos],
+                    "intensity": [float(x) for x in inten]}
+                   for nm, pos, inten in zip(names, ds.light_positions, ds.intensities, strict=True)],
+        "transfer": "linear",
+        "camera": cam_doc,
+        "geometry": {"type": "depth", "file": depth_name, "sha256": shas[depth_name], "depth_kind": "distance"},
+        "mask": {"file": mask_name, "sha256": shas[mask_name]},
+        "sphere_center": [float(x) for x in ds.sphere_center] if ds.sphere_center is not None else None,
+    })
+    progress.check_canceled()
+    source = {"kind": "generated", "scene_id": req.scene_id, "generation_key": key,
+              "placement": ds.meta.get("resolved_placement"), "n_lights": int(ds.images.shape[0])}
+    public, _ = commit_dataset(store, manifest, None, _json_safe(source), add_owner=False)
+    for who in owners or {None}:
+        add_dataset_owner(store, public.id, who)
+    result = _json_safe({
+        "dataset_id": public.id,
+        "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(ds.mask.sum()),
+                   "width": camera.width, "height": camera.height},
+        "timings": {"render": t_render, "store": time.perf_counter() - t0},
+    })
+    write_artifact(store, key, GENERATE_KIND, {"scene": req.scene_id}, _gen_params(req), ENGINE_VERSION, {}, result)
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": key, **result}
+
+
+def _gen_params(req: Any) -> dict[str, Any]:
+    params: dict[str, Any] = req.model_dump(mode="json")
+    params.pop("scene_id")
+    return params
+
+
+def _scene_camera_doc(store: ObjectStore, scene_id: str) -> dict[str, Any]:
+    from workers.artifacts import get_scene
+
+    scene, _, _ = get_scene(store, scene_id)
+    doc: dict[str, Any] = scene.camera.model_dump(mode="json")
+    return doc
+
+
+# ------------------------------------------------------------------------------ composite
+
+
+def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Composite an object dataset into a background plate (``engine.composite``)."""
+    t_start = time.perf_counter()
+    p: CompositeJobPayload = _validate(CompositeJobPayload, payload, "composite")
+    _check_engine()
+    req = p.request
+    key = composite_artifact_key(req)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    try:
+        from engine import composite as engine_composite
+    except ImportError:
+        raise RuntimeError("compositing is not available in this engine version (engine.composite missing)") from None
+    from workers.artifacts import read_manifest, write_artifact
+
+    store = _worker_store()
+    existing = read_manifest(store, key)
+    if existing is not None:
+        return {"artifact_key": key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    lights = _engine_lights(store, list(req.lights))
+    obj, _ = _load_baked(store, bake_artifact_key(req.object_dataset_id, req.bake))
+    bg, _ = _load_baked(store, bake_artifact_key(req.background_dataset_id, req.bake))
+    plate = linearise(decode_image(read_file_blob(store, req.plate_sha256), max_pixels=MAX_FILE_PIXELS),
+                      req.plate_transfer)
+
+    def mask_of(sha: str | None) -> np.ndarray | None:
+        if sha is None:
+            return None
+        m = decode_image(read_file_blob(store, sha), max_pixels=MAX_FILE_PIXELS)
+        return np.asarray(m.pixels[:, :, 0] > 0.5)
+
+    out = engine_composite.composite_relit(obj, bg, plate, lights, object_mask=mask_of(req.object_mask_sha256),
+                                           active_region=mask_of(req.active_region_sha256),
+                                           ratio_floor=req.ratio_floor)
+    meta = {"object_dataset_id": req.object_dataset_id, "background_dataset_id": req.background_dataset_id,
+            "artifact_key": key, "engine_version": ENGINE_VERSION}
+    blobs = _relit_blobs(out.image, out.outside_mask, req.exposure_stops, meta)
+    progress.check_canceled()
+    result = _json_safe({"counts": dict(out.counts), "timings": dict(out.timings)})
+    params = req.model_dump(mode="json")
+    from workers.datasets import _relight_inputs
+
+    inputs = _relight_inputs(req, {"dataset": req.object_dataset_id, "background": req.background_dataset_id})
+    inputs["plate"] = req.plate_sha256
+    for role in ("object_mask_sha256", "active_region_sha256"):
+        sha = params.pop(role)
+        if sha is not None:
+            inputs[role.removesuffix("_sha256")] = sha
+    for role in ("object_dataset_id", "background_dataset_id", "plate_sha256"):
+        params.pop(role)
+    write_artifact(store, key, COMPOSITE_KIND, inputs, params, ENGINE_VERSION, blobs, result)
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    return {"artifact_key": key, **result}
