@@ -1,0 +1,659 @@
+"""Image-based ray tracing (IBRT) through a layered depth cube (paper 000, section 4.3).
+
+A ray is intersected with the LDC's samples instead of the scene's triangles, so the
+result only depends on the baked representation (reflections and hole filling in the
+LDC renderer need nothing but the bake).
+
+**Surface model.** Every sample of an LDI stands for the piece of its tangent plane (the
+plane through the sample with its geometric normal) that lies over its pixel, dilated by
+``margin`` pixels on each side (default 0.5: up to the neighbouring pixel centres). A ray
+hits a sample when it crosses that patch at ``t_min < t < t_max``; the nearest crossing over
+all samples of the three LDIs is the hit. Flat surfaces are reproduced exactly; on curved
+or faceted ones neighbouring patches disagree by O(h^2 / radius) or (facet angle) x h, and
+the dilation closes those seams (a grazing ray can't slip between two patches). Samples
+whose LDI direction is grazing to the surface (``|n_g . w| < min_cos``, 0.5 as in the
+warp) are left to the other LDIs: every normal has a component >= 1/sqrt(3) along some
+axis, so every surface is usable in at least one LDI.
+
+**Acceleration** (``build_accel``): per LDI and per depth layer a quadtree over the pixels
+(node at level l covers 2^l x 2^l pixels; only live nodes are stored, the children of a node
+contiguously in Morton order) with per node
+
+- ``lo``: the minimum patch depth over the node's pixels in this layer AND all deeper
+  layers (a suffix minimum, so it also bounds every deeper layer),
+- ``hi``: the maximum patch depth of this layer's samples in the node,
+- ``link``: the cross-link to the twin node (same block) in the next layer's quadtree, -1
+  when the block is empty there (a pixel holds a layer-(i+1) sample only if it holds a
+  layer-i one, so the next layer's tree is a subset).
+
+Traversal (the paper's ``Traverse``): with ``[z_in, z_out]`` the depth interval the ray
+spans inside the node's (dilated) block, a node is skipped when ``z_out < lo`` (the ray
+passes in front of everything from this layer down), handed to its cross-link when
+``z_in > hi`` (the ray passes behind this layer: only deeper layers can be hit), else its
+live children are visited in the order the ray meets them; a level-1 node tests the patches
+of its pixels' samples from its layer down. Node bounds are float32, rounded outwards; the
+patch tests are float64 (HARD_CASES 6). The LDIs are traced in the order of decreasing
+``|d . w|`` (shortest projection first) sharing the best ``t`` found so far, so the second
+and third LDIs only search in front of the first one's hit.
+
+``trace_linear`` is the same surface model without the quadtree (every pixel whose dilated
+square the projected ray crosses, row by row): it returns the same hits and is the baseline
+for the quadtree's savings.
+
+Conventions: ``t`` is the distance along the normalised direction; ``side`` 0 when the ray
+arrives on the side the geometric normal points to (``d . n_g < 0``), 1 otherwise, as in
+``LDCAxis.diffuse``. Rays leaving a surface must start past it: pass ``t_min`` of a few LDC
+pixels (``surface_t_min``) -- the LDC's patches of the surface the ray leaves are up to about
+a pixel off the true surface.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .errors import InvalidInputError
+from .ldc import LDC
+
+DEFAULT_MARGIN = 0.5
+DEFAULT_MIN_COS = 0.5
+MAX_TREE_LEVELS = 24
+_STACK = 4 * MAX_TREE_LEVELS + 8
+_CHUNK = 32
+
+_ARRAY_FIELDS = ("root_level", "size", "node_base", "layer_root", "lo", "hi", "first", "mask", "link",
+                 "zrange", "n_samples")
+
+
+@dataclass(frozen=True)
+class IBRTAccel:
+    """Per-axis, per-layer min/max-depth quadtrees with cross-links (module docstring).
+
+    Nodes of the three axes are concatenated: axis a owns ``node_base[a]:node_base[a+1]``.
+    ``layer_root`` (3, L) int32 root node of each layer (-1: layer empty); ``root_level`` (3,)
+    and ``size`` (3,) (= 2**root_level, the quadtree's side in pixels); per node ``lo``/``hi``
+    float32, ``first`` int32 first child (-1 for level-1 nodes, whose children are pixels),
+    ``mask`` uint8 live children (bit ``2 cy + cx``), ``link`` int32; ``zrange`` (3, 2) the
+    depth range of all patches of an axis; ``n_samples`` (3,) of the LDC it was built for.
+    """
+
+    margin: float
+    min_cos: float
+    root_level: np.ndarray
+    size: np.ndarray
+    node_base: np.ndarray
+    layer_root: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    first: np.ndarray
+    mask: np.ndarray
+    link: np.ndarray
+    zrange: np.ndarray
+    n_samples: np.ndarray
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.lo.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(getattr(self, k).nbytes for k in _ARRAY_FIELDS))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        d = {k: getattr(self, k) for k in _ARRAY_FIELDS}
+        d["params"] = np.array([self.margin, self.min_cos], dtype=np.float64)
+        return d
+
+    @classmethod
+    def from_arrays(cls, d) -> IBRTAccel:
+        missing = [k for k in (*_ARRAY_FIELDS, "params") if k not in d]
+        if missing:
+            raise InvalidInputError(f"IBRT accel arrays lack {missing}")
+        p = np.asarray(d["params"], dtype=np.float64)
+        dt = {"root_level": np.int64, "size": np.int64, "node_base": np.int64, "layer_root": np.int32,
+              "lo": np.float32, "hi": np.float32, "first": np.int32, "mask": np.uint8, "link": np.int32,
+              "zrange": np.float64, "n_samples": np.int64}
+        arrs = {k: np.ascontiguousarray(d[k], dtype=dt[k]) for k in _ARRAY_FIELDS}
+        return cls(margin=float(p[0]), min_cos=float(p[1]), **arrs)
+
+
+@dataclass
+class IBRTHits:
+    """First hits of a batch of rays (see the module docstring for t and side)."""
+
+    hit: np.ndarray  # (n,) bool
+    axis: np.ndarray  # (n,) int8, -1 on miss
+    sample: np.ndarray  # (n,) int64 index into that axis' sample arrays, -1 on miss
+    side: np.ndarray  # (n,) int8
+    t: np.ndarray  # (n,) float64, inf on miss
+    point: np.ndarray  # (n, 3) float64 (0 on miss)
+    n_steps: int  # quadtree nodes + pixels visited (trace_linear: pixels visited)
+    n_tests: int = 0  # patch tests (sample visits)
+
+
+# ----------------------------------------------------------------------------- build
+
+
+def _part1by1(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.uint64) & np.uint64(0xFFFFFFFF)
+    for s, m in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F),
+                 (2, 0x3333333333333333), (1, 0x5555555555555555)):
+        x = (x | (x << np.uint64(s))) & np.uint64(m)
+    return x
+
+
+def _morton(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return (_part1by1(x) | (_part1by1(y) << np.uint64(1))).astype(np.int64)
+
+
+def _f32_down(a: np.ndarray) -> np.ndarray:
+    b = a.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        up = b.astype(np.float64) > a
+    b[up] = np.nextafter(b[up], np.float32(-np.inf))
+    return b
+
+
+def _f32_up(a: np.ndarray) -> np.ndarray:
+    b = a.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        dn = b.astype(np.float64) < a
+    b[dn] = np.nextafter(b[dn], np.float32(np.inf))
+    return b
+
+
+def _frame_arrays(ldc: LDC) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(3, 4, 3) float64 origin/u/v/w, (3,) h, (3, 2) int64 nu/nv."""
+    fr = np.zeros((3, 4, 3))
+    hs = np.zeros(3)
+    res = np.zeros((3, 2), dtype=np.int64)
+    for a, ax in enumerate(ldc.axes):
+        f = ax.ldi.frame
+        fr[a] = (f.origin, f.u, f.v, f.w)
+        hs[a] = f.h
+        res[a] = (f.nu, f.nv)
+    return fr, hs, res
+
+
+def patch_extents(ldc: LDC, axis: int, margin: float = DEFAULT_MARGIN,
+                  min_cos: float = DEFAULT_MIN_COS) -> tuple[np.ndarray, np.ndarray]:
+    """(usable (n,) bool, half depth extent (n,) float64) of every sample's dilated patch."""
+    ax = ldc.axes[axis]
+    f = ax.ldi.frame
+    n = ax.geo_normal.astype(np.float64)
+    nu, nv, nw = n @ f.u, n @ f.v, n @ f.w
+    usable = np.abs(nw) >= min_cos
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ext = (0.5 + margin) * f.h * (np.abs(nu) + np.abs(nv)) / np.abs(nw)
+    return usable, np.where(usable, ext, np.inf)
+
+
+def _build_axis(ldc: LDC, axis: int, margin: float, min_cos: float):
+    ax = ldc.axes[axis]
+    f = ax.ldi.frame
+    nu, nv = f.nu, f.nv
+    counts = ax.ldi.counts()
+    n_layers = int(counts.max()) if counts.size else 0
+    size = 2
+    while size < max(nu, nv):
+        size *= 2
+    root_level = int(round(math.log2(size)))
+    if root_level > MAX_TREE_LEVELS:
+        raise InvalidInputError(f"LDI of {nu}x{nv} pixels is too large for the IBRT quadtree")
+    usable, ext = patch_extents(ldc, axis, margin, min_cos)
+    depth = ax.ldi.depth
+    lo_s = np.where(usable, depth - ext, np.inf)
+    hi_s = np.where(usable, depth + ext, -np.inf)
+    if usable.any():
+        zrange = np.array([lo_s[usable].min(), hi_s[usable].max()])
+    else:
+        zrange = np.array([np.inf, -np.inf])
+    starts = ax.ldi.offsets[:-1]
+    pix = np.arange(nu * nv)
+    px, py = pix % nu, pix // nu
+    suffix = np.full(nu * nv, np.inf)
+    # per layer (deepest first for the suffix minimum): per level (Morton codes, lo, hi, mask)
+    layers: list[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = [None] * n_layers  # type: ignore
+    for L in range(n_layers - 1, -1, -1):
+        has = counts > L
+        idx = starts[has] + L
+        suffix[has] = np.minimum(suffix[has], lo_s[idx])
+        lo = np.full((size, size), np.inf)
+        hi = np.full((size, size), -np.inf)
+        lo[py[has], px[has]] = suffix[has]
+        hi[py[has], px[has]] = hi_s[idx]
+        levels = []
+        for _lev in range(1, root_level + 1):
+            m = lo.shape[0] // 2
+            live_c = (lo < np.inf).reshape(m, 2, m, 2)
+            mask = (live_c[:, 0, :, 0].astype(np.uint8) | (live_c[:, 0, :, 1].astype(np.uint8) << 1)
+                    | (live_c[:, 1, :, 0].astype(np.uint8) << 2) | (live_c[:, 1, :, 1].astype(np.uint8) << 3))
+            lo = lo.reshape(m, 2, m, 2).min(axis=(1, 3))
+            hi = hi.reshape(m, 2, m, 2).max(axis=(1, 3))
+            yy, xx = np.nonzero(lo < np.inf)
+            code = _morton(xx, yy)
+            order = np.argsort(code, kind="stable")
+            yy, xx, code = yy[order], xx[order], code[order]
+            levels.append((code, lo[yy, xx], hi[yy, xx], mask[yy, xx]))
+        layers[L] = levels
+    # global numbering: layer 0 root level first ... level 1, then layer 1, ...
+    base: list[list[int]] = []
+    total = 0
+    for L in range(n_layers):
+        bl = [0] * (root_level + 1)
+        for lev in range(root_level, 0, -1):
+            bl[lev] = total
+            total += layers[L][lev - 1][0].shape[0]
+        base.append(bl)
+    lo_all = np.empty(total)
+    hi_all = np.empty(total)
+    first = np.full(total, -1, dtype=np.int32)
+    mask_all = np.zeros(total, dtype=np.uint8)
+    link = np.full(total, -1, dtype=np.int32)
+    layer_root = np.full(n_layers, -1, dtype=np.int32)
+    if total >= 2**31 - 1:
+        raise InvalidInputError("IBRT quadtree has too many nodes")
+    for L in range(n_layers):
+        for lev in range(root_level, 0, -1):
+            code, lo, hi, mask = layers[L][lev - 1]
+            b = base[L][lev]
+            sl = slice(b, b + code.shape[0])
+            lo_all[sl] = lo
+            hi_all[sl] = hi
+            mask_all[sl] = mask
+            if lev >= 2:
+                ccode = layers[L][lev - 2][0]
+                first[sl] = base[L][lev - 1] + np.searchsorted(ccode, 4 * code)
+            if L + 1 < n_layers:
+                ncode = layers[L + 1][lev - 1][0]
+                pos = np.searchsorted(ncode, code)
+                ok = pos < ncode.shape[0]
+                ok[ok] = ncode[pos[ok]] == code[ok]
+                link[sl] = np.where(ok, base[L + 1][lev] + pos, -1)
+        if layers[L][root_level - 1][0].shape[0]:
+            layer_root[L] = base[L][root_level]
+    return (root_level, size, layer_root, _f32_down(lo_all), _f32_up(hi_all), first, mask_all, link, zrange,
+            ax.n_samples)
+
+
+def build_accel(ldc: LDC, *, margin: float = DEFAULT_MARGIN, min_cos: float = DEFAULT_MIN_COS) -> IBRTAccel:
+    """Build the per-axis, per-layer min/max-depth quadtrees with cross-links for ``ldc``.
+
+    ``margin``: patch dilation in pixels, in [0, 1); ``min_cos``: samples with ``|n_g . w|``
+    below it are left to the other LDIs, in (0, 1/sqrt(3)] so every surface stays usable."""
+    if not (0.0 <= margin < 1.0):
+        raise InvalidInputError(f"margin must be in [0, 1) pixels, got {margin!r}")
+    if not (0.0 < min_cos <= 1.0 / math.sqrt(3.0)):
+        raise InvalidInputError(f"min_cos must be in (0, {1.0 / math.sqrt(3.0):.4f}], got {min_cos!r}")
+    parts = [_build_axis(ldc, a, margin, min_cos) for a in range(3)]
+    n_layers = max(1, max(p[2].shape[0] for p in parts))
+    layer_root = np.full((3, n_layers), -1, dtype=np.int32)
+    node_base = np.zeros(4, dtype=np.int64)
+    for a, p in enumerate(parts):
+        node_base[a + 1] = node_base[a] + p[3].shape[0]
+    if node_base[3] >= 2**31 - 1:
+        raise InvalidInputError("IBRT quadtrees have too many nodes")
+    firsts, links = [], []
+    for a, p in enumerate(parts):
+        lr = p[2]
+        layer_root[a, :lr.shape[0]] = np.where(lr >= 0, lr + node_base[a], -1)
+        firsts.append(np.where(p[5] >= 0, p[5] + node_base[a], -1).astype(np.int32))
+        links.append(np.where(p[7] >= 0, p[7] + node_base[a], -1).astype(np.int32))
+    return IBRTAccel(
+        margin=float(margin), min_cos=float(min_cos),
+        root_level=np.array([p[0] for p in parts], dtype=np.int64),
+        size=np.array([p[1] for p in parts], dtype=np.int64),
+        node_base=node_base, layer_root=layer_root,
+        lo=np.concatenate([p[3] for p in parts]), hi=np.concatenate([p[4] for p in parts]),
+        first=np.concatenate(firsts), mask=np.concatenate([p[6] for p in parts]), link=np.concatenate(links),
+        zrange=np.stack([p[8] for p in parts]), n_samples=np.array([p[9] for p in parts], dtype=np.int64))
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _slab(x0, x1, o, d, t0, t1):
+    """Clip [t0, t1] to the parameter range where o + t d lies in [x0, x1]."""
+    if d == 0.0:
+        if o < x0 or o > x1:
+            return 1.0, 0.0
+        return t0, t1
+    inv = 1.0 / d
+    ta = (x0 - o) * inv
+    tb = (x1 - o) * inv
+    if ta > tb:
+        ta, tb = tb, ta
+    return max(t0, ta), min(t1, tb)
+
+
+
+
+@nb.njit(cache=True, nogil=True)
+def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim, min_cos, t_lo, best):
+    """Test the dilated tangent patches of pixel k's samples from ``layer`` down; best = [t, sample]
+    is updated in place. Ray in frame coordinates: u, v in pixels (o + t d), w in world units."""
+    s0 = offs[k] + layer
+    s1 = offs[k + 1]
+    ntest = 0
+    # pixel centre minus ray origin, world units, along u and v
+    cu = (px + 0.5 - ou) * h
+    cv = (py + 0.5 - ov) * h
+    for s in range(s0, s1):
+        n0 = np.float64(gn[s, 0])
+        n1 = np.float64(gn[s, 1])
+        n2 = np.float64(gn[s, 2])
+        nw = n0 * fr[3, 0] + n1 * fr[3, 1] + n2 * fr[3, 2]
+        if abs(nw) < min_cos:
+            continue
+        ntest += 1
+        nu_ = n0 * fr[1, 0] + n1 * fr[1, 1] + n2 * fr[1, 2]
+        nv_ = n0 * fr[2, 0] + n1 * fr[2, 1] + n2 * fr[2, 2]
+        den = (nu_ * du + nv_ * dv) * h + nw * dw
+        if den == 0.0:
+            continue
+        t = (cu * nu_ + cv * nv_ + (depth[s] - ow) * nw) / den
+        if not (t > t_lo and t < best[0]):
+            continue
+        xu = ou + t * du - (px + 0.5)
+        xv = ov + t * dv - (py + 0.5)
+        if abs(xu) <= lim and abs(xv) <= lim:
+            best[0] = t
+            best[1] = s
+    return ntest
+
+
+@nb.njit(cache=True, nogil=True)
+def _trace_axis_tree(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, offs, depth, gn, root, root_level,
+                     lo_n, hi_n, first, mask, link, zr, margin, min_cos, best, stk_i, stk_f, ct0, ct1, cid,
+                     counters):
+    lim = 0.5 + margin
+    size = 1 << root_level
+    # clip to the dilated root block and to the axis' depth range
+    t0, t1 = _slab(-margin, size + margin, ou, du, t_lo, best[0])
+    t0, t1 = _slab(-margin, size + margin, ov, dv, t0, t1)
+    t0, t1 = _slab(zr[0], zr[1], ow, dw, t0, t1)
+    if not (t0 <= t1):
+        return
+    eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(zr[0]) + abs(zr[1]))
+    stk_i[0, 0] = root
+    stk_i[0, 1] = root_level
+    stk_i[0, 2] = 0
+    stk_i[0, 3] = 0
+    stk_i[0, 4] = 0
+    stk_f[0, 0] = t0
+    stk_f[0, 1] = t1
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stk_i[sp, 0]
+        lev = stk_i[sp, 1]
+        x0 = stk_i[sp, 2]
+        y0 = stk_i[sp, 3]
+        layer = stk_i[sp, 4]
+        t0 = stk_f[sp, 0]
+        t1 = min(stk_f[sp, 1], best[0])
+        if not (t0 <= t1):
+            continue
+        counters[0] += 1
+        za = ow + t0 * dw
+        zb = ow + t1 * dw
+        zin = min(za, zb)
+        zout = max(za, zb)
+        if zout + eps < lo_n[node]:
+            continue  # the ray passes in front of this layer and every deeper one here
+        if zin - eps > hi_n[node]:
+            lk = link[node]  # behind this layer: only deeper layers can be hit
+            if lk >= 0:
+                stk_i[sp, 0] = lk
+                stk_i[sp, 4] = layer + 1
+                sp += 1
+            continue
+        half = 1 << (lev - 1)
+        m = mask[node]
+        nc = 0
+        for c in range(4):
+            if not (m >> c) & 1:
+                continue
+            cx = x0 + (c & 1) * half
+            cy = y0 + (c >> 1) * half
+            a0, a1 = _slab(cx - margin, cx + half + margin, ou, du, t0, t1)
+            a0, a1 = _slab(cy - margin, cy + half + margin, ov, dv, a0, a1)
+            if not (a0 <= a1):
+                continue
+            j = nc  # insertion sort by entry parameter
+            while j > 0 and ct0[j - 1] > a0:
+                ct0[j] = ct0[j - 1]
+                ct1[j] = ct1[j - 1]
+                cid[j] = cid[j - 1]
+                j -= 1
+            ct0[j] = a0
+            ct1[j] = a1
+            cid[j] = c
+            nc += 1
+        if lev == 1:
+            for j in range(nc):
+                if ct0[j] >= best[0]:
+                    break
+                c = cid[j]
+                px = x0 + (c & 1)
+                py = y0 + (c >> 1)
+                counters[0] += 1
+                counters[1] += _test_pixel(py * nu + px, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv,
+                                           dw, lim, min_cos, t_lo, best)
+        else:
+            fc = first[node]
+            for j in range(nc - 1, -1, -1):  # reversed: the first child the ray enters pops first
+                c = cid[j]
+                rank = 0
+                for b in range(c):
+                    rank += (m >> b) & 1
+                stk_i[sp, 0] = fc + rank
+                stk_i[sp, 1] = lev - 1
+                stk_i[sp, 2] = x0 + (c & 1) * half
+                stk_i[sp, 3] = y0 + (c >> 1) * half
+                stk_i[sp, 4] = layer
+                stk_f[sp, 0] = ct0[j]
+                stk_f[sp, 1] = ct1[j]
+                sp += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _trace_axis_linear(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, nv, offs, depth, gn, zr, margin, min_cos, best,
+                       counters):
+    """No acceleration: every pixel whose dilated square the projected ray crosses, row by row
+    in the ray's v order and within a row in its u order, all layers."""
+    lim = 0.5 + margin
+    t0, t1 = _slab(-margin, nu + margin, ou, du, t_lo, best[0])
+    t0, t1 = _slab(-margin, nv + margin, ov, dv, t0, t1)
+    t0, t1 = _slab(zr[0], zr[1], ow, dw, t0, t1)
+    if not (t0 <= t1):
+        return
+    va = ov + t0 * dv
+    vb = ov + t1 * dv
+    jlo = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
+    jhi = min(nv - 1, int(math.floor(max(va, vb) + margin)))
+    nrow = jhi - jlo + 1
+    for jj in range(nrow):
+        j = jlo + jj if dv >= 0.0 else jhi - jj
+        r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, t0, min(t1, best[0]))
+        if not (r0 <= r1):
+            continue
+        ua = ou + r0 * du
+        ub = ou + r1 * du
+        ilo = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
+        ihi = min(nu - 1, int(math.floor(max(ua, ub) + margin)))
+        for ii in range(ihi - ilo + 1):
+            i = ilo + ii if du >= 0.0 else ihi - ii
+            counters[0] += 1
+            counters[1] += _test_pixel(j * nu + i, i, j, 0, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim,
+                                       min_cos, t_lo, best)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _trace_kernel(o, d, tmin, tmax, frames, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root, root_level,
+                  lo_n, hi_n, first, mask, link, zr, margin, min_cos, out_axis, out_sample, out_t, work):
+    n = o.shape[0]
+    nchunk = (n + _CHUNK - 1) // _CHUNK
+    for ci in nb.prange(nchunk):
+        stk_i = np.empty((_STACK, 5), dtype=np.int64)
+        stk_f = np.empty((_STACK, 2))
+        ct0 = np.empty(4)
+        ct1 = np.empty(4)
+        cid = np.empty(4, dtype=np.int64)
+        best = np.empty(2)
+        counters = np.zeros(2, dtype=np.int64)
+        order = np.empty(3, dtype=np.int64)
+        key = np.empty(3)
+        for r in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
+            best[0] = tmax[r]
+            best[1] = -1.0
+            best_axis = -1
+            for a in range(3):  # shortest projection (largest |d . w|) first
+                fr = frames[a]
+                key[a] = -abs(d[r, 0] * fr[3, 0] + d[r, 1] * fr[3, 1] + d[r, 2] * fr[3, 2])
+                order[a] = a
+            for i in range(1, 3):
+                j = i
+                while j > 0 and key[order[j - 1]] > key[order[j]]:
+                    order[j - 1], order[j] = order[j], order[j - 1]
+                    j -= 1
+            for q in range(3):
+                a = order[q]
+                fr = frames[a]
+                h = hs[a]
+                rx = o[r, 0] - fr[0, 0]
+                ry = o[r, 1] - fr[0, 1]
+                rz = o[r, 2] - fr[0, 2]
+                ou = (rx * fr[1, 0] + ry * fr[1, 1] + rz * fr[1, 2]) / h
+                ov = (rx * fr[2, 0] + ry * fr[2, 1] + rz * fr[2, 2]) / h
+                ow = rx * fr[3, 0] + ry * fr[3, 1] + rz * fr[3, 2]
+                du = (d[r, 0] * fr[1, 0] + d[r, 1] * fr[1, 1] + d[r, 2] * fr[1, 2]) / h
+                dv = (d[r, 0] * fr[2, 0] + d[r, 1] * fr[2, 1] + d[r, 2] * fr[2, 2]) / h
+                dw = d[r, 0] * fr[3, 0] + d[r, 1] * fr[3, 1] + d[r, 2] * fr[3, 2]
+                prev = best[0]
+                if use_tree:
+                    root = layer_root[a, 0]
+                    if root >= 0:
+                        _trace_axis_tree(ou, ov, ow, du, dv, dw, tmin[r], fr, h, res[a, 0], offs_t[a], depth_t[a],
+                                         gn_t[a], root, root_level[a], lo_n, hi_n, first, mask, link, zr[a], margin,
+                                         min_cos, best, stk_i, stk_f, ct0, ct1, cid, counters)
+                else:
+                    _trace_axis_linear(ou, ov, ow, du, dv, dw, tmin[r], fr, h, res[a, 0], res[a, 1], offs_t[a],
+                                       depth_t[a], gn_t[a], zr[a], margin, min_cos, best, counters)
+                if best[0] < prev:
+                    best_axis = a
+            if best_axis >= 0:
+                out_axis[r] = best_axis
+                out_sample[r] = np.int64(best[1])
+                out_t[r] = best[0]
+            else:
+                out_axis[r] = -1
+                out_sample[r] = -1
+                out_t[r] = np.inf
+        work[ci, 0] = counters[0]
+        work[ci, 1] = counters[1]
+
+
+# ----------------------------------------------------------------------------- API
+
+
+def _rays(origins, dirs, t_min, t_max) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    o = np.ascontiguousarray(origins, dtype=np.float64)
+    d = np.ascontiguousarray(dirs, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise InvalidInputError(f"origins and dirs must both be (n, 3), got {o.shape} and {d.shape}")
+    if not (np.all(np.isfinite(o)) and np.all(np.isfinite(d))):
+        raise InvalidInputError("origins and dirs must be finite")
+    ln = np.linalg.norm(d, axis=1)
+    if np.any(ln == 0.0):
+        raise InvalidInputError("dirs must be non-zero vectors")
+    d = np.ascontiguousarray(d / ln[:, None])
+    n = o.shape[0]
+    tlo = np.ascontiguousarray(np.broadcast_to(np.asarray(t_min, dtype=np.float64), (n,)))
+    thi = np.ascontiguousarray(np.broadcast_to(np.asarray(t_max, dtype=np.float64), (n,)))
+    if np.any(np.isnan(tlo)) or np.any(tlo < 0) or np.any(np.isinf(tlo)):
+        raise InvalidInputError("t_min must be finite and >= 0")
+    if np.any(np.isnan(thi)):
+        raise InvalidInputError("t_max must not be NaN")
+    return o, d, tlo.copy(), thi.copy()
+
+
+def _check(ldc: LDC, accel: IBRTAccel) -> None:
+    ns = np.array([ax.n_samples for ax in ldc.axes], dtype=np.int64)
+    if not np.array_equal(ns, accel.n_samples):
+        raise InvalidInputError(f"IBRT accel was built for an LDC with {accel.n_samples.tolist()} samples per axis, "
+                                f"this LDC has {ns.tolist()}: rebuild it with build_accel(ldc)")
+
+
+def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, use_tree: bool) -> IBRTHits:
+    _check(ldc, accel)
+    o, d, tlo, thi = _rays(origins, dirs, t_min, t_max)
+    n = o.shape[0]
+    frames, hs, res = _frame_arrays(ldc)
+    out_axis = np.empty(n, dtype=np.int8)
+    out_sample = np.empty(n, dtype=np.int64)
+    out_t = np.empty(n)
+    work = np.zeros(((n + _CHUNK - 1) // _CHUNK, 2), dtype=np.int64)
+    offs_t = tuple(np.ascontiguousarray(ax.ldi.offsets, dtype=np.int64) for ax in ldc.axes)
+    depth_t = tuple(np.ascontiguousarray(ax.ldi.depth, dtype=np.float64) for ax in ldc.axes)
+    gn_t = tuple(np.ascontiguousarray(ax.geo_normal, dtype=np.float32) for ax in ldc.axes)
+    prev = nb.get_num_threads()
+    if threads is not None:
+        if not (1 <= int(threads) <= nb.config.NUMBA_NUM_THREADS):
+            raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}], got {threads!r}")
+        nb.set_num_threads(int(threads))
+    try:
+        if n:
+            _trace_kernel(o, d, tlo, thi, frames, hs, res, offs_t, depth_t, gn_t, use_tree, accel.layer_root,
+                          accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link, accel.zrange,
+                          accel.margin, accel.min_cos, out_axis, out_sample, out_t, work)
+    finally:
+        if threads is not None:
+            nb.set_num_threads(prev)
+    hit = out_axis >= 0
+    side = np.zeros(n, dtype=np.int8)
+    point = np.zeros((n, 3))
+    if hit.any():
+        for a in range(3):
+            sel = np.flatnonzero(out_axis == a)
+            if sel.size:
+                ng = ldc.axes[a].geo_normal[out_sample[sel]].astype(np.float64)
+                side[sel] = (np.einsum("ij,ij->i", ng, d[sel]) > 0.0).astype(np.int8)
+        point[hit] = o[hit] + out_t[hit, None] * d[hit]
+    return IBRTHits(hit=hit, axis=out_axis, sample=out_sample, side=side, t=out_t, point=point,
+                    n_steps=int(work[:, 0].sum()), n_tests=int(work[:, 1].sum()))
+
+
+def trace(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,
+          t_min: np.ndarray | float = 0.0, t_max: np.ndarray | float = np.inf,
+          threads: int | None = None) -> IBRTHits:
+    """First hit of each ray (origins, dirs (n, 3); dirs are normalised) against the LDC's
+    samples, through the quadtrees of ``accel`` (``build_accel(ldc)``). Hits count when
+    ``t_min < t < t_max`` (scalars or (n,) arrays). ``threads``: numba threads for this call
+    (None: numba's current setting). Parallel over rays, releases the GIL."""
+    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, True)
+
+
+def trace_linear(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,
+                 t_min: np.ndarray | float = 0.0, t_max: np.ndarray | float = np.inf,
+                 threads: int | None = None) -> IBRTHits:
+    """Same as ``trace`` without the quadtrees (every crossed pixel, every layer): the
+    baseline the acceleration is measured and tested against (uses only the accel's
+    parameters and depth ranges)."""
+    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, False)
+
+
+def surface_t_min(ldc: LDC, dirs: np.ndarray, normals: np.ndarray, pixels: float = 1.5) -> np.ndarray:
+    """A ``t_min`` for rays leaving a surface with normals ``normals`` (n, 3): ``pixels`` LDC
+    pixels measured along the normal (so ``pixels * h / |cos|``, the cosine clamped at 0.2).
+    The patches of the surface a ray leaves are up to about a pixel off the true surface in
+    the other LDIs; hits closer than this are that surface itself."""
+    d = np.asarray(dirs, dtype=np.float64)
+    nr = np.asarray(normals, dtype=np.float64)
+    c = np.abs(np.einsum("ij,ij->i", d, nr)) / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(nr, axis=1),
+                                                          1e-300)
+    return pixels * ldc.h / np.maximum(c, 0.2)
