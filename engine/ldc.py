@@ -22,6 +22,7 @@ Baking is split per axis (``bake_ldc_axis``) so a job can run the axes separatel
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -65,6 +66,40 @@ class LDCAxis:
         return int(self.ldi.nbytes + sum(a.nbytes for a in (self.normal, self.geo_normal, self.facing, self.material,
                                                              self.object, self.diffuse, self.visibility)))
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays for storage (``np.savez``, no pickle): the LDI under ``ldi_``, the per-sample
+        attributes, ``axis`` and the bake timings as a JSON string."""
+        out = self.ldi.to_arrays("ldi_")
+        out.update(axis=np.int64(self.axis), normal=self.normal, geo_normal=self.geo_normal, facing=self.facing,
+                   material=self.material, object=self.object, diffuse=self.diffuse, visibility=self.visibility,
+                   timings=np.array(json.dumps(self.timings)))
+        return out
+
+    @classmethod
+    def from_arrays(cls, d) -> LDCAxis:
+        """Inverse of ``to_arrays``; checks every attribute has one row per sample."""
+        ldi = LDI.from_arrays(d, "ldi_")
+        n = ldi.n_samples
+        try:
+            ax = cls(axis=int(np.asarray(d["axis"])), ldi=ldi,
+                     normal=np.ascontiguousarray(d["normal"], dtype=np.float32),
+                     geo_normal=np.ascontiguousarray(d["geo_normal"], dtype=np.float32),
+                     facing=np.ascontiguousarray(d["facing"], dtype=np.int8),
+                     material=np.ascontiguousarray(d["material"], dtype=np.int32),
+                     object=np.ascontiguousarray(d["object"], dtype=np.int32),
+                     diffuse=np.ascontiguousarray(d["diffuse"], dtype=np.float32),
+                     visibility=np.ascontiguousarray(d["visibility"], dtype=np.uint64),
+                     timings=json.loads(str(np.asarray(d["timings"]))) if "timings" in d else {})
+        except KeyError as e:
+            raise InvalidInputError(f"stored LDC axis lacks array {e.args[0]!r}") from None
+        if ax.axis not in (0, 1, 2):
+            raise InvalidInputError(f"stored LDC axis has axis {ax.axis}")
+        if (ax.normal.shape != (n, 3) or ax.geo_normal.shape != (n, 3) or ax.facing.shape != (n,)
+                or ax.material.shape != (n,) or ax.object.shape != (n,) or ax.diffuse.shape != (n, 2, 3)
+                or ax.visibility.ndim != 3 or ax.visibility.shape[:2] != (n, 2)):
+            raise InvalidInputError("stored LDC axis attributes don't match its sample count")
+        return ax
+
 
 @dataclass(frozen=True)
 class LDC:
@@ -87,6 +122,32 @@ class LDC:
     @property
     def visibility_words(self) -> int:
         return int(self.axes[0].visibility.shape[2])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The LDC's small metadata as plain arrays (the axes are stored on their own with
+        ``LDCAxis.to_arrays``): h, resolution, n_lights, background, closed_objects, plan (JSON)."""
+        return {"h": np.float64(self.h), "resolution": np.int64(self.resolution), "n_lights": np.int64(self.n_lights),
+                "background": np.asarray(self.background, np.float64),
+                "closed_objects": np.asarray(self.closed_objects, np.bool_), "plan": np.array(json.dumps(self.plan))}
+
+    @classmethod
+    def from_arrays(cls, meta, axes) -> LDC:
+        """Rebuild an LDC from ``to_arrays()`` metadata and its three axes (any order)."""
+        by_axis = {a.axis: a for a in axes}
+        if sorted(by_axis) != [0, 1, 2] or len(axes) != 3:
+            raise InvalidInputError(f"an LDC needs one axis each of 0, 1, 2; got {[a.axis for a in axes]}")
+        try:
+            h = float(np.asarray(meta["h"]))
+            ldc = cls(axes=(by_axis[0], by_axis[1], by_axis[2]), h=h, resolution=int(np.asarray(meta["resolution"])),
+                      n_lights=int(np.asarray(meta["n_lights"])),
+                      background=np.asarray(meta["background"], np.float64).reshape(3),
+                      closed_objects=tuple(bool(x) for x in np.asarray(meta["closed_objects"]).reshape(-1)),
+                      plan=json.loads(str(np.asarray(meta["plan"]))))
+        except KeyError as e:
+            raise InvalidInputError(f"stored LDC metadata lacks {e.args[0]!r}") from None
+        if len({a.visibility.shape[2] for a in axes}) != 1 or any(abs(a.ldi.frame.h - h) > 1e-12 * h for a in axes):
+            raise InvalidInputError("stored LDC axes disagree with each other or with the metadata")
+        return ldc
 
 
 # ----------------------------------------------------------------------------- kernels

@@ -117,6 +117,38 @@ class LDI:
         return int(self.offsets.nbytes + self.depth.nbytes + self.prim.nbytes + self.u.nbytes + self.v.nbytes
                    + self.truncated.nbytes)
 
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """Plain arrays (frame + CSR) for storage, e.g. ``np.savez``; no pickled objects."""
+        f = self.frame
+        return {prefix + "frame_origin": f.origin, prefix + "frame_u": f.u, prefix + "frame_v": f.v,
+                prefix + "frame_w": f.w, prefix + "frame_h": np.float64(f.h),
+                prefix + "frame_res": np.array([f.nu, f.nv], np.int64),
+                prefix + "offsets": self.offsets, prefix + "depth": self.depth, prefix + "prim": self.prim,
+                prefix + "u": self.u, prefix + "v": self.v, prefix + "truncated": self.truncated}
+
+    @classmethod
+    def from_arrays(cls, d, prefix: str = "") -> LDI:
+        """Inverse of ``to_arrays``; checks shapes and CSR consistency (InvalidInputError)."""
+        try:
+            nu, nv = (int(x) for x in np.asarray(d[prefix + "frame_res"]).reshape(2))
+            frame = LDIFrame(origin=np.asarray(d[prefix + "frame_origin"]), u=np.asarray(d[prefix + "frame_u"]),
+                             v=np.asarray(d[prefix + "frame_v"]), w=np.asarray(d[prefix + "frame_w"]),
+                             h=float(np.asarray(d[prefix + "frame_h"])), nu=nu, nv=nv)
+            offsets = np.ascontiguousarray(d[prefix + "offsets"], dtype=np.int64)
+            depth = np.ascontiguousarray(d[prefix + "depth"], dtype=np.float64)
+            prim = np.ascontiguousarray(d[prefix + "prim"], dtype=np.int32)
+            u = np.ascontiguousarray(d[prefix + "u"], dtype=np.float32)
+            v = np.ascontiguousarray(d[prefix + "v"], dtype=np.float32)
+            truncated = np.ascontiguousarray(d[prefix + "truncated"], dtype=np.bool_)
+        except KeyError as e:
+            raise InvalidInputError(f"stored LDI lacks array {e.args[0]!r}") from None
+        n = depth.shape[0]
+        if (offsets.shape != (frame.n_pixels + 1,) or offsets[0] != 0 or offsets[-1] != n
+                or np.any(np.diff(offsets) < 0) or prim.shape != (n,) or u.shape != (n,) or v.shape != (n,)
+                or truncated.shape != (frame.n_pixels,)):
+            raise InvalidInputError("stored LDI arrays are inconsistent (shapes or offsets)")
+        return cls(frame=frame, offsets=offsets, depth=depth, prim=prim, u=u, v=v, truncated=truncated)
+
 
 def estimate_ldi_bytes(n_pixels: int, max_layers: int, sample_bytes: int = LDI_SAMPLE_BYTES) -> int:
     """Worst-case bytes of an LDI (every pixel full to max_layers), including the per-pixel arrays.
