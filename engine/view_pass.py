@@ -1,0 +1,439 @@
+"""View-dependent pass of the LDC method (ALGORITHMS.md part A, rendering step 2).
+
+Runs only on the visible non-diffuse pixels the effect plan asks for; every function takes
+flat per-surface-point arrays, so the same kernels shade camera pixels and the hits of
+image-based ray tracing. Shapes: p (n, 3) float64 world points; ng, ns (n, 3) geometric and
+shading normals, both flipped to the side the viewer is on (shading normal on the wrong
+side of the geometric one replaced by it, as in ``engine/reference.py``); wo (n, 3) unit
+direction toward the viewer; mat (n,) int32.
+
+**Highlights** (``highlights``): the reference renderer's Phong term, per light sample
+``ks (s + 2) / (2 pi) cos^s(wl . wr) E cos(ns . wl)`` with wr the mirror of wo about ns,
+gated by the LDC's visibility bit of that light (bits ``(n, W)`` uint64; with ``W = 0`` -
+the bake stored no bits because no light can be occluded, or was told not to - a light in
+front of the surface counts as visible). Light samples, offsets and cut-offs are the
+reference's (``engine/lights.py``); a rect light is gated by ONE bit (any of its samples
+visible), so a highlight in its penumbra is too bright by the blocked fraction; rect-light
+jitter is a fixed seeded counter-based pattern. Diffuse (LDC) + highlights equals the
+reference's direct lighting at the same point (tested to 1e-5 for point and directional
+lights).
+
+**Light-field gather** (``gather_reflections``), paper section 4.2. The radiance arriving
+at p from LLF direction d is read in LLF view d: p projected onto the view's reference
+plane, the 4 nearest pixels, in each the first sample beyond p, bilinear weights. "Beyond
+p" is measured from where the pixel's ray crosses the tangent plane of p (clamped to 3 view
+pixels either way; only for directions leaving the surface, ng . d > 0, else from p's depth)
+plus 0.05 pixel, not from p's own depth: a tilted surface would otherwise reflect itself in
+the neighbouring pixels. A pixel without such a sample (or
+outside the view) gives the background.
+- glossy (``kg``, exponent g): ``kg (g + 2) / (g + 1) sum_j w_j cos_i,j L_j / sum_j w_j`` over
+  the directions above the surface (ng . d > 0 and ns . d > 0), ``w_j = cos^g(angle(d_j,
+  wr))`` - the reference's estimator with its lobe samples replaced by the LLF directions
+  (equal-area directions, so no area weights). Weights are formed as ``exp(g (ln cos_j -
+  ln cos_max))`` (the best direction has weight 1): finite and normalised for any g
+  (HARD_CASES 8). A lobe narrower than the LLF can resolve (g above the cone exponent n_c
+  below) is gathered with exponent n_c: it becomes the mirror case. Directions whose weight
+  is below e^-10 of the best are skipped (the lattice window is sized from that angle).
+- ideal mirror (``kr``): the ``cone_directions`` (3) LLF directions nearest to wr (the
+  smallest cone holding 3 of them), weighted ``cos^n_c`` of their angle to wr, normalised;
+  ``n_c = ln 2 / (1 - cos s)`` with s = sqrt(4 pi / n) the typical direction spacing, so a
+  direction one spacing away weighs half the one on wr. No mirror term when wr is below the
+  geometric surface (as in the reference).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .errors import InvalidInputError, NonFiniteOutputError
+from .lights import light_sample
+from .llf import LLF, candidate_directions
+from .raycast import OFFSET_EXTENT, OFFSET_REL
+from .rng import stream_key, uniform
+from .scene import RuntimeScene
+
+INV_PI = 1.0 / math.pi
+GLOSSY_LOG_CUT = 10.0  # skip directions whose lobe weight is below e^-10 of the best one
+CONE_DIRECTIONS = 3
+_BLOCK = 64
+
+
+def mirror_cone_exponent(llf: LLF) -> float:
+    """n_c with cos^n_c(spacing) = 1/2 (see module docstring)."""
+    return math.log(2.0) / (1.0 - math.cos(llf.spacing))
+
+
+# ----------------------------------------------------------------------------- highlights
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _phong_pow(c, s):
+    if c <= 0.0:
+        return 0.0
+    if c >= 1.0:
+        return 1.0
+    return math.exp(s * math.log(c))
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _highlights(p, ng, ns, wo, mat, bits, ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent, out):
+    n = p.shape[0]
+    npt = pt_pos.shape[0]
+    ndir = dir_dir.shape[0]
+    nrect = rc.shape[0]
+    gg = r_g * r_g
+    per = npt + ndir + nrect * gg
+    words = bits.shape[1]
+    for i in nb.prange(n):
+        out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+        m = mat[i]
+        if not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0:
+            continue
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        wo0, wo1, wo2 = wo[i, 0], wo[i, 1], wo[i, 2]
+        c = n0 * wo0 + n1 * wo1 + n2 * wo2
+        wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
+        mx = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
+        mag = OFFSET_REL * (mx + OFFSET_EXTENT * extent)
+        ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
+        spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
+        a0 = a1 = a2 = 0.0
+        for j in range(per):
+            li = j
+            su = sv = 0.0
+            if j >= npt + ndir:
+                li = npt + ndir + (j - npt - ndir) // gg
+                su = uniform(stream, i * per + j, 0)
+                sv = uniform(stream, i * per + j, 1)
+            if words > 0:
+                if (bits[i, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
+                    continue
+            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
+                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if not ok:
+                continue
+            cos_g = g0 * lx + g1 * ly + g2 * lz
+            cos_s = n0 * lx + n1 * ly + n2 * lz
+            if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
+                continue
+            ca = wr0 * lx + wr1 * ly + wr2 * lz
+            if ca <= spec_cut[m]:
+                continue
+            fs = spec_norm * _phong_pow(ca, shin[m]) * cos_s
+            a0 += ks[m, 0] * fs * e0
+            a1 += ks[m, 1] * fs * e1
+            a2 += ks[m, 2] * fs * e2
+        out[i, 0], out[i, 1], out[i, 2] = a0, a1, a2
+
+
+def _check_points(p, ng, ns, wo, mat):
+    p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+    n = p.shape[0]
+    arrs = [np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3) for a in (ng, ns, wo)]
+    mat = np.ascontiguousarray(mat, dtype=np.int32).reshape(-1)
+    if any(a.shape[0] != n for a in arrs) or mat.shape[0] != n:
+        raise InvalidInputError("view pass: p, ng, ns, wo and mat must have one row per point")
+    return p, arrs[0], arrs[1], arrs[2], mat
+
+
+def highlights(scene: RuntimeScene, p, ng, ns, wo, mat, bits=None, *, area_light_samples: int = 16,
+               seed: int = 0) -> np.ndarray:
+    """Phong highlights (n, 3) float64 toward wo, gated by ``bits`` (n, W) uint64 (see module doc)."""
+    p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
+    n = p.shape[0]
+    bits = np.zeros((n, 0), np.uint64) if bits is None else np.ascontiguousarray(bits, dtype=np.uint64)
+    if bits.ndim != 2 or bits.shape[0] != n:
+        raise InvalidInputError("view pass: bits must be (n, W) uint64")
+    mt, lt = scene.materials, scene.lights
+    if bits.shape[1] and bits.shape[1] != (lt.count + 63) // 64:
+        raise InvalidInputError(f"view pass: bits have {bits.shape[1]} words, the scene's lights need "
+                                f"{(lt.count + 63) // 64}")
+    out = np.zeros((n, 3))
+    if n == 0 or lt.count == 0:
+        return out
+    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
+    r_area = np.linalg.norm(a, axis=1)
+    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
+    spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
+    r_g = max(1, int(round(math.sqrt(area_light_samples))))
+    _highlights(p, ng, ns, wo, mat, bits, mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity,
+                lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
+                lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11), scene.center, scene.extent, out)
+    return out
+
+
+# ----------------------------------------------------------------------------- gather
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _lookup(j, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
+    """Radiance arriving at p from LLF direction j (bilinear over the 4 nearest pixels of view j,
+    first sample beyond p's tangent plane in each). Returns (r, g, b)."""
+    h = fh[j]
+    rx, ry, rz = px - origin[j, 0], py - origin[j, 1], pz - origin[j, 2]
+    a = (rx * fu[j, 0] + ry * fu[j, 1] + rz * fu[j, 2]) / h - 0.5
+    b = (rx * fv[j, 0] + ry * fv[j, 1] + rz * fv[j, 2]) / h - 0.5
+    zp = rx * fw[j, 0] + ry * fw[j, 1] + rz * fw[j, 2]
+    nu_ = g0 * fu[j, 0] + g1 * fu[j, 1] + g2 * fu[j, 2]
+    nv_ = g0 * fv[j, 0] + g1 * fv[j, 1] + g2 * fv[j, 2]
+    nw_ = g0 * fw[j, 0] + g1 * fw[j, 1] + g2 * fw[j, 2]
+    i0 = int(math.floor(a))
+    j0 = int(math.floor(b))
+    fa = a - i0
+    fb = b - j0
+    base = j * res * res
+    r0 = r1 = r2 = 0.0
+    for q in range(4):
+        ii = i0 + (q & 1)
+        jj = j0 + (q >> 1)
+        wgt = (fa if (q & 1) else 1.0 - fa) * (fb if (q >> 1) else 1.0 - fb)
+        if wgt == 0.0:
+            continue
+        c0, c1, c2 = bg[0], bg[1], bg[2]
+        if 0 <= ii < res and 0 <= jj < res:
+            # where this pixel's ray crosses p's tangent plane (clamped), plus a small margin
+            off = 0.0
+            if nw_ > 1e-3:  # only for rays leaving the surface (otherwise the plane says nothing)
+                off = -h * ((ii - a) * nu_ + (jj - b) * nv_) / nw_
+                lim = 3.0 * h
+                if off > lim:
+                    off = lim
+                elif off < -lim:
+                    off = -lim
+            thr = zp + off + 0.05 * h
+            k = base + jj * res + ii
+            for s in range(pk_off[k], pk_off[k + 1]):
+                if pk_depth[s] > thr:
+                    c0, c1, c2 = pk_rad[s, 0], pk_rad[s, 1], pk_rad[s, 2]
+                    break
+        r0 += wgt * c0
+        r1 += wgt * c1
+        r2 += wgt * c2
+    return r0, r1, r2
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off, pk_depth, pk_rad,
+          origin, fu, fv, fw, fh, res, bg):
+    """Normalised cos^n_c-weighted radiance of the k_dirs LLF directions nearest to d.
+    Returns (r, g, b, lookups)."""
+    nc = candidate_directions(d0, d1, d2, f, 3, table, cand)
+    best_i = np.empty(k_dirs, np.int64)
+    best_c = np.full(k_dirs, -2.0)
+    for t in range(nc):
+        jd = cand[t]
+        c = dirs[jd, 0] * d0 + dirs[jd, 1] * d1 + dirs[jd, 2] * d2
+        if c > best_c[k_dirs - 1]:
+            q = k_dirs - 1
+            while q > 0 and best_c[q - 1] < c:
+                best_c[q] = best_c[q - 1]
+                best_i[q] = best_i[q - 1]
+                q -= 1
+            best_c[q] = c
+            best_i[q] = jd
+    lmax = n_c * math.log(max(best_c[0], 1e-300))
+    sw = 0.0
+    r0 = r1 = r2 = 0.0
+    used = 0
+    for q in range(k_dirs):
+        if best_c[q] <= 0.0:
+            continue
+        w = math.exp(n_c * math.log(best_c[q]) - lmax)
+        l0, l1, l2 = _lookup(best_i[q], px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh,
+                             res, bg)
+        r0 += w * l0
+        r1 += w * l1
+        r2 += w * l2
+        sw += w
+        used += 1
+    if sw > 0.0:
+        return r0 / sw, r1 / sw, r2 / sw, used
+    return bg[0], bg[1], bg[2], used
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, with_cos, f, table, dirs, cand, pk_off,
+          pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
+    """sum_j w_j cos_i,j L_j / sum_j w_j over the lobe cos^g_eff around d (see module docstring);
+    without ``with_cos`` every direction counts with cos_i = 1. Returns (r, g, b, lookups)."""
+    x = GLOSSY_LOG_CUT / g_eff
+    if x >= 20.0:
+        theta = math.pi
+    else:
+        theta = math.acos(max(-1.0, min(1.0, math.exp(-x))))
+    radius = int(math.ceil(0.6 * theta * f)) + 2
+    if radius > 2 * f + 2:
+        radius = 2 * f + 2
+    nc = candidate_directions(d0, d1, d2, f, radius, table, cand)
+    cmax = -2.0
+    for t in range(nc):
+        jd = cand[t]
+        c = dirs[jd, 0] * d0 + dirs[jd, 1] * d1 + dirs[jd, 2] * d2
+        if c > cmax:
+            cmax = c
+    if cmax <= 0.0:
+        return 0.0, 0.0, 0.0, 0
+    lmax = g_eff * math.log(cmax)
+    sw = 0.0
+    r0 = r1 = r2 = 0.0
+    used = 0
+    for t in range(nc):
+        jd = cand[t]
+        e0, e1, e2 = dirs[jd, 0], dirs[jd, 1], dirs[jd, 2]
+        c = e0 * d0 + e1 * d1 + e2 * d2
+        if c <= 0.0:
+            continue
+        lw = g_eff * math.log(c) - lmax
+        if lw < -GLOSSY_LOG_CUT:
+            continue
+        w = math.exp(lw)
+        sw += w
+        cos_i = 1.0
+        if with_cos:
+            if g0 * e0 + g1 * e1 + g2 * e2 <= 0.0:
+                continue
+            cos_i = s0 * e0 + s1 * e1 + s2 * e2
+            if cos_i <= 0.0:
+                continue
+        l0, l1, l2 = _lookup(jd, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+        r0 += w * cos_i * l0
+        r1 += w * cos_i * l1
+        r2 += w * cos_i * l2
+        used += 1
+    if sw > 0.0:
+        return r0 / sw, r1 / sw, r2 / sw, used
+    return 0.0, 0.0, 0.0, used
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _gather(p, ng, ns, wo, mat, kr, kg, gexp, do_mirror, do_glossy, n_c, k_dirs, f, table, dirs, pk_off,
+            pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, out, lookups):
+    n = p.shape[0]
+    nd = dirs.shape[0]
+    nblk = (n + _BLOCK - 1) // _BLOCK
+    for blk in nb.prange(nblk):
+        cand = np.empty(nd + 8, np.int64)
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+            lookups[i] = 0
+            m = mat[i]
+            px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+            g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+            s0, s1, s2 = ns[i, 0], ns[i, 1], ns[i, 2]
+            wo0, wo1, wo2 = wo[i, 0], wo[i, 1], wo[i, 2]
+            c = s0 * wo0 + s1 * wo1 + s2 * wo2
+            d0, d1, d2 = 2 * c * s0 - wo0, 2 * c * s1 - wo1, 2 * c * s2 - wo2
+            ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            d0 /= ln
+            d1 /= ln
+            d2 /= ln
+            if do_mirror and (kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and \
+                    g0 * d0 + g1 * d1 + g2 * d2 > 0.0:
+                l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off,
+                                      pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                out[i, 0] += kr[m, 0] * l0
+                out[i, 1] += kr[m, 1] * l1
+                out[i, 2] += kr[m, 2] * l2
+                lookups[i] += u
+            if do_glossy and (kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
+                g = gexp[m]
+                if not g >= 0.0:
+                    g = 0.0
+                g_eff = min(g, n_c)
+                if g_eff < 1e-6:
+                    g_eff = 1e-6
+                l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, True, f, table, dirs, cand,
+                                      pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                k = (g + 2.0) / (g + 1.0)
+                out[i, 0] += kg[m, 0] * k * l0
+                out[i, 1] += kg[m, 1] * k * l1
+                out[i, 2] += kg[m, 2] * k * l2
+                lookups[i] += u
+
+
+def _llf_args(llf: LLF):
+    return (llf.f, llf.table, llf.directions, llf.pk_offsets, llf.pk_depth, llf.pk_radiance, llf.pk_origin,
+            llf.pk_u, llf.pk_v, llf.pk_w, llf.pk_h, llf.resolution)
+
+
+def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mirror: bool = True,
+                       glossy: bool = True, cone_directions: int = CONE_DIRECTIONS,
+                       background=None) -> tuple[np.ndarray, int]:
+    """Reflected radiance (n, 3) float64 toward wo by light-field gather (mirror cone and
+    glossy lobe, see module docstring) and the number of LLF lookups made."""
+    p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
+    if not (1 <= cone_directions <= 16):
+        raise InvalidInputError("cone_directions must be in [1, 16]")
+    bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
+    n = p.shape[0]
+    out = np.zeros((n, 3))
+    lookups = np.zeros(n, np.int64)
+    if n == 0:
+        return out, 0
+    mt = scene.materials
+    _gather(p, ng, ns, wo, mat, mt.kr, mt.kg, mt.gloss_exponent, mirror, glossy, mirror_cone_exponent(llf),
+            cone_directions, *_llf_args(llf), bg, out, lookups)
+    if not np.all(np.isfinite(out)):
+        raise NonFiniteOutputError("light-field gather produced non-finite radiance")
+    return out, int(lookups.sum())
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw,
+              fh, res, bg, out):
+    n = p.shape[0]
+    nd = dirs.shape[0]
+    nblk = (n + _BLOCK - 1) // _BLOCK
+    for blk in nb.prange(nblk):
+        cand = np.empty(nd + 8, np.int64)
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+            if exponent > 0.0:
+                # normalised lobe without the cosine: sum w L / sum w
+                r0, r1, r2, _ = _lobe(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, 0.0, 0.0, 0.0, d[i, 0], d[i, 1], d[i, 2],
+                                      exponent, False, f, table, dirs, cand, pk_off, pk_depth, pk_rad, origin, fu,
+                                      fv, fw, fh, res, bg)
+            else:
+                r0, r1, r2, _ = _cone(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, d[i, 0], d[i, 1], d[i, 2], n_c, k_dirs,
+                                      f, table, dirs, cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+            out[i, 0], out[i, 1], out[i, 2] = r0, r1, r2
+
+
+def lookup_direction(llf: LLF, j: int, p, ng, background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(n, 3) radiance arriving at points p from LLF direction j (one view, bilinear)."""
+    p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+    ng = np.ascontiguousarray(ng, dtype=np.float64).reshape(-1, 3)
+    bg = np.asarray(background, dtype=np.float64).reshape(3)
+    if not (0 <= j < llf.n_directions):
+        raise InvalidInputError(f"LLF direction index must be in [0, {llf.n_directions - 1}]")
+    out = np.empty((p.shape[0], 3))
+    f, table, dirs, off, dep, rad, o, u, v, w, h, res = _llf_args(llf)
+    for i in range(p.shape[0]):
+        out[i] = _lookup(j, p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2], off, dep, rad, o, u, v, w, h,
+                         res, bg)
+    return out
+
+
+def gather_incoming(llf: LLF, p, ng, d, *, exponent: float = 0.0, cone_directions: int = CONE_DIRECTIONS,
+                    background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(n, 3) float64 estimate of the radiance arriving at p from direction d (unit, (n, 3)):
+    the mirror cone (exponent 0) or the normalised cos^exponent lobe over the LLF directions
+    (no cosine factor, no BRDF). ng orients the tangent plane used by the lookups."""
+    p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+    ng = np.ascontiguousarray(ng, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(d, dtype=np.float64).reshape(-1, 3)
+    if not (ng.shape == p.shape == d.shape):
+        raise InvalidInputError("gather_incoming: p, ng and d must be (n, 3)")
+    if not (np.isfinite(exponent) and exponent >= 0):
+        raise InvalidInputError("gather_incoming: exponent must be finite and >= 0")
+    out = np.zeros(p.shape)
+    bg = np.asarray(background, dtype=np.float64).reshape(3)
+    _incoming(p, ng, d, float(exponent), int(cone_directions), mirror_cone_exponent(llf), *_llf_args(llf), bg, out)
+    return out
+
