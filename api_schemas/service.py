@@ -10,10 +10,12 @@ models before doing any work.
 
 from __future__ import annotations
 
+import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, StringConstraints
+from pydantic import AfterValidator, Field, StringConstraints, WithJsonSchema
+from pydantic_core import PydanticCustomError
 
 from api_schemas.common import FrozenModel
 from api_schemas.scene import Camera, Scene
@@ -23,8 +25,33 @@ Sha256 = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}$")]
 
 JobId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{1,128}$")]
 
-RenderMethod = Literal["reference"]
-"""Render methods available now; later issues add ``ldc``, ``ldc+llf``, ``ldc+ibrt:k``."""
+MAX_IBRT_GENERATIONS = 8
+METHOD_PATTERN = r"^(reference|ldc|ldc\+llf|ldc\+ibrt:[0-8])$"
+
+
+def _check_method(value: str) -> str:
+    if re.fullmatch(METHOD_PATTERN, value) is None:
+        raise PydanticCustomError(
+            "render_method",
+            "method must be 'reference', 'ldc', 'ldc+llf' or 'ldc+ibrt:k' with k in 0..{max_k}, got '{value}'",
+            {"max_k": MAX_IBRT_GENERATIONS, "value": value[:40]},
+        )
+    return value
+
+
+RenderMethod = Annotated[
+    str,
+    AfterValidator(_check_method),
+    WithJsonSchema({"type": "string", "pattern": METHOD_PATTERN,
+                    "description": "reference | ldc | ldc+llf | ldc+ibrt:k (k = 0..8 reflection generations)"}),
+]
+"""``reference`` (the ray tracer), or a method that renders from the scene's bake: ``ldc`` (warp of
+the layered depth cube only), ``ldc+llf`` (plus highlights and light-field gather), ``ldc+ibrt:k``
+(plus k generations of image-based ray tracing through the LDC ending in a gather, k = 0..8)."""
+
+
+def method_needs_bake(method: str) -> bool:
+    return method != "reference"
 
 JobState = Literal["queued", "started", "finished", "failed", "canceled"]
 
@@ -79,6 +106,48 @@ class ReferenceRenderParams(FrozenModel):
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
 
 
+class LLFRenderParams(FrozenModel):
+    """Reference-renderer settings used for the outgoing radiance stored in the light field."""
+
+    spp: Annotated[int, Field(ge=1, le=64)] = 1
+    max_depth: Annotated[int, Field(ge=0, le=16)] = 4
+    glossy_samples: Annotated[int, Field(ge=1, le=256)] = 8
+    area_light_samples: Annotated[int, Field(ge=1, le=256)] = 4
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+
+
+LLFMode = Literal["auto", "always", "never"]
+
+
+class BakeParams(FrozenModel):
+    """What a bake computes: the layered depth cube (LDC) and, when the scene has glossy or mirror
+    materials (the effect analysis decides; ``llf`` overrides), the layered light field (LLF).
+
+    Bakes are split into parts for the ``bake`` queue: one per LDC axis and one per chunk of
+    ``llf_chunk`` LLF directions."""
+
+    ldc_resolution: Annotated[int, Field(ge=8, le=4096)] = 256
+    """LDC pixels along the longest side of the scene's bounding box (each of the 3 axes)."""
+    max_layers: Annotated[int, Field(ge=1, le=256)] = 32
+    """Surface crossings kept per LDC pixel (deeper ones are dropped and counted)."""
+    area_light_samples: Annotated[int, Field(ge=1, le=1024)] = 16
+    """Samples per rect light for the baked diffuse shading (g x g grid, g = round(sqrt(n)))."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    llf: LLFMode = "auto"
+    """``auto``: bake the light field only when the effect analysis finds glossy or mirror
+    materials; ``always``: bake it anyway; ``never``: never (``ldc+llf`` renders then fail)."""
+    llf_f: Annotated[int, Field(ge=1, le=16)] = 4
+    """Octahedron subdivision: 4 f^2 + 2 directions (f = 4: 66, 8: 258, 16: 1026)."""
+    llf_resolution: Annotated[int, Field(ge=4, le=512)] = 64
+    """Pixels along the longest side of each LLF view (parallel projection)."""
+    llf_chunk: Annotated[int, Field(ge=1, le=1026)] = 16
+    """LLF directions per bake job (the unit of parallelism across bake workers)."""
+    llf_params: LLFRenderParams = LLFRenderParams()
+
+
+MissingBake = Literal["fail", "bake"]
+
+
 class RenderRequest(FrozenModel):
     """Body of ``POST /v1/renders``: a view of a stored scene by a method."""
 
@@ -87,6 +156,13 @@ class RenderRequest(FrozenModel):
     """Overrides the scene's camera; None renders the scene's own view."""
     method: RenderMethod = "reference"
     params: ReferenceRenderParams = ReferenceRenderParams()
+    """Reference renderer settings (method ``reference``; the LDC methods use ``area_light_samples``
+    and ``seed`` for the shading of hole pixels filled by ray casting)."""
+    bake: BakeParams = BakeParams()
+    """Which bake of the scene an LDC method renders from (ignored by ``reference``)."""
+    missing_bake: MissingBake = "fail"
+    """When the bake does not exist yet: ``fail`` answers 409 naming the bake to request;
+    ``bake`` requests it and queues the render to run when it is done (the answer says so)."""
 
 
 class RenderPublic(FrozenModel):
@@ -96,7 +172,60 @@ class RenderPublic(FrozenModel):
     status: Literal["cached", "queued", "running", "finished", "failed"]
     job: JobPublic | None = None
     artifact: ArtifactManifest | None = None
+    bake: BakePublic | None = None
+    """LDC methods: the bake the render reads (with ``missing_bake: "bake"``, the bake it waits for)."""
     links: dict[str, str] = {}
+
+
+# ------------------------------------------------------------------------------ bakes
+
+
+BakePartState = Literal["queued", "started", "finished", "failed", "canceled", "missing"]
+
+
+class BakePart(FrozenModel):
+    """One unit of a bake: an LDC axis or a chunk of LLF directions, its own artifact and job."""
+
+    name: str
+    """``ldc-axis-0`` .. ``ldc-axis-2``, ``llf-views-<first>-<last>``."""
+    kind: Literal["ldc_axis", "llf_views"]
+    key: Sha256
+    """Artifact key of the part (content-addressed: the bake's key + the part's name)."""
+    state: BakePartState
+    """``finished`` when the part's artifact is in the store; ``missing`` when neither the
+    artifact nor a job exists (it is redone by the next request of the bake)."""
+    progress: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
+    weight: float = 1.0
+    """Estimated share of the bake's work (for the aggregated progress)."""
+    job_id: str | None = None
+    error: str | None = None
+
+
+BakeState = Literal["queued", "running", "finished", "failed", "canceled", "missing"]
+
+
+class BakePublic(FrozenModel):
+    """A bake of a scene: its parts, their states and the aggregated progress."""
+
+    key: Sha256
+    scene_id: Sha256
+    params: BakeParams
+    state: BakeState
+    cached: bool = False
+    """True when the request found the bake already in the store."""
+    progress: JobProgress = Field(default_factory=lambda: JobProgress())
+    plan: dict[str, Any] | None = None
+    """The effect analysis and what it made the bake do (LLF or not, visibility bits, sizes)."""
+    parts: list[BakePart] = []
+    job: JobPublic | None = None
+    """The bake's merge job (``bake-<key>``): finishes when the manifest is published."""
+    error: str | None = None
+    artifact: ArtifactManifest | None = None
+    links: dict[str, str] = {}
+
+
+class BakeList(FrozenModel):
+    items: list[BakePublic]
 
 
 # ------------------------------------------------------------------------------ jobs
@@ -194,3 +323,4 @@ class Problem(FrozenModel):
 
 
 RenderPublic.model_rebuild()
+BakePublic.model_rebuild()

@@ -36,10 +36,18 @@ from redis import Redis
 from rq import Queue, Retry
 from rq.command import send_stop_job_command
 from rq.exceptions import DuplicateJobError, InvalidJobOperation, NoSuchJobError
-from rq.job import Job, JobStatus
+from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
-from api_schemas.service import BatchPublic, JobProgress, JobPublic, JobState, RenderPublic, RenderRequest
+from api_schemas.service import (
+    BatchPublic,
+    JobProgress,
+    JobPublic,
+    JobState,
+    RenderPublic,
+    RenderRequest,
+    method_needs_bake,
+)
 from workers.jobs import RENDER_JOB
 from workers.jobs.payloads import RenderJobPayload
 
@@ -49,6 +57,7 @@ if TYPE_CHECKING:
 __all__ = [
     "BAKE_TIMEOUT_S",
     "BATCH_TTL_S",
+    "BakeMissing",
     "FAILURE_TTL_S",
     "QUEUE_NAMES",
     "RENDER_RETRY_INTERVALS_S",
@@ -58,6 +67,7 @@ __all__ = [
     "JobNotFound",
     "QueueName",
     "UnknownScene",
+    "add_job_owner",
     "batch_owner",
     "batch_status",
     "cancel",
@@ -133,6 +143,21 @@ class UnknownScene(LookupError):
     """The render request names a scene the store does not hold: HTTP 404 / 422."""
 
 
+class BakeMissing(LookupError):
+    """An LDC render (``missing_bake: "fail"``) of a scene whose bake is not complete: HTTP 409.
+    ``bake_key`` names the bake; ``job_id`` is its running job, if any."""
+
+    def __init__(self, scene_id: str, bake_key: str, job_id: str | None):
+        running = f" (in progress: job {job_id})" if job_id else ""
+        super().__init__(
+            f"scene {scene_id} has no complete bake {bake_key}{running}; request it with POST "
+            f"/v1/scenes/{scene_id}/bakes (same bake params), or send missing_bake: \"bake\" to queue the "
+            "render after the bake")
+        self.scene_id = scene_id
+        self.bake_key = bake_key
+        self.job_id = job_id
+
+
 # ------------------------------------------------------------------------------------ connections
 
 
@@ -187,9 +212,12 @@ def engine_version() -> str:
 
 
 def render_params(req: RenderRequest) -> dict[str, Any]:
-    """The artifact parameters of a render: the request without its scene id (JSON types)."""
-    params = req.model_dump(mode="json")
-    params.pop("scene_id")
+    """The artifact parameters of a render: the request without its scene id and without
+    ``missing_bake`` (what to do when the bake is missing does not change the image); the bake
+    params only for the methods that read a bake (JSON types)."""
+    params = req.model_dump(mode="json", exclude={"scene_id", "missing_bake"})
+    if not method_needs_bake(req.method):
+        params.pop("bake")
     return params
 
 
@@ -242,13 +270,15 @@ def enqueue_unique(
     description: str,
     owner: str | None = None,
     is_cached: Callable[[], bool] | None = None,
+    depends_on: Dependency | None = None,
 ) -> Job | None:
     """Enqueue ``func(payload)`` as ``job_id`` unless that job is already waiting or running.
 
     Under a Redis lock per job id: an active job (queued / started / scheduled / deferred) is
     returned as it is; a finished job for which ``is_cached()`` holds means the result exists
     (returns None); any other previous job with that id (failed, canceled, finished but its
-    artifact gone) is deleted and replaced by a fresh one.
+    artifact gone) is deleted and replaced by a fresh one. ``depends_on``: RQ dependencies of a
+    new job (it waits, 'deferred', until they end).
     """
     with redis.lock(f"{_KEY_PREFIX}lock:enqueue:{job_id}", timeout=ENQUEUE_LOCK_TIMEOUT_S,
                     blocking_timeout=ENQUEUE_LOCK_TIMEOUT_S):
@@ -274,7 +304,8 @@ def enqueue_unique(
                 job_id=job_id,
                 meta=meta,
                 retry=retry,
-                unique=True,
+                unique=depends_on is None,  # RQ refuses unique with dependencies; the lock covers it
+                depends_on=depends_on,
             )
         except DuplicateJobError:  # only possible if someone enqueued around the lock
             existing = fetch_job(redis, job_id)
@@ -283,6 +314,11 @@ def enqueue_unique(
             job = existing
         _add_owner(redis, job_id, owner, timeout)
         return job
+
+
+def add_job_owner(redis: Redis, job_id: str, owner: str | None, timeout: int) -> None:
+    """Record ``owner`` as one of the keys that asked for ``job_id`` (so they may see it)."""
+    _add_owner(redis, job_id, owner, timeout)
 
 
 def _add_owner(redis: Redis, job_id: str, owner: str | None, timeout: int) -> None:
@@ -324,6 +360,19 @@ def enqueue_render(
         return key, None
     if store is not None and not store.exists(f"scenes/{req.scene_id}.json"):
         raise UnknownScene(f"scene {req.scene_id} does not exist")
+    depends_on: Dependency | None = None
+    if method_needs_bake(req.method) and store is not None:
+        from workers.bakes import bake_complete, bake_job_id, bake_key, enqueue_bake
+
+        bkey = bake_key(req.scene_id, req.bake)
+        if not bake_complete(store, bkey):
+            if req.missing_bake == "fail":
+                running = fetch_job(redis, bake_job_id(bkey))
+                active = running is not None and running.get_status(refresh=False) in _ACTIVE
+                raise BakeMissing(req.scene_id, bkey, running.id if running is not None and active else None)
+            _, merge = enqueue_bake(redis, store, req.scene_id, req.bake, owner)
+            if merge is not None:
+                depends_on = Dependency(jobs=[merge.id], allow_failure=True)
     payload = RenderJobPayload(request=req, artifact_key=key).model_dump(mode="json")
     meta: dict[str, Any] = {
         "kind": "render",
@@ -336,6 +385,7 @@ def enqueue_render(
         redis, "render", RENDER_JOB, payload, render_job_id(key),
         timeout=timeout, meta=meta, retry=Retry(max=RENDER_RETRY_MAX, interval=list(RENDER_RETRY_INTERVALS_S)),
         description=f"render scene {req.scene_id[:12]} ({req.method})", owner=owner, is_cached=cached,
+        depends_on=depends_on,
     )
     return key, job
 

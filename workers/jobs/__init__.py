@@ -8,4 +8,13 @@ is only imported by the process that runs the job).
 RENDER_JOB = "workers.jobs.render.render_job"
 """Import path of the render job function."""
 
-__all__ = ["RENDER_JOB"]
+BAKE_PLAN_JOB = "workers.jobs.bake.bake_plan_job"
+"""Plans a bake (effect analysis, memory check) and enqueues its missing parts."""
+BAKE_LDC_JOB = "workers.jobs.bake.bake_ldc_axis_job"
+"""Bakes one LDC axis (a bake part)."""
+BAKE_LLF_JOB = "workers.jobs.bake.bake_llf_views_job"
+"""Bakes one chunk of LLF directions (a bake part)."""
+BAKE_MERGE_JOB = "workers.jobs.bake.bake_merge_job"
+"""Verifies a bake's parts and publishes its manifest."""
+
+__all__ = ["BAKE_LDC_JOB", "BAKE_LLF_JOB", "BAKE_MERGE_JOB", "BAKE_PLAN_JOB", "RENDER_JOB"]

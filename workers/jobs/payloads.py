@@ -8,14 +8,22 @@ comes from the worker's own settings, ``workers/settings.py``).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import ValidationError
+from pydantic import Field, ValidationError, model_validator
 
 from api_schemas.common import FrozenModel
-from api_schemas.service import RenderRequest, Sha256
+from api_schemas.service import BakeParams, RenderRequest, Sha256
 
-__all__ = ["InvalidPayload", "RenderJobPayload", "describe_validation_error"]
+__all__ = [
+    "BakeJobPayload",
+    "BakePartPayload",
+    "InvalidPayload",
+    "LDCAxisPart",
+    "LLFViewsPart",
+    "RenderJobPayload",
+    "describe_validation_error",
+]
 
 
 class InvalidPayload(ValueError):
@@ -30,6 +38,42 @@ class RenderJobPayload(FrozenModel):
     request: RenderRequest
     artifact_key: Sha256
     """The key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
+
+
+class BakeJobPayload(FrozenModel):
+    """Payload of the bake plan and merge jobs (``workers.jobs.bake``)."""
+
+    v: Literal[1] = 1
+    scene_id: Sha256
+    bake_key: Sha256
+    """The key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
+    params: BakeParams
+
+
+class LDCAxisPart(FrozenModel):
+    name: str
+    kind: Literal["ldc_axis"]
+    axis: Annotated[int, Field(ge=0, le=2)]
+
+
+class LLFViewsPart(FrozenModel):
+    name: str
+    kind: Literal["llf_views"]
+    start: Annotated[int, Field(ge=0)]
+    stop: Annotated[int, Field(ge=1)]
+
+    @model_validator(mode="after")
+    def _range(self) -> LLFViewsPart:
+        if self.stop <= self.start:
+            raise ValueError("stop must be > start")
+        return self
+
+
+class BakePartPayload(BakeJobPayload):
+    """Payload of a bake part job: the bake's payload plus the part and its artifact key."""
+
+    part: LDCAxisPart | LLFViewsPart = Field(discriminator="kind")
+    part_key: Sha256
 
 
 def describe_validation_error(exc: ValidationError, limit: int = 5) -> str:

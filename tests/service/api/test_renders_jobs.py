@@ -61,7 +61,7 @@ def test_render_errors(make_app: Any) -> None:
         assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
         r = c.post("/v1/renders", json={"scene_id": sid, "camera": {**CAM, "width": 100, "height": 100}})
         assert r.status_code == 422 and r.json()["errors"][0]["field"] == "camera.height"
-        r = c.post("/v1/renders?wait=61", json={"scene_id": sid, "params": {"spp": 0}, "method": "ldc"})
+        r = c.post("/v1/renders?wait=61", json={"scene_id": sid, "params": {"spp": 0}, "method": "ldc+ibrt:9"})
         assert r.status_code == 422
         assert {e["field"] for e in r.json()["errors"]} == {"query.wait", "params.spp", "method"}
         r = c.post("/v1/renders", json={"scene_id": sid, "camera": {**CAM, "type": "fisheye"}})

@@ -1,0 +1,117 @@
+"""Bakes split into parts on a real forking bake worker (``python -m workers.runner --queue bake``):
+plan -> one job per LDC axis (and per LLF chunk when the scene needs a light field) -> merge; the
+aggregated progress reaches 1; a deleted part is redone alone; a diffuse scene bakes no LLF."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from redis import Redis
+
+from api_schemas.scene import Scene
+from api_schemas.service import BakeParams, BakePublic
+from tests.fixtures.redis import WorkerProcess
+from tests.workers.queue.jobs_for_tests import tiny_scene
+from workers import bakes, queues
+from workers.artifacts import put_scene, read_manifest
+from workers.store import ObjectStore
+
+StartWorker = Callable[..., WorkerProcess]
+SMALL = BakeParams(ldc_resolution=24, max_layers=8, area_light_samples=1)
+
+
+def diffuse_scene() -> Scene:
+    doc = tiny_scene().model_dump(mode="json")
+    for m in doc["materials"]:
+        m["ks"] = [0.0, 0.0, 0.0]
+        m["shininess"] = 0.0
+    return Scene.model_validate(doc)
+
+
+def wait_bake(redis: Redis, store: ObjectStore, sid: str, key: str, params: BakeParams, timeout: float,
+              w: WorkerProcess, seen: list[BakePublic] | None = None) -> BakePublic:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = bakes.bake_status(redis, store, sid, key, params)
+        if seen is not None:
+            seen.append(st)
+        if st.state in ("finished", "failed", "canceled", "missing"):
+            return st
+        time.sleep(0.1)
+    raise AssertionError(f"bake not done after {timeout} s: {st.state} {st.progress}\n{w.log()}")
+
+
+def test_bake_splits_into_parts_and_merges_on_one_worker(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    pub = put_scene(worker_store, diffuse_scene(), {}, None)
+    key, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    assert job is not None and job.id == bakes.bake_job_id(key)
+    first = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
+    assert first.state == "queued" and first.progress.fraction == 0.0 and first.parts == []
+    w = worker_process("bake")
+    seen: list[BakePublic] = []
+    st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w, seen)
+    assert st.state == "finished", (st, w.log())
+    assert st.progress.fraction == 1.0 and st.artifact is not None
+    # progress never went backwards and passed through intermediate values
+    fr = [s.progress.fraction for s in seen]
+    assert all(b >= a - 1e-9 for a, b in zip(fr, fr[1:], strict=False)), fr
+    # diffuse scene: three LDC axes, no light field, and the plan says why
+    assert [p.name for p in st.parts] == ["ldc-axis-0", "ldc-axis-1", "ldc-axis-2"]
+    assert all(p.kind == "ldc_axis" and p.state == "finished" for p in st.parts)
+    assert st.plan is not None and st.plan["bake_llf"] is False and st.plan["needs_llf"] is False
+    assert st.plan["llf_directions"] == 0 and "no glossy or mirror" in st.plan["reason"]
+    manifest = read_manifest(worker_store, key)
+    assert manifest is not None and manifest.kind == "bake"
+    assert manifest.result["plan"] == st.plan and len(manifest.result["parts"]) == 3
+    assert manifest.result["sizes"]["ldc_samples"] > 0
+    # each part is its own artifact with the LDC axis as npz arrays of its samples
+    from workers.artifacts import read_blob
+    from workers.jobs.bake import read_npz
+
+    for part in st.parts:
+        pm = read_manifest(worker_store, part.key)
+        assert pm is not None and pm.kind == "bake-part" and pm.inputs == {"scene": pub.id, "bake": key}
+        arrays = read_npz(read_blob(worker_store, part.key, "ldc_axis.npz"))
+        assert int(arrays["axis"]) == int(part.name[-1]) and arrays["ldi_depth"].shape[0] == pm.result["n_samples"]
+    # a second request is answered from the store: no job
+    again, job2 = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    assert again == key and job2 is None
+    assert bakes.list_bakes(worker_store, pub.id) == [(key, SMALL)]
+
+
+def test_deleted_part_is_redone_alone(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    from workers.artifacts import delete_artifact
+
+    pub = put_scene(worker_store, diffuse_scene(), {}, None)
+    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    w = worker_process("bake")
+    st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w)
+    assert st.state == "finished", w.log()
+    created = {p.name: read_manifest(worker_store, p.key).created_at for p in st.parts}  # type: ignore[union-attr]
+    victim = st.parts[1]
+    delete_artifact(worker_store, victim.key)  # e.g. lost in a crash, or removed as corrupt
+
+    assert bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL).state != "finished"
+    key2, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    assert key2 == key and job is not None  # the incomplete bake is not served as cached
+    st2 = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w)
+    assert st2.state == "finished", w.log()
+    plan_job = queues.fetch_job(redis_conn, bakes.bake_plan_job_id(key))
+    assert plan_job is not None
+    planned: dict[str, Any] = plan_job.return_value()  # type: ignore[assignment]
+    assert planned["enqueued"] == [victim.name]
+    assert sorted(planned["reused"]) == sorted(n for n in created if n != victim.name)
+    after = {p.name: read_manifest(worker_store, p.key).created_at for p in st2.parts}  # type: ignore[union-attr]
+    for name, t in created.items():
+        if name == victim.name:
+            assert after[name] > t
+        else:
+            assert after[name] == t  # not recomputed
+    assert np.isfinite(read_manifest(worker_store, key).result["timings"]["verify"])  # type: ignore[union-attr]

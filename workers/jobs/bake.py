@@ -1,0 +1,462 @@
+"""Bake jobs on the ``bake`` queue: plan, parts (LDC axes, LLF direction chunks) and merge.
+
+See ``workers/bakes.py`` for the keys, the job graph and the store layout. Every job validates its
+payload, recomputes the keys it was given (a payload cannot make a worker publish under another
+request's key), reads the store URL from the worker's own settings, reports progress in
+``job.meta["progress"]`` and honours cancellation between stages.
+
+Parts are stored as ``npz`` blobs (``np.savez``, no pickle) of the engine's ``to_arrays()``:
+``ldc_axis.npz`` for an LDC axis, ``llf_views.npz`` (views prefixed ``v<index>_``) for an LLF chunk.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ValidationError
+from rq import get_current_job
+
+from engine import ENGINE_VERSION
+from engine.errors import InvalidInputError
+from workers.bakes import (
+    BAKE_MAX_PART_BYTES,
+    bake_complete,
+    bake_key,
+    bake_plan_job_id,
+    enqueue_parts,
+    llf_direction_count,
+    part_job_id,
+    part_key,
+    part_weight,
+    plan_parts,
+)
+from workers.jobs.payloads import BakeJobPayload, BakePartPayload, InvalidPayload, describe_validation_error
+from workers.jobs.render import ProgressReporter, SceneNotFound
+from workers.queues import engine_version, fetch_job, job_public, redis_from_url
+from workers.settings import get_settings, open_worker_store
+
+if TYPE_CHECKING:
+    from redis import Redis
+
+    from api_schemas.service import BakeParams
+    from engine.effects import EffectPlan
+    from engine.scene import RuntimeScene
+    from workers.scene_loader import LoadedScene
+    from workers.store import ObjectStore
+
+__all__ = [
+    "BakeFailed",
+    "BakeTooLarge",
+    "bake_ldc_axis_job",
+    "bake_llf_views_job",
+    "bake_merge_job",
+    "bake_plan_job",
+    "load_bake",
+    "npz_bytes",
+    "read_npz",
+]
+
+NPZ = "application/x-npz"
+M = TypeVar("M", bound=BaseModel)
+
+
+class BakeFailed(RuntimeError):
+    """A bake cannot be completed (planning failed, a part is missing or inconsistent)."""
+
+
+class BakeTooLarge(InvalidInputError):
+    """The memory estimate of a part is over the limit: refused before baking."""
+
+
+# ------------------------------------------------------------------------------------ helpers
+
+
+def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, allow_pickle=False, **{k: np.asarray(v) for k, v in arrays.items()})
+    return buf.getvalue()
+
+
+def read_npz(data: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _validate(model: type[M], payload: dict[str, Any]) -> M:
+    try:
+        return model.model_validate(payload)
+    except ValidationError as exc:
+        raise InvalidPayload(f"invalid bake job payload: {describe_validation_error(exc)}") from None
+
+
+def _check_bake(p: BakeJobPayload) -> None:
+    if engine_version() != ENGINE_VERSION:
+        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
+    expected = bake_key(p.scene_id, p.params)
+    if expected != p.bake_key:
+        raise InvalidPayload(f"bake_key {p.bake_key} does not match the request (expected {expected})")
+
+
+def _redis() -> Redis:
+    job = get_current_job()
+    if job is not None:
+        return job.connection
+    return redis_from_url(get_settings().effective_redis_url)
+
+
+def _owner() -> str | None:
+    job = get_current_job()
+    owner = job.meta.get("owner") if job is not None else None
+    return owner if isinstance(owner, str) else None
+
+
+def _load(store: ObjectStore, scene_id: str) -> LoadedScene:
+    from workers.artifacts import blob_reader, get_scene
+    from workers.scene_loader import load_scene
+    from workers.store import NotFound
+
+    try:
+        scene, mesh_shas, _public = get_scene(store, scene_id)
+    except NotFound as exc:
+        raise SceneNotFound(f"scene {scene_id} is not in the store") from exc
+    return load_scene(scene, blob_reader(store, mesh_shas))
+
+
+def bakes_llf(params: BakeParams, plan: EffectPlan) -> bool:
+    """Does this bake include the light field? ``auto``: when the scene has glossy or mirror surfaces."""
+    return params.llf == "always" or (params.llf == "auto" and plan.needs_llf)
+
+
+def _ldc_axis_bytes(scene: RuntimeScene, params: BakeParams, words: int) -> list[int]:
+    from engine.ldc import LDC_ATTR_BYTES, ldc_pixel_size
+    from engine.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
+
+    h = ldc_pixel_size(scene, params.ldc_resolution)
+    lo, hi = scene.bounds
+    per = LDI_SAMPLE_BYTES + LDC_ATTR_BYTES + 16 * words
+    return [estimate_ldi_bytes(axis_frame(lo, hi, a, h).n_pixels, params.max_layers, per) for a in range(3)]
+
+
+def _json_safe(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+# ------------------------------------------------------------------------------------ plan
+
+
+def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Analyse the scene, check the memory estimate, enqueue the parts not yet in the store.
+
+    Returns ``{"plan", "parts": [spec + key + weight], "reused": [names], "enqueued": [names],
+    "estimates": {...}}``; the merge job and the API read it."""
+    p = _validate(BakeJobPayload, payload)
+    _check_bake(p)
+    from engine.effects import analyze
+    from workers.artifacts import manifest_key, read_manifest
+
+    store = open_worker_store()
+    progress = ProgressReporter(get_current_job())
+    if bake_complete(store, p.bake_key):
+        manifest = read_manifest(store, p.bake_key)
+        assert manifest is not None
+        parts = manifest.result.get("parts", [])
+        return {"plan": manifest.result.get("plan"), "parts": parts, "reused": [s["name"] for s in parts],
+                "enqueued": [], "estimates": manifest.result.get("estimates", {})}
+    progress.report(0.1, "loading scene", force=True)
+    loaded = _load(store, p.scene_id)
+    scene = loaded.runtime
+    if scene.n_triangles == 0:
+        raise InvalidInputError("cannot bake a scene without surfaces")
+    progress.report(0.5, "effect analysis", force=True)
+    plan = analyze(scene)
+    with_llf = bakes_llf(p.params, plan)
+    words = (scene.lights.count + 63) // 64 if plan.any_occludable else 0
+    axis_bytes = _ldc_axis_bytes(scene, p.params, words)
+    if max(axis_bytes) > BAKE_MAX_PART_BYTES:
+        raise BakeTooLarge(
+            f"ldc_resolution {p.params.ldc_resolution} with max_layers {p.params.max_layers} needs up to "
+            f"{max(axis_bytes) / 2**20:.0f} MiB per LDC axis, over this server's limit of "
+            f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower ldc_resolution or max_layers")
+    estimates: dict[str, Any] = {"ldc_axis_bytes_max": axis_bytes, "part_limit_bytes": BAKE_MAX_PART_BYTES}
+    if with_llf:
+        from engine import llf as llf_mod
+
+        est = getattr(llf_mod, "estimate_llf_view_bytes", None)
+        if est is not None:
+            per_view = int(est(scene, p.params.llf_resolution, p.params.max_layers))
+            chunk_bytes = per_view * p.params.llf_chunk
+            estimates["llf_chunk_bytes_max"] = chunk_bytes
+            if chunk_bytes > BAKE_MAX_PART_BYTES:
+                raise BakeTooLarge(
+                    f"llf_resolution {p.params.llf_resolution} x llf_chunk {p.params.llf_chunk} directions needs up "
+                    f"to {chunk_bytes / 2**20:.0f} MiB per LLF job, over this server's limit of "
+                    f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower llf_resolution or llf_chunk")
+    specs: list[dict[str, Any]] = []
+    for spec in plan_parts(p.params, with_llf):
+        specs.append({**spec, "key": part_key(p.scene_id, p.bake_key, spec), "weight": part_weight(p.params, spec)})
+    missing = [s for s in specs if not store.exists(manifest_key(s["key"]))]
+    progress.report(0.8, f"enqueueing {len(missing)} of {len(specs)} parts", force=True)
+    enqueue_parts(_redis(), p.scene_id, p.bake_key, p.params, missing, _owner())
+    plan_doc = {**plan.to_dict(), "bake_llf": with_llf, "llf_mode": p.params.llf,
+                "llf_directions": llf_direction_count(p.params.llf_f) if with_llf else 0,
+                "visibility_words": words,
+                "reason": ("light field forced by llf=always" if p.params.llf == "always" and not plan.needs_llf
+                           else "glossy or mirror materials need the light field" if with_llf
+                           else "llf=never" if p.params.llf == "never" and plan.needs_llf
+                           else "no glossy or mirror materials: no light field")}
+    progress.report(1.0, "planned", force=True, check=False)
+    out: dict[str, Any] = _json_safe({"plan": plan_doc, "parts": specs,
+                                      "reused": [s["name"] for s in specs if s not in missing],
+                                      "enqueued": [s["name"] for s in missing], "estimates": estimates})
+    return out
+
+
+# ------------------------------------------------------------------------------------ parts
+
+
+def _part_prologue(payload: dict[str, Any]) -> tuple[BakePartPayload, ObjectStore, dict[str, Any] | None]:
+    p = _validate(BakePartPayload, payload)
+    _check_bake(p)
+    spec = p.part.model_dump(mode="json")
+    expected = part_key(p.scene_id, p.bake_key, spec)
+    if expected != p.part_key:
+        raise InvalidPayload(f"part_key {p.part_key} does not match the part (expected {expected})")
+    from workers.artifacts import read_manifest
+
+    store = open_worker_store()
+    existing = read_manifest(store, p.part_key)
+    if existing is not None:  # published already (a retry after the commit, or a duplicate)
+        return p, store, {"artifact_key": p.part_key, "part": p.part.name, "reused": True, **existing.result}
+    return p, store, None
+
+
+def _publish_part(store: ObjectStore, p: BakePartPayload, blob_name: str, arrays: Mapping[str, np.ndarray],
+                  result: dict[str, Any], progress: ProgressReporter) -> dict[str, Any]:
+    from workers.artifacts import write_artifact
+
+    data = npz_bytes(arrays)
+    progress.check_canceled()  # last chance before the commit
+    res = _json_safe({**result, "bytes": len(data)})
+    write_artifact(store, p.part_key, "bake-part", {"scene": p.scene_id, "bake": p.bake_key},
+                   p.part.model_dump(mode="json"), ENGINE_VERSION, {blob_name: (data, NPZ)}, res)
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.part_key, "part": p.part.name, "reused": False, **res}
+
+
+def _scene_and_caster(store: ObjectStore, scene_id: str) -> tuple[LoadedScene, Any, EffectPlan]:
+    from engine.effects import analyze
+    from engine.raycast import make_caster
+
+    loaded = _load(store, scene_id)
+    return loaded, make_caster(loaded.runtime, "embree"), analyze(loaded.runtime)
+
+
+def bake_ldc_axis_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Bake one LDC axis and publish it as the part's artifact (``ldc_axis.npz``)."""
+    t_start = time.perf_counter()
+    p, store, done = _part_prologue(payload)
+    if done is not None:
+        return done
+    from engine.ldc import bake_ldc_axis
+
+    part = p.part
+    assert part.kind == "ldc_axis"
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.02, "loading scene", force=True)
+    t0 = time.perf_counter()
+    loaded, caster, plan = _scene_and_caster(store, p.scene_id)
+    t_load = time.perf_counter() - t0
+    progress.report(0.1, f"casting LDC axis {part.axis}", force=True)
+    ax = bake_ldc_axis(loaded.runtime, caster, part.axis, p.params.ldc_resolution, plan=plan,
+                       area_light_samples=p.params.area_light_samples, seed=p.params.seed,
+                       max_layers=p.params.max_layers, max_bytes=BAKE_MAX_PART_BYTES)
+    progress.report(0.9, "writing", force=True)
+    timings = {k: v for k, v in ax.timings.items() if isinstance(v, float)}
+    counts = {k: v for k, v in ax.timings.items() if not isinstance(v, float)}
+    result = {"n_samples": ax.n_samples, "nbytes": ax.nbytes,
+              "timings": {**timings, "load_scene": t_load, "job_total": time.perf_counter() - t_start},
+              "counts": {**counts, "pixels": ax.ldi.frame.n_pixels}}
+    return _publish_part(store, p, "ldc_axis.npz", ax.to_arrays(), result, progress)
+
+
+def _reference_params(params: BakeParams) -> Any:
+    from engine.reference import ReferenceParams
+
+    lp = params.llf_params
+    return ReferenceParams(spp=lp.spp, max_depth=lp.max_depth, glossy_samples=lp.glossy_samples,
+                           area_light_samples=lp.area_light_samples, seed=lp.seed)
+
+
+def bake_llf_views_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Bake one chunk of LLF directions and publish it (``llf_views.npz``, views prefixed ``v<i>_``)."""
+    t_start = time.perf_counter()
+    p, store, done = _part_prologue(payload)
+    if done is not None:
+        return done
+    from engine.llf import bake_llf_views
+
+    part = p.part
+    assert part.kind == "llf_views"
+    n_dirs = llf_direction_count(p.params.llf_f)
+    if part.stop > n_dirs:
+        raise InvalidPayload(f"part {part.name}: directions {part.start}..{part.stop - 1} outside 0..{n_dirs - 1}")
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.02, "loading scene", force=True)
+    t0 = time.perf_counter()
+    loaded, caster, _plan = _scene_and_caster(store, p.scene_id)
+    t_load = time.perf_counter() - t0
+
+    def on_progress(frac: float) -> None:
+        progress.report(0.1 + 0.8 * frac, f"light field directions {part.start}..{part.stop - 1}")
+
+    progress.report(0.1, f"light field directions {part.start}..{part.stop - 1}", force=True)
+    t0 = time.perf_counter()
+    views = bake_llf_views(loaded.runtime, caster, p.params.llf_f, p.params.llf_resolution,
+                           list(range(part.start, part.stop)), params=_reference_params(p.params),
+                           progress=on_progress)
+    t_bake = time.perf_counter() - t0
+    progress.report(0.9, "writing", force=True)
+    arrays: dict[str, np.ndarray] = {"indices": np.array([v.index for v in views], np.int64)}
+    for v in views:
+        arrays.update({f"v{v.index}_{k}": a for k, a in v.to_arrays().items()})
+    result = {"n_views": len(views), "n_samples": int(sum(v.ldi.n_samples for v in views)),
+              "nbytes": int(sum(a.nbytes for a in arrays.values())),
+              "timings": {"bake": t_bake, "load_scene": t_load, "job_total": time.perf_counter() - t_start}}
+    return _publish_part(store, p, "llf_views.npz", arrays, result, progress)
+
+
+# ------------------------------------------------------------------------------------ load + merge
+
+
+def _read_part(store: ObjectStore, pkey: str, name: str) -> dict[str, np.ndarray]:
+    from workers.artifacts import read_blob
+
+    return read_npz(read_blob(store, pkey, name))
+
+
+def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams, parts: list[dict[str, Any]],
+                    plan: dict[str, Any], progress: Callable[[float], None] | None = None) -> tuple[Any, Any]:
+    """``(LDC, LLF or None)`` from a bake's part artifacts, checked: checksums (``read_blob``),
+    array shapes (``from_arrays``) and that the parts fit together (``merge_ldc`` / ``merge_llf``)."""
+    from engine.effects import analyze
+    from engine.ldc import LDCAxis, merge_ldc
+
+    axes = []
+    views: list[Any] = []
+    for i, spec in enumerate(parts):
+        if spec["kind"] == "ldc_axis":
+            axes.append(LDCAxis.from_arrays(_read_part(store, spec["key"], "ldc_axis.npz")))
+        else:
+            from engine.llf import LLFView
+
+            d = _read_part(store, spec["key"], "llf_views.npz")
+            for idx in d["indices"].tolist():
+                pre = f"v{idx}_"
+                views.append(LLFView.from_arrays({k[len(pre):]: a for k, a in d.items() if k.startswith(pre)}))
+        if progress is not None:
+            progress((i + 1) / max(1, len(parts)))
+    ldc = merge_ldc(scene, axes, params.ldc_resolution, analyze(scene))
+    llf = None
+    if plan.get("bake_llf"):
+        from engine.llf import merge_llf
+
+        views.sort(key=lambda v: v.index)
+        llf = merge_llf(params.llf_f, params.llf_resolution, views, params.llf_params.model_dump(mode="json"))
+    return ldc, llf
+
+
+def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Runs after the plan job and every part job ended: verifies the parts and publishes the bake
+    manifest (``plan.json`` + the result: plan, parts with sizes and timings, totals)."""
+    t_start = time.perf_counter()
+    p = _validate(BakeJobPayload, payload)
+    _check_bake(p)
+    from workers.artifacts import read_manifest, write_artifact
+
+    store = open_worker_store()
+    if bake_complete(store, p.bake_key):
+        manifest = read_manifest(store, p.bake_key)
+        assert manifest is not None
+        return {"artifact_key": p.bake_key, **manifest.result}
+    redis = _redis()
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.0, "checking parts", force=True)
+    plan_job = fetch_job(redis, bake_plan_job_id(p.bake_key))
+    if plan_job is None:
+        raise BakeFailed(f"the plan of bake {p.bake_key} is no longer in Redis; request the bake again")
+    plan_pub = job_public(plan_job)
+    if plan_pub.state != "finished":
+        raise BakeFailed(f"planning the bake failed: {plan_pub.error or plan_pub.state}")
+    planned = plan_job.return_value()
+    if not isinstance(planned, dict):
+        raise BakeFailed("the bake's plan job returned no plan")
+    specs: list[dict[str, Any]] = list(planned["parts"])
+    manifests = {s["name"]: read_manifest(store, s["key"]) for s in specs}
+    missing = [s for s in specs if manifests[s["name"]] is None]
+    if missing:
+        why = []
+        for s in missing[:4]:
+            pj = fetch_job(redis, part_job_id(s["key"]))
+            if pj is None:
+                why.append(f"{s['name']} (no job)")
+            else:
+                pp = job_public(pj)
+                why.append(f"{s['name']} ({pp.state}: {pp.error})" if pp.error else f"{s['name']} ({pp.state})")
+        more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
+        raise BakeFailed(f"{len(missing)} of {len(specs)} bake parts are missing: {', '.join(why)}{more}; request "
+                         "the bake again to redo only the missing parts")
+    progress.report(0.05, "verifying parts", force=True)
+    loaded = _load(store, p.scene_id)
+    t0 = time.perf_counter()
+    ldc, llf = load_bake_parts(store, loaded.runtime, p.params, specs, planned["plan"],
+                               lambda f: progress.report(0.05 + 0.85 * f, "verifying parts"))
+    t_verify = time.perf_counter() - t0
+    parts_out = []
+    cpu = 0.0
+    for s in specs:
+        r = manifests[s["name"]].result  # type: ignore[union-attr]
+        t = r.get("timings", {}).get("job_total", 0.0)
+        cpu += float(t)
+        parts_out.append({**s, "bytes": r.get("bytes"), "n_samples": r.get("n_samples"), "timings": r.get("timings")})
+    sizes = {"ldc_bytes": int(ldc.nbytes), "llf_bytes": int(llf.nbytes) if llf is not None else 0,
+             "stored_bytes": int(sum(int(x.get("bytes") or 0) for x in parts_out)),
+             "ldc_samples": int(ldc.n_samples)}
+    wall = None
+    if plan_job.enqueued_at is not None:
+        wall = time.time() - plan_job.enqueued_at.timestamp()
+    result = _json_safe({
+        "plan": planned["plan"], "parts": parts_out, "sizes": sizes, "estimates": planned.get("estimates", {}),
+        "timings": {"parts_total": cpu, "verify": t_verify, "merge_total": time.perf_counter() - t_start,
+                    "wall_since_request": wall},
+    })
+    progress.check_canceled()
+    write_artifact(store, p.bake_key, "bake", {"scene": p.scene_id}, p.params.model_dump(mode="json"), ENGINE_VERSION,
+                   {"plan.json": (json.dumps(result["plan"], sort_keys=True).encode(), "application/json")}, result)
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.bake_key, **result}
+
+
+def load_bake(store: ObjectStore, scene: RuntimeScene, key: str) -> tuple[Any, Any, dict[str, Any]]:
+    """``(LDC, LLF or None, plan)`` of a complete bake (for the render worker). Raises BakeFailed when
+    the bake or one of its parts is missing or corrupt (the bake must be requested again)."""
+    from api_schemas.service import BakeParams
+    from workers.artifacts import read_manifest
+    from workers.store import ChecksumMismatch, NotFound
+
+    manifest = read_manifest(store, key)
+    if manifest is None:
+        raise BakeFailed(f"bake {key} is not in the store; request it with POST /v1/scenes/<id>/bakes")
+    params = BakeParams.model_validate(manifest.params)
+    try:
+        ldc, llf = load_bake_parts(store, scene, params, list(manifest.result["parts"]), manifest.result["plan"])
+    except (NotFound, ChecksumMismatch) as exc:
+        bake_complete(store, key)  # withdraws the manifest when a part has gone
+        raise BakeFailed(f"bake {key} is incomplete ({exc}); request the bake again to redo the missing parts") \
+            from None
+    return ldc, llf, dict(manifest.result["plan"])
+
