@@ -245,7 +245,7 @@ class DatasetManifest(FrozenModel):
         seen_lights: dict[tuple[float, ...], int] = {}
         for i, img in enumerate(self.images):
             if (img.direction is not None) != distant:
-                errors.append(error_at(("images", i, "direction" if distant else "position"), "mixed_light_kinds",
+                errors.append(error_at(("images", i, "position" if distant else "direction"), "mixed_light_kinds",
                                        "all images must use the same light kind: images.0 has a "
                                        f"{'direction (distant light)' if distant else 'position (point light)'}",
                                        None))
@@ -255,11 +255,11 @@ class DatasetManifest(FrozenModel):
             seen_files.setdefault(img.file, i)
             v = img.direction if img.direction is not None else img.position
             assert v is not None
-            key: tuple[float, ...] = tuple(v)
+            key: tuple[Any, ...] = ("position", *v)
             if img.direction is not None:
                 u = unit_vector(v)
                 assert u is not None
-                key = tuple(round(c, 15) for c in u)
+                key = ("direction", *(round(c, 15) for c in u))
             if key in seen_lights:
                 errors.append(error_at(("images", i, "direction" if img.direction is not None else "position"),
                                        "duplicate_light",
@@ -378,6 +378,9 @@ class BakeParams(FrozenModel):
     max_face_radius_deg: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=89)] | None = None
     """Coverage rule: triangles with a larger circumradius are outside coverage; None = automatic."""
     half_rel_floor: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, lt=1)] = 0.0
+    compress: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, lt=1)] | None = None
+    """Requested relative RMS error of a low-rank compressed store (used only when it meets this
+    error and is smaller; the measured error is in the bake's report); None = no compression."""
 
 
 class BakeRequest(FrozenModel):
@@ -572,14 +575,20 @@ class CompositeRequest(FrozenModel):
     plate_sha256: Sha256
     """The background plate image (uploaded with ``PUT /v1/datasets/uploads/{sha256}``)."""
     plate_transfer: Transfer = "srgb"
-    object_mask_sha256: Sha256 | None = None
-    """Object mask image; None = the object dataset's mask."""
+    """Transfer function of the plate if it is an 8/16-bit file (float files are linear)."""
+    object_mask_sha256: Sha256
+    """Object mask image (object where its first channel > 0.5): these pixels come from the relit object."""
     active_region_sha256: Sha256 | None = None
-    """Active region mask image (where shadows / interreflections apply); None = everywhere."""
+    """Active region mask image (where the object's shadows / interreflections change the plate);
+    None = the object mask dilated by ``active_margin_px``."""
+    active_margin_px: Annotated[int, Field(strict=True, ge=0, le=4096), BeforeValidator(numpy_scalar)] = 16
     lights: Annotated[list[RelightLight], Field(min_length=1, max_length=256)]
     bake: BakeParams = BakeParams()
-    ratio_floor: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=1)] = 1e-3
-    """Guard of the ratio where the background is near black (relative to the background's max)."""
+    eps: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=1)] = 1e-3
+    """Near-black guard: both relit images are lifted by eps x the background's mean over the active
+    region before the ratio ``I_object / I_background`` is taken."""
+    max_ratio: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=1, le=1e6)] = 8.0
+    """Clamp of the ratio where the object lights an (almost) black background."""
     exposure_stops: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-30, le=30)] = 0.0
 
     @field_validator("plate_transfer")

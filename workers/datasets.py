@@ -71,10 +71,12 @@ __all__ = [
     "RelightJobPayload",
     "bake_artifact_key",
     "composite_artifact_key",
+    "composite_inputs",
     "generate_artifact_key",
     "job_id_for",
     "manifest_errors",
     "relight_artifact_key",
+    "relight_inputs",
     "FileProblem",
     "ImageFile",
     "add_dataset_owner",
@@ -95,6 +97,7 @@ __all__ = [
     "read_file_blob",
     "read_pending",
     "remove_dataset_owner",
+    "sniff_extension",
     "store_file",
 ]
 
@@ -638,27 +641,40 @@ def _relight_inputs(req: RelightRequest | CompositeRequest, dataset_ids: Mapping
     return inputs
 
 
+def relight_inputs(req: RelightRequest) -> tuple[dict[str, str], dict[str, Any]]:
+    """(artifact inputs, artifact params) of a relight: the dataset, its bake and environment maps
+    are inputs (content hashes), the rest of the request is params."""
+    params = req.model_dump(mode="json")
+    params.pop("dataset_id")
+    return _relight_inputs(req, {"dataset": req.dataset_id}), params
+
+
 def relight_artifact_key(req: RelightRequest) -> str:
     from workers.queues import engine_version
 
-    params = req.model_dump(mode="json")
-    params.pop("dataset_id")
-    return artifact_key(RELIGHT_KIND, _relight_inputs(req, {"dataset": req.dataset_id}), params, engine_version())
+    inputs, params = relight_inputs(req)
+    return artifact_key(RELIGHT_KIND, inputs, params, engine_version())
 
 
 def composite_artifact_key(req: CompositeRequest) -> str:
     from workers.queues import engine_version
 
+    inputs, params = composite_inputs(req)
+    return artifact_key(COMPOSITE_KIND, inputs, params, engine_version())
+
+
+def composite_inputs(req: CompositeRequest) -> tuple[dict[str, str], dict[str, Any]]:
+    """(artifact inputs, artifact params) of a composite: content hashes are inputs."""
     params = req.model_dump(mode="json")
     inputs = _relight_inputs(req, {"dataset": req.object_dataset_id, "background": req.background_dataset_id})
     inputs["plate"] = req.plate_sha256
-    for role in ("object_mask_sha256", "active_region_sha256"):
-        sha = params.pop(role)
-        if sha is not None:
-            inputs[role.removesuffix("_sha256")] = sha
-    for role in ("object_dataset_id", "background_dataset_id", "plate_sha256"):
+    inputs["object_mask"] = req.object_mask_sha256
+    if req.active_region_sha256 is not None:
+        inputs["active_region"] = req.active_region_sha256
+    for role in ("object_dataset_id", "background_dataset_id", "plate_sha256", "object_mask_sha256",
+                 "active_region_sha256"):
         params.pop(role)
-    return artifact_key(COMPOSITE_KIND, inputs, params, engine_version())
+    return inputs, params
 
 
 def generate_artifact_key(req: GenerateRequest) -> str:

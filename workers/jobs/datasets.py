@@ -47,12 +47,14 @@ from workers.datasets import (
     bake_artifact_key,
     commit_dataset,
     composite_artifact_key,
+    composite_inputs,
     decode_image,
     generate_artifact_key,
     get_dataset,
     linearise,
     read_file_blob,
     relight_artifact_key,
+    relight_inputs,
     store_file,
 )
 from workers.jobs.payloads import InvalidPayload, describe_validation_error
@@ -186,12 +188,22 @@ _BAKED_ARRAYS = ("store", "pixel_index", "points", "light_positions", "intensiti
                  "store_scale", "sphere_center", "triangles", "tri_inverse", "grid_start", "grid_items")
 
 
+_LOWRANK_ARRAYS = ("u", "b", "u_off", "b_off", "rank")
+
+
 def baked_to_bytes(baked: BakedDataset) -> bytes:
-    arrays = {name: np.asarray(getattr(baked, name)) for name in _BAKED_ARRAYS}
+    """One uncompressed ``.npz`` of every array of a baked dataset (loading is a copy, not a
+    decompression); a low-rank store (``engine.relight_compress``) is saved as its factors."""
+    arrays: dict[str, np.ndarray] = {name: np.asarray(getattr(baked, name)) for name in _BAKED_ARRAYS}
     arrays["shape"] = np.asarray(baked.shape, np.int64)
     arrays["scalars"] = np.asarray([float(baked.distant), float(baked.sphere_radius), float(baked.grid_n)])
+    lowrank = getattr(baked, "lowrank", None)
+    if lowrank is not None:
+        for name in _LOWRANK_ARRAYS:
+            arrays[f"lowrank_{name}"] = np.asarray(getattr(lowrank, name))
+        arrays["lowrank_sizes"] = np.asarray([lowrank.n_lights, lowrank.n_rows], np.int64)
     buf = io.BytesIO()
-    np.savez(buf, **arrays)  # uncompressed: loading is a copy, not a decompression
+    np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
 
 
@@ -199,11 +211,23 @@ def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
     from engine.relight import BakedDataset
 
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        arrays = {name: np.ascontiguousarray(z[name]) for name in _BAKED_ARRAYS}
+        a = {name: np.ascontiguousarray(z[name]) for name in _BAKED_ARRAYS}
         shape = tuple(int(x) for x in z["shape"])
         distant, radius, grid_n = (float(x) for x in z["scalars"])
-    return BakedDataset(shape=(shape[0], shape[1]), distant=bool(distant), sphere_radius=radius, grid_n=int(grid_n),
-                        report=dict(report), **arrays)
+        extra: dict[str, Any] = {}
+        if "lowrank_u" in z.files:
+            from engine.relight_compress import LowRankStore  # type: ignore[import-not-found,unused-ignore]
+
+            n_lights, n_rows = (int(x) for x in z["lowrank_sizes"])
+            lr = {n: np.ascontiguousarray(z[f"lowrank_{n}"]) for n in _LOWRANK_ARRAYS}
+            extra["lowrank"] = LowRankStore(u=lr["u"], b=lr["b"], u_off=lr["u_off"], b_off=lr["b_off"],
+                                            rank=lr["rank"], n_lights=n_lights, n_rows=n_rows)
+    return BakedDataset(shape=(shape[0], shape[1]), distant=bool(distant), store=a["store"],
+                        pixel_index=a["pixel_index"], points=a["points"], light_positions=a["light_positions"],
+                        intensities=a["intensities"], kept_from=a["kept_from"], directions=a["directions"],
+                        store_scale=a["store_scale"], sphere_center=a["sphere_center"], sphere_radius=radius,
+                        triangles=a["triangles"], tri_inverse=a["tri_inverse"], grid_n=int(grid_n),
+                        grid_start=a["grid_start"], grid_items=a["grid_items"], report=dict(report), **extra)
 
 
 def _load_baked(store: ObjectStore, bake_key: str) -> tuple[BakedDataset, bool]:
@@ -246,8 +270,9 @@ def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.report(0.5, "bake", force=True)
     bp = p.params
     t0 = time.perf_counter()
+    kwargs: dict[str, Any] = {"compress": bp.compress} if bp.compress is not None else {}
     baked = bake_dataset(ds, layout=bp.layout, half=bp.half, dedupe_tol_deg=bp.dedupe_tol_deg,
-                         max_face_radius_deg=bp.max_face_radius_deg, half_rel_floor=bp.half_rel_floor)
+                         max_face_radius_deg=bp.max_face_radius_deg, half_rel_floor=bp.half_rel_floor, **kwargs)
     t_bake = time.perf_counter() - t0
     progress.report(0.85, "writing", force=True)
     t0 = time.perf_counter()
@@ -359,12 +384,8 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
         "timings": {**out.timings, "load": t_load, "encode": t_encode},
     })
     t0 = time.perf_counter()
-    params = req.model_dump(mode="json")
-    params.pop("dataset_id")
-    from workers.datasets import _relight_inputs
-
-    write_artifact(store, key, RELIGHT_KIND, _relight_inputs(req, {"dataset": req.dataset_id}), params,
-                   ENGINE_VERSION, blobs, result)
+    inputs, params = relight_inputs(req)
+    write_artifact(store, key, RELIGHT_KIND, inputs, params, ENGINE_VERSION, blobs, result)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
     return {"artifact_key": key, **result}
@@ -392,7 +413,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
 
     store = _worker_store()
     job = get_current_job()
-    owners = {p.owner} if p.owner else set()
+    owners: set[str | None] = {p.owner} if p.owner else set()
     if job is not None:
         owners |= job_owners(job.connection, job.id)
     existing = read_manifest(store, key)
@@ -419,6 +440,8 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     ds = generate_dataset(loaded.runtime, camera, placement, params, on_progress)
     t_render = time.perf_counter() - t0
+    surface = ds.mask
+    assert surface is not None  # IlluminationDataset always sets it
     progress.report(0.9, "storing dataset", force=True)
     t0 = time.perf_counter()
     depth_name, mask_name = "distance.exr", "mask.png"
@@ -428,10 +451,10 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
         # the renderer's depth AOV (distance along the pixel-centre ray, 0 = no hit): the loader's
         # points_from_depth(depth, camera, "distance") then gives exactly the generator's points
         depth, _ = surface_aovs(loaded.runtime, camera)
-        depth = np.where(ds.mask, depth, 0.0).astype(np.float32)
+        depth = np.where(surface, depth, 0.0).astype(np.float32)
         files: dict[str, bytes] = {
             depth_name: _image_bytes(tmp, depth_name, depth[:, :, None]),
-            mask_name: _image_bytes(tmp, mask_name, ds.mask.astype(np.float32)[:, :, None]),
+            mask_name: _image_bytes(tmp, mask_name, surface.astype(np.float32)[:, :, None]),
         }
         names = [f"image_{i:04d}.exr" for i in range(ds.images.shape[0])]
         for name, img in zip(names, ds.images, strict=True):
@@ -458,7 +481,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
         add_dataset_owner(store, public.id, who)
     result = _json_safe({
         "dataset_id": public.id,
-        "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(ds.mask.sum()),
+        "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(surface.sum()),
                    "width": camera.width, "height": camera.height},
         "timings": {"render": t_render, "store": time.perf_counter() - t0},
     })
@@ -494,10 +517,8 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
     key = composite_artifact_key(req)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    try:
-        from engine import composite as engine_composite
-    except ImportError:
-        raise RuntimeError("compositing is not available in this engine version (engine.composite missing)") from None
+    from engine.composite import active_region_around, composite
+    from engine.relight import relight
     from workers.artifacts import read_manifest, write_artifact
 
     store = _worker_store()
@@ -505,37 +526,46 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
     if existing is not None:
         return {"artifact_key": key, **existing.result}
     progress = ProgressReporter(get_current_job())
+    t0 = time.perf_counter()
     lights = _engine_lights(store, list(req.lights))
     obj, _ = _load_baked(store, bake_artifact_key(req.object_dataset_id, req.bake))
     bg, _ = _load_baked(store, bake_artifact_key(req.background_dataset_id, req.bake))
-    plate = linearise(decode_image(read_file_blob(store, req.plate_sha256), max_pixels=MAX_FILE_PIXELS),
-                      req.plate_transfer)
+    if obj.shape != bg.shape:
+        raise InvalidPayload(f"background_dataset_id: the background dataset is {bg.shape[1]}x{bg.shape[0]}, the "
+                             f"object dataset {obj.shape[1]}x{obj.shape[0]}; they must share the camera")
 
-    def mask_of(sha: str | None) -> np.ndarray | None:
-        if sha is None:
-            return None
-        m = decode_image(read_file_blob(store, sha), max_pixels=MAX_FILE_PIXELS)
-        return np.asarray(m.pixels[:, :, 0] > 0.5)
+    def image_of(sha: str, transfer: str, what: str) -> np.ndarray:
+        img = linearise(decode_image(read_file_blob(store, sha), max_pixels=MAX_FILE_PIXELS), transfer)
+        if img.shape[:2] != obj.shape:
+            raise InvalidPayload(f"{what}: the image is {img.shape[1]}x{img.shape[0]}, the datasets "
+                                 f"{obj.shape[1]}x{obj.shape[0]}")
+        return img
 
-    out = engine_composite.composite_relit(obj, bg, plate, lights, object_mask=mask_of(req.object_mask_sha256),
-                                           active_region=mask_of(req.active_region_sha256),
-                                           ratio_floor=req.ratio_floor)
+    plate = image_of(req.plate_sha256, req.plate_transfer, "plate_sha256")
+    obj_mask = image_of(req.object_mask_sha256, "linear", "object_mask_sha256")[:, :, 0] > 0.5
+    if req.active_region_sha256 is not None:
+        active = image_of(req.active_region_sha256, "linear", "active_region_sha256")[:, :, 0] > 0.5
+    else:
+        active = active_region_around(obj_mask, req.active_margin_px)
+    t_load = time.perf_counter() - t0
+    progress.report(0.3, "relight", force=True)
+    r_obj = relight(obj, lights)
+    r_bg = relight(bg, lights)
+    t0 = time.perf_counter()
+    image, stats = composite(r_obj, r_bg, plate, obj_mask, active, eps=req.eps, max_ratio=req.max_ratio)
+    t_comp = time.perf_counter() - t0
     meta = {"object_dataset_id": req.object_dataset_id, "background_dataset_id": req.background_dataset_id,
             "artifact_key": key, "engine_version": ENGINE_VERSION}
-    blobs = _relit_blobs(out.image, out.outside_mask, req.exposure_stops, meta)
+    t0 = time.perf_counter()
+    blobs = _relit_blobs(image, r_obj.outside_mask | r_bg.outside_mask, req.exposure_stops, meta)
+    t_encode = time.perf_counter() - t0
     progress.check_canceled()
-    result = _json_safe({"counts": dict(out.counts), "timings": dict(out.timings)})
-    params = req.model_dump(mode="json")
-    from workers.datasets import _relight_inputs
-
-    inputs = _relight_inputs(req, {"dataset": req.object_dataset_id, "background": req.background_dataset_id})
-    inputs["plate"] = req.plate_sha256
-    for role in ("object_mask_sha256", "active_region_sha256"):
-        sha = params.pop(role)
-        if sha is not None:
-            inputs[role.removesuffix("_sha256")] = sha
-    for role in ("object_dataset_id", "background_dataset_id", "plate_sha256"):
-        params.pop(role)
+    result = _json_safe({
+        "counts": {**stats, "n_outside_object": r_obj.n_outside, "n_outside_background": r_bg.n_outside},
+        "timings": {"load": t_load, "relight_object": r_obj.timings.get("total_s"),
+                    "relight_background": r_bg.timings.get("total_s"), "composite": t_comp, "encode": t_encode},
+    })
+    inputs, params = composite_inputs(req)
     write_artifact(store, key, COMPOSITE_KIND, inputs, params, ENGINE_VERSION, blobs, result)
     result["timings"]["job_total"] = time.perf_counter() - t_start
     return {"artifact_key": key, **result}

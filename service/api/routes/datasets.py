@@ -1,0 +1,692 @@
+"""``/v1/datasets``, ``/v1/relights``, ``/v1/composites``: illumination datasets and relighting.
+
+Upload a dataset in one multipart request (a ``manifest`` part plus one part per file, named by
+the file name the manifest uses), or resumably: ``POST /v1/datasets`` with the manifest as JSON
+(every file's sha256 given) answers which files are missing, ``PUT /v1/datasets/uploads/{sha256}``
+sends each, ``POST /v1/datasets/{id}/commit`` stores the dataset. A file received once is never
+asked for again. Then bake it (``POST /v1/datasets/{id}/bake``, bake queue) and relight it under
+any lights (``POST /v1/relights``, render queue); the answers follow ``POST /v1/renders``: 200
+with the artifact when cached or done within ``wait``, else 202 and the job.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Body, HTTPException, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from pydantic import ValidationError
+from redis import Redis
+from rq import Retry
+from rq.job import Job
+from rq.serializers import JSONSerializer
+
+from api_schemas.datasets import (
+    BakeRequest,
+    CompositeRequest,
+    DatasetBakePublic,
+    DatasetList,
+    DatasetManifest,
+    DatasetPublic,
+    DatasetUploadStatus,
+    FileUploadPublic,
+    GenerateRequest,
+    GenerationPublic,
+    RelightEnvironmentLight,
+    RelightPublic,
+    RelightRequest,
+)
+from api_schemas.errors import FieldError
+from api_schemas.service import ArtifactManifest, JobPublic, Sha256
+from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
+from service.api.errors import ValidationProblem, problem_responses
+from service.api.limits import BodyTooLarge, read_multipart
+from workers.artifacts import read_blob, read_manifest
+from workers.datasets import (
+    BAKE_JOB,
+    BAKE_KIND,
+    COMPOSITE_JOB,
+    COMPOSITE_KIND,
+    GENERATE_JOB,
+    GENERATE_KIND,
+    RELIGHT_JOB,
+    RELIGHT_KIND,
+    BakeJobPayload,
+    CompositeJobPayload,
+    DatasetInvalid,
+    FileProblem,
+    GenerateJobPayload,
+    RelightJobPayload,
+    add_dataset_owner,
+    bake_artifact_key,
+    blob_info,
+    commit_dataset,
+    composite_artifact_key,
+    dataset_id_for,
+    dataset_visible,
+    delete_dataset,
+    fill_shas,
+    generate_artifact_key,
+    get_dataset,
+    job_id_for,
+    list_datasets,
+    manifest_errors,
+    missing_files,
+    put_pending,
+    read_file_blob,
+    read_pending,
+    relight_artifact_key,
+    sniff_extension,
+    store_file,
+)
+from workers.queues import (
+    BAKE_TIMEOUT_S,
+    QUEUE_NAMES,
+    RENDER_RETRY_INTERVALS_S,
+    RENDER_TIMEOUT_S,
+    QueueName,
+    enqueue_unique,
+    fetch_job,
+    get_queue,
+    job_public,
+)
+from workers.store import NotFound, ObjectStore
+
+router = APIRouter(tags=["datasets"])
+
+MAX_WAIT_S = 60.0
+_POLL_FIRST_S = 0.002
+_POLL_MAX_S = 0.05
+_ENDED = {b"finished", b"failed", b"canceled", b"stopped"}
+
+DatasetId = Annotated[Sha256, Path(description="Dataset id (sha256 hex)")]
+FileSha = Annotated[Sha256, Path(description="sha256 of the file's bytes")]
+ArtifactKeyPath = Annotated[Sha256, Path(description="Artifact key (sha256 hex)")]
+Wait = Annotated[float, Query(ge=0, le=MAX_WAIT_S, description="Seconds to wait for the result (0..60)")]
+
+_STATUS: dict[str, Literal["queued", "running", "finished", "failed"]] = {
+    "queued": "queued", "started": "running", "finished": "finished", "failed": "failed", "canceled": "failed",
+}
+
+_MULTIPART_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["manifest"],
+    "properties": {"manifest": {"type": "string", "description": "The DatasetManifest JSON"}},
+    "additionalProperties": {"type": "string", "format": "binary",
+                             "description": "One part per file of the manifest, named by its file name"},
+}
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _invalid(exc: DatasetInvalid) -> ValidationProblem:
+    detail = "files missing: upload them first" if exc.status == 409 else ""
+    return ValidationProblem(exc.errors, detail=detail, status=exc.status)
+
+
+def _parse_manifest(raw: bytes, prefix: str) -> DatasetManifest:
+    if raw.startswith(b"\xef\xbb\xbf"):
+        raw = raw[3:]
+    try:
+        doc = json.loads(raw)
+    except (ValueError, RecursionError) as exc:
+        raise ValidationProblem([FieldError(field=prefix, message=f"not valid JSON: {exc}", type="json_invalid")]
+                                ) from None
+    try:
+        return DatasetManifest.model_validate(doc)
+    except ValidationError as exc:
+        raise ValidationProblem(manifest_errors(exc, prefix)) from None
+
+
+def _visible_dataset(store: ObjectStore, dataset_id: str, owner: str | None) -> DatasetPublic:
+    if not dataset_visible(store, dataset_id, owner):
+        raise NotFound(dataset_id)
+    return get_dataset(store, dataset_id)[1]
+
+
+def _store_multipart(store: ObjectStore, manifest: DatasetManifest, files: dict[str, bytes], max_pixels: int,
+                     owner: str | None) -> tuple[DatasetPublic, bool]:
+    """Validate and store every part, fill in the sha256s, commit."""
+    errors: list[FieldError] = []
+    shas: dict[str, str] = {}
+    refs = manifest.file_refs()
+    for field, name, sha, _ in refs:
+        data = files.get(name)
+        if data is None:
+            if sha is not None and blob_info(store, sha) is not None:
+                shas[name] = sha  # received earlier (resumed upload): no need to send it again
+                continue
+            errors.append(FieldError(field=f"manifest.{field}.file",
+                                     message=f"no file part named {name!r}: send the file as a part with that name",
+                                     type="missing_file"))
+            continue
+        try:
+            info = store_file(store, data, max_pixels=max_pixels, expected_sha=sha)
+        except FileProblem as exc:
+            errors.append(FieldError(field=f"files.{name}", message=f"{name}: {exc}", type="invalid_image"))
+            continue
+        shas[name] = str(info["sha256"])
+    if errors:
+        raise ValidationProblem(errors)
+    full = fill_shas(manifest, shas)
+    try:
+        return commit_dataset(store, full, owner)
+    except DatasetInvalid as exc:
+        raise _invalid(exc) from None
+
+
+def _upload_status(store: ObjectStore, manifest: DatasetManifest, owner: str | None) -> DatasetUploadStatus:
+    dataset_id = dataset_id_for(manifest)
+    links = {"self": f"/v1/datasets/{dataset_id}", "commit": f"/v1/datasets/{dataset_id}/commit"}
+    if dataset_visible(store, dataset_id, owner) and store.exists(f"datasets/{dataset_id}.json"):
+        return DatasetUploadStatus(dataset_id=dataset_id, state="committed", missing=[],
+                                   received=len({r[2] for r in manifest.file_refs()}), links=links)
+    if manifest.geometry.type == "scene" and not (
+            scene_visible(store, manifest.geometry.scene_id, owner)
+            and store.exists(f"scenes/{manifest.geometry.scene_id}.json")):
+        raise ValidationProblem([FieldError(field="geometry.scene_id", message=f"no stored scene "
+                                            f"{manifest.geometry.scene_id}", type="unknown_scene")])
+    put_pending(store, manifest, dataset_id)
+    missing, received = missing_files(store, manifest, dataset_id)
+    return DatasetUploadStatus(dataset_id=dataset_id, state="pending", missing=missing, received=received,
+                               links=links)
+
+
+def _active_dataset_ids(redis: Redis) -> set[str]:
+    ids: list[str] = []
+    for name in QUEUE_NAMES:
+        q = get_queue(redis, name)
+        ids += q.get_job_ids()
+        for reg in (q.started_job_registry, q.scheduled_job_registry, q.deferred_job_registry):
+            ids += reg.get_job_ids(cleanup=False)
+    out: set[str] = set()
+    for job in Job.fetch_many(list(dict.fromkeys(ids)), connection=redis, serializer=JSONSerializer):
+        if job is None:
+            continue
+        try:
+            args = job.args
+        except Exception:  # an unreadable payload cannot be attributed to a dataset
+            continue
+        _collect(args, out)
+    return out
+
+
+def _collect(value: Any, out: set[str], depth: int = 0) -> None:
+    if depth > 8:
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if k in ("dataset_id", "object_dataset_id", "background_dataset_id") and isinstance(v, str):
+                out.add(v)
+            else:
+                _collect(v, out, depth + 1)
+    elif isinstance(value, list | tuple):
+        for v in value:
+            _collect(v, out, depth + 1)
+
+
+def _enqueue(redis: Redis, queue: QueueName, func: str, payload: dict[str, Any], kind: str, key: str,
+             owner: str | None, store: ObjectStore, description: str) -> Job | None:
+    timeout = BAKE_TIMEOUT_S if queue == "bake" else RENDER_TIMEOUT_S
+    meta: dict[str, Any] = {"kind": queue, "job_type": kind, "artifact_key": key, "owner": owner,
+                            "progress": {"fraction": 0.0, "stage": "queued", "eta_s": None}}
+    return enqueue_unique(redis, queue, func, payload, job_id_for(kind, key), timeout=timeout, meta=meta,
+                          retry=Retry(max=2, interval=list(RENDER_RETRY_INTERVALS_S)), description=description,
+                          owner=owner, is_cached=lambda: read_manifest(store, key) is not None)
+
+
+async def _wait(redis: Redis, store: ObjectStore, job: Job, key: str, wait: float
+                ) -> tuple[JobPublic | None, ArtifactManifest | None]:
+    """Poll (store manifest first, then the job's status) until the artifact exists, the job ends
+    or ``wait`` passes. Polling starts at 2 ms so a fast relight is answered within milliseconds."""
+    deadline = time.monotonic() + wait
+    delay = _POLL_FIRST_S
+    mkey = f"artifacts/{key}/manifest.json"
+    while True:
+        if await run_in_threadpool(store.exists, mkey):
+            manifest = await run_in_threadpool(read_manifest, store, key)
+            if manifest is not None:
+                fresh = await run_in_threadpool(fetch_job, redis, job.id)
+                return (await run_in_threadpool(job_public, fresh) if fresh is not None else None), manifest
+        status = await run_in_threadpool(redis.hget, job.key, "status")
+        if status in _ENDED or time.monotonic() >= deadline:
+            fresh = await run_in_threadpool(fetch_job, redis, job.id)
+            public = await run_in_threadpool(job_public, fresh if fresh is not None else job)
+            manifest = await run_in_threadpool(read_manifest, store, key) if public.state == "finished" else None
+            return public, manifest
+        await asyncio.sleep(min(delay, max(0.0, deadline - time.monotonic())))
+        delay = min(_POLL_MAX_S, delay * 1.5)
+
+
+def _result_links(base: str, key: str, job: JobPublic | None) -> dict[str, str]:
+    links = {"artifact": f"{base}/{key}", "image.exr": f"{base}/{key}/image.exr",
+             "image.png": f"{base}/{key}/image.png", "outside.png": f"{base}/{key}/outside.png"}
+    if job is not None:
+        links["job"] = f"/v1/jobs/{job.id}"
+    return links
+
+
+def _status(job: JobPublic | None, manifest: ArtifactManifest | None, cached: bool
+            ) -> Literal["cached", "queued", "running", "finished", "failed"]:
+    if manifest is not None:
+        return "cached" if cached else "finished"
+    assert job is not None
+    return _STATUS[job.state]
+
+
+async def _run(response: Response, redis: Redis, store: ObjectStore, queue: QueueName, func: str,
+               payload: dict[str, Any], kind: str, key: str, owner: str | None, wait: float, description: str
+               ) -> tuple[JobPublic | None, ArtifactManifest | None, bool]:
+    """(job, manifest, cached): the cached artifact, or the job run / joined and waited for."""
+    manifest = await run_in_threadpool(read_manifest, store, key)
+    if manifest is not None:
+        return None, manifest, True
+    job = await run_in_threadpool(_enqueue, redis, queue, func, payload, kind, key, owner, store, description)
+    if job is None:  # finished meanwhile
+        manifest = await run_in_threadpool(read_manifest, store, key)
+        if manifest is not None:
+            return None, manifest, True
+        raise NotFound(key)
+    public, manifest = await _wait(redis, store, job, key, wait)
+    if manifest is None and public is not None and public.state in ("queued", "started"):
+        response.status_code = 202
+        response.headers["Location"] = f"/v1/jobs/{public.id}"
+    return public, manifest, False
+
+
+# ------------------------------------------------------------------------------ datasets: upload
+
+
+@router.post(
+    "/v1/datasets",
+    response_model=DatasetPublic | DatasetUploadStatus,
+    status_code=200,
+    responses={
+        201: {"model": DatasetPublic, "description": "Multipart upload: the dataset was stored"},
+        **problem_responses(400, 401, 404, 409, 413, 415, 422, 429, 503),
+    },
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/DatasetManifest"}},
+        "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+    }}},
+    tags=["datasets"],
+)
+async def create_dataset(request: Request, response: Response, store: StoreDep, owner: OwnerDep,
+                         settings: SettingsDep) -> DatasetPublic | DatasetUploadStatus:
+    """Multipart (``manifest`` + file parts): 201 ``DatasetPublic`` (200 when already stored).
+    JSON manifest with every sha256: 200 ``DatasetUploadStatus`` listing the files still missing."""
+    ctype = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if ctype == "multipart/form-data":
+        parts = await read_multipart(request, max_part_bytes=settings.max_upload_bytes,
+                                     max_parts=settings.max_upload_files + 1,
+                                     field_limits={"manifest": settings.max_body_bytes})
+        manifests = [p for p in parts if p.name == "manifest"]
+        if len(manifests) != 1:
+            raise ValidationProblem([FieldError(
+                field="manifest", message="exactly one part named 'manifest' (the dataset manifest JSON) is required"
+                + (f"; found {len(manifests)}" if manifests else ""),
+                type="missing" if not manifests else "duplicate_part")])
+        manifest = await run_in_threadpool(_parse_manifest, manifests[0].data, "manifest")
+        files: dict[str, bytes] = {}
+        errors: list[FieldError] = []
+        for part in parts:
+            if part.name == "manifest":
+                continue
+            if part.name in files:
+                errors.append(FieldError(field=f"files.{part.name}", message=f"file part {part.name!r} sent twice",
+                                         type="duplicate_part"))
+            files[part.name] = part.data
+        names = {r[1] for r in manifest.file_refs()}
+        extra = sorted(set(files) - names)
+        if extra:
+            errors.append(FieldError(field="files", message="file parts the manifest does not name: "
+                                     + ", ".join(repr(e) for e in extra[:20]), type="unexpected_part"))
+        if errors:
+            raise ValidationProblem(errors)
+        public, created = await run_in_threadpool(_store_multipart, store, manifest, files, settings.max_image_pixels,
+                                                  owner)
+        if created:
+            response.status_code = 201
+            response.headers["Location"] = f"/v1/datasets/{public.id}"
+        return public
+    if ctype == "application/json" or ctype.endswith("+json") or ctype == "":
+        manifest = await run_in_threadpool(_parse_manifest, await request.body(), "")
+        unset = [FieldError(field=f"{f}.sha256", message=f"the sha256 of {name!r} is required when files are "
+                            "uploaded separately (or send everything in one multipart request)", type="missing")
+                 for f, name, sha, _ in manifest.file_refs() if sha is None]
+        if unset:
+            raise ValidationProblem(unset)
+        return await run_in_threadpool(_upload_status, store, manifest, owner)
+    raise ValidationProblem([FieldError(field="", message=f"unsupported Content-Type {ctype!r}; use "
+                                        "application/json or multipart/form-data", type="content_type")], status=415)
+
+
+@router.put(
+    "/v1/datasets/uploads/{sha256}",
+    response_model=FileUploadPublic,
+    status_code=201,
+    responses={200: {"model": FileUploadPublic, "description": "Already received"},
+               **problem_responses(400, 401, 413, 422, 429, 503)},
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}},
+)
+async def upload_file(sha256: FileSha, request: Request, response: Response, store: StoreDep, owner: OwnerDep,
+                      settings: SettingsDep) -> FileUploadPublic:
+    """Upload one file (image, depth map, mask, environment map, plate) by its sha256."""
+    known = await run_in_threadpool(blob_info, store, sha256)
+    if known is not None:
+        response.status_code = 200
+        return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
+    limit = settings.max_upload_bytes
+    buf = bytearray()
+    async for chunk in request.stream():
+        buf += chunk
+        if len(buf) > limit:
+            raise BodyTooLarge(f"file exceeds the {limit}-byte limit per file", field=f"files.{sha256}")
+    try:
+        info = await run_in_threadpool(store_file, store, bytes(buf), max_pixels=settings.max_image_pixels,
+                                       expected_sha=sha256)
+    except FileProblem as exc:
+        raise ValidationProblem([FieldError(field=f"files.{sha256}", message=str(exc), type="invalid_image")]
+                                ) from None
+    return FileUploadPublic.model_validate({k: info[k] for k in FileUploadPublic.model_fields})
+
+
+@router.get("/v1/datasets/uploads/{sha256}", response_model=FileUploadPublic,
+            responses=problem_responses(401, 404, 422, 429, 503))
+def read_upload(sha256: FileSha, store: StoreDep, owner: OwnerDep) -> FileUploadPublic:
+    """Whether a file was received (200 with its facts) or not (404)."""
+    info = blob_info(store, sha256)
+    if info is None:
+        raise NotFound(sha256)
+    return FileUploadPublic.model_validate({k: info[k] for k in FileUploadPublic.model_fields})
+
+
+@router.post(
+    "/v1/datasets/{dataset_id}/commit",
+    response_model=DatasetPublic,
+    status_code=201,
+    responses={200: {"model": DatasetPublic, "description": "Already stored"},
+               **problem_responses(401, 404, 409, 422, 429, 503)},
+)
+def commit(dataset_id: DatasetId, response: Response, store: StoreDep, owner: OwnerDep) -> DatasetPublic:
+    """Store a dataset whose manifest was sent as JSON once all its files are received (409 names the
+    missing ones; 422 names files of the wrong size, with NaN or negative values, ...)."""
+    manifest = read_pending(store, dataset_id)
+    if manifest is None:
+        if dataset_visible(store, dataset_id, owner) and store.exists(f"datasets/{dataset_id}.json"):
+            response.status_code = 200
+            return get_dataset(store, dataset_id)[1]
+        raise NotFound(dataset_id)
+    try:
+        public, created = commit_dataset(store, manifest, owner)
+    except DatasetInvalid as exc:
+        raise _invalid(exc) from None
+    if created:
+        response.headers["Location"] = f"/v1/datasets/{public.id}"
+    else:
+        response.status_code = 200
+    return public
+
+
+# ------------------------------------------------------------------------------ datasets: read, delete
+
+
+@router.get("/v1/datasets", response_model=DatasetList, responses=problem_responses(401, 422, 429, 503))
+def list_all(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+             offset: Annotated[int, Query(ge=0)] = 0) -> DatasetList:
+    """The datasets this API key stored (or generated), oldest first."""
+    items = list_datasets(store, owner)
+    return DatasetList(items=items[offset:offset + limit], total=len(items))
+
+
+@router.get("/v1/datasets/{dataset_id}", response_model=DatasetPublic,
+            responses=problem_responses(401, 404, 422, 429, 503))
+def read_dataset(dataset_id: DatasetId, store: StoreDep, owner: OwnerDep) -> DatasetPublic:
+    """One dataset: its canonical manifest (file sha256s), size, light kind."""
+    return _visible_dataset(store, dataset_id, owner)
+
+
+_MEDIA = {".exr": "image/x-exr", ".png": "image/png", ".tif": "image/tiff", ".hdr": "image/vnd.radiance",
+          ".jpg": "image/jpeg"}
+
+
+@router.get(
+    "/v1/datasets/{dataset_id}/files/{sha256}",
+    response_class=Response,
+    responses={200: {"content": {m: {"schema": {"type": "string", "format": "binary"}} for m in _MEDIA.values()},
+                     "description": "The file as uploaded (or as generated)"},
+               **problem_responses(401, 404, 422, 429, 503)},
+)
+def read_dataset_file(dataset_id: DatasetId, sha256: FileSha, store: StoreDep, owner: OwnerDep) -> Response:
+    """One file of a dataset (image, depth map, mask) by its sha256, verified before it is sent."""
+    public = _visible_dataset(store, dataset_id, owner)
+    if sha256 not in {r[2] for r in public.manifest.file_refs()}:
+        raise NotFound(sha256)
+    data = read_file_blob(store, sha256)
+    return Response(data, media_type=_MEDIA.get(sniff_extension(data) or "", "application/octet-stream"),
+                    headers={"ETag": f'"{sha256}"', "Cache-Control": "private, max-age=31536000, immutable"})
+
+
+@router.delete("/v1/datasets/{dataset_id}", status_code=204, response_class=Response,
+               responses=problem_responses(401, 404, 409, 422, 429, 503))
+def remove_dataset(dataset_id: DatasetId, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> Response:
+    """Delete a dataset (409 while a queued or running job uses it). Its files stay (content-addressed)."""
+    if not dataset_visible(store, dataset_id, owner) or not store.exists(f"datasets/{dataset_id}.json"):
+        raise NotFound(dataset_id)
+    if dataset_id in _active_dataset_ids(redis):
+        raise HTTPException(409, f"dataset {dataset_id} is used by a queued or running job; cancel it or wait")
+    try:
+        delete_dataset(store, dataset_id, owner)
+    except NotFound:
+        pass  # deleted concurrently
+    return Response(status_code=204)
+
+
+# ------------------------------------------------------------------------------ bake, generate
+
+
+def _accepted(model: type[Any]) -> dict[int | str, dict[str, Any]]:
+    return {202: {"model": model, "description": "Queued or running; poll the job named by Location",
+                  "headers": {"Location": {"schema": {"type": "string"}, "description": "The job's URL"}}}}
+
+
+@router.post(
+    "/v1/datasets/{dataset_id}/bake",
+    response_model=DatasetBakePublic,
+    responses={**_accepted(DatasetBakePublic),
+               **problem_responses(401, 404, 413, 422, 429, 503)},
+)
+async def bake(dataset_id: DatasetId, response: Response, store: StoreDep, redis: RedisDep, owner: OwnerDep,
+               req: Annotated[BakeRequest | None, Body()] = None, wait: Wait = 0) -> DatasetBakePublic:
+    """Bake a dataset for relighting (bake queue): dedupe and triangulate the lights, build the
+    lookup, reorganise the image stack. 200 when cached / done within ``wait``, else 202."""
+    await run_in_threadpool(_visible_dataset, store, dataset_id, owner)
+    params = (req or BakeRequest()).params
+    key = bake_artifact_key(dataset_id, params)
+    payload = BakeJobPayload(dataset_id=dataset_id, params=params, artifact_key=key).model_dump(mode="json")
+    job, manifest, cached = await _run(response, redis, store, "bake", BAKE_JOB, payload, BAKE_KIND, key, owner,
+                                       wait, f"bake dataset {dataset_id[:12]}")
+    links = {"dataset": f"/v1/datasets/{dataset_id}"}
+    if job is not None:
+        links["job"] = f"/v1/jobs/{job.id}"
+    return DatasetBakePublic(dataset_id=dataset_id, artifact_key=key, status=_status(job, manifest, cached), job=job,
+                             artifact=manifest, links=links)
+
+
+@router.post(
+    "/v1/datasets/generate",
+    response_model=GenerationPublic,
+    responses={**_accepted(GenerationPublic),
+               **problem_responses(401, 404, 413, 422, 429, 503)},
+)
+async def generate(req: GenerateRequest, response: Response, store: StoreDep, redis: RedisDep, owner: OwnerDep,
+                   settings: SettingsDep, wait: Wait = 0) -> GenerationPublic:
+    """Generate a dataset from a stored scene (bake queue): one reference render per point light
+    placed over a part of a sphere. The result is a dataset like an uploaded one."""
+    def check() -> None:
+        if not scene_visible(store, req.scene_id, owner) or not store.exists(f"scenes/{req.scene_id}.json"):
+            raise NotFound(req.scene_id)
+        if req.camera is not None and req.camera.width * req.camera.height > settings.max_image_pixels:
+            raise ValidationProblem([FieldError(field="camera.height", message="image exceeds this server's limit "
+                                                f"of {settings.max_image_pixels} pixels", type="image_too_large")])
+
+    await run_in_threadpool(check)
+    key = generate_artifact_key(req)
+    payload = GenerateJobPayload(request=req, artifact_key=key, owner=owner).model_dump(mode="json")
+    job, manifest, cached = await _run(response, redis, store, "bake", GENERATE_JOB, payload, GENERATE_KIND, key,
+                                       owner, wait, f"generate dataset from scene {req.scene_id[:12]}")
+    dataset_id = str(manifest.result["dataset_id"]) if manifest is not None else None
+    links: dict[str, str] = {}
+    if dataset_id is not None:
+        await run_in_threadpool(add_dataset_owner, store, dataset_id, owner)
+        links["dataset"] = f"/v1/datasets/{dataset_id}"
+    if job is not None:
+        links["job"] = f"/v1/jobs/{job.id}"
+    return GenerationPublic(artifact_key=key, status=_status(job, manifest, cached), dataset_id=dataset_id, job=job,
+                            links=links)
+
+
+# ------------------------------------------------------------------------------ relight, composite
+
+
+def _check_relight_inputs(store: ObjectStore, owner: str | None, datasets: dict[str, str], req: Any) -> None:
+    errors: list[FieldError] = []
+    for field, did in datasets.items():
+        if not dataset_visible(store, did, owner) or not store.exists(f"datasets/{did}.json"):
+            errors.append(FieldError(field=field, message=f"no dataset {did}", type="unknown_dataset"))
+    if errors:
+        raise NotFound(errors[0]["message"])
+    for i, light in enumerate(req.lights):
+        if isinstance(light, RelightEnvironmentLight) and blob_info(store, light.image_sha256) is None:
+            errors.append(FieldError(field=f"lights.{i}.image_sha256", message="environment map not uploaded: PUT it "
+                                     f"to /v1/datasets/uploads/{light.image_sha256}", type="missing_file"))
+    for field in ("plate_sha256", "object_mask_sha256", "active_region_sha256"):
+        sha = getattr(req, field, None)
+        if sha is not None and blob_info(store, sha) is None:
+            errors.append(FieldError(field=field, message=f"file not uploaded: PUT it to /v1/datasets/uploads/{sha}",
+                                     type="missing_file"))
+    if errors:
+        raise ValidationProblem(errors)
+    unbaked = [(field, did) for field, did in datasets.items()
+               if read_manifest(store, bake_artifact_key(did, req.bake)) is None]
+    if unbaked:
+        raise ValidationProblem([FieldError(
+            field=field, message=f"dataset {did} is not baked with these bake parameters: POST "
+            f"/v1/datasets/{did}/bake (with the same 'params') first", type="not_baked") for field, did in unbaked],
+            detail="bake the dataset first", status=409)
+
+
+@router.post(
+    "/v1/relights",
+    response_model=RelightPublic,
+    responses={**_accepted(RelightPublic),
+               **problem_responses(401, 404, 409, 413, 422, 429, 503)},
+)
+async def request_relight(req: RelightRequest, response: Response, store: StoreDep, redis: RedisDep,
+                          owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
+    """Relight a baked dataset under new lights (render queue). 200 with the artifact (relit EXR,
+    PNG preview, coverage mask, counts, timings) when cached or done within ``wait``, else 202."""
+    await run_in_threadpool(_check_relight_inputs, store, owner, {"dataset_id": req.dataset_id}, req)
+    key = relight_artifact_key(req)
+    payload = RelightJobPayload(request=req, artifact_key=key).model_dump(mode="json")
+    job, manifest, cached = await _run(response, redis, store, "render", RELIGHT_JOB, payload, RELIGHT_KIND, key,
+                                       owner, wait, f"relight dataset {req.dataset_id[:12]}")
+    return RelightPublic(artifact_key=key, status=_status(job, manifest, cached), job=job, artifact=manifest,
+                         links=_result_links("/v1/relights", key, job))
+
+
+@router.post(
+    "/v1/composites",
+    response_model=RelightPublic,
+    responses={**_accepted(RelightPublic),
+               **problem_responses(401, 404, 409, 413, 422, 429, 503)},
+)
+async def request_composite(req: CompositeRequest, response: Response, store: StoreDep, redis: RedisDep,
+                            owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
+    """Composite a relit object into a background plate (render queue): object pixels from the relit
+    object dataset, active-region pixels of the plate scaled by I_object / I_background."""
+    datasets = {"object_dataset_id": req.object_dataset_id, "background_dataset_id": req.background_dataset_id}
+    await run_in_threadpool(_check_relight_inputs, store, owner, datasets, req)
+    key = composite_artifact_key(req)
+    payload = CompositeJobPayload(request=req, artifact_key=key).model_dump(mode="json")
+    job, manifest, cached = await _run(response, redis, store, "render", COMPOSITE_JOB, payload, COMPOSITE_KIND, key,
+                                       owner, wait, f"composite dataset {req.object_dataset_id[:12]}")
+    return RelightPublic(artifact_key=key, status=_status(job, manifest, cached), job=job, artifact=manifest,
+                         links=_result_links("/v1/composites", key, job))
+
+
+# ------------------------------------------------------------------------------ results
+
+_RESULT_BLOBS = {"image.exr": ("radiance.exr", "image/x-exr"), "image.png": ("preview.png", "image/png"),
+                 "outside.png": ("outside.png", "image/png")}
+
+
+def _visible_result(store: ObjectStore, key: str, owner: str | None, kind: str) -> ArtifactManifest:
+    manifest = read_manifest(store, key)
+    if manifest is None or manifest.kind != kind:
+        raise NotFound(key)
+    if owner is not None:
+        for role in ("dataset", "background"):
+            did = manifest.inputs.get(role)
+            if did is not None and not dataset_visible(store, did, owner):
+                raise NotFound(key)
+    return manifest
+
+
+def _blob(store: ObjectStore, key: str, owner: str | None, kind: str, which: str) -> Response:
+    _visible_result(store, key, owner, kind)
+    name, media = _RESULT_BLOBS[which]
+    data = read_blob(store, key, name)  # ChecksumMismatch -> 404 "stored data corrupt"
+    return Response(data, media_type=media, headers={"Cache-Control": "private, max-age=31536000, immutable",
+                                                     "Content-Disposition": f'inline; filename="{key[:16]}-{which}"'})
+
+
+_IMAGE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"image/x-exr": {"schema": {"type": "string", "format": "binary"}},
+                      "image/png": {"schema": {"type": "string", "format": "binary"}}},
+          "description": "The image"},
+    **problem_responses(401, 404, 422, 429, 503),
+}
+
+
+_BLOB_DOCS = {
+    "image.exr": "The linear float image (OpenEXR).",
+    "image.png": "sRGB preview (PNG, the request's exposure).",
+    "outside.png": "Coverage mask (PNG): white where some light direction fell outside the dataset's coverage "
+                   "(that light contributed 0 there).",
+}
+
+
+def _blob_endpoint(kind: str, which: str) -> Any:
+    def endpoint(key: ArtifactKeyPath, store: StoreDep, owner: OwnerDep) -> Response:
+        return _blob(store, key, owner, kind, which)
+
+    endpoint.__doc__ = _BLOB_DOCS[which]
+    endpoint.__name__ = f"{kind.replace('-', '_')}_{which.replace('.', '_')}"
+    return endpoint
+
+
+for _base, _kind in (("/v1/relights", RELIGHT_KIND), ("/v1/composites", COMPOSITE_KIND)):
+
+    def _make(kind: str, base: str) -> None:
+        @router.get(f"{base}/{{key}}", response_model=ArtifactManifest, responses=problem_responses(401, 404, 422, 429,
+                                                                                                     503),
+                    name=f"read_{kind}")
+        def read_result(key: ArtifactKeyPath, store: StoreDep, owner: OwnerDep) -> ArtifactManifest:
+            """The result's manifest: blobs with checksums, counts (``n_outside``: pixels with a light
+            direction outside the dataset's coverage) and timings."""
+            return _visible_result(store, key, owner, kind)
+
+        for which in _RESULT_BLOBS:
+            router.add_api_route(f"{base}/{{key}}/{which}", _blob_endpoint(kind, which), methods=["GET"],
+                                 response_class=Response, responses=_IMAGE_RESPONSES, name=f"{kind}_{which}")
+
+    _make(_kind, _base)
+
+
+__all__ = ["router"]
