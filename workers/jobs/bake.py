@@ -184,18 +184,16 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
             f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower ldc_resolution or max_layers")
     estimates: dict[str, Any] = {"ldc_axis_bytes_max": axis_bytes, "part_limit_bytes": BAKE_MAX_PART_BYTES}
     if with_llf:
-        from engine import llf as llf_mod
+        from engine.llf import estimate_llf_bytes
 
-        est = getattr(llf_mod, "estimate_llf_view_bytes", None)
-        if est is not None:
-            per_view = int(est(scene, p.params.llf_resolution, p.params.max_layers))
-            chunk_bytes = per_view * p.params.llf_chunk
-            estimates["llf_chunk_bytes_max"] = chunk_bytes
-            if chunk_bytes > BAKE_MAX_PART_BYTES:
-                raise BakeTooLarge(
-                    f"llf_resolution {p.params.llf_resolution} x llf_chunk {p.params.llf_chunk} directions needs up "
-                    f"to {chunk_bytes / 2**20:.0f} MiB per LLF job, over this server's limit of "
-                    f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower llf_resolution or llf_chunk")
+        chunk_bytes = estimate_llf_bytes(p.params.llf_f, p.params.llf_resolution, p.params.max_layers,
+                                         n_views=min(p.params.llf_chunk, llf_direction_count(p.params.llf_f)))
+        estimates["llf_chunk_bytes_max"] = chunk_bytes
+        if chunk_bytes > BAKE_MAX_PART_BYTES:
+            raise BakeTooLarge(
+                f"llf_resolution {p.params.llf_resolution} x llf_chunk {p.params.llf_chunk} directions x max_layers "
+                f"{p.params.max_layers} needs up to {chunk_bytes / 2**20:.0f} MiB per LLF job, over this server's "
+                f"limit of {BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower llf_resolution, llf_chunk or max_layers")
     specs: list[dict[str, Any]] = []
     for spec in plan_parts(p.params, with_llf):
         specs.append({**spec, "key": part_key(p.scene_id, p.bake_key, spec), "weight": part_weight(p.params, spec)})
@@ -318,7 +316,7 @@ def bake_llf_views_job(payload: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     views = bake_llf_views(loaded.runtime, caster, p.params.llf_f, p.params.llf_resolution,
                            list(range(part.start, part.stop)), params=_reference_params(p.params),
-                           progress=on_progress)
+                           progress=on_progress, max_layers=p.params.max_layers, max_bytes=BAKE_MAX_PART_BYTES)
     t_bake = time.perf_counter() - t0
     progress.report(0.9, "writing", force=True)
     arrays: dict[str, np.ndarray] = {"indices": np.array([v.index for v in views], np.int64)}
@@ -363,10 +361,10 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
     ldc = merge_ldc(scene, axes, params.ldc_resolution, analyze(scene))
     llf = None
     if plan.get("bake_llf"):
-        from engine.llf import merge_llf
+        from engine.llf import llf_params_dict, merge_llf
 
-        views.sort(key=lambda v: v.index)
-        llf = merge_llf(params.llf_f, params.llf_resolution, views, params.llf_params.model_dump(mode="json"))
+        llf = merge_llf(params.llf_f, params.llf_resolution, views,
+                        llf_params_dict(_reference_params(params), params.max_layers))
     return ldc, llf
 
 

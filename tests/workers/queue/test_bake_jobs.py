@@ -115,3 +115,34 @@ def test_deleted_part_is_redone_alone(
         else:
             assert after[name] == t  # not recomputed
     assert np.isfinite(read_manifest(worker_store, key).result["timings"]["verify"])  # type: ignore[union-attr]
+
+
+def mirror_scene() -> Scene:
+    doc = tiny_scene().model_dump(mode="json")
+    doc["materials"][0] = {"name": "m", "kd": [0.3, 0.3, 0.3], "kr": [0.5, 0.5, 0.5]}
+    return Scene.model_validate(doc)
+
+
+def test_mirror_scene_bakes_light_field_chunks(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    """The effect analysis asks for a light field: LDC axes + LLF chunks of ``llf_chunk`` directions,
+    merged into one LLF whose every direction is present once."""
+    params = BakeParams.model_validate({
+        **SMALL.model_dump(), "llf_f": 1, "llf_resolution": 8, "llf_chunk": 4,
+        "llf_params": {"spp": 1, "max_depth": 1, "glossy_samples": 1, "area_light_samples": 1}})
+    pub = put_scene(worker_store, mirror_scene(), {}, None)
+    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
+    w = worker_process("bake")
+    st = wait_bake(redis_conn, worker_store, pub.id, key, params, 120, w)
+    assert st.state == "finished", (st.error, w.log())
+    assert st.plan is not None and st.plan["needs_llf"] and st.plan["bake_llf"] and st.plan["llf_directions"] == 6
+    assert [p.name for p in st.parts] == ["ldc-axis-0", "ldc-axis-1", "ldc-axis-2",
+                                          "llf-views-0000-0003", "llf-views-0004-0005"]
+    from workers.jobs.bake import load_bake
+    from workers.scene_loader import load_scene
+
+    loaded = load_scene(mirror_scene(), lambda p: (b"", ""))
+    ldc, llf, plan = load_bake(worker_store, loaded.runtime, key)
+    assert llf is not None and llf.n_directions == 6 and [v.index for v in llf.views] == list(range(6))
+    assert ldc.resolution == params.ldc_resolution and plan["bake_llf"] is True
