@@ -35,7 +35,9 @@ from api_schemas.common import (
     RGB,
     FiniteFloat,
     FrozenModel,
+    Loc,
     Name,
+    NonNegativeFloat,
     PositiveFloat,
     PositiveVec3,
     StrictBool,
@@ -57,6 +59,7 @@ __all__ = [
     "MAX_SCENE_BYTES",
     "Animation",
     "BoxObject",
+    "BoxViewSpace",
     "Camera",
     "CylinderObject",
     "DirectionalLight",
@@ -69,7 +72,9 @@ __all__ = [
     "OrthographicCamera",
     "PerspectiveCamera",
     "PlaneObject",
+    "PathViewSpace",
     "PointLight",
+    "PolygonViewSpace",
     "RectLight",
     "Scene",
     "SceneFileTooLargeError",
@@ -77,6 +82,7 @@ __all__ = [
     "SphereObject",
     "Transform",
     "TransformKeyframe",
+    "ViewSpace",
     "canonical_scene_json",
     "load_scene_file",
     "load_scene_json",
@@ -92,6 +98,8 @@ MAX_MATERIALS = 10_000
 MAX_MESH_VERTICES = 5_000_000
 MAX_MESH_FACES = 10_000_000
 MAX_KEYFRAMES = 100_000
+MAX_VIEW_SPACE_POINTS = 10_000
+MAX_POLYGON_VERTICES = 1000
 MAX_SCENE_BYTES = 64 * 1024 * 1024
 
 # Relative tolerances; all checks are scale-free (a scene at 1e-3 or 1e3 behaves alike).
@@ -812,6 +820,112 @@ class Animation(FrozenModel):
         return self
 
 
+# --------------------------------------------------------------------------- view space
+
+
+def _span(points: list[tuple[float, ...]]) -> float:
+    return max((abs(c) for p in points for c in p), default=0.0)
+
+
+def _no_room(loc: Loc, message: str, value: Any) -> InitErrorDetails:
+    return error_at(loc, "view_space_empty", "the view space has no room: " + message, value)
+
+
+class PathViewSpace(FrozenModel):
+    """The viewer moves along a polyline (within ``radius`` of it)."""
+
+    type: Literal["path"] = "path"
+    points: Annotated[list[Vec3], Field(min_length=2, max_length=MAX_VIEW_SPACE_POINTS)]
+    """Polyline vertices, world space (eye positions); at least 2, total length > 0."""
+    radius: NonNegativeFloat = 0.0
+    """How far the eye may leave the polyline (0: exactly on it)."""
+
+    @model_validator(mode="after")
+    def _check_length(self) -> Self:
+        pts = np.asarray(self.points, dtype=np.float64)
+        scale = max(_span(list(self.points)), 1e-300)
+        length = float(np.sum(np.linalg.norm(np.diff(pts / scale, axis=0), axis=1))) * scale
+        if not length > _COINCIDENT_TOL * scale and not self.radius > _COINCIDENT_TOL * scale:
+            raise_errors("PathViewSpace", [_no_room(("points",), "all path points coincide and radius is 0", None)])
+        return self
+
+
+class BoxViewSpace(FrozenModel):
+    """The viewer moves inside an axis-aligned box (flat boxes, e.g. min.y == max.y at eye height, are fine)."""
+
+    type: Literal["box"] = "box"
+    min: Vec3
+    """Lower corner, world space."""
+    max: Vec3
+    """Upper corner, world space; max >= min per axis and the box is not a single point."""
+
+    @model_validator(mode="after")
+    def _check_box(self) -> Self:
+        errors: list[InitErrorDetails] = []
+        bad = [f"{'xyz'[k]}: max {_fmt(self.max[k])} < min {_fmt(self.min[k])}" for k in range(3)
+               if self.max[k] < self.min[k]]
+        if bad:
+            errors.append(error_at(("max",), "view_space_order", "max must be >= min on every axis (" +
+                                   "; ".join(bad) + ")", self.max))
+        else:
+            scale = _span([self.min, self.max])
+            if max(self.max[k] - self.min[k] for k in range(3)) <= _COINCIDENT_TOL * scale:
+                errors.append(_no_room(("max",), "min and max are the same point", self.max))
+        raise_errors("BoxViewSpace", errors)
+        return self
+
+
+Vec2 = tuple[FiniteFloat, FiniteFloat]
+
+
+def _segments_cross(a: Any, b: Any, c: Any, d: Any) -> bool:
+    """Proper intersection of the open segments ab and cd (2D)."""
+
+    def orient(p: Any, q: Any, r: Any) -> float:
+        return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+
+    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
+    return (o1 > 0) != (o2 > 0) and (o3 > 0) != (o4 > 0) and 0 not in (o1, o2, o3, o4)
+
+
+class PolygonViewSpace(FrozenModel):
+    """The viewer moves inside a simple polygon in the horizontal plane y = ``eye_height``."""
+
+    type: Literal["polygon"] = "polygon"
+    vertices: Annotated[list[Vec2], Field(min_length=3, max_length=MAX_POLYGON_VERTICES)]
+    """Polygon corners as [x, z] pairs, in order (either orientation); no self-intersections."""
+    eye_height: FiniteFloat
+    """y coordinate of the eye, world space."""
+
+    @model_validator(mode="after")
+    def _check_polygon(self) -> Self:
+        v = np.asarray(self.vertices, dtype=np.float64)
+        scale = max(_span(list(self.vertices)), 1e-300)
+        w = v / scale
+        area = 0.5 * abs(float(np.sum(w[:, 0] * np.roll(w[:, 1], -1) - np.roll(w[:, 0], -1) * w[:, 1])))
+        errors: list[InitErrorDetails] = []
+        if not area > 1e-12:
+            errors.append(_no_room(("vertices",), "the polygon has zero area", None))
+        else:
+            n = len(w)
+            for i in range(n):
+                for j in range(i + 2, n):
+                    if i == 0 and j == n - 1:
+                        continue  # adjacent through the closing edge
+                    if _segments_cross(w[i], w[(i + 1) % n], w[j], w[(j + 1) % n]):
+                        errors.append(error_at(("vertices",), "self_intersection",
+                                               f"the polygon intersects itself (edge {i}-{(i + 1) % n} crosses "
+                                               f"edge {j}-{(j + 1) % n})", None))
+                        break
+                if errors:
+                    break
+        raise_errors("PolygonViewSpace", errors)
+        return self
+
+
+ViewSpace = Annotated[PathViewSpace | BoxViewSpace | PolygonViewSpace, Field(discriminator="type")]
+
+
 # --------------------------------------------------------------------------- scene
 
 
@@ -839,6 +953,8 @@ class Scene(FrozenModel):
     """Radiance of rays that leave the scene."""
     animation: Animation | None = None
     """Optional keyframed animation of named objects and lights."""
+    view_space: ViewSpace | None = None
+    """Optional region the viewer of a walkthrough may move in (docs/walkthrough.md)."""
 
     @field_validator("schema_version", mode="before")
     @classmethod
@@ -979,14 +1095,23 @@ def scene_json_schema() -> dict[str, Any]:
     return Scene.model_json_schema()
 
 
+_ADDITIVE_FIELDS = ("view_space",)
+
+
 def canonical_scene_json(scene: Scene) -> str:
     """Compact JSON with sorted keys and every field (defaults included).
 
     Equal scenes give equal text whatever the key order or omitted defaults of the
     document they were parsed from.
     """
+    doc = scene.model_dump(mode="json")
+    # Fields added after version 1 shipped are left out while unset, so the hash of every
+    # scene written before them stays what it was.
+    for key in _ADDITIVE_FIELDS:
+        if doc.get(key) is None:
+            doc.pop(key, None)
     return json.dumps(
-        scene.model_dump(mode="json"),
+        doc,
         sort_keys=True,
         separators=(",", ":"),
         ensure_ascii=True,

@@ -28,6 +28,7 @@ from api_schemas.scene import (
     SphereObject,
     scene_hash,
 )
+from engine.animation import AnimatedScene, LightTrack, TransformTrack
 from engine.errors import InvalidInputError, MeshValidationError
 from engine.geometry import meshio, primitives
 from engine.geometry.mesh import TriMesh
@@ -137,3 +138,56 @@ def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScen
     runtime = build_runtime_scene(parts, materials, lights, ambient=_v3(scene.ambient),
                                   background=_v3(scene.background))
     return LoadedScene(runtime, camera_params(scene.camera), scene_hash(scene), reports)
+
+
+def load_animated_scene(scene: Scene, resolver: MeshResolver | None = None) -> AnimatedScene:
+    """The scene with its animation, as an engine ``AnimatedScene`` (``scene_at(t)`` gives the
+    runtime scene at time t). A scene without ``animation`` is static over [0, 0]."""
+    loaded = load_scene(scene, resolver)
+    rt = loaded.runtime
+    parts = [SceneObjectPart(name, _part_mesh(rt, i), int(_part_material(rt, i)))
+             for i, name in enumerate(rt.object_names)]
+    light_rows = [lt.model_dump() for lt in scene.lights]
+    anim = scene.animation
+    if anim is None:
+        return AnimatedScene(parts, rt.materials, light_rows, ambient=_v3(scene.ambient),
+                             background=_v3(scene.background))
+    index_of = {o.name: i for i, o in enumerate(scene.objects) if o.name is not None}
+    tracks: list[TransformTrack] = []
+    local: dict[int, TriMesh] = {}
+    for name, frames in anim.objects.items():
+        i = index_of[name]
+        local[i] = _object_mesh(scene.objects[i], resolver, [], i)
+        tracks.append(TransformTrack.from_matrices(i, [f.time for f in frames],
+                                                   [f.transform.to_matrix() for f in frames]))
+    light_index: dict[str, int] = {}
+    for i, lt in enumerate(scene.lights):
+        if lt.name is not None:
+            light_index.setdefault(lt.name, i)
+    light_tracks: list[LightTrack] = []
+    for name, lframes in anim.lights.items():
+        pos = [(f.time, f.position) for f in lframes if f.position is not None]
+        inten = [(f.time, f.intensity) for f in lframes if f.intensity is not None]
+        light_tracks.append(LightTrack(
+            light_index[name],
+            np.array([t for t, _ in pos], dtype=np.float64),
+            np.array([p for _, p in pos], dtype=np.float64).reshape(-1, 3),
+            np.array([t for t, _ in inten], dtype=np.float64),
+            np.array([p for _, p in inten], dtype=np.float64).reshape(-1, 3)))
+    return AnimatedScene(parts, rt.materials, light_rows, ambient=_v3(scene.ambient),
+                         background=_v3(scene.background), start=anim.start, end=anim.end,
+                         object_tracks=tracks, local_meshes=local, light_tracks=light_tracks)
+
+
+def _part_mesh(rt: RuntimeScene, i: int) -> TriMesh:
+    """Object ``i``'s world-space triangles back out of the runtime triangle soup."""
+    sel = np.flatnonzero(rt.tri_object == i)
+    v = rt.tri_p[sel].reshape(-1, 3)
+    n = rt.tri_n[sel].reshape(-1, 3)
+    f = np.arange(v.shape[0], dtype=np.int32).reshape(-1, 3)
+    return TriMesh(np.ascontiguousarray(v), f, np.ascontiguousarray(n))
+
+
+def _part_material(rt: RuntimeScene, i: int) -> int:
+    sel = np.flatnonzero(rt.tri_object == i)
+    return int(rt.tri_material[sel[0]]) if sel.size else 0
