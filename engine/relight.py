@@ -32,6 +32,7 @@ from numba.core import types as nbtypes
 from numba.extending import overload
 
 from .errors import InvalidInputError
+from .relight_compress import LowRankStore, block_order, compress_store
 from .scene import CameraParams
 
 HALF_MAX = 65504.0
@@ -252,13 +253,19 @@ class BakedDataset:
     grid_start: np.ndarray
     grid_items: np.ndarray
     report: dict = field(default_factory=dict)
+    lowrank: LowRankStore | None = None
 
     @property
     def layout(self) -> str:
+        if self.lowrank is not None:
+            return "lowrank"
         return "tiled" if self.store.ndim == 4 else "pixel_major"
 
     def light_values(self, k: int) -> np.ndarray:
-        """(n_valid, 3) float32 stored values of kept light k, unscaled (as in the input)."""
+        """(n_valid, 3) float32 stored values of kept light k, unscaled (as in the input; for a
+        compressed store, reconstructed from the low-rank factors)."""
+        if self.lowrank is not None:
+            return self.lowrank.light_values(k)
         v = self.store[:, k].reshape(-1, 3)[: self.pixel_index.size].astype(np.float32)
         if self.store_scale[k] != 1.0:
             v /= np.float32(self.store_scale[k])  # a power of two: exact
@@ -266,7 +273,14 @@ class BakedDataset:
 
     @property
     def nbytes(self) -> int:
-        return int(self.store.nbytes + self.points.nbytes + self.pixel_index.nbytes)
+        lr = self.lowrank.nbytes if self.lowrank is not None else 0
+        return int(self.store.nbytes + lr + self.points.nbytes + self.pixel_index.nbytes)
+
+    def kernel_store(self):
+        """What the relight kernel reads: the store (float16 as uint16 bits) or the low-rank factors."""
+        if self.lowrank is not None:
+            return self.lowrank.kernel_args()
+        return self.store.view(np.uint16) if self.store.dtype == np.float16 else self.store
 
 
 def _dedupe(dirs: np.ndarray, pos: np.ndarray, tol_rad: float):
@@ -527,7 +541,8 @@ def _choose_dtype(vmax: np.ndarray, vmin: np.ndarray, half: bool, rel_floor: flo
 
 def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: float | None = None,
                  layout: str = "pixel_major", half: bool = True, dedupe_tol_deg: float = 1e-3,
-                 max_face_radius_deg: float | None = None, half_rel_floor: float = 0.0) -> BakedDataset:
+                 max_face_radius_deg: float | None = None, half_rel_floor: float = 0.0,
+                 compress: float | None = None) -> BakedDataset:
     """Deduplicate, triangulate and reorganise a dataset for relighting.
 
     sphere_center: default the dataset's ``sphere_center``, else the centroid of the masked
@@ -540,6 +555,11 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     half: store float16 when every value fits (else float32; the choice is in ``report``);
         ``half_rel_floor``: values below this fraction of their light's max may lose precision
         (default 0: every non-zero value keeps float16's 2^-11 relative precision, HARD_CASES 9).
+    compress: None, or the requested relative RMS error (0 < compress < 1) of a low-rank store
+        (``engine.relight_compress``: rank per 256-pixel tile). It is used only when its measured
+        error meets the request and it is smaller than the uncompressed store; otherwise the
+        uncompressed store is built and ``report["compression_reason"]`` says why. The measured
+        errors are in ``report["compression_report"]`` either way.
     """
     if not isinstance(ds, IlluminationDataset):
         raise InvalidInputError("bake_dataset: expected an IlluminationDataset")
@@ -552,6 +572,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         raise InvalidInputError("max_face_radius_deg must be in (0, 89]")
     if not (0 <= half_rel_floor < 1):
         raise InvalidInputError("half_rel_floor must be in [0, 1)")
+    if compress is not None and not (isinstance(compress, (int, float)) and 0 < compress < 1):
+        raise InvalidInputError(f"compress must be a relative RMS error in (0, 1) or None, got {compress!r}")
     t0 = time.perf_counter()
     h, w = ds.shape
     m = ds.mask.ravel()
@@ -608,6 +630,39 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin)
     dt, scale, why = _choose_dtype(vmax, vmin, half, half_rel_floor)
     is_half = dt is np.float16
+    plain_bytes = pix.size * keep.size * 3 * (2 if is_half else 4)
+    if compress is not None:
+        t2 = time.perf_counter()
+        bpix = block_order(ds.mask)
+        lowrank, crep = compress_store(flat, keep, bpix, float(compress))
+        crep["time_s"] = time.perf_counter() - t2
+        crep["uncompressed_store_bytes"] = int(plain_bytes)
+        report["compression_report"] = crep
+        if crep["rel_rms_error"] > compress:
+            report["compression_reason"] = (f"measured error {crep['rel_rms_error']:.3g} exceeds the requested "
+                                            f"{compress:g} even at full rank (float32 factors)")
+        elif lowrank.nbytes >= plain_bytes:
+            report["compression_reason"] = (f"low-rank store ({lowrank.nbytes} bytes, mean rank "
+                                            f"{crep['rank_mean']:.1f}) is not smaller than the {np.dtype(dt).name} "
+                                            f"store ({plain_bytes} bytes)")
+        else:
+            report.update(dtype="float32", dtype_reason=f"low-rank factors (float32); the plain store would be "
+                          f"{np.dtype(dt).name}: {why}", layout="lowrank", store_bytes=int(lowrank.nbytes),
+                          compression="svd_per_tile",
+                          compression_reason=f"meets the requested relative RMS error {compress:g} "
+                                             f"(measured {crep['rel_rms_error']:.3g}) at "
+                                             f"{lowrank.nbytes / plain_bytes:.1%} of the plain store")
+            report["time_triangulate_s"] = t1 - t0
+            report["time_store_s"] = time.perf_counter() - t1
+            bpts = np.ascontiguousarray(ds.points.reshape(-1, 3)[bpix])
+            return BakedDataset(shape=(h, w), distant=ds.distant, store=np.zeros((0, keep.size, 3), np.float32),
+                                pixel_index=bpix, points=bpts,
+                                light_positions=np.ascontiguousarray(ds.light_positions[keep]),
+                                intensities=np.ascontiguousarray(ds.intensities[keep]),
+                                kept_from=keep.astype(np.int64), directions=dirs_k, store_scale=np.ones(keep.size),
+                                sphere_center=center, sphere_radius=radius, triangles=np.ascontiguousarray(tri),
+                                tri_inverse=np.ascontiguousarray(inv), grid_n=grid_n, grid_start=grid_start,
+                                grid_items=grid_items, report=report, lowrank=lowrank)
     if layout == "tiled":
         n_tiles = (pix.size + TILE - 1) // TILE
         store = np.zeros((n_tiles, keep.size, TILE, 3), np.float16 if is_half else np.float32)
@@ -619,6 +674,7 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
                         store.view(np.uint16) if is_half else dummy16, is_half)
     report.update(dtype=np.dtype(dt).name, dtype_reason=why, layout=layout,
                   store_bytes=int(store.nbytes), compression="none")
+    report.setdefault("compression_reason", "not requested")
     report["time_triangulate_s"] = t1 - t0
     report["time_store_s"] = time.perf_counter() - t1
     return BakedDataset(shape=(h, w), distant=ds.distant, store=store, pixel_index=pix, points=pts,
@@ -639,12 +695,28 @@ _CHUNK = 256
 _HALF_LUT = np.arange(65536, dtype=np.uint16).view(np.float16).astype(np.float32)
 
 
+@nb.njit(cache=True, nogil=True)
+def _lr_dot(u, b, u0, b0, r):
+    """One value of a low-rank store: the dot product of a pixel-channel row and a light row."""
+    s = np.float32(0.0)
+    for j in range(r):
+        s += u[u0 + j] * b[b0 + j]
+    return s
+
+
 def _fetch(store, lut, i, k, c):  # pragma: no cover - replaced by the overload in numba code
     raise NotImplementedError
 
 
 @overload(_fetch, inline="always")
 def _fetch_impl(store, lut, i, k, c):
+    if isinstance(store, nbtypes.BaseTuple):  # low-rank factors (u, b, u_off, b_off, rank)
+        def lowrank(store, lut, i, k, c):
+            u, b, u_off, b_off, rank = store
+            t = i >> _TILE_SHIFT
+            r = rank[t]
+            return _lr_dot(u, b, u_off[t] + ((i & (TILE - 1)) * 3 + c) * r, b_off[t] + k * r, r)
+        return lowrank
     if store.ndim == 4:  # tiled: (tile, light, row in tile, channel)
         if store.dtype == nbtypes.uint16:
             return lambda store, lut, i, k, c: lut[store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]]
@@ -1135,10 +1207,9 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
                 raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}]")
             nb.set_num_threads(int(threads))
         try:
-            store = baked.store.view(np.uint16) if baked.store.dtype == np.float16 else baked.store
-            kern(baked.points, store, _HALF_LUT, baked.light_positions, inv_int, baked.distant, baked.sphere_center,
-                 radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items,
-                 kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows)
+            kern(baked.points, baked.kernel_store(), _HALF_LUT, baked.light_positions, inv_int, baked.distant,
+                 baked.sphere_center, radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
+                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
