@@ -796,14 +796,15 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
 
 
 def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
-                    grid_items, kinds, lp, lint, lnorm, min_dist2, out, outside, singular):
+                    grid_items, kinds, lp, lint, lnorm, min_dist2, out, outside, singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
     points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16);
     lpos (K, 3); inv_int (K, 3) = 1 / dataset
     intensity; kinds (M,) int64; lp (M, 3) light position or direction toward the light;
     lint (M, 3) intensity (point, oriented) or irradiance (directional); lnorm (M, 3)
-    emitter normal (oriented). out (n, 3) f32; outside / singular (n,) bool.
+    emitter normal (oriented). out (n, 3) f32; outside / singular (n,) bool; touched (T,) uint8
+    set to 1 for every triangle whose three lights were read (racing writes all store 1).
     """
     n = points.shape[0]
     m = kinds.shape[0]
@@ -858,6 +859,7 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                     out_i = True
                     continue
                 last[j] = tri
+                touched[tri] = 1
                 ka = tris[tri, 0]
                 kb = tris[tri, 1]
                 kc = tris[tri, 2]
@@ -1126,7 +1128,9 @@ class RelightResult:
     direction fell outside the covered part of the sphere (that light contributes 0 there);
     singular_mask (h, w) bool: a point light closer than ``min_light_distance`` to the surface
     point (contributes 0, see docs/relighting.md); timings in seconds; ``exact`` True when the
-    exact-hit path (stored images, no interpolation) produced the image."""
+    exact-hit path (stored images, no interpolation) produced the image. ``lights_used``: the
+    kept dataset lights whose values were read (sorted indices into ``baked.light_positions``),
+    ``n_triangles_used``: the triangles the lights needed (0 on the exact path)."""
 
     image: np.ndarray
     outside_mask: np.ndarray
@@ -1136,6 +1140,8 @@ class RelightResult:
     timings: dict
     exact: bool = False
     n_lights: int = 0
+    lights_used: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_triangles_used: int = 0
 
 
 def _exact_indices(baked: BakedDataset, kinds, lp) -> np.ndarray | None:
@@ -1194,7 +1200,10 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
             rows += v if np.all(ratio == 1.0) else v * ratio
         img[baked.pixel_index] = rows
         timings["kernel_s"] = time.perf_counter() - t1
+        used = np.unique(exact)
+        n_tri_used = 0
     else:
+        touched = np.zeros(baked.triangles.shape[0], np.uint8)
         rows = np.empty((n, 3), np.float32)
         o_rows = np.empty(n, bool)
         s_rows = np.empty(n, bool)
@@ -1209,7 +1218,8 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         try:
             kern(baked.points, baked.kernel_store(), _HALF_LUT, baked.light_positions, inv_int, baked.distant,
                  baked.sphere_center, radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
-                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows)
+                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows,
+                 touched)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
@@ -1217,8 +1227,11 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         img[baked.pixel_index] = rows
         outside[baked.pixel_index] = o_rows
         singular[baked.pixel_index] = s_rows
+        tri_used = np.nonzero(touched)[0]
+        used = np.unique(baked.triangles[tri_used])
+        n_tri_used = int(tri_used.size)
     timings["total_s"] = time.perf_counter() - t0
     return RelightResult(image=img.reshape(h, w, 3), outside_mask=outside.reshape(h, w),
                          n_outside=int(outside.sum()), singular_mask=singular.reshape(h, w),
                          n_singular=int(singular.sum()), timings=timings, exact=exact is not None,
-                         n_lights=int(kinds.size))
+                         n_lights=int(kinds.size), lights_used=used.astype(np.int64), n_triangles_used=n_tri_used)

@@ -71,6 +71,42 @@ def test_light_at_dataset_light_is_bit_exact(full20):
         np.testing.assert_allclose(r3.image, ds.images[k], rtol=1e-5, atol=1e-9)
 
 
+def test_exact_match_superposition_is_bit_exact(full20):
+    """Lights exactly at dataset lights: the stored images' superposition, no interpolation, and only
+    those lights are read."""
+    ds, b, pts, mask = full20
+    a, c = 4, 17
+    r = relight(b, [PointLight(ds.light_positions[a], 2.0), PointLight(ds.light_positions[c], (0.5, 1.0, 3.0))])
+    assert r.exact and r.n_triangles_used == 0 and r.lights_used.tolist() == [a, c]
+    want = np.zeros_like(ds.images[a])
+    want += ds.images[a] * np.float32(2.0)
+    want += ds.images[c] * np.float32([0.5, 1.0, 3.0])
+    assert np.array_equal(r.image, want)
+    # one light off the dataset: the interpolating kernel for all (never a mixed answer)
+    mixed = relight(b, [PointLight(ds.light_positions[a], 2.0), PointLight((0.3, 1.0, 4.0), 1.0)])
+    assert not mixed.exact
+    ref, _ = naive_relight(b, [(ds.light_positions[a], [2.0] * 3), ((0.3, 1.0, 4.0), [1.0] * 3)])
+    np.testing.assert_allclose(mixed.image, ref, rtol=1e-5, atol=1e-9)
+
+
+def test_relight_reads_only_the_triangles_the_lights_need(full20):
+    """``lights_used`` / ``n_triangles_used`` are the triangles the per-pixel sphere points fall in
+    (computed here independently with locate_directions), a small part of the dataset."""
+    ds, b, pts, mask = full20
+    lpos = np.array([0.7, 1.9, 4.1])
+    r = relight(b, PointLight(lpos, 1.0))
+    p = b.points
+    u = (lpos - p) / np.linalg.norm(lpos - p, axis=1, keepdims=True)
+    o = p - b.sphere_center
+    bb = np.sum(o * u, axis=1)
+    t = -bb + np.sqrt(bb * bb - (np.sum(o * o, axis=1) - b.sphere_radius ** 2))
+    tri, _ = locate_directions(b, o + t[:, None] * u)
+    assert np.all(tri >= 0)
+    assert r.n_triangles_used == np.unique(tri).size
+    assert r.lights_used.tolist() == np.unique(b.triangles[np.unique(tri)]).tolist()
+    assert r.lights_used.size < 0.25 * len(b.light_positions)
+
+
 def test_exact_hit_half_store_returns_stored_values():
     ds, pts, mask = make_ds(30.0)
     b = bake_dataset(ds, sphere_center=[0, 0, 0], half=True)
