@@ -1,0 +1,6 @@
+"""Image-based walkthroughs of animated scenes with global illumination (ALGORITHMS.md part C).
+
+See docs/walkthrough.md. Modules: ``range_images`` (cube-map base images), ``viewspace``,
+``decompose`` (base viewpoints and time samples), ``reconstruct`` (reprojection and fill),
+``bake`` (WalkthroughBake, WalkthroughRenderer, quality presets).
+"""

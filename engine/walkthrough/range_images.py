@@ -1,0 +1,168 @@
+"""360-degree range images (cube maps) at a base viewpoint and time.
+
+A cube range image holds, for the 6 faces of a cube around ``eye`` (each a 90-degree
+perspective view of ``res x res`` pixels, face order +x, -x, +y, -y, +z, -z, the up vectors of
+the usual cube-map layout), the radiance split into **direct** and **indirect** parts, the
+distance along each pixel-centre ray to the first hit (``depth``, 0 where the ray leaves the
+scene) and the object id seen there (-1 for none).
+
+Both radiance parts come from the reference renderer (``engine/reference.py``), which the
+walkthrough reconstruction is measured against:
+
+- direct = a render with ``indirect_samples = 0`` (emission, ambient, direct light with
+  shadows, mirror / glossy chains);
+- indirect = (a render with path-traced indirect light) - direct, for the same seed. The
+  camera jitter and the first-hit light samples of both renders come from the same
+  counter-based random streams, so on diffuse surfaces the difference is exactly the
+  path-traced part; behind mirror / glossy chains it also carries the (zero-mean) difference
+  between two samplings of the direct light there.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numba as nb
+import numpy as np
+
+from ..errors import InvalidInputError
+from ..reference import ReferenceParams, ReferenceRenderer
+from ..scene import CameraParams
+
+__all__ = ["CUBE_FACES", "CubeRangeImage", "cube_directions", "face_camera", "render_cube", "direction_to_cube"]
+
+# (forward, up) per face; right = forward x up
+CUBE_FACES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
+    ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+    ((-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+    ((0.0, 1.0, 0.0), (0.0, 0.0, -1.0)),
+    ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+    ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
+    ((0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
+)
+
+
+def face_basis() -> np.ndarray:
+    """(6, 3, 3) float64: rows right, up, forward of every face."""
+    out = np.empty((6, 3, 3))
+    for k, (f, u) in enumerate(CUBE_FACES):
+        fw = np.asarray(f, dtype=np.float64)
+        up = np.asarray(u, dtype=np.float64)
+        out[k, 0] = np.cross(fw, up)
+        out[k, 1] = up
+        out[k, 2] = fw
+    return out
+
+
+_BASIS = face_basis()
+
+
+def face_camera(eye: np.ndarray | tuple[float, float, float], face: int, res: int) -> CameraParams:
+    """The 90-degree perspective camera of cube face ``face`` at ``eye``."""
+    e = tuple(float(c) for c in np.asarray(eye, dtype=np.float64))
+    f, u = CUBE_FACES[face]
+    return CameraParams("perspective", e, (e[0] + f[0], e[1] + f[1], e[2] + f[2]), u, res, res, fov_y_deg=90.0)
+
+
+def cube_directions(res: int) -> np.ndarray:
+    """(6, res, res, 3) float64 unit directions through every pixel centre (camera.py conventions)."""
+    c = (np.arange(res) + 0.5) * (2.0 / res) - 1.0
+    sx = c[None, :]
+    sy = -c[:, None]
+    d = (_BASIS[:, None, None, 2, :] + sx[None, :, :, None] * _BASIS[:, None, None, 0, :]
+         + sy[None, :, :, None] * _BASIS[:, None, None, 1, :])
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def direction_to_cube(dx, dy, dz, res):
+    """(face, column, row) of the cube pixel a direction falls in."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:
+        face = 0 if dx > 0 else 1
+        m = ax
+    elif ay >= az:
+        face = 2 if dy > 0 else 3
+        m = ay
+    else:
+        face = 4 if dz > 0 else 5
+        m = az
+    b = _BASIS
+    s = (dx * b[face, 0, 0] + dy * b[face, 0, 1] + dz * b[face, 0, 2]) / m
+    t = (dx * b[face, 1, 0] + dy * b[face, 1, 1] + dz * b[face, 1, 2]) / m
+    col = int((s + 1.0) * 0.5 * res)
+    row = int((1.0 - t) * 0.5 * res)
+    col = min(max(col, 0), res - 1)
+    row = min(max(row, 0), res - 1)
+    return face, col, row
+
+
+@dataclass
+class CubeRangeImage:
+    """One base image: eye (3,) float64, time, res; direct / indirect (6, res, res, 3) float32
+    (indirect is all zero when it was not computed); depth (6, res, res) float32 (0: no hit);
+    object_id (6, res, res) int32 (-1: no hit); timings in seconds."""
+
+    eye: np.ndarray
+    time: float
+    res: int
+    direct: np.ndarray
+    indirect: np.ndarray
+    depth: np.ndarray
+    object_id: np.ndarray
+    has_indirect: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def radiance(self) -> np.ndarray:
+        return self.direct + self.indirect
+
+
+def render_cube(renderer: ReferenceRenderer, eye: np.ndarray | tuple[float, float, float], res: int,
+                params: ReferenceParams, *, time_value: float = 0.0, indirect: bool = False,
+                direct: bool = True) -> CubeRangeImage:
+    """Render the 6 faces at ``eye``. ``params.indirect_samples`` sets the path-traced part
+    when ``indirect`` (it must then be > 0); the direct part uses the same params with
+    ``indirect_samples = 0``. With ``direct=False`` only depth and object ids are filled
+    (one ray per pixel, no shading): the cheap view used by the decompositions."""
+    if not isinstance(res, int) or not 1 <= res <= 8192:
+        raise InvalidInputError(f"res must be an integer in [1, 8192], got {res!r}")
+    e = np.asarray(eye, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(e)):
+        raise InvalidInputError("eye must be finite")
+    if indirect and params.indirect_samples <= 0:
+        raise InvalidInputError("indirect=True needs params.indirect_samples > 0")
+    t0 = time.perf_counter()
+    d_par = replace(params, indirect_samples=0)
+    direct_img = np.zeros((6, res, res, 3), np.float32)
+    ind_img = np.zeros((6, res, res, 3), np.float32)
+    depth = np.zeros((6, res, res), np.float32)
+    oid = np.full((6, res, res), -1, np.int32)
+    timings = {"direct": 0.0, "indirect": 0.0, "geometry": 0.0}
+    if not direct:
+        dirs = cube_directions(res).reshape(-1, 3)
+        hits = renderer.caster.intersect(np.broadcast_to(e, dirs.shape).copy(), dirs)
+        hit = hits.prim >= 0
+        sc = renderer.scene
+        prim = np.where(hit, hits.prim, 0)
+        depth = np.where(hit, hits.t, 0.0).astype(np.float32).reshape(6, res, res)
+        if sc.n_triangles:
+            oid = np.where(hit, sc.tri_object[prim], -1).astype(np.int32).reshape(6, res, res)
+        timings["geometry"] = time.perf_counter() - t0
+        return CubeRangeImage(e, float(time_value), res, direct_img, ind_img, depth, oid, False, timings)
+    for k in range(6):
+        cam = face_camera(e, k, res)
+        t1 = time.perf_counter()
+        out = renderer.render(cam, d_par)
+        timings["direct"] += time.perf_counter() - t1
+        direct_img[k] = out.radiance
+        depth[k] = out.depth
+        oid[k] = out.object_id
+        if indirect:
+            t1 = time.perf_counter()
+            full = renderer.render(cam, params)
+            timings["indirect"] += time.perf_counter() - t1
+            ind_img[k] = full.radiance - out.radiance
+    timings["total"] = time.perf_counter() - t0
+    return CubeRangeImage(e, float(time_value), res, direct_img, ind_img, depth, oid, indirect, timings)
