@@ -156,8 +156,8 @@ class RenderRequest(FrozenModel):
     """Overrides the scene's camera; None renders the scene's own view."""
     method: RenderMethod = "reference"
     params: ReferenceRenderParams = ReferenceRenderParams()
-    """Reference renderer settings (method ``reference``; the LDC methods use ``area_light_samples``
-    and ``seed`` for the shading of hole pixels filled by ray casting)."""
+    """Reference renderer settings (method ``reference`` only; the LDC methods render from the bake
+    and use its settings)."""
     bake: BakeParams = BakeParams()
     """Which bake of the scene an LDC method renders from (ignored by ``reference``)."""
     missing_bake: MissingBake = "fail"

@@ -19,11 +19,19 @@ from typing import TYPE_CHECKING, Generic, TypeVar
 import numpy as np
 
 if TYPE_CHECKING:
+    from engine.ldc_render import LDCViewRenderer
     from engine.reference import ReferenceRenderer
     from engine.scene import RuntimeScene
     from workers.scene_loader import LoadedScene
 
-__all__ = ["EMBREE_BYTES_PER_TRIANGLE", "CachedRenderer", "LRUBytesCache", "RendererCache", "runtime_scene_bytes"]
+__all__ = [
+    "EMBREE_BYTES_PER_TRIANGLE",
+    "CachedBakeRenderer",
+    "CachedRenderer",
+    "LRUBytesCache",
+    "RendererCache",
+    "runtime_scene_bytes",
+]
 
 V = TypeVar("V")
 
@@ -150,17 +158,44 @@ class CachedRenderer:
     renderer: ReferenceRenderer
 
 
-class RendererCache(LRUBytesCache[CachedRenderer]):
-    """LRU of :class:`CachedRenderer` keyed by scene id, bounded by bytes."""
+@dataclass
+class CachedBakeRenderer:
+    """A loaded scene and an LDC view renderer holding one bake (LDC + LLF) of it."""
+
+    loaded: LoadedScene
+    renderer: LDCViewRenderer
+    bake_key: str
+    plan: dict[str, object]
+
+
+class RendererCache(LRUBytesCache["CachedRenderer | CachedBakeRenderer"]):
+    """LRU of warm renderers, bounded by bytes: reference renderers keyed by scene id, LDC view
+    renderers keyed ``bake:<bake key>`` (a bake's LDC and LLF are the large part of a render
+    worker's memory, so they share the one budget)."""
 
     def get_or_load(self, scene_id: str, load: Callable[[], LoadedScene]) -> tuple[CachedRenderer, bool]:
         """The warm renderer for ``scene_id``, loading the scene with ``load()`` on a miss."""
 
-        def factory() -> tuple[CachedRenderer, int]:
+        def factory() -> tuple[CachedRenderer | CachedBakeRenderer, int]:
             from engine.reference import ReferenceRenderer
 
             loaded = load()
             entry = CachedRenderer(loaded, ReferenceRenderer(loaded.runtime))
             return entry, runtime_scene_bytes(loaded.runtime)
 
-        return self.get_or_create(scene_id, factory)
+        value, hit = self.get_or_create(scene_id, factory)
+        assert isinstance(value, CachedRenderer)
+        return value, hit
+
+    def get_or_load_bake(self, bake_key: str,
+                         load: Callable[[], CachedBakeRenderer]) -> tuple[CachedBakeRenderer, bool]:
+        """The LDC view renderer of bake ``bake_key``, built by ``load()`` on a miss. Its size is the
+        scene's arrays plus the LDC and LLF (``LDCViewRenderer.nbytes`` at load time)."""
+
+        def factory() -> tuple[CachedRenderer | CachedBakeRenderer, int]:
+            entry = load()
+            return entry, runtime_scene_bytes(entry.loaded.runtime) + int(entry.renderer.nbytes)
+
+        value, hit = self.get_or_create(f"bake:{bake_key}", factory)
+        assert isinstance(value, CachedBakeRenderer)
+        return value, hit

@@ -214,9 +214,11 @@ def engine_version() -> str:
 def render_params(req: RenderRequest) -> dict[str, Any]:
     """The artifact parameters of a render: the request without its scene id and without
     ``missing_bake`` (what to do when the bake is missing does not change the image); the bake
-    params only for the methods that read a bake (JSON types)."""
+    params for the methods that read a bake, the reference params for ``reference`` (JSON types)."""
     params = req.model_dump(mode="json", exclude={"scene_id", "missing_bake"})
-    if not method_needs_bake(req.method):
+    if method_needs_bake(req.method):
+        params.pop("params")  # the LDC methods shade with the bake's settings
+    else:
         params.pop("bake")
     return params
 
@@ -379,7 +381,7 @@ def enqueue_render(
         "artifact_key": key,
         "owner": owner,
         "batch_id": batch_id,
-        "progress": {"fraction": 0.0, "stage": "queued", "eta_s": None},
+        "progress": {"fraction": 0.0, "stage": "waiting for the bake" if depends_on else "queued", "eta_s": None},
     }
     job = enqueue_unique(
         redis, "render", RENDER_JOB, payload, render_job_id(key),

@@ -34,11 +34,12 @@ from typing import TYPE_CHECKING, Any
 from pydantic import ValidationError
 from rq import get_current_job
 
+from api_schemas.service import RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from engine.errors import NonFiniteOutputError
 from engine.imageio import write_image
 from engine.reference import ReferenceParams
-from workers.cache import RendererCache
+from workers.cache import CachedBakeRenderer, RendererCache
 from workers.jobs.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
 from workers.queues import cancel_key, engine_version, render_artifact_key, render_params
 from workers.scene_loader import LoadedScene, camera_params, load_scene
@@ -62,6 +63,9 @@ __all__ = [
 EXR = "image/x-exr"
 PNG = "image/png"
 AOV_BLOBS = ("depth.exr", "normal.exr", "object_id.exr", "material_id.exr")
+PROVENANCE_BLOB = "provenance.png"
+"""LDC methods: 8-bit grey PNG whose pixel value IS the provenance code (not a brightness)."""
+PROVENANCE_CODES = {0: "background", 1: "warped", 2: "hole-filled", 3: "gathered", 4: "traced"}
 
 # Share of the job's progress bar per stage (loading and writing are short next to rendering).
 _LOAD_END = 0.05
@@ -199,6 +203,8 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     job = get_current_job()
     progress = ProgressReporter(job)
     progress.report(0.0, "loading scene", force=True)
+    if method_needs_bake(p.request.method):
+        return _render_from_bake(p.request, key, store, progress, t_start)
 
     req = p.request
     t0 = time.perf_counter()
@@ -243,4 +249,118 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
     progress.report(1.0, "done", force=True, check=False)  # committed: too late to cancel
+    return {"artifact_key": key, **result}
+
+
+# ------------------------------------------------------------------------------------ LDC methods
+
+
+class BakeUnavailable(RuntimeError):
+    """The render's bake is missing or failed: the message says which and what to do."""
+
+
+def _provenance_png(tmp: Path, codes: Any) -> bytes:
+    """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding)."""
+    import numpy as np
+    import OpenImageIO as oiio
+
+    arr = np.ascontiguousarray(codes, dtype=np.uint8)
+    path = tmp / PROVENANCE_BLOB
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
+    spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
+    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
+        err = out.geterror()
+        out.close()
+        raise RuntimeError(f"writing {PROVENANCE_BLOB} failed: {err}")
+    out.close()
+    return path.read_bytes()
+
+
+def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
+    from workers.bakes import bake_job_id
+    from workers.queues import fetch_job, job_public
+
+    job = get_current_job()
+    why = ""
+    if job is not None:
+        bake_job = fetch_job(job.connection, bake_job_id(bkey))
+        if bake_job is not None:
+            pub = job_public(bake_job)
+            why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+    return (f"bake {bkey} of scene {req.scene_id} is not available{why}; request it with POST "
+            f"/v1/scenes/{req.scene_id}/bakes and render again")
+
+
+def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> CachedBakeRenderer:
+    from engine.effects import analyze
+    from engine.ldc_render import LDCViewRenderer
+    from workers.bakes import bake_complete
+    from workers.jobs.bake import BakeFailed, load_bake
+
+    if not bake_complete(store, bkey):
+        raise BakeUnavailable(_bake_error(store, req, bkey))
+    loaded = _load(store, req.scene_id)
+    try:
+        ldc, llf, plan = load_bake(store, loaded.runtime, bkey)
+    except BakeFailed as exc:
+        raise BakeUnavailable(str(exc)) from None
+    renderer = LDCViewRenderer(loaded.runtime, ldc, llf, analyze(loaded.runtime),
+                               area_light_samples=req.bake.area_light_samples, seed=req.bake.seed)
+    return CachedBakeRenderer(loaded=loaded, renderer=renderer, bake_key=bkey, plan=plan)
+
+
+def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress: ProgressReporter,
+                      t_start: float) -> dict[str, Any]:
+    """``ldc``, ``ldc+llf``, ``ldc+ibrt:k``: render from the scene's bake (LDC + LLF) with
+    ``engine.ldc_render.LDCViewRenderer``, cached per bake in this worker."""
+    from workers.artifacts import write_artifact
+    from workers.bakes import bake_key
+
+    bkey = bake_key(req.scene_id, req.bake)
+    t0 = time.perf_counter()
+    entry, cache_hit = renderer_cache().get_or_load_bake(bkey, lambda: _load_bake_renderer(store, req, bkey))
+    t_load = time.perf_counter() - t0
+    loaded = entry.loaded
+    camera = camera_params(req.camera) if req.camera is not None else loaded.camera
+    if entry.renderer.llf is None and req.method != "ldc" and entry.renderer.plan.needs_llf:
+        raise BakeUnavailable(f"method {req.method} needs the light field, but bake {bkey} has none "
+                              f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
+    progress.report(_LOAD_END, "render", force=True)
+    out = entry.renderer.render(camera, req.method, progress=progress)
+    progress.report(_RENDER_END, "writing", force=True)
+    t0 = time.perf_counter()
+    meta: dict[str, Any] = {"camera": camera.to_dict(), "scene_id": req.scene_id, "scene_hash": loaded.scene_hash,
+                            "method": req.method, "bake_key": bkey, "engine_version": ENGINE_VERSION,
+                            "artifact_key": key}
+    with tempfile.TemporaryDirectory(prefix="ibr-render-") as tmpdir:
+        tmp = Path(tmpdir)
+        blobs: dict[str, tuple[bytes, str]] = {
+            "radiance.exr": (_image_bytes(tmp, "radiance.exr", out.radiance, meta), EXR),
+            "preview.png": (_image_bytes(tmp, "preview.png", out.radiance, {**meta, "exposure_stops": 0.0}), PNG),
+            "depth.exr": (_image_bytes(tmp, "depth.exr", out.depth, {**meta, "aov": "depth"}), EXR),
+            "normal.exr": (_image_bytes(tmp, "normal.exr", out.normal, {**meta, "aov": "normal"}), EXR),
+            "object_id.exr": (_image_bytes(tmp, "object_id.exr", out.object_id.astype("float32"),
+                                           {**meta, "aov": "object_id"}), EXR),
+            "material_id.exr": (_image_bytes(tmp, "material_id.exr", out.material_id.astype("float32"),
+                                             {**meta, "aov": "material_id"}), EXR),
+            PROVENANCE_BLOB: (_provenance_png(tmp, out.provenance), PNG),
+        }
+    progress.check_canceled()
+    import numpy as np
+
+    prov = np.bincount(np.asarray(out.provenance, dtype=np.int64).ravel(), minlength=5)
+    timings = {**out.timings, "load_bake": t_load, "encode": time.perf_counter() - t0}
+    counts = {**out.counts, "hole_pixels": int(np.count_nonzero(out.hole_mask)),
+              "provenance": {PROVENANCE_CODES[i]: int(prov[i]) for i in range(5)},
+              "bake_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
+    result = _json_safe({"timings": timings, "counts": counts, "plan": out.plan, "bake_key": bkey,
+                         "mesh_reports": loaded.mesh_reports})
+    t0 = time.perf_counter()
+    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result)
+    result["timings"]["store"] = time.perf_counter() - t0
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)
     return {"artifact_key": key, **result}

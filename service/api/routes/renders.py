@@ -6,16 +6,16 @@ import asyncio
 import time
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Body, Query, Response
+from fastapi import APIRouter, Body, HTTPException, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from rq.job import Job
 
 from api_schemas.errors import FieldError
-from api_schemas.service import ArtifactManifest, JobPublic, RenderPublic, RenderRequest
+from api_schemas.service import ArtifactManifest, BakePublic, JobPublic, RenderPublic, RenderRequest, method_needs_bake
 from service.api.deps import MetricsDep, OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from workers.artifacts import get_scene, read_manifest
-from workers.queues import enqueue_render, fetch_job, job_public
+from workers.queues import BakeMissing, enqueue_render, fetch_job, job_public
 from workers.store import NotFound
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
@@ -72,7 +72,7 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels
         200: {"description": "The artifact: cached, or rendered within `wait` seconds (or the job failed)"},
         202: {"model": RenderPublic, "description": "Queued or running; poll the job named by Location",
               "headers": {"Location": {"schema": {"type": "string"}, "description": "The job's URL"}}},
-        **problem_responses(400, 401, 404, 413, 422, 429, 503),
+        **problem_responses(400, 401, 404, 409, 413, 422, 429, 503),
     },
 )
 async def request_render(
@@ -88,7 +88,10 @@ async def request_render(
 ) -> RenderPublic:
     """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job."""
     await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels)
-    key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)
+    try:
+        key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)
+    except BakeMissing as exc:
+        raise HTTPException(409, str(exc)) from None
     if job is None:
         manifest = await run_in_threadpool(read_manifest, store, key)
         if manifest is not None:
@@ -103,16 +106,27 @@ async def request_render(
                 return _answer(key, None, manifest, cached=True)
             raise NotFound(key)
     metrics.render_cache.labels("miss").inc()
+    bake = await run_in_threadpool(_bake_of, req, redis, store)
     public = await _wait_for(job, wait)
     if public.state == "finished":
         manifest = await run_in_threadpool(read_manifest, store, key)
         if manifest is not None:
             return _answer(key, public, manifest, cached=False)
     if public.state in ("failed", "canceled"):
-        return _answer(key, public, None, cached=False)
+        return _answer(key, public, None, cached=False).model_copy(update={"bake": bake})
     response.status_code = 202
     response.headers["Location"] = f"/v1/jobs/{public.id}"
-    return _answer(key, public, None, cached=False)
+    return _answer(key, public, None, cached=False).model_copy(update={"bake": bake})
+
+
+def _bake_of(req: RenderRequest, redis: Any, store: Any) -> BakePublic | None:
+    """The bake an LDC render is waiting for (``missing_bake: "bake"``), None when it is complete."""
+    if not method_needs_bake(req.method):
+        return None
+    from workers.bakes import bake_key, bake_status
+
+    pub = bake_status(redis, store, req.scene_id, bake_key(req.scene_id, req.bake), req.bake)
+    return None if pub.state == "finished" else pub
 
 
 async def _wait_for(job: Job, wait: float) -> JobPublic:

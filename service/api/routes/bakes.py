@@ -1,0 +1,155 @@
+"""``/v1/scenes/{scene_id}/bakes``: request, follow and delete the bakes (LDC + LLF) of a scene.
+
+A bake is content-addressed (scene id + ``BakeParams`` + engine version): requesting one that
+exists answers 200 with ``cached: true`` and no work; otherwise its jobs are queued on the ``bake``
+queue (a plan job, one job per part, a merge job; see ``workers/bakes.py``) and the answer is 202 with
+``Location`` naming the bake, whose ``GET`` shows every part's state and the aggregated progress.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, HTTPException, Path, Response
+from fastapi.concurrency import run_in_threadpool
+
+from api_schemas.errors import FieldError
+from api_schemas.service import BakeList, BakeParams, BakePublic, Sha256
+from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
+from service.api.errors import ValidationProblem, problem_responses
+from workers.artifacts import get_scene
+from workers.bakes import (
+    BAKE_MAX_PART_BYTES,
+    BakeInUse,
+    bake_key,
+    bake_status,
+    delete_bake,
+    enqueue_bake,
+    ldc_upper_bound_bytes,
+    list_bakes,
+    llf_direction_count,
+    read_bake_record,
+)
+from workers.store import NotFound
+
+router = APIRouter(prefix="/v1/scenes", tags=["bakes"])
+
+SceneIdPath = Annotated[Sha256, Path(description="Scene id (sha256 hex)")]
+BakeKeyPath = Annotated[Sha256, Path(description="Bake key (sha256 hex), from the answer to POST .../bakes")]
+
+BAKE_EXAMPLE: dict[str, Any] = {"ldc_resolution": 256, "max_layers": 32, "llf": "auto", "llf_f": 4,
+                                "llf_resolution": 64, "llf_chunk": 16}
+_LLF_SAMPLE_BYTES = 20 + 12
+DEFAULT_BAKE = BakeParams()
+
+
+def _check_size(params: BakeParams, n_lights: int) -> None:
+    """Refuse, before anything is queued, a bake whose parts could need more memory than a worker
+    may allocate (engine-free upper bounds; the plan job checks the exact estimate again)."""
+    errors: list[FieldError] = []
+    ldc = ldc_upper_bound_bytes(params, n_lights)
+    if ldc > BAKE_MAX_PART_BYTES:
+        errors.append(FieldError(
+            field="ldc_resolution",
+            message=f"ldc_resolution {params.ldc_resolution} x max_layers {params.max_layers} needs up to "
+                    f"{ldc / 2**20:.0f} MiB per LDC axis, over this server's limit of "
+                    f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower ldc_resolution or max_layers",
+            type="bake_too_large"))
+    if params.llf != "never":
+        views = min(params.llf_chunk, llf_direction_count(params.llf_f))
+        llf = views * (params.llf_resolution ** 2 * (9 + params.max_layers * _LLF_SAMPLE_BYTES) + 8)
+        if llf > BAKE_MAX_PART_BYTES:
+            errors.append(FieldError(
+                field="llf_chunk",
+                message=f"{views} light-field directions per job at llf_resolution {params.llf_resolution} x "
+                        f"max_layers {params.max_layers} need up to {llf / 2**20:.0f} MiB, over this server's "
+                        f"limit of {BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower llf_chunk or llf_resolution",
+                type="bake_too_large"))
+    if errors:
+        raise ValidationProblem(errors)
+
+
+def _visible_scene(store: Any, scene_id: str, owner: str | None) -> int:
+    """The scene's light count; NotFound (404) when it does not exist or is another key's."""
+    if not scene_visible(store, scene_id, owner):
+        raise NotFound(scene_id)
+    _scene, _, public = get_scene(store, scene_id)
+    return public.n_lights
+
+
+def _request(redis: Any, store: Any, scene_id: str, params: BakeParams, owner: str | None) -> BakePublic:
+    n_lights = _visible_scene(store, scene_id, owner)
+    _check_size(params, n_lights)
+    key, job = enqueue_bake(redis, store, scene_id, params, owner)
+    return bake_status(redis, store, scene_id, key, params, cached=job is None)
+
+
+@router.post(
+    "/{scene_id}/bakes",
+    response_model=BakePublic,
+    responses={
+        200: {"description": "The bake exists already (`cached: true`): nothing is queued"},
+        202: {"model": BakePublic, "description": "Queued (or joined a running bake); follow the bake at Location",
+              "headers": {"Location": {"schema": {"type": "string"}, "description": "The bake's URL"}}},
+        **problem_responses(400, 401, 404, 413, 422, 429, 503),
+    },
+)
+async def request_bake(
+    scene_id: SceneIdPath,
+    response: Response,
+    store: StoreDep,
+    redis: RedisDep,
+    owner: OwnerDep,
+    params: Annotated[BakeParams, Body(openapi_examples={"default": {"summary": "A bake with the defaults",
+                                                                     "value": BAKE_EXAMPLE}})] = DEFAULT_BAKE,
+) -> BakePublic:
+    """Bake a scene's layered depth cube (and light field when its materials need one)."""
+    pub = await run_in_threadpool(_request, redis, store, scene_id, params, owner)
+    if not pub.cached:
+        response.status_code = 202
+        response.headers["Location"] = f"/v1/scenes/{scene_id}/bakes/{pub.key}"
+    return pub
+
+
+@router.get("/{scene_id}/bakes", response_model=BakeList, responses=problem_responses(401, 404, 422, 429, 503))
+def list_scene_bakes(scene_id: SceneIdPath, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> BakeList:
+    """Every bake requested for this scene (and not deleted), oldest first, with its state."""
+    _visible_scene(store, scene_id, owner)
+    return BakeList(items=[bake_status(redis, store, scene_id, key, params)
+                           for key, params in list_bakes(store, scene_id)])
+
+
+def _params_of(store: Any, scene_id: str, key: str) -> BakeParams:
+    doc = read_bake_record(store, scene_id, key)
+    if doc is None:
+        raise HTTPException(404, f"scene {scene_id} has no bake {key}")
+    params = BakeParams.model_validate(doc["params"])
+    if bake_key(scene_id, params) != key:  # a record from another engine version
+        raise HTTPException(404, f"bake {key} was made by another engine version; request it again")
+    return params
+
+
+@router.get("/{scene_id}/bakes/{bake_key}", response_model=BakePublic,
+            responses=problem_responses(401, 404, 422, 429, 503))
+def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, redis: RedisDep,
+              owner: OwnerDep) -> BakePublic:
+    """A bake: state, plan, every part (LDC axis, LLF chunk) with its state, and the aggregated progress."""
+    _visible_scene(store, scene_id, owner)
+    return bake_status(redis, store, scene_id, bake_key, _params_of(store, scene_id, bake_key))
+
+
+@router.delete("/{scene_id}/bakes/{bake_key}", status_code=204, response_class=Response,
+               responses=problem_responses(401, 404, 409, 422, 429, 503))
+def remove_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, redis: RedisDep,
+                owner: OwnerDep) -> Response:
+    """Delete a bake: its manifest and every part (409 while one of its jobs is queued or running)."""
+    _visible_scene(store, scene_id, owner)
+    params = _params_of(store, scene_id, bake_key)
+    try:
+        delete_bake(redis, store, scene_id, bake_key, params)
+    except BakeInUse as exc:
+        raise HTTPException(409, str(exc)) from None
+    return Response(status_code=204)
+
+
+__all__ = ["router"]
