@@ -60,6 +60,8 @@ from .ldc import LDC
 
 DEFAULT_MARGIN = 0.5
 DEFAULT_MIN_COS = 0.5
+DEFAULT_SELF_EPS = 0.25
+SELF_PIXELS = 2.0
 MAX_TREE_LEVELS = 24
 _STACK = 4 * MAX_TREE_LEVELS + 8
 _CHUNK = 32
@@ -316,13 +318,12 @@ def build_accel(ldc: LDC, *, margin: float = DEFAULT_MARGIN, min_cos: float = DE
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _slab(x0, x1, o, d, t0, t1):
-    """Clip [t0, t1] to the parameter range where o + t d lies in [x0, x1]."""
+def _slab(x0, x1, o, d, inv, t0, t1):
+    """Clip [t0, t1] to the parameter range where o + t d lies in [x0, x1] (inv = 1 / d)."""
     if d == 0.0:
         if o < x0 or o > x1:
             return 1.0, 0.0
         return t0, t1
-    inv = 1.0 / d
     ta = (x0 - o) * inv
     tb = (x1 - o) * inv
     if ta > tb:
@@ -330,10 +331,9 @@ def _slab(x0, x1, o, d, t0, t1):
     return max(t0, ta), min(t1, tb)
 
 
-
-
 @nb.njit(cache=True, nogil=True)
-def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim, min_cos, t_lo, best):
+def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim, min_cos, t_lo, self_eps, sf,
+                best):
     """Test the dilated tangent patches of pixel k's samples from ``layer`` down; best = [t, sample]
     is updated in place. Ray in frame coordinates: u, v in pixels (o + t d), w in world units."""
     s0 = offs[k] + layer
@@ -355,9 +355,14 @@ def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw
         den = (nu_ * du + nv_ * dv) * h + nw * dw
         if den == 0.0:
             continue
-        t = (cu * nu_ + cv * nv_ + (depth[s] - ow) * nw) / den
+        num = cu * nu_ + cv * nv_ + (depth[s] - ow) * nw
+        if abs(num) <= self_eps * h and abs(cu) <= (lim + 1.0) * h and abs(cv) <= (lim + 1.0) * h:
+            continue  # the ray starts on this patch: it is the surface the ray leaves
+        t = num / den
         if not (t > t_lo and t < best[0]):
             continue
+        if t < sf[4] and den * sf[3] > 0.0 and n0 * sf[0] + n1 * sf[1] + n2 * sf[2] > 0.5:
+            continue  # leaving the origin's surface through a neighbouring patch of it
         xu = ou + t * du - (px + 0.5)
         xv = ov + t * dv - (py + 0.5)
         if abs(xu) <= lim and abs(xv) <= lim:
@@ -367,22 +372,49 @@ def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw
 
 
 @nb.njit(cache=True, nogil=True)
-def _trace_axis_tree(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, offs, depth, gn, root, root_level,
-                     lo_n, hi_n, first, mask, link, zr, margin, min_cos, best, stk_i, stk_f, ct0, ct1, cid,
-                     counters):
+def _trace_axis_tree(ou, ov, ow, du, dv, dw, iu, iv, iw, t_lo, fr, h, nu, offs, depth, gn, root, root_level,
+                     lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, sf, best, stk_i, stk_f, ct0, ct1,
+                     cid, counters):
     lim = 0.5 + margin
     size = 1 << root_level
     # clip to the dilated root block and to the axis' depth range
-    t0, t1 = _slab(-margin, size + margin, ou, du, t_lo, best[0])
-    t0, t1 = _slab(-margin, size + margin, ov, dv, t0, t1)
-    t0, t1 = _slab(zr[0], zr[1], ow, dw, t0, t1)
+    t0, t1 = _slab(-margin, size + margin, ou, du, iu, t_lo, best[0])
+    t0, t1 = _slab(-margin, size + margin, ov, dv, iv, t0, t1)
+    t0, t1 = _slab(zr[0], zr[1], ow, dw, iw, t0, t1)
     if not (t0 <= t1):
         return
     eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(zr[0]) + abs(zr[1]))
-    stk_i[0, 0] = root
-    stk_i[0, 1] = root_level
-    stk_i[0, 2] = 0
-    stk_i[0, 3] = 0
+    # start at the deepest node whose block holds every pixel the dilated segment can touch
+    ua = ou + t0 * du
+    ub = ou + t1 * du
+    va = ov + t0 * dv
+    vb = ov + t1 * dv
+    i0 = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
+    i1 = min(size - 1, int(math.floor(max(ua, ub) + margin)))
+    j0 = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
+    j1 = min(size - 1, int(math.floor(max(va, vb) + margin)))
+    if i0 > i1 or j0 > j1:
+        return
+    lev = root_level
+    node = root
+    while lev > 1:
+        sh = lev - 1
+        if (i0 >> sh) != (i1 >> sh) or (j0 >> sh) != (j1 >> sh):
+            break
+        c = ((j0 >> sh) & 1) * 2 + ((i0 >> sh) & 1)
+        m = mask[node]
+        if not (m >> c) & 1:
+            return  # nothing usable in this block, in any layer
+        rank = 0
+        for b in range(c):
+            rank += (m >> b) & 1
+        node = first[node] + rank
+        lev -= 1
+        counters[0] += 1
+    stk_i[0, 0] = node
+    stk_i[0, 1] = lev
+    stk_i[0, 2] = (i0 >> lev) << lev
+    stk_i[0, 3] = (j0 >> lev) << lev
     stk_i[0, 4] = 0
     stk_f[0, 0] = t0
     stk_f[0, 1] = t1
@@ -414,26 +446,50 @@ def _trace_axis_tree(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, offs, depth, gn, r
             continue
         half = 1 << (lev - 1)
         m = mask[node]
+        # parameter ranges of the low / high half along u and v (dilated), then the children
+        xm = x0 + half
+        ym = y0 + half
+        ul0, ul1 = _slab(x0 - margin, xm + margin, ou, du, iu, t0, t1)
+        uh0, uh1 = _slab(xm - margin, xm + half + margin, ou, du, iu, t0, t1)
+        vl0, vl1 = _slab(y0 - margin, ym + margin, ov, dv, iv, t0, t1)
+        vh0, vh1 = _slab(ym - margin, ym + half + margin, ov, dv, iv, t0, t1)
+        nx = 0 if du >= 0.0 else 1
+        ny = 0 if dv >= 0.0 else 1
         nc = 0
-        for c in range(4):
+        for q in range(4):
+            # near corner, the two side children, far corner (side ones fixed up below)
+            if q == 0:
+                c = ny * 2 + nx
+            elif q == 1:
+                c = ny * 2 + (1 - nx)
+            elif q == 2:
+                c = (1 - ny) * 2 + nx
+            else:
+                c = (1 - ny) * 2 + (1 - nx)
             if not (m >> c) & 1:
                 continue
-            cx = x0 + (c & 1) * half
-            cy = y0 + (c >> 1) * half
-            a0, a1 = _slab(cx - margin, cx + half + margin, ou, du, t0, t1)
-            a0, a1 = _slab(cy - margin, cy + half + margin, ov, dv, a0, a1)
+            if c & 1:
+                a0, a1 = uh0, uh1
+            else:
+                a0, a1 = ul0, ul1
+            if c >> 1:
+                a0 = max(a0, vh0)
+                a1 = min(a1, vh1)
+            else:
+                a0 = max(a0, vl0)
+                a1 = min(a1, vl1)
             if not (a0 <= a1):
                 continue
-            j = nc  # insertion sort by entry parameter
-            while j > 0 and ct0[j - 1] > a0:
-                ct0[j] = ct0[j - 1]
-                ct1[j] = ct1[j - 1]
-                cid[j] = cid[j - 1]
-                j -= 1
-            ct0[j] = a0
-            ct1[j] = a1
-            cid[j] = c
+            ct0[nc] = a0
+            ct1[nc] = a1
+            cid[nc] = c
             nc += 1
+        # only the side children can be out of order (and only with each other)
+        for j in range(1, nc):
+            if ct0[j - 1] > ct0[j]:
+                ct0[j - 1], ct0[j] = ct0[j], ct0[j - 1]
+                ct1[j - 1], ct1[j] = ct1[j], ct1[j - 1]
+                cid[j - 1], cid[j] = cid[j], cid[j - 1]
         if lev == 1:
             for j in range(nc):
                 if ct0[j] >= best[0]:
@@ -443,7 +499,7 @@ def _trace_axis_tree(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, offs, depth, gn, r
                 py = y0 + (c >> 1)
                 counters[0] += 1
                 counters[1] += _test_pixel(py * nu + px, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv,
-                                           dw, lim, min_cos, t_lo, best)
+                                           dw, lim, min_cos, t_lo, self_eps, sf, best)
         else:
             fc = first[node]
             for j in range(nc - 1, -1, -1):  # reversed: the first child the ray enters pops first
@@ -462,14 +518,14 @@ def _trace_axis_tree(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, offs, depth, gn, r
 
 
 @nb.njit(cache=True, nogil=True)
-def _trace_axis_linear(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, nv, offs, depth, gn, zr, margin, min_cos, best,
-                       counters):
+def _trace_axis_linear(ou, ov, ow, du, dv, dw, iu, iv, iw, t_lo, fr, h, nu, nv, offs, depth, gn, zr, margin,
+                       min_cos, self_eps, sf, best, counters):
     """No acceleration: every pixel whose dilated square the projected ray crosses, row by row
     in the ray's v order and within a row in its u order, all layers."""
     lim = 0.5 + margin
-    t0, t1 = _slab(-margin, nu + margin, ou, du, t_lo, best[0])
-    t0, t1 = _slab(-margin, nv + margin, ov, dv, t0, t1)
-    t0, t1 = _slab(zr[0], zr[1], ow, dw, t0, t1)
+    t0, t1 = _slab(-margin, nu + margin, ou, du, iu, t_lo, best[0])
+    t0, t1 = _slab(-margin, nv + margin, ov, dv, iv, t0, t1)
+    t0, t1 = _slab(zr[0], zr[1], ow, dw, iw, t0, t1)
     if not (t0 <= t1):
         return
     va = ov + t0 * dv
@@ -479,7 +535,7 @@ def _trace_axis_linear(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, nv, offs, depth,
     nrow = jhi - jlo + 1
     for jj in range(nrow):
         j = jlo + jj if dv >= 0.0 else jhi - jj
-        r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, t0, min(t1, best[0]))
+        r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, iv, t0, min(t1, best[0]))
         if not (r0 <= r1):
             continue
         ua = ou + r0 * du
@@ -490,12 +546,13 @@ def _trace_axis_linear(ou, ov, ow, du, dv, dw, t_lo, fr, h, nu, nv, offs, depth,
             i = ilo + ii if du >= 0.0 else ihi - ii
             counters[0] += 1
             counters[1] += _test_pixel(j * nu + i, i, j, 0, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim,
-                                       min_cos, t_lo, best)
+                                       min_cos, t_lo, self_eps, sf, best)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _trace_kernel(o, d, tmin, tmax, frames, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root, root_level,
-                  lo_n, hi_n, first, mask, link, zr, margin, min_cos, out_axis, out_sample, out_t, work):
+                  lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, selfinfo, out_axis, out_sample, out_t,
+                  work):
     n = o.shape[0]
     nchunk = (n + _CHUNK - 1) // _CHUNK
     for ci in nb.prange(nchunk):
@@ -534,16 +591,21 @@ def _trace_kernel(o, d, tmin, tmax, frames, hs, res, offs_t, depth_t, gn_t, use_
                 du = (d[r, 0] * fr[1, 0] + d[r, 1] * fr[1, 1] + d[r, 2] * fr[1, 2]) / h
                 dv = (d[r, 0] * fr[2, 0] + d[r, 1] * fr[2, 1] + d[r, 2] * fr[2, 2]) / h
                 dw = d[r, 0] * fr[3, 0] + d[r, 1] * fr[3, 1] + d[r, 2] * fr[3, 2]
+                iu = 1.0 / du if du != 0.0 else 0.0
+                iv = 1.0 / dv if dv != 0.0 else 0.0
+                iw = 1.0 / dw if dw != 0.0 else 0.0
                 prev = best[0]
                 if use_tree:
                     root = layer_root[a, 0]
                     if root >= 0:
-                        _trace_axis_tree(ou, ov, ow, du, dv, dw, tmin[r], fr, h, res[a, 0], offs_t[a], depth_t[a],
-                                         gn_t[a], root, root_level[a], lo_n, hi_n, first, mask, link, zr[a], margin,
-                                         min_cos, best, stk_i, stk_f, ct0, ct1, cid, counters)
+                        _trace_axis_tree(ou, ov, ow, du, dv, dw, iu, iv, iw, tmin[r], fr, h, res[a, 0], offs_t[a],
+                                         depth_t[a], gn_t[a], root, root_level[a], lo_n, hi_n, first, mask, link,
+                                         zr[a], margin, min_cos, self_eps, selfinfo[r], best, stk_i, stk_f, ct0, ct1,
+                                         cid, counters)
                 else:
-                    _trace_axis_linear(ou, ov, ow, du, dv, dw, tmin[r], fr, h, res[a, 0], res[a, 1], offs_t[a],
-                                       depth_t[a], gn_t[a], zr[a], margin, min_cos, best, counters)
+                    _trace_axis_linear(ou, ov, ow, du, dv, dw, iu, iv, iw, tmin[r], fr, h, res[a, 0], res[a, 1],
+                                       offs_t[a], depth_t[a], gn_t[a], zr[a], margin, min_cos, self_eps,
+                                       selfinfo[r], best, counters)
                 if best[0] < prev:
                     best_axis = a
             if best_axis >= 0:
@@ -589,10 +651,25 @@ def _check(ldc: LDC, accel: IBRTAccel) -> None:
                                 f"this LDC has {ns.tolist()}: rebuild it with build_accel(ldc)")
 
 
-def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, use_tree: bool) -> IBRTHits:
+def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals,
+         use_tree: bool) -> IBRTHits:
     _check(ldc, accel)
+    if not (0.0 <= float(self_eps) < 1.0):
+        raise InvalidInputError(f"self_eps must be in [0, 1) pixels, got {self_eps!r}")
+    self_eps = float(self_eps)
     o, d, tlo, thi = _rays(origins, dirs, t_min, t_max)
     n = o.shape[0]
+    selfinfo = np.zeros((n, 5))
+    if origin_normals is not None:
+        nrm = np.asarray(origin_normals, dtype=np.float64)
+        if nrm.shape != (n, 3) or not np.all(np.isfinite(nrm)):
+            raise InvalidInputError(f"origin_normals must be (n, 3) = {(n, 3)} finite, got {nrm.shape}")
+        ln = np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm = np.where(ln > 0, nrm / np.where(ln > 0, ln, 1.0), 0.0)
+        dn = np.einsum("ij,ij->i", d, nrm)
+        selfinfo[:, :3] = nrm
+        selfinfo[:, 3] = dn
+        selfinfo[:, 4] = SELF_PIXELS * ldc.h / np.maximum(np.abs(dn), 0.2)
     frames, hs, res = _frame_arrays(ldc)
     out_axis = np.empty(n, dtype=np.int8)
     out_sample = np.empty(n, dtype=np.int64)
@@ -610,7 +687,7 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, use_t
         if n:
             _trace_kernel(o, d, tlo, thi, frames, hs, res, offs_t, depth_t, gn_t, use_tree, accel.layer_root,
                           accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link, accel.zrange,
-                          accel.margin, accel.min_cos, out_axis, out_sample, out_t, work)
+                          accel.margin, accel.min_cos, self_eps, selfinfo, out_axis, out_sample, out_t, work)
     finally:
         if threads is not None:
             nb.set_num_threads(prev)
@@ -630,21 +707,23 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, use_t
 
 def trace(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,
           t_min: np.ndarray | float = 0.0, t_max: np.ndarray | float = np.inf,
-          threads: int | None = None) -> IBRTHits:
+          threads: int | None = None, origin_normals: np.ndarray | None = None,
+          self_eps: float = DEFAULT_SELF_EPS) -> IBRTHits:
     """First hit of each ray (origins, dirs (n, 3); dirs are normalised) against the LDC's
     samples, through the quadtrees of ``accel`` (``build_accel(ldc)``). Hits count when
     ``t_min < t < t_max`` (scalars or (n,) arrays). ``threads``: numba threads for this call
     (None: numba's current setting). Parallel over rays, releases the GIL."""
-    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, True)
+    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals, True)
 
 
 def trace_linear(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,
                  t_min: np.ndarray | float = 0.0, t_max: np.ndarray | float = np.inf,
-                 threads: int | None = None) -> IBRTHits:
+                 threads: int | None = None, origin_normals: np.ndarray | None = None,
+                 self_eps: float = DEFAULT_SELF_EPS) -> IBRTHits:
     """Same as ``trace`` without the quadtrees (every crossed pixel, every layer): the
     baseline the acceleration is measured and tested against (uses only the accel's
     parameters and depth ranges)."""
-    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, False)
+    return _run(ldc, accel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals, False)
 
 
 def surface_t_min(ldc: LDC, dirs: np.ndarray, normals: np.ndarray, pixels: float = 1.5) -> np.ndarray:
