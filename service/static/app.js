@@ -2,11 +2,12 @@
 // but this API. See the Help section of index.html for what the controls do.
 
 const KEY_STORAGE = "ibr.apiKey";
-const FALLBACK_METHODS = ["reference"]; // used only when /openapi.json cannot be read
 const DEFAULT_CAMERA = { type: "perspective", eye: [0, 1, 4], look_at: [0, 0.5, 0], up: [0, 1, 0], fov_y_deg: 45 };
 const RENDER_WAIT_S = 0.25; // server-side wait of POST /v1/renders; then the page polls the job
 const JOB_POLL_MS = [50, 250]; // first and longest interval between polls of a running job
 const MIN_REQUEST_GAP_MS = 100; // during a drag, at most one new view request per this interval
+const COMPARE_REST_MS = 400; // the reference view for Compare is asked for once the camera rests this long
+const BAKE_POLL_MS = 300;
 const JOBS_LIST_MS = 1000;
 
 const $ = (id) => document.getElementById(id);
@@ -14,7 +15,13 @@ const params = new URLSearchParams(location.search);
 
 // Instrumentation read by tests and bench/preview_latency.py.
 const perf = { inputAt: null, requests: 0, loads: 0, latencies: [], last: null, scheduled: false };
+const relightPerf = { requests: 0, loads: 0, last: null, scheduled: false, inputAt: null };
+const bakePerf = { state: null, fraction: 0, key: null };
+const comparePerf = { runs: 0, last: null };
 window.__preview = perf;
+window.__relight = relightPerf;
+window.__bake = bakePerf;
+window.__compare = comparePerf;
 
 // ------------------------------------------------------------------ API access and errors
 
@@ -51,6 +58,7 @@ async function api(path, { method = "GET", body, signal, raw = false } = {}) {
       problem = {};
     }
     if (!problem.title) problem.title = res.statusText || "Request failed";
+    if (typeof problem.detail !== "string") problem.detail = problem.detail ? JSON.stringify(problem.detail) : "";
     if (res.status === 401 && !problem.detail) problem.detail = "the API key is missing or not accepted";
     if (res.status === 401) problem.detail = `${problem.detail} — enter a valid API key above`;
     throw new ApiError(res.status, problem);
@@ -78,6 +86,11 @@ function showError(err) {
     }
     parts.push(ul);
   }
+  if (p.hint) {
+    const hint = document.createElement("div");
+    hint.textContent = p.hint;
+    parts.push(hint);
+  }
   box.replaceChildren(...parts);
   box.hidden = false;
 }
@@ -85,9 +98,125 @@ function showError(err) {
 const isAbort = (e) => e && (e.name === "AbortError" || e === ABORTED);
 const ABORTED = new Error("aborted");
 const sleep = (ms, signal) => new Promise((resolve, reject) => {
+  if (signal?.aborted) { reject(ABORTED); return; }
   const t = setTimeout(resolve, ms);
   signal?.addEventListener("abort", () => { clearTimeout(t); reject(ABORTED); }, { once: true });
 });
+
+function cancelJob(jobId) {
+  if (jobId) api(`/v1/jobs/${encodeURIComponent(jobId)}/cancel`, { method: "POST" }).catch(() => {});
+}
+
+// POST a render-like request (renders, relights: the same answer shape), poll its job until the
+// artifact exists. `req.jobId` is set as soon as the job is known so a superseding request can
+// cancel it. Returns {manifest, answer}.
+async function runToArtifact(req, postPath, body, manifestPath, signal, onProgress) {
+  let { data: r } = await api(`${postPath}?wait=${RENDER_WAIT_S}`, { method: "POST", body });
+  if (r.job) req.jobId = r.job.id;
+  if (signal.aborted) throw ABORTED;
+  let manifest = r.artifact;
+  let delay = JOB_POLL_MS[0];
+  while (!manifest) {
+    if (r.status === "failed" || (r.job && (r.job.state === "failed" || r.job.state === "canceled"))) {
+      const job = r.job || {};
+      throw new ApiError(0, { title: "Job failed", detail: job.error || `job ${job.state}` });
+    }
+    if (r.job && onProgress) onProgress(r.job);
+    await sleep(delay, signal);
+    delay = Math.min(JOB_POLL_MS[1], delay * 1.3);
+    const { data: job } = await api(`/v1/jobs/${encodeURIComponent(req.jobId)}`, { signal });
+    if (job.state === "finished") {
+      manifest = (await api(`${manifestPath}/${r.artifact_key}`, { signal })).data;
+      r = { ...r, status: "finished", job };
+    } else {
+      r = { ...r, status: job.state, job };
+    }
+  }
+  return { manifest, answer: r };
+}
+
+async function fetchBlobUrl(path, signal) {
+  const res = await api(path, { signal, raw: true });
+  return URL.createObjectURL(await res.blob());
+}
+
+// Swap an <img>'s blob URL, revoking the old one once the new one shows. Resolves on load.
+function showBlob(img, url, key) {
+  return new Promise((resolve, reject) => {
+    const old = img.dataset.blobUrl;
+    img.onload = () => { if (old && old !== url) URL.revokeObjectURL(old); resolve(); };
+    img.onerror = () => reject(new Error("the image could not be decoded"));
+    img.dataset.blobUrl = url;
+    if (key !== undefined) img.dataset.key = key;
+    img.src = url;
+  });
+}
+
+function fillTable(table, rows) {
+  table.tBodies[0].replaceChildren(...rows.map(([k, v]) => {
+    const tr = document.createElement("tr");
+    const a = document.createElement("td"); a.textContent = k;
+    const b = document.createElement("td"); b.textContent = v;
+    tr.append(a, b);
+    return tr;
+  }));
+}
+
+const fmtMs = (s) => `${(s * 1000).toFixed(1)} ms`;
+const fmtEv = (v) => `${v >= 0 ? "+" : ""}${v.toFixed(1)} EV`;
+
+// ------------------------------------------------------------------ capabilities
+
+let caps = { methods: [{ name: "reference", needs_bake: false, k: [] }], bakes: false, datasets: false,
+  relights: false, walkthroughs: false, compare: false, provenance: {} };
+
+async function loadCapabilities() {
+  try {
+    const res = await fetch("/v1/preview/capabilities");
+    if (res.ok) caps = await res.json();
+  } catch { /* keep the minimal set: the reference renderer only */ }
+  const sel = $("method");
+  sel.replaceChildren(...caps.methods.map((m) => new Option(m.name, m.name)));
+  const ibrt = caps.methods.find((m) => m.k && m.k.length);
+  if (ibrt) {
+    $("ibrt-k").replaceChildren(...ibrt.k.map((k) => new Option(String(k), String(k))));
+    $("ibrt-k").value = String(ibrt.k.includes(1) ? 1 : ibrt.k[0]);
+  }
+  const want = params.get("method");
+  if (want) {
+    const [name, k] = want.split(":");
+    if (caps.methods.some((m) => m.name === name)) sel.value = name;
+    if (k !== undefined) $("ibrt-k").value = k;
+  }
+  $("compare-label").hidden = !caps.compare;
+  $("datasets-panel").hidden = !(caps.datasets && caps.relights);
+  const legend = Object.entries(caps.provenance || {}).map(([code, [name, colour]]) => {
+    const s = document.createElement("span");
+    const sw = document.createElement("i");
+    sw.style.background = colour;
+    s.append(sw, document.createTextNode(` ${name}`));
+    s.dataset.code = code;
+    return s;
+  });
+  $("provenance-legend").replaceChildren(...legend);
+  methodChanged(false);
+}
+
+function currentMethod() {
+  const name = $("method").value;
+  const info = caps.methods.find((m) => m.name === name) || { name, needs_bake: false, k: [] };
+  return { name: info.k && info.k.length ? `${name}:${$("ibrt-k").value}` : name, needsBake: info.needs_bake,
+    hasK: Boolean(info.k && info.k.length) };
+}
+
+function methodChanged(render = true) {
+  const m = currentMethod();
+  $("k-label").hidden = !m.hasK;
+  $("provenance-label").hidden = !m.needsBake;
+  if (!m.needsBake) $("provenance").checked = false;
+  updateProvenanceView();
+  if (render) changed();
+}
 
 // ------------------------------------------------------------------ vector helpers
 
@@ -111,6 +240,7 @@ const view = {
   base: null, // {camera, pivot} the scene started from
   cam: null, // {type, eye, look_at, up, fov_y_deg | ortho_height}
   pivot: null,
+  manifest: null, // the shown render's manifest
 };
 
 function setCamera(base) {
@@ -161,7 +291,7 @@ function zoom(factor) {
 
 // ------------------------------------------------------------------ rendering (latest request wins)
 
-let current = null; // {seq, controller, jobId, body}
+let current = null; // {seq, controller, jobId, bodyText, done, inputAt}
 let seq = 0;
 let scheduled = false;
 let lastStart = -Infinity;
@@ -170,11 +300,18 @@ function viewSize() { return Number($("size").value) || 256; }
 
 function sizeViewport() {
   const px = `${viewSize()}px`;
-  $("viewport").style.width = px;
+  for (const id of ["viewport", "compare-view"]) {
+    $(id).style.width = px;
+  }
   $("viewport").style.height = px;
 }
 
-function requestBody() {
+function bakeParams() {
+  if (bake.params) return bake.params;
+  return { ldc_resolution: Number($("bake-res").value), llf: $("bake-llf").value };
+}
+
+function requestBody(method = currentMethod()) {
   const size = viewSize();
   const cam = { ...view.cam, width: size, height: size };
   const round = (v) => v.map((x) => Math.round(x * 1e6) / 1e6);
@@ -183,7 +320,9 @@ function requestBody() {
   const spp = sppText === "" ? undefined : Number(sppText);
   const p = {};
   if (spp !== undefined) p.spp = Number.isFinite(spp) ? spp : sppText; // let the API judge it
-  return { scene_id: view.scene.id, camera: cam, method: $("method").value, params: p };
+  const body = { scene_id: view.scene.id, camera: cam, method: method.name, params: p };
+  if (method.needsBake) body.bake = bakeParams();
+  return body;
 }
 
 // Called for every camera / control change: coalesces events of one frame into one request.
@@ -202,7 +341,7 @@ function cancelStale(req) {
   if (!req.jobId || req.done || req.canceled) return;
   if (current && current.bodyText === req.bodyText) return; // the same job may serve the new request
   req.canceled = true;
-  api(`/v1/jobs/${encodeURIComponent(req.jobId)}/cancel`, { method: "POST" }).catch(() => {});
+  cancelJob(req.jobId);
 }
 
 function startRender(inputAt) {
@@ -213,15 +352,21 @@ function startRender(inputAt) {
     if (prev.bodyText === bodyText && !prev.done) return; // the same view is already on its way
     prev.controller.abort();
   }
-  const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt };
+  const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt, body };
   current = me;
   if (prev) cancelStale(prev);
+  stopCompare();
   perf.requests += 1;
   render(me, body).catch((err) => {
+    if (me.controller.signal.aborted && me.jobId) cancelStale(me);
     if (isAbort(err) || me !== current) return;
     me.done = true;
     setStatus("");
     $("render-progress").hidden = true;
+    if (err instanceof ApiError && err.status === 409 && body.bake) {
+      err.problem.hint = caps.bakes ? "Press Bake below (or pick a finished bake) before rendering with an LDC method."
+        : "";
+    }
     showError(err);
   });
 }
@@ -236,78 +381,256 @@ function showProgress(job) {
   $("render-stage").textContent = `${job.state}${pr.stage ? ` · ${pr.stage}` : ""} ${Math.round((pr.fraction || 0) * 100)}%${eta}`;
 }
 
+function imagePath(key) {
+  const ev = Number($("exposure").value);
+  return ev === 0 ? `/v1/artifacts/${key}/image.png` : `/v1/preview/artifacts/${key}/image.png?exposure=${ev}`;
+}
+
 async function render(me, body) {
   const { signal } = me.controller;
   const t0 = performance.now();
   setStatus("rendering…");
   // The POST is short (wait <= 0.25 s) and not aborted: its answer names the job, which is
   // canceled when a newer view superseded this one meanwhile.
-  let { data: r } = await api(`/v1/renders?wait=${RENDER_WAIT_S}`, { method: "POST", body });
-  if (r.job) me.jobId = r.job.id;
-  if (signal.aborted) {
-    if (r.status === "queued" || r.status === "running") cancelStale(me);
-    throw ABORTED;
-  }
-  let manifest = r.artifact;
-  let delay = JOB_POLL_MS[0];
-  while (!manifest) {
-    if (r.status === "failed" || (r.job && (r.job.state === "failed" || r.job.state === "canceled"))) {
-      const job = r.job || {};
-      throw new ApiError(0, { title: "Render failed", detail: job.error || `job ${job.state}` });
-    }
-    if (r.job) showProgress(r.job);
-    await sleep(delay, signal);
-    delay = Math.min(JOB_POLL_MS[1], delay * 1.3);
-    const { data: job } = await api(`/v1/jobs/${encodeURIComponent(me.jobId)}`, { signal });
-    if (job.state === "finished") {
-      manifest = (await api(`/v1/artifacts/${r.artifact_key}`, { signal })).data;
-      r = { ...r, status: "finished", job };
-    } else {
-      r = { ...r, status: job.state, job };
-    }
-  }
-  const res = await api(`/v1/artifacts/${manifest.key}/image.png`, { signal, raw: true });
-  const blob = await res.blob();
-  if (me !== current) return; // a newer request owns the view
-  const url = URL.createObjectURL(blob);
-  const img = $("view");
-  const old = img.dataset.blobUrl;
-  img.onload = () => {
-    if (old) URL.revokeObjectURL(old);
-    if (me !== current) return;
-    const now = performance.now();
-    perf.loads += 1;
-    const timings = { ...((manifest.result && manifest.result.timings) || {}),
-      ...((r.job && r.job.result && r.job.result.timings) || {}) };
-    perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status,
-      timings };
-    perf.latencies.push(now - me.inputAt);
-    setStatus("");
-  };
-  img.dataset.blobUrl = url;
-  img.dataset.key = manifest.key;
-  img.src = url;
+  const { manifest, answer: r } = await runToArtifact(me, "/v1/renders", body, "/v1/artifacts", signal, showProgress);
+  const url = await fetchBlobUrl(imagePath(manifest.key), signal);
+  if (me !== current) { URL.revokeObjectURL(url); return; } // a newer request owns the view
   me.done = true;
+  view.manifest = manifest;
   $("render-progress").hidden = true;
   showError(null);
   showTimings(manifest, r.job, r.status, performance.now() - t0);
+  await showBlob($("view"), url, manifest.key);
+  if (me !== current) return;
+  const now = performance.now();
+  perf.loads += 1;
+  const timings = { ...((manifest.result && manifest.result.timings) || {}),
+    ...((r.job && r.job.result && r.job.result.timings) || {}) };
+  perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status,
+    method: body.method, timings, counts: (manifest.result && manifest.result.counts) || {} };
+  perf.latencies.push(now - me.inputAt);
+  setStatus("");
+  updateProvenanceView();
+  scheduleCompare(me);
 }
 
 function showTimings(manifest, job, status, clientMs) {
   // the job's result adds the stages after the manifest was written (store, job_total)
   const timings = { ...((manifest.result && manifest.result.timings) || {}),
     ...((status !== "cached" && job && job.result && job.result.timings) || {}) };
-  const rows = Object.entries(timings)
-    .filter(([, v]) => typeof v === "number")
-    .map(([k, v]) => [k, `${(v * 1000).toFixed(1)} ms`]);
+  const rows = Object.entries(timings).filter(([, v]) => typeof v === "number").map(([k, v]) => [k, fmtMs(v)]);
   rows.push([status === "cached" ? "round trip (cached)" : "round trip (page)", `${clientMs.toFixed(0)} ms`]);
-  $("timings").tBodies[0].replaceChildren(...rows.map(([k, v]) => {
-    const tr = document.createElement("tr");
-    const a = document.createElement("td"); a.textContent = k;
-    const b = document.createElement("td"); b.textContent = v;
-    tr.append(a, b);
-    return tr;
+  fillTable($("timings"), rows);
+  const counts = (manifest.result && manifest.result.counts) || {};
+  const crows = [];
+  if (typeof counts.hole_pixels === "number") crows.push(["holes", String(counts.hole_pixels)]);
+  if (counts.provenance && typeof counts.provenance === "object") {
+    for (const [k, v] of Object.entries(counts.provenance)) crows.push([k, String(v)]);
+  }
+  if (manifest.result && manifest.result.bake_key) crows.push(["bake", manifest.result.bake_key.slice(0, 12)]);
+  fillTable($("counts"), crows);
+}
+
+// Exposure changes only re-encode the shown artifact: no new render.
+async function reexpose() {
+  if (!view.manifest) return;
+  const key = view.manifest.key;
+  try {
+    const url = await fetchBlobUrl(imagePath(key), undefined);
+    if (!view.manifest || view.manifest.key !== key) { URL.revokeObjectURL(url); return; }
+    await showBlob($("view"), url, key);
+    showError(null);
+  } catch (err) { showError(err); }
+}
+
+// ------------------------------------------------------------------ provenance
+
+let provenanceKey = null;
+
+async function updateProvenanceView() {
+  const on = $("provenance").checked && !$("provenance-label").hidden;
+  $("provenance-legend").hidden = !on;
+  const img = $("provenance-img");
+  const m = view.manifest;
+  const has = m && m.blobs.some((b) => b.name === "provenance.png");
+  if (!on || !has) { img.hidden = true; return; }
+  img.hidden = false;
+  if (provenanceKey === m.key) return;
+  provenanceKey = m.key;
+  try {
+    const url = await fetchBlobUrl(`/v1/preview/artifacts/${m.key}/provenance.png`);
+    if (provenanceKey !== m.key) { URL.revokeObjectURL(url); return; }
+    await showBlob(img, url, m.key);
+  } catch (err) { provenanceKey = null; showError(err); }
+}
+
+// ------------------------------------------------------------------ compare with the reference renderer
+
+let cmp = null; // {controller, jobId, done}
+let cmpTimer = null;
+
+function stopCompare() {
+  clearTimeout(cmpTimer);
+  cmpTimer = null;
+  if (cmp) {
+    cmp.controller.abort();
+    if (cmp.jobId && !cmp.done) cancelJob(cmp.jobId);
+    cmp = null;
+  }
+}
+
+function scheduleCompare(me) {
+  stopCompare();
+  const mode = $("compare").value;
+  $("compare-view").hidden = mode === "off";
+  if (mode === "off") return;
+  $("lrms").textContent = "";
+  $("compare-caption").textContent = "reference: waiting for the camera to rest…";
+  cmpTimer = setTimeout(() => { cmpTimer = null; runCompare(me).catch(() => {}); }, COMPARE_REST_MS);
+}
+
+async function runCompare(me) {
+  if (me !== current || !view.manifest) return;
+  const mode = $("compare").value;
+  const c = { controller: new AbortController(), jobId: null, done: false };
+  cmp = c;
+  const { signal } = c.controller;
+  const testKey = view.manifest.key;
+  const refBody = requestBody({ name: "reference", needsBake: false });
+  $("compare-caption").textContent = "reference: rendering…";
+  try {
+    const { manifest: ref } = await runToArtifact(c, "/v1/renders", refBody, "/v1/artifacts", signal, (job) => {
+      $("compare-caption").textContent = `reference: ${job.state} ${Math.round((job.progress?.fraction || 0) * 100)}%`;
+    });
+    c.done = true;
+    const q = `test=${testKey}&ref=${ref.key}`;
+    const { data: result } = await api(`/v1/preview/compare?${q}`, { signal });
+    const url = await fetchBlobUrl(mode === "diff" ? `/v1/preview/compare/heatmap.png?${q}` : imagePath(ref.key),
+      signal);
+    if (cmp !== c) { URL.revokeObjectURL(url); return; }
+    await showBlob($("compare-img"), url, ref.key);
+    $("compare-caption").textContent = mode === "diff" ? "difference vs reference," : "reference,";
+    $("lrms").textContent = result.lrms === null ? "LRMS ∞ (black reference)" : `LRMS ${result.lrms.toFixed(4)}`;
+    $("lrms").title = `${(result.fraction_over_5pct * 100).toFixed(1)} % of pixels off by more than 5 % of the mean `
+      + `reference luminance (${result.n_pixels} pixels)`;
+    comparePerf.runs += 1;
+    comparePerf.last = { ...result, mode, seq: me.seq };
+  } catch (err) {
+    if (isAbort(err) || cmp !== c) return;
+    $("compare-caption").textContent = "reference: failed";
+    showError(err);
+  }
+}
+
+// ------------------------------------------------------------------ bakes
+
+const bake = { params: null, controller: null, key: null };
+
+function bakeLabel(p) {
+  return `LDC ${p.ldc_resolution}, llf ${p.llf}${p.llf !== "never" ? ` f${p.llf_f}` : ""}`;
+}
+
+async function loadBakes() {
+  const list = $("bake-list");
+  if (!caps.bakes || !view.scene) { list.replaceChildren(); return []; }
+  const sceneId = view.scene.id;
+  try {
+    const { data } = await api(`/v1/scenes/${sceneId}/bakes`);
+    if (!view.scene || view.scene.id !== sceneId) return [];
+    list.replaceChildren(...data.items.map((b) => {
+      const li = document.createElement("li");
+      const btn = document.createElement("button");
+      btn.type = "button";
+      btn.textContent = `${bakeLabel(b.params)} — ${b.state}${b.state === "finished" ? "" : ` ${Math.round(b.progress.fraction * 100)}%`}`;
+      btn.title = `bake ${b.key}\nclick to render the LDC methods from this bake`;
+      btn.dataset.key = b.key;
+      btn.dataset.state = b.state;
+      btn.setAttribute("aria-pressed", String(bake.key === b.key));
+      btn.addEventListener("click", () => useBake(b));
+      li.append(btn);
+      return li;
+    }));
+    return data.items;
+  } catch (err) {
+    showError(err);
+    return [];
+  }
+}
+
+function useBake(b) {
+  bake.params = b.params;
+  bake.key = b.key;
+  $("bake-res").value = String(b.params.ldc_resolution);
+  $("bake-llf").value = b.params.llf;
+  for (const btn of $("bake-list").querySelectorAll("button")) btn.setAttribute("aria-pressed", String(btn.dataset.key === b.key));
+  if (b.state !== "finished") followBake(b);
+  if (currentMethod().needsBake) changed();
+}
+
+function showBake(b) {
+  bakePerf.state = b.state;
+  bakePerf.fraction = b.progress.fraction;
+  bakePerf.key = b.key;
+  $("bake-progress").hidden = false;
+  $("bake-bar").value = b.state === "finished" ? 1 : b.progress.fraction;
+  const pct = `${Math.round($("bake-bar").value * 100)}%`;
+  $("bake-stage").textContent = b.state === "finished" ? `done (${pct})${b.cached ? ", already baked" : ""}`
+    : `${b.state} · ${b.progress.stage} ${pct}${b.error ? ` — ${b.error}` : ""}`;
+  $("bake-stage").dataset.state = b.state;
+  $("bake-parts").replaceChildren(...b.parts.map((p) => {
+    const li = document.createElement("li");
+    li.dataset.state = p.state;
+    const bar = document.createElement("progress");
+    bar.max = 1;
+    bar.value = p.state === "finished" ? 1 : p.progress;
+    const label = document.createElement("span");
+    label.textContent = ` ${p.name}: ${p.state}${p.error ? ` — ${p.error}` : ""}`;
+    li.append(bar, label);
+    return li;
   }));
+}
+
+async function startBake() {
+  if (!view.scene) return;
+  bake.params = null; // the controls define the bake
+  const body = bakeParams();
+  $("bake").disabled = true;
+  try {
+    const { data: b } = await api(`/v1/scenes/${view.scene.id}/bakes`, { method: "POST", body });
+    bake.params = b.params;
+    bake.key = b.key;
+    showError(null);
+    await followBake(b);
+  } catch (err) {
+    if (!isAbort(err)) showError(err);
+  } finally {
+    $("bake").disabled = !view.scene;
+  }
+}
+
+async function followBake(b) {
+  bake.controller?.abort();
+  const controller = new AbortController();
+  bake.controller = controller;
+  const sceneId = b.scene_id;
+  showBake(b);
+  loadBakes();
+  try {
+    while (!["finished", "failed", "canceled", "missing"].includes(b.state)) {
+      await sleep(BAKE_POLL_MS, controller.signal);
+      b = (await api(`/v1/scenes/${sceneId}/bakes/${b.key}`, { signal: controller.signal })).data;
+      showBake(b);
+    }
+  } catch (err) {
+    if (isAbort(err)) return;
+    throw err;
+  }
+  if (b.state !== "finished") {
+    showError(new ApiError(0, { title: "Bake failed", detail: b.error || `the bake is ${b.state}` }));
+  } else if (currentMethod().needsBake && view.scene && view.scene.id === sceneId) {
+    changed(); // the view this bake was waited for
+  }
+  loadBakes();
 }
 
 // ------------------------------------------------------------------ scenes
@@ -321,22 +644,31 @@ async function loadSampleCameras() {
   } catch { /* no samples: default camera */ }
 }
 
+function pickList(list, items, label, title, onPick) {
+  list.replaceChildren(...items.map((s) => {
+    const li = document.createElement("li");
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = label(s);
+    b.title = title(s);
+    b.dataset.id = s.id;
+    b.dataset.name = s.name;
+    b.addEventListener("click", () => onPick(s));
+    li.append(b);
+    return li;
+  }));
+}
+
+function markCurrent(id) {
+  for (const b of document.querySelectorAll(".pick-list button")) b.setAttribute("aria-current", String(b.dataset.id === id));
+}
+
 async function loadScenes() {
   try {
     const { data } = await api("/v1/scenes?limit=1000");
-    const list = $("scene-list");
-    list.replaceChildren(...data.items.map((s) => {
-      const li = document.createElement("li");
-      const b = document.createElement("button");
-      b.type = "button";
-      b.textContent = s.name || s.id.slice(0, 12);
-      b.title = `${s.id}\n${s.n_objects} objects, ${s.n_lights} lights`;
-      b.dataset.sceneId = s.id;
-      b.dataset.sceneName = s.name;
-      b.addEventListener("click", () => openScene(s));
-      li.append(b);
-      return li;
-    }));
+    pickList($("scene-list"), data.items, (s) => s.name || s.id.slice(0, 12),
+      (s) => `${s.id}\n${s.n_objects} objects, ${s.n_lights} lights`, openScene);
+    for (const b of $("scene-list").querySelectorAll("button")) b.dataset.sceneId = b.dataset.id;
     $("scene-empty").hidden = data.items.length > 0;
     showError(null);
     return data.items;
@@ -347,51 +679,413 @@ async function loadScenes() {
 }
 
 function openScene(s) {
+  closeDataset();
   view.scene = s;
-  for (const b of $("scene-list").querySelectorAll("button")) {
-    b.setAttribute("aria-current", String(b.dataset.sceneId === s.id));
-  }
+  view.manifest = null;
+  markCurrent(s.id);
+  $("view-panel").hidden = false;
   $("scene-name").textContent = `— ${s.name}`;
   $("reset-camera").disabled = false;
+  $("bake-box").hidden = !caps.bakes;
+  $("bake").disabled = false;
+  $("bake-progress").hidden = true;
+  bake.controller?.abort();
+  bake.params = null;
+  bake.key = null;
   const sample = sampleCameras[s.name];
   setCamera(sample ? { camera: sample.camera, pivot: sample.pivot } : { camera: DEFAULT_CAMERA, pivot: null });
-  changed();
+  if (caps.bakes) {
+    // Render the LDC methods from a finished bake matching the controls, if there is one.
+    loadBakes().then((items) => {
+      const want = bakeParams();
+      const done = items.filter((b) => b.state === "finished");
+      const match = done.find((b) => b.params.ldc_resolution === want.ldc_resolution && b.params.llf === want.llf);
+      if (match && !bake.key && view.scene && view.scene.id === s.id) {
+        bake.params = match.params;
+        bake.key = match.key;
+        loadBakes();
+      }
+      changed();
+    });
+  } else {
+    changed();
+  }
 }
 
-// ------------------------------------------------------------------ methods
+// ------------------------------------------------------------------ datasets and relighting
 
-async function loadMethods() {
-  let methods = FALLBACK_METHODS;
+const DEG = Math.PI / 180;
+const ds = {
+  dataset: null, center: [0, 0, 0], front: [0, 0, 1], up: [0, 1, 0], dist0: 1, int0: 1, distant: false,
+  lights: [], sel: 0, baked: false, dirs: [], controller: null,
+};
+let relightCur = null;
+let relightSeq = 0;
+let relightScheduled = false;
+let relightLastStart = -Infinity;
+
+async function loadDatasets() {
+  if (!(caps.datasets && caps.relights)) return [];
   try {
-    const res = await fetch("/openapi.json");
-    if (res.ok) {
-      const doc = await res.json();
-      const schemas = (doc.components && doc.components.schemas) || {};
-      let m = schemas.RenderRequest && schemas.RenderRequest.properties && schemas.RenderRequest.properties.method;
-      if (m && m.$ref) m = schemas[m.$ref.split("/").pop()];
-      if (m && Array.isArray(m.enum) && m.enum.length) methods = m.enum;
-      else if (m && typeof m.const === "string") methods = [m.const];
+    const { data } = await api("/v1/datasets?limit=1000");
+    pickList($("dataset-list"), data.items, (d) => d.name || d.id.slice(0, 12),
+      (d) => `${d.id}\n${d.n_images} images, ${d.width} x ${d.height}${d.distant ? ", distant lights" : ""}`,
+      openDataset);
+    $("dataset-empty").hidden = data.items.length > 0;
+    return data.items;
+  } catch (err) {
+    showError(err);
+    return [];
+  }
+}
+
+function closeDataset() {
+  ds.controller?.abort();
+  relightCur?.controller.abort();
+  ds.dataset = null;
+  $("relight-panel").hidden = true;
+}
+
+function cameraEye(cam) {
+  if (!cam) return null;
+  if (Array.isArray(cam.eye)) return cam.eye;
+  if (Array.isArray(cam.world_from_camera)) return cam.world_from_camera.slice(0, 3).map((row) => row[3]);
+  return null;
+}
+
+// The widget looks at the sphere from the dataset's camera: azimuth 0 = toward the camera.
+function dirOf(az, el) {
+  const right = norm(cross(ds.up, ds.front));
+  const h = add(scale(ds.front, Math.cos(az * DEG)), scale(right, Math.sin(az * DEG)));
+  return norm(add(scale(h, Math.cos(el * DEG)), scale(ds.up, Math.sin(el * DEG))));
+}
+
+function azElOf(d) {
+  const right = norm(cross(ds.up, ds.front));
+  return [Math.atan2(dot(d, right), dot(d, ds.front)) / DEG, Math.asin(Math.max(-1, Math.min(1, dot(d, ds.up)))) / DEG];
+}
+
+async function openDataset(d) {
+  stopScene();
+  ds.controller?.abort();
+  const controller = new AbortController();
+  ds.controller = controller;
+  ds.dataset = d;
+  ds.baked = false;
+  markCurrent(d.id);
+  $("view-panel").hidden = true;
+  $("relight-panel").hidden = false;
+  $("dataset-name").textContent = `— ${d.name}`;
+  const man = d.manifest;
+  const positions = man.images.map((im) => im.position).filter(Boolean);
+  const directions = man.images.map((im) => im.direction).filter(Boolean);
+  ds.distant = d.distant;
+  ds.center = man.sphere_center || (positions.length ? scale(positions.reduce(add, [0, 0, 0]), 1 / positions.length) : [0, 0, 0]);
+  const eye = cameraEye(man.camera);
+  ds.up = [0, 1, 0];
+  let front = eye ? sub(eye, ds.center) : [0, 0, 1];
+  front = sub(front, scale(ds.up, dot(front, ds.up)));
+  ds.front = len(front) > 1e-9 ? norm(front) : [0, 0, 1];
+  const dists = positions.map((p) => len(sub(p, ds.center))).sort((a, b) => a - b);
+  ds.dist0 = dists.length ? dists[dists.length >> 1] : 1;
+  const ints = man.images.map((im) => (Array.isArray(im.intensity) ? im.intensity[0] : im.intensity)).filter((v) => v > 0);
+  ds.int0 = ints.length ? ints.sort((a, b) => a - b)[ints.length >> 1] : 1;
+  // the dataset's own light directions, drawn on the sphere: the coverage the relighting can use
+  ds.dirs = positions.length ? positions.map((p) => norm(sub(p, ds.center))) : directions.map((v) => norm(scale(v, -1)));
+  $("light-dist-label").hidden = ds.distant;
+  ds.lights = [{ az: 30, el: 30, dist: 0, int: 0 }];
+  ds.sel = 0;
+  syncLightControls();
+  drawSphere();
+  $("relight-status").textContent = "baking the dataset…";
+  try {
+    await bakeDataset(d, controller.signal);
+  } catch (err) {
+    if (!isAbort(err)) { $("relight-status").textContent = ""; showError(err); }
+    return;
+  }
+  ds.baked = true;
+  relightChanged();
+}
+
+async function bakeDataset(d, signal) {
+  const req = { jobId: null };
+  $("dbake-progress").hidden = false;
+  const show = (job) => {
+    const f = job.state === "finished" ? 1 : job.progress?.fraction || 0;
+    $("dbake-bar").value = f;
+    $("dbake-stage").textContent = `dataset bake: ${job.state} ${job.progress?.stage || ""} ${Math.round(f * 100)}%`;
+  };
+  await runToArtifact(req, `/v1/datasets/${d.id}/bake`, {}, "/v1/artifacts", signal, show);
+  $("dbake-bar").value = 1;
+  $("dbake-stage").textContent = "dataset bake: done";
+}
+
+function syncLightControls() {
+  const l = ds.lights[ds.sel];
+  $("light-az").value = String(Math.round(l.az));
+  $("light-el").value = String(Math.round(l.el));
+  $("light-dist").value = String(l.dist);
+  $("light-int").value = String(l.int);
+  $("light-dist-out").textContent = (ds.dist0 * 2 ** l.dist).toPrecision(3);
+  $("light-int-out").textContent = (ds.int0 * 2 ** l.int).toPrecision(3);
+  $("light-list").replaceChildren(...ds.lights.map((li, i) => {
+    const item = document.createElement("li");
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = `light ${i + 1}: ${Math.round(li.az)}°, ${Math.round(li.el)}°`;
+    b.setAttribute("aria-pressed", String(i === ds.sel));
+    b.addEventListener("click", () => { ds.sel = i; syncLightControls(); drawSphere(); });
+    item.append(b);
+    if (ds.lights.length > 1) {
+      const x = document.createElement("button");
+      x.type = "button";
+      x.textContent = "×";
+      x.title = `remove light ${i + 1}`;
+      x.setAttribute("aria-label", `remove light ${i + 1}`);
+      x.addEventListener("click", () => {
+        ds.lights.splice(i, 1);
+        ds.sel = Math.min(ds.sel, ds.lights.length - 1);
+        syncLightControls(); drawSphere(); relightChanged();
+      });
+      item.append(x);
     }
-  } catch { /* keep the fallback */ }
-  $("method").replaceChildren(...methods.map((name) => new Option(name, name)));
+    return item;
+  }));
+}
+
+function drawSphere() {
+  const c = $("light-sphere");
+  const g = c.getContext("2d");
+  const W = c.width, R = W / 2 - 8, cx = W / 2, cy = W / 2;
+  const img = g.createImageData(W, W);
+  const lightDirs = ds.lights.map((l) => dirOf(l.az, l.el));
+  const right = norm(cross(ds.up, ds.front));
+  for (let y = 0; y < W; y++) {
+    for (let x = 0; x < W; x++) {
+      const nx = (x + 0.5 - cx) / R, ny = (cy - y - 0.5) / R;
+      const r2 = nx * nx + ny * ny;
+      const o = 4 * (y * W + x);
+      if (r2 > 1) { img.data[o + 3] = 0; continue; }
+      const n = add(add(scale(right, nx), scale(ds.up, ny)), scale(ds.front, Math.sqrt(1 - r2)));
+      let s = 0.08;
+      for (const d of lightDirs) s += Math.max(0, dot(n, d)) / lightDirs.length;
+      const v = Math.round(255 * Math.min(1, s) ** (1 / 2.2));
+      img.data[o] = v; img.data[o + 1] = v; img.data[o + 2] = Math.min(255, v + 12); img.data[o + 3] = 255;
+    }
+  }
+  g.clearRect(0, 0, W, W);
+  g.putImageData(img, 0, 0);
+  const proj = (d) => [cx + R * dot(d, right), cy - R * dot(d, ds.up), dot(d, ds.front) >= 0];
+  g.fillStyle = "rgba(255,193,7,.55)";
+  for (const d of ds.dirs) {
+    const [x, y, front] = proj(d);
+    if (front) g.fillRect(x - 1, y - 1, 2, 2);
+  }
+  ds.lights.forEach((l, i) => {
+    const [x, y, front] = proj(dirOf(l.az, l.el));
+    g.beginPath();
+    g.arc(x, y, i === ds.sel ? 7 : 5, 0, 2 * Math.PI);
+    g.lineWidth = 2;
+    g.strokeStyle = i === ds.sel ? "#e53935" : "#fb8c00";
+    g.fillStyle = front ? g.strokeStyle : "transparent";
+    g.fill();
+    g.stroke();
+  });
+}
+
+function lightsBody() {
+  return ds.lights.map((l) => {
+    const d = dirOf(l.az, l.el);
+    const v = ds.int0 * 2 ** l.int;
+    const round = (a) => a.map((x) => Math.round(x * 1e6) / 1e6);
+    if (ds.distant) return { type: "directional", direction: round(scale(d, -1)), irradiance: [v, v, v] };
+    return { type: "point", position: round(add(ds.center, scale(d, ds.dist0 * 2 ** l.dist))), intensity: [v, v, v] };
+  });
+}
+
+function relightChanged(inputAt = performance.now()) {
+  if (!ds.dataset || !ds.baked) return;
+  relightPerf.inputAt = inputAt;
+  if (relightScheduled) return;
+  relightScheduled = relightPerf.scheduled = true;
+  const go = () => {
+    relightScheduled = relightPerf.scheduled = false;
+    relightLastStart = performance.now();
+    startRelight(relightPerf.inputAt);
+  };
+  const gap = MIN_REQUEST_GAP_MS - (performance.now() - relightLastStart);
+  if (gap > 0) setTimeout(go, gap); else requestAnimationFrame(go);
+}
+
+function startRelight(inputAt) {
+  const body = { dataset_id: ds.dataset.id, lights: lightsBody(), exposure_stops: Number($("relight-exposure").value) };
+  const bodyText = JSON.stringify(body);
+  const prev = relightCur;
+  if (prev) {
+    if (prev.bodyText === bodyText && !prev.done) return;
+    prev.controller.abort();
+    if (prev.jobId && !prev.done) cancelJob(prev.jobId);
+  }
+  const me = { seq: ++relightSeq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt };
+  relightCur = me;
+  relightPerf.requests += 1;
+  relight(me, body).catch((err) => {
+    if (me.controller.signal.aborted && me.jobId && !me.done) cancelJob(me.jobId);
+    if (isAbort(err) || me !== relightCur) return;
+    me.done = true;
+    $("relight-status").textContent = "";
+    showError(err);
+  });
+}
+
+async function relight(me, body) {
+  const { signal } = me.controller;
+  const t0 = performance.now();
+  $("relight-status").textContent = "relighting…";
+  const { manifest, answer: r } = await runToArtifact(me, "/v1/relights", body, "/v1/relights", signal, (job) => {
+    $("relight-status").textContent = `relighting… ${Math.round((job.progress?.fraction || 0) * 100)}%`;
+  });
+  const url = await fetchBlobUrl(`/v1/relights/${manifest.key}/image.png`, signal);
+  if (me !== relightCur) { URL.revokeObjectURL(url); return; }
+  me.done = true;
+  await showBlob($("relit"), url, manifest.key);
+  if (me !== relightCur) return;
+  const now = performance.now();
+  relightPerf.loads += 1;
+  relightPerf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, status: r.status,
+    counts: manifest.result?.counts || {}, lights: body.lights };
+  $("relight-status").textContent = "";
+  showError(null);
+  const timings = { ...(manifest.result?.timings || {}), ...((r.status !== "cached" && r.job?.result?.timings) || {}) };
+  const rows = Object.entries(timings).filter(([, v]) => typeof v === "number").map(([k, v]) => [k, fmtMs(v)]);
+  rows.push(["round trip (page)", `${(now - t0).toFixed(0)} ms`]);
+  const counts = manifest.result?.counts || {};
+  for (const [k, v] of Object.entries(counts)) if (typeof v === "number") rows.push([k, String(v)]);
+  fillTable($("relight-stats"), rows);
+  updateCoverage();
+}
+
+let coverageKey = null;
+
+async function updateCoverage() {
+  const img = $("coverage-img");
+  const key = $("relit").dataset.key;
+  if (!$("coverage").checked || !key) { img.hidden = true; return; }
+  img.hidden = false;
+  if (coverageKey === key) return;
+  coverageKey = key;
+  try {
+    const url = await fetchBlobUrl(`/v1/relights/${key}/outside.png`);
+    if (coverageKey !== key) { URL.revokeObjectURL(url); return; }
+    await showBlob(img, url, key);
+  } catch (err) { coverageKey = null; showError(err); }
+}
+
+function bindSphere() {
+  const c = $("light-sphere");
+  let dragging = false;
+  const setFrom = (e) => {
+    const r = c.getBoundingClientRect();
+    const R = c.width / 2 - 8;
+    let nx = (e.clientX - r.left - r.width / 2) / R * (c.width / r.width);
+    let ny = (r.top + r.height / 2 - e.clientY) / R * (c.height / r.height);
+    const m = Math.hypot(nx, ny);
+    if (m > 1) { nx /= m; ny /= m; }
+    const z = Math.sqrt(Math.max(0, 1 - nx * nx - ny * ny)) * (e.shiftKey ? -1 : 1);
+    const right = norm(cross(ds.up, ds.front));
+    const d = add(add(scale(right, nx), scale(ds.up, ny)), scale(ds.front, z));
+    const [az, el] = azElOf(norm(d));
+    const l = ds.lights[ds.sel];
+    l.az = az; l.el = el;
+    syncLightControls();
+    drawSphere();
+    relightChanged(performance.now());
+  };
+  c.addEventListener("pointerdown", (e) => {
+    if (!ds.dataset) return;
+    dragging = true;
+    c.setPointerCapture(e.pointerId);
+    c.focus();
+    setFrom(e);
+    e.preventDefault();
+  });
+  c.addEventListener("pointermove", (e) => { if (dragging) setFrom(e); });
+  const end = (e) => { dragging = false; if (c.hasPointerCapture(e.pointerId)) c.releasePointerCapture(e.pointerId); };
+  c.addEventListener("pointerup", end);
+  c.addEventListener("pointercancel", end);
+  c.addEventListener("keydown", (e) => {
+    if (!ds.dataset) return;
+    const l = ds.lights[ds.sel];
+    const steps = { ArrowLeft: [-5, 0], ArrowRight: [5, 0], ArrowUp: [0, 5], ArrowDown: [0, -5] };
+    const s = steps[e.key];
+    if (!s) return;
+    e.preventDefault();
+    l.az = ((l.az + s[0] + 540) % 360) - 180;
+    l.el = Math.max(-90, Math.min(90, l.el + s[1]));
+    syncLightControls();
+    drawSphere();
+    relightChanged(performance.now());
+  });
+  const numeric = (id, field, lo, hi) => $(id).addEventListener("change", () => {
+    const v = Number($(id).value);
+    if (!Number.isFinite(v)) return;
+    ds.lights[ds.sel][field] = Math.max(lo, Math.min(hi, v));
+    syncLightControls(); drawSphere(); relightChanged();
+  });
+  numeric("light-az", "az", -180, 180);
+  numeric("light-el", "el", -90, 90);
+  for (const [id, field] of [["light-dist", "dist"], ["light-int", "int"]]) {
+    $(id).addEventListener("input", () => {
+      ds.lights[ds.sel][field] = Number($(id).value);
+      syncLightControls(); drawSphere(); relightChanged();
+    });
+  }
+  $("relight-exposure").addEventListener("input", () => {
+    $("relight-exposure-out").textContent = fmtEv(Number($("relight-exposure").value));
+    relightChanged();
+  });
+  $("add-light").addEventListener("click", () => {
+    const l = ds.lights[ds.sel];
+    ds.lights.push({ az: ((l.az + 60 + 540) % 360) - 180, el: l.el, dist: l.dist, int: l.int });
+    ds.sel = ds.lights.length - 1;
+    syncLightControls(); drawSphere(); relightChanged();
+  });
+  $("coverage").addEventListener("change", updateCoverage);
+  $("reload-datasets").addEventListener("click", () => loadDatasets());
+}
+
+function stopScene() {
+  current?.controller.abort();
+  if (current && current.jobId && !current.done) cancelJob(current.jobId);
+  stopCompare();
+  view.scene = null;
+  $("view-panel").hidden = true;
 }
 
 // ------------------------------------------------------------------ jobs panel
 
 let jobsBusy = false;
 
+function jobLabel(j) {
+  // "render-<key>", "bake-<key>", "bake-part-<key>", ...: the prefix says what the job is
+  const m = /^(.*?)-?([0-9a-f]{16,})$/.exec(j.id);
+  return m ? `${m[1] || j.kind} ${m[2].slice(0, 8)}` : j.id;
+}
+
 async function pollJobs() {
   if (jobsBusy || document.hidden) return;
   jobsBusy = true;
   const keyUsed = apiKey();
   try {
-    const { data } = await api("/v1/jobs?limit=25");
+    const { data } = await api("/v1/jobs?limit=30");
     $("jobs").tBodies[0].replaceChildren(...data.items.map((j) => {
       const tr = document.createElement("tr");
       tr.dataset.state = j.state;
       tr.dataset.jobId = j.id;
+      tr.dataset.kind = j.kind;
       const id = document.createElement("td");
-      id.textContent = `${j.kind} ${j.id.replace(/^(render|bake)-/, "").slice(0, 8)}`;
+      id.textContent = jobLabel(j);
       id.title = j.id;
       const st = document.createElement("td");
       st.textContent = j.state;
@@ -422,7 +1116,7 @@ function bindViewport() {
   let drag = null;
   vp.addEventListener("contextmenu", (e) => e.preventDefault());
   vp.addEventListener("pointerdown", (e) => {
-    if (!view.cam) return;
+    if (!view.cam || !view.scene) return;
     vp.focus();
     drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey || e.button === 1 };
     vp.setPointerCapture(e.pointerId);
@@ -448,14 +1142,14 @@ function bindViewport() {
   vp.addEventListener("pointerup", end);
   vp.addEventListener("pointercancel", end);
   vp.addEventListener("wheel", (e) => {
-    if (!view.cam) return;
+    if (!view.cam || !view.scene) return;
     e.preventDefault();
     const t = performance.now();
     zoom(Math.exp(Math.max(-1, Math.min(1, e.deltaY * 0.0015))));
     changed(t);
   }, { passive: false });
   vp.addEventListener("keydown", (e) => {
-    if (!view.cam) return;
+    if (!view.cam || !view.scene) return;
     const t = performance.now();
     const step = 0.15, px = 20;
     const keys = {
@@ -475,16 +1169,26 @@ function bindViewport() {
 }
 
 function bindControls() {
-  $("method").addEventListener("change", () => changed());
+  $("method").addEventListener("change", () => methodChanged());
+  $("ibrt-k").addEventListener("change", () => changed());
   $("spp").addEventListener("change", () => changed());
   $("size").addEventListener("change", () => { sizeViewport(); changed(); });
   $("reset-camera").addEventListener("click", () => { if (view.base) { setCamera(view.base); changed(); } });
-  const applyBrightness = () => {
-    const v = Number($("brightness").value);
-    $("view").style.filter = v === 1 ? "" : `brightness(${v})`;
-    $("brightness-out").textContent = `${v.toFixed(2)}x`;
-  };
-  $("brightness").addEventListener("input", applyBrightness);
+  $("exposure").addEventListener("input", () => { $("exposure-out").textContent = fmtEv(Number($("exposure").value)); });
+  $("exposure").addEventListener("change", () => reexpose());
+  $("compare").addEventListener("change", () => {
+    if (current && current.done && view.manifest) scheduleCompare(current);
+    else { stopCompare(); $("compare-view").hidden = $("compare").value === "off"; }
+  });
+  $("provenance").addEventListener("change", () => updateProvenanceView());
+  $("bake").addEventListener("click", () => startBake());
+  for (const id of ["bake-res", "bake-llf"]) {
+    $(id).addEventListener("change", () => {
+      bake.params = null; bake.key = null;
+      for (const b of $("bake-list").querySelectorAll("button")) b.setAttribute("aria-pressed", "false");
+      if (currentMethod().needsBake) changed();
+    });
+  }
   $("reload-scenes").addEventListener("click", () => loadScenes());
   $("api-key").value = apiKey();
   const keyState = () => { $("key-state").textContent = apiKey() ? "key set for this tab" : "no key"; };
@@ -495,6 +1199,7 @@ function bindControls() {
     if (k) sessionStorage.setItem(KEY_STORAGE, k); else sessionStorage.removeItem(KEY_STORAGE);
     keyState();
     await loadScenes();
+    loadDatasets();
     pollJobs();
   });
 }
@@ -508,14 +1213,26 @@ async function main() {
     $("size").value = v;
   }
   if (params.get("spp")) $("spp").value = params.get("spp");
+  if (params.get("ldc")) {
+    const v = String(Number(params.get("ldc")) | 0);
+    if (![...$("bake-res").options].some((o) => o.value === v)) $("bake-res").add(new Option(v, v));
+    $("bake-res").value = v;
+  }
   sizeViewport();
   bindControls();
   bindViewport();
-  const [, , scenes] = await Promise.all([loadMethods(), loadSampleCameras(), loadScenes()]);
+  bindSphere();
+  const [, , scenes] = await Promise.all([loadCapabilities(), loadSampleCameras(), loadScenes()]);
+  const datasets = await loadDatasets();
   const want = params.get("scene");
   if (want) {
     const s = scenes.find((x) => x.name === want || x.id === want);
     if (s) openScene(s);
+  }
+  const wantDs = params.get("dataset");
+  if (wantDs) {
+    const d = datasets.find((x) => x.name === wantDs || x.id === wantDs);
+    if (d) openDataset(d);
   }
   pollJobs();
   setInterval(pollJobs, JOBS_LIST_MS);
