@@ -32,8 +32,12 @@ outside the view) gives the background.
   (equal-area directions, so no area weights). Weights are formed as ``exp(g (ln cos_j -
   ln cos_max))`` (the best direction has weight 1): finite and normalised for any g
   (HARD_CASES 8). A lobe narrower than the LLF can resolve (g above the cone exponent n_c
-  below) is gathered with exponent n_c: it becomes the mirror case. Directions whose weight
-  is below e^-10 of the best are skipped (the lattice window is sized from that angle).
+  below) would be sampled by one or two directions, and the cos_i of those (up to a
+  direction spacing off wr) biases the result; there the estimate factorises instead:
+  ``kg max(0, ns . wr) L_avg`` with L_avg the cos^n_c-weighted average radiance over the
+  directions above the surface (for a lobe narrow against the horizon, (g+2)/(g+1)
+  E_lobe[cos_i] = cos(ns, wr)). Directions whose weight is below e^-10 of the best are
+  skipped (the lattice window is sized from that angle).
 - ideal mirror (``kr``): the ``cone_directions`` (3) LLF directions nearest to wr (the
   smallest cone holding 3 of them), weighted ``cos^n_c`` of their angle to wr, normalised;
   ``n_c = ln 2 / (1 - cos s)`` with s = sqrt(4 pi / n) the typical direction spacing, so a
@@ -80,7 +84,7 @@ def _phong_pow(c, s):
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _highlights(p, ng, ns, wo, mat, bits, ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent, out):
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent, force, out):
     n = p.shape[0]
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
@@ -91,7 +95,7 @@ def _highlights(p, ng, ns, wo, mat, bits, ks, shin, spec_cut, pt_pos, pt_int, di
     for i in nb.prange(n):
         out[i, 0] = out[i, 1] = out[i, 2] = 0.0
         m = mat[i]
-        if not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0:
+        if not force and (not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0):
             continue
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
@@ -143,8 +147,9 @@ def _check_points(p, ng, ns, wo, mat):
 
 
 def highlights(scene: RuntimeScene, p, ng, ns, wo, mat, bits=None, *, area_light_samples: int = 16,
-               seed: int = 0) -> np.ndarray:
-    """Phong highlights (n, 3) float64 toward wo, gated by ``bits`` (n, W) uint64 (see module doc)."""
+               seed: int = 0, force: bool = False) -> np.ndarray:
+    """Phong highlights (n, 3) float64 toward wo, gated by ``bits`` (n, W) uint64 (see module doc).
+    ``force``: evaluate every light for every point even where ks = 0 (adds exact zeros there)."""
     p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
     n = p.shape[0]
     bits = np.zeros((n, 0), np.uint64) if bits is None else np.ascontiguousarray(bits, dtype=np.uint64)
@@ -164,7 +169,8 @@ def highlights(scene: RuntimeScene, p, ng, ns, wo, mat, bits=None, *, area_light
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
     _highlights(p, ng, ns, wo, mat, bits, mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity,
                 lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
-                lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11), scene.center, scene.extent, out)
+                lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11), scene.center, scene.extent,
+                bool(force), out)
     return out
 
 
@@ -258,10 +264,12 @@ def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, with_cos, f, table, dirs, cand, pk_off,
+def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table, dirs, cand, pk_off,
           pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
-    """sum_j w_j cos_i,j L_j / sum_j w_j over the lobe cos^g_eff around d (see module docstring);
-    without ``with_cos`` every direction counts with cos_i = 1. Returns (r, g, b, lookups)."""
+    """Weighted sums over the lobe cos^g_eff around d (see module docstring). mode 0:
+    sum_j w_j cos_i,j L_j / sum_j w_j (cos_i and the horizon test from ng, ns); mode 1: sum w L /
+    sum w over every direction; mode 2: the same over the directions above the surface only.
+    Returns (r, g, b, lookups)."""
     x = GLOSSY_LOG_CUT / g_eff
     if x >= 20.0:
         theta = math.pi
@@ -293,14 +301,20 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, with_cos, f, ta
         if lw < -GLOSSY_LOG_CUT:
             continue
         w = math.exp(lw)
-        sw += w
         cos_i = 1.0
-        if with_cos:
+        if mode == 0:
+            sw += w
             if g0 * e0 + g1 * e1 + g2 * e2 <= 0.0:
                 continue
             cos_i = s0 * e0 + s1 * e1 + s2 * e2
             if cos_i <= 0.0:
                 continue
+        elif mode == 2:
+            if g0 * e0 + g1 * e1 + g2 * e2 <= 0.0 or s0 * e0 + s1 * e1 + s2 * e2 <= 0.0:
+                continue
+            sw += w
+        else:
+            sw += w
         l0, l1, l2 = _lookup(jd, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
         r0 += w * cos_i * l0
         r1 += w * cos_i * l1
@@ -312,7 +326,7 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, with_cos, f, ta
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _gather(p, ng, ns, wo, mat, kr, kg, gexp, do_mirror, do_glossy, n_c, k_dirs, f, table, dirs, pk_off,
+def _gather(p, ng, ns, wo, mat, kr, kg, gexp, do_mirror, do_glossy, force, n_c, k_dirs, f, table, dirs, pk_off,
             pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, out, lookups):
     n = p.shape[0]
     nd = dirs.shape[0]
@@ -333,24 +347,27 @@ def _gather(p, ng, ns, wo, mat, kr, kg, gexp, do_mirror, do_glossy, n_c, k_dirs,
             d0 /= ln
             d1 /= ln
             d2 /= ln
-            if do_mirror and (kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and \
-                    g0 * d0 + g1 * d1 + g2 * d2 > 0.0:
+            if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
+                                        g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
                 l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off,
                                       pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
                 out[i, 0] += kr[m, 0] * l0
                 out[i, 1] += kr[m, 1] * l1
                 out[i, 2] += kr[m, 2] * l2
                 lookups[i] += u
-            if do_glossy and (kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
+            if do_glossy and (force or kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
                 g = gexp[m]
                 if not g >= 0.0:
                     g = 0.0
-                g_eff = min(g, n_c)
-                if g_eff < 1e-6:
-                    g_eff = 1e-6
-                l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, True, f, table, dirs, cand,
-                                      pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
-                k = (g + 2.0) / (g + 1.0)
+                if g <= n_c:  # the LLF resolves the lobe: the reference's estimator over the directions
+                    g_eff = max(g, 1e-6)
+                    l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, 0, f, table, dirs,
+                                          cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                    k = (g + 2.0) / (g + 1.0)
+                else:  # narrower than the LLF resolves: cos-weighted radiance average x E_lobe[cos_i]
+                    l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, n_c, 2, f, table, dirs,
+                                          cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                    k = max(s0 * d0 + s1 * d1 + s2 * d2, 0.0)
                 out[i, 0] += kg[m, 0] * k * l0
                 out[i, 1] += kg[m, 1] * k * l1
                 out[i, 2] += kg[m, 2] * k * l2
@@ -364,9 +381,10 @@ def _llf_args(llf: LLF):
 
 def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mirror: bool = True,
                        glossy: bool = True, cone_directions: int = CONE_DIRECTIONS,
-                       background=None) -> tuple[np.ndarray, int]:
+                       background=None, force: bool = False) -> tuple[np.ndarray, int]:
     """Reflected radiance (n, 3) float64 toward wo by light-field gather (mirror cone and
-    glossy lobe, see module docstring) and the number of LLF lookups made."""
+    glossy lobe, see module docstring) and the number of LLF lookups made. ``force``: gather
+    for every point even where kr / kg are 0 (adds exact zeros there)."""
     p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
     if not (1 <= cone_directions <= 16):
         raise InvalidInputError("cone_directions must be in [1, 16]")
@@ -377,7 +395,7 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
     if n == 0:
         return out, 0
     mt = scene.materials
-    _gather(p, ng, ns, wo, mat, mt.kr, mt.kg, mt.gloss_exponent, mirror, glossy, mirror_cone_exponent(llf),
+    _gather(p, ng, ns, wo, mat, mt.kr, mt.kg, mt.gloss_exponent, mirror, glossy, bool(force), mirror_cone_exponent(llf),
             cone_directions, *_llf_args(llf), bg, out, lookups)
     if not np.all(np.isfinite(out)):
         raise NonFiniteOutputError("light-field gather produced non-finite radiance")
@@ -397,7 +415,7 @@ def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth,
             if exponent > 0.0:
                 # normalised lobe without the cosine: sum w L / sum w
                 r0, r1, r2, _ = _lobe(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, 0.0, 0.0, 0.0, d[i, 0], d[i, 1], d[i, 2],
-                                      exponent, False, f, table, dirs, cand, pk_off, pk_depth, pk_rad, origin, fu,
+                                      exponent, 1, f, table, dirs, cand, pk_off, pk_depth, pk_rad, origin, fu,
                                       fv, fw, fh, res, bg)
             else:
                 r0, r1, r2, _ = _cone(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, d[i, 0], d[i, 1], d[i, 2], n_c, k_dirs,

@@ -90,21 +90,30 @@ def test_glossy_gather_matches_a_naive_sum(env):
     wo = eye - p
     wo /= np.linalg.norm(wo, axis=1, keepdims=True)
     up = np.tile([0.0, 1.0, 0.0], (p.shape[0], 1))
-    out, _ = gather_reflections(sc, llf, p, up, up, wo, m)
-    g = 40.0
     n_c = mirror_cone_exponent(llf)
-    ge = min(g, n_c)
     dirs = llf.directions
-    for i in range(p.shape[0]):
-        wr = 2 * wo[i] @ up[i] * up[i] - wo[i]
-        c = dirs @ wr
-        lw = ge * np.log(np.clip(c, 1e-300, None)) - ge * math.log(c.max())
-        w = np.where((c > 0) & (lw >= -GLOSSY_LOG_CUT), np.exp(lw), 0.0)
-        cos_i = np.clip(dirs[:, 1], 0, None)
-        want = 0.5 * (g + 2) / (g + 1) * (w * cos_i).sum() / w.sum() * C
-        assert np.allclose(out[i], want, rtol=1e-9), i
-        # and close to the reference's expectation kg (g+2)/(g+1) E[cos_i] ~ kg cos(theta_r) (g large)
-        assert abs(out[i, 0] / (0.5 * C[0]) - wr[1] * (g + 2) / (g + 1)) < 0.1
+    above = dirs[:, 1] > 0
+    for g in (3.0, 40.0):  # a lobe the 66 directions resolve (g < n_c = 7.4), and a narrower one
+        gsc = scene([(_inside_out_sphere(2.0), mat("env", kd=(0, 0, 0), emission=tuple(C))),
+                     (quad((-0.5, 0.0, 0.0), 0.8, normal_axis=1), mat("mirror", kd=(0, 0, 0), kr=(0.6, 0.6, 0.6))),
+                     (quad((0.5, 0.0, 0.0), 0.8, normal_axis=1), mat("gloss", kd=(0, 0, 0), kg=(0.5, 0.5, 0.5),
+                                                                    gloss_exponent=g))], [])
+        out, _ = gather_reflections(gsc, llf, p, up, up, wo, m)
+        ge = min(g, n_c)
+        for i in range(p.shape[0]):
+            wr = 2 * wo[i] @ up[i] * up[i] - wo[i]
+            c = dirs @ wr
+            lw = ge * np.log(np.clip(c, 1e-300, None)) - ge * math.log(c.max())
+            w = np.where((c > 0) & (lw >= -GLOSSY_LOG_CUT), np.exp(lw), 0.0)
+            if g <= n_c:
+                cos_i = np.clip(dirs[:, 1], 0, None)
+                want = 0.5 * (g + 2) / (g + 1) * (w * cos_i).sum() / w.sum() * C
+            else:
+                want = 0.5 * max(wr[1], 0.0) * (w * above).sum() / (w * above).sum() * C
+            assert np.allclose(out[i], want, rtol=1e-9), (g, i)
+            # close to the reference's expectation kg (g+2)/(g+1) E[cos_i] ~ kg cos(theta_r) (g large)
+            if g > n_c:
+                assert abs(out[i, 0] / (0.5 * C[0]) - wr[1]) < 1e-6
 
 
 def _naive_lookup(llf, j, p, n, bg):
