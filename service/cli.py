@@ -3,7 +3,9 @@
 Service: ``ibr up`` (everything on one machine), ``ibr api``, ``ibr worker --queue
 bake|render``. Client (talks to the API at ``--api`` / ``IBR_API_URL``, default
 http://127.0.0.1:8000, key from ``IBR_API_KEY``): ``ibr scenes add|list|show|delete``,
-``ibr render`` (request a render, follow it with a progress bar, fetch the image),
+``ibr render`` (request a render, follow it with a progress bar, fetch the image; ``--method
+ldc+llf`` renders from the scene's bake), ``ibr bake`` (bake a scene, ``--wait`` follows its parts),
+``ibr bakes list|show|delete``,
 ``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``. Local, no service:
 ``ibr render-local``, ``ibr validate``, ``ibr schema``, ``ibr samples``.
 
@@ -233,6 +235,8 @@ scenes_app = typer.Typer(help="Scenes stored in the service", no_args_is_help=Tr
 jobs_app = typer.Typer(help="Jobs in the queues", no_args_is_help=True)
 app.add_typer(scenes_app, name="scenes")
 app.add_typer(jobs_app, name="jobs")
+bakes_app = typer.Typer(help="Bakes (LDC + LLF) of stored scenes", no_args_is_help=True)
+app.add_typer(bakes_app, name="bakes")
 
 
 def _fail_code(msg: str, code: int) -> int:
@@ -307,14 +311,21 @@ def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt 
 
 
 def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict[str, Any],
-                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None) -> None:
+                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
+                      method: str = "reference", bake: dict[str, Any] | None = None,
+                      missing_bake: str | None = None) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from api_schemas.service import JobPublic
 
     with _client(api_url, api_key) as c:
-        r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0))
+        r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
+                                   method=method, bake=bake or None,
+                                   missing_bake="bake" if missing_bake == "bake" else None))
         typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
+        if r.bake is not None:
+            typer.echo(f"waiting for bake {r.bake.key} ({r.bake.state}; follow it with "
+                       f"'ibr bake {scene_id} --wait')", err=True)
         if r.artifact is None and not wait:
             if r.job is not None:
                 typer.echo(r.job.id)
@@ -337,7 +348,11 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
             manifest = r.artifact
         if manifest.result.get("timings"):
             t = manifest.result["timings"]
-            typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in t.items()), err=True)
+            typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in t.items()
+                                               if isinstance(v, int | float)), err=True)
+        counts = manifest.result.get("counts") or {}
+        if "hole_pixels" in counts:
+            typer.echo(f"hole pixels: {counts['hole_pixels']}, provenance: {counts.get('provenance')}", err=True)
         if output is not None:
             data = _call(lambda: c.download(manifest.key, "exr" if fmt == "exr" else "png"))
             output.parent.mkdir(parents=True, exist_ok=True)
@@ -353,6 +368,11 @@ def render(
     indirect: Annotated[int | None, typer.Option(help="Indirect paths per pixel")] = None,
     bounces: Annotated[int | None, typer.Option(help="Bounces per indirect path")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed")] = None,
+    method: Annotated[str, typer.Option(help="reference, ldc, ldc+llf or ldc+ibrt:k (k = 0..8)")] = "reference",
+    ldc_resolution: Annotated[int | None, typer.Option(help="LDC methods: the bake's LDC resolution")] = None,
+    llf_f: Annotated[int | None, typer.Option(help="LDC methods: the bake's LLF subdivision f")] = None,
+    bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
+                                               help="LDC methods: bake first when the bake is missing")] = False,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")] = True,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
@@ -362,6 +382,9 @@ def render(
 
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
                                 "seed": seed}.items() if v is not None}
+    bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
+    if method != "reference" and params:
+        _fail("--spp/--indirect/--bounces/--seed apply to --method reference; LDC methods use the bake's settings")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         scene_id = scene
     else:
@@ -371,7 +394,89 @@ def render(
     fmt = "exr" if output is not None and output.suffix.lower() == ".exr" else "png"
     if output is not None and output.suffix.lower() not in (".png", ".exr"):
         _fail(f"{output}: the service delivers .png or .exr")
-    _render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait)
+    _render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
+                      missing_bake="bake" if bake_missing else None)
+
+
+def _scene_id_of(scene: str, api_url: str, api_key: str | None) -> str:
+    """A scene id as given, or the id of a scene file / sample uploaded first."""
+    import re
+
+    if re.fullmatch(r"[0-9a-f]{64}", scene):
+        return scene
+    doc, meshes = _scene_doc(scene)
+    with _client(api_url, api_key) as c:
+        return _call(lambda: c.create_scene(doc, meshes or None)).id
+
+
+@app.command()
+def bake(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
+    ldc_resolution: Annotated[int | None, typer.Option(help="LDC pixels along the scene's longest side")] = None,
+    max_layers: Annotated[int | None, typer.Option(help="Surface crossings kept per LDC pixel")] = None,
+    llf: Annotated[str | None, typer.Option(help="auto (effect analysis decides), always or never")] = None,
+    llf_f: Annotated[int | None, typer.Option(help="LLF directions: 4 f^2 + 2")] = None,
+    llf_resolution: Annotated[int | None, typer.Option(help="LLF view resolution")] = None,
+    llf_chunk: Annotated[int | None, typer.Option(help="LLF directions per bake job")] = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the bake's parts with a progress bar")] = False,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Bake a scene's layered depth cube (+ light field when needed) for the LDC render methods; prints the key."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from api_schemas.service import BakePublic
+    from service.client import ApiError
+
+    params = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
+                                "llf_f": llf_f, "llf_resolution": llf_resolution,
+                                "llf_chunk": llf_chunk}.items() if v is not None}
+    scene_id = _scene_id_of(scene, api_url, api_key)
+    with _client(api_url, api_key) as c:
+        b = _call(lambda: c.bake(scene_id, params))
+        typer.echo(f"bake {b.key} ({'cached' if b.cached else b.state})", err=True)
+        if wait and b.state != "finished":
+            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+                          TimeRemainingColumn(), transient=True) as bar:
+                task = bar.add_task("bake", total=1.0)
+
+                def show(p: BakePublic) -> None:
+                    bar.update(task, completed=p.progress.fraction, description=p.progress.stage or p.state)
+
+                try:
+                    b = _call(lambda: c.wait_bake(b, on_progress=show))
+                except ApiError as exc:
+                    _fail(str(exc), code=4)
+        if b.plan is not None:
+            typer.echo(f"plan: light field {'yes' if b.plan.get('bake_llf') else 'no'} ({b.plan.get('reason')}); "
+                       f"parts: {', '.join(p.name for p in b.parts)}", err=True)
+        if b.artifact is not None and b.artifact.result.get("sizes"):
+            typer.echo(f"sizes: {b.artifact.result['sizes']}", err=True)
+    typer.echo(b.key)
+
+
+@bakes_app.command("list")
+def bakes_list(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """List a scene's bakes with their state and progress."""
+    with _client(api_url, api_key) as c:
+        res = _call(lambda: c.list_bakes(scene_id))
+    for b in res.items:
+        typer.echo(f"{b.key}  {b.state:<9} {b.progress.fraction * 100:5.1f}%  ldc={b.params.ldc_resolution} "
+                   f"llf={'yes' if b.plan and b.plan.get('bake_llf') else 'no'} parts={len(b.parts)}")
+
+
+@bakes_app.command("show")
+def bakes_show(scene_id: str, key: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Show one bake (parts, plan, progress) as JSON."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.get_bake(scene_id, key)).model_dump_json(indent=2))
+
+
+@bakes_app.command("delete")
+def bakes_delete(scene_id: str, key: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Delete a bake and its parts (refused while its jobs run)."""
+    with _client(api_url, api_key) as c:
+        _call(lambda: c.delete_bake(scene_id, key))
 
 
 @app.command()

@@ -6,6 +6,8 @@
         r = c.render(scene.id, params={"spp": 16}, wait=30)    # RenderPublic (cached / finished / queued)
         r = c.wait_render(r, on_progress=print)                # until the artifact exists
         png = c.download(r.artifact_key, "png")
+        b = c.wait_bake(c.bake(scene.id, {"ldc_resolution": 256}))      # BakePublic, finished
+        r = c.render(scene.id, method="ldc+llf", bake={"ldc_resolution": 256}, wait=30)
 
 Errors from the API (problem+json) raise :class:`ApiError` with the status, the
 title/detail and the per-field errors; connection problems raise ``httpx`` errors.
@@ -24,6 +26,8 @@ import httpx
 
 from api_schemas.service import (
     ArtifactManifest,
+    BakeList,
+    BakePublic,
     BatchPublic,
     JobList,
     JobPublic,
@@ -104,13 +108,22 @@ class Client:
 
     # ------------------------------------------------------------------ renders and jobs
     def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str = "reference",
-               params: Mapping[str, Any] | None = None, wait: float = 0.0) -> RenderPublic:
-        """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``."""
+               params: Mapping[str, Any] | None = None, wait: float = 0.0, bake: Mapping[str, Any] | None = None,
+               missing_bake: Literal["fail", "bake"] | None = None) -> RenderPublic:
+        """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``.
+
+        ``method``: ``reference``, ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods render from
+        the bake named by ``bake`` (its params; default params when None). Without that bake the API
+        answers 409 (ApiError), unless ``missing_bake="bake"`` queues the render after the bake."""
         body: dict[str, Any] = {"scene_id": scene_id, "method": method}
         if camera is not None:
             body["camera"] = dict(camera)
         if params:
             body["params"] = dict(params)
+        if bake:
+            body["bake"] = dict(bake)
+        if missing_bake is not None:
+            body["missing_bake"] = missing_bake
         r = self._request("POST", "/v1/renders", json=body, params={"wait": wait} if wait else None)
         return RenderPublic.model_validate(r.json())
 
@@ -150,6 +163,39 @@ class Client:
         if j.state != "finished":
             raise ApiError(500 if j.state == "failed" else 409, f"render job {j.state}", j.error or "")
         return self.artifact(r.artifact_key)
+
+    # ------------------------------------------------------------------ bakes
+    def bake(self, scene_id: str, params: Mapping[str, Any] | None = None) -> BakePublic:
+        """Request a bake of a scene (``BakeParams`` fields); ``cached`` when it exists already."""
+        r = self._request("POST", f"/v1/scenes/{scene_id}/bakes", json=dict(params or {}))
+        return BakePublic.model_validate(r.json())
+
+    def get_bake(self, scene_id: str, key: str) -> BakePublic:
+        return BakePublic.model_validate(self._request("GET", f"/v1/scenes/{scene_id}/bakes/{key}").json())
+
+    def list_bakes(self, scene_id: str) -> BakeList:
+        return BakeList.model_validate(self._request("GET", f"/v1/scenes/{scene_id}/bakes").json())
+
+    def delete_bake(self, scene_id: str, key: str) -> None:
+        self._request("DELETE", f"/v1/scenes/{scene_id}/bakes/{key}")
+
+    def wait_bake(self, b: BakePublic, timeout: float = 3600.0, poll: float = 0.3,
+                  on_progress: Callable[[BakePublic], None] | None = None) -> BakePublic:
+        """Poll a bake until it is finished (returned) or failed / canceled / missing (ApiError)."""
+        deadline = time.monotonic() + timeout
+        delay = poll
+        while True:
+            if on_progress is not None:
+                on_progress(b)
+            if b.state == "finished":
+                return b
+            if b.state in ("failed", "canceled", "missing"):
+                raise ApiError(500 if b.state == "failed" else 409, f"bake {b.state}", b.error or "")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"bake {b.key} still {b.state} after {timeout} s")
+            time.sleep(delay)
+            delay = min(2.0, delay * 1.3)
+            b = self.get_bake(b.scene_id, b.key)
 
     # ------------------------------------------------------------------ artifacts
     def artifact(self, key: str) -> ArtifactManifest:
