@@ -1,0 +1,144 @@
+"""The bake API and the LDC render methods through the HTTP API, with real Redis and real worker
+subprocesses: request a bake (202 + Location), follow its parts to 1.0, get it cached the second
+time, list and delete it; an ``ldc`` render of the baked scene returns an image, a provenance image
+and timings per stage; a render of an unbaked scene is a clear 409 (or waits for the bake when asked);
+bad parameters are 422 naming the field."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from fastapi.testclient import TestClient
+from redis import Redis
+
+from tests.service.api.conftest import small_scene
+
+BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1}
+
+
+def _diffuse_scene() -> dict[str, Any]:
+    return small_scene(camera={"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "fov_y_deg": 40,
+                               "width": 32, "height": 24})
+
+
+def _scene(c: TestClient) -> str:
+    r = c.post("/v1/scenes", json={"scene": _diffuse_scene()})
+    assert r.status_code == 201, r.text
+    sid: str = r.json()["id"]
+    return sid
+
+
+def _poll(c: TestClient, url: str, done: tuple[str, ...], timeout: float = 120.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    body: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        body = c.get(url).json()
+        if body["state"] in done:
+            return body
+        time.sleep(0.1)
+    raise AssertionError(f"{url} not done after {timeout} s: {body.get('state')} {body.get('progress')}")
+
+
+def _fields(r: Any) -> set[str]:
+    return {e["field"] for e in r.json()["errors"]}
+
+
+def test_bad_bake_and_render_params_are_422_naming_the_field(client: TestClient) -> None:
+    sid = _scene(client)
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"ldc_resolution": 2, "llf_f": 99, "llf": "sometimes"})
+    assert r.status_code == 422 and _fields(r) == {"ldc_resolution", "llf_f", "llf"}
+    msgs = {e["field"]: e["message"] for e in r.json()["errors"]}
+    assert "8" in msgs["ldc_resolution"] and "16" in msgs["llf_f"]  # the allowed range is in the message
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"ldc_resolution": 4096, "max_layers": 256})
+    assert r.status_code == 422 and _fields(r) == {"ldc_resolution"} and "MiB" in r.text
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"llf": "always", "llf_resolution": 512, "llf_chunk": 1026,
+                                                     "llf_f": 16, "max_layers": 64})
+    assert r.status_code == 422 and _fields(r) == {"llf_chunk"}
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc+ibrt:9"})
+    assert r.status_code == 422 and _fields(r) == {"method"} and "0..8" in r.text
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": {"max_layers": 0}})
+    assert r.status_code == 422 and _fields(r) == {"bake.max_layers"}
+    assert client.post(f"/v1/scenes/{'0' * 64}/bakes", json=BAKE).status_code == 404
+    assert client.get(f"/v1/scenes/{sid}/bakes/{'1' * 64}").status_code == 404
+
+
+def test_render_without_bake_is_409_naming_the_bake(client: TestClient, redis_conn: Redis) -> None:
+    sid = _scene(client)
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": BAKE})
+    assert r.status_code == 409, r.text
+    assert f"/v1/scenes/{sid}/bakes" in r.json()["detail"] and "missing_bake" in r.json()["detail"]
+    assert r.headers["content-type"].startswith("application/problem+json")
+
+
+def test_bake_then_ldc_render_end_to_end(client: TestClient, worker_process: Any, redis_conn: Redis,
+                                         tmp_path: Path) -> None:
+    sid = _scene(client)
+    bake_worker = worker_process("bake")
+    r = client.post(f"/v1/scenes/{sid}/bakes", json=BAKE)
+    assert r.status_code == 202, r.text
+    url = r.headers["location"]
+    body = r.json()
+    assert url == f"/v1/scenes/{sid}/bakes/{body['key']}" and body["state"] == "queued" and not body["cached"]
+    assert body["job"]["id"] == f"bake-{body['key']}"
+    done = _poll(client, url, ("finished", "failed", "missing"))
+    assert done["state"] == "finished", (done, bake_worker.log())
+    assert done["progress"]["fraction"] == 1.0
+    assert [p["name"] for p in done["parts"]] == ["ldc-axis-0", "ldc-axis-1", "ldc-axis-2"]  # diffuse: no LLF
+    assert done["plan"]["bake_llf"] is False and done["artifact"]["kind"] == "bake"
+    again = client.post(f"/v1/scenes/{sid}/bakes", json=BAKE)
+    assert again.status_code == 200 and again.json()["cached"] and again.json()["key"] == body["key"]
+    listed = client.get(f"/v1/scenes/{sid}/bakes").json()["items"]
+    assert [b["key"] for b in listed] == [body["key"]] and listed[0]["state"] == "finished"
+
+    render_worker = worker_process("render")
+    r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "method": "ldc", "bake": BAKE})
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["status"] == "finished", (out, render_worker.log())
+    manifest = out["artifact"]
+    names = {b["name"] for b in manifest["blobs"]}
+    assert {"radiance.exr", "preview.png", "depth.exr", "normal.exr", "provenance.png"} <= names
+    res = manifest["result"]
+    assert res["bake_key"] == body["key"] and res["plan"]
+    assert {"warp", "holes", "fill", "load_bake", "encode"} <= set(res["timings"]), res["timings"]
+    assert "hole_pixels" in res["counts"] and res["counts"]["width"] == 32
+    prov = res["counts"]["provenance"]
+    assert sum(prov.values()) == 32 * 24 and prov["warped"] > 0
+    png = client.get(f"/v1/artifacts/{out['artifact_key']}/image.png")
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    # the provenance image holds the codes themselves, matching the counts
+    from workers.artifacts import read_blob
+    from workers.store import open_store
+
+    store = open_store(str(client.app.state.store.root))  # type: ignore[attr-defined]
+    path = tmp_path / "provenance.png"
+    path.write_bytes(read_blob(store, out["artifact_key"], "provenance.png"))
+    import OpenImageIO as oiio
+
+    codes = np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.UINT8)).reshape(24, 32)
+    assert int((codes == 1).sum()) == prov["warped"] and int((codes == 0).sum()) == prov["background"]
+    assert set(np.unique(codes).tolist()) <= {0, 1, 2, 3, 4}
+
+    # deleting the bake removes it and its parts; the render artifact stays
+    assert client.delete(url).status_code == 204
+    assert client.get(url).status_code == 404
+    assert client.get(f"/v1/artifacts/{body['key']}").status_code == 404
+    assert client.get(f"/v1/scenes/{sid}/bakes").json()["items"] == []
+
+
+def test_render_with_missing_bake_bake_waits_for_it(client: TestClient, worker_process: Any) -> None:
+    sid = _scene(client)
+    bake = {**BAKE, "seed": 3}
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": bake, "missing_bake": "bake"})
+    assert r.status_code == 202, r.text
+    out = r.json()
+    assert out["bake"] is not None and out["bake"]["state"] == "queued"
+    assert out["job"]["progress"]["stage"] == "waiting for the bake"
+    bake_worker = worker_process("bake")
+    render_worker = worker_process("render")
+    job = _poll(client, r.headers["location"], ("finished", "failed", "canceled"))
+    assert job["state"] == "finished", (job, bake_worker.log(), render_worker.log())
+    assert job["result"]["bake_key"] == out["bake"]["key"]
