@@ -4,9 +4,7 @@ against a live local stack: embedded Redis, real bake and render workers, uvicor
 from __future__ import annotations
 
 import hashlib
-import io
 import os
-import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,88 +12,37 @@ from typing import Any
 
 import numpy as np
 import pytest
-from PIL import Image
-from playwright.sync_api import Browser, Page, expect, sync_playwright
+from playwright.sync_api import Browser, Page, expect
 
 from service.up import Stack, load_samples, start_stack
+from tests.e2e.conftest import SETTLED, element_pixels, free_port, new_page, shot, wait_for_load
 
-CHROMIUM = "/usr/bin/chromium"
-LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-               "--disable-sync", "--no-first-run"]
-ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "preview"
 SIZE = 128
 SCENE = "mirror_box"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def stack() -> Iterator[Stack]:
-    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS") if k in os.environ}
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:  # short path for the unix socket
-        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
-        try:
-            load_samples(st.api_url, log=lambda s: None)
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=LAUNCH_ARGS)
-        try:
-            yield b
-        finally:
-            b.close()
-
-
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser) -> Iterator[Page]:
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
-    pg = ctx.new_page()
-    pg.set_default_timeout(30_000)
-    pg.goto(f"{stack.api_url}/?size={SIZE}&spp=1")
+    ctx, pg = new_page(browser, f"{stack.api_url}/?size={SIZE}&spp=1")
     try:
         yield pg
     finally:
         ctx.close()
 
 
-def shot(page: Page, name: str) -> None:
-    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
-
-
 def image_pixels(page: Page) -> np.ndarray:
-    return np.asarray(Image.open(io.BytesIO(page.locator("#view").screenshot())).convert("RGB"), dtype=np.int16)
+    return element_pixels(page, "#view")
 
 
-def wait_for_load(page: Page, loads_before: int) -> dict[str, Any]:
-    page.wait_for_function(
-        f"window.__preview.loads > {loads_before} && document.querySelector('#view').naturalWidth > 0",
-        timeout=60_000)
-    return page.evaluate("window.__preview.last")  # type: ignore[no-any-return]
-
-
-SETTLED = ("!window.__preview.scheduled && window.__preview.last && "
-           "window.__preview.last.seq === window.__preview.requests")
-"""No view request waiting to start, and the image shown is the latest one asked for."""
-
-
-def test_page_loads_and_lists_sample_scenes(page: Page) -> None:
+def test_page_loads_and_lists_sample_scenes(page: Page, capabilities: dict[str, Any]) -> None:
     assert page.url.endswith(f"/preview/?size={SIZE}&spp=1")  # / redirects to the page
     page.wait_for_selector("body[data-ready=true]")
     names = page.locator("#scene-list button").all_inner_texts()
     assert {"teapot_glossy", "mirror_box", "cornell_box"} <= set(names)
-    # only the methods that exist: today just the reference renderer
-    assert page.locator("#method option").all_inner_texts() == ["reference"]
+    # only the methods that exist, as the API says (never a list of its own)
+    assert page.locator("#method option").all_inner_texts() == [m["name"] for m in capabilities["methods"]]
+    assert "reference" in page.locator("#method option").all_inner_texts()
+    expect(page.locator("#datasets-panel")).to_be_visible(visible=capabilities["datasets"] and capabilities["relights"])
     expect(page.locator("#error")).to_be_hidden()
     shot(page, "01-scene-list")
 
@@ -213,7 +160,7 @@ def auth_stack() -> Iterator[Stack]:
     os.environ["IBR_API_KEYS"] = hashlib.sha256(AUTH_KEY.encode()).hexdigest()
     try:
         with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-            st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+            st = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
             try:
                 load_samples(st.api_url, api_key=AUTH_KEY, log=lambda s: None)
                 yield st

@@ -140,7 +140,7 @@ class Capabilities(FrozenModel):
     provenance: dict[int, tuple[str, str]] = {}
     """Provenance code -> (name, CSS colour) of ``/v1/preview/artifacts/{key}/provenance.png``."""
     paths: list[str] = []
-    """The routed ``/v1`` paths the flags above were read from."""
+    """The ``/v1`` paths of the app's OpenAPI document the flags above were read from."""
 
 
 def _accepted(method: str) -> bool:
@@ -178,9 +178,9 @@ def capabilities_of(paths: list[str]) -> Capabilities:
 
 @router.get("/v1/preview/capabilities", response_model=Capabilities, tags=["preview"])
 def capabilities(request: Request) -> Capabilities:
-    """Render methods the API accepts and the resources it routes (read from the running app)."""
-    paths = sorted({str(getattr(r, "path", "")) for r in request.app.routes
-                    if str(getattr(r, "path", "")).startswith("/v1/")})
+    """Render methods the API accepts and the resources it routes (read from the app's OpenAPI document)."""
+    # the OpenAPI document lists every routed path (app.routes may hold lazily included routers)
+    paths = sorted(p for p in request.app.openapi().get("paths", {}) if p.startswith("/v1/"))
     return capabilities_of(paths)
 
 
