@@ -36,9 +36,10 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from .camera import camera_rays
 from .effects import EffectPlan
@@ -108,7 +109,7 @@ class LDCViewRenderer:
 
     def __init__(self, scene: RuntimeScene, ldc: LDC, llf: LLF | None, plan: EffectPlan, *,
                  caster: RayCaster | None = None, area_light_samples: int = 16, seed: int = 0,
-                 warp_options: dict | None = None):
+                 warp_options: dict | None = None, hole_search_px: int | None = 3):
         if not isinstance(ldc, LDC):
             raise InvalidInputError("LDCViewRenderer needs an LDC")
         if ldc.n_lights != scene.lights.count:
@@ -120,6 +121,9 @@ class LDCViewRenderer:
         self._caster = caster
         self.area_light_samples = int(area_light_samples)
         self.seed = int(seed)
+        if hole_search_px is not None and not (isinstance(hole_search_px, int) and 0 <= hole_search_px <= 64):
+            raise InvalidInputError("hole_search_px must be None or an integer in [0, 64]")
+        self.hole_search_px = hole_search_px
         self.warp_options = dict(warp_options or {})
         bad = set(self.warp_options) - {"min_cos", "max_footprint", "footprint_scale", "hole_rel_depth",
                                          "hole_neighbors"}
@@ -190,6 +194,32 @@ class LDCViewRenderer:
                 bits[sel] = ax.visibility[s, sd]
         return p, ng, ns, mat, obj, diff, bits
 
+    def _hole_rays(self, camera: CameraParams, w) -> np.ndarray:
+        """The hole pixels worth a ray: covered pixels flagged as holes (a far surface seen
+        through a crack), and uncovered pixels within ``hole_search_px`` of a covered one whose
+        ray meets the scene's bounds. An uncovered pixel farther from every splat is background:
+        any LDC sample its ray could meet would have been splatted within about a pixel of it
+        (the image-based ray tracer finds nothing the warp doesn't have). ``None``: every hole."""
+        hm = w.hole_mask
+        if self.hole_search_px is not None:
+            covered = w.sample_axis >= 0
+            r = self.hole_search_px
+            near = maximum_filter(covered.view(np.uint8), size=2 * r + 1, mode="constant") > 0 if r else covered
+            hm = hm & near
+        pix = np.flatnonzero(hm.reshape(-1))
+        if self.hole_search_px is None or not pix.size:
+            return pix
+        o, d = camera_rays(camera, pix % camera.width + 0.5, pix // camera.width + 0.5)
+        lo, hi = self.scene.bounds
+        pad = self.ldc.h
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+            t0 = ((lo - pad) - o) * inv
+            t1 = ((hi + pad) - o) * inv
+        tn = np.nanmax(np.minimum(t0, t1), axis=1)
+        tf = np.nanmin(np.maximum(t0, t1), axis=1)
+        return pix[tf >= np.maximum(tn, 0.0)]
+
     def _wo(self, camera: CameraParams, p: np.ndarray) -> np.ndarray:
         _, _, fwd = camera.basis()
         if camera.kind == "orthographic":
@@ -201,15 +231,39 @@ class LDCViewRenderer:
     # ------------------------------------------------------------------ render
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
                progress: Callable[[float, str], None] | None = None, force_all_passes: bool = False,
-               fill: str = "ibrt") -> LDCRenderResult:
+               fill: str = "ibrt", supersample: int = 1) -> LDCRenderResult:
         """Render ``camera`` with ``method`` ("ldc", "ldc+llf", "ldc+ibrt" (+ ``ibrt_generations``
-        0..8) or "ldc+ibrt:k"); see the module docstring. Raises InvalidInputError for a bad
-        method / fill or when the method needs an LLF the bake doesn't have."""
+        0..8) or "ldc+ibrt:k"); see the module docstring. ``supersample`` s (1..4) renders s x s
+        samples per pixel on a regular grid and box-filters the radiance (antialiasing, s^2 the
+        work); depth, normal, ids and provenance are those of the sample nearest the pixel
+        centre, counts are summed. Raises InvalidInputError for a bad method / fill /
+        supersample or when the method needs an LLF the bake doesn't have."""
         method, k = parse_method(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
+        if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or \
+                not (1 <= supersample <= 4):
+            raise InvalidInputError(f"supersample must be an integer in [1, 4], got {supersample!r}")
         with self._lock:
-            return self._render(camera, method, k, progress, bool(force_all_passes), fill)
+            if supersample == 1:
+                return self._render(camera, method, k, progress, bool(force_all_passes), fill)
+            s = int(supersample)
+            big = replace(camera, width=camera.width * s, height=camera.height * s)
+            r = self._render(big, method, k, progress, bool(force_all_passes), fill)
+            H, W = camera.height, camera.width
+            rad = r.radiance.astype(np.float64).reshape(H, s, W, s, 3).mean(axis=(1, 3)).astype(np.float32)
+            c = s // 2
+
+            def pick(a: np.ndarray) -> np.ndarray:
+                return np.ascontiguousarray(a[c::s, c::s])
+
+            r.plan["supersample"] = s
+            r.counts["supersample"] = s
+            return LDCRenderResult(radiance=rad, depth=pick(r.depth), normal=pick(r.normal),
+                                   object_id=pick(r.object_id), material_id=pick(r.material_id),
+                                   provenance=pick(r.provenance),
+                                   hole_mask=r.hole_mask.reshape(H, s, W, s).any(axis=(1, 3)),
+                                   timings=r.timings, counts=r.counts, plan=r.plan)
 
     def _render(self, camera, method, k, progress, force, fill) -> LDCRenderResult:
         t_start = time.perf_counter()
@@ -243,7 +297,8 @@ class LDCViewRenderer:
 
         # ---- 2. holes
         t0 = time.perf_counter()
-        holes = np.flatnonzero(w.hole_mask.reshape(-1))
+        holes = self._hole_rays(camera, w)
+        counts["hole_rays"] = int(holes.size)
         filled = 0
         rc_pix = np.zeros(0, np.int64)  # pixels filled by the raycast fill (no LDC sample)
         rc_surf = None

@@ -184,8 +184,17 @@ def test_methods_and_bad_input(shiny):
         LDCViewRenderer(sc, ldc, None, plan).render(cam, "ldc+llf")
     res = LDCViewRenderer(sc, ldc, None, plan).render(cam, "ldc")  # highlights need only the LDC
     assert res.counts["highlight_pixels"] > 0
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    ss = r.render(cam, "ldc+llf", supersample=3)
+    big = r.render(CameraParams("perspective", cam.eye, cam.look_at, cam.up, 72, 72, 40.0), "ldc+llf")
+    assert ss.radiance.shape == (24, 24, 3) and ss.object_id.shape == (24, 24)
+    assert np.allclose(ss.radiance, big.radiance.reshape(24, 3, 24, 3, 3).mean(axis=(1, 3)), rtol=1e-6, atol=1e-7)
+    assert np.array_equal(ss.object_id, big.object_id[1::3, 1::3])
+    for bad in (0, 5, 1.5):
+        with pytest.raises(InvalidInputError, match="supersample"):
+            r.render(cam, "ldc", supersample=bad)
     seen = []
-    LDCViewRenderer(sc, ldc, llf, plan).render(cam, "ldc+ibrt:2", progress=lambda f, s: seen.append((f, s)))
+    r.render(cam, "ldc+ibrt:2", progress=lambda f, s: seen.append((f, s)))
     assert [f for f, _ in seen] == sorted(f for f, _ in seen) and seen[-1][0] == 1.0
 
 
