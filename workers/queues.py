@@ -535,8 +535,26 @@ def cancel(redis: Redis, job_id: str) -> JobPublic:
             send_stop_job_command(redis, job_id, serializer=JSONSerializer)
         except (InvalidJobOperation, NoSuchJobError):
             pass  # it just ended
+    if job.meta.get("bake_role") == "merge" and isinstance(job.meta.get("bake_key"), str):
+        _cancel_bake_jobs(redis, str(job.meta["bake_key"]))
     refreshed = fetch_job(redis, job_id)
     return job_public(refreshed if refreshed is not None else job)
+
+
+def _cancel_bake_jobs(redis: Redis, bake_key: str) -> None:
+    """Canceling a bake's own job (``bake-<key>``) also cancels its plan job and its part jobs
+    (part keys derive from the bake key, so no other bake shares them)."""
+    ids = [f"bake-plan-{bake_key}"]
+    plan = fetch_job(redis, ids[0])
+    if plan is not None and plan.get_status(refresh=False) == JobStatus.FINISHED:
+        rv = plan.return_value()
+        if isinstance(rv, dict):
+            ids += [f"bake-part-{p['key']}" for p in rv.get("parts", []) if isinstance(p, dict) and "key" in p]
+    for jid in ids:
+        try:
+            cancel(redis, jid)
+        except (JobNotFound, JobNotCancelable):
+            pass  # never queued, already done
 
 
 # ------------------------------------------------------------------------------------ listing
@@ -614,6 +632,14 @@ def enqueue_batch(
     goes through :func:`enqueue_render` (cache hits and de-duplication included).
     """
     bid = batch_id or uuid.uuid4().hex
+    if store is not None:  # an LDC render without its bake fails the whole batch before anything is queued
+        from workers.bakes import bake_complete, bake_key
+
+        for req in requests:
+            if method_needs_bake(req.method) and req.missing_bake == "fail":
+                bkey = bake_key(req.scene_id, req.bake)
+                if not bake_complete(store, bkey):
+                    raise BakeMissing(req.scene_id, bkey, None)
     members: list[dict[str, str | None]] = []
     for req in requests:
         key, job = enqueue_render(redis, req, owner, batch_id=bid, store=store)

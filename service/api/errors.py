@@ -12,6 +12,7 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 | AuthError | 401 + ``WWW-Authenticate: Bearer`` |
 | workers.store.NotFound, queues.UnknownScene / JobNotFound | 404 (same answer for another key's resource) |
 | workers.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
+| queues.BakeMissing (an LDC render without its bake) | 409, "bake missing", naming the bake to request |
 | BodyTooLarge | 413 |
 | MultipartError | 400 |
 | OverflowError (a validator overflowing on numbers near 1e308) | 422 |
@@ -39,7 +40,7 @@ from api_schemas.errors import FieldError, format_error_details
 from api_schemas.service import Problem, ProblemField
 from service.api.limits import BodyTooLarge, MultipartError
 from service.core.security import AuthError, RateLimited
-from workers.queues import JobNotFound, UnknownScene
+from workers.queues import BakeMissing, JobNotFound, UnknownScene
 from workers.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
 
 __all__ = [
@@ -198,6 +199,10 @@ def install_exception_handlers(app: FastAPI) -> None:
             title="Stored data corrupt",
             type_="urn:ibr:problem:corrupt",
         )
+
+    @app.exception_handler(BakeMissing)
+    async def _bake_missing(request: Request, exc: BakeMissing) -> JSONResponse:
+        return problem_response(409, str(exc), title="Bake missing", type_="urn:ibr:problem:bake-missing")
 
     @app.exception_handler(StoreError)
     async def _store_error(request: Request, exc: StoreError) -> JSONResponse:

@@ -6,7 +6,7 @@ import asyncio
 import time
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Body, HTTPException, Query, Response
+from fastapi import APIRouter, Body, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from rq.job import Job
 
@@ -15,7 +15,7 @@ from api_schemas.service import ArtifactManifest, BakePublic, JobPublic, RenderP
 from service.api.deps import MetricsDep, OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from workers.artifacts import get_scene, read_manifest
-from workers.queues import BakeMissing, enqueue_render, fetch_job, job_public
+from workers.queues import enqueue_render, fetch_job, job_public
 from workers.store import NotFound
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
@@ -88,10 +88,7 @@ async def request_render(
 ) -> RenderPublic:
     """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job."""
     await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels)
-    try:
-        key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)
-    except BakeMissing as exc:
-        raise HTTPException(409, str(exc)) from None
+    key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)  # BakeMissing: 409
     if job is None:
         manifest = await run_in_threadpool(read_manifest, store, key)
         if manifest is not None:

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import pytest
 from redis import Redis
 
 from api_schemas.scene import Scene
@@ -146,3 +147,35 @@ def test_mirror_scene_bakes_light_field_chunks(
     ldc, llf, plan = load_bake(worker_store, loaded.runtime, key)
     assert llf is not None and llf.n_directions == 6 and [v.index for v in llf.views] == list(range(6))
     assert ldc.resolution == params.ldc_resolution and plan["bake_llf"] is True
+
+
+def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    params = BakeParams.model_validate({**SMALL.model_dump(), "llf_f": 1, "llf_resolution": 8, "llf_chunk": 1})
+    pub = put_scene(worker_store, mirror_scene(), {}, None)
+    key, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
+    assert job is not None
+    w = worker_process("bake")
+    deadline = time.monotonic() + 60
+    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+    while not any(p.state == "started" for p in st.parts):
+        assert time.monotonic() < deadline, w.log()
+        time.sleep(0.05)
+        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+    assert len(st.parts) == 9
+    with pytest.raises(bakes.BakeInUse):
+        bakes.delete_bake(redis_conn, worker_store, pub.id, key, params)
+    queues.cancel(redis_conn, job.id)
+    deadline = time.monotonic() + 30
+    while True:
+        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+        if not any(p.state in ("queued", "started") for p in st.parts):
+            break
+        assert time.monotonic() < deadline, (st.parts, w.log())
+        time.sleep(0.1)
+    assert st.state == "canceled"
+    assert sum(p.state == "canceled" for p in st.parts) >= 7  # at most the running one finished first
+    bakes.delete_bake(redis_conn, worker_store, pub.id, key, params)
+    assert worker_store.list("artifacts/") == [] and bakes.list_bakes(worker_store, pub.id) == []
+    assert w.alive()
