@@ -281,13 +281,17 @@ def choose_base_views(space: ViewSpace, probe: GeometryProbe, q: float, *, time_
     leaves: list[tuple[np.ndarray, np.ndarray]] = []
     stack2 = [(lo.astype(np.float64), hi.astype(np.float64))]
     points: dict[tuple[float, float, float], np.ndarray] = {}
+    # every split adds at most 2^(k-1) corners (k = axes with extent): stop before max_views
+    n_corners = 2 ** len(axes)
+    grow = max(1, 2 ** (len(axes) - 1))
     while stack2:
         clo, chi = stack2.pop(0)  # breadth first
         if not cell_alive(clo, chi):
             continue
         size = chi - clo
         k = int(np.argmax(size))
-        if size[k] / 2 >= min_spacing and len(points) + len(stack2) * 2 < max_views and not edges_ok(clo, chi):
+        if size[k] / 2 >= min_spacing and n_corners + grow <= max_views and not edges_ok(clo, chi):
+            n_corners += grow
             mid = 0.5 * (clo[k] + chi[k])
             a_hi = chi.copy()
             a_hi[k] = mid

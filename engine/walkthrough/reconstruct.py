@@ -90,11 +90,12 @@ class FrameResult:
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _project(views, tg, eyes, depth, basis, res, ortho, ceye, right, up, fwd, W, H, sx_scale, sy_scale,
+def _project(views, tg, eyes, depth, basis, res, ortho, ceye, right, up, fwd, W, H, sx_scale, sy_scale, margin,
              px_out, py_out, z_out, cos_out, state_out):
     """Project every base pixel of the selected bases. state: 0 invalid, 1 surface, 2 sky
-    (direction only). px/py are continuous pixel coordinates (clamped to +-1e7 so they stay finite),
-    z the distance along the new ray (perspective) or along the view axis (orthographic)."""
+    (direction only). px/py are continuous pixel coordinates (samples farther than ``margin`` pixels
+    outside the frame are invalid), z the distance along the new ray (perspective) or along the view
+    axis (orthographic), cos_out holds 1 - cos(angle between the base ray and the new ray)."""
     rr = res * res
     per = 6 * rr
     n = views.shape[0] * per
@@ -138,19 +139,21 @@ def _project(views, tg, eyes, depth, basis, res, ortho, ceye, right, up, fwd, W,
             u = xc / sx_scale
             w = yc / sy_scale
             dist = zc
-            cosv = dx * fwd[0] + dy * fwd[1] + dz * fwd[2]
+            cosv = 1.0 - (dx * fwd[0] + dy * fwd[1] + dz * fwd[2])
         else:
             dist = math.sqrt(qx * qx + qy * qy + qz * qz)
             if zc <= 1e-12 * dist or dist == 0.0:
                 continue
             u = xc / (zc * sx_scale)
             w = yc / (zc * sy_scale)
-            cosv = (dx * qx + dy * qy + dz * qz) / dist
+            # 1 - cos(angle) from the chord between the unit rays: accurate for tiny angles
+            ex, ey, ez = dx - qx / dist, dy - qy / dist, dz - qz / dist
+            cosv = 0.5 * (ex * ex + ey * ey + ez * ez)
         pxf = (u + 1.0) * 0.5 * W
         pyf = (1.0 - w) * 0.5 * H
-        if not (abs(pxf) < 1e7 and abs(pyf) < 1e7):
-            pxf = min(max(pxf, -1e7), 1e7)
-            pyf = min(max(pyf, -1e7), 1e7)
+        # farther than max_fp outside the frame: neither the point nor a quad it starts can land
+        if not (-margin <= pxf <= W + margin and -margin <= pyf <= H + margin):
+            continue
         px_out[s] = pxf
         py_out[s] = pyf
         z_out[s] = dist if kind == 1 else np.inf
@@ -160,8 +163,13 @@ def _project(views, tg, eyes, depth, basis, res, ortho, ceye, right, up, fwd, W,
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _radiance(v, f, r, c, k, td0, td1, a_d, ti0, ti1, a_i, direct, indirect):
-    return ((1.0 - a_d) * direct[v, td0, f, r, c, k] + a_d * direct[v, td1, f, r, c, k]
-            + (1.0 - a_i) * indirect[v, ti0, f, r, c, k] + a_i * indirect[v, ti1, f, r, c, k])
+    d = direct[v, td0, f, r, c, k]
+    if a_d != 0.0:
+        d = (1.0 - a_d) * d + a_d * direct[v, td1, f, r, c, k]
+    i = indirect[v, ti0, f, r, c, k]
+    if a_i != 0.0:
+        i = (1.0 - a_i) * i + a_i * indirect[v, ti1, f, r, c, k]
+    return d + i
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -170,21 +178,20 @@ def _edge(ax, ay, bx, by, px, py):
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _splat(views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, cosw, state, depth, oid,
+def _splat(live, views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, cosw, state, depth, oid,
            direct, indirect, quads, quad_ratio, max_fp, depth_tol, nbands,
            acc, wsum, zbuf, zoid, flags, acc_sky, wsky):
     """Depth-tested, tolerance-averaged splat of points (and foreground quads), band by band."""
     rr = res * res
     per = 6 * rr
-    n = views.shape[0] * per
+    n = live.shape[0]
     for band in nb.prange(nbands):
         y0 = band * H // nbands
         y1 = (band + 1) * H // nbands
         for phase in range(2):
-            for s in range(n):
+            for j in range(n):
+                s = live[j]
                 st = state[s]
-                if st == 0:
-                    continue
                 pys = py[s]
                 if pys < y0 - max_fp - 1.0 or pys >= y1 + max_fp + 1.0:
                     continue  # neither the point nor a quad it starts can reach this band
@@ -206,7 +213,7 @@ def _splat(views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, cosw, 
                             zoid[q] = oid[v, tg[b], f, r, c]
                         flags[q] |= 1 if st == 1 else 4
                     elif st == 1 and z[s] <= zbuf[q] * (1.0 + depth_tol):
-                        w = 1.0 / (1.0 - cosw[s] + 1e-12)
+                        w = 1.0 / (cosw[s] + 1e-12)
                         for k in range(3):
                             acc[q, k] += w * _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b],
                                                        a_i[b], direct, indirect)
@@ -281,7 +288,7 @@ def _splat(views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, cosw, 
                                 flags[q] |= 2
                             elif zz <= zbuf[q] * (1.0 + depth_tol):
                                 cw = wa * cosw[ia] + wb * cosw[ib] + wc * cosw[ic]
-                                w = 1.0 / (1.0 - cw + 1e-12)
+                                w = 1.0 / (cw + 1e-12)
                                 for k in range(3):
                                     val = (wa * _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b],
                                                           a_i[b], direct, indirect)
@@ -385,10 +392,10 @@ class _Buffers:
     def get(self, n_samples: int, npix: int) -> _Buffers:
         key = (n_samples, npix)
         if key != self.key:
-            self.px = np.empty(n_samples)
-            self.py = np.empty(n_samples)
-            self.z = np.empty(n_samples)
-            self.cos = np.empty(n_samples)
+            self.px = np.empty(n_samples, np.float32)
+            self.py = np.empty(n_samples, np.float32)
+            self.z = np.empty(n_samples, np.float32)
+            self.cos = np.empty(n_samples, np.float32)
             self.state = np.empty(n_samples, np.uint8)
             self.acc = np.empty((npix, 3))
             self.wsum = np.empty(npix)
@@ -451,12 +458,13 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
     timings: dict[str, float] = {"setup": time.perf_counter() - t0}
     t1 = time.perf_counter()
     _project(vb, tg, eyes, depth, _BASIS, res, ortho, np.asarray(camera.eye, np.float64), right, up, fwd,
-             W, H, sx, sy, buf.px, buf.py, buf.z, buf.cos, buf.state)
+             W, H, sx, sy, float(max_footprint) + 1.0, buf.px, buf.py, buf.z, buf.cos, buf.state)
+    live = np.flatnonzero(buf.state)
     timings["project"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     quads = fill in ("foreground", "both", "trace")
     nbands = max(1, min(H, 2 * nb.get_num_threads()))
-    _splat(vb, tg, td0, td1, ad, ti0, ti1, ai, res, W, H, buf.px, buf.py, buf.z, buf.cos, buf.state, depth,
+    _splat(live, vb, tg, td0, td1, ad, ti0, ti1, ai, res, W, H, buf.px, buf.py, buf.z, buf.cos, buf.state, depth,
            object_id, direct, indirect, quads, float(quad_depth_ratio), float(max_footprint), float(depth_tol),
            nbands, buf.acc, buf.wsum, buf.zbuf, buf.zoid, buf.flags, buf.acc_sky, buf.wsky)
     timings["splat"] = time.perf_counter() - t1
