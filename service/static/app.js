@@ -968,17 +968,33 @@ async function relight(me, body) {
 
 let coverageKey = null;
 
+// outside.png is white where a light fell outside the coverage: drawn as a magenta overlay.
 async function updateCoverage() {
   const img = $("coverage-img");
+  const canvas = $("coverage-mask");
   const key = $("relit").dataset.key;
-  if (!$("coverage").checked || !key) { img.hidden = true; return; }
-  img.hidden = false;
+  if (!$("coverage").checked || !key) { canvas.hidden = true; return; }
+  canvas.hidden = false;
   if (coverageKey === key) return;
   coverageKey = key;
   try {
     const url = await fetchBlobUrl(`/v1/relights/${key}/outside.png`);
     if (coverageKey !== key) { URL.revokeObjectURL(url); return; }
     await showBlob(img, url, key);
+    canvas.width = img.naturalWidth;
+    canvas.height = img.naturalHeight;
+    const g = canvas.getContext("2d");
+    g.drawImage(img, 0, 0);
+    const px = g.getImageData(0, 0, canvas.width, canvas.height);
+    let n = 0;
+    for (let i = 0; i < px.data.length; i += 4) {
+      const on = px.data[i] > 127;
+      n += on;
+      px.data[i] = 233; px.data[i + 1] = 30; px.data[i + 2] = 99; px.data[i + 3] = on ? 170 : 0;
+    }
+    g.putImageData(px, 0, 0);
+    canvas.dataset.key = key;
+    canvas.dataset.outside = String(n);
   } catch (err) { coverageKey = null; showError(err); }
 }
 

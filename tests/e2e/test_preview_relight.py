@@ -1,0 +1,140 @@
+"""The preview page's Datasets panel (issue 7 on top of issue 5's relighting API): a small dataset
+generated from a sphere-on-floor scene, baked from the page, relit live by dragging the light over
+the sphere widget, a second light added, the coverage mask shown."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from playwright.sync_api import Browser, Page, expect
+
+from service.up import Stack
+from tests.e2e.conftest import RELIT_SETTLED, drag, element_pixels, new_page, shot
+
+BALL: dict[str, Any] = {
+    "name": "e2e_ball",
+    "camera": {"type": "perspective", "eye": [0, 1.2, 3.2], "look_at": [0, 0.45, 0], "fov_y_deg": 40,
+               "width": 64, "height": 48},
+    "materials": [{"name": "white", "kd": [0.8, 0.8, 0.8]}, {"name": "red", "kd": [0.8, 0.15, 0.1]}],
+    "objects": [
+        {"type": "sphere", "material": "red", "radius": 0.5, "transform": {"translate": [0, 0.5, 0]}},
+        {"type": "plane", "material": "white", "size": [3, 3]},
+    ],
+    "lights": [{"type": "point", "position": [2, 3, 2], "intensity": [10, 10, 10]}],
+}
+
+
+@pytest.fixture(scope="module")
+def dataset(stack: Stack, capabilities: dict[str, Any]) -> dict[str, Any]:
+    if not (capabilities["datasets"] and capabilities["relights"]):
+        pytest.skip("this API routes no datasets / relights: the page has no Datasets panel")
+    api = stack.api_url
+    scene = httpx.post(f"{api}/v1/scenes", json={"scene": BALL}, timeout=30).json()
+    req = {"scene_id": scene["id"], "placement": {"region": "upper_front_quarter", "spacing_deg": 30},
+           "params": {"spp": 1, "area_light_samples": 1, "glossy_samples": 1}}
+    r = httpx.post(f"{api}/v1/datasets/generate?wait=60", json=req, timeout=90)
+    assert r.status_code in (200, 202), r.text
+    body = r.json()
+    for _ in range(300):
+        if body.get("dataset_id"):
+            break
+        assert body["status"] not in ("failed",), body
+        import time
+        time.sleep(0.3)
+        body = httpx.post(f"{api}/v1/datasets/generate?wait=5", json=req, timeout=30).json()
+    d: dict[str, Any] = httpx.get(f"{api}/v1/datasets/{body['dataset_id']}", timeout=30).json()
+    return d
+
+
+@pytest.fixture(scope="module")
+def page(stack: Stack, browser: Browser, dataset: dict[str, Any]) -> Iterator[Page]:
+    ctx, pg = new_page(browser, f"{stack.api_url}/preview/")
+    try:
+        yield pg
+    finally:
+        ctx.close()
+
+
+def test_open_dataset_bakes_and_relights(page: Page, dataset: dict[str, Any]) -> None:
+    page.wait_for_selector("body[data-ready=true]")
+    expect(page.locator("#datasets-panel")).to_be_visible()
+    page.click("#reload-datasets")
+    button = page.locator(f"#dataset-list button[data-id='{dataset['id']}']")
+    expect(button).to_be_visible()
+    button.click()
+    expect(page.locator("#relight-panel")).to_be_visible()
+    expect(page.locator("#view-panel")).to_be_hidden()
+    page.wait_for_function("window.__relight.loads >= 1", timeout=120_000)
+    expect(page.locator("#dbake-stage")).to_contain_text("done")
+    assert page.evaluate("document.querySelector('#relit').naturalWidth") == dataset["width"]
+    expect(page.locator("#error")).to_be_hidden()
+    expect(page.locator("#relight-stats")).to_contain_text("round trip")
+    shot(page, "20-relight-open")
+
+
+def test_drag_light_relights(page: Page, dataset: dict[str, Any]) -> None:
+    page.wait_for_function(RELIT_SETTLED)
+    before = element_pixels(page, "#relit")
+    first = page.evaluate("window.__relight.last")
+    # from the left of the sphere widget to its upper right: the light swings across the object
+    drag(page, "#light-sphere", 110, -40, steps=6, start=(0.2, 0.5))
+    page.wait_for_function(f"window.__relight.loads > {page.evaluate('window.__relight.loads') - 1} && "
+                           + RELIT_SETTLED, timeout=60_000)
+    page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {first['seq']}", timeout=60_000)
+    last = page.evaluate("window.__relight.last")
+    assert last["lights"] != first["lights"]
+    p0, p1 = np.array(first["lights"][0]["position"]), np.array(last["lights"][0]["position"])
+    centre = np.array(dataset["manifest"]["sphere_center"] or [0, 0, 0])
+    # the distance is kept, the direction moved
+    assert np.linalg.norm(p0 - centre) == pytest.approx(np.linalg.norm(p1 - centre), rel=1e-5)
+    assert np.linalg.norm(p0 - p1) > 0.2 * np.linalg.norm(p0 - centre)
+    assert np.abs(element_pixels(page, "#relit") - before).mean() > 1.0
+    expect(page.locator("#error")).to_be_hidden()
+    shot(page, "21-light-dragged")
+
+
+def test_keyboard_distance_intensity_and_second_light(page: Page) -> None:
+    seq = page.evaluate("window.__relight.last.seq")
+    page.locator("#light-sphere").focus()
+    page.keyboard.press("ArrowUp")
+    page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {seq}", timeout=60_000)
+    seq = page.evaluate("window.__relight.last.seq")
+    page.locator("#light-int").fill("1")
+    page.locator("#light-int").dispatch_event("input")
+    page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {seq}", timeout=60_000)
+    seq = page.evaluate("window.__relight.last.seq")
+    page.click("#add-light")
+    page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {seq}", timeout=60_000)
+    last = page.evaluate("window.__relight.last")
+    assert len(last["lights"]) == 2
+    expect(page.locator("#light-list li")).to_have_count(2)
+    expect(page.locator("#error")).to_be_hidden()
+    shot(page, "22-two-lights")
+
+
+def test_coverage_mask(page: Page) -> None:
+    page.check("#coverage")
+    mask = page.locator("#coverage-mask")
+    expect(mask).to_be_visible()
+    same_key = "document.querySelector('#coverage-mask').dataset.key === document.querySelector('#relit').dataset.key"
+    page.wait_for_function(same_key)
+    assert mask.get_attribute("data-outside") == "0"
+    assert page.evaluate("window.__relight.last.counts.n_outside") == 0  # both lights inside the coverage
+    # a light below the dataset's lights (they cover the upper front quarter): outside the coverage
+    seq = page.evaluate("window.__relight.last.seq")
+    page.fill("#light-el", "-60")
+    page.locator("#light-el").dispatch_event("change")
+    page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {seq}", timeout=60_000)
+    assert page.evaluate("window.__relight.last.counts.n_outside") > 0
+    page.wait_for_function(same_key)
+    # the mask marks exactly the pixels the relight counted as outside
+    assert int(mask.get_attribute("data-outside") or -1) == page.evaluate("window.__relight.last.counts.n_outside")
+    with_mask = element_pixels(page, "#relight-viewport")
+    shot(page, "23-coverage")
+    page.uncheck("#coverage")
+    expect(mask).to_be_hidden()
+    assert np.abs(element_pixels(page, "#relight-viewport") - with_mask).mean() > 1.0  # the mask was drawn
