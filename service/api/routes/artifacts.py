@@ -81,3 +81,14 @@ def read_image_exr(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Respon
 def read_image_png(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Response:
     """An sRGB preview of the render as PNG (exposure 0)."""
     return _blob_response(store, key, owner, "preview.png", "image/png", "png")
+
+
+@router.get(
+    "/{key}/provenance.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+                     "description": "LDC renders: 8-bit grey PNG, pixel value = provenance code 0..4"}, **_ERRORS},
+)
+def read_provenance_png(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Response:
+    """Per-pixel provenance of an LDC render (0 background, 1 warped, 2 hole-filled, 3 gathered, 4 traced)."""
+    return _blob_response(store, key, owner, "provenance.png", "image/png", "provenance.png")
