@@ -38,6 +38,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+import numba as nb
 import numpy as np
 from scipy.ndimage import maximum_filter
 
@@ -99,6 +100,37 @@ def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
     if method != "ldc+ibrt":
         ibrt_generations = 0
     return method, int(ibrt_generations)
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _gather_samples(sel, idx, side, origin, fu, fv, fw, h, nu, offsets, depth, geo, nrm, material, obj, diffuse,
+                    vis, p, ng, ns, mat, obj_out, diff, bits):
+    """Rows ``sel`` of the outputs from LDC samples ``idx[sel]`` on ``side[sel]`` of one axis:
+    world point (pixel found by binary search in the CSR offsets), normals flipped to the side
+    (shading normal falling back to the geometric one), ids, diffuse radiance, bits."""
+    words = bits.shape[1]
+    for t in nb.prange(sel.shape[0]):
+        r = sel[t]
+        s = idx[r]
+        k = np.searchsorted(offsets, s, side="right") - 1
+        a = (k % nu + 0.5) * h
+        b = (k // nu + 0.5) * h
+        for c in range(3):
+            p[r, c] = origin[c] + a * fu[c] + b * fv[c] + depth[s] * fw[c]
+        sd = side[r]
+        sg = 1.0 if sd == 0 else -1.0
+        g0, g1, g2 = sg * geo[s, 0], sg * geo[s, 1], sg * geo[s, 2]
+        n0, n1, n2 = sg * nrm[s, 0], sg * nrm[s, 1], sg * nrm[s, 2]
+        if n0 * g0 + n1 * g1 + n2 * g2 <= 0.0:
+            n0, n1, n2 = g0, g1, g2
+        ng[r, 0], ng[r, 1], ng[r, 2] = g0, g1, g2
+        ns[r, 0], ns[r, 1], ns[r, 2] = n0, n1, n2
+        mat[r] = material[s]
+        obj_out[r] = obj[s]
+        for c in range(3):
+            diff[r, c] = diffuse[s, sd, c]
+        for q in range(words):
+            bits[r, q] = vis[s, sd, q]
 
 
 class LDCViewRenderer:
@@ -175,23 +207,10 @@ class LDCViewRenderer:
             sel = np.flatnonzero(axis == a)
             if not sel.size:
                 continue
-            s = idx[sel]
             fr = ax.ldi.frame
-            k = np.searchsorted(ax.ldi.offsets, s, side="right") - 1
-            ca = (k % fr.nu + 0.5) * fr.h
-            cb = (k // fr.nu + 0.5) * fr.h
-            p[sel] = fr.origin + ca[:, None] * fr.u + cb[:, None] * fr.v + ax.ldi.depth[s][:, None] * fr.w
-            sg = np.where(side[sel] == 0, 1.0, -1.0)[:, None]
-            g = ax.geo_normal[s].astype(np.float64) * sg
-            n = ax.normal[s].astype(np.float64) * sg
-            n = np.where((np.einsum("ij,ij->i", n, g) > 0)[:, None], n, g)
-            ng[sel], ns[sel] = g, n
-            mat[sel] = ax.material[s]
-            obj[sel] = ax.object[s]
-            sd = side[sel].astype(np.int64)
-            diff[sel] = ax.diffuse[s, sd]
-            if bits.shape[1]:
-                bits[sel] = ax.visibility[s, sd]
+            _gather_samples(sel, idx, side, fr.origin, fr.u, fr.v, fr.w, fr.h, fr.nu, ax.ldi.offsets, ax.ldi.depth,
+                            ax.geo_normal, ax.normal, ax.material, ax.object, ax.diffuse, ax.visibility,
+                            p, ng, ns, mat, obj, diff, bits)
         return p, ng, ns, mat, obj, diff, bits
 
     def _hole_rays(self, camera: CameraParams, w) -> np.ndarray:
