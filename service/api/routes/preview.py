@@ -248,14 +248,18 @@ def srgb_encode(x: np.ndarray) -> np.ndarray:
 
 
 def to_srgb8(linear: np.ndarray, exposure_stops: float) -> np.ndarray:
-    """The PNG display transform of ``engine.imageio`` (``srgb_encode(clip(x 2^e, 0, 1))``), 8-bit.
-    An alpha channel (4th) is kept linear, as a PNG alpha."""
-    colour = linear[..., :3] if linear.shape[2] >= 3 else np.repeat(linear[..., :1], 3, axis=2)
-    enc = srgb_encode(np.clip(colour.astype(np.float64) * 2.0**exposure_stops, 0.0, 1.0))
-    out = np.rint(enc * 255.0).astype(np.uint8)
-    if linear.shape[2] == 4:
-        alpha = np.rint(np.clip(linear[..., 3:4].astype(np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
-        out = np.concatenate([out, alpha], axis=2)
+    """The PNG display transform of ``engine.imageio.write_image`` at an exposure, 8-bit:
+    ``rint(255 srgb_encode(clip(x 2^e, 0, 1)))``; 4 channels are associated alpha, un-premultiplied
+    for the PNG's straight alpha (fully transparent pixels carry no colour); 1 channel becomes grey RGB."""
+    x = linear.astype(np.float64)
+    colour = x[..., :3] if x.shape[2] >= 3 else np.repeat(x[..., :1], 3, axis=2)
+    alpha = np.clip(x[..., 3:4], 0.0, 1.0) if x.shape[2] == 4 else None
+    if alpha is not None:
+        colour = np.where(alpha > 0, colour / np.where(alpha > 0, alpha, 1.0), 0.0)
+    enc = srgb_encode(np.clip(colour * 2.0**exposure_stops, 0.0, 1.0))
+    if alpha is not None:
+        enc = np.concatenate([enc, alpha], axis=2)
+    out: np.ndarray = np.rint(enc * 255.0).astype(np.uint8)
     return out
 
 
