@@ -120,23 +120,20 @@ def test_bake_then_ldc_render_end_to_end(client: TestClient, worker_process: Any
     assert int((codes == 1).sum()) == prov["warped"] and int((codes == 0).sum()) == prov["background"]
     assert set(np.unique(codes).tolist()) <= {0, 1, 2, 3, 4}
 
+    # missing_bake="bake": a render of another (missing) bake queues that bake and runs after it
+    bake2 = {**BAKE, "seed": 3}
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": bake2, "missing_bake": "bake"})
+    assert r.status_code == 202, r.text
+    waiting = r.json()
+    assert waiting["bake"] is not None and waiting["bake"]["state"] in ("queued", "running")
+    assert waiting["job"]["progress"]["stage"] == "waiting for the bake"
+    job = _poll(client, r.headers["location"], ("finished", "failed", "canceled"))
+    assert job["state"] == "finished", (job, bake_worker.log(), render_worker.log())
+    assert job["result"]["bake_key"] == waiting["bake"]["key"] != body["key"]
+
     # deleting the bake removes it and its parts; the render artifact stays
     assert client.delete(url).status_code == 204
     assert client.get(url).status_code == 404
     assert client.get(f"/v1/artifacts/{body['key']}").status_code == 404
-    assert client.get(f"/v1/scenes/{sid}/bakes").json()["items"] == []
-
-
-def test_render_with_missing_bake_bake_waits_for_it(client: TestClient, worker_process: Any) -> None:
-    sid = _scene(client)
-    bake = {**BAKE, "seed": 3}
-    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": bake, "missing_bake": "bake"})
-    assert r.status_code == 202, r.text
-    out = r.json()
-    assert out["bake"] is not None and out["bake"]["state"] == "queued"
-    assert out["job"]["progress"]["stage"] == "waiting for the bake"
-    bake_worker = worker_process("bake")
-    render_worker = worker_process("render")
-    job = _poll(client, r.headers["location"], ("finished", "failed", "canceled"))
-    assert job["state"] == "finished", (job, bake_worker.log(), render_worker.log())
-    assert job["result"]["bake_key"] == out["bake"]["key"]
+    assert [b["key"] for b in client.get(f"/v1/scenes/{sid}/bakes").json()["items"]] == [waiting["bake"]["key"]]
+    assert client.get(f"/v1/artifacts/{out['artifact_key']}/image.png").status_code == 200

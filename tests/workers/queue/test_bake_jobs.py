@@ -8,7 +8,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import pytest
 from redis import Redis
 
@@ -45,7 +44,7 @@ def wait_bake(redis: Redis, store: ObjectStore, sid: str, key: str, params: Bake
     raise AssertionError(f"bake not done after {timeout} s: {st.state} {st.progress}\n{w.log()}")
 
 
-def test_bake_splits_into_parts_and_merges_on_one_worker(
+def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
     pub = put_scene(worker_store, diffuse_scene(), {}, None)
@@ -84,24 +83,16 @@ def test_bake_splits_into_parts_and_merges_on_one_worker(
     assert again == key and job2 is None
     assert bakes.list_bakes(worker_store, pub.id) == [(key, SMALL)]
 
-
-def test_deleted_part_is_redone_alone(
-    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
-) -> None:
+    # a part lost (crash, removed as corrupt): the bake is no longer complete, and the next request
+    # redoes that part alone (the others are not recomputed) and merges again
     from workers.artifacts import delete_artifact
 
-    pub = put_scene(worker_store, diffuse_scene(), {}, None)
-    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
-    w = worker_process("bake")
-    st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w)
-    assert st.state == "finished", w.log()
     created = {p.name: read_manifest(worker_store, p.key).created_at for p in st.parts}  # type: ignore[union-attr]
     victim = st.parts[1]
-    delete_artifact(worker_store, victim.key)  # e.g. lost in a crash, or removed as corrupt
-
+    delete_artifact(worker_store, victim.key)
     assert bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL).state != "finished"
-    key2, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
-    assert key2 == key and job is not None  # the incomplete bake is not served as cached
+    key2, job3 = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    assert key2 == key and job3 is not None  # the incomplete bake is not served as cached
     st2 = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w)
     assert st2.state == "finished", w.log()
     plan_job = queues.fetch_job(redis_conn, bakes.bake_plan_job_id(key))
@@ -115,7 +106,6 @@ def test_deleted_part_is_redone_alone(
             assert after[name] > t
         else:
             assert after[name] == t  # not recomputed
-    assert np.isfinite(read_manifest(worker_store, key).result["timings"]["verify"])  # type: ignore[union-attr]
 
 
 def mirror_scene() -> Scene:
