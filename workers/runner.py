@@ -4,9 +4,12 @@
   process itself, so compiled numba kernels, Embree scenes and the scene LRU
   (workers/cache.py) stay warm from one job to the next.
 - ``--queue bake`` -> :class:`BakeWorker` (an ``rq.Worker``): a work horse is forked per job,
-  so a crash in a job cannot take the worker down. The parent never imports the engine or runs
-  a numba kernel (GNU OpenMP / TBB are not fork-safe, ARCHITECTURE "Known traps"); each horse
-  imports what its job needs, and numba's on-disk cache (``cache=True``) saves the compiles.
+  so a crash in a job cannot take the worker down. The parent imports the bake job module (and
+  with it the engine) once at start-up, so every forked horse starts with the modules loaded
+  (measured ~1.4 s per job otherwise, docs/performance.md "Bake scaling"), but it never RUNS a
+  numba kernel: no threading pool exists before a fork (GNU OpenMP / TBB pools are not
+  fork-safe, ARCHITECTURE "Known traps"; the engine selects the workqueue layer). Each horse
+  runs its kernels itself, and numba's on-disk cache (``cache=True``) saves the compiles.
 
 Both run RQ's scheduler (retries with intervals need it) and install RQ's signal handlers:
 SIGTERM / SIGINT -> warm shutdown (finish the current job, then exit); a second signal -> cold
@@ -258,6 +261,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Import the job module (and the engine) now, so a broken install fails at start-up.
         # No kernel runs here; the first job compiles or loads them from numba's disk cache.
         import workers.jobs.render  # noqa: F401
+    else:
+        # Import only (no kernel runs in the parent, see the module docstring): forked horses
+        # inherit the loaded modules instead of importing numba, Embree and the engine per job.
+        import workers.jobs.bake  # noqa: F401
     worker = build_worker(
         args.queue,
         redis,
