@@ -540,7 +540,7 @@ def _choose_dtype(vmax: np.ndarray, vmin: np.ndarray, half: bool, rel_floor: flo
 
 
 def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: float | None = None,
-                 layout: str = "pixel_major", half: bool = True, dedupe_tol_deg: float = 1e-3,
+                 layout: str = "tiled", half: bool = True, dedupe_tol_deg: float = 1e-3,
                  max_face_radius_deg: float | None = None, half_rel_floor: float = 0.0,
                  compress: float | None = None) -> BakedDataset:
     """Deduplicate, triangulate and reorganise a dataset for relighting.
@@ -576,8 +576,9 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         raise InvalidInputError(f"compress must be a relative RMS error in (0, 1) or None, got {compress!r}")
     t0 = time.perf_counter()
     h, w = ds.shape
-    m = ds.mask.ravel()
-    pix = np.nonzero(m)[0].astype(np.int64)
+    # stored pixels in 16 x 16 image blocks: neighbouring rows see the lights in nearly the same
+    # direction, so a tile of the tiled or low-rank store reads few lights' runs (docs: Kernel)
+    pix = block_order(ds.mask)
     pts = np.ascontiguousarray(ds.points.reshape(-1, 3)[pix])
     report: dict = {"n_lights_input": int(ds.light_positions.shape[0]), "n_pixels": int(pix.size)}
     if ds.distant:
@@ -630,11 +631,11 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin)
     dt, scale, why = _choose_dtype(vmax, vmin, half, half_rel_floor)
     is_half = dt is np.float16
-    plain_bytes = pix.size * keep.size * 3 * (2 if is_half else 4)
+    n_rows_plain = ((pix.size + TILE - 1) // TILE) * TILE if layout == "tiled" else pix.size  # tiles are padded
+    plain_bytes = n_rows_plain * keep.size * 3 * (2 if is_half else 4)
     if compress is not None:
         t2 = time.perf_counter()
-        bpix = block_order(ds.mask)
-        lowrank, crep = compress_store(flat, keep, bpix, float(compress))
+        lowrank, crep = compress_store(flat, keep, pix, float(compress))
         crep["time_s"] = time.perf_counter() - t2
         crep["uncompressed_store_bytes"] = int(plain_bytes)
         report["compression_report"] = crep
@@ -654,9 +655,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
                                              f"{lowrank.nbytes / plain_bytes:.1%} of the plain store")
             report["time_triangulate_s"] = t1 - t0
             report["time_store_s"] = time.perf_counter() - t1
-            bpts = np.ascontiguousarray(ds.points.reshape(-1, 3)[bpix])
             return BakedDataset(shape=(h, w), distant=ds.distant, store=np.zeros((0, keep.size, 3), np.float32),
-                                pixel_index=bpix, points=bpts,
+                                pixel_index=pix, points=pts,
                                 light_positions=np.ascontiguousarray(ds.light_positions[keep]),
                                 intensities=np.ascontiguousarray(ds.intensities[keep]),
                                 kept_from=keep.astype(np.int64), directions=dirs_k, store_scale=np.ones(keep.size),
@@ -796,14 +796,15 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
 
 
 def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
-                    grid_items, kinds, lp, lint, lnorm, min_dist2, out, outside, singular, touched):
+                    grid_items, kinds, lp, lint, lnorm, min_dist2, pix, out, outside, singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
     points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16);
     lpos (K, 3); inv_int (K, 3) = 1 / dataset
     intensity; kinds (M,) int64; lp (M, 3) light position or direction toward the light;
     lint (M, 3) intensity (point, oriented) or irradiance (directional); lnorm (M, 3)
-    emitter normal (oriented). out (n, 3) f32; outside / singular (n,) bool; touched (T,) uint8
+    emitter normal (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 and
+    outside / singular (h*w,) bool, written at ``pix[i]`` only; touched (T,) uint8
     set to 1 for every triangle whose three lights were read (racing writes all store 1).
     """
     n = points.shape[0]
@@ -884,11 +885,12 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                 acc0 += v0 * g0
                 acc1 += v1 * g1
                 acc2 += v2 * g2
-            out[i, 0] = acc0
-            out[i, 1] = acc1
-            out[i, 2] = acc2
-            outside[i] = out_i
-            singular[i] = sing_i
+            q = pix[i]
+            out[q, 0] = acc0
+            out[q, 1] = acc1
+            out[q, 2] = acc2
+            outside[q] = out_i
+            singular[q] = sing_i
 
 
 class _DualKernel:
@@ -1204,9 +1206,6 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         n_tri_used = 0
     else:
         touched = np.zeros(baked.triangles.shape[0], np.uint8)
-        rows = np.empty((n, 3), np.float32)
-        o_rows = np.empty(n, bool)
-        s_rows = np.empty(n, bool)
         inv_int = np.ascontiguousarray(1.0 / (baked.intensities * baked.store_scale[:, None]))
         radius = baked.sphere_radius if math.isfinite(baked.sphere_radius) else 1.0
         kern = _RELIGHT.pick(serial)
@@ -1218,20 +1217,17 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         try:
             kern(baked.points, baked.kernel_store(), _HALF_LUT, baked.light_positions, inv_int, baked.distant,
                  baked.sphere_center, radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
-                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, rows, o_rows, s_rows,
-                 touched)
+                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, baked.pixel_index, img,
+                 outside, singular, touched)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
         timings["kernel_s"] = time.perf_counter() - t1
-        img[baked.pixel_index] = rows
-        outside[baked.pixel_index] = o_rows
-        singular[baked.pixel_index] = s_rows
         tri_used = np.nonzero(touched)[0]
         used = np.unique(baked.triangles[tri_used])
         n_tri_used = int(tri_used.size)
     timings["total_s"] = time.perf_counter() - t0
     return RelightResult(image=img.reshape(h, w, 3), outside_mask=outside.reshape(h, w),
-                         n_outside=int(outside.sum()), singular_mask=singular.reshape(h, w),
-                         n_singular=int(singular.sum()), timings=timings, exact=exact is not None,
+                         n_outside=int(np.count_nonzero(outside)), singular_mask=singular.reshape(h, w),
+                         n_singular=int(np.count_nonzero(singular)), timings=timings, exact=exact is not None,
                          n_lights=int(kinds.size), lights_used=used.astype(np.int64), n_triangles_used=n_tri_used)

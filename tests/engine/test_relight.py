@@ -542,13 +542,17 @@ def test_store_layout_and_half_rounding_match_numpy():
     imgs = ds.images * np.float32(3.7)
     imgs[:, mask] += np.random.default_rng(4).random(imgs[:, mask].shape).astype(np.float32) * 1e-3
     ds = IlluminationDataset(imgs, ds.light_positions, ds.intensities, pts, mask)
-    b = bake_dataset(ds, sphere_center=[0, 0, 0], half=True)
+    b = bake_dataset(ds, sphere_center=[0, 0, 0], half=True, layout="pixel_major")
     assert b.report["dtype"] == "float16" and b.report["layout"] == "pixel_major"
+    assert bake_dataset(ds, sphere_center=[0, 0, 0]).layout == "tiled"  # the default (faster to gather)
     flat = imgs.reshape(len(imgs), -1, 3)[b.kept_from][:, b.pixel_index]  # (K, n, 3)
     want = (flat * b.store_scale[:, None, None].astype(np.float32)).astype(np.float16).transpose(1, 0, 2)
     assert np.array_equal(b.store.view(np.uint16), want.view(np.uint16))
-    b32 = bake_dataset(ds, sphere_center=[0, 0, 0], half=False)
+    b32 = bake_dataset(ds, sphere_center=[0, 0, 0], half=False, layout="pixel_major")
     assert np.array_equal(b32.store, flat.transpose(1, 0, 2))
+    # stored pixels: every masked pixel once, in 16 x 16 image blocks
+    assert np.array_equal(np.sort(b.pixel_index), np.nonzero(mask.ravel())[0])
+    assert np.array_equal(b.points, pts.reshape(-1, 3)[b.pixel_index])
 
 
 @pytest.mark.parametrize("half", [True, False])
