@@ -75,6 +75,10 @@ def test_axis_view_reproduces_reference_visibility(shiny):
         assert frac >= 0.98
         assert same[inner].mean() >= 0.999
         # the splats widen silhouettes by up to a pixel; away from them the background is clean
+        # view-pass pixels carry the shading normal at the pixel-centre ray (refine_surface): the reference's
+        same_in = inner & same & (res.provenance >= 1)
+        cosang = np.einsum("ijk,ijk->ij", res.normal, ref.normal)[same_in]
+        assert np.median(cosang) > 0.99999 and np.percentile(cosang, 5) > 0.999
         assert (res.object_id[~cov] == -1).mean() >= 0.95
         assert (res.object_id[binary_erosion(~cov, iterations=2)] == -1).all()
         assert np.all(np.isfinite(res.radiance)) and res.radiance.dtype == np.float32
