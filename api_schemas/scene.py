@@ -849,6 +849,22 @@ class PathViewSpace(FrozenModel):
             raise_errors("PathViewSpace", [_no_room(("points",), "all path points coincide and radius is 0", None)])
         return self
 
+    def distance(self, point: Vec3) -> float:
+        """How far ``point`` lies outside the view space (0 inside)."""
+        p = np.asarray(point, dtype=np.float64)
+        pts = np.asarray(self.points, dtype=np.float64)
+        a, b = pts[:-1], pts[1:]
+        ab = b - a
+        den = np.einsum("ij,ij->i", ab, ab)
+        u = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
+        d = float(np.min(np.linalg.norm(p - (a + u[:, None] * ab), axis=1)))
+        return max(0.0, d - self.radius)
+
+    def bounds(self) -> tuple[Vec3, Vec3]:
+        pts = np.asarray(self.points, dtype=np.float64)
+        lo, hi = pts.min(axis=0) - self.radius, pts.max(axis=0) + self.radius
+        return (float(lo[0]), float(lo[1]), float(lo[2])), (float(hi[0]), float(hi[1]), float(hi[2]))
+
 
 class BoxViewSpace(FrozenModel):
     """The viewer moves inside an axis-aligned box (flat boxes, e.g. min.y == max.y at eye height, are fine)."""
@@ -873,6 +889,14 @@ class BoxViewSpace(FrozenModel):
                 errors.append(_no_room(("max",), "min and max are the same point", self.max))
         raise_errors("BoxViewSpace", errors)
         return self
+
+    def distance(self, point: Vec3) -> float:
+        """How far ``point`` lies outside the view space (0 inside)."""
+        p = np.asarray(point, dtype=np.float64)
+        return float(np.linalg.norm(p - np.clip(p, self.min, self.max)))
+
+    def bounds(self) -> tuple[Vec3, Vec3]:
+        return self.min, self.max
 
 
 Vec2 = tuple[FiniteFloat, FiniteFloat]
@@ -921,6 +945,30 @@ class PolygonViewSpace(FrozenModel):
                     break
         raise_errors("PolygonViewSpace", errors)
         return self
+
+    def distance(self, point: Vec3) -> float:
+        """How far ``point`` lies outside the view space (the polygon at eye height; 0 inside)."""
+        x, y, z = (float(c) for c in point)
+        v = np.asarray(self.vertices, dtype=np.float64)
+        w = np.roll(v, -1, axis=0)
+        inside = False
+        for (x0, z0), (x1, z1) in zip(v, w, strict=True):
+            if (z0 > z) != (z1 > z) and x < x0 + (z - z0) * (x1 - x0) / (z1 - z0):
+                inside = not inside
+        dy = y - self.eye_height
+        if inside:
+            return abs(dy)
+        q = np.array([x, z])
+        ab = w - v
+        den = np.einsum("ij,ij->i", ab, ab)
+        u = np.clip(np.einsum("ij,ij->i", q - v, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
+        dxz = float(np.min(np.linalg.norm(q - (v + u[:, None] * ab), axis=1)))
+        return math.hypot(dxz, dy)
+
+    def bounds(self) -> tuple[Vec3, Vec3]:
+        v = np.asarray(self.vertices, dtype=np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        return (float(lo[0]), self.eye_height, float(lo[1])), (float(hi[0]), self.eye_height, float(hi[1]))
 
 
 ViewSpace = Annotated[PathViewSpace | BoxViewSpace | PolygonViewSpace, Field(discriminator="type")]

@@ -18,7 +18,7 @@ from redis import Redis
 
 from service.api.errors import install_exception_handlers
 from service.api.limits import BodyLimitMiddleware
-from service.api.routes import artifacts, bakes, batches, datasets, health, jobs, preview, renders, scenes
+from service.api.routes import artifacts, bakes, batches, datasets, health, jobs, preview, renders, scenes, walkthroughs
 from service.core.config import Settings, get_settings
 from service.core.logging import RequestContextMiddleware, configure_logging
 from service.core.metrics import MetricsMiddleware, ServiceMetrics
@@ -86,7 +86,7 @@ def create_app(
     app.state.metrics = metrics
 
     install_exception_handlers(app)
-    for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes):
+    for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes, walkthroughs):
         app.include_router(module.router)
 
     # add_middleware wraps: the LAST added is the outermost.

@@ -1,0 +1,129 @@
+"""Walkthrough requests and their public state (``/v1/walkthroughs``, docs/walkthrough.md).
+
+A walkthrough renders every frame of a camera path through a stored scene's view space from
+a walkthrough bake (base range images at chosen viewpoints and times). Checks that need the
+scene (eyes inside ``view_space``, times inside the animation) are made by the API with
+:func:`workers.walkthroughs.check_against_scene`; this module checks the request alone.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Self
+
+from pydantic import Field, model_validator
+from pydantic_core import InitErrorDetails
+
+from api_schemas.common import FiniteFloat, FrozenModel, error_at, raise_errors
+from api_schemas.scene import Camera
+from api_schemas.service import JobPublic, Sha256
+
+__all__ = [
+    "MAX_WALKTHROUGH_FRAMES",
+    "WalkthroughFrame",
+    "WalkthroughPublic",
+    "WalkthroughRequest",
+    "WalkthroughSettings",
+]
+
+MAX_WALKTHROUGH_FRAMES = 10_000
+Quality = Literal["low", "medium", "high"]
+Fill = Literal["none", "foreground", "background", "both", "trace"]
+
+
+class WalkthroughFrame(FrozenModel):
+    """One frame: the camera (its eye inside the scene's view space) and the animation time."""
+
+    camera: Camera
+    """Camera of this frame; every frame of a walkthrough has the same width and height."""
+    time: FiniteFloat = 0.0
+    """Animation time, inside [animation.start, animation.end] (any value for a static scene)."""
+
+
+class WalkthroughSettings(FrozenModel):
+    """The bake: a quality preset plus optional overrides (docs/walkthrough.md, presets)."""
+
+    quality: Quality = "medium"
+    """Preset: decomposition thresholds, base image resolution and samples."""
+    face_res: Annotated[int, Field(strict=True, ge=8, le=1024)] | None = None
+    """Base cube face resolution (default: the preset's); a multiple of 2."""
+    indirect_samples: Annotated[int, Field(strict=True, ge=0, le=1024)] | None = None
+    """Path-traced indirect paths per pixel of the base images (0: no global illumination)."""
+    max_views: Annotated[int, Field(strict=True, ge=1, le=256)] | None = None
+    """Cap on the number of base viewpoints."""
+    max_time_samples: Annotated[int, Field(strict=True, ge=1, le=257)] | None = None
+    """Cap on the number of time samples."""
+    seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1)] = 0
+    """Random seed of the base renders."""
+
+    @model_validator(mode="after")
+    def _even(self) -> Self:
+        if self.face_res is not None and self.face_res % 2:
+            raise_errors("WalkthroughSettings", [error_at(("face_res",), "face_res_even",
+                                                          f"face_res must be even (got {self.face_res})",
+                                                          self.face_res)])
+        return self
+
+    def overrides(self) -> dict[str, int]:
+        out: dict[str, int] = {"seed": self.seed}
+        for name in ("face_res", "indirect_samples", "max_views", "max_time_samples"):
+            v = getattr(self, name)
+            if v is not None:
+                out[name] = int(v)
+        return out
+
+
+class WalkthroughRequest(FrozenModel):
+    """Render a camera path through a stored scene from image-based walkthrough bases."""
+
+    scene_id: Sha256
+    """A stored scene with a ``view_space``."""
+    bake: WalkthroughSettings = WalkthroughSettings()
+    """Bake settings (quality preset)."""
+    fill: Fill = "both"
+    """Hole fill of the reconstruction: none, foreground, background, both, trace."""
+    frames: Annotated[list[WalkthroughFrame], Field(min_length=1, max_length=MAX_WALKTHROUGH_FRAMES)]
+    """The camera path with times, in playback order."""
+    chunk_frames: Annotated[int, Field(strict=True, ge=1, le=1000)] = 16
+    """Frames per render job (several workers share a walkthrough)."""
+    fps: Annotated[int, Field(strict=True, ge=1, le=120)] = 24
+    """Frame rate of the MP4 preview."""
+
+    @model_validator(mode="after")
+    def _same_size(self) -> Self:
+        errors: list[InitErrorDetails] = []
+        w0, h0 = self.frames[0].camera.width, self.frames[0].camera.height
+        for i, f in enumerate(self.frames[1:], start=1):
+            if (f.camera.width, f.camera.height) != (w0, h0):
+                errors.append(error_at(("frames", i, "camera", "width"), "frame_size",
+                                       f"every frame must be {w0} x {h0} like frames.0 "
+                                       f"(got {f.camera.width} x {f.camera.height})", f.camera.width))
+                if len(errors) >= 10:
+                    break
+        if w0 % 2 or h0 % 2:
+            errors.append(error_at(("frames", 0, "camera", "width"), "frame_size_even",
+                                   f"frame width and height must be even for the MP4 (got {w0} x {h0})", w0))
+        raise_errors("WalkthroughRequest", errors)
+        return self
+
+
+class WalkthroughPublic(FrozenModel):
+    """State of a walkthrough: the bake, the chunk jobs, the finished video."""
+
+    key: Sha256
+    """The walkthrough's artifact key (its id)."""
+    status: Literal["queued", "running", "finished", "failed"]
+    """Overall state."""
+    progress: Annotated[float, Field(ge=0, le=1)]
+    """Fraction done (bake counts as one third)."""
+    frames: int
+    """Number of frames."""
+    frames_done: int
+    """Frames rendered so far."""
+    bake_key: Sha256
+    """Key of the walkthrough bake (shared by requests with the same scene and bake settings)."""
+    jobs: list[JobPublic] = []
+    """The bake job, the chunk jobs and the video job (when known)."""
+    error: str | None = None
+    """First error, when failed."""
+    links: dict[str, str] = {}
+    """video.mp4 and the frame chunks once finished."""

@@ -1,0 +1,329 @@
+"""Walkthrough jobs (see ``workers/walkthroughs.py`` for the split and the keys).
+
+- :func:`walkthrough_bake_job` (``bake`` queue): loads the stored scene, chooses base viewpoints
+  and time samples and renders the base range images (``engine.walkthrough.bake``), publishes
+  ``bake.npz``;
+- :func:`walkthrough_chunk_job` (``render`` queue): reconstructs frames ``start..stop-1`` and
+  publishes them as EXR (linear), PNG (sRGB preview) and provenance PNG (8-bit codes);
+- :func:`walkthrough_video_job` (``render`` queue): encodes every frame's PNG into ``video.mp4``
+  (H.264, yuv420p, ffmpeg from ``imageio-ffmpeg``) and publishes the walkthrough manifest.
+
+Every job validates its payload, recomputes its artifact key (a mismatch fails the job at once),
+returns early when its artifact already exists (jobs are at-least-once, artifacts written once),
+reports progress and honours cancellation through :class:`workers.jobs.render.ProgressReporter`.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, ValidationError
+from rq import get_current_job
+
+from api_schemas.common import FrozenModel
+from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
+from api_schemas.service import Sha256
+from api_schemas.walkthrough import WalkthroughSettings
+from engine import ENGINE_VERSION
+from engine.imageio import write_image
+from workers.jobs.payloads import InvalidPayload, describe_validation_error
+from workers.jobs.render import ProgressReporter
+from workers.scene_loader import camera_params, load_animated_scene
+from workers.settings import open_worker_store
+from workers.walkthroughs import (
+    chunk_key,
+    chunks,
+    read_request,
+    walkthrough_bake_key,
+    walkthrough_key,
+)
+
+if TYPE_CHECKING:
+    from engine.animation import AnimatedScene
+    from engine.walkthrough.bake import WalkthroughBake
+    from engine.walkthrough.viewspace import ViewSpace
+    from workers.store import ObjectStore
+
+__all__ = ["WalkthroughUnavailable", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
+
+EXR = "image/x-exr"
+PNG = "image/png"
+MP4 = "video/mp4"
+PROVENANCE_CODES = {0: "hole", 1: "reprojected", 2: "foreground", 3: "background-fill", 4: "traced", 5: "sky"}
+
+
+class WalkthroughUnavailable(RuntimeError):
+    """A walkthrough's bake or chunk is missing: the message names it and its job's state."""
+
+
+class BakePayload(FrozenModel):
+    v: Literal[1] = 1
+    scene_id: Sha256
+    bake_key: Sha256
+    settings: WalkthroughSettings
+
+
+class ChunkPayload(FrozenModel):
+    v: Literal[1] = 1
+    walkthrough_key: Sha256
+    index: Annotated[int, Field(ge=0)]
+    start: Annotated[int, Field(ge=0)]
+    stop: Annotated[int, Field(ge=1)]
+    chunk_key: Sha256
+    bake_key: Sha256
+
+
+class VideoPayload(FrozenModel):
+    v: Literal[1] = 1
+    walkthrough_key: Sha256
+    bake_key: Sha256
+
+
+_store: ObjectStore | None = None
+_bakes: dict[str, WalkthroughBake] = {}
+_scenes: dict[str, AnimatedScene] = {}
+
+
+def _worker_store() -> ObjectStore:
+    global _store
+    if _store is None:
+        _store = open_worker_store()
+    return _store
+
+
+def _validate(model: type[FrozenModel], payload: dict[str, Any], what: str) -> Any:
+    try:
+        return model.model_validate(payload)
+    except ValidationError as exc:
+        raise InvalidPayload(f"invalid {what} payload: {describe_validation_error(exc)}") from None
+
+
+def engine_space(scene: Scene) -> ViewSpace:
+    """The engine view space of a schema scene (the API checked that it has one)."""
+    from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace
+
+    vs = scene.view_space
+    if vs is None:
+        raise InvalidPayload("the scene has no view_space")
+    if isinstance(vs, PathViewSpace):
+        return PathSpace(np.asarray(vs.points, np.float64), vs.radius)
+    if isinstance(vs, BoxViewSpace):
+        return BoxSpace(np.asarray(vs.min, np.float64), np.asarray(vs.max, np.float64))
+    return PolygonSpace(np.asarray(vs.vertices, np.float64), vs.eye_height)
+
+
+def _load_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, AnimatedScene]:
+    from workers.artifacts import blob_reader, get_scene
+
+    scene, mesh_shas, _ = get_scene(store, scene_id)
+    an = _scenes.get(scene_id)
+    if an is None:
+        an = load_animated_scene(scene, blob_reader(store, mesh_shas))
+        if len(_scenes) >= 4:
+            _scenes.pop(next(iter(_scenes)))
+        _scenes[scene_id] = an
+    return scene, an
+
+
+def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Decompose the view space and time interval, render the base images, publish ``bake.npz``."""
+    from engine.walkthrough.bake import bake_walkthrough, walkthrough_preset
+    from workers.artifacts import read_manifest, write_artifact
+
+    t_start = time.perf_counter()
+    p: BakePayload = _validate(BakePayload, payload, "walkthrough bake")
+    if walkthrough_bake_key(p.scene_id, p.settings) != p.bake_key:
+        raise InvalidPayload("bake_key does not match scene_id and settings")
+    store = _worker_store()
+    existing = read_manifest(store, p.bake_key)
+    if existing is not None:
+        return {"artifact_key": p.bake_key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.0, "loading scene", force=True)
+    scene, an = _load_scene(store, p.scene_id)
+    params = walkthrough_preset(p.settings.quality, **p.settings.overrides())
+    bake = bake_walkthrough(an, engine_space(scene), params, progress=progress)
+    progress.report(0.95, "writing", force=True)
+    with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
+        path = Path(tmp) / "bake.npz"
+        bake.save(path)
+        data = path.read_bytes()
+    result = {"views": bake.views.tolist(), "direct_times": bake.direct_times.tolist(),
+              "indirect_times": bake.indirect_times.tolist(), "face_res": bake.res,
+              "timings": {**bake.timings, "job_total": time.perf_counter() - t_start}}
+    progress.check_canceled()
+    write_artifact(store, p.bake_key, "walkthrough-bake", {"scene": p.scene_id}, p.settings.model_dump(mode="json"),
+                   ENGINE_VERSION, {"bake.npz": (data, "application/octet-stream")}, result)
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.bake_key, **result}
+
+
+def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
+    from engine.walkthrough.bake import WalkthroughBake
+    from workers.artifacts import read_blob, read_manifest
+
+    b = _bakes.get(bkey)
+    if b is not None:
+        return b
+    if read_manifest(store, bkey) is None:
+        from workers.queues import fetch_job, job_public
+        from workers.walkthroughs import bake_job_id
+
+        job = get_current_job()
+        why = ""
+        if job is not None:
+            bj = fetch_job(job.connection, bake_job_id(bkey))
+            if bj is not None:
+                pub = job_public(bj)
+                why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+        raise WalkthroughUnavailable(f"walkthrough bake {bkey} is not available{why}")
+    with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
+        path = Path(tmp) / "bake.npz"
+        path.write_bytes(read_blob(store, bkey, "bake.npz"))
+        b = WalkthroughBake.load(path)
+    if len(_bakes) >= 2:
+        _bakes.pop(next(iter(_bakes)))
+    _bakes[bkey] = b
+    return b
+
+
+def _png_codes(path: Path, codes: np.ndarray) -> bytes:
+    import OpenImageIO as oiio
+
+    arr = np.ascontiguousarray(codes, dtype=np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
+    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
+        err = out.geterror()
+        out.close()
+        raise RuntimeError(f"writing {path.name} failed: {err}")
+    out.close()
+    return path.read_bytes()
+
+
+def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Reconstruct frames ``start..stop-1`` of a walkthrough and publish them."""
+    from engine.walkthrough.bake import WalkthroughRenderer
+    from workers.artifacts import read_manifest, write_artifact
+
+    t_start = time.perf_counter()
+    p: ChunkPayload = _validate(ChunkPayload, payload, "walkthrough chunk")
+    store = _worker_store()
+    req = read_request(store, p.walkthrough_key)
+    if req is None:
+        raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
+    if (chunk_key(p.walkthrough_key, p.index, p.start, p.stop) != p.chunk_key
+            or walkthrough_key(req) != p.walkthrough_key or (p.start, p.stop) not in chunks(req)
+            or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key):
+        raise InvalidPayload("chunk payload does not match its walkthrough request")
+    existing = read_manifest(store, p.chunk_key)
+    if existing is not None:
+        return {"artifact_key": p.chunk_key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.0, "loading bake", force=True)
+    bake = _bake(store, p.bake_key)
+    an = _load_scene(store, req.scene_id)[1] if req.fill == "trace" else None
+    wr = WalkthroughRenderer(bake, an)
+    blobs: dict[str, tuple[bytes, str]] = {}
+    frame_ms: list[float] = []
+    counts: dict[str, int] = {}
+    with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmpdir:
+        tmp = Path(tmpdir)
+        n = p.stop - p.start
+        for j, i in enumerate(range(p.start, p.stop)):
+            f = req.frames[i]
+            cam = camera_params(f.camera)
+            fr = wr.render(cam, f.time, fill=req.fill, strict=False)  # the API checked eyes and times
+            frame_ms.append(1e3 * fr.timings["total"])
+            for k, v in fr.counts.items():
+                counts[k] = counts.get(k, 0) + v
+            meta = {"frame": i, "time": f.time, "camera": cam.to_dict(), "fill": req.fill,
+                    "bake_key": p.bake_key, "engine_version": ENGINE_VERSION}
+            for name, pixels, ctype in ((f"frame_{i:05d}.exr", fr.radiance, EXR),
+                                        (f"frame_{i:05d}.png", fr.radiance, PNG)):
+                path = tmp / name
+                write_image(path, pixels, metadata=meta)
+                blobs[name] = (path.read_bytes(), ctype)
+            blobs[f"provenance_{i:05d}.png"] = (_png_codes(tmp / f"provenance_{i:05d}.png", fr.provenance), PNG)
+            progress.report(0.05 + 0.9 * (j + 1) / n, f"frame {i}")
+    progress.check_canceled()
+    result = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
+              "provenance_codes": {str(k): v for k, v in PROVENANCE_CODES.items()},
+              "timings": {"job_total": time.perf_counter() - t_start}}
+    write_artifact(store, p.chunk_key, "walkthrough-chunk", {"walkthrough": p.walkthrough_key},
+                   {"index": p.index, "start": p.start, "stop": p.stop}, ENGINE_VERSION, blobs, result)
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.chunk_key, **result}
+
+
+def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Check every chunk, encode ``video.mp4`` and publish the walkthrough."""
+    import imageio_ffmpeg
+    import OpenImageIO as oiio
+
+    from workers.artifacts import read_blob, read_manifest, write_artifact
+    from workers.queues import fetch_job, job_public
+    from workers.walkthroughs import chunk_job_id
+
+    t_start = time.perf_counter()
+    p: VideoPayload = _validate(VideoPayload, payload, "walkthrough video")
+    store = _worker_store()
+    req = read_request(store, p.walkthrough_key)
+    if req is None:
+        raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
+    if walkthrough_key(req) != p.walkthrough_key or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key:
+        raise InvalidPayload("video payload does not match its walkthrough request")
+    existing = read_manifest(store, p.walkthrough_key)
+    if existing is not None:
+        return {"artifact_key": p.walkthrough_key, **existing.result}
+    progress = ProgressReporter(get_current_job())
+    keys = []
+    for i, (a, b) in enumerate(chunks(req)):
+        ck = chunk_key(p.walkthrough_key, i, a, b)
+        if read_manifest(store, ck) is None:
+            job = get_current_job()
+            why = ""
+            if job is not None:
+                cj = fetch_job(job.connection, chunk_job_id(ck))
+                if cj is not None:
+                    pub = job_public(cj)
+                    why = f" (job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+            raise WalkthroughUnavailable(f"frames {a}..{b - 1} are missing{why}")
+        keys.append(ck)
+    w, h = req.frames[0].camera.width, req.frames[0].camera.height
+    with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmpdir:
+        tmp = Path(tmpdir)
+        out = tmp / "video.mp4"
+        writer = imageio_ffmpeg.write_frames(str(out), (w, h), fps=req.fps, codec="libx264", pix_fmt_in="rgb24",
+                                             pix_fmt_out="yuv420p", macro_block_size=2, quality=7,
+                                             ffmpeg_log_level="error")
+        writer.send(None)
+        try:
+            for ck, (a, b) in zip(keys, chunks(req), strict=True):
+                for i in range(a, b):
+                    png = tmp / "f.png"
+                    png.write_bytes(read_blob(store, ck, f"frame_{i:05d}.png"))
+                    inp = oiio.ImageInput.open(str(png))
+                    if inp is None:
+                        raise RuntimeError(f"cannot read frame {i}: {oiio.geterror()}")
+                    px = np.asarray(inp.read_image(0, 0, 0, 3, "uint8"))
+                    inp.close()
+                    writer.send(np.ascontiguousarray(px.reshape(h, w, 3)).tobytes())
+                    progress.report(0.9 * (i + 1) / len(req.frames), f"encoding frame {i}")
+        finally:
+            writer.close()
+        data = out.read_bytes()
+    progress.check_canceled()
+    result = {"chunks": keys, "frames": len(req.frames), "fps": req.fps, "width": w, "height": h,
+              "timings": {"job_total": time.perf_counter() - t_start}}
+    params = req.model_dump(mode="json", include={"fill", "frames", "chunk_frames", "fps"})
+    write_artifact(store, p.walkthrough_key, "walkthrough", {"scene": req.scene_id, "bake": p.bake_key}, params,
+                   ENGINE_VERSION, {"video.mp4": (data, MP4)}, result)
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.walkthrough_key, **result}

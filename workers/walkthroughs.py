@@ -1,0 +1,267 @@
+"""Walkthroughs of a stored scene, split into RQ jobs (docs/walkthrough.md, "Service").
+
+Imported by the API process: no numba, no engine (the job functions are in
+``workers/jobs/walkthrough.py``).
+
+A request (:class:`api_schemas.walkthrough.WalkthroughRequest`) becomes three kinds of jobs, each
+publishing a content-addressed artifact:
+
+- ``wtbake-<bake key>`` (``bake`` queue): decomposition + base range images of the scene for the
+  bake settings; artifact ``bake.npz``. Shared by every walkthrough of that scene and settings.
+- ``wtchunk-<chunk key>`` (``render`` queue, depends on the bake job): frames ``start..stop-1``
+  as ``frame_NNNNN.exr`` (linear radiance), ``frame_NNNNN.png`` (sRGB preview) and
+  ``provenance_NNNNN.png`` (8-bit provenance codes); several workers share a walkthrough.
+- ``walkthrough-<key>`` (``render`` queue, depends on every chunk job): checks the chunks, encodes
+  ``video.mp4`` (H.264 through the ffmpeg shipped by ``imageio-ffmpeg``) and publishes the
+  walkthrough manifest (its result lists the chunk keys and frame counts).
+
+Keys: ``artifact_key("walkthrough-bake", {"scene"}, settings)``, ``artifact_key("walkthrough",
+{"scene", "bake"}, {fill, frames, chunk_frames, fps})``, ``artifact_key("walkthrough-chunk",
+{"walkthrough"}, {"index", "start", "stop"})``. The request is kept at
+``walkthroughs/<key>.json`` (status and the job payloads read it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any, Literal
+
+from redis import Redis
+from rq import Retry
+from rq.job import Dependency
+
+from api_schemas.errors import FieldError
+from api_schemas.scene import Scene
+from api_schemas.service import JobPublic
+from api_schemas.walkthrough import WalkthroughPublic, WalkthroughRequest, WalkthroughSettings
+from workers.queues import (
+    BAKE_TIMEOUT_S,
+    RENDER_RETRY_INTERVALS_S,
+    RENDER_RETRY_MAX,
+    RENDER_TIMEOUT_S,
+    UnknownScene,
+    engine_version,
+    enqueue_unique,
+    fetch_job,
+    job_public,
+)
+
+if TYPE_CHECKING:
+    from workers.store import ObjectStore
+
+__all__ = [
+    "WALKTHROUGH_BAKE_JOB",
+    "WALKTHROUGH_CHUNK_JOB",
+    "WALKTHROUGH_VIDEO_JOB",
+    "bake_job_id",
+    "chunk_job_id",
+    "chunk_key",
+    "chunks",
+    "check_against_scene",
+    "enqueue_walkthrough",
+    "read_request",
+    "video_job_id",
+    "walkthrough_bake_key",
+    "walkthrough_key",
+    "walkthrough_status",
+]
+
+WALKTHROUGH_BAKE_JOB = "workers.jobs.walkthrough.walkthrough_bake_job"
+WALKTHROUGH_CHUNK_JOB = "workers.jobs.walkthrough.walkthrough_chunk_job"
+WALKTHROUGH_VIDEO_JOB = "workers.jobs.walkthrough.walkthrough_video_job"
+_EYE_TOL = 1e-6  # relative to the view space's size
+
+
+def _key(kind: str, inputs: dict[str, str], params: dict[str, Any]) -> str:
+    from workers.artifacts import artifact_key
+
+    return artifact_key(kind, inputs, params, engine_version())
+
+
+def walkthrough_bake_key(scene_id: str, settings: WalkthroughSettings) -> str:
+    return _key("walkthrough-bake", {"scene": scene_id}, settings.model_dump(mode="json"))
+
+
+def walkthrough_key(req: WalkthroughRequest) -> str:
+    params = req.model_dump(mode="json", include={"fill", "frames", "chunk_frames", "fps"})
+    return _key("walkthrough", {"scene": req.scene_id, "bake": walkthrough_bake_key(req.scene_id, req.bake)}, params)
+
+
+def chunks(req: WalkthroughRequest) -> list[tuple[int, int]]:
+    """(start, stop) frame ranges of the chunk jobs."""
+    n, c = len(req.frames), req.chunk_frames
+    return [(a, min(n, a + c)) for a in range(0, n, c)]
+
+
+def chunk_key(wkey: str, index: int, start: int, stop: int) -> str:
+    return _key("walkthrough-chunk", {"walkthrough": wkey}, {"index": index, "start": start, "stop": stop})
+
+
+def bake_job_id(bkey: str) -> str:
+    return f"wtbake-{bkey}"
+
+
+def chunk_job_id(ckey: str) -> str:
+    return f"wtchunk-{ckey}"
+
+
+def video_job_id(wkey: str) -> str:
+    return f"walkthrough-{wkey}"
+
+
+def _record_key(wkey: str) -> str:
+    return f"walkthroughs/{wkey}.json"
+
+
+def read_request(store: ObjectStore, wkey: str) -> WalkthroughRequest | None:
+    """The request stored for ``wkey`` (None when unknown)."""
+    from workers.store import NotFound
+
+    try:
+        data = store.get_bytes(_record_key(wkey))
+    except NotFound:
+        return None
+    return WalkthroughRequest.model_validate_json(data)
+
+
+def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldError]:
+    """Problems of the request that need the scene: no view space, an eye outside it, a time
+    outside the animation. Each names the field and the allowed range."""
+    errors: list[FieldError] = []
+    vs = scene.view_space
+    if vs is None:
+        return [FieldError(field="scene_id", type="no_view_space",
+                           message="the scene has no view_space; add one (docs/scene-format.md) to walk through it")]
+    lo, hi = vs.bounds()
+    size = max(math.dist(lo, hi), max(abs(c) for c in lo + hi), 1e-300)
+    anim = scene.animation
+    for i, f in enumerate(req.frames):
+        d = vs.distance(f.camera.eye)
+        if d > _EYE_TOL * size:
+            errors.append(FieldError(
+                field=f"frames.{i}.camera.eye", type="outside_view_space",
+                message=f"eye {list(f.camera.eye)} is {d:.6g} outside the scene's {vs.type} view space "
+                        f"(bounds {list(lo)} .. {list(hi)})"))
+        if anim is not None and not anim.start <= f.time <= anim.end:
+            errors.append(FieldError(
+                field=f"frames.{i}.time", type="time_out_of_range",
+                message=f"time {f.time:g} is outside the animation interval [{anim.start:g}, {anim.end:g}]"))
+        if len(errors) >= 20:
+            break
+    return errors
+
+
+def _retry() -> Retry:
+    return Retry(max=RENDER_RETRY_MAX, interval=list(RENDER_RETRY_INTERVALS_S))
+
+
+def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughRequest,
+                        owner: str | None) -> tuple[str, bool]:
+    """Queue the jobs of ``req`` (skipping artifacts already published). Returns ``(key,
+    finished)``. Raises :class:`UnknownScene` when the scene is not stored."""
+    from workers.artifacts import read_manifest
+
+    if not store.exists(f"scenes/{req.scene_id}.json"):
+        raise UnknownScene(f"scene {req.scene_id} does not exist")
+    wkey = walkthrough_key(req)
+    if read_manifest(store, wkey) is not None:
+        return wkey, True
+    store.put_bytes(_record_key(wkey), req.model_dump_json().encode(), "application/json")
+    bkey = walkthrough_bake_key(req.scene_id, req.bake)
+    deps: list[str] = []
+    if read_manifest(store, bkey) is None:
+        bjob = enqueue_unique(
+            redis, "bake", WALKTHROUGH_BAKE_JOB,
+            {"scene_id": req.scene_id, "bake_key": bkey, "settings": req.bake.model_dump(mode="json")},
+            bake_job_id(bkey), timeout=BAKE_TIMEOUT_S, meta={"kind": "walkthrough-bake", "artifact_key": bkey,
+                                                             "owner": owner},
+            retry=_retry(), description=f"walkthrough bake of scene {req.scene_id[:12]}", owner=owner,
+            is_cached=lambda: read_manifest(store, bkey) is not None)
+        if bjob is not None:
+            deps.append(bjob.id)
+    chunk_ids: list[str] = []
+    for i, (a, b) in enumerate(chunks(req)):
+        ckey = chunk_key(wkey, i, a, b)
+        if read_manifest(store, ckey) is not None:
+            continue
+        job = enqueue_unique(
+            redis, "render", WALKTHROUGH_CHUNK_JOB,
+            {"walkthrough_key": wkey, "index": i, "start": a, "stop": b, "chunk_key": ckey, "bake_key": bkey},
+            chunk_job_id(ckey), timeout=RENDER_TIMEOUT_S,
+            meta={"kind": "walkthrough-chunk", "artifact_key": ckey, "owner": owner},
+            retry=_retry(), description=f"walkthrough frames {a}..{b - 1}", owner=owner,
+            is_cached=lambda k=ckey: read_manifest(store, k) is not None,  # type: ignore[misc]
+            depends_on=Dependency(jobs=deps, allow_failure=True) if deps else None)
+        if job is not None:
+            chunk_ids.append(job.id)
+    enqueue_unique(
+        redis, "render", WALKTHROUGH_VIDEO_JOB, {"walkthrough_key": wkey, "bake_key": bkey},
+        video_job_id(wkey), timeout=RENDER_TIMEOUT_S,
+        meta={"kind": "walkthrough", "artifact_key": wkey, "owner": owner},
+        retry=_retry(), description=f"walkthrough video of scene {req.scene_id[:12]}", owner=owner,
+        is_cached=lambda: read_manifest(store, wkey) is not None,
+        depends_on=Dependency(jobs=chunk_ids, allow_failure=True) if chunk_ids else None)
+    return wkey, False
+
+
+def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> WalkthroughPublic | None:
+    """Public state of walkthrough ``wkey`` (None when this store never saw the request)."""
+    from workers.artifacts import read_manifest
+
+    req = read_request(store, wkey)
+    if req is None:
+        return None
+    bkey = walkthrough_bake_key(req.scene_id, req.bake)
+    n = len(req.frames)
+    links: dict[str, str] = {}
+    manifest = read_manifest(store, wkey)
+    if manifest is not None:
+        links = {"artifact": f"/v1/artifacts/{wkey}", "video.mp4": f"/v1/walkthroughs/{wkey}/video.mp4",
+                 "frame.png": f"/v1/walkthroughs/{wkey}/frames/{{index}}.png",
+                 "frame.exr": f"/v1/walkthroughs/{wkey}/frames/{{index}}.exr",
+                 "frame.provenance": f"/v1/walkthroughs/{wkey}/frames/{{index}}.provenance"}
+        for i, ck in enumerate(manifest.result.get("chunks", [])):
+            links[f"chunk.{i}"] = f"/v1/artifacts/{ck}"
+        return WalkthroughPublic(key=wkey, status="finished", progress=1.0, frames=n, frames_done=n, bake_key=bkey,
+                                 links=links)
+    jobs: list[JobPublic] = []
+    error: str | None = None
+    bake_done = read_manifest(store, bkey) is not None
+    bake_frac = 1.0 if bake_done else 0.0
+    bjob = fetch_job(redis, bake_job_id(bkey))
+    if bjob is not None:
+        pub = job_public(bjob)
+        jobs.append(pub)
+        if not bake_done:
+            bake_frac = pub.progress.fraction
+        if pub.state in ("failed", "canceled"):
+            error = f"bake: {pub.error or pub.state}"
+    done = 0
+    chunk_frac = 0.0
+    for i, (a, b) in enumerate(chunks(req)):
+        ckey = chunk_key(wkey, i, a, b)
+        if read_manifest(store, ckey) is not None:
+            done += b - a
+            chunk_frac += b - a
+            continue
+        job = fetch_job(redis, chunk_job_id(ckey))
+        if job is not None:
+            pub = job_public(job)
+            jobs.append(pub)
+            chunk_frac += (b - a) * pub.progress.fraction
+            if pub.state in ("failed", "canceled") and error is None:
+                error = f"frames {a}..{b - 1}: {pub.error or pub.state}"
+    vjob = fetch_job(redis, video_job_id(wkey))
+    if vjob is not None:
+        pub = job_public(vjob)
+        jobs.append(pub)
+        if pub.state in ("failed", "canceled") and error is None:
+            error = f"video: {pub.error or pub.state}"
+    progress = min(0.99, bake_frac / 3 + 2 / 3 * chunk_frac / max(n, 1))
+    running = any(j.state == "started" for j in jobs)
+    status: Literal["queued", "running", "failed"] = (
+        "failed" if error is not None else ("running" if running or done else "queued"))
+    return WalkthroughPublic(key=wkey, status=status, progress=progress, frames=n, frames_done=done, bake_key=bkey,
+                             jobs=jobs, error=error, links=links)
+
+
