@@ -21,6 +21,7 @@ stored result when the artifact already exists, reports progress and honours can
 from __future__ import annotations
 
 import io
+import os
 import tempfile
 import threading
 import time
@@ -334,16 +335,113 @@ def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
     return out
 
 
-def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: dict[str, Any]
+_SRGB_LUT: np.ndarray | None = None
+_FAST_PNG: dict[str, Any] = {"png:compressionLevel": 1, "png:filter": 16}
+"""zlib level 1 and the 'sub' row filter only: ~3x faster than libpng's adaptive filtering at level 6
+for 5-30 % larger files (measured on relit 512x512 frames)."""
+_SCRATCH = Path("/dev/shm") if Path("/dev/shm").is_dir() and os.access("/dev/shm", os.W_OK) else None
+
+
+def _srgb_lut() -> np.ndarray:
+    """uint8 sRGB code of every linear value i / 65535 (the preview's display transform)."""
+    global _SRGB_LUT
+    if _SRGB_LUT is None:
+        from engine.imageio import srgb_encode
+
+        _SRGB_LUT = np.rint(srgb_encode(np.arange(65536) / 65535.0) * 255.0).astype(np.uint8)
+    return _SRGB_LUT
+
+
+def _oiio_bytes(tmp: Path, name: str, data: np.ndarray, pixel_type: str, attrs: dict[str, Any]) -> bytes:
+    """Encode ``data`` (h, w, c) with OpenImageIO into a scratch file and return its bytes. No fsync:
+    the scratch file is thrown away; durability is the object store's job. ``DateTime`` is
+    suppressed, so equal pixels give equal bytes."""
+    import OpenImageIO as oiio
+
+    path = tmp / name
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], pixel_type)
+    spec.attribute("DateTime", "")
+    for key, value in attrs.items():
+        spec.attribute(key, value)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec) or not out.write_image(np.ascontiguousarray(data)):
+        raise OSError(f"cannot encode {name}: {oiio.geterror() or (out.geterror() if out else '')}")
+    out.close()
+    return path.read_bytes()
+
+
+def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: dict[str, str]
                  ) -> dict[str, tuple[bytes, str]]:
-    with tempfile.TemporaryDirectory(prefix="ibr-relight-") as tmpdir:
+    """``radiance.exr`` (float32, lossless RLE: the fastest lossless EXR codec, with the ``ibr:``
+    metadata as strings, readable by ``engine.imageio.read_image``), ``preview.png`` (8-bit sRGB of
+    ``clip(x 2^exposure, 0, 1)`` through a 65536-entry table: within one code value of
+    ``engine.imageio.tonemap_srgb``) and ``outside.png`` (8-bit, 255 = outside coverage), encoded
+    concurrently (OpenImageIO releases the GIL) in a RAM-backed scratch directory when there is one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    if not np.all(np.isfinite(image)):
+        from engine.errors import NonFiniteOutputError
+
+        raise NonFiniteOutputError("relit image holds NaN/Inf; nothing was stored")
+    attrs: dict[str, Any] = {f"ibr:{k}": str(v) for k, v in meta.items()}
+    scaled = np.clip(image * np.float32(2.0**exposure), 0.0, 1.0)
+    preview = _srgb_lut()[np.rint(scaled * 65535.0).astype(np.uint16)]
+    mask = (outside.astype(np.uint8) * 255)[:, :, None]
+    with tempfile.TemporaryDirectory(prefix="ibr-relight-", dir=_SCRATCH) as tmpdir, \
+            ThreadPoolExecutor(3, thread_name_prefix="ibr-encode") as pool:
         tmp = Path(tmpdir)
-        return {
-            "radiance.exr": (_image_bytes(tmp, "radiance.exr", image, metadata=meta), EXR),
-            "preview.png": (_image_bytes(tmp, "preview.png", image, exposure_stops=exposure,
-                                         metadata={**meta, "exposure_stops": exposure}), PNG),
-            "outside.png": (_image_bytes(tmp, "outside.png", outside.astype(np.float32)[:, :, None]), PNG),
-        }
+        exr = pool.submit(_oiio_bytes, tmp, "radiance.exr", image.astype(np.float32), "float",
+                          {**attrs, "compression": "rle"})
+        png = pool.submit(_oiio_bytes, tmp, "preview.png", preview, "uint8",
+                          {**attrs, "ibr:exposure_stops": str(exposure), **_FAST_PNG})
+        msk = pool.submit(_oiio_bytes, tmp, "outside.png", mask, "uint8", _FAST_PNG)
+        return {"radiance.exr": (exr.result(), EXR), "preview.png": (png.result(), PNG),
+                "outside.png": (msk.result(), PNG)}
+
+
+class _ConcurrentBlobWrites:
+    """A store proxy for ``write_artifact``: blob writes run concurrently in threads, and the
+    manifest write waits for all of them first, so the commit order (every blob durable before the
+    manifest) is kept while the blobs' fsyncs overlap. Everything else is delegated."""
+
+    def __init__(self, store: ObjectStore, manifest_suffix: str = "/manifest.json"):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._store = store
+        self._suffix = manifest_suffix
+        self._pool = ThreadPoolExecutor(4, thread_name_prefix="ibr-store")
+        self._pending: list[Any] = []
+
+    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        if key.endswith(self._suffix):
+            self.flush()
+            self._store.put_bytes(key, data, content_type)
+        else:
+            self._pending.append(self._pool.submit(self._store.put_bytes, key, data, content_type))
+
+    def flush(self) -> None:
+        pending, self._pending = self._pending, []
+        for f in pending:
+            f.result()  # re-raises a failed write: the manifest is then never written
+
+    def close(self) -> None:
+        try:
+            self.flush()
+        finally:
+            self._pool.shutdown(wait=True)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._store, name)
+
+
+def _write_concurrently(store: ObjectStore, *args: Any) -> Any:
+    from workers.artifacts import write_artifact
+
+    proxy = _ConcurrentBlobWrites(store)
+    try:
+        return write_artifact(proxy, *args)
+    finally:
+        proxy.close()
 
 
 def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
@@ -356,7 +454,7 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
     from engine.relight import relight
-    from workers.artifacts import read_manifest, write_artifact
+    from workers.artifacts import read_manifest
 
     store = _worker_store()
     existing = read_manifest(store, key)
@@ -385,7 +483,7 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     })
     t0 = time.perf_counter()
     inputs, params = relight_inputs(req)
-    write_artifact(store, key, RELIGHT_KIND, inputs, params, ENGINE_VERSION, blobs, result)
+    _write_concurrently(store, key, RELIGHT_KIND, inputs, params, ENGINE_VERSION, blobs, result)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
     return {"artifact_key": key, **result}
@@ -519,7 +617,7 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
     from engine.composite import active_region_around, composite
     from engine.relight import relight
-    from workers.artifacts import read_manifest, write_artifact
+    from workers.artifacts import read_manifest
 
     store = _worker_store()
     existing = read_manifest(store, key)
@@ -566,6 +664,6 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
                     "relight_background": r_bg.timings.get("total_s"), "composite": t_comp, "encode": t_encode},
     })
     inputs, params = composite_inputs(req)
-    write_artifact(store, key, COMPOSITE_KIND, inputs, params, ENGINE_VERSION, blobs, result)
+    _write_concurrently(store, key, COMPOSITE_KIND, inputs, params, ENGINE_VERSION, blobs, result)
     result["timings"]["job_total"] = time.perf_counter() - t_start
     return {"artifact_key": key, **result}

@@ -99,7 +99,9 @@ router = APIRouter(tags=["datasets"])
 
 MAX_WAIT_S = 60.0
 _POLL_FIRST_S = 0.002
-_POLL_MAX_S = 0.05
+_POLL_MAX_S = 0.01
+_POLL_FINE_S = 2.0
+_POLL_SLOW_S = 0.25
 _ENDED = {b"finished", b"failed", b"canceled", b"stopped"}
 
 DatasetId = Annotated[Sha256, Path(description="Dataset id (sha256 hex)")]
@@ -242,8 +244,10 @@ def _enqueue(redis: Redis, queue: QueueName, func: str, payload: dict[str, Any],
 async def _wait(redis: Redis, store: ObjectStore, job: Job, key: str, wait: float
                 ) -> tuple[JobPublic | None, ArtifactManifest | None]:
     """Poll (store manifest first, then the job's status) until the artifact exists, the job ends
-    or ``wait`` passes. Polling starts at 2 ms so a fast relight is answered within milliseconds."""
-    deadline = time.monotonic() + wait
+    or ``wait`` passes: every 2..10 ms for the first 2 s (a relight takes tens of milliseconds and
+    a poll is one stat plus one HGET), then every 250 ms."""
+    started = time.monotonic()
+    deadline = started + wait
     delay = _POLL_FIRST_S
     mkey = f"artifacts/{key}/manifest.json"
     while True:
@@ -259,7 +263,8 @@ async def _wait(redis: Redis, store: ObjectStore, job: Job, key: str, wait: floa
             manifest = await run_in_threadpool(read_manifest, store, key) if public.state == "finished" else None
             return public, manifest
         await asyncio.sleep(min(delay, max(0.0, deadline - time.monotonic())))
-        delay = min(_POLL_MAX_S, delay * 1.5)
+        # fine-grained for the first seconds (a relight takes tens of ms), then coarser
+        delay = min(_POLL_MAX_S if time.monotonic() - started < _POLL_FINE_S else _POLL_SLOW_S, delay * 1.25)
 
 
 def _result_links(base: str, key: str, job: JobPublic | None) -> dict[str, str]:
