@@ -5,11 +5,12 @@
   (workers/cache.py) stay warm from one job to the next.
 - ``--queue bake`` -> :class:`BakeWorker` (an ``rq.Worker``): a work horse is forked per job,
   so a crash in a job cannot take the worker down. The parent imports the bake job module (and
-  with it the engine) once at start-up, so every forked horse starts with the modules loaded
-  (measured ~1.4 s per job otherwise, docs/performance.md "Bake scaling"), but it never RUNS a
-  numba kernel: no threading pool exists before a fork (GNU OpenMP / TBB pools are not
-  fork-safe, ARCHITECTURE "Known traps"; the engine selects the workqueue layer). Each horse
-  runs its kernels itself, and numba's on-disk cache (``cache=True``) saves the compiles.
+  with it the engine, mesh loading and Embree's bindings) once at start-up, so every forked horse
+  starts with the modules loaded (measured ~2 s per job otherwise, docs/performance.md "Bake
+  scaling"), but it never RUNS a numba kernel or creates an Embree device: no thread pool exists
+  before a fork (GNU OpenMP / TBB pools are not fork-safe, ARCHITECTURE "Known traps"; the engine
+  selects the workqueue layer). Each horse runs its kernels itself, and numba's on-disk cache
+  (``cache=True``) saves the compiles.
 
 Both run RQ's scheduler (retries with intervals need it) and install RQ's signal handlers:
 SIGTERM / SIGINT -> warm shutdown (finish the current job, then exit); a second signal -> cold
@@ -264,7 +265,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         # Import only (no kernel runs in the parent, see the module docstring): forked horses
         # inherit the loaded modules instead of importing numba, Embree and the engine per job.
-        import workers.jobs.bake  # noqa: F401
+        from workers.jobs.bake import preload_modules
+
+        preload_modules()
     worker = build_worker(
         args.queue,
         redis,
