@@ -177,17 +177,24 @@ def _f32_up(a: np.ndarray) -> np.ndarray:
     return b
 
 
-def _frame_arrays(ldc: LDC) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(3, 4, 3) float64 origin/u/v/w, (3,) h, (3, 2) int64 nu/nv."""
-    fr = np.zeros((3, 4, 3))
+def _frame_arrays(ldc: LDC) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(3, 3) int64 world component of u, v, w per axis, (3, 3) frame origins, (3,) h,
+    (3, 2) int64 nu/nv. The LDC's frames are axis-aligned (``axis_frame``); others are refused."""
+    perm = np.zeros((3, 3), dtype=np.int64)
+    org = np.zeros((3, 3))
     hs = np.zeros(3)
     res = np.zeros((3, 2), dtype=np.int64)
     for a, ax in enumerate(ldc.axes):
         f = ax.ldi.frame
-        fr[a] = (f.origin, f.u, f.v, f.w)
+        for j, vec in enumerate((f.u, f.v, f.w)):
+            k = int(np.argmax(np.abs(vec)))
+            if vec[k] != 1.0 or np.count_nonzero(vec) != 1:
+                raise InvalidInputError(f"IBRT needs axis-aligned LDC frames; axis {a} has {vec.tolist()}")
+            perm[a, j] = k
+        org[a] = f.origin
         hs[a] = f.h
         res[a] = (f.nu, f.nv)
-    return fr, hs, res
+    return perm, org, hs, res
 
 
 def patch_extents(ldc: LDC, axis: int, margin: float = DEFAULT_MARGIN,
@@ -327,7 +334,7 @@ def build_accel(ldc: LDC, *, margin: float = DEFAULT_MARGIN, min_cos: float = DE
 # ----------------------------------------------------------------------------- kernels
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _slab(x0, x1, o, d, inv, t0, t1):
     """Clip [t0, t1] to the parameter range where o + t d lies in [x0, x1] (inv = 1 / d)."""
     if d == 0.0:
@@ -342,292 +349,288 @@ def _slab(x0, x1, o, d, inv, t0, t1):
 
 
 @nb.njit(cache=True, nogil=True)
-def _test_pixel(k, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim, min_cos, t_lo, self_eps, sf,
-                best):
-    """Test the dilated tangent patches of pixel k's samples from ``layer`` down; best = [t, sample]
-    is updated in place. Ray in frame coordinates: u, v in pixels (o + t d), w in world units."""
-    s0 = offs[k] + layer
-    s1 = offs[k + 1]
-    ntest = 0
-    # pixel centre minus ray origin, world units, along u and v
+def _patch_t(px, py, dep, g0, g1, g2, pu, pv, pw, ou, ov, ow, du, dv, d0, d1, d2, h, lim, min_cos, self_eps,
+             s0, s1, s2, sdn, st, t_lo, t_hi):
+    """Parameter t of the ray's crossing with a sample's dilated tangent patch, inf if none.
+
+    Sample: pixel (px, py), depth ``dep``, geometric normal g (world). Ray in the LDI's frame:
+    (ou, ov) + t (du, dv) in pixels, ``ow`` depth of the origin; (d0, d1, d2) the world
+    direction. s0..s2 / sdn / st: origin normal, d . normal, self distance (module doc)."""
+    nw = g0 if pw == 0 else (g1 if pw == 1 else g2)
+    if abs(nw) < min_cos:
+        return np.inf
+    nu_ = g0 if pu == 0 else (g1 if pu == 1 else g2)
+    nv_ = g0 if pv == 0 else (g1 if pv == 1 else g2)
+    den = g0 * d0 + g1 * d1 + g2 * d2
+    if den == 0.0:
+        return np.inf
     cu = (px + 0.5 - ou) * h
     cv = (py + 0.5 - ov) * h
-    for s in range(s0, s1):
-        n0 = np.float64(gn[s, 0])
-        n1 = np.float64(gn[s, 1])
-        n2 = np.float64(gn[s, 2])
-        nw = n0 * fr[3, 0] + n1 * fr[3, 1] + n2 * fr[3, 2]
-        if abs(nw) < min_cos:
-            continue
-        ntest += 1
-        nu_ = n0 * fr[1, 0] + n1 * fr[1, 1] + n2 * fr[1, 2]
-        nv_ = n0 * fr[2, 0] + n1 * fr[2, 1] + n2 * fr[2, 2]
-        den = (nu_ * du + nv_ * dv) * h + nw * dw
-        if den == 0.0:
-            continue
-        num = cu * nu_ + cv * nv_ + (depth[s] - ow) * nw
-        if abs(num) <= self_eps * h and abs(cu) <= (lim + 1.0) * h and abs(cv) <= (lim + 1.0) * h:
-            continue  # the ray starts on this patch: it is the surface the ray leaves
-        t = num / den
-        if not (t > t_lo and t < best[0]):
-            continue
-        if t < sf[4] and den * sf[3] > 0.0 and n0 * sf[0] + n1 * sf[1] + n2 * sf[2] > 0.5:
-            continue  # leaving the origin's surface through a neighbouring patch of it
-        xu = ou + t * du - (px + 0.5)
-        xv = ov + t * dv - (py + 0.5)
-        if abs(xu) <= lim and abs(xv) <= lim:
-            best[0] = t
-            best[1] = s
-    return ntest
+    num = cu * nu_ + cv * nv_ + (dep - ow) * nw
+    if abs(num) <= self_eps * h and abs(cu) <= (lim + 1.0) * h and abs(cv) <= (lim + 1.0) * h:
+        return np.inf  # the ray starts on this patch: it is the surface the ray leaves
+    t = num / den
+    if not (t > t_lo and t < t_hi):
+        return np.inf
+    if t < st and den * sdn > 0.0 and g0 * s0 + g1 * s1 + g2 * s2 > 0.5:
+        return np.inf  # leaving the origin's surface through a neighbouring patch of it
+    if abs(ou + t * du - (px + 0.5)) <= lim and abs(ov + t * dv - (py + 0.5)) <= lim:
+        return t
+    return np.inf
 
 
 @nb.njit(cache=True, nogil=True)
-def _trace_axis_tree(ou, ov, ow, du, dv, dw, iu, iv, iw, t_lo, fr, h, nu, offs, depth, gn, root, root_level,
-                     lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, sf, best, stk_i, stk_f, ct0, ct1,
-                     cid, counters):
+def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root,
+                 root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis, out_sample,
+                 out_t, work):
+    """Rays ci * _CHUNK ... of a batch, one after the other (the traversal is written out
+    here rather than called per ray and axis: numba calls with many array arguments cost
+    more than a whole traversal)."""
+    n = o.shape[0]
+    stk_i = np.empty((_STACK, 5), dtype=np.int64)
+    stk_f = np.empty((_STACK, 2))
+    ct0 = np.empty(4)
+    ct1 = np.empty(4)
+    cid = np.empty(4, dtype=np.int64)
+    order = np.empty(3, dtype=np.int64)
+    key = np.empty(3)
     lim = 0.5 + margin
-    size = 1 << root_level
-    # clip to the dilated root block and to the axis' depth range
-    t0, t1 = _slab(-margin, size + margin, ou, du, iu, t_lo, best[0])
-    t0, t1 = _slab(-margin, size + margin, ov, dv, iv, t0, t1)
-    t0, t1 = _slab(zr[0], zr[1], ow, dw, iw, t0, t1)
-    if not (t0 <= t1):
-        return
-    eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(zr[0]) + abs(zr[1]))
-    # start at the deepest node whose block holds every pixel the dilated segment can touch
-    ua = ou + t0 * du
-    ub = ou + t1 * du
-    va = ov + t0 * dv
-    vb = ov + t1 * dv
-    i0 = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
-    i1 = min(size - 1, int(math.floor(max(ua, ub) + margin)))
-    j0 = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
-    j1 = min(size - 1, int(math.floor(max(va, vb) + margin)))
-    if i0 > i1 or j0 > j1:
-        return
-    lev = root_level
-    node = root
-    while lev > 1:
-        sh = lev - 1
-        if (i0 >> sh) != (i1 >> sh) or (j0 >> sh) != (j1 >> sh):
-            break
-        c = ((j0 >> sh) & 1) * 2 + ((i0 >> sh) & 1)
-        m = mask[node]
-        if not (m >> c) & 1:
-            return  # nothing usable in this block, in any layer
-        rank = 0
-        for b in range(c):
-            rank += (m >> b) & 1
-        node = first[node] + rank
-        lev -= 1
-        counters[0] += 1
-    stk_i[0, 0] = node
-    stk_i[0, 1] = lev
-    stk_i[0, 2] = (i0 >> lev) << lev
-    stk_i[0, 3] = (j0 >> lev) << lev
-    stk_i[0, 4] = 0
-    stk_f[0, 0] = t0
-    stk_f[0, 1] = t1
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        node = stk_i[sp, 0]
-        lev = stk_i[sp, 1]
-        x0 = stk_i[sp, 2]
-        y0 = stk_i[sp, 3]
-        layer = stk_i[sp, 4]
-        t0 = stk_f[sp, 0]
-        t1 = min(stk_f[sp, 1], best[0])
-        if not (t0 <= t1):
-            continue
-        counters[0] += 1
-        za = ow + t0 * dw
-        zb = ow + t1 * dw
-        zin = min(za, zb)
-        zout = max(za, zb)
-        if zout + eps < lo_n[node]:
-            continue  # the ray passes in front of this layer and every deeper one here
-        if zin - eps > hi_n[node]:
-            lk = link[node]  # behind this layer: only deeper layers can be hit
-            if lk >= 0:
-                stk_i[sp, 0] = lk
-                stk_i[sp, 4] = layer + 1
-                sp += 1
-            continue
-        half = 1 << (lev - 1)
-        m = mask[node]
-        # parameter ranges of the low / high half along u and v (dilated), then the children
-        xm = x0 + half
-        ym = y0 + half
-        ul0, ul1 = _slab(x0 - margin, xm + margin, ou, du, iu, t0, t1)
-        uh0, uh1 = _slab(xm - margin, xm + half + margin, ou, du, iu, t0, t1)
-        vl0, vl1 = _slab(y0 - margin, ym + margin, ov, dv, iv, t0, t1)
-        vh0, vh1 = _slab(ym - margin, ym + half + margin, ov, dv, iv, t0, t1)
-        nx = 0 if du >= 0.0 else 1
-        ny = 0 if dv >= 0.0 else 1
-        nc = 0
-        for q in range(4):
-            # near corner, the two side children, far corner (side ones fixed up below)
-            if q == 0:
-                c = ny * 2 + nx
-            elif q == 1:
-                c = ny * 2 + (1 - nx)
-            elif q == 2:
-                c = (1 - ny) * 2 + nx
-            else:
-                c = (1 - ny) * 2 + (1 - nx)
-            if not (m >> c) & 1:
+    n_steps = 0
+    n_tests = 0
+    for r in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
+        d0, d1, d2 = d[r, 0], d[r, 1], d[r, 2]
+        s0, s1, s2, sdn, st = selfinfo[r, 0], selfinfo[r, 1], selfinfo[r, 2], selfinfo[r, 3], selfinfo[r, 4]
+        t_lo = tmin[r]
+        best_t = tmax[r]
+        best_s = -1
+        best_a = -1
+        for a in range(3):  # shortest projection (largest |d . w|) first
+            order[a] = a
+            key[a] = -abs(d[r, perm[a, 2]])
+        for i in range(1, 3):
+            j = i
+            while j > 0 and key[order[j - 1]] > key[order[j]]:
+                order[j - 1], order[j] = order[j], order[j - 1]
+                j -= 1
+        for q in range(3):
+            a = order[q]
+            pu, pv, pw = perm[a, 0], perm[a, 1], perm[a, 2]
+            h = hs[a]
+            ou = (o[r, pu] - org[a, pu]) / h
+            ov = (o[r, pv] - org[a, pv]) / h
+            ow = o[r, pw] - org[a, pw]
+            du = d[r, pu] / h
+            dv = d[r, pv] / h
+            dw = d[r, pw]
+            iu = 1.0 / du if du != 0.0 else 0.0
+            iv = 1.0 / dv if dv != 0.0 else 0.0
+            iw = 1.0 / dw if dw != 0.0 else 0.0
+            offs = offs_t[a]
+            depth = depth_t[a]
+            gn = gn_t[a]
+            nu = res[a, 0]
+            nv = res[a, 1]
+            z0 = zr[a, 0]
+            z1 = zr[a, 1]
+            if not use_tree:
+                # ---- linear march: every pixel whose dilated square the projected ray crosses
+                t0, t1 = _slab(-margin, nu + margin, ou, du, iu, t_lo, best_t)
+                t0, t1 = _slab(-margin, nv + margin, ov, dv, iv, t0, t1)
+                t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
+                if not (t0 <= t1):
+                    continue
+                va = ov + t0 * dv
+                vb = ov + t1 * dv
+                jlo = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
+                jhi = min(nv - 1, int(math.floor(max(va, vb) + margin)))
+                for jj in range(jhi - jlo + 1):
+                    j = jlo + jj if dv >= 0.0 else jhi - jj
+                    r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, iv, t0, min(t1, best_t))
+                    if not (r0 <= r1):
+                        continue
+                    ua = ou + r0 * du
+                    ub = ou + r1 * du
+                    ilo = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
+                    ihi = min(nu - 1, int(math.floor(max(ua, ub) + margin)))
+                    for ii in range(ihi - ilo + 1):
+                        i = ilo + ii if du >= 0.0 else ihi - ii
+                        n_steps += 1
+                        k = j * nu + i
+                        for s in range(offs[k], offs[k + 1]):
+                            n_tests += 1
+                            t = _patch_t(i, j, depth[s], np.float64(gn[s, 0]), np.float64(gn[s, 1]),
+                                         np.float64(gn[s, 2]), pu, pv, pw, ou, ov, ow, du, dv, d0, d1, d2, h, lim,
+                                         min_cos, self_eps, s0, s1, s2, sdn, st, t_lo, best_t)
+                            if t < best_t:
+                                best_t = t
+                                best_s = s
+                                best_a = a
                 continue
-            if c & 1:
-                a0, a1 = uh0, uh1
-            else:
-                a0, a1 = ul0, ul1
-            if c >> 1:
-                a0 = max(a0, vh0)
-                a1 = min(a1, vh1)
-            else:
-                a0 = max(a0, vl0)
-                a1 = min(a1, vl1)
-            if not (a0 <= a1):
+            # ---- quadtree with cross-links
+            root = layer_root[a, 0]
+            if root < 0:
                 continue
-            ct0[nc] = a0
-            ct1[nc] = a1
-            cid[nc] = c
-            nc += 1
-        # only the side children can be out of order (and only with each other)
-        for j in range(1, nc):
-            if ct0[j - 1] > ct0[j]:
-                ct0[j - 1], ct0[j] = ct0[j], ct0[j - 1]
-                ct1[j - 1], ct1[j] = ct1[j], ct1[j - 1]
-                cid[j - 1], cid[j] = cid[j], cid[j - 1]
-        if lev == 1:
-            for j in range(nc):
-                if ct0[j] >= best[0]:
+            rl = root_level[a]
+            size = 1 << rl
+            t0, t1 = _slab(-margin, size + margin, ou, du, iu, t_lo, best_t)
+            t0, t1 = _slab(-margin, size + margin, ov, dv, iv, t0, t1)
+            t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
+            if not (t0 <= t1):
+                continue
+            eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(z0) + abs(z1))
+            # start at the deepest node whose block holds every pixel the dilated segment can touch
+            ua = ou + t0 * du
+            ub = ou + t1 * du
+            va = ov + t0 * dv
+            vb = ov + t1 * dv
+            i0 = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
+            i1 = min(size - 1, int(math.floor(max(ua, ub) + margin)))
+            j0 = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
+            j1 = min(size - 1, int(math.floor(max(va, vb) + margin)))
+            if i0 > i1 or j0 > j1:
+                continue
+            lev = rl
+            node = root
+            while lev > 1:
+                sh = lev - 1
+                if (i0 >> sh) != (i1 >> sh) or (j0 >> sh) != (j1 >> sh):
                     break
-                c = cid[j]
-                px = x0 + (c & 1)
-                py = y0 + (c >> 1)
-                counters[0] += 1
-                counters[1] += _test_pixel(py * nu + px, px, py, layer, offs, depth, gn, fr, h, ou, ov, ow, du, dv,
-                                           dw, lim, min_cos, t_lo, self_eps, sf, best)
-        else:
-            fc = first[node]
-            for j in range(nc - 1, -1, -1):  # reversed: the first child the ray enters pops first
-                c = cid[j]
+                c = ((j0 >> sh) & 1) * 2 + ((i0 >> sh) & 1)
+                m = mask[node]
+                if not (m >> c) & 1:
+                    node = -1  # nothing usable in this block, in any layer
+                    break
                 rank = 0
                 for b in range(c):
                     rank += (m >> b) & 1
-                stk_i[sp, 0] = fc + rank
-                stk_i[sp, 1] = lev - 1
-                stk_i[sp, 2] = x0 + (c & 1) * half
-                stk_i[sp, 3] = y0 + (c >> 1) * half
-                stk_i[sp, 4] = layer
-                stk_f[sp, 0] = ct0[j]
-                stk_f[sp, 1] = ct1[j]
-                sp += 1
-
-
-@nb.njit(cache=True, nogil=True)
-def _trace_axis_linear(ou, ov, ow, du, dv, dw, iu, iv, iw, t_lo, fr, h, nu, nv, offs, depth, gn, zr, margin,
-                       min_cos, self_eps, sf, best, counters):
-    """No acceleration: every pixel whose dilated square the projected ray crosses, row by row
-    in the ray's v order and within a row in its u order, all layers."""
-    lim = 0.5 + margin
-    t0, t1 = _slab(-margin, nu + margin, ou, du, iu, t_lo, best[0])
-    t0, t1 = _slab(-margin, nv + margin, ov, dv, iv, t0, t1)
-    t0, t1 = _slab(zr[0], zr[1], ow, dw, iw, t0, t1)
-    if not (t0 <= t1):
-        return
-    va = ov + t0 * dv
-    vb = ov + t1 * dv
-    jlo = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
-    jhi = min(nv - 1, int(math.floor(max(va, vb) + margin)))
-    nrow = jhi - jlo + 1
-    for jj in range(nrow):
-        j = jlo + jj if dv >= 0.0 else jhi - jj
-        r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, iv, t0, min(t1, best[0]))
-        if not (r0 <= r1):
-            continue
-        ua = ou + r0 * du
-        ub = ou + r1 * du
-        ilo = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
-        ihi = min(nu - 1, int(math.floor(max(ua, ub) + margin)))
-        for ii in range(ihi - ilo + 1):
-            i = ilo + ii if du >= 0.0 else ihi - ii
-            counters[0] += 1
-            counters[1] += _test_pixel(j * nu + i, i, j, 0, offs, depth, gn, fr, h, ou, ov, ow, du, dv, dw, lim,
-                                       min_cos, t_lo, self_eps, sf, best)
+                node = first[node] + rank
+                lev -= 1
+                n_steps += 1
+            if node < 0:
+                continue
+            stk_i[0, 0] = node
+            stk_i[0, 1] = lev
+            stk_i[0, 2] = (i0 >> lev) << lev
+            stk_i[0, 3] = (j0 >> lev) << lev
+            stk_i[0, 4] = 0
+            stk_f[0, 0] = t0
+            stk_f[0, 1] = t1
+            sp = 1
+            while sp > 0:
+                sp -= 1
+                node = stk_i[sp, 0]
+                lev = stk_i[sp, 1]
+                x0 = stk_i[sp, 2]
+                y0 = stk_i[sp, 3]
+                layer = stk_i[sp, 4]
+                t0 = stk_f[sp, 0]
+                t1 = min(stk_f[sp, 1], best_t)
+                if not (t0 <= t1):
+                    continue
+                n_steps += 1
+                za = ow + t0 * dw
+                zb = ow + t1 * dw
+                if max(za, zb) + eps < lo_n[node]:
+                    continue  # the ray passes in front of this layer and every deeper one here
+                if min(za, zb) - eps > hi_n[node]:
+                    lk = link[node]  # behind this layer: only deeper layers can be hit
+                    if lk >= 0:
+                        stk_i[sp, 0] = lk
+                        stk_i[sp, 4] = layer + 1
+                        sp += 1
+                    continue
+                half = 1 << (lev - 1)
+                m = mask[node]
+                # parameter ranges of the low / high half along u and v (dilated), then the children
+                xm = x0 + half
+                ym = y0 + half
+                ul0, ul1 = _slab(x0 - margin, xm + margin, ou, du, iu, t0, t1)
+                uh0, uh1 = _slab(xm - margin, xm + half + margin, ou, du, iu, t0, t1)
+                vl0, vl1 = _slab(y0 - margin, ym + margin, ov, dv, iv, t0, t1)
+                vh0, vh1 = _slab(ym - margin, ym + half + margin, ov, dv, iv, t0, t1)
+                nx = 0 if du >= 0.0 else 1
+                ny = 0 if dv >= 0.0 else 1
+                nc = 0
+                for qq in range(4):  # near corner, the two side children, far corner
+                    if qq == 0:
+                        c = ny * 2 + nx
+                    elif qq == 1:
+                        c = ny * 2 + (1 - nx)
+                    elif qq == 2:
+                        c = (1 - ny) * 2 + nx
+                    else:
+                        c = (1 - ny) * 2 + (1 - nx)
+                    if not (m >> c) & 1:
+                        continue
+                    if c & 1:
+                        a0, a1 = uh0, uh1
+                    else:
+                        a0, a1 = ul0, ul1
+                    if c >> 1:
+                        a0 = max(a0, vh0)
+                        a1 = min(a1, vh1)
+                    else:
+                        a0 = max(a0, vl0)
+                        a1 = min(a1, vl1)
+                    if not (a0 <= a1):
+                        continue
+                    ct0[nc] = a0
+                    ct1[nc] = a1
+                    cid[nc] = c
+                    nc += 1
+                for j in range(1, nc):  # only the side children can be out of order
+                    if ct0[j - 1] > ct0[j]:
+                        ct0[j - 1], ct0[j] = ct0[j], ct0[j - 1]
+                        ct1[j - 1], ct1[j] = ct1[j], ct1[j - 1]
+                        cid[j - 1], cid[j] = cid[j], cid[j - 1]
+                if lev == 1:
+                    for j in range(nc):
+                        if ct0[j] >= best_t:
+                            break
+                        c = cid[j]
+                        px = x0 + (c & 1)
+                        py = y0 + (c >> 1)
+                        n_steps += 1
+                        k = py * nu + px
+                        for s in range(offs[k] + layer, offs[k + 1]):
+                            n_tests += 1
+                            t = _patch_t(px, py, depth[s], np.float64(gn[s, 0]), np.float64(gn[s, 1]),
+                                         np.float64(gn[s, 2]), pu, pv, pw, ou, ov, ow, du, dv, d0, d1, d2, h, lim,
+                                         min_cos, self_eps, s0, s1, s2, sdn, st, t_lo, best_t)
+                            if t < best_t:
+                                best_t = t
+                                best_s = s
+                                best_a = a
+                else:
+                    fc = first[node]
+                    for j in range(nc - 1, -1, -1):  # reversed: the first child the ray enters pops first
+                        c = cid[j]
+                        rank = 0
+                        for b in range(c):
+                            rank += (m >> b) & 1
+                        stk_i[sp, 0] = fc + rank
+                        stk_i[sp, 1] = lev - 1
+                        stk_i[sp, 2] = x0 + (c & 1) * half
+                        stk_i[sp, 3] = y0 + (c >> 1) * half
+                        stk_i[sp, 4] = layer
+                        stk_f[sp, 0] = ct0[j]
+                        stk_f[sp, 1] = ct1[j]
+                        sp += 1
+        out_axis[r] = best_a
+        out_sample[r] = best_s
+        out_t[r] = best_t if best_a >= 0 else np.inf
+    work[ci, 0] = n_steps
+    work[ci, 1] = n_tests
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _trace_kernel(o, d, tmin, tmax, frames, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root, root_level,
-                  lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, selfinfo, out_axis, out_sample, out_t,
-                  work):
-    n = o.shape[0]
-    nchunk = (n + _CHUNK - 1) // _CHUNK
-    for ci in nb.prange(nchunk):
-        stk_i = np.empty((_STACK, 5), dtype=np.int64)
-        stk_f = np.empty((_STACK, 2))
-        ct0 = np.empty(4)
-        ct1 = np.empty(4)
-        cid = np.empty(4, dtype=np.int64)
-        best = np.empty(2)
-        counters = np.zeros(2, dtype=np.int64)
-        order = np.empty(3, dtype=np.int64)
-        key = np.empty(3)
-        for r in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
-            best[0] = tmax[r]
-            best[1] = -1.0
-            best_axis = -1
-            for a in range(3):  # shortest projection (largest |d . w|) first
-                fr = frames[a]
-                key[a] = -abs(d[r, 0] * fr[3, 0] + d[r, 1] * fr[3, 1] + d[r, 2] * fr[3, 2])
-                order[a] = a
-            for i in range(1, 3):
-                j = i
-                while j > 0 and key[order[j - 1]] > key[order[j]]:
-                    order[j - 1], order[j] = order[j], order[j - 1]
-                    j -= 1
-            for q in range(3):
-                a = order[q]
-                fr = frames[a]
-                h = hs[a]
-                rx = o[r, 0] - fr[0, 0]
-                ry = o[r, 1] - fr[0, 1]
-                rz = o[r, 2] - fr[0, 2]
-                ou = (rx * fr[1, 0] + ry * fr[1, 1] + rz * fr[1, 2]) / h
-                ov = (rx * fr[2, 0] + ry * fr[2, 1] + rz * fr[2, 2]) / h
-                ow = rx * fr[3, 0] + ry * fr[3, 1] + rz * fr[3, 2]
-                du = (d[r, 0] * fr[1, 0] + d[r, 1] * fr[1, 1] + d[r, 2] * fr[1, 2]) / h
-                dv = (d[r, 0] * fr[2, 0] + d[r, 1] * fr[2, 1] + d[r, 2] * fr[2, 2]) / h
-                dw = d[r, 0] * fr[3, 0] + d[r, 1] * fr[3, 1] + d[r, 2] * fr[3, 2]
-                iu = 1.0 / du if du != 0.0 else 0.0
-                iv = 1.0 / dv if dv != 0.0 else 0.0
-                iw = 1.0 / dw if dw != 0.0 else 0.0
-                prev = best[0]
-                if use_tree:
-                    root = layer_root[a, 0]
-                    if root >= 0:
-                        _trace_axis_tree(ou, ov, ow, du, dv, dw, iu, iv, iw, tmin[r], fr, h, res[a, 0], offs_t[a],
-                                         depth_t[a], gn_t[a], root, root_level[a], lo_n, hi_n, first, mask, link,
-                                         zr[a], margin, min_cos, self_eps, selfinfo[r], best, stk_i, stk_f, ct0, ct1,
-                                         cid, counters)
-                else:
-                    _trace_axis_linear(ou, ov, ow, du, dv, dw, iu, iv, iw, tmin[r], fr, h, res[a, 0], res[a, 1],
-                                       offs_t[a], depth_t[a], gn_t[a], zr[a], margin, min_cos, self_eps,
-                                       selfinfo[r], best, counters)
-                if best[0] < prev:
-                    best_axis = a
-            if best_axis >= 0:
-                out_axis[r] = best_axis
-                out_sample[r] = np.int64(best[1])
-                out_t[r] = best[0]
-            else:
-                out_axis[r] = -1
-                out_sample[r] = -1
-                out_t[r] = np.inf
-        work[ci, 0] = counters[0]
-        work[ci, 1] = counters[1]
+def _trace_kernel(o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root,
+                  root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis, out_sample,
+                  out_t, work):
+    for ci in nb.prange(work.shape[0]):
+        _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+                     layer_root, root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis,
+                     out_sample, out_t, work)
 
 
 # ----------------------------------------------------------------------------- API
@@ -680,7 +683,7 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_
         selfinfo[:, :3] = nrm
         selfinfo[:, 3] = dn
         selfinfo[:, 4] = SELF_PIXELS * ldc.h / np.maximum(np.abs(dn), 0.2)
-    frames, hs, res = _frame_arrays(ldc)
+    perm, org, hs, res = _frame_arrays(ldc)
     out_axis = np.empty(n, dtype=np.int8)
     out_sample = np.empty(n, dtype=np.int64)
     out_t = np.empty(n)
@@ -695,9 +698,9 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_
         nb.set_num_threads(int(threads))
     try:
         if n:
-            _trace_kernel(o, d, tlo, thi, frames, hs, res, offs_t, depth_t, gn_t, use_tree, accel.layer_root,
-                          accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link, accel.zrange,
-                          accel.margin, accel.min_cos, self_eps, selfinfo, out_axis, out_sample, out_t, work)
+            _trace_kernel(o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+                          accel.layer_root, accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link,
+                          accel.zrange, accel.margin, accel.min_cos, self_eps, out_axis, out_sample, out_t, work)
     finally:
         if threads is not None:
             nb.set_num_threads(prev)
