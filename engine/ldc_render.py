@@ -569,7 +569,7 @@ class LDCViewRenderer:
     def _trace_mirrors(self, pix, p, ng, ns, wo, mat, k, radiance, counts, force) -> np.ndarray:
         """k generations of image-based mirror rays ending in the cone gather (module docstring).
         Adds kr x (traced radiance) to ``radiance[pix]``; returns the pixels that traced."""
-        from .ibrt import surface_t_min, trace
+        from .ibrt import trace
 
         sc, ldc = self.scene, self.ldc
         mt = sc.materials
@@ -587,7 +587,7 @@ class LDCViewRenderer:
         for gen in range(1, k + 1):
             if not owner.size:
                 break
-            hits = trace(ldc, self.accel, o, d, t_min=surface_t_min(ldc, d, ng_o))
+            hits = trace(ldc, self.accel, o, d, origin_normals=ng_o)  # leaves the surface it starts on
             counts["traced_rays"] += int(owner.size)
             counts["ibrt_steps"] += hits.n_steps
             miss = ~hits.hit
