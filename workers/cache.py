@@ -110,6 +110,14 @@ class LRUBytesCache(Generic[V]):
                 self._total -= size
                 self.evictions += 1
 
+    def resize(self, key: str, nbytes: int) -> None:
+        """Record a new size for an entry that grew or shrank in place (e.g. an acceleration
+        structure built lazily on first use); evicts others if the total no longer fits."""
+        with self._lock:
+            item = self._items.get(key)
+            if item is not None and item[1] != nbytes:
+                self.put(key, item[0], nbytes)
+
     def pop(self, key: str) -> V | None:
         with self._lock:
             item = self._items.pop(key, None)
@@ -190,7 +198,8 @@ class RendererCache(LRUBytesCache["CachedRenderer | CachedBakeRenderer"]):
     def get_or_load_bake(self, bake_key: str,
                          load: Callable[[], CachedBakeRenderer]) -> tuple[CachedBakeRenderer, bool]:
         """The LDC view renderer of bake ``bake_key``, built by ``load()`` on a miss. Its size is the
-        scene's arrays plus the LDC and LLF (``LDCViewRenderer.nbytes`` at load time)."""
+        scene's arrays plus the LDC and LLF (``LDCViewRenderer.nbytes``); the render job calls
+        :meth:`resize` after a render, when the lazily built IBRT structure has joined them."""
 
         def factory() -> tuple[CachedRenderer | CachedBakeRenderer, int]:
             entry = load()

@@ -39,7 +39,7 @@ from engine import ENGINE_VERSION
 from engine.errors import NonFiniteOutputError
 from engine.imageio import write_image
 from engine.reference import ReferenceParams
-from workers.cache import CachedBakeRenderer, RendererCache
+from workers.cache import CachedBakeRenderer, RendererCache, runtime_scene_bytes
 from workers.jobs.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
 from workers.queues import cancel_key, engine_version, render_artifact_key, render_params
 from workers.scene_loader import LoadedScene, camera_params, load_scene
@@ -330,6 +330,7 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                               f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
     progress.report(_LOAD_END, "render", force=True)
     out = entry.renderer.render(camera, req.method, progress=progress)
+    renderer_cache().resize(f"bake:{bkey}", runtime_scene_bytes(loaded.runtime) + int(entry.renderer.nbytes))
     progress.report(_RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
     meta: dict[str, Any] = {"camera": camera.to_dict(), "scene_id": req.scene_id, "scene_hash": loaded.scene_hash,
