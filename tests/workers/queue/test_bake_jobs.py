@@ -169,3 +169,21 @@ def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
     bakes.delete_bake(redis_conn, worker_store, pub.id, key, params)
     assert worker_store.list("artifacts/") == [] and bakes.list_bakes(worker_store, pub.id) == []
     assert w.alive()
+
+
+def test_a_failed_plan_fails_the_bake_with_its_reason(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    """Past the API (whose bound is checked first), the plan job refuses a bake over the part limit
+    with the engine's estimate; the merge job then fails the bake with that reason instead of
+    waiting forever, and nothing is baked."""
+    params = BakeParams(ldc_resolution=4096, max_layers=256)
+    pub = put_scene(worker_store, diffuse_scene(), {}, None)
+    key, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
+    assert job is not None
+    w = worker_process("bake")
+    st = wait_bake(redis_conn, worker_store, pub.id, key, params, 60, w)
+    assert st.state == "failed", (st, w.log())
+    assert st.error is not None and "planning the bake failed" in st.error and "ldc_resolution 4096" in st.error
+    assert "MiB" in st.error and st.parts == []
+    assert worker_store.list("artifacts/") == []
