@@ -58,6 +58,21 @@ class EffectPlan:
                 "has_ambient": self.has_ambient, "animated": self.animated}
 
 
+def plan_from_dict(d: dict) -> EffectPlan:
+    """Inverse of ``EffectPlan.to_dict()`` (e.g. the plan stored with an LDC bake)."""
+    try:
+        return EffectPlan(material_kinds=tuple(d["material_kinds"]), needs_view_pass=bool(d["needs_view_pass"]),
+                          needs_llf=bool(d["needs_llf"]),
+                          occludable_lights=tuple(bool(x) for x in d["occludable_lights"]),
+                          closed_objects=tuple(bool(x) for x in d["closed_objects"]),
+                          convex_single_object=bool(d["convex_single_object"]), has_emission=bool(d["has_emission"]),
+                          has_ambient=bool(d["has_ambient"]), animated=bool(d.get("animated", False)))
+    except (KeyError, TypeError) as e:
+        from .errors import InvalidInputError
+
+        raise InvalidInputError(f"effect plan dict is malformed: {e}") from None
+
+
 def material_kind(kd, ks, shininess, kr, kg) -> str:
     if np.any(np.asarray(kr) > 0):
         return "mirror"

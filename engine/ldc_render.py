@@ -44,7 +44,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 
 from .camera import camera_rays
-from .effects import EffectPlan
+from .effects import EffectPlan, analyze, plan_from_dict
 from .errors import InvalidInputError, NonFiniteOutputError
 from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
@@ -189,7 +189,7 @@ class LDCViewRenderer:
     per worker); ``render`` is not meant to run in two threads at once (numba's workqueue
     layer), a lock serialises it."""
 
-    def __init__(self, scene: RuntimeScene, ldc: LDC, llf: LLF | None, plan: EffectPlan, *,
+    def __init__(self, scene: RuntimeScene, ldc: LDC, llf: LLF | None, plan: EffectPlan | dict | None = None, *,
                  caster: RayCaster | None = None, area_light_samples: int = 16, seed: int = 0,
                  warp_options: dict | None = None, hole_search_px: int | None = 3, refine_surface: bool = True):
         if not isinstance(ldc, LDC):
@@ -199,6 +199,11 @@ class LDCViewRenderer:
         self.scene = scene
         self.ldc = ldc
         self.llf = llf
+        # the plan: given, or the one stored with the LDC bake, or analysed now
+        if plan is None:
+            plan = plan_from_dict(ldc.plan) if ldc.plan else analyze(scene)
+        elif isinstance(plan, dict):
+            plan = plan_from_dict(plan)
         self.plan = plan
         self._caster = caster
         self.area_light_samples = int(area_light_samples)

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import trimesh
 
-from engine.effects import analyze
+from engine.effects import analyze, plan_from_dict
 from engine.ldc import bake_ldc
 from engine.raycast import EmbreeCaster
 from engine.scene import CameraParams
@@ -31,6 +31,7 @@ def test_material_kinds_and_passes():
     assert plan.closed_objects == (True, True, True, True)
     assert not plan.animated
     json.dumps(plan.to_dict())
+    assert plan_from_dict(json.loads(json.dumps(plan.to_dict()))) == plan
 
     only_hl = scene([(sphere_mesh(), mat("h", ks=(0.3, 0.3, 0.3), shininess=20.0))], [PT])
     p2 = analyze(only_hl)

@@ -188,7 +188,8 @@ def test_methods_and_bad_input(shiny):
         LDCViewRenderer(sc, ldc, None, plan).render(cam, "ldc+llf")
     res = LDCViewRenderer(sc, ldc, None, plan).render(cam, "ldc")  # highlights need only the LDC
     assert res.counts["highlight_pixels"] > 0
-    r = LDCViewRenderer(sc, ldc, llf, plan)
+    r = LDCViewRenderer(sc, ldc, llf)  # the plan stored with the bake
+    assert r.plan == plan and LDCViewRenderer(sc, ldc, llf, plan.to_dict()).plan == plan
     ss = r.render(cam, "ldc+llf", supersample=3)
     big = r.render(CameraParams("perspective", cam.eye, cam.look_at, cam.up, 72, 72, 40.0), "ldc+llf")
     assert ss.radiance.shape == (24, 24, 3) and ss.object_id.shape == (24, 24)
