@@ -137,7 +137,7 @@ def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldErro
     anim = scene.animation
     for i, f in enumerate(req.frames):
         d = vs.distance(f.camera.eye)
-        if d > _EYE_TOL * size:
+        if not math.isfinite(d) or d > _EYE_TOL * size:
             errors.append(FieldError(
                 field=f"frames.{i}.camera.eye", type="outside_view_space",
                 message=f"eye {list(f.camera.eye)} is {d:.6g} outside the scene's {vs.type} view space "
