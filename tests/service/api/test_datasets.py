@@ -33,8 +33,9 @@ def sha(data: bytes) -> str:
 
 def write_bytes(pixels: np.ndarray, ext: str, fmt: str) -> bytes:
     """Raw samples to a file through OpenImageIO (no transfer function applied)."""
-    h, w = pixels.shape[:2]
-    c = 1 if pixels.ndim == 2 else pixels.shape[2]
+    if pixels.ndim == 2:  # OpenImageIO needs the channel axis, even for one channel
+        pixels = pixels[:, :, None]
+    h, w, c = pixels.shape
     fd, path = tempfile.mkstemp(suffix=ext)
     os.close(fd)
     try:

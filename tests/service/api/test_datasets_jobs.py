@@ -53,7 +53,7 @@ def test_generate_bake_relight_round_trip(client: TestClient, worker_process: An
     assert ds["source"]["kind"] == "generated" and ds["source"]["scene_id"] == sid
     assert (ds["width"], ds["height"], ds["distant"], ds["geometry"]) == (24, 16, False, "depth")
     k = ds["n_images"]
-    assert k == gen["job"]["result"]["counts"]["n_lights"] > 10
+    assert k == ds["source"]["n_lights"] > 10
     assert client.post("/v1/datasets/generate", json=gen_req).json()["status"] == "cached"
     # in exactly the upload format: its manifest uploads again as the same dataset (files already stored)
     again = client.post("/v1/datasets", json=ds["manifest"]).json()
@@ -156,3 +156,56 @@ def test_diligent_ball_held_out_light_through_the_api(client: TestClient, worker
     assert np.array_equal(relit0[mask], decoded[mask])
     assert np.allclose(decoded, linear[img0["file"]], rtol=2e-7, atol=0)
 
+
+
+@pytest.mark.slow
+def test_composite_object_into_plate(client: TestClient, worker_process: Any) -> None:
+    """Object dataset (sphere on a floor) and background dataset (the floor alone), same lights and
+    view: object pixels come from the relit object, the plate is darkened in the sphere's shadow and
+    unchanged outside the active region."""
+    bake_w = worker_process("bake")
+    render_w = worker_process("render")
+    logs = lambda: "\n" + bake_w.log() + "\n" + render_w.log()  # noqa: E731
+    scene = small_scene()
+    floor = small_scene(objects=[o for o in scene["objects"] if o["type"] == "plane"])
+    placement = {"region": "hemisphere", "spacing_deg": 30, "center": [0, 0.5, 0], "radius": 3.0}
+    ids = []
+    for sc in (scene, floor):
+        sid = client.post("/v1/scenes", json={"scene": sc}).json()["id"]
+        gen = _ok(client.post("/v1/datasets/generate?wait=60",
+                              json={"scene_id": sid, "placement": placement, "params": GEN_PARAMS}), logs())
+        ids.append(gen["dataset_id"])
+        _ok(client.post(f"/v1/datasets/{gen['dataset_id']}/bake?wait=60", json={}), logs())
+    obj_id, bg_id = ids
+    obj_ds, bg_ds = (client.get(f"/v1/datasets/{i}").json() for i in ids)
+    assert [im["position"] for im in obj_ds["manifest"]["images"]] == \
+        [im["position"] for im in bg_ds["manifest"]["images"]]
+    # the object mask: where the sphere is in front of the floor (the depth maps differ)
+    d_obj, d_bg = (_decode(client.get(f"/v1/datasets/{d['id']}/files/{d['manifest']['geometry']['sha256']}").content,
+                           ".exr")[:, :, 0] for d in (obj_ds, bg_ds))
+    obj_mask = np.abs(d_obj - d_bg) > 1e-4
+    assert 10 < obj_mask.sum() < obj_mask.size // 2
+    plate = np.full((16, 24, 3), 0.25, np.float32)
+    uploads = {}
+    for name, px in (("plate", plate), ("mask", obj_mask.astype(np.float32))):
+        data = write_bytes(px, ".exr", "float")
+        assert client.put(f"/v1/datasets/uploads/{sha(data)}", content=data).status_code == 201
+        uploads[name] = sha(data)
+    light = {"type": "point", "position": [1.5, 2.5, 1.0], "intensity": [9, 9, 9]}
+    req = {"object_dataset_id": obj_id, "background_dataset_id": bg_id, "plate_sha256": uploads["plate"],
+           "object_mask_sha256": uploads["mask"], "active_margin_px": 6, "lights": [light]}
+    comp = _ok(client.post("/v1/composites?wait=30", json=req), logs())
+    counts = comp["artifact"]["result"]["counts"]
+    assert counts["n_object"] == int(obj_mask.sum()) and counts["n_darkened"] > 0
+    out = _decode(client.get(comp["links"]["image.exr"]).content, ".exr")
+    relit_obj = _decode(client.get(_ok(client.post("/v1/relights?wait=30", json={
+        "dataset_id": obj_id, "lights": [light]}), logs())["links"]["image.exr"]).content, ".exr")
+    assert np.array_equal(out[obj_mask], relit_obj[obj_mask])
+    from scipy.ndimage import binary_dilation
+
+    active = binary_dilation(obj_mask, structure=np.ones((3, 3), bool), iterations=6) & ~obj_mask
+    untouched = ~obj_mask & ~active
+    assert np.array_equal(out[untouched], plate[untouched])
+    assert out[active].min() < 0.25 * 0.9  # the sphere's shadow darkens the plate
+    bad = client.post("/v1/composites", json={**req, "background_dataset_id": "4" * 64})
+    assert bad.status_code == 404
