@@ -125,6 +125,7 @@ def test_mirror_scene_bakes_light_field_chunks(
     pub = put_scene(worker_store, mirror_scene(), {}, None)
     key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
     w = worker_process("bake")
+    rw = worker_process("render")  # starts (imports the engine) while the bake runs
     st = wait_bake(redis_conn, worker_store, pub.id, key, params, 120, w)
     assert st.state == "finished", (st.error, w.log())
     assert st.plan is not None and st.plan["needs_llf"] and st.plan["bake_llf"] and st.plan["llf_directions"] == 6
@@ -137,6 +138,29 @@ def test_mirror_scene_bakes_light_field_chunks(
     ldc, llf, plan = load_bake(worker_store, loaded.runtime, key)
     assert llf is not None and llf.n_directions == 6 and [v.index for v in llf.views] == list(range(6))
     assert ldc.resolution == params.ldc_resolution and plan["bake_llf"] is True
+
+    # the view-dependent methods render from it on a render worker: the mirror sphere's pixels are
+    # gathered from the light field (ldc+llf) or traced through the LDC (ldc+ibrt:2)
+    from api_schemas.service import RenderRequest
+
+    results = {}
+    for method in ("ldc+llf", "ldc+ibrt:2"):
+        req = RenderRequest(scene_id=pub.id, method=method, bake=params)
+        rkey, rjob = queues.enqueue_render(redis_conn, req, owner=None, store=worker_store)
+        assert rjob is not None
+        deadline = time.monotonic() + 90
+        while (state := queues.job_public(queues.fetch_job(redis_conn, rjob.id)).state) not in (  # type: ignore[arg-type]
+                "finished", "failed"):
+            assert time.monotonic() < deadline, rw.log()
+            time.sleep(0.1)
+        assert state == "finished", rw.log()
+        m = read_manifest(worker_store, rkey)
+        assert m is not None and "provenance.png" in {b.name for b in m.blobs}
+        results[method] = m.result
+    assert results["ldc+llf"]["counts"]["provenance"]["gathered"] > 0
+    assert results["ldc+ibrt:2"]["counts"]["provenance"]["traced"] > 0
+    assert "gather" in results["ldc+llf"]["timings"] and "ibrt" in results["ldc+ibrt:2"]["timings"]
+    assert results["ldc+llf"]["bake_key"] == key
 
 
 def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
