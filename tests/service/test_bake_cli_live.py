@@ -39,6 +39,7 @@ def stack() -> Iterator[Any]:
             os.environ.update(saved)
 
 
+@pytest.mark.slow
 def test_bake_and_ldc_render_from_the_command_line(stack: Any, tmp_path: Path) -> None:
     runner = CliRunner()
     api = ["--api", stack.api_url]

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 from redis import Redis
 
@@ -73,6 +74,7 @@ def test_render_without_bake_is_409_naming_the_bake(client: TestClient, redis_co
     assert r.headers["content-type"].startswith("application/problem+json")
 
 
+@pytest.mark.slow
 def test_bake_then_ldc_render_end_to_end(client: TestClient, worker_process: Any, redis_conn: Redis,
                                          tmp_path: Path) -> None:
     sid = _scene(client)

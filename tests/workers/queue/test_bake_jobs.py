@@ -114,6 +114,7 @@ def mirror_scene() -> Scene:
     return Scene.model_validate(doc)
 
 
+@pytest.mark.slow
 def test_mirror_scene_bakes_light_field_chunks(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
