@@ -232,31 +232,30 @@ def _build_axis(ldc: LDC, axis: int, margin: float, min_cos: float):
         zrange = np.array([np.inf, -np.inf])
     starts = ax.ldi.offsets[:-1]
     pix = np.arange(nu * nv)
-    px, py = pix % nu, pix // nu
     suffix = np.full(nu * nv, np.inf)
-    # per layer (deepest first for the suffix minimum): per level (Morton codes, lo, hi, mask)
-    layers: list[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = [None] * n_layers  # type: ignore
+    # per layer (deepest first for the suffix minimum), per level 1..root_level: (Morton codes
+    # sorted, lo, hi, live-children mask, index of each node's first child in the level below)
+    layers: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(n_layers)]
     for L in range(n_layers - 1, -1, -1):
         has = counts > L
         idx = starts[has] + L
         suffix[has] = np.minimum(suffix[has], lo_s[idx])
-        lo = np.full((size, size), np.inf)
-        hi = np.full((size, size), -np.inf)
-        lo[py[has], px[has]] = suffix[has]
-        hi[py[has], px[has]] = hi_s[idx]
+        hi_px = np.full(nu * nv, -np.inf)
+        hi_px[has] = hi_s[idx]
+        k = pix[has & (suffix < np.inf)]  # live: a usable sample in this layer or deeper
+        code = _morton(k % nu, k // nu)
+        order = np.argsort(code, kind="stable")
+        code, lo, hi = code[order], suffix[k][order], hi_px[k][order]
         levels = []
         for _lev in range(1, root_level + 1):
-            m = lo.shape[0] // 2
-            live_c = (lo < np.inf).reshape(m, 2, m, 2)
-            mask = (live_c[:, 0, :, 0].astype(np.uint8) | (live_c[:, 0, :, 1].astype(np.uint8) << 1)
-                    | (live_c[:, 1, :, 0].astype(np.uint8) << 2) | (live_c[:, 1, :, 1].astype(np.uint8) << 3))
-            lo = lo.reshape(m, 2, m, 2).min(axis=(1, 3))
-            hi = hi.reshape(m, 2, m, 2).max(axis=(1, 3))
-            yy, xx = np.nonzero(lo < np.inf)
-            code = _morton(xx, yy)
-            order = np.argsort(code, kind="stable")
-            yy, xx, code = yy[order], xx[order], code[order]
-            levels.append((code, lo[yy, xx], hi[yy, xx], mask[yy, xx]))
+            parent = code >> 2
+            start = np.flatnonzero(np.r_[True, parent[1:] != parent[:-1]]) if parent.size else np.zeros(0, np.int64)
+            bits = (np.uint8(1) << (code & 3).astype(np.uint8)).astype(np.uint8)
+            code = parent[start]
+            lo = np.minimum.reduceat(lo, start) if start.size else lo[:0]
+            hi = np.maximum.reduceat(hi, start) if start.size else hi[:0]
+            mask = np.bitwise_or.reduceat(bits, start) if start.size else bits[:0]
+            levels.append((code, lo, hi, mask, start))
         layers[L] = levels
     # global numbering: layer 0 root level first ... level 1, then layer 1, ...
     base: list[list[int]] = []
@@ -277,15 +276,14 @@ def _build_axis(ldc: LDC, axis: int, margin: float, min_cos: float):
         raise InvalidInputError("IBRT quadtree has too many nodes")
     for L in range(n_layers):
         for lev in range(root_level, 0, -1):
-            code, lo, hi, mask = layers[L][lev - 1]
+            code, lo, hi, mask, start = layers[L][lev - 1]
             b = base[L][lev]
             sl = slice(b, b + code.shape[0])
             lo_all[sl] = lo
             hi_all[sl] = hi
             mask_all[sl] = mask
             if lev >= 2:
-                ccode = layers[L][lev - 2][0]
-                first[sl] = base[L][lev - 1] + np.searchsorted(ccode, 4 * code)
+                first[sl] = base[L][lev - 1] + start
             if L + 1 < n_layers:
                 ncode = layers[L + 1][lev - 1][0]
                 pos = np.searchsorted(ncode, code)
