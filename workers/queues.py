@@ -383,6 +383,8 @@ def enqueue_render(
         "batch_id": batch_id,
         "progress": {"fraction": 0.0, "stage": "waiting for the bake" if depends_on else "queued", "eta_s": None},
     }
+    if depends_on is not None:
+        meta["waits_for_bake"] = True
     job = enqueue_unique(
         redis, "render", RENDER_JOB, payload, render_job_id(key),
         timeout=timeout, meta=meta, retry=Retry(max=RENDER_RETRY_MAX, interval=list(RENDER_RETRY_INTERVALS_S)),

@@ -103,7 +103,7 @@ async def request_render(
                 return _answer(key, None, manifest, cached=True)
             raise NotFound(key)
     metrics.render_cache.labels("miss").inc()
-    bake = await run_in_threadpool(_bake_of, req, redis, store)
+    bake = await run_in_threadpool(_bake_of, req, job, redis, store)
     public = await _wait_for(job, wait)
     if public.state == "finished":
         manifest = await run_in_threadpool(read_manifest, store, key)
@@ -116,9 +116,10 @@ async def request_render(
     return _answer(key, public, None, cached=False).model_copy(update={"bake": bake})
 
 
-def _bake_of(req: RenderRequest, redis: Any, store: Any) -> BakePublic | None:
-    """The bake an LDC render is waiting for (``missing_bake: "bake"``), None when it is complete."""
-    if not method_needs_bake(req.method):
+def _bake_of(req: RenderRequest, job: Job, redis: Any, store: Any) -> BakePublic | None:
+    """The bake an LDC render's job waits for (``missing_bake: "bake"``); None otherwise (no store
+    reads on the common path: a render of a finished bake)."""
+    if not method_needs_bake(req.method) or not job.meta.get("waits_for_bake"):
         return None
     from workers.bakes import bake_key, bake_status
 
