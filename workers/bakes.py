@@ -62,6 +62,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BAKE_MAX_PART_BYTES",
+    "BAKE_MAX_TOTAL_BYTES",
     "BakeInUse",
     "PartSpec",
     "bake_job_id",
@@ -86,6 +87,11 @@ __all__ = [
 BAKE_MAX_PART_BYTES = 2 << 30
 """Worst-case bytes one part may allocate (LDC axis: every pixel full to ``max_layers``); a request
 over it is refused before anything is baked (422 from the API, a failed plan from the worker)."""
+
+BAKE_MAX_TOTAL_BYTES = 8 << 30
+"""Bytes of a whole bake in memory (its parts' actual sizes, known once they are baked): the merge
+job and a render worker load all of it, so a bigger bake is failed by the merge job before loading,
+with its size and what to lower."""
 
 LDC_SAMPLE_BYTES_UPPER = 20 + 57 + 16
 """Per LDC sample: LDI (20) + attributes (57) + one visibility word per side (16), for the API's

@@ -25,6 +25,7 @@ from engine import ENGINE_VERSION
 from engine.errors import InvalidInputError
 from workers.bakes import (
     BAKE_MAX_PART_BYTES,
+    BAKE_MAX_TOTAL_BYTES,
     bake_complete,
     bake_key,
     bake_plan_job_id,
@@ -431,6 +432,11 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
         more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
         raise BakeFailed(f"{len(missing)} of {len(specs)} bake parts are missing: {', '.join(why)}{more}; request "
                          "the bake again to redo only the missing parts")
+    total = sum(int(m.result.get("nbytes") or 0) for m in manifests.values() if m is not None)
+    if total > BAKE_MAX_TOTAL_BYTES:
+        raise BakeTooLarge(f"the bake's parts hold {total / 2**20:.0f} MiB, over this server's limit of "
+                           f"{BAKE_MAX_TOTAL_BYTES / 2**20:.0f} MiB for one bake in memory; lower ldc_resolution, "
+                           "max_layers, llf_f or llf_resolution")
     progress.report(0.05, "verifying parts", force=True)
     loaded = _load(store, p.scene_id)
     t0 = time.perf_counter()
