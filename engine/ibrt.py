@@ -525,17 +525,18 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
                 t1 = min(stk_f[sp, 1], best_t)
                 if not (t0 <= t1):
                     continue
-                n_steps += 1
                 za = ow + t0 * dw
                 zb = ow + t1 * dw
-                if max(za, zb) + eps < lo_n[node]:
-                    continue  # the ray passes in front of this layer and every deeper one here
-                if min(za, zb) - eps > hi_n[node]:
-                    lk = link[node]  # behind this layer: only deeper layers can be hit
-                    if lk >= 0:
-                        stk_i[sp, 0] = lk
-                        stk_i[sp, 4] = layer + 1
-                        sp += 1
+                zin = min(za, zb) - eps
+                zout = max(za, zb) + eps
+                # the ray passes in front of this layer and every deeper one here: skip; behind
+                # this layer: follow the cross-links to the first deeper layer it can meet
+                n_steps += 1
+                while node >= 0 and zout >= lo_n[node] and zin > hi_n[node]:
+                    node = link[node]
+                    layer += 1
+                    n_steps += 1
+                if node < 0 or zout < lo_n[node]:
                     continue
                 half = 1 << (lev - 1)
                 m = mask[node]
