@@ -126,9 +126,12 @@ def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log
         errs, ts = [], []
         ren.render(cams[0], params)  # warm
         for cam, g, m in zip(cams, gts, masks, strict=True):
-            t0 = time.perf_counter()
-            r = ren.render(cam, params)
-            ts.append(time.perf_counter() - t0)
+            dts = []
+            for _ in range(2):
+                t0 = time.perf_counter()
+                r = ren.render(cam, params)
+                dts.append(time.perf_counter() - t0)
+            ts.append(min(dts))
             errs.append(lrms(r.radiance, g.radiance, m))
         out["settings"].append({"name": label, "kind": "reference", "lrms_mean": float(np.mean(errs)),
                                 "lrms_max": float(np.max(errs)), "render_ms": 1000 * float(np.median(ts)),
@@ -166,9 +169,16 @@ def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log
         errs, tot, stages = [], [], {}
         counts: dict[str, list] = {}
         for cam, g, m in zip(cams, gts, masks, strict=True):
-            t0 = time.perf_counter()
-            o = r.render(cam, method)
-            tot.append(time.perf_counter() - t0)
+            # the faster of two renders of the view: the machine is shared, load spikes hit single runs
+            best = None
+            for _ in range(2):
+                t0 = time.perf_counter()
+                o = r.render(cam, method)
+                dt = time.perf_counter() - t0
+                if best is None or dt < best[0]:
+                    best = (dt, o)
+            dt, o = best
+            tot.append(dt)
             errs.append(lrms(o.radiance, g.radiance, m))
             for key, v in o.timings.items():
                 stages.setdefault(key, []).append(1000 * v)
@@ -251,7 +261,8 @@ def write_doc(results: dict) -> None:
              f"{GT.spp} spp, {GT.glossy_samples} glossy samples, depth {GT.max_depth}; LRMS over the pixels the ground "
              f"truth covers, mean (max) over the views. LLF at {LLF_RES}x{LLF_RES} per direction, shaded by the "
              f"reference renderer ({LLF_PARAMS.glossy_samples} glossy samples, depth {LLF_PARAMS.max_depth}). "
-             "Render times are medians over the views of one warm renderer (numba compiled, IBRT accel built); "
+             "Render times: per view the faster of two renders, median over the views, one warm renderer (numba "
+             "compiled, IBRT accel built); "
              "bake times are single runs. Storage = LDC + LLF in memory (what the artifact blobs hold). "
              "P = on the Pareto front (no setting both faster and more accurate). "
              "Times are wall clock on a shared 2-core machine: compare them within a table, not across runs.",

@@ -137,7 +137,7 @@ def _gather_samples(sel, idx, side, origin, fu, fv, fw, h, nu, offsets, depth, g
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _refine(rows, o, d, prim, tri_p, tri_n, tri_ng, max_move, p, ng, ns):
     """For row rows[i] (pixel ray o[i] + t d[i], sample triangle prim[i]): move p to the ray's
-    crossing with the triangle's plane (when within max_move of the sample) and interpolate
+    crossing with the triangle's plane (when within max_move[i] of the sample) and interpolate
     the shading normal there (barycentrics clamped to [-0.25, 1.25]: mild extrapolation
     across the triangle's edges), flipped like ng; ng is unchanged."""
     for i in nb.prange(rows.shape[0]):
@@ -153,7 +153,7 @@ def _refine(rows, o, d, prim, tri_p, tri_n, tri_ng, max_move, p, ng, ns):
             continue
         qx, qy, qz = o[i, 0] + tt * d[i, 0], o[i, 1] + tt * d[i, 1], o[i, 2] + tt * d[i, 2]
         dx, dy, dz = qx - p[r, 0], qy - p[r, 1], qz - p[r, 2]
-        if not (dx * dx + dy * dy + dz * dz <= max_move * max_move):
+        if not (dx * dx + dy * dy + dz * dz <= max_move[i] * max_move[i]):
             continue
         e1x, e1y, e1z = tri_p[t, 1, 0] - ax, tri_p[t, 1, 1] - ay, tri_p[t, 1, 2] - az
         e2x, e2y, e2z = tri_p[t, 2, 0] - ax, tri_p[t, 2, 1] - ay, tri_p[t, 2, 2] - az
@@ -529,7 +529,14 @@ class LDCViewRenderer:
                     prim[on] = ax.ldi.prim[s_idx[q][on]]
                 o, d = camera_rays(camera, q % camera.width + 0.5, q // camera.width + 0.5)
                 sc = self.scene
-                _refine(sel, o, d, prim, sc.tri_p, sc.tri_n, sc.tri_ng, 2.0 * self.ldc.h, p, ng, ns)
+                # the winning sample lies within about a pixel footprint or an LDC cell of the pixel's ray
+                if camera.kind == "perspective":
+                    px_size = 2.0 * math.tan(math.radians(camera.fov_y_deg) * 0.5) / camera.height
+                    reach = px_size * np.linalg.norm(p[sel] - o, axis=1)
+                else:
+                    reach = np.full(sel.size, camera.ortho_height / camera.height)
+                lim = 2.0 * (self.ldc.h + reach)
+                _refine(sel, o, d, prim, sc.tri_p, sc.tri_n, sc.tri_ng, lim, p, ng, ns)
         if (~from_ldc).any():
             q = pix[~from_ldc]
             j = np.searchsorted(rc_pix, q)
