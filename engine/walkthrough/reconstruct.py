@@ -22,7 +22,7 @@ Fill modes (``fill``):
   background colour (provenance HOLE).
 - ``foreground``: base pixels are also drawn as small parallelograms (two triangles) to their
   right / lower neighbours on the same cube face when all four lie on the same object with
-  depths within ``quad_depth_ratio`` of each other (same surface: never bridging a depth
+  depths within a factor ``quad_depth_ratio`` (1.6) of each other (same surface: never bridging a depth
   discontinuity), with depth and radiance interpolated; closes the cracks of magnification.
   Quads larger than ``max_footprint`` pixels are skipped.
 - ``background``: like ``none``, then every empty pixel copies the farther (by depth) of the
@@ -89,78 +89,6 @@ class FrameResult:
 # ---------------------------------------------------------------------------- kernels
 
 
-@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _project(views, tg, eyes, depth, basis, res, ortho, ceye, right, up, fwd, W, H, sx_scale, sy_scale, margin,
-             px_out, py_out, z_out, cos_out, state_out):
-    """Project every base pixel of the selected bases. state: 0 invalid, 1 surface, 2 sky
-    (direction only). px/py are continuous pixel coordinates (samples farther than ``margin`` pixels
-    outside the frame are invalid), z the distance along the new ray (perspective) or along the view
-    axis (orthographic), cos_out holds 1 - cos(angle between the base ray and the new ray)."""
-    rr = res * res
-    per = 6 * rr
-    n = views.shape[0] * per
-    inv = 1.0 / res
-    for s in nb.prange(n):
-        b = s // per
-        rem = s - b * per
-        f = rem // rr
-        pr = rem - f * rr
-        r = pr // res
-        c = pr - r * res
-        v = views[b]
-        g = tg[b]
-        sx = (c + 0.5) * 2.0 * inv - 1.0
-        sy = 1.0 - (r + 0.5) * 2.0 * inv
-        dx = basis[f, 2, 0] + sx * basis[f, 0, 0] + sy * basis[f, 1, 0]
-        dy = basis[f, 2, 1] + sx * basis[f, 0, 1] + sy * basis[f, 1, 1]
-        dz = basis[f, 2, 2] + sx * basis[f, 0, 2] + sy * basis[f, 1, 2]
-        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-        dx /= ln
-        dy /= ln
-        dz /= ln
-        dep = depth[v, g, f, r, c]
-        state_out[s] = 0
-        if dep > 0.0:
-            qx = eyes[v, 0] + dx * dep - ceye[0]
-            qy = eyes[v, 1] + dy * dep - ceye[1]
-            qz = eyes[v, 2] + dz * dep - ceye[2]
-            kind = 1
-        else:
-            if ortho:
-                continue
-            qx, qy, qz = dx, dy, dz
-            kind = 2
-        xc = qx * right[0] + qy * right[1] + qz * right[2]
-        yc = qx * up[0] + qy * up[1] + qz * up[2]
-        zc = qx * fwd[0] + qy * fwd[1] + qz * fwd[2]
-        if ortho:
-            if zc <= 0.0:
-                continue
-            u = xc / sx_scale
-            w = yc / sy_scale
-            dist = zc
-            cosv = 1.0 - (dx * fwd[0] + dy * fwd[1] + dz * fwd[2])
-        else:
-            dist = math.sqrt(qx * qx + qy * qy + qz * qz)
-            if zc <= 1e-12 * dist or dist == 0.0:
-                continue
-            u = xc / (zc * sx_scale)
-            w = yc / (zc * sy_scale)
-            # 1 - cos(angle) from the chord between the unit rays: accurate for tiny angles
-            ex, ey, ez = dx - qx / dist, dy - qy / dist, dz - qz / dist
-            cosv = 0.5 * (ex * ex + ey * ey + ez * ez)
-        pxf = (u + 1.0) * 0.5 * W
-        pyf = (1.0 - w) * 0.5 * H
-        # farther than max_fp outside the frame: neither the point nor a quad it starts can land
-        if not (-margin <= pxf <= W + margin and -margin <= pyf <= H + margin):
-            continue
-        px_out[s] = pxf
-        py_out[s] = pyf
-        z_out[s] = dist if kind == 1 else np.inf
-        cos_out[s] = cosv
-        state_out[s] = kind
-
-
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _radiance(v, f, r, c, k, td0, td1, a_d, ti0, ti1, a_i, direct, indirect):
     d = direct[v, td0, f, r, c, k]
@@ -172,18 +100,121 @@ def _radiance(v, f, r, c, k, td0, td1, a_d, ti0, ti1, a_i, direct, indirect):
     return d + i
 
 
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _project(views, tg, td0, td1, a_d, ti0, ti1, a_i, direct, indirect, eyes, depth, oid, basis, res, ortho, ceye,
+             right, up, fwd, W, H, sx_scale, sy_scale, margin, px_out, py_out, z_out, cos_out, rad_out, state_out,
+             oid_out):
+    """Project every base pixel of the selected bases. state: 0 invalid, 1 surface, 2 sky
+    (direction only). px/py are continuous pixel coordinates (samples farther than ``margin`` pixels
+    outside the frame are invalid), z the distance along the new ray (perspective) or along the view
+    axis (orthographic), cos_out holds 1 - cos(angle between the base ray and the new ray)."""
+    inv = 1.0 / res
+    nrows = views.shape[0] * 6 * res
+    for row in nb.prange(nrows):  # one cube row per iteration: no integer division per sample
+        b = row // (6 * res)
+        rem = row - b * 6 * res
+        f = rem // res
+        r = rem - f * res
+        v = views[b]
+        g = tg[b]
+        sy = 1.0 - (r + 0.5) * 2.0 * inv
+        for c in range(res):
+            s = row * res + c
+            sx = (c + 0.5) * 2.0 * inv - 1.0
+            dx = basis[f, 2, 0] + sx * basis[f, 0, 0] + sy * basis[f, 1, 0]
+            dy = basis[f, 2, 1] + sx * basis[f, 0, 1] + sy * basis[f, 1, 1]
+            dz = basis[f, 2, 2] + sx * basis[f, 0, 2] + sy * basis[f, 1, 2]
+            ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx /= ln
+            dy /= ln
+            dz /= ln
+            dep = depth[v, g, f, r, c]
+            state_out[s] = 0
+            oid_out[s] = oid[v, g, f, r, c]
+            if dep > 0.0:
+                qx = eyes[v, 0] + dx * dep - ceye[0]
+                qy = eyes[v, 1] + dy * dep - ceye[1]
+                qz = eyes[v, 2] + dz * dep - ceye[2]
+                kind = 1
+            else:
+                if ortho:
+                    continue
+                qx, qy, qz = dx, dy, dz
+                kind = 2
+            xc = qx * right[0] + qy * right[1] + qz * right[2]
+            yc = qx * up[0] + qy * up[1] + qz * up[2]
+            zc = qx * fwd[0] + qy * fwd[1] + qz * fwd[2]
+            if ortho:
+                if zc <= 0.0:
+                    continue
+                u = xc / sx_scale
+                w = yc / sy_scale
+                dist = zc
+                cosv = 1.0 - (dx * fwd[0] + dy * fwd[1] + dz * fwd[2])
+            else:
+                dist = math.sqrt(qx * qx + qy * qy + qz * qz)
+                if zc <= 1e-12 * dist or dist == 0.0:
+                    continue
+                u = xc / (zc * sx_scale)
+                w = yc / (zc * sy_scale)
+                # 1 - cos(angle) from the chord between the unit rays: accurate for tiny angles
+                ex, ey, ez = dx - qx / dist, dy - qy / dist, dz - qz / dist
+                cosv = 0.5 * (ex * ex + ey * ey + ez * ez)
+            pxf = (u + 1.0) * 0.5 * W
+            pyf = (1.0 - w) * 0.5 * H
+            # farther than max_fp outside the frame: neither the point nor a quad it starts can land
+            if not (-margin <= pxf <= W + margin and -margin <= pyf <= H + margin):
+                continue
+            px_out[s] = pxf
+            py_out[s] = pyf
+            z_out[s] = dist if kind == 1 else np.inf
+            cos_out[s] = cosv
+            for k in range(3):  # radiance at time t, once per sample (the splat reads it per fragment)
+                rad_out[s, k] = _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b], a_i[b], direct,
+                                          indirect)
+            state_out[s] = kind
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _quad_flags(views, tg, res, depth, oid, state, quad_ratio, qok):
+    """qok[s] = 1 when base pixel s and its right, lower-right and lower neighbours (same face) are
+    all projected surface samples of one object with depths within a factor ``quad_ratio``."""
+    nrows = views.shape[0] * 6 * res
+    for row in nb.prange(nrows):
+        b = row // (6 * res)
+        rem = row - b * 6 * res
+        f = rem // res
+        r = rem - f * res
+        v = views[b]
+        g = tg[b]
+        for c in range(res):
+            s = row * res + c
+            qok[s] = 0
+            if c + 1 >= res or r + 1 >= res:
+                continue
+            if state[s] != 1 or state[s + 1] != 1 or state[s + res] != 1 or state[s + res + 1] != 1:
+                continue
+            o0 = oid[v, g, f, r, c]
+            if oid[v, g, f, r, c + 1] != o0 or oid[v, g, f, r + 1, c + 1] != o0 or oid[v, g, f, r + 1, c] != o0:
+                continue
+            d0 = depth[v, g, f, r, c]
+            d1 = depth[v, g, f, r, c + 1]
+            d2 = depth[v, g, f, r + 1, c + 1]
+            d3 = depth[v, g, f, r + 1, c]
+            if max(max(d0, d1), max(d2, d3)) > min(min(d0, d1), min(d2, d3)) * quad_ratio:
+                continue
+            qok[s] = 1
+
+
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _edge(ax, ay, bx, by, px, py):
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _splat(live, views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, cosw, state, depth, oid,
-           direct, indirect, quads, quad_ratio, max_fp, depth_tol, nbands,
+def _splat(live, res, W, H, px, py, z, cosw, rad, state, soid, qok, quads, max_fp, depth_tol, nbands,
            acc, wsum, zbuf, zoid, flags, acc_sky, wsky):
     """Depth-tested, tolerance-averaged splat of points (and foreground quads), band by band."""
-    rr = res * res
-    per = 6 * rr
     n = live.shape[0]
     for band in nb.prange(nbands):
         y0 = band * H // nbands
@@ -195,54 +226,32 @@ def _splat(live, views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, 
                 pys = py[s]
                 if pys < y0 - max_fp - 1.0 or pys >= y1 + max_fp + 1.0:
                     continue  # neither the point nor a quad it starts can reach this band
-                b = s // per
-                rem = s - b * per
-                f = rem // rr
-                pr = rem - f * rr
-                r = pr // res
-                c = pr - r * res
-                v = views[b]
                 # ---- the point sample
                 ix = int(math.floor(px[s]))
-                iy = int(math.floor(py[s]))
+                iy = int(math.floor(pys))
                 if 0 <= ix < W and y0 <= iy < y1:
                     q = iy * W + ix
                     if phase == 0:
                         if st == 1 and z[s] < zbuf[q]:
                             zbuf[q] = z[s]
-                            zoid[q] = oid[v, tg[b], f, r, c]
+                            zoid[q] = soid[s]
                         flags[q] |= 1 if st == 1 else 4
                     elif st == 1 and z[s] <= zbuf[q] * (1.0 + depth_tol):
                         w = 1.0 / (cosw[s] + 1e-12)
                         for k in range(3):
-                            acc[q, k] += w * _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b],
-                                                       a_i[b], direct, indirect)
+                            acc[q, k] += w * rad[s, k]
                         wsum[q] += w
                     elif st == 2 and zbuf[q] == np.inf:
                         for k in range(3):
-                            acc_sky[q, k] += _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b],
-                                                       a_i[b], direct, indirect)
+                            acc_sky[q, k] += rad[s, k]
                         wsky[q] += 1.0
                 # ---- the foreground quad to the right / lower neighbours
-                if not quads or st != 1 or c + 1 >= res or r + 1 >= res:
+                if not quads or qok[s] == 0:
                     continue
                 s1 = s + 1
                 s2 = s + res + 1
                 s3 = s + res
-                if state[s1] != 1 or state[s2] != 1 or state[s3] != 1:
-                    continue
-                g = tg[b]
-                o0 = oid[v, g, f, r, c]
-                if oid[v, g, f, r, c + 1] != o0 or oid[v, g, f, r + 1, c + 1] != o0 or oid[v, g, f, r + 1, c] != o0:
-                    continue
-                d0 = depth[v, g, f, r, c]
-                d1 = depth[v, g, f, r, c + 1]
-                d2 = depth[v, g, f, r + 1, c + 1]
-                d3 = depth[v, g, f, r + 1, c]
-                dmin = min(min(d0, d1), min(d2, d3))
-                dmax = max(max(d0, d1), max(d2, d3))
-                if dmax > dmin * quad_ratio:
-                    continue
+                o0 = soid[s]
                 xmin = min(min(px[s], px[s1]), min(px[s2], px[s3]))
                 xmax = max(max(px[s], px[s1]), max(px[s2], px[s3]))
                 ymin = min(min(py[s], py[s1]), min(py[s2], py[s3]))
@@ -267,9 +276,6 @@ def _splat(live, views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, 
                     if area == 0.0:
                         continue
                     inv_area = 1.0 / area
-                    # corner (r, c) offsets of ib and ic
-                    rb, cb = (r, c + 1) if tri == 0 else (r + 1, c + 1)
-                    rc, cc = (r + 1, c + 1) if tri == 0 else (r + 1, c)
                     for yy in range(cy0, cy1 + 1):
                         fy = yy + 0.5
                         for xx in range(cx0, cx1 + 1):
@@ -290,13 +296,7 @@ def _splat(live, views, tg, td0, td1, a_d, ti0, ti1, a_i, res, W, H, px, py, z, 
                                 cw = wa * cosw[ia] + wb * cosw[ib] + wc * cosw[ic]
                                 w = 1.0 / (cw + 1e-12)
                                 for k in range(3):
-                                    val = (wa * _radiance(v, f, r, c, k, td0[b], td1[b], a_d[b], ti0[b], ti1[b],
-                                                          a_i[b], direct, indirect)
-                                           + wb * _radiance(v, f, rb, cb, k, td0[b], td1[b], a_d[b], ti0[b],
-                                                            ti1[b], a_i[b], direct, indirect)
-                                           + wc * _radiance(v, f, rc, cc, k, td0[b], td1[b], a_d[b], ti0[b],
-                                                            ti1[b], a_i[b], direct, indirect))
-                                    acc[q, k] += w * val
+                                    acc[q, k] += w * (wa * rad[ia, k] + wb * rad[ib, k] + wc * rad[ic, k])
                                 wsum[q] += w
 
 
@@ -382,6 +382,19 @@ def _background_fill(out, dep, ids, prov, W, H):
 # ---------------------------------------------------------------------------- driver
 
 
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _clear(acc, wsum, zbuf, zoid, flags, acc_sky, wsky):
+    for q in nb.prange(wsum.shape[0]):
+        for k in range(3):
+            acc[q, k] = 0.0
+            acc_sky[q, k] = 0.0
+        wsum[q] = 0.0
+        wsky[q] = 0.0
+        zbuf[q] = np.inf
+        zoid[q] = -1
+        flags[q] = 0
+
+
 class _Buffers:
     """Scratch arrays reused between frames of the same size (allocation is a visible share of
     a 512 x 512 frame's budget)."""
@@ -396,6 +409,9 @@ class _Buffers:
             self.py = np.empty(n_samples, np.float32)
             self.z = np.empty(n_samples, np.float32)
             self.cos = np.empty(n_samples, np.float32)
+            self.rad = np.empty((n_samples, 3), np.float32)
+            self.soid = np.empty(n_samples, np.int32)
+            self.qok = np.empty(n_samples, np.uint8)
             self.state = np.empty(n_samples, np.uint8)
             self.acc = np.empty((npix, 3))
             self.wsum = np.empty(npix)
@@ -405,13 +421,7 @@ class _Buffers:
             self.acc_sky = np.empty((npix, 3))
             self.wsky = np.empty(npix)
             self.key = key
-        self.acc.fill(0.0)
-        self.wsum.fill(0.0)
-        self.zbuf.fill(np.inf)
-        self.zoid.fill(-1)
-        self.flags.fill(0)
-        self.acc_sky.fill(0.0)
-        self.wsky.fill(0.0)
+        _clear(self.acc, self.wsum, self.zbuf, self.zoid, self.flags, self.acc_sky, self.wsky)
         return self
 
 
@@ -419,7 +429,7 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
               direct: np.ndarray, indirect: np.ndarray, views: list[int], geometry_time: list[int],
               direct_times: list[tuple[int, int, float]], indirect_times: list[tuple[int, int, float]],
               *, background: np.ndarray, fill: str = "both", depth_tol: float = 0.02,
-              quad_depth_ratio: float = 1.25, max_footprint: float = 32.0,
+              quad_depth_ratio: float = 1.6, max_footprint: float = 32.0,
               buffers: _Buffers | None = None) -> FrameResult:
     """Reproject bases ``views`` into ``camera`` (the core of ``WalkthroughRenderer.render``).
 
@@ -457,20 +467,23 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
     buf = (buffers or _Buffers()).get(n, W * H)
     timings: dict[str, float] = {"setup": time.perf_counter() - t0}
     t1 = time.perf_counter()
-    _project(vb, tg, eyes, depth, _BASIS, res, ortho, np.asarray(camera.eye, np.float64), right, up, fwd,
-             W, H, sx, sy, float(max_footprint) + 1.0, buf.px, buf.py, buf.z, buf.cos, buf.state)
+    _project(vb, tg, td0, td1, ad, ti0, ti1, ai, direct, indirect, eyes, depth, object_id, _BASIS, res, ortho,
+             np.asarray(camera.eye, np.float64), right, up, fwd, W, H, sx, sy, float(max_footprint) + 1.0,
+             buf.px, buf.py, buf.z, buf.cos, buf.rad, buf.state, buf.soid)
+    quads = fill in ("foreground", "both", "trace")
+    if quads:
+        _quad_flags(vb, tg, res, depth, object_id, buf.state, float(quad_depth_ratio), buf.qok)
     live = np.flatnonzero(buf.state)
     timings["project"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    quads = fill in ("foreground", "both", "trace")
     nbands = max(1, min(H, 2 * nb.get_num_threads()))
-    _splat(live, vb, tg, td0, td1, ad, ti0, ti1, ai, res, W, H, buf.px, buf.py, buf.z, buf.cos, buf.state, depth,
-           object_id, direct, indirect, quads, float(quad_depth_ratio), float(max_footprint), float(depth_tol),
-           nbands, buf.acc, buf.wsum, buf.zbuf, buf.zoid, buf.flags, buf.acc_sky, buf.wsky)
+    _splat(live, res, W, H, buf.px, buf.py, buf.z, buf.cos, buf.rad, buf.state, buf.soid, buf.qok, quads,
+           float(max_footprint), float(depth_tol), nbands, buf.acc, buf.wsum, buf.zbuf, buf.zoid, buf.flags,
+           buf.acc_sky, buf.wsky)
     timings["splat"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    out = np.empty((W * H, 3))
-    dep = np.empty(W * H)
+    out = np.empty((W * H, 3), np.float32)
+    dep = np.empty(W * H, np.float32)
     ids = np.empty(W * H, np.int32)
     prov = np.empty(W * H, np.uint8)
     _resolve(buf.acc, buf.wsum, buf.zbuf, buf.zoid, buf.flags, buf.acc_sky, buf.wsky,
@@ -489,5 +502,5 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
     if not np.all(np.isfinite(out)):
         raise NonFiniteOutputError("reconstruction produced non-finite values")
     timings["total"] = time.perf_counter() - t0
-    return FrameResult(out.reshape(H, W, 3).astype(np.float32), dep.reshape(H, W).astype(np.float32),
-                       ids.reshape(H, W), prov.reshape(H, W), timings, list(views))
+    return FrameResult(out.reshape(H, W, 3), dep.reshape(H, W), ids.reshape(H, W), prov.reshape(H, W), timings,
+                       list(views))
