@@ -504,7 +504,7 @@ def _accepted(model: type[Any]) -> dict[int | str, dict[str, Any]]:
     "/v1/datasets/{dataset_id}/bake",
     response_model=DatasetBakePublic,
     responses={**_accepted(DatasetBakePublic),
-               **problem_responses(401, 404, 413, 422, 429, 503)},
+               **problem_responses(400, 401, 404, 413, 422, 429, 503)},
 )
 async def bake(dataset_id: DatasetId, response: Response, store: StoreDep, redis: RedisDep, owner: OwnerDep,
                req: Annotated[BakeRequest | None, Body()] = None, wait: Wait = 0) -> DatasetBakePublic:
@@ -527,7 +527,7 @@ async def bake(dataset_id: DatasetId, response: Response, store: StoreDep, redis
     "/v1/datasets/generate",
     response_model=GenerationPublic,
     responses={**_accepted(GenerationPublic),
-               **problem_responses(401, 404, 413, 422, 429, 503)},
+               **problem_responses(400, 401, 404, 413, 422, 429, 503)},
 )
 async def generate(req: GenerateRequest, response: Response, store: StoreDep, redis: RedisDep, owner: OwnerDep,
                    settings: SettingsDep, wait: Wait = 0) -> GenerationPublic:
@@ -590,7 +590,7 @@ def _check_relight_inputs(store: ObjectStore, owner: str | None, datasets: dict[
     "/v1/relights",
     response_model=RelightPublic,
     responses={**_accepted(RelightPublic),
-               **problem_responses(401, 404, 409, 413, 422, 429, 503)},
+               **problem_responses(400, 401, 404, 409, 413, 422, 429, 503)},
 )
 async def request_relight(req: RelightRequest, response: Response, store: StoreDep, redis: RedisDep,
                           owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
@@ -609,7 +609,7 @@ async def request_relight(req: RelightRequest, response: Response, store: StoreD
     "/v1/composites",
     response_model=RelightPublic,
     responses={**_accepted(RelightPublic),
-               **problem_responses(401, 404, 409, 413, 422, 429, 503)},
+               **problem_responses(400, 401, 404, 409, 413, 422, 429, 503)},
 )
 async def request_composite(req: CompositeRequest, response: Response, store: StoreDep, redis: RedisDep,
                             owner: OwnerDep, wait: Wait = 0) -> RelightPublic:

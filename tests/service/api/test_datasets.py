@@ -330,3 +330,27 @@ def test_datasets_are_per_api_key(make_app: Any) -> None:
         assert c.delete(f"/v1/datasets/{did}", headers=bob).status_code == 404
         assert c.post(f"/v1/datasets/{did}/bake", headers=bob).status_code == 404
         assert c.get("/v1/datasets", headers={}).status_code == 401
+
+
+def test_bake_is_queued_and_delete_waits_for_it(client: TestClient) -> None:
+    """No worker runs here: the bake stays queued; identical requests share the job; deleting the
+    dataset is refused while the job is queued, allowed once it is canceled."""
+    manifest, files = subset(5)
+    did = client.post("/v1/datasets", files=multipart(manifest, files)).json()["id"]
+    r = client.post(f"/v1/datasets/{did}/bake", json={"params": {"layout": "tiled"}})
+    assert r.status_code == 202, r.text
+    body = r.json()
+    assert body["status"] == "queued" and r.headers["location"] == f"/v1/jobs/{body['job']['id']}"
+    assert body["job"]["id"] == f"relight-bake-{body['artifact_key']}" and body["job"]["kind"] == "bake"
+    assert client.post(f"/v1/datasets/{did}/bake", json={"params": {"layout": "tiled"}}).json()["job"]["id"] == \
+        body["job"]["id"]
+    other = client.post(f"/v1/datasets/{did}/bake", json={"params": {"layout": "pixel_major"}}).json()
+    assert other["artifact_key"] != body["artifact_key"]
+    r = client.delete(f"/v1/datasets/{did}")
+    assert r.status_code == 409 and "queued or running job" in r.json()["detail"]
+    for job in (body["job"]["id"], other["job"]["id"]):
+        assert client.post(f"/v1/jobs/{job}/cancel").json()["state"] == "canceled"
+    assert client.delete(f"/v1/datasets/{did}").status_code == 204
+    assert client.post(f"/v1/datasets/{did}/bake", json={}).status_code == 404  # gone
+    bad = client.post(f"/v1/datasets/{did}/bake", json={"params": {"max_face_radius_deg": 120}})
+    assert bad.status_code == 422 and "params.max_face_radius_deg" in fields(bad)
