@@ -913,6 +913,27 @@ class _DualKernel:
 _RELIGHT = _DualKernel(_relight_kernel)
 
 
+def _exact_kernel(store, lut, pix, ks, scales, ratios, out):
+    """out[pix[i]] = sum_j (stored value of light ks[j] / scales[j]) x ratios[j], in float32; a ratio
+    of exactly 1 adds the value unscaled (so one light at its own intensity is the stored image)."""
+    n = pix.size
+    for ci in nb.prange((n + _CHUNK - 1) // _CHUNK):
+        for i in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
+            q = pix[i]
+            for c in range(3):
+                acc = np.float32(0.0)
+                for j in range(ks.size):
+                    v = _fetch(store, lut, i, ks[j], c)
+                    if scales[j] != 1.0:
+                        v = v / scales[j]
+                    r = ratios[j, c]
+                    acc += v if r == 1.0 else v * r
+                out[q, c] = acc
+
+
+_EXACT = _DualKernel(_exact_kernel)
+
+
 def locate_directions(baked: BakedDataset, dirs) -> tuple[np.ndarray, np.ndarray]:
     """Triangle index (n,) int64 (-1 = outside coverage) and barycentric weights (n, 3)
     float64 for directions (n, 3) from the sphere centre (need not be unit)."""
@@ -1188,19 +1209,16 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         raise InvalidInputError("min_light_distance must be finite and >= 0")
     t1 = time.perf_counter()
     timings = {"expand_lights_s": t1 - t0}
-    n = baked.pixel_index.size
     img = np.zeros((h * w, 3), np.float32)
     outside = np.zeros(h * w, bool)
     singular = np.zeros(h * w, bool)
     exact = _exact_indices(baked, kinds, lp) if exact_fast_path else None
     if exact is not None:
-        # light(s) exactly at dataset lights: the stored images, scaled, no interpolation
-        rows = np.zeros((n, 3), np.float32)
-        for j, k in enumerate(exact):
-            ratio = (li[j] / baked.intensities[k]).astype(np.float32)
-            v = baked.light_values(k)
-            rows += v if np.all(ratio == 1.0) else v * ratio
-        img[baked.pixel_index] = rows
+        # light(s) exactly at dataset lights: the stored images, scaled, no interpolation; float32
+        # arithmetic in the order of ``sum_j light_values(k_j) * ratio_j`` (bit-identical to it)
+        ratios = np.ascontiguousarray((li / baked.intensities[exact]).astype(np.float32))
+        _EXACT.pick(serial)(baked.kernel_store(), _HALF_LUT, baked.pixel_index, exact,
+                            baked.store_scale[exact].astype(np.float32), ratios, img)
         timings["kernel_s"] = time.perf_counter() - t1
         used = np.unique(exact)
         n_tri_used = 0

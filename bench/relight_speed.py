@@ -1,0 +1,216 @@
+"""Relighting speed versus the memory-bandwidth bound (issue 5, "Show": speed).
+
+Run: ``python -m bench.relight_speed [--res 512] [--spacing 10] [--runs 20] [--no-doc]`` from the
+repository root. Writes the ``relight_speed`` block of ``docs/relighting.md`` and
+``docs/data/relight_speed.json``.
+
+A generated dataset (``engine.relight_gen``: a glossy ball on a floor that fills the frame,
+point lights on the upper hemisphere every ``--spacing`` degrees, reference renderer 1 spp, direct
+light) is baked three ways (tiled float16 = the default, pixel-major float16, low-rank at 1 %
+relative RMS error) and relit with one point light (p50 of ``--runs`` relights), with a 64-light
+environment map and with one light exactly at a dataset light (the exact path), on 1 and 2 numba
+threads. The memory bandwidth is measured in the same run (a sequential numba read of the store,
+interleaved with the relight rounds); the bound is the time to read the three interpolated
+samples per pixel (3 samples x 3 channels x 2 bytes) at that bandwidth. Rounds are repeated and
+the best round's p50 is reported (the machine is shared; every number is also in the JSON).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+
+from bench.docs_writer import replace_block
+from engine.geometry.mesh import TriMesh
+from engine.reference import ReferenceParams
+from engine.relight import EnvironmentLight, PointLight, bake_dataset, relight
+from engine.relight_gen import LightPlacement, generate_dataset
+from engine.scene import CameraParams, LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "relighting.md"
+DATA = ROOT / "docs" / "data" / "relight_speed.json"
+SAMPLE_BYTES = 3 * 3 * 2  # three interpolated samples per pixel, RGB, float16
+
+
+def _scene():
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    m.apply_translation((0, 0.5, 0))
+    ball = TriMesh(np.ascontiguousarray(m.vertices, np.float64), np.ascontiguousarray(m.faces, np.int32),
+                   np.ascontiguousarray(m.vertex_normals, np.float64))
+    h = 3.0
+    floor = TriMesh(np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], np.float64),
+                    np.array([[0, 2, 1], [0, 3, 2]], np.int32), np.tile([0.0, 1.0, 0.0], (4, 1)))
+    mats = [dict(name="ball", kd=(0.5, 0.5, 0.6), ks=(0.4, 0.4, 0.4), shininess=50.0, kr=(0, 0, 0), kg=(0, 0, 0),
+                 gloss_exponent=0.0, emission=(0, 0, 0)),
+            dict(name="floor", kd=(0.5, 0.4, 0.3), ks=(0, 0, 0), shininess=0.0, kr=(0, 0, 0), kg=(0, 0, 0),
+                 gloss_exponent=0.0, emission=(0, 0, 0))]
+    return build_runtime_scene([SceneObjectPart("ball", ball, 0), SceneObjectPart("floor", floor, 1)],
+                               MaterialTable.from_rows(mats), LightTable.from_rows([]))
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _read(a):
+    nblk = a.size // 8192
+    s = np.zeros(nblk, np.uint64)
+    for i in nb.prange(nblk):
+        acc = np.uint64(0)
+        for j in range(i * 8192, (i + 1) * 8192):
+            acc += a[j]
+        s[i] = acc
+    return s.sum()
+
+
+def bandwidth(buf: np.ndarray, threads: int, reps: int = 5) -> float:
+    """Bytes per second of a sequential read of ``buf`` (best of ``reps``)."""
+    a = buf.reshape(-1).view(np.uint8)
+    a = a[: a.size // 8 * 8].view(np.uint64)
+    prev = nb.get_num_threads()
+    nb.set_num_threads(threads)
+    try:
+        _read(a)
+        best = min(_timed(lambda: _read(a)) for _ in range(reps))
+    finally:
+        nb.set_num_threads(prev)
+    return a.nbytes / best
+
+
+def _timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
+def p50_relight(baked, lights, threads: int, runs: int) -> tuple[float, dict]:
+    r = relight(baked, lights, threads=threads)  # warm
+    ts = []
+    for _ in range(runs):
+        r = relight(baked, lights, threads=threads)
+        ts.append(r.timings["total_s"])
+    return float(np.median(ts)), dict(exact=r.exact, n_outside=r.n_outside, lights_used=int(r.lights_used.size),
+                                      n_triangles_used=r.n_triangles_used)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--res", type=int, default=512)
+    ap.add_argument("--spacing", type=float, default=10.0)
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--no-doc", action="store_true")
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+
+    def log(msg):
+        print(f"{time.perf_counter() - t_start:7.1f}s {msg}", flush=True)
+
+    cam = CameraParams("perspective", (0, 2.2, 2.2), (0, 0.3, 0), (0, 1, 0), args.res, args.res, fov_y_deg=40)
+    t0 = time.perf_counter()
+    ds = generate_dataset(_scene(), cam, LightPlacement(region="hemisphere", spacing_deg=args.spacing),
+                          ReferenceParams(spp=1, max_depth=0))
+    t_gen = time.perf_counter() - t0
+    n_px = int(ds.mask.sum())
+    k = ds.light_positions.shape[0]
+    log(f"dataset: {k} lights, {args.res}x{args.res}, {n_px} surface pixels, generated in {t_gen:.0f} s")
+    bakes = {}
+    for name, kw in (("tiled", {}), ("pixel_major", {"layout": "pixel_major"}), ("lowrank 1%", {"compress": 0.01})):
+        t0 = time.perf_counter()
+        b = bake_dataset(ds, **kw)
+        bakes[name] = dict(baked=b, bake_s=time.perf_counter() - t0, layout=b.layout,
+                           store_bytes=b.report["store_bytes"], dtype=b.report["dtype"],
+                           compression=b.report.get("compression_report"))
+        log(f"bake {name}: {b.layout} {b.report['store_bytes'] / 2**20:.0f} MiB in {bakes[name]['bake_s']:.1f} s")
+    c = ds.sphere_center
+    point = PointLight(tuple(c + [1.0, 2.5, 1.2]), 20.0)
+    rng = np.random.default_rng(0)
+    env_img = rng.uniform(0.0, 1.0, (32, 64, 3))
+    env_img[16:] = 0.0  # sky only: every direction inside the hemisphere's coverage
+    env = EnvironmentLight(env_img, n_lights=64)
+    exact = PointLight(tuple(ds.light_positions[k // 2]), tuple(ds.intensities[k // 2]))
+    cases = {"1 point light": (point, args.runs), "64-light environment map": (env, max(5, args.runs // 4)),
+             "1 light at a dataset light (exact path)": (exact, args.runs)}
+    # the bandwidth is read from a buffer far larger than the caches: the store, or 256 MiB
+    bw_buf = bakes["tiled"]["baked"].store
+    if bw_buf.nbytes < 128 * 2**20:
+        bw_buf = np.ones(256 * 2**20, np.uint8)
+    rounds: list[dict] = []
+    for rd in range(args.rounds):
+        row: dict = {"bandwidth": {}}
+        for thr in (1, 2):
+            row["bandwidth"][thr] = bandwidth(bw_buf, thr)
+            for bname, bk in bakes.items():
+                for cname, (lights, runs) in cases.items():
+                    if bname != "tiled" and cname.startswith("1 light at"):
+                        continue
+                    p50, info = p50_relight(bk["baked"], lights, thr, runs)
+                    row[f"{thr}|{bname}|{cname}"] = dict(p50_s=p50, **info)
+        rounds.append(row)
+        log(f"round {rd + 1}: bandwidth 1t {row['bandwidth'][1] / 1e9:.1f} GB/s, 2t {row['bandwidth'][2] / 1e9:.1f} "
+            f"GB/s; tiled 1 light 1t {1e3 * row['1|tiled|1 point light']['p50_s']:.1f} ms, 2t "
+            f"{1e3 * row['2|tiled|1 point light']['p50_s']:.1f} ms")
+    keys = [key for key in rounds[0] if key != "bandwidth"]
+    best = {key: min(r[key]["p50_s"] for r in rounds) for key in keys}
+    bw = {thr: max(r["bandwidth"][thr] for r in rounds) for thr in (1, 2)}
+    strict = {thr: n_px * SAMPLE_BYTES / bw[thr] for thr in (1, 2)}
+    res = dict(config=dict(res=args.res, spacing_deg=args.spacing, n_lights=k, n_pixels=n_px, runs=args.runs,
+                           rounds=args.rounds, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                           machine=f"{platform.machine()}, {nb.config.NUMBA_NUM_THREADS} cores, Python "
+                                   f"{sys.version.split()[0]}"),
+               generate_s=t_gen, bakes={n: {kk: v for kk, v in b.items() if kk != "baked"} for n, b in bakes.items()},
+               bandwidth_bytes_per_s=bw, strict_bound_s=strict, best_p50_s=best, rounds=rounds,
+               run_s=time.perf_counter() - t_start)
+    DATA.parent.mkdir(parents=True, exist_ok=True)
+    DATA.write_text(json.dumps(res, indent=1, default=str) + "\n")
+    text = report(res)
+    print(text)
+    if not args.no_doc:
+        replace_block(DOC, "relight_speed", text)
+    return 0
+
+
+def report(res: dict) -> str:
+    cfg = res["config"]
+    bw, strict, best = res["bandwidth_bytes_per_s"], res["strict_bound_s"], res["best_p50_s"]
+    L = [f"Measured by `python -m bench.relight_speed` on {cfg['date']} ({cfg['machine']}; the 2 cores are shared "
+         f"with other sessions, so absolute times vary by up to 2-3x between runs; ratios are within one run). "
+         f"Dataset: generated ball on a floor filling the frame, {cfg['res']}x{cfg['res']} "
+         f"({cfg['n_pixels']} surface pixels), {cfg['n_lights']} point lights on the upper hemisphere every "
+         f"{cfg['spacing_deg']:g} deg (generated in {res['generate_s']:.0f} s). Time = `relight(...).timings"
+         f"[\"total_s\"]` (light expansion, kernel, result arrays), p50 of {cfg['runs']} relights (5 for the "
+         f"environment map), best of {cfg['rounds']} interleaved rounds.", ""]
+    L.append(f"Memory bandwidth (sequential read of the store, same run): {bw[1] / 1e9:.1f} GB/s on 1 thread, "
+             f"{bw[2] / 1e9:.1f} GB/s on 2. Strict bound for one light = reading 3 samples x 3 channels x 2 bytes "
+             f"per pixel: {1e3 * strict[1]:.2f} ms (1 thread), {1e3 * strict[2]:.2f} ms (2 threads).")
+    L.append("")
+    L.append("| store | bake s | store MiB | case | 1 thread p50 ms | 2 threads p50 ms | x strict bound (2 threads) |")
+    L.append("|---|---|---|---|---|---|---|")
+    for bname, bk in res["bakes"].items():
+        for cname in ("1 point light", "64-light environment map", "1 light at a dataset light (exact path)"):
+            k1, k2 = f"1|{bname}|{cname}", f"2|{bname}|{cname}"
+            if k1 not in best:
+                continue
+            ratio = best[k2] / strict[2] if cname == "1 point light" else best[k2] / (64 * strict[2]) \
+                if cname.startswith("64") else float("nan")
+            cr = bk["compression"]
+            desc = f"{bname} ({bk['dtype']})" if bk["layout"] != "lowrank" else \
+                f"low-rank, {cr['rel_rms_error']:.2%} rel. RMS, mean rank {cr['rank_mean']:.0f}"
+            L.append(f"| {desc} | {bk['bake_s']:.1f} | {bk['store_bytes'] / 2**20:.0f} | {cname} | "
+                     f"{1e3 * best[k1]:.1f} | {1e3 * best[k2]:.1f} | "
+                     f"{'-' if ratio != ratio else f'{ratio:.1f}x'} |")
+    L.append("")
+    L.append("For the environment map the bound is 64 x the one-light bound. Raw numbers, every round: "
+             "`docs/data/relight_speed.json`.")
+    return "\n".join(L)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
