@@ -195,3 +195,24 @@ def test_loader_without_animation_is_static() -> None:
     doc = copy.deepcopy(base_doc())
     an = load_animated_scene(load_scene_json(json.dumps(doc)))
     assert an.is_static and an.start == an.end == 0.0
+
+
+def test_schema_and_engine_view_space_distances_agree() -> None:
+    # the API checks eyes with the schema models, the engine with its own types: they must agree
+    from api_schemas.scene import BoxViewSpace, PathViewSpace, PolygonViewSpace
+    from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace
+
+    rng = np.random.default_rng(3)
+    pts = [[0.0, 1.0, 0.0], [2.0, 1.0, 1.0], [3.0, 1.5, -1.0]]
+    poly = [[0.0, 0.0], [4.0, 0.0], [4.0, 1.0], [1.0, 1.0], [1.0, 3.0], [0.0, 3.0]]
+    pairs = [
+        (PathViewSpace(points=pts, radius=0.25), PathSpace(np.array(pts), 0.25)),
+        (BoxViewSpace(min=(0, 1, 0), max=(2, 1, 3)), BoxSpace(np.array([0.0, 1, 0]), np.array([2.0, 1, 3]))),
+        (PolygonViewSpace(vertices=poly, eye_height=1.6), PolygonSpace(np.array(poly), 1.6)),
+    ]
+    for schema_vs, engine_vs in pairs:
+        for p in rng.uniform(-1, 4, size=(200, 3)):
+            ds = schema_vs.distance(tuple(p))
+            de = max(0.0, engine_vs.distance(p) - getattr(engine_vs, "radius", 0.0))
+            assert math.isclose(ds, de, rel_tol=1e-9, abs_tol=1e-12), (schema_vs.type, p, ds, de)
+            assert (ds <= 1e-9) == engine_vs.contains(p, 1e-9)
