@@ -347,6 +347,17 @@ def _slab(x0, x1, o, d, inv, t0, t1):
 
 
 @nb.njit(cache=True, nogil=True)
+def _icl(x, n):
+    """ceil(x) as an int, x clamped to [-1, n + 1] first (far origins: no float -> int overflow)."""
+    return int(math.ceil(min(max(x, -1.0), n + 1.0)))
+
+
+@nb.njit(cache=True, nogil=True)
+def _ifl(x, n):
+    return int(math.floor(min(max(x, -1.0), n + 1.0)))
+
+
+@nb.njit(cache=True, nogil=True)
 def _patch_t(px, py, dep, g0, g1, g2, pu, pv, pw, ou, ov, ow, du, dv, d0, d1, d2, h, lim, min_cos, self_eps,
              s0, s1, s2, sdn, st, t_lo, t_hi):
     """Parameter t of the ray's crossing with a sample's dilated tangent patch, inf if none.
@@ -439,8 +450,8 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
                     continue
                 va = ov + t0 * dv
                 vb = ov + t1 * dv
-                jlo = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
-                jhi = min(nv - 1, int(math.floor(max(va, vb) + margin)))
+                jlo = max(0, _icl(min(va, vb) - 1.0 - margin, nv))
+                jhi = min(nv - 1, _ifl(max(va, vb) + margin, nv))
                 for jj in range(jhi - jlo + 1):
                     j = jlo + jj if dv >= 0.0 else jhi - jj
                     r0, r1 = _slab(j - margin, j + 1.0 + margin, ov, dv, iv, t0, min(t1, best_t))
@@ -448,8 +459,8 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
                         continue
                     ua = ou + r0 * du
                     ub = ou + r1 * du
-                    ilo = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
-                    ihi = min(nu - 1, int(math.floor(max(ua, ub) + margin)))
+                    ilo = max(0, _icl(min(ua, ub) - 1.0 - margin, nu))
+                    ihi = min(nu - 1, _ifl(max(ua, ub) + margin, nu))
                     for ii in range(ihi - ilo + 1):
                         i = ilo + ii if du >= 0.0 else ihi - ii
                         n_steps += 1
@@ -481,10 +492,10 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
             ub = ou + t1 * du
             va = ov + t0 * dv
             vb = ov + t1 * dv
-            i0 = max(0, int(math.ceil(min(ua, ub) - 1.0 - margin)))
-            i1 = min(size - 1, int(math.floor(max(ua, ub) + margin)))
-            j0 = max(0, int(math.ceil(min(va, vb) - 1.0 - margin)))
-            j1 = min(size - 1, int(math.floor(max(va, vb) + margin)))
+            i0 = max(0, _icl(min(ua, ub) - 1.0 - margin, size))
+            i1 = min(size - 1, _ifl(max(ua, ub) + margin, size))
+            j0 = max(0, _icl(min(va, vb) - 1.0 - margin, size))
+            j1 = min(size - 1, _ifl(max(va, vb) + margin, size))
             if i0 > i1 or j0 > j1:
                 continue
             lev = rl

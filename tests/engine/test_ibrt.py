@@ -404,3 +404,6 @@ def test_degenerate_rays_hard_case_11():
     d = (tgt - o) / np.linalg.norm(tgt - o, axis=1, keepdims=True)
     agree(o, d)
     assert not trace(ldc, acc, o, -d).hit.any()
+    # absurdly far (1e30): no overflow in the pixel arithmetic, finite answers
+    far = trace(ldc, acc, o * 1e27, d)
+    assert np.all(np.isfinite(far.t[far.hit])) and np.all(np.isinf(far.t[~far.hit]))
