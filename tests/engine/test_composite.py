@@ -80,6 +80,29 @@ def test_near_black_background_never_blows_up():
     assert np.array_equal(out, plate)
 
 
+def test_pixels_without_data_keep_the_plate():
+    """A RelightResult's outside-coverage / singular pixels never enter the ratio."""
+    from engine.relight import RelightResult
+
+    h, w = 6, 7
+    i_obj = np.full((h, w, 3), 0.25, np.float32)
+    i_bg = np.full((h, w, 3), 0.5, np.float32)
+    outside = np.zeros((h, w), bool)
+    outside[1, 2] = True
+    singular = np.zeros((h, w), bool)
+    singular[4, 5] = True
+    res = RelightResult(image=i_obj, outside_mask=outside, n_outside=1, singular_mask=singular, n_singular=1,
+                        timings={})
+    plate = np.full((h, w, 3), 0.8, np.float32)
+    om = np.zeros((h, w), bool)
+    om[0, 0] = True
+    out, st = composite(res, i_bg, plate, om, np.ones((h, w), bool))
+    assert st["n_no_data"] == 2 and st["n_active"] == h * w - 1
+    assert np.array_equal(out[1, 2], plate[1, 2]) and np.array_equal(out[4, 5], plate[4, 5])
+    assert np.allclose(out[2, 2], 0.4, rtol=1e-3)  # 0.8 x 0.25 / 0.5
+    assert np.array_equal(out[0, 0], i_obj[0, 0])
+
+
 def test_validation_names_the_field():
     a = np.zeros((4, 5, 3), np.float32)
     m = np.zeros((4, 5), bool)
