@@ -76,6 +76,7 @@ __all__ = [
     "enqueue_parts",
     "ldc_part_specs",
     "list_bakes",
+    "merge_stuck",
     "llf_direction_count",
     "llf_part_specs",
     "part_job_id",
@@ -276,7 +277,7 @@ def enqueue_bake(
     plan_id = bake_plan_job_id(key)
     with redis.lock(f"ibr:lock:bake:{key}", timeout=30, blocking_timeout=30):
         merge = fetch_job(redis, merge_id)
-        if merge is not None and merge.get_status(refresh=False) in _ACTIVE:
+        if merge is not None and merge.get_status(refresh=False) in _ACTIVE and not merge_stuck(redis, merge):
             add_job_owner(redis, merge_id, owner, BAKE_TIMEOUT_S)
             return key, merge
         if merge is not None:
@@ -316,6 +317,25 @@ def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, spe
         ids.append(job.id)
     add_part_dependency(redis, bake_job_id(key), ids)
     return ids
+
+
+_DEAD = frozenset({JobStatus.CANCELED, JobStatus.STOPPED})
+
+
+def merge_stuck(redis: Redis, merge: Job) -> bool:
+    """A deferred merge job that can never run: one of the jobs it waits for was canceled or
+    stopped (RQ does not release dependents of those) or has vanished, and none is still active.
+    The bake then counts as canceled, and a new request re-plans it (redoing the missing parts)."""
+    if merge.get_status(refresh=False) != JobStatus.DEFERRED:
+        return False
+    ids = merge.dependency_ids
+    if not ids:
+        return False
+    deps = Job.fetch_many(ids, connection=redis, serializer=JSONSerializer)
+    statuses = [d.get_status(refresh=False) if d is not None else None for d in deps]
+    if any(st in _ACTIVE for st in statuses):
+        return False
+    return any(st is None or st in _DEAD for st in statuses)
 
 
 def add_part_dependency(redis: Redis, merge_id: str, part_job_ids: list[str]) -> None:
@@ -412,6 +432,11 @@ def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, param
             state_, error = "failed", merge_pub.error
         elif merge_pub.state == "canceled":
             state_, error = "canceled", merge_pub.error
+        elif merge is not None and merge_stuck(redis, merge):
+            dead = [p.name for p in parts if p.state in ("canceled", "missing")]
+            state_ = "canceled"
+            error = (f"part(s) {', '.join(dead[:4]) or '(plan)'} were canceled or lost, so the bake cannot finish; "
+                     "request it again to redo only the missing parts")
         elif merge_pub.state == "finished":
             state_ = "missing"  # finished, but the artifact has gone since: request it again
         elif merge_pub.state == "started" or (plan_pub is not None and plan_pub.state != "queued"):

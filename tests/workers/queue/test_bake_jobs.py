@@ -212,3 +212,30 @@ def test_a_failed_plan_fails_the_bake_with_its_reason(
     assert st.error is not None and "planning the bake failed" in st.error and "ldc_resolution 4096" in st.error
     assert "MiB" in st.error and st.parts == []
     assert worker_store.list("artifacts/") == []
+
+
+def test_a_canceled_part_cancels_the_bake_and_a_new_request_redoes_it(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    """RQ never releases the dependents of a canceled job, so a bake with a canceled part would wait
+    forever: it reads as canceled instead, and the next request re-plans and redoes just that part."""
+    pub = put_scene(worker_store, diffuse_scene(), {}, None)
+    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    w = worker_process("bake")
+    deadline = time.monotonic() + 60
+    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
+    while not st.parts:
+        assert time.monotonic() < deadline, w.log()
+        time.sleep(0.02)
+        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
+    victim = st.parts[2]
+    assert victim.job_id is not None
+    queues.cancel(redis_conn, victim.job_id)
+    st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 60, w)
+    assert st.state == "canceled" and st.error is not None and victim.name in st.error, st
+    key2, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    assert key2 == key and job is not None
+    st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 60, w)
+    assert st.state == "finished", w.log()
+    planned: dict[str, Any] = queues.fetch_job(redis_conn, bakes.bake_plan_job_id(key)).return_value()  # type: ignore[union-attr,assignment]
+    assert planned["enqueued"] == [victim.name]
