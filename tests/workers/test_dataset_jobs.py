@@ -107,11 +107,15 @@ def test_baked_bytes_round_trip_relights_identically(store: ObjectStore) -> None
     ds = jobs.load_illumination_dataset(store, did)
     assert np.allclose(ds.points, pts)
     light = [PointLight((0.7, -0.4, 16.5), (3.0, 3.0, 3.0))]
-    for kw in ({"layout": "pixel_major"}, {"layout": "tiled"}, {"half": False}):
+    layouts = []
+    for kw in ({"layout": "pixel_major"}, {"layout": "tiled"}, {"half": False}, {"compress": 0.05}):
         baked = bake_dataset(ds, **kw)
         back = jobs.baked_from_bytes(jobs.baked_to_bytes(baked), baked.report)
         a, b = relight(baked, light), relight(back, light)
         assert np.array_equal(a.image, b.image) and a.n_outside == b.n_outside, kw
+        assert back.layout == baked.layout and back.nbytes == baked.nbytes
+        layouts.append(baked.layout)
+    assert "lowrank" in layouts, layouts  # Lambertian images are low rank per tile: the compressed store is used
 
 
 def test_scene_geometry_is_ray_cast(store: ObjectStore) -> None:

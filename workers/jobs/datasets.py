@@ -20,7 +20,9 @@ stored result when the artifact already exists, reports progress and honours can
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import json
 import os
 import tempfile
 import threading
@@ -185,50 +187,58 @@ def _points_from_scene(store: ObjectStore, scene_id: str, camera: Any) -> tuple[
 
 # ------------------------------------------------------------------------------ baked datasets <-> bytes
 
-_BAKED_ARRAYS = ("store", "pixel_index", "points", "light_positions", "intensities", "kept_from", "directions",
-                 "store_scale", "sphere_center", "triangles", "tri_inverse", "grid_start", "grid_items")
-
-
-_LOWRANK_ARRAYS = ("u", "b", "u_off", "b_off", "rank")
-
-
 def baked_to_bytes(baked: BakedDataset) -> bytes:
-    """One uncompressed ``.npz`` of every array of a baked dataset (loading is a copy, not a
-    decompression); a low-rank store (``engine.relight_compress``) is saved as its factors."""
-    arrays: dict[str, np.ndarray] = {name: np.asarray(getattr(baked, name)) for name in _BAKED_ARRAYS}
-    arrays["shape"] = np.asarray(baked.shape, np.int64)
-    arrays["scalars"] = np.asarray([float(baked.distant), float(baked.sphere_radius), float(baked.grid_n)])
-    lowrank = getattr(baked, "lowrank", None)
-    if lowrank is not None:
-        for name in _LOWRANK_ARRAYS:
-            arrays[f"lowrank_{name}"] = np.asarray(getattr(lowrank, name))
-        arrays["lowrank_sizes"] = np.asarray([lowrank.n_lights, lowrank.n_rows], np.int64)
+    """One uncompressed ``.npz`` of a baked dataset (loading is a copy, not a decompression): every
+    array field by name, the other fields (shape, flags, sizes) as JSON, a low-rank store
+    (``engine.relight_compress.LowRankStore``) as ``lowrank.<field>`` arrays. Generic over the
+    dataclass fields, so a field the engine adds is carried without a change here."""
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict[str, Any] = {}
+    for f in dataclasses.fields(baked):
+        value = getattr(baked, f.name)
+        if f.name == "report":
+            continue  # kept in the artifact manifest's result
+        if f.name == "lowrank":
+            if value is not None:
+                sub: dict[str, Any] = {}
+                for g in dataclasses.fields(value):
+                    v = getattr(value, g.name)
+                    if isinstance(v, np.ndarray):
+                        arrays[f"lowrank.{g.name}"] = v
+                    else:
+                        sub[g.name] = v
+                meta["lowrank"] = sub
+            continue
+        if isinstance(value, np.ndarray):
+            arrays[f.name] = value
+        else:
+            meta[f.name] = list(value) if isinstance(value, tuple) else value
+    arrays["_meta"] = np.asarray(json.dumps(_json_safe_scalars(meta), allow_nan=True))
     buf = io.BytesIO()
     np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
+
+
+def _json_safe_scalars(meta: dict[str, Any]) -> dict[str, Any]:
+    return {k: (v.item() if hasattr(v, "item") else v) for k, v in meta.items()}
 
 
 def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
     from engine.relight import BakedDataset
 
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        a = {name: np.ascontiguousarray(z[name]) for name in _BAKED_ARRAYS}
-        shape = tuple(int(x) for x in z["shape"])
-        distant, radius, grid_n = (float(x) for x in z["scalars"])
-        extra: dict[str, Any] = {}
-        if "lowrank_u" in z.files:
-            from engine.relight_compress import LowRankStore  # type: ignore[import-not-found,unused-ignore]
+        meta: dict[str, Any] = json.loads(str(z["_meta"]))
+        kwargs: dict[str, Any] = {k: np.ascontiguousarray(z[k]) for k in z.files
+                                  if k != "_meta" and not k.startswith("lowrank.")}
+        lowrank = meta.pop("lowrank", None)
+        if lowrank is not None:
+            from engine.relight_compress import LowRankStore
 
-            n_lights, n_rows = (int(x) for x in z["lowrank_sizes"])
-            lr = {n: np.ascontiguousarray(z[f"lowrank_{n}"]) for n in _LOWRANK_ARRAYS}
-            extra["lowrank"] = LowRankStore(u=lr["u"], b=lr["b"], u_off=lr["u_off"], b_off=lr["b_off"],
-                                            rank=lr["rank"], n_lights=n_lights, n_rows=n_rows)
-    return BakedDataset(shape=(shape[0], shape[1]), distant=bool(distant), store=a["store"],
-                        pixel_index=a["pixel_index"], points=a["points"], light_positions=a["light_positions"],
-                        intensities=a["intensities"], kept_from=a["kept_from"], directions=a["directions"],
-                        store_scale=a["store_scale"], sphere_center=a["sphere_center"], sphere_radius=radius,
-                        triangles=a["triangles"], tri_inverse=a["tri_inverse"], grid_n=int(grid_n),
-                        grid_start=a["grid_start"], grid_items=a["grid_items"], report=dict(report), **extra)
+            lr_args: dict[str, Any] = {k.split(".", 1)[1]: np.ascontiguousarray(z[k]) for k in z.files
+                                       if k.startswith("lowrank.")}
+            kwargs["lowrank"] = LowRankStore(**lr_args, **lowrank)
+    meta["shape"] = tuple(int(x) for x in meta["shape"])
+    return BakedDataset(**kwargs, **meta, report=dict(report))
 
 
 def _load_baked(store: ObjectStore, bake_key: str) -> tuple[BakedDataset, bool]:
