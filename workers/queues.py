@@ -538,15 +538,17 @@ def cancel(redis: Redis, job_id: str) -> JobPublic:
         except (InvalidJobOperation, NoSuchJobError):
             pass  # it just ended
     if job.meta.get("bake_role") == "merge" and isinstance(job.meta.get("bake_key"), str):
-        _cancel_bake_jobs(redis, str(job.meta["bake_key"]))
+        waiting = [j for j in job.dependent_ids if j.startswith("render-")]  # renders queued behind the bake
+        _cancel_bake_jobs(redis, str(job.meta["bake_key"]), waiting)
     refreshed = fetch_job(redis, job_id)
     return job_public(refreshed if refreshed is not None else job)
 
 
-def _cancel_bake_jobs(redis: Redis, bake_key: str) -> None:
+def _cancel_bake_jobs(redis: Redis, bake_key: str, renders: Sequence[str] = ()) -> None:
     """Canceling a bake's own job (``bake-<key>``) also cancels its plan job and its part jobs
-    (part keys derive from the bake key, so no other bake shares them)."""
-    ids = [f"bake-plan-{bake_key}"]
+    (part keys derive from the bake key, so no other bake shares them) and the renders queued to run
+    after it (``missing_bake="bake"``), which could never run now."""
+    ids = [f"bake-plan-{bake_key}", *renders]
     plan = fetch_job(redis, ids[0])
     if plan is not None and plan.get_status(refresh=False) == JobStatus.FINISHED:
         rv = plan.return_value()

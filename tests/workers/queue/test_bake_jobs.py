@@ -181,7 +181,14 @@ def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
     assert len(st.parts) == 9
     with pytest.raises(bakes.BakeInUse):
         bakes.delete_bake(redis_conn, worker_store, pub.id, key, params)
+    from api_schemas.service import RenderRequest
+
+    req = RenderRequest(scene_id=pub.id, method="ldc", bake=params, missing_bake="bake")
+    _, render = queues.enqueue_render(redis_conn, req, owner=None, store=worker_store)
+    assert render is not None and queues.job_public(render).progress.stage == "waiting for the bake"
     queues.cancel(redis_conn, job.id)
+    waiting = queues.fetch_job(redis_conn, render.id)
+    assert waiting is not None and queues.job_public(waiting).state == "canceled"  # could never run now
     deadline = time.monotonic() + 30
     while True:
         st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
