@@ -32,7 +32,7 @@ render-local: install
 	$(BIN)/ibr render-local cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
 
 test: install
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --timeout=900 -q tests
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q tests
 
 bench: install
 	$(BIN)/python -m bench.raycast_throughput

@@ -1,7 +1,12 @@
 """Fixtures of the browser tests (issue 7): one live local stack for the whole session (embedded
 Redis, real bake and render workers, the API via uvicorn, the sample scenes loaded), Debian's
 chromium driven by Playwright, and a page per test module. Screenshots go to test-artifacts/preview/
-(git-ignored)."""
+(git-ignored).
+
+Each module's tests build on each other (open a scene, then orbit it, ...), so a module must run
+in one process in file order: ``make test`` runs xdist with ``--dist loadfile`` (``loadgroup``
+cannot be used: pytest-xdist 3.8 groups by rewriting ``item._nodeid``, which pytest 9.2 ignores).
+Each xdist worker that gets a module here starts its own stack."""
 
 from __future__ import annotations
 
