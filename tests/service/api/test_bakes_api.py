@@ -139,3 +139,19 @@ def test_bake_then_ldc_render_end_to_end(client: TestClient, worker_process: Any
     assert client.get(f"/v1/artifacts/{body['key']}").status_code == 404
     assert [b["key"] for b in client.get(f"/v1/scenes/{sid}/bakes").json()["items"]] == [waiting["bake"]["key"]]
     assert client.get(f"/v1/artifacts/{out['artifact_key']}/image.png").status_code == 200
+
+
+def test_bakes_are_visible_only_to_keys_that_see_the_scene(make_app: Any) -> None:
+    from service.core.security import hash_key
+
+    a, b = {"Authorization": "Bearer key-a-0123456789"}, {"Authorization": "Bearer key-b-9876543210"}
+    with TestClient(make_app(api_keys=[hash_key("key-a-0123456789"), hash_key("key-b-9876543210")])) as c:
+        sid = c.post("/v1/scenes", json={"scene": _diffuse_scene()}, headers=a).json()["id"]
+        r = c.post(f"/v1/scenes/{sid}/bakes", json=BAKE, headers=a)
+        assert r.status_code == 202
+        url, job = r.headers["location"], r.json()["job"]["id"]
+        assert c.get(url, headers=a).status_code == 200 and c.get(f"/v1/jobs/{job}", headers=a).status_code == 200
+        for req in (("GET", url), ("DELETE", url), ("GET", f"/v1/scenes/{sid}/bakes"), ("GET", f"/v1/jobs/{job}")):
+            assert c.request(*req, headers=b).status_code == 404, req  # as if it did not exist
+        assert c.post(f"/v1/scenes/{sid}/bakes", json=BAKE, headers=b).status_code == 404
+        assert c.get(url).status_code == 401
