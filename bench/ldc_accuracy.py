@@ -97,11 +97,12 @@ def views(cam: CameraParams, size: int, n: int = 8) -> list[CameraParams]:
     return out
 
 
-def _setting_name(ldc_res: int, f: int | None, k: int | None) -> str:
+def _setting_name(ldc_res: int, f: int | None, k: int | None, ss: int = 1) -> str:
+    tail = f" ss{ss}" if ss > 1 else ""
     if f is None:
-        return f"ldc LDC{ldc_res}"
+        return f"ldc LDC{ldc_res}{tail}"
     meth = "ldc+llf" if k == 0 else f"ldc+ibrt:{k}"
-    return f"{meth} LDC{ldc_res} LLF{llf_direction_count(f)}"
+    return f"{meth} LDC{ldc_res} LLF{llf_direction_count(f)}{tail}"
 
 
 def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log) -> dict:
@@ -159,9 +160,12 @@ def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log
                                             "directions": llf.n_directions}
             log(f"{name}: LLF {llf.n_directions} baked in {bt:.1f} s, {llf.nbytes / 2**20:.1f} MiB")
     # renders
-    grid = [(res, None, None) for res in ldc_resolutions]
-    grid += [(res, f, k) for res in ldc_resolutions for f in llfs for k in gens]
-    for res, f, k in grid:
+    grid = [(res, None, None, 1) for res in ldc_resolutions]
+    grid += [(res, f, k, 1) for res in ldc_resolutions for f in llfs for k in gens]
+    # beyond the grid: 2x2 supersampling (antialiasing) of one middle setting per LDC resolution
+    mid_f = sorted(llfs)[len(llfs) // 2] if llfs else None
+    grid += [(res, mid_f, min(1, max(gens)) if mid_f is not None else None, 2) for res in ldc_resolutions]
+    for res, f, k, ss in grid:
         llf = llfs.get(f) if f is not None else None
         r = LDCViewRenderer(sc, ldcs[res], llf, plan)
         method = "ldc" if f is None else ("ldc+llf" if k == 0 else f"ldc+ibrt:{k}")
@@ -173,7 +177,7 @@ def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log
             best = None
             for _ in range(2):
                 t0 = time.perf_counter()
-                o = r.render(cam, method)
+                o = r.render(cam, method, supersample=ss)
                 dt = time.perf_counter() - t0
                 if best is None or dt < best[0]:
                     best = (dt, o)
@@ -187,13 +191,13 @@ def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log
         bake = out["ldc"][res]["bake_s"] + (out["llf"][f]["bake_s"] if f is not None else 0.0)
         mib = out["ldc"][res]["mib"] + (out["llf"][f]["mib"] if f is not None else 0.0)
         out["settings"].append({
-            "name": _setting_name(res, f, k), "kind": "ldc", "ldc_res": res,
+            "name": _setting_name(res, f, k, ss), "kind": "ldc", "ldc_res": res, "supersample": ss,
             "llf_dirs": llf_direction_count(f) if f is not None else 0, "generations": k, "method": method,
             "lrms_mean": float(np.mean(errs)), "lrms_max": float(np.max(errs)),
             "render_ms": 1000 * float(np.median(tot)),
             "stages_ms": {key: float(np.median(v)) for key, v in stages.items()},
             "counts": {key: int(np.median(v)) for key, v in counts.items()}, "bake_s": bake, "mib": mib})
-        log(f"{name}: {_setting_name(res, f, k)} lrms {np.mean(errs):.4f} {1000 * np.median(tot):.0f} ms")
+        log(f"{name}: {_setting_name(res, f, k, ss)} lrms {np.mean(errs):.4f} {1000 * np.median(tot):.0f} ms")
     pareto(out["settings"])
     return out
 
@@ -227,6 +231,8 @@ def plot(results: dict) -> None:
                 else "none"
             ax.scatter(s["render_ms"], s["lrms_mean"], marker=markers[s["generations"]], s=46,
                        edgecolors=colors[s["llf_dirs"]], facecolors=face, linewidths=1.4)
+            if s.get("supersample", 1) > 1:
+                ax.scatter(s["render_ms"], s["lrms_mean"], marker="x", s=90, color="red", linewidths=1.2)
         front = sorted((s for s in sc["settings"] if s["pareto"]), key=lambda s: s["render_ms"])
         ax.plot([s["render_ms"] for s in front], [s["lrms_mean"] for s in front], "k--", lw=1, label="Pareto front")
         ax.set_xscale("log")
@@ -243,6 +249,7 @@ def plot(results: dict) -> None:
                Line2D([], [], marker="*", ls="", color="k", ms=10, label="reference renderer")]
     handles += [Line2D([], [], marker="o", ls="", color=c, label=f"LLF {n}") for n, c in colors.items() if n]
     handles += [Line2D([], [], marker="o", ls="", color="k", label="filled: larger LDC; hollow: smaller"),
+                Line2D([], [], marker="x", ls="", color="red", label="2x2 supersampled"),
                 Line2D([], [], ls="--", color="k", label="Pareto front")]
     fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.12, 1, 1))
@@ -264,7 +271,8 @@ def write_doc(results: dict) -> None:
              "Render times: per view the faster of two renders, median over the views, one warm renderer (numba "
              "compiled, IBRT accel built); "
              "bake times are single runs. Storage = LDC + LLF in memory (what the artifact blobs hold). "
-             "P = on the Pareto front (no setting both faster and more accurate). "
+             "P = on the Pareto front (no setting both faster and more accurate). `ss2` rows (outside the grid): "
+             "2x2 supersampling, the radiance box-filtered like the reference's spp. "
              "Times are wall clock on a shared 2-core machine: compare them within a table, not across runs.",
              "", f"![LRMS vs render time]({os.path.relpath(IMG, DOC.parent)})", ""]
     for sc in results["scenes"]:
