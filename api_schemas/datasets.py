@@ -50,6 +50,7 @@ from api_schemas.service import ArtifactManifest, JobPublic, ReferenceRenderPara
 
 __all__ = [
     "MAX_DATASET_IMAGES",
+    "MAX_DATASET_SAMPLES",
     "BakeParams",
     "BakeRequest",
     "CompositeRequest",
@@ -83,6 +84,10 @@ __all__ = [
 
 MAX_DATASET_IMAGES = 4096
 """Most images in one dataset (the bake keeps every light's values of every pixel)."""
+
+MAX_DATASET_SAMPLES = 1 << 30
+"""Most samples (images x width x height x 3) in one dataset: the bake holds the whole stack in
+memory as float32 (4 GiB at this limit)."""
 
 FileName = Annotated[str, StringConstraints(min_length=1, max_length=255, pattern=r"^[^\x00-\x1f\x7f]+$")]
 """Name of an uploaded file (the multipart part name): metadata only, never a path. Files are
@@ -265,6 +270,12 @@ class DatasetManifest(FrozenModel):
                                        "duplicate_light",
                                        f"light duplicates the light of images.{seen_lights[key]}", list(v)))
             seen_lights.setdefault(key, i)
+        samples = len(self.images) * self.camera.width * self.camera.height * 3
+        if samples > MAX_DATASET_SAMPLES:
+            errors.append(error_at(("images",), "dataset_too_large",
+                                   f"{len(self.images)} images of {self.camera.width}x{self.camera.height} are "
+                                   f"{samples} samples, more than the limit of {MAX_DATASET_SAMPLES}; use fewer "
+                                   "images or a lower resolution", None))
         if isinstance(self.geometry, SceneGeometry) and isinstance(self.camera, PinholeCamera):
             errors.append(error_at(("camera", "type"), "camera_kind",
                                    "geometry from a scene needs a perspective or orthographic camera", "pinhole"))

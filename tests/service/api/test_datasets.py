@@ -264,6 +264,9 @@ def test_bad_manifests_are_named(client: TestClient) -> None:
                           "position": [0, 0, 5]}
     assert "same light kind" in post(mixed)["manifest.images.3.position"]
     assert "transfer must be" in post({**manifest, "transfer": "gamma"})["manifest.transfer"]
+    six, _ = subset(6)
+    huge = {**six, "camera": {**six["camera"], "width": 8000, "height": 8000}}  # 6 x 8000^2 x 3 > 2^30
+    assert "more than the limit" in post(huge)["manifest.images"]
     two = {**manifest, "images": manifest["images"][:2]}
     assert "manifest.images" in post(two, {k: v for k, v in files.items() if k != manifest["images"][2]["file"]
                                            and k != manifest["images"][3]["file"]})

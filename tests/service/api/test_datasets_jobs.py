@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,8 @@ def _ok(r: Any, worker_logs: str = "") -> dict[str, Any]:
 
 
 @pytest.mark.slow
-def test_generate_bake_relight_round_trip(client: TestClient, worker_process: Any, worker_store: Any) -> None:
+def test_generate_bake_relight_round_trip(client: TestClient, worker_process: Any, worker_store: Any,
+                                          store_dir: Path) -> None:
     bake_w = worker_process("bake")
     render_w = worker_process("render")
     logs = lambda: "\n" + bake_w.log() + "\n" + render_w.log()  # noqa: E731
@@ -82,6 +84,13 @@ def test_generate_bake_relight_round_trip(client: TestClient, worker_process: An
     assert client.get(rel["links"]["image.png"]).content[:4] == b"\x89PNG"
     assert client.post("/v1/relights", json={"dataset_id": did, "bake": {"half": False},
                                              "lights": [light]}).json()["status"] == "cached"
+    # a corrupt stored result is never served; the same request recomputes it, byte for byte
+    (store_dir / "artifacts" / rel["artifact_key"] / "radiance.exr").write_bytes(b"garbage")
+    bad = client.get(rel["links"]["image.exr"])
+    assert bad.status_code == 404 and "corrupt" in bad.json()["title"].lower()
+    redo = _ok(client.post("/v1/relights?wait=30", json={"dataset_id": did, "bake": {"half": False},
+                                                         "lights": [light]}), logs())
+    assert redo["status"] == "finished" and client.get(rel["links"]["image.exr"]).content == exr.content
 
     # a light below the floor: directions outside the hemisphere's coverage are counted, contribute 0
     below = {"type": "point", "position": [0.3, -3.0, 0.5], "intensity": [20, 20, 20]}
