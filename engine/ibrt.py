@@ -129,6 +129,19 @@ class IBRTAccel:
               "lo": np.float32, "hi": np.float32, "first": np.int32, "mask": np.uint8, "link": np.int32,
               "zrange": np.float64, "n_samples": np.int64}
         arrs = {k: np.ascontiguousarray(d[k], dtype=dt[k]) for k in _ARRAY_FIELDS}
+        n = arrs["lo"].shape[0]
+        ok = (p.shape == (2,) and all(arrs[k].shape == (n,) for k in ("hi", "first", "mask", "link"))
+              and arrs["root_level"].shape == (3,) and arrs["size"].shape == (3,) and arrs["node_base"].shape == (4,)
+              and arrs["zrange"].shape == (3, 2) and arrs["n_samples"].shape == (3,)
+              and arrs["layer_root"].ndim == 2 and arrs["layer_root"].shape[0] == 3)
+        ok = ok and bool(np.all((arrs["root_level"] >= 1) & (arrs["root_level"] <= MAX_TREE_LEVELS))
+                         and np.array_equal(arrs["size"], 1 << arrs["root_level"])
+                         and arrs["node_base"][0] == 0 and arrs["node_base"][3] == n
+                         and np.all(np.diff(arrs["node_base"]) >= 0))
+        for k in ("first", "link", "layer_root"):
+            ok = ok and bool(np.all((arrs[k] >= -1) & (arrs[k] < n)))
+        if not ok:
+            raise InvalidInputError("IBRT accel arrays are inconsistent (corrupted or from another version)")
         return cls(margin=float(p[0]), min_cos=float(p[1]), **arrs)
 
 

@@ -234,6 +234,12 @@ def test_accel_roundtrip_and_mismatch(baked):
     h1 = trace(ldc, acc, o, d)
     h2 = trace(ldc, acc2, o, d)
     assert np.array_equal(h1.sample, h2.sample)
+    bad = acc.to_arrays()
+    bad["link"] = bad["link"] + 10 * acc.n_nodes
+    with pytest.raises(InvalidInputError, match="inconsistent"):
+        IBRTAccel.from_arrays(bad)
+    with pytest.raises(InvalidInputError, match="lack"):
+        IBRTAccel.from_arrays({k: v for k, v in acc.to_arrays().items() if k != "lo"})
     other = bake_ldc(ls.runtime, caster, 64)
     with pytest.raises(InvalidInputError, match="build_accel"):
         trace(other, acc, o, d)
