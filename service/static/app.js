@@ -18,6 +18,8 @@ const perf = { inputAt: null, requests: 0, loads: 0, latencies: [], last: null, 
 const relightPerf = { requests: 0, loads: 0, last: null, scheduled: false, inputAt: null };
 const bakePerf = { state: null, fraction: 0, key: null };
 const comparePerf = { runs: 0, last: null };
+const walkPerf = { status: null, progress: 0, key: null, loaded: 0, frames: 0, shown: -1, played: 0 };
+window.__walk = walkPerf;
 window.__preview = perf;
 window.__relight = relightPerf;
 window.__bake = bakePerf;
@@ -189,6 +191,12 @@ async function loadCapabilities() {
     if (k !== undefined) $("ibrt-k").value = k;
   }
   $("compare-label").hidden = !caps.compare;
+  $("walks-panel").hidden = !caps.walkthroughs;
+  const opts = caps.walkthrough_options || {};
+  $("wt-quality").replaceChildren(...(opts.quality || []).map((q) => new Option(q, q)));
+  if ((opts.quality || []).includes("low")) $("wt-quality").value = "low";
+  $("wt-fill").replaceChildren(...(opts.fill || []).map((f) => new Option(f, f)));
+  if ((opts.fill || []).includes("both")) $("wt-fill").value = "both";
   $("datasets-panel").hidden = !(caps.datasets && caps.relights);
   const legend = Object.entries(caps.provenance || {}).map(([code, [name, colour]]) => {
     const s = document.createElement("span");
@@ -625,6 +633,7 @@ async function followBake(b) {
     if (isAbort(err)) return;
     throw err;
   }
+  if (view.scene) bakeBadges([view.scene]);
   if (b.state !== "finished") {
     showError(new ApiError(0, { title: "Bake failed", detail: b.error || `the bake is ${b.state}` }));
   } else if (currentMethod().needsBake && view.scene && view.scene.id === sceneId) {
@@ -671,6 +680,7 @@ async function loadScenes() {
     for (const b of $("scene-list").querySelectorAll("button")) b.dataset.sceneId = b.dataset.id;
     $("scene-empty").hidden = data.items.length > 0;
     showError(null);
+    bakeBadges(data.items);
     return data.items;
   } catch (err) {
     showError(err);
@@ -678,8 +688,35 @@ async function loadScenes() {
   }
 }
 
+// "N baked" next to each scene that has finished bakes (one request per scene, two at a time).
+async function bakeBadges(items) {
+  if (!caps.bakes) return;
+  const queue = items.slice();
+  const one = async () => {
+    for (let s = queue.shift(); s; s = queue.shift()) {
+      let n = 0, running = 0;
+      try {
+        const { data } = await api(`/v1/scenes/${s.id}/bakes`);
+        n = data.items.filter((b) => b.state === "finished").length;
+        running = data.items.filter((b) => b.state === "queued" || b.state === "running").length;
+      } catch { continue; }
+      const btn = $("scene-list").querySelector(`button[data-id="${s.id}"]`);
+      if (!btn) continue;
+      btn.querySelector(".badge")?.remove();
+      if (!n && !running) continue;
+      const badge = document.createElement("span");
+      badge.className = "badge";
+      badge.setAttribute("aria-hidden", "true"); // the button keeps the scene name as its name
+      badge.textContent = [n ? `${n} baked` : "", running ? `${running} baking` : ""].filter(Boolean).join(", ");
+      btn.append(badge);
+    }
+  };
+  await Promise.all([one(), one()]);
+}
+
 function openScene(s) {
   closeDataset();
+  closeWalk();
   view.scene = s;
   view.manifest = null;
   markCurrent(s.id);
@@ -767,6 +804,7 @@ function azElOf(d) {
 
 async function openDataset(d) {
   stopScene();
+  closeWalk();
   ds.controller?.abort();
   const controller = new AbortController();
   ds.controller = controller;
@@ -1079,6 +1117,222 @@ function stopScene() {
   $("view-panel").hidden = true;
 }
 
+// ------------------------------------------------------------------ walkthroughs
+
+const walk = { scene: null, info: null, key: null, urls: [], timer: null, controller: null, index: 0 };
+
+function walkScenes(scenes) {
+  return scenes.filter((s) => sampleCameras[s.name] && sampleCameras[s.name].view_space);
+}
+
+function loadWalkList(scenes) {
+  if (!caps.walkthroughs) return;
+  const items = walkScenes(scenes);
+  pickList($("walk-list"), items, (s) => s.name, (s) => `${s.id}\nview space: ${sampleCameras[s.name].view_space.type}`,
+    openWalk);
+  for (const b of $("walk-list").querySelectorAll("button")) b.dataset.id = `walk-${b.dataset.id}`;
+  $("walk-empty").hidden = items.length > 0;
+}
+
+function closeWalk() {
+  stopWalk();
+  walk.scene = null;
+  $("walk-panel").hidden = true;
+}
+
+function stopWalk() {
+  walk.controller?.abort();
+  walk.controller = null;
+  clearInterval(walk.timer);
+  walk.timer = null;
+  $("wt-play").textContent = "Play";
+  for (const u of walk.urls) URL.revokeObjectURL(u);
+  walk.urls = [];
+}
+
+function openWalk(s) {
+  stopScene();
+  closeDataset();
+  stopWalk();
+  walk.scene = s;
+  walk.info = sampleCameras[s.name];
+  markCurrent(`walk-${s.id}`);
+  $("walk-panel").hidden = false;
+  $("walk-name").textContent = `— ${s.name}`;
+  $("wt-progress").hidden = true;
+  $("wt-player").hidden = true;
+  const vs = walk.info.view_space;
+  const anim = walk.info.animation;
+  const how = { path: "along the view-space path", box: "across the view-space box",
+    polygon: "looking around from the camera's position in the view-space polygon" }[vs.type] || vs.type;
+  $("walk-path-desc").textContent = `Camera path: ${how}` +
+    (anim ? `; time ${anim.start} → ${anim.end}.` : "; the scene is static.");
+}
+
+const lerp3 = (a, b, t) => [0, 1, 2].map((k) => a[k] + (b[k] - a[k]) * t);
+
+// Eye (and target) of frame i of n, inside the scene's view space.
+function walkCamera(info, i, n) {
+  const cam = info.camera;
+  const vs = info.view_space;
+  const t = n > 1 ? i / (n - 1) : 0;
+  let eye = cam.eye, target = cam.look_at;
+  if (vs.type === "path") {
+    const pts = vs.points;
+    const seg = pts.slice(1).map((p, k) => len(sub(p, pts[k])));
+    const total = seg.reduce((a, b) => a + b, 0);
+    let d = t * total, k = 0;
+    while (k < seg.length - 1 && d > seg[k]) { d -= seg[k]; k += 1; }
+    eye = lerp3(pts[k], pts[k + 1], seg[k] > 0 ? Math.min(1, d / seg[k]) : 0);
+  } else if (vs.type === "box") {
+    const span = sub(vs.max, vs.min);
+    const axis = Math.abs(span[0]) >= Math.abs(span[2]) ? 0 : 2;
+    const c = lerp3(vs.min, vs.max, 0.5);
+    c[axis] = vs.min[axis] + span[axis] * (0.1 + 0.8 * t);
+    eye = c;
+  } else if (vs.type === "polygon") {
+    eye = [cam.eye[0], vs.eye_height, cam.eye[2]];
+    const d0 = sub(cam.look_at, cam.eye);
+    target = add(eye, rotate(d0, [0, 1, 0], (t - 0.5) * Math.PI / 3));
+  }
+  return { eye, target };
+}
+
+function walkRequest() {
+  const info = walk.info;
+  const n = Number($("wt-frames").value);
+  const w = Number($("wt-size").value);
+  const aspect = info.camera.height && info.camera.width ? info.camera.height / info.camera.width : 0.75;
+  const h = Math.max(2, 2 * Math.round((w * aspect) / 2));
+  const anim = info.animation;
+  const frames = [];
+  for (let i = 0; i < n; i++) {
+    const { eye, target } = walkCamera(info, i, n);
+    const round = (v) => v.map((x) => Math.round(x * 1e6) / 1e6);
+    frames.push({
+      time: anim ? anim.start + (anim.end - anim.start) * (n > 1 ? i / (n - 1) : 0) : 0,
+      camera: { type: "perspective", eye: round(eye), look_at: round(target), up: info.camera.up || [0, 1, 0],
+        fov_y_deg: info.camera.fov_y_deg || 60, width: w, height: h },
+    });
+  }
+  const bake = { quality: $("wt-quality").value };
+  for (const [param, field] of [["wt_face", "face_res"], ["wt_views", "max_views"], ["wt_times", "max_time_samples"],
+    ["wt_indirect", "indirect_samples"]]) {
+    if (params.get(param) !== null) bake[field] = Number(params.get(param));
+  }
+  const fpsText = $("wt-fps").value.trim();
+  return { scene_id: walk.scene.id, bake, fill: $("wt-fill").value, frames, chunk_frames: 8,
+    fps: Number.isFinite(Number(fpsText)) && fpsText !== "" ? Number(fpsText) : fpsText };
+}
+
+function showWalk(pub) {
+  walkPerf.status = pub.status;
+  walkPerf.progress = pub.progress;
+  walkPerf.key = pub.key;
+  $("wt-progress").hidden = false;
+  $("wt-bar").value = pub.status === "finished" ? 1 : pub.progress;
+  $("wt-stage").textContent = pub.status === "finished" ? `done: ${pub.frames} frames`
+    : `${pub.status} · ${pub.frames_done} of ${pub.frames} frames ${Math.round(pub.progress * 100)}%`
+      + `${pub.error ? ` — ${pub.error}` : ""}`;
+}
+
+async function startWalk() {
+  if (!walk.scene) return;
+  stopWalk();
+  const controller = new AbortController();
+  walk.controller = controller;
+  const { signal } = controller;
+  $("wt-go").disabled = true;
+  $("wt-player").hidden = true;
+  walkPerf.loaded = 0;
+  walkPerf.shown = -1;
+  try {
+    let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: walkRequest() });
+    showError(null);
+    walk.key = pub.key;
+    showWalk(pub);
+    while (pub.status === "queued" || pub.status === "running") {
+      await sleep(500, signal);
+      pub = (await api(`/v1/walkthroughs/${pub.key}`, { signal })).data;
+      showWalk(pub);
+    }
+    if (pub.status !== "finished") throw new ApiError(0, { title: "Walkthrough failed", detail: pub.error || pub.status });
+    await loadWalkFrames(pub, signal);
+  } catch (err) {
+    if (!isAbort(err)) showError(err);
+  } finally {
+    $("wt-go").disabled = false;
+  }
+}
+
+async function loadWalkFrames(pub, signal) {
+  const n = pub.frames;
+  const urls = new Array(n);
+  walkPerf.frames = n;
+  let next = 0;
+  const worker = async () => {
+    for (let i = next++; i < n; i = next++) {
+      urls[i] = await fetchBlobUrl(`/v1/walkthroughs/${pub.key}/frames/${i}.png`, signal);
+      walkPerf.loaded += 1;
+      $("wt-stage").textContent = `done: ${n} frames · loading ${walkPerf.loaded} of ${n}`;
+    }
+  };
+  await Promise.all([worker(), worker(), worker(), worker()]);
+  walk.urls = urls;
+  $("wt-stage").textContent = `done: ${n} frames`;
+  $("wt-slider").max = String(n - 1);
+  $("wt-player").hidden = false;
+  await showWalkFrame(0);
+  playWalk(true);
+}
+
+async function showWalkFrame(i) {
+  if (!walk.urls.length) return;
+  walk.index = ((i % walk.urls.length) + walk.urls.length) % walk.urls.length;
+  const img = $("wt-frame");
+  img.src = walk.urls[walk.index];
+  img.dataset.index = String(walk.index);
+  $("wt-slider").value = String(walk.index);
+  $("wt-label").textContent = `frame ${walk.index + 1} / ${walk.urls.length}`;
+  walkPerf.shown = walk.index;
+}
+
+function playWalk(on) {
+  clearInterval(walk.timer);
+  walk.timer = null;
+  $("wt-play").textContent = on ? "Pause" : "Play";
+  if (!on) return;
+  const fps = Math.max(1, Math.min(120, Number($("wt-fps").value) || 12));
+  walk.timer = setInterval(() => {
+    showWalkFrame(walk.index + 1);
+    walkPerf.played += 1;
+  }, 1000 / fps);
+}
+
+async function downloadWalkVideo() {
+  if (!walk.key) return;
+  try {
+    const url = await fetchBlobUrl(`/v1/walkthroughs/${walk.key}/video.mp4`);
+    const a = document.createElement("a");
+    a.href = url;
+    a.download = `walkthrough-${walk.key.slice(0, 12)}.mp4`;
+    a.click();
+    setTimeout(() => URL.revokeObjectURL(url), 10_000);
+  } catch (err) { showError(err); }
+}
+
+function bindWalk() {
+  $("wt-go").addEventListener("click", () => startWalk());
+  $("wt-play").addEventListener("click", () => playWalk(!walk.timer));
+  $("wt-slider").addEventListener("input", () => { playWalk(false); showWalkFrame(Number($("wt-slider").value)); });
+  $("wt-video").addEventListener("click", () => downloadWalkVideo());
+  $("wt-viewport").addEventListener("keydown", (e) => {
+    if (e.key === " ") { e.preventDefault(); playWalk(!walk.timer); }
+    else if (e.key === "ArrowRight") { e.preventDefault(); playWalk(false); showWalkFrame(walk.index + 1); }
+    else if (e.key === "ArrowLeft") { e.preventDefault(); playWalk(false); showWalkFrame(walk.index - 1); }
+  });
+}
+
 // ------------------------------------------------------------------ jobs panel
 
 let jobsBusy = false;
@@ -1205,7 +1459,7 @@ function bindControls() {
       if (currentMethod().needsBake) changed();
     });
   }
-  $("reload-scenes").addEventListener("click", () => loadScenes());
+  $("reload-scenes").addEventListener("click", async () => loadWalkList(await loadScenes()));
   $("api-key").value = apiKey();
   const keyState = () => { $("key-state").textContent = apiKey() ? "key set for this tab" : "no key"; };
   keyState();
@@ -1238,8 +1492,10 @@ async function main() {
   bindControls();
   bindViewport();
   bindSphere();
+  bindWalk();
   const [, , scenes] = await Promise.all([loadCapabilities(), loadSampleCameras(), loadScenes()]);
   const datasets = await loadDatasets();
+  loadWalkList(scenes);
   const want = params.get("scene");
   if (want) {
     const s = scenes.find((x) => x.name === want || x.id === want);
@@ -1249,6 +1505,11 @@ async function main() {
   if (wantDs) {
     const d = datasets.find((x) => x.name === wantDs || x.id === wantDs);
     if (d) openDataset(d);
+  }
+  const wantWalk = params.get("walk");
+  if (wantWalk) {
+    const s = walkScenes(scenes).find((x) => x.name === wantWalk || x.id === wantWalk);
+    if (s) openWalk(s);
   }
   pollJobs();
   setInterval(pollJobs, JOBS_LIST_MS);

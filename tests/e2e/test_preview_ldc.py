@@ -96,6 +96,8 @@ def test_bake_progress_reaches_done_then_ldc_view(page: Page) -> None:
     expect(page.locator("#counts")).to_contain_text("holes")
     assert isinstance(last["counts"]["hole_pixels"], int)
     expect(page.locator("#bake-list button[aria-pressed=true]")).to_contain_text("finished")
+    expect(page.locator("#scene-list button[aria-current=true] .badge")).to_have_text("1 baked")
+    expect(page.get_by_role("button", name=SCENE, exact=True)).to_be_visible()  # the badge is not in the name
     shot(page, "12-ldc-view")
 
 

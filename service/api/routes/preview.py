@@ -32,7 +32,7 @@ import threading
 from collections import OrderedDict
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, get_args
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request, Response
@@ -65,7 +65,8 @@ PIVOTS: dict[str, list[float]] = {"cornell_box": [278.0, 273.0, 279.6]}
 
 @lru_cache(maxsize=1)
 def sample_cameras() -> dict[str, dict[str, Any]]:
-    """Scene name -> {"camera": the sample's camera, "pivot": the point to orbit around}."""
+    """Scene name -> {"camera": the sample's camera, "pivot": the point to orbit around, and when the
+    sample has them "view_space" and "animation": {"start", "end"}}."""
     try:
         from samples import SCENES_DIR
     except ImportError:  # deployed without the samples package
@@ -76,7 +77,14 @@ def sample_cameras() -> dict[str, dict[str, Any]]:
         cam = doc.get("camera")
         name = doc.get("name") or path.stem
         if isinstance(cam, dict):
-            out[str(name)] = {"camera": cam, "pivot": PIVOTS.get(str(name), cam.get("look_at"))}
+            entry: dict[str, Any] = {"camera": cam, "pivot": PIVOTS.get(str(name), cam.get("look_at"))}
+            # for the Walkthroughs panel: where the viewer may move, and the animation's time range
+            if isinstance(doc.get("view_space"), dict):
+                entry["view_space"] = doc["view_space"]
+            anim = doc.get("animation")
+            if isinstance(anim, dict) and "start" in anim and "end" in anim:
+                entry["animation"] = {"start": anim["start"], "end": anim["end"]}
+            out[str(name)] = entry
     return out
 
 
@@ -137,6 +145,8 @@ class Capabilities(FrozenModel):
     relights: bool
     walkthroughs: bool
     compare: bool = True
+    walkthrough_options: dict[str, list[str]] = {}
+    """When walkthroughs are routed: the values the walkthrough request accepts for ``quality`` and ``fill``."""
     provenance: dict[int, tuple[str, str]] = {}
     """Provenance code -> (name, CSS colour) of ``/v1/preview/artifacts/{key}/provenance.png``."""
     paths: list[str] = []
@@ -160,9 +170,26 @@ def _accepted_methods() -> tuple[tuple[str, tuple[int, ...]], ...]:
     return tuple(out)
 
 
+@lru_cache(maxsize=1)
+def _walkthrough_options() -> dict[str, list[str]]:
+    """``quality`` and ``fill`` choices of the walkthrough request model (empty without it)."""
+    try:
+        from api_schemas.walkthrough import WalkthroughRequest, WalkthroughSettings
+    except ImportError:
+        return {}
+    out: dict[str, list[str]] = {}
+    for name, model, field in (("quality", WalkthroughSettings, "quality"), ("fill", WalkthroughRequest, "fill")):
+        info = model.model_fields.get(field)
+        values = [str(v) for v in get_args(info.annotation)] if info is not None else []
+        if values:
+            out[name] = values
+    return out
+
+
 def capabilities_of(paths: list[str]) -> Capabilities:
     """Capabilities given the app's routed paths (the render methods come from the model)."""
     bakes = any(p.startswith("/v1/scenes/{scene_id}/bakes") for p in paths)
+    walkthroughs = "/v1/walkthroughs" in paths and any(p.startswith("/v1/walkthroughs/{key}/frames") for p in paths)
     methods = [MethodInfo(name=m, needs_bake=m != "reference", k=list(ks)) for m, ks in _accepted_methods()
                if m == "reference" or bakes]
     return Capabilities(
@@ -170,7 +197,8 @@ def capabilities_of(paths: list[str]) -> Capabilities:
         bakes=bakes,
         datasets=any(p.startswith("/v1/datasets") for p in paths),
         relights="/v1/relights" in paths,
-        walkthroughs=any(p.startswith("/v1/walkthroughs") for p in paths),
+        walkthroughs=walkthroughs,
+        walkthrough_options=_walkthrough_options() if walkthroughs else {},
         provenance={code: (name, "#{:02x}{:02x}{:02x}".format(*rgb)) for code, (name, rgb) in PROVENANCE.items()},
         paths=paths,
     )
