@@ -460,6 +460,9 @@ class GenerateRequest(FrozenModel):
     params: ReferenceRenderParams = ReferenceRenderParams()
     max_lights: Annotated[int, Field(strict=True, ge=3, le=MAX_DATASET_IMAGES), BeforeValidator(numpy_scalar)] = 512
     """Refuse placements with more lights than this (rendering cost grows with the count)."""
+    ground_truth: Annotated[list[RelightLight], Field(max_length=64)] = []
+    """For testing: also render the scene under each of these lights alone (the same replacements
+    as for the dataset images), to compare relit images with; served at ``links["ground_truth.<i>"]``."""
 
 
 class GenerationPublic(FrozenModel):
@@ -468,6 +471,8 @@ class GenerationPublic(FrozenModel):
     status: Literal["cached", "queued", "running", "finished", "failed"]
     dataset_id: Sha256 | None = None
     job: JobPublic | None = None
+    artifact: ArtifactManifest | None = None
+    """The generation record: ``result`` (dataset id, counts, timings) and the ground-truth blobs."""
     links: dict[str, str] = {}
 
 
@@ -610,3 +615,6 @@ class CompositeRequest(FrozenModel):
         except ValueError as exc:
             raise PydanticCustomError("transfer", str(exc)) from None
         return value
+
+
+GenerateRequest.model_rebuild()

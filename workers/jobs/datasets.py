@@ -587,13 +587,31 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     public, _ = commit_dataset(store, manifest, None, _json_safe(source), add_owner=False)
     for who in owners or {None}:
         add_dataset_owner(store, public.id, who)
+    t_store = time.perf_counter() - t0
+    # ground truth for testing: the scene under each requested light alone (same replacements)
+    t0 = time.perf_counter()
+    gt_blobs: dict[str, tuple[bytes, str]] = {}
+    n_gt = len(req.ground_truth)
+    if n_gt:
+        from engine.relight_gen import render_ground_truth
+
+        gt_lights = _engine_lights(store, list(req.ground_truth))
+        with tempfile.TemporaryDirectory(prefix="ibr-ground-truth-", dir=_SCRATCH) as tmpdir:
+            for i, light in enumerate(gt_lights):
+                progress.report(0.92 + 0.07 * i / n_gt, "ground truth renders", force=True)
+                img = render_ground_truth(loaded.runtime, camera, [light], params)
+                gt_blobs[f"ground_truth_{i}.exr"] = (
+                    _image_bytes(Path(tmpdir), f"ground_truth_{i}.exr", img,
+                                 metadata={"scene_id": req.scene_id, "light": req.ground_truth[i].model_dump(
+                                     mode="json"), "engine_version": ENGINE_VERSION}), EXR)
     result = _json_safe({
         "dataset_id": public.id,
         "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(surface.sum()),
-                   "width": camera.width, "height": camera.height},
-        "timings": {"render": t_render, "store": time.perf_counter() - t0},
+                   "width": camera.width, "height": camera.height, "n_ground_truth": n_gt},
+        "timings": {"render": t_render, "store": t_store, "ground_truth": time.perf_counter() - t0},
     })
-    write_artifact(store, key, GENERATE_KIND, {"scene": req.scene_id}, _gen_params(req), ENGINE_VERSION, {}, result)
+    write_artifact(store, key, GENERATE_KIND, {"scene": req.scene_id}, _gen_params(req), ENGINE_VERSION, gt_blobs,
+                   result)
     result["timings"]["job_total"] = time.perf_counter() - t_start
     progress.report(1.0, "done", force=True, check=False)
     return {"artifact_key": key, **result}

@@ -539,6 +539,12 @@ async def generate(req: GenerateRequest, response: Response, store: StoreDep, re
         if req.camera is not None and req.camera.width * req.camera.height > settings.max_image_pixels:
             raise ValidationProblem([FieldError(field="camera.height", message="image exceeds this server's limit "
                                                 f"of {settings.max_image_pixels} pixels", type="image_too_large")])
+        missing = [FieldError(field=f"ground_truth.{i}.image_sha256", message="environment map not uploaded: PUT it "
+                              f"to /v1/datasets/uploads/{light.image_sha256}", type="missing_file")
+                   for i, light in enumerate(req.ground_truth)
+                   if isinstance(light, RelightEnvironmentLight) and blob_info(store, light.image_sha256) is None]
+        if missing:
+            raise ValidationProblem(missing)
 
     await run_in_threadpool(check)
     key = generate_artifact_key(req)
@@ -546,14 +552,50 @@ async def generate(req: GenerateRequest, response: Response, store: StoreDep, re
     job, manifest, cached = await _run(response, redis, store, "bake", GENERATE_JOB, payload, GENERATE_KIND, key,
                                        owner, wait, f"generate dataset from scene {req.scene_id[:12]}")
     dataset_id = str(manifest.result["dataset_id"]) if manifest is not None else None
-    links: dict[str, str] = {}
+    links: dict[str, str] = {"self": f"/v1/datasets/generations/{key}"}
     if dataset_id is not None:
         await run_in_threadpool(add_dataset_owner, store, dataset_id, owner)
         links["dataset"] = f"/v1/datasets/{dataset_id}"
+    for i in range(len(req.ground_truth)):
+        links[f"ground_truth.{i}"] = f"/v1/datasets/generations/{key}/ground_truth_{i}.exr"
     if job is not None:
         links["job"] = f"/v1/jobs/{job.id}"
     return GenerationPublic(artifact_key=key, status=_status(job, manifest, cached), dataset_id=dataset_id, job=job,
-                            links=links)
+                            artifact=manifest, links=links)
+
+
+def _visible_generation(store: ObjectStore, key: str, owner: str | None) -> ArtifactManifest:
+    manifest = read_manifest(store, key)
+    if manifest is None or manifest.kind != GENERATE_KIND:
+        raise NotFound(key)
+    scene_id = manifest.inputs.get("scene", "")
+    if owner is not None and not scene_visible(store, scene_id, owner):
+        raise NotFound(key)
+    return manifest
+
+
+@router.get("/v1/datasets/generations/{key}", response_model=ArtifactManifest,
+            responses=problem_responses(401, 404, 422, 429, 503))
+def read_generation(key: ArtifactKeyPath, store: StoreDep, owner: OwnerDep) -> ArtifactManifest:
+    """A generation's record: the request, the dataset id and counts in ``result``, ground-truth blobs."""
+    return _visible_generation(store, key, owner)
+
+
+@router.get(
+    "/v1/datasets/generations/{key}/{name}",
+    response_class=Response,
+    responses={200: {"content": {"image/x-exr": {"schema": {"type": "string", "format": "binary"}}},
+                     "description": "A ground-truth render (linear float EXR)"},
+               **problem_responses(401, 404, 422, 429, 503)},
+)
+def read_ground_truth(key: ArtifactKeyPath, name: Annotated[str, Path(pattern=r"^ground_truth_[0-9]{1,2}\.exr$")],
+                      store: StoreDep, owner: OwnerDep) -> Response:
+    """Ground-truth render ``ground_truth_<i>.exr``: the scene under ``ground_truth[i]`` alone."""
+    manifest = _visible_generation(store, key, owner)
+    if name not in {b.name for b in manifest.blobs}:
+        raise NotFound(name)
+    return Response(read_blob(store, key, name), media_type="image/x-exr",
+                    headers={"Cache-Control": "private, max-age=31536000, immutable"})
 
 
 # ------------------------------------------------------------------------------ relight, composite
