@@ -9,6 +9,7 @@ import socket
 import threading
 import time
 from collections.abc import AsyncIterator, Iterator, MutableMapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,14 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from tests.service.api.conftest import TEAPOT_PLY, small_scene, teapot_scene
+
+
+def run_async(coro: Any) -> Any:
+    """``asyncio.run`` in a fresh thread: a session-scoped Playwright browser (tests/e2e) keeps an
+    event loop running in the main thread of the pytest worker that ran it."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        return pool.submit(asyncio.run, coro).result()
+
 
 LIMIT = 64 * 1024
 
@@ -59,7 +68,7 @@ def test_chunked_body_over_limit_is_cut_while_streaming(small_app: FastAPI, stor
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
             return await c.post("/v1/scenes", content=chunks(), headers={"content-type": "application/json"})
 
-    r = asyncio.run(go())
+    r = run_async(go())
     assert r.status_code == 413, r.text
     assert "content-length" not in {k.lower() for k in r.request.headers}
     assert pulled <= LIMIT // 16384 + 2  # stopped right after the limit, not at the end
@@ -173,6 +182,6 @@ def test_lying_content_length_is_still_counted(small_app: FastAPI, store_dir: Pa
         sent.append(msg)
 
     scope = {"type": "http", "method": "POST", "path": "/", "headers": [(b"content-length", b"10")]}
-    asyncio.run(mw(scope, receive, send))
+    run_async(mw(scope, receive, send))
     assert sent[0]["status"] == 413 and not received
     assert len(messages) == 3  # read 2 x 600 bytes, then stopped
