@@ -233,8 +233,8 @@ def _doc(data: dict) -> str:
                   f"{np.mean(res['noise_floor_lrms']):.4f}. Scene static: {res['static']}.", "",
                   "| quality | base views | time samples (direct / indirect) | bake (s) | bake MiB | "
                   "per-frame (ms), fill both | mean LRMS none | foreground | background | both | trace | "
-                  "max LRMS both | bake + frames vs reference |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "max LRMS both | bake + frames vs reference | break-even frames |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for q in QUALITIES:
             e = res["qualities"][q]
             f = e["fills"]
@@ -243,7 +243,8 @@ def _doc(data: dict) -> str:
                 f"| {q} | {e['views']} | {len(e['direct_times'])} / {len(e['indirect_times'])} | "
                 f"{e['bake_seconds']:.1f} | {e['bake_mbytes']:.0f} | {1e3 * f['both']['seconds_per_frame']:.1f} | "
                 + " | ".join(f"{f[m]['mean_lrms']:.4f}" for m in FILL_MODES)
-                + f" | {f['both']['max_lrms']:.4f} | {total / res['reference_seconds_total']:.2f}x |")
+                + f" | {f['both']['max_lrms']:.4f} | {total / res['reference_seconds_total']:.2f}x | "
+                f"{e['bake_seconds'] / (res['reference_seconds_per_frame'] - f['both']['seconds_per_frame']):.1f} |")
         lines += ["", "| quality | fill | mean LRMS | max LRMS | holes left (mean fraction) | ms / frame |",
                   "|---|---|---|---|---|---|"]
         for q in QUALITIES:
@@ -264,9 +265,10 @@ def _doc(data: dict) -> str:
               f"Two bases of face_res {sp['face_res']} (6 x {sp['face_res']}^2 samples each), Cornell box. "
               f"Plain reference render of the same frame (ReferenceParams defaults: "
               f"{sp['reference_params']['spp']} spp, direct light only): **{sp['reference_ms']:.0f} ms**. "
-              f"Machine load average (1 min) before / after: {sp.get('load_before', ['?'])[0]} / "
-              f"{sp.get('load_after', ['?'])[0]} on 2 cores: wall times above ~2 are inflated by other jobs; "
-              f"the CPU column is the work done by both threads.", "",
+              f"Machine load average (1 min) before / after: {sp['load_before'][0]:.1f} / "
+              f"{sp['load_after'][0]:.1f} on 2 cores: with a load above 2 the wall times are inflated by other "
+              f"jobs; the CPU column is the work of both threads (on an idle machine the wall time is about half "
+              f"of it plus the serial parts).", "",
               "| fill | wall ms (median) | wall ms (best) | CPU ms (median, both threads) | reference / recon |",
               "|---|---|---|---|---|"]
     for m, f in sp["fills"].items():
@@ -279,9 +281,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="tiny run (smoke test)")
     ap.add_argument("--no-doc", action="store_true")
+    ap.add_argument("--doc-only", action="store_true", help="rewrite the doc and plots from the saved JSON")
     ap.add_argument("--speed-only", action="store_true",
                     help="re-measure only the 512 x 512 speed section; the rest comes from the saved JSON")
     args = ap.parse_args()
+    if args.doc_only:
+        data = json.loads(DATA.read_text())
+        _plots(data)
+        replace_block(DOC, "walkthrough_accuracy", _doc(data), title="Walkthrough accuracy")
+        return
     if args.speed_only:
         args.speed_reps = 9
         data = json.loads(DATA.read_text())
