@@ -77,7 +77,7 @@ _STACK = 4 * MAX_TREE_LEVELS + 8
 _CHUNK = 32
 
 _ARRAY_FIELDS = ("root_level", "size", "node_base", "layer_root", "lo", "hi", "first", "mask", "link",
-                 "zrange", "n_samples")
+                 "zrange", "uvrange", "n_samples")
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,9 @@ class IBRTAccel:
     and ``size`` (3,) (= 2**root_level, the quadtree's side in pixels); per node ``lo``/``hi``
     float32, ``first`` int32 first child (-1 for level-1 nodes, whose children are pixels),
     ``mask`` uint8 live children (bit ``2 cy + cx``), ``link`` int32; ``zrange`` (3, 2) the
-    depth range of all patches of an axis; ``n_samples`` (3,) of the LDC it was built for.
+    depth range and ``uvrange`` (3, 4) the pixel box (u0, u1, v0, v1) of all usable patches of
+    an axis (rays are clipped to both before the traversal); ``n_samples`` (3,) of the LDC it
+    was built for.
     """
 
     margin: float
@@ -104,6 +106,7 @@ class IBRTAccel:
     mask: np.ndarray
     link: np.ndarray
     zrange: np.ndarray
+    uvrange: np.ndarray
     n_samples: np.ndarray
 
     @property
@@ -127,12 +130,12 @@ class IBRTAccel:
         p = np.asarray(d["params"], dtype=np.float64)
         dt = {"root_level": np.int64, "size": np.int64, "node_base": np.int64, "layer_root": np.int32,
               "lo": np.float32, "hi": np.float32, "first": np.int32, "mask": np.uint8, "link": np.int32,
-              "zrange": np.float64, "n_samples": np.int64}
+              "zrange": np.float64, "uvrange": np.float64, "n_samples": np.int64}
         arrs = {k: np.ascontiguousarray(d[k], dtype=dt[k]) for k in _ARRAY_FIELDS}
         n = arrs["lo"].shape[0]
         ok = (p.shape == (2,) and all(arrs[k].shape == (n,) for k in ("hi", "first", "mask", "link"))
               and arrs["root_level"].shape == (3,) and arrs["size"].shape == (3,) and arrs["node_base"].shape == (4,)
-              and arrs["zrange"].shape == (3, 2) and arrs["n_samples"].shape == (3,)
+              and arrs["zrange"].shape == (3, 2) and arrs["uvrange"].shape == (3, 4) and arrs["n_samples"].shape == (3,)
               and arrs["layer_root"].ndim == 2 and arrs["layer_root"].shape[0] == 3)
         ok = ok and bool(np.all((arrs["root_level"] >= 1) & (arrs["root_level"] <= MAX_TREE_LEVELS))
                          and np.array_equal(arrs["size"], 1 << arrs["root_level"])
@@ -270,6 +273,12 @@ def _build_axis(ldc: LDC, axis: int, margin: float, min_cos: float):
             mask = np.bitwise_or.reduceat(bits, start) if start.size else bits[:0]
             levels.append((code, lo, hi, mask, start))
         layers[L] = levels
+    live0 = np.flatnonzero(suffix < np.inf)
+    if live0.size:
+        uvrange = np.array([(live0 % nu).min(), (live0 % nu).max() + 1, (live0 // nu).min(), (live0 // nu).max() + 1],
+                           dtype=np.float64)
+    else:
+        uvrange = np.array([0.0, 0.0, 0.0, 0.0])
     # global numbering: layer 0 root level first ... level 1, then layer 1, ...
     base: list[list[int]] = []
     total = 0
@@ -306,7 +315,7 @@ def _build_axis(ldc: LDC, axis: int, margin: float, min_cos: float):
         if layers[L][root_level - 1][0].shape[0]:
             layer_root[L] = base[L][root_level]
     return (root_level, size, layer_root, _f32_down(lo_all), _f32_up(hi_all), first, mask_all, link, zrange,
-            ax.n_samples)
+            ax.n_samples, uvrange)
 
 
 def build_accel(ldc: LDC, *, margin: float = DEFAULT_MARGIN, min_cos: float = DEFAULT_MIN_COS) -> IBRTAccel:
@@ -339,7 +348,8 @@ def build_accel(ldc: LDC, *, margin: float = DEFAULT_MARGIN, min_cos: float = DE
         node_base=node_base, layer_root=layer_root,
         lo=np.concatenate([p[3] for p in parts]), hi=np.concatenate([p[4] for p in parts]),
         first=np.concatenate(firsts), mask=np.concatenate([p[6] for p in parts]), link=np.concatenate(links),
-        zrange=np.stack([p[8] for p in parts]), n_samples=np.array([p[9] for p in parts], dtype=np.int64))
+        zrange=np.stack([p[8] for p in parts]), uvrange=np.stack([p[10] for p in parts]),
+        n_samples=np.array([p[9] for p in parts], dtype=np.int64))
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -403,7 +413,7 @@ def _patch_t(px, py, dep, g0, g1, g2, pu, pv, pw, ou, ov, ow, du, dv, d0, d1, d2
 
 @nb.njit(cache=True, nogil=True)
 def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root,
-                 root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis, out_sample,
+                 root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps, out_axis, out_sample,
                  out_t, work):
     """Rays ci * _CHUNK ... of a batch, one after the other (the traversal is written out
     here rather than called per ray and axis: numba calls with many array arguments cost
@@ -456,8 +466,8 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
             z1 = zr[a, 1]
             if not use_tree:
                 # ---- linear march: every pixel whose dilated square the projected ray crosses
-                t0, t1 = _slab(-margin, nu + margin, ou, du, iu, t_lo, best_t)
-                t0, t1 = _slab(-margin, nv + margin, ov, dv, iv, t0, t1)
+                t0, t1 = _slab(uvr[a, 0] - margin, uvr[a, 1] + margin, ou, du, iu, t_lo, best_t)
+                t0, t1 = _slab(uvr[a, 2] - margin, uvr[a, 3] + margin, ov, dv, iv, t0, t1)
                 t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
                 if not (t0 <= t1):
                     continue
@@ -494,8 +504,8 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
                 continue
             rl = root_level[a]
             size = 1 << rl
-            t0, t1 = _slab(-margin, size + margin, ou, du, iu, t_lo, best_t)
-            t0, t1 = _slab(-margin, size + margin, ov, dv, iv, t0, t1)
+            t0, t1 = _slab(uvr[a, 0] - margin, uvr[a, 1] + margin, ou, du, iu, t_lo, best_t)
+            t0, t1 = _slab(uvr[a, 2] - margin, uvr[a, 3] + margin, ov, dv, iv, t0, t1)
             t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
             if not (t0 <= t1):
                 continue
@@ -648,12 +658,12 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _trace_kernel(o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root,
-                  root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis, out_sample,
+                  root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps, out_axis, out_sample,
                   out_t, work):
     for ci in nb.prange(work.shape[0]):
         _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
-                     layer_root, root_level, lo_n, hi_n, first, mask, link, zr, margin, min_cos, self_eps, out_axis,
-                     out_sample, out_t, work)
+                     layer_root, root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps,
+                     out_axis, out_sample, out_t, work)
 
 
 # ----------------------------------------------------------------------------- API
@@ -723,7 +733,8 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_
         if n:
             _trace_kernel(o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
                           accel.layer_root, accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link,
-                          accel.zrange, accel.margin, accel.min_cos, self_eps, out_axis, out_sample, out_t, work)
+                          accel.zrange, accel.uvrange, accel.margin, accel.min_cos, self_eps, out_axis, out_sample,
+                          out_t, work)
     finally:
         if threads is not None:
             nb.set_num_threads(prev)
