@@ -601,7 +601,8 @@ def read_ground_truth(key: ArtifactKeyPath, name: Annotated[str, Path(pattern=r"
 # ------------------------------------------------------------------------------ relight, composite
 
 
-def _check_relight_inputs(store: ObjectStore, owner: str | None, datasets: dict[str, str], req: Any) -> None:
+def _check_relight_inputs(store: ObjectStore, redis: Redis, owner: str | None, datasets: dict[str, str],
+                          req: Any) -> None:
     errors: list[FieldError] = []
     for field, did in datasets.items():
         if not dataset_visible(store, did, owner) or not store.exists(f"datasets/{did}.json"):
@@ -622,10 +623,16 @@ def _check_relight_inputs(store: ObjectStore, owner: str | None, datasets: dict[
     unbaked = [(field, did) for field, did in datasets.items()
                if read_manifest(store, bake_artifact_key(did, req.bake)) is None]
     if unbaked:
-        raise ValidationProblem([FieldError(
-            field=field, message=f"dataset {did} is not baked with these bake parameters: POST "
-            f"/v1/datasets/{did}/bake (with the same 'params') first", type="not_baked") for field, did in unbaked],
-            detail="bake the dataset first", status=409)
+        problems = []
+        for field, did in unbaked:
+            job_id = job_id_for(BAKE_KIND, bake_artifact_key(did, req.bake))
+            job = fetch_job(redis, job_id)
+            pending = job is not None and job_public(job).state in ("queued", "started")
+            hint = (f"its bake job /v1/jobs/{job_id} is still {job_public(job).state}: wait for it" if pending and job
+                    else f"POST /v1/datasets/{did}/bake (with the same 'params') first")
+            problems.append(FieldError(field=field, message=f"dataset {did} is not baked with these bake parameters; "
+                                       + hint, type="not_baked"))
+        raise ValidationProblem(problems, detail="bake the dataset first", status=409)
 
 
 @router.post(
@@ -638,7 +645,7 @@ async def request_relight(req: RelightRequest, response: Response, store: StoreD
                           owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
     """Relight a baked dataset under new lights (render queue). 200 with the artifact (relit EXR,
     PNG preview, coverage mask, counts, timings) when cached or done within ``wait``, else 202."""
-    await run_in_threadpool(_check_relight_inputs, store, owner, {"dataset_id": req.dataset_id}, req)
+    await run_in_threadpool(_check_relight_inputs, store, redis, owner, {"dataset_id": req.dataset_id}, req)
     key = relight_artifact_key(req)
     payload = RelightJobPayload(request=req, artifact_key=key).model_dump(mode="json")
     job, manifest, cached = await _run(response, redis, store, "render", RELIGHT_JOB, payload, RELIGHT_KIND, key,
@@ -658,7 +665,7 @@ async def request_composite(req: CompositeRequest, response: Response, store: St
     """Composite a relit object into a background plate (render queue): object pixels from the relit
     object dataset, active-region pixels of the plate scaled by I_object / I_background."""
     datasets = {"object_dataset_id": req.object_dataset_id, "background_dataset_id": req.background_dataset_id}
-    await run_in_threadpool(_check_relight_inputs, store, owner, datasets, req)
+    await run_in_threadpool(_check_relight_inputs, store, redis, owner, datasets, req)
     key = composite_artifact_key(req)
     payload = CompositeJobPayload(request=req, artifact_key=key).model_dump(mode="json")
     job, manifest, cached = await _run(response, redis, store, "render", COMPOSITE_JOB, payload, COMPOSITE_KIND, key,

@@ -351,6 +351,10 @@ def test_bake_is_queued_and_delete_waits_for_it(client: TestClient) -> None:
     assert other["artifact_key"] != body["artifact_key"]
     r = client.delete(f"/v1/datasets/{did}")
     assert r.status_code == 409 and "queued or running job" in r.json()["detail"]
+    relight = {"dataset_id": did, "bake": {"layout": "tiled"},
+               "lights": [{"type": "directional", "direction": [0, 0, -1]}]}
+    r = client.post("/v1/relights", json=relight)
+    assert r.status_code == 409 and f"/v1/jobs/{body['job']['id']} is still queued" in fields(r)["dataset_id"]
     for job in (body["job"]["id"], other["job"]["id"]):
         assert client.post(f"/v1/jobs/{job}/cancel").json()["state"] == "canceled"
     assert client.delete(f"/v1/datasets/{did}").status_code == 204
