@@ -27,60 +27,25 @@ pixel, ``probe_res`` pixels per face edge), cached per (position, time).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
-import numba as nb
 import numpy as np
 
 from ..animation import AnimatedScene
 from ..reference import ReferenceRenderer
 from ..scene import RuntimeScene
-from .range_images import _BASIS, CubeRangeImage, direction_to_cube, render_cube
+from .range_images import _BASIS, CubeRangeImage, render_cube, seen_fraction
 from .viewspace import PathSpace, PolygonSpace, ViewSpace
 
 __all__ = ["GeometryProbe", "choose_base_views", "choose_time_samples", "time_coherence", "view_coherence"]
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _seen_fraction(eye_a, depth_a, oid_a, eye_b, depth_b, oid_b, res, basis, tol):
-    """Fraction of a's hit pixels whose surface point b sees (same object, distance within tol)."""
-    total = 0
-    seen = 0
-    for f in range(6):
-        for r in range(res):
-            for c in range(res):
-                d = depth_a[f, r, c]
-                if d <= 0.0:
-                    continue
-                total += 1
-                sx = (c + 0.5) * 2.0 / res - 1.0
-                sy = 1.0 - (r + 0.5) * 2.0 / res
-                dx = basis[f, 2, 0] + sx * basis[f, 0, 0] + sy * basis[f, 1, 0]
-                dy = basis[f, 2, 1] + sx * basis[f, 0, 1] + sy * basis[f, 1, 1]
-                dz = basis[f, 2, 2] + sx * basis[f, 0, 2] + sy * basis[f, 1, 2]
-                ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-                qx = eye_a[0] + dx / ln * d - eye_b[0]
-                qy = eye_a[1] + dy / ln * d - eye_b[1]
-                qz = eye_a[2] + dz / ln * d - eye_b[2]
-                dist = math.sqrt(qx * qx + qy * qy + qz * qz)
-                if dist == 0.0:
-                    seen += 1
-                    continue
-                fb, cb, rb = direction_to_cube(qx, qy, qz, res)
-                if oid_b[fb, rb, cb] == oid_a[f, r, c] and abs(depth_b[fb, rb, cb] - dist) <= tol * dist:
-                    seen += 1
-    if total == 0:
-        return 1.0
-    return seen / total
 
 
 def view_coherence(a: CubeRangeImage, b: CubeRangeImage, depth_tol: float = 0.1) -> float:
     """min(fraction of a's surfaces b sees, fraction of b's surfaces a sees)."""
     if a.res != b.res:
         raise ValueError("view_coherence needs cubes of the same resolution")
-    fa = _seen_fraction(a.eye, a.depth, a.object_id, b.eye, b.depth, b.object_id, a.res, _BASIS, depth_tol)
-    fb = _seen_fraction(b.eye, b.depth, b.object_id, a.eye, a.depth, a.object_id, a.res, _BASIS, depth_tol)
+    fa = seen_fraction(a.eye, a.depth, a.object_id, b.eye, b.depth, b.object_id, a.res, _BASIS, depth_tol)
+    fb = seen_fraction(b.eye, b.depth, b.object_id, a.eye, a.depth, a.object_id, a.res, _BASIS, depth_tol)
     return float(min(fa, fb))
 
 

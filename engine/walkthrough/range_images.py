@@ -20,6 +20,7 @@ walkthrough reconstruction is measured against:
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -30,7 +31,8 @@ from ..errors import InvalidInputError
 from ..reference import ReferenceParams, ReferenceRenderer
 from ..scene import CameraParams
 
-__all__ = ["CUBE_FACES", "CubeRangeImage", "cube_directions", "face_camera", "render_cube", "direction_to_cube"]
+__all__ = ["CUBE_FACES", "CubeRangeImage", "cube_directions", "direction_to_cube", "face_camera", "render_cube",
+           "seen_fraction"]
 
 # (forward, up) per face; right = forward x up
 CUBE_FACES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
@@ -96,6 +98,41 @@ def direction_to_cube(dx, dy, dz, res):
     col = min(max(col, 0), res - 1)
     row = min(max(row, 0), res - 1)
     return face, col, row
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def seen_fraction(eye_a, depth_a, oid_a, eye_b, depth_b, oid_b, res, basis, tol):
+    """Fraction of a's hit pixels whose surface point b sees (same object, distance within tol).
+    Lives here, next to ``direction_to_cube``: numba's cache does not notice edits to a callee in
+    another file."""
+    total = 0
+    seen = 0
+    for f in range(6):
+        for r in range(res):
+            for c in range(res):
+                d = depth_a[f, r, c]
+                if d <= 0.0:
+                    continue
+                total += 1
+                sx = (c + 0.5) * 2.0 / res - 1.0
+                sy = 1.0 - (r + 0.5) * 2.0 / res
+                dx = basis[f, 2, 0] + sx * basis[f, 0, 0] + sy * basis[f, 1, 0]
+                dy = basis[f, 2, 1] + sx * basis[f, 0, 1] + sy * basis[f, 1, 1]
+                dz = basis[f, 2, 2] + sx * basis[f, 0, 2] + sy * basis[f, 1, 2]
+                ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+                qx = eye_a[0] + dx / ln * d - eye_b[0]
+                qy = eye_a[1] + dy / ln * d - eye_b[1]
+                qz = eye_a[2] + dz / ln * d - eye_b[2]
+                dist = math.sqrt(qx * qx + qy * qy + qz * qz)
+                if dist == 0.0:
+                    seen += 1
+                    continue
+                fb, cb, rb = direction_to_cube(qx, qy, qz, res)
+                if oid_b[fb, rb, cb] == oid_a[f, r, c] and abs(depth_b[fb, rb, cb] - dist) <= tol * dist:
+                    seen += 1
+    if total == 0:
+        return 1.0
+    return seen / total
 
 
 @dataclass
