@@ -316,6 +316,10 @@ def test_bake_end_to_end_and_save_load(tmp_path, crafted) -> None:
     cam = CameraParams("perspective", (0.1, 0.0, 0.0), (0.1, 0, 1), (0, 1, 0), 12, 12)
     np.testing.assert_array_equal(WalkthroughRenderer(back).render(cam, 0.0).radiance,
                                   WalkthroughRenderer(bake).render(cam, 0.0).radiance)
+    # no global illumination asked for: no indirect renders at all
+    flat = bake_walkthrough(crafted, PathSpace(np.array([[-1.0, 0, 0], [1.0, 0, 0]])),
+                            walkthrough_preset("low", face_res=16, probe_res=8, indirect_samples=0))
+    assert flat.timings["indirect"] == 0.0 and flat.indirect.shape[1] == 1 and not flat.indirect.any()
     with pytest.raises(InvalidInputError, match="fill must be one of"):
         WalkthroughRenderer(bake).render(cam, 0.0, fill="magic")
     with pytest.raises(InvalidInputError, match="quality must be one of low, medium, high"):
