@@ -113,6 +113,12 @@ def test_walkthrough_is_split_into_shared_jobs(client: TestClient, redis_conn: R
     assert len({j.id for j in other.jobs} & {j.id for j in pub.jobs}) == 1
     got = WalkthroughPublic.model_validate(client.get(f"/v1/walkthroughs/{pub.key}").json())
     assert got.key == pub.key and got.status == "queued"
+    # canceling one chunk job fails the walkthrough, naming the frames
+    chunk_job = next(j.id for j in pub.jobs if j.id.startswith("wtchunk"))
+    assert client.post(f"/v1/jobs/{chunk_job}/cancel").status_code == 200
+    got = WalkthroughPublic.model_validate(client.get(f"/v1/walkthroughs/{pub.key}").json())
+    assert got.status == "failed" and got.error is not None and got.error.startswith("frames ")
+    assert "canceled" in got.error
 
 
 def test_walkthrough_end_to_end(client: TestClient, worker_process: Any, store_dir: Path) -> None:
