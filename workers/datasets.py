@@ -459,6 +459,7 @@ def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | N
     if existing is not None:
         if add_owner:
             add_dataset_owner(store, dataset_id, owner)
+        store.delete(_pending_key(dataset_id))
         return _public(dataset_id, existing), False
     if manifest.geometry.type == "scene":
         present = scene_exists if scene_exists is not None else store.exists(
