@@ -18,7 +18,9 @@ from api_schemas.scene import Camera
 from api_schemas.service import JobPublic, Sha256
 
 __all__ = [
+    "BYTES_PER_BASE_PIXEL",
     "MAX_WALKTHROUGH_FRAMES",
+    "PRESET_SIZES",
     "WalkthroughFrame",
     "WalkthroughPublic",
     "WalkthroughRequest",
@@ -26,6 +28,15 @@ __all__ = [
 ]
 
 MAX_WALKTHROUGH_FRAMES = 10_000
+PRESET_SIZES: dict[str, dict[str, int]] = {
+    "low": {"face_res": 96, "max_views": 4, "max_time_samples": 5},
+    "medium": {"face_res": 160, "max_views": 8, "max_time_samples": 9},
+    "high": {"face_res": 256, "max_views": 12, "max_time_samples": 17},
+}
+"""The size-setting fields of engine.walkthrough.bake.PRESETS (a test keeps them equal); the API
+bounds a bake's memory with them before anything is queued."""
+BYTES_PER_BASE_PIXEL = 2 * 12 + 4 + 4
+"""direct + indirect (float32 RGB), depth (float32), object id (int32) per cube pixel and time."""
 Quality = Literal["low", "medium", "high"]
 Fill = Literal["none", "foreground", "background", "both", "trace"]
 
@@ -62,6 +73,11 @@ class WalkthroughSettings(FrozenModel):
                                                           f"face_res must be even (got {self.face_res})",
                                                           self.face_res)])
         return self
+
+    def upper_bound_bytes(self) -> int:
+        """Largest bake these settings can produce (every view and time sample used)."""
+        size = {**PRESET_SIZES[self.quality], **self.overrides()}
+        return size["max_views"] * size["max_time_samples"] * 6 * size["face_res"] ** 2 * BYTES_PER_BASE_PIXEL
 
     def overrides(self) -> dict[str, int]:
         out: dict[str, int] = {"seed": self.seed}

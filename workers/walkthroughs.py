@@ -51,6 +51,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "WALKTHROUGH_BAKE_JOB",
+    "WALKTHROUGH_MAX_BAKE_BYTES",
     "WALKTHROUGH_CHUNK_JOB",
     "WALKTHROUGH_VIDEO_JOB",
     "bake_job_id",
@@ -70,6 +71,8 @@ WALKTHROUGH_BAKE_JOB = "workers.jobs.walkthrough.walkthrough_bake_job"
 WALKTHROUGH_CHUNK_JOB = "workers.jobs.walkthrough.walkthrough_chunk_job"
 WALKTHROUGH_VIDEO_JOB = "workers.jobs.walkthrough.walkthrough_video_job"
 _EYE_TOL = 1e-6  # relative to the view space's size
+WALKTHROUGH_MAX_BAKE_BYTES = 4 << 30
+"""Upper bound of one walkthrough bake's base images (a bake worker holds them in memory)."""
 
 
 def _key(kind: str, inputs: dict[str, str], params: dict[str, Any]) -> str:
@@ -128,10 +131,18 @@ def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldErro
     """Problems of the request that need the scene: no view space, an eye outside it, a time
     outside the animation. Each names the field and the allowed range."""
     errors: list[FieldError] = []
+    need = req.bake.upper_bound_bytes()
+    if need > WALKTHROUGH_MAX_BAKE_BYTES:
+        errors.append(FieldError(
+            field="bake.face_res", type="bake_too_large",
+            message=f"up to {need / 2**30:.1f} GiB of base images (max_views x max_time_samples x 6 x face_res^2 x "
+                    f"32 bytes) exceeds this server's limit of {WALKTHROUGH_MAX_BAKE_BYTES / 2**30:.0f} GiB; lower "
+                    f"face_res, max_views or max_time_samples"))
     vs = scene.view_space
     if vs is None:
-        return [FieldError(field="scene_id", type="no_view_space",
-                           message="the scene has no view_space; add one (docs/scene-format.md) to walk through it")]
+        return errors + [FieldError(field="scene_id", type="no_view_space",
+                                    message="the scene has no view_space; add one (docs/scene-format.md) to walk "
+                                            "through it")]
     lo, hi = vs.bounds()
     size = max(math.dist(lo, hi), max(abs(c) for c in lo + hi), 1e-300)
     anim = scene.animation

@@ -93,12 +93,13 @@ class WalkthroughParams:
 
 
 PRESETS: dict[str, dict[str, object]] = {
-    "low": dict(q=0.5, q_indirect=0.3, face_res=96, spp=1, indirect_samples=8, max_views=6, max_time_samples=9),
-    "medium": dict(q=0.7, q_indirect=0.5, face_res=160, spp=2, indirect_samples=16, max_views=12,
-                   max_time_samples=17),
-    "high": dict(q=0.85, q_indirect=0.65, face_res=256, spp=4, indirect_samples=32, max_views=24,
-                 max_time_samples=33),
+    "low": dict(q=0.5, q_indirect=0.3, face_res=96, spp=1, indirect_samples=8, max_views=4, max_time_samples=5),
+    "medium": dict(q=0.7, q_indirect=0.5, face_res=160, spp=2, indirect_samples=16, max_views=8,
+                   max_time_samples=9),
+    "high": dict(q=0.85, q_indirect=0.65, face_res=256, spp=4, indirect_samples=32, max_views=12,
+                 max_time_samples=17),
 }
+"""Worst-case base image memory (every view at every time): low 35 MB, medium 0.35 GB, high 2.6 GB."""
 
 
 def walkthrough_preset(quality: str, **overrides: object) -> WalkthroughParams:

@@ -76,6 +76,9 @@ def test_bad_walkthrough_requests_name_field_and_range(client: TestClient) -> No
     errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
                                                          "bake": {"face_res": 15}}))
     assert errs["bake.face_res"] == "face_res must be even (got 15)"
+    errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
+                                                         "bake": {"quality": "high", "face_res": 1024}}))
+    assert "exceeds this server's limit" in errs["bake.face_res"]
     errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": []}))
     assert "frames" in errs
     # a scene without a view space; a view space with no room; keyframes out of order
@@ -151,3 +154,11 @@ def test_walkthrough_end_to_end(client: TestClient, worker_process: Any, store_d
     # finished: the same request answers 200 at once
     r = client.post("/v1/walkthroughs", json=body)
     assert r.status_code == 200 and r.json()["status"] == "finished"
+
+
+def test_preset_sizes_match_the_engine() -> None:
+    from api_schemas.walkthrough import PRESET_SIZES
+    from engine.walkthrough.bake import PRESETS
+
+    for q, sizes in PRESET_SIZES.items():
+        assert {k: PRESETS[q][k] for k in sizes} == sizes
