@@ -185,8 +185,8 @@ def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
         path = Path(tmp) / "bake.npz"
         path.write_bytes(read_blob(store, bkey, "bake.npz"))
         b = WalkthroughBake.load(path)
-    if len(_bakes) >= 2:
-        _bakes.pop(next(iter(_bakes)))
+    if _bakes:  # one bake per worker process (they can be GBs)
+        _bakes.clear()
     _bakes[bkey] = b
     return b
 
