@@ -181,12 +181,11 @@ def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
                 pub = job_public(bj)
                 why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
         raise WalkthroughUnavailable(f"walkthrough bake {bkey} is not available{why}")
+    _bakes.clear()  # one bake per worker process (they can be GBs): drop the old one first
     with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
         path = Path(tmp) / "bake.npz"
         path.write_bytes(read_blob(store, bkey, "bake.npz"))
         b = WalkthroughBake.load(path)
-    if _bakes:  # one bake per worker process (they can be GBs)
-        _bakes.clear()
     _bakes[bkey] = b
     return b
 
