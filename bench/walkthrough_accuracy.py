@@ -221,7 +221,8 @@ def _doc(data: dict) -> str:
              f"({data['machine']}, numba threads {data['threads']}). "
              + ("**Reduced run**: " if data["reduced"] else "")
              + f"{data['frames']} frames of {data['width']} x {data['height']} per scene; preset resolutions "
-             f"overridden as listed in the params column (the shipped presets are larger, see docs/walkthrough.md).",
+             f"overridden as listed under 'Params per quality' (the shipped presets are larger, see "
+             f"docs/walkthrough.md).",
              ""]
     for name, res in data["scenes"].items():
         lines += [f"### {name}", "",
