@@ -49,13 +49,18 @@ THREADS = 2
 
 
 def _embree_once(caster: EmbreeCaster, o32: np.ndarray, d32: np.ndarray, pool: ThreadPoolExecutor,
-                 threads: int) -> float:
+                 threads: int) -> tuple[float, float]:
+    """(wall, process CPU) seconds of one Embree pass; 1 thread runs in the calling thread."""
     es = caster._get()
     n = o32.shape[0]
     cuts = [n * k // threads for k in range(threads + 1)]
-    t0 = time.perf_counter()
-    list(pool.map(lambda k: es.run(o32[cuts[k]:cuts[k + 1]], d32[cuts[k]:cuts[k + 1]], output=1), range(threads)))
-    return time.perf_counter() - t0
+    t0, c0 = time.perf_counter(), time.process_time()
+    if threads == 1:
+        es.run(o32, d32, output=1)
+    else:
+        list(pool.map(lambda k: es.run(o32[cuts[k]:cuts[k + 1]], d32[cuts[k]:cuts[k + 1]], output=1),
+                      range(threads)))
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def _objects(ldc, hits) -> np.ndarray:
@@ -127,21 +132,27 @@ def measure(name: str, res: int, size: int, repeat: int) -> dict:
         d32 = np.ascontiguousarray(d.astype(np.float32))
         with ThreadPoolExecutor(THREADS) as pool:
             for th in (1, THREADS):
-                best_i = best_e = float("inf")
+                best_i = best_e = cpu_i = cpu_e = float("inf")
                 for _ in range(repeat):  # interleaved, best of each: both see the same machine load
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     hits = trace(ldc, acc, o, d, threads=th, **kw)
                     best_i = min(best_i, time.perf_counter() - t0)
-                    best_e = min(best_e, _embree_once(caster, o32, d32, pool, th))
+                    cpu_i = min(cpu_i, time.process_time() - c0)
+                    w, c = _embree_once(caster, o32, d32, pool, th)
+                    best_e, cpu_e = min(best_e, w), min(cpu_e, c)
                 rec[f"ibrt_rays_per_s_{th}"] = n / best_i
                 rec[f"embree_rays_per_s_{th}"] = n / best_e
                 rec[f"ratio_{th}"] = best_e / best_i
-        t0 = time.perf_counter()
-        lin = trace_linear(ldc, acc, o, d, threads=THREADS, **kw)
-        t_lin = time.perf_counter() - t0
+                # CPU time: what each costs per ray regardless of how busy the machine is
+                rec[f"ibrt_rays_per_cpu_s_{th}"] = n / cpu_i
+                rec[f"embree_rays_per_cpu_s_{th}"] = n / cpu_e
+                rec[f"cpu_ratio_{th}"] = cpu_e / cpu_i
+        c0 = time.process_time()
+        lin = trace_linear(ldc, acc, o, d, threads=1, **kw)
+        t_lin = time.process_time() - c0
         rec.update(steps_per_ray=hits.n_steps / n, tests_per_ray=hits.n_tests / n,
                    linear_steps_per_ray=lin.n_steps / n, linear_tests_per_ray=lin.n_tests / n,
-                   linear_speedup=t_lin * rec[f"ibrt_rays_per_s_{THREADS}"] / n,
+                   linear_speedup=t_lin * rec["ibrt_rays_per_cpu_s_1"] / n,
                    linear_same_hits=bool(np.array_equal(lin.hit, hits.hit)
                                          and np.allclose(lin.t[lin.hit], hits.t[hits.hit], rtol=1e-9)))
         # accuracy against Embree (reflection rays: Embree from a spawn offset off the true surface)
@@ -159,7 +170,8 @@ def measure(name: str, res: int, size: int, repeat: int) -> dict:
                    t_within_h_stable_hits=float((np.abs(hits.t[hit_st] - e.t[hit_st]) <= ldc.h).mean()),
                    embree_hit_fraction=float((e.prim >= 0).mean()))
         out["sets"][label] = rec
-        print(json.dumps({"scene": name, "res": res, "set": label, "ratio_2": round(rec["ratio_2"], 4),
+        print(json.dumps({"scene": name, "res": res, "set": label, "cpu_ratio_1": round(rec["cpu_ratio_1"], 4),
+                          "ratio_2": round(rec["ratio_2"], 4),
                           "same_all": round(rec["same_object_all"], 4)}), flush=True)
     return out
 
@@ -179,23 +191,26 @@ def main() -> None:
     lines = [
         f"Measured with `python -m bench.ibrt_throughput --resolutions {' '.join(map(str, args.resolutions))} "
         f"--size {args.size} --repeat {args.repeat}` ({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, load "
-        f"average {la[0]:.1f} at the end: the machine is shared, so only ratios within one run are meaningful; "
+        f"average {la[0]:.1f} at the end: the machine is shared, so only ratios within one run are meaningful, "
+        "and the 1-thread columns use process CPU time, which a busy machine disturbs far less than wall "
+        "time; "
         "raw data in `docs/data/ibrt_throughput.json`). Rays: `primary` = the scene camera's "
         f"{args.size}x{args.size} pixel-centre rays; `reflection` = their mirror reflections from the Embree hit "
         "points (no offset, `origin_normals` given); `random` = origins uniform in the scene bounds, uniform "
         "directions.",
         "",
-        "| scene | LDC res | rays | IBRT Mrays/s, 1 / 2 threads | Embree Mrays/s, 1 / 2 threads | "
-        "**IBRT / Embree** (2 thr) | cells + tests per ray: quadtree / linear | quadtree speed-up | "
+        "| scene | LDC res | rays | IBRT / Embree Mrays per CPU s (1 thread) | **IBRT / Embree, 1 thread, CPU** | "
+        "IBRT / Embree Mrays/s wall, 2 threads | IBRT / Embree, 2 threads, wall | "
+        "cells + tests per ray: quadtree / linear | quadtree speed-up (CPU, 1 thread) | "
         "same object: all / away from silhouettes | abs(dt) <= h |",
-        "|---|---:|---|---|---|---:|---|---:|---|---:|",
+        "|---|---:|---|---|---:|---|---:|---|---:|---|---:|",
     ]
     for r in rows:
         for label, s in r["sets"].items():
             lines.append(
-                f"| {r['scene']} | {r['resolution']} | {label} | {s['ibrt_rays_per_s_1'] / 1e6:.2f} / "
-                f"{s['ibrt_rays_per_s_2'] / 1e6:.2f} | {s['embree_rays_per_s_1'] / 1e6:.2f} / "
-                f"{s['embree_rays_per_s_2'] / 1e6:.2f} | **{s['ratio_2']:.3f}** | "
+                f"| {r['scene']} | {r['resolution']} | {label} | {s['ibrt_rays_per_cpu_s_1'] / 1e6:.2f} / "
+                f"{s['embree_rays_per_cpu_s_1'] / 1e6:.2f} | **{s['cpu_ratio_1']:.3f}** | "
+                f"{s['ibrt_rays_per_s_2'] / 1e6:.2f} / {s['embree_rays_per_s_2'] / 1e6:.2f} | {s['ratio_2']:.3f} | "
                 f"{s['steps_per_ray']:.0f} + {s['tests_per_ray']:.0f} / {s['linear_steps_per_ray']:.0f} + "
                 f"{s['linear_tests_per_ray']:.0f} | {s['linear_speedup']:.1f}x | "
                 f"{100 * s['same_object_all']:.2f} % / {100 * s['same_object_stable']:.2f} % | "

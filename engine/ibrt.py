@@ -759,7 +759,11 @@ def trace(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,
     """First hit of each ray (origins, dirs (n, 3); dirs are normalised) against the LDC's
     samples, through the quadtrees of ``accel`` (``build_accel(ldc)``). Hits count when
     ``t_min < t < t_max`` (scalars or (n,) arrays). ``threads``: numba threads for this call
-    (None: numba's current setting). Parallel over rays, releases the GIL."""
+    (None: numba's current setting). Parallel over rays, releases the GIL.
+
+    Rays leaving a surface need no offset: patches within ``self_eps`` pixels of the origin
+    are never hit; ``origin_normals`` (n, 3), the surface normal at each origin, also skips
+    the origin surface's neighbouring patches (module docstring)."""
     return _run(ldc, accel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals, True)
 
 
@@ -776,8 +780,8 @@ def trace_linear(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarr
 def surface_t_min(ldc: LDC, dirs: np.ndarray, normals: np.ndarray, pixels: float = 1.5) -> np.ndarray:
     """A ``t_min`` for rays leaving a surface with normals ``normals`` (n, 3): ``pixels`` LDC
     pixels measured along the normal (so ``pixels * h / |cos|``, the cosine clamped at 0.2).
-    The patches of the surface a ray leaves are up to about a pixel off the true surface in
-    the other LDIs; hits closer than this are that surface itself."""
+    An alternative to ``origin_normals`` (which measured better: docs/ldc.md) for callers
+    that want a plain distance cut-off."""
     d = np.asarray(dirs, dtype=np.float64)
     nr = np.asarray(normals, dtype=np.float64)
     c = np.abs(np.einsum("ij,ij->i", d, nr)) / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(nr, axis=1),
