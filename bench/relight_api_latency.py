@@ -100,6 +100,7 @@ def measure(n: int, warmup: int, fmt: str) -> dict[str, Any]:
     for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS"):
         os.environ.pop(k, None)
     manifest, files = dataset()
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
         stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
         try:
@@ -142,7 +143,8 @@ def measure(n: int, warmup: int, fmt: str) -> dict[str, Any]:
         finally:
             stack.stop()
     med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
-    return {"n": n, "warmup": warmup, "format": fmt, "size": "512x512", "n_lights": len(manifest["images"]),
+    return {"load_before": load_before, "load_after": os.getloadavg()[0],
+            "n": n, "warmup": warmup, "format": fmt, "size": "512x512", "n_lights": len(manifest["images"]),
             "bake_s": t_bake, "p50": med, "p95_request_ms": pct([r["request_ms"] for r in rows], 0.95),
             "p95_with_image_ms": pct([r["with_image_ms"] for r in rows], 0.95), "rows": rows}
 
@@ -153,8 +155,9 @@ def report(res: dict[str, Any], argv: str) -> str:
         "## Relighting through the API (warm render worker)",
         "",
         f"Measured with `python -m bench.relight_api_latency {argv}` ({date.today().isoformat()}, "
-        f"{os.cpu_count()} cores, {platform.machine()}; uvicorn, Redis, both workers and the client share the "
-        "machine with other sessions).",
+        f"{os.cpu_count()} cores, {platform.machine()}, 1-minute load average {res['load_before']:.1f} before and "
+        f"{res['load_after']:.1f} after: other sessions shared the cores; uvicorn, Redis, both workers and the "
+        "client run on the same machine).",
         "",
         f"Dataset: 512x512 crop of the DiLiGenT ball ({res['n_lights']} photographs, distant lights), baked in "
         f"{res['bake_s']:.1f} s. {res['n']} relight requests after {res['warmup']} warm-up ones, each a new "
