@@ -102,12 +102,13 @@ def _radiance(v, f, r, c, k, td0, td1, a_d, ti0, ti1, a_i, direct, indirect):
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _project(views, tg, td0, td1, a_d, ti0, ti1, a_i, direct, indirect, eyes, depth, oid, basis, res, ortho, ceye,
-             right, up, fwd, W, H, sx_scale, sy_scale, margin, px_out, py_out, z_out, cos_out, rad_out, state_out,
-             oid_out):
+             right, up, fwd, W, H, sx_scale, sy_scale, margin, face_on, px_out, py_out, z_out, cos_out, rad_out,
+             state_out, oid_out):
     """Project every base pixel of the selected bases. state: 0 invalid, 1 surface, 2 sky
     (direction only). px/py are continuous pixel coordinates (samples farther than ``margin`` pixels
     outside the frame are invalid), z the distance along the new ray (perspective) or along the view
-    axis (orthographic), cos_out holds 1 - cos(angle between the base ray and the new ray)."""
+    axis (orthographic), cos_out holds 1 - cos(angle between the base ray and the new ray). Faces with
+    ``face_on[b, f]`` False are skipped (all their samples invalid)."""
     inv = 1.0 / res
     nrows = views.shape[0] * 6 * res
     for row in nb.prange(nrows):  # one cube row per iteration: no integer division per sample
@@ -118,6 +119,10 @@ def _project(views, tg, td0, td1, a_d, ti0, ti1, a_i, direct, indirect, eyes, de
         v = views[b]
         g = tg[b]
         sy = 1.0 - (r + 0.5) * 2.0 * inv
+        if not face_on[b, f]:  # culled: nothing of this face can reach the frame
+            for c in range(res):
+                state_out[row * res + c] = 0
+            continue
         for c in range(res):
             s = row * res + c
             sx = (c + 0.5) * 2.0 * inv - 1.0
@@ -425,6 +430,39 @@ class _Buffers:
         return self
 
 
+def _visible_faces(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, vb: np.ndarray, tg: np.ndarray,
+                   sx: float, sy: float, margin: float) -> np.ndarray:
+    """(nb, 6) bool: cube faces whose samples may reach the frame (conservative). A face's hit
+    points lie in the pyramid of apex ``eye_b`` spanned by the face's corner rays out to its
+    largest depth along the face axis; a face is culled when all five pyramid vertices are
+    outside one plane of the camera frustum (widened by ``margin`` pixels). Faces with rays that
+    leave the scene (points at infinity) and orthographic cameras are never culled."""
+    nbases = vb.shape[0]
+    on = np.ones((nbases, 6), dtype=np.bool_)
+    if camera.kind != "perspective":
+        return on
+    right, up, fwd = camera.basis()
+    ceye = np.asarray(camera.eye, np.float64)
+    gx = sx * (1.0 + 2.0 * margin / camera.width) + 1e-9
+    gy = sy * (1.0 + 2.0 * margin / camera.height) + 1e-9
+    for i in range(nbases):
+        dface = depth[vb[i], tg[i]]  # (6, R, R)
+        dmax = dface.reshape(6, -1).max(axis=1)
+        sky = (dface.reshape(6, -1) <= 0).any(axis=1)
+        e = eyes[vb[i]]
+        for f in range(6):
+            if sky[f]:
+                continue
+            rgt, upv, fw = _BASIS[f, 0], _BASIS[f, 1], _BASIS[f, 2]
+            verts = [e] + [e + (fw + a * rgt + b * upv) * float(dmax[f]) for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
+            q = np.asarray(verts) - ceye
+            xc, yc, zc = q @ right, q @ up, q @ fwd
+            planes = (-zc, xc - gx * zc, -xc - gx * zc, yc - gy * zc, -yc - gy * zc)  # > 0: outside
+            if any(bool(np.all(pl > 0)) for pl in planes):
+                on[i, f] = False
+    return on
+
+
 def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_id: np.ndarray,
               direct: np.ndarray, indirect: np.ndarray, views: list[int], geometry_time: list[int],
               direct_times: list[tuple[int, int, float]], indirect_times: list[tuple[int, int, float]],
@@ -467,8 +505,10 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
     buf = (buffers or _Buffers()).get(n, W * H)
     timings: dict[str, float] = {"setup": time.perf_counter() - t0}
     t1 = time.perf_counter()
+    margin = float(max_footprint) + 1.0
+    face_on = _visible_faces(camera, eyes, depth, vb, tg, sx, sy, margin)
     _project(vb, tg, td0, td1, ad, ti0, ti1, ai, direct, indirect, eyes, depth, object_id, _BASIS, res, ortho,
-             np.asarray(camera.eye, np.float64), right, up, fwd, W, H, sx, sy, float(max_footprint) + 1.0,
+             np.asarray(camera.eye, np.float64), right, up, fwd, W, H, sx, sy, margin, face_on,
              buf.px, buf.py, buf.z, buf.cos, buf.rad, buf.state, buf.soid)
     quads = fill in ("foreground", "both", "trace")
     if quads:

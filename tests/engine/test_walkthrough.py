@@ -331,3 +331,38 @@ def test_pixel_helpers_consistent() -> None:  # the reprojection uses camera.py'
     px, py = pixel_centers(cam)
     _, d = camera_rays(cam, px, py)
     np.testing.assert_allclose(d.reshape(4, 4, 3), cube_directions(4)[4], atol=1e-12)
+
+
+def test_face_culling_changes_nothing(monkeypatch) -> None:
+    from pathlib import Path
+
+    from api_schemas.scene import load_scene_file
+    from engine.walkthrough import reconstruct
+    from workers.scene_loader import directory_resolver
+
+    samples = Path(__file__).resolve().parents[2] / "samples"
+    room = load_animated_scene(load_scene_file(samples / "scenes" / "static_room.json"), directory_resolver(samples))
+    bake = render_bases(room, [[2.0, 1.6, 1.5], [3.0, 1.6, 4.0]], [0.0], [0.0],
+                        WalkthroughParams(face_res=24, indirect_res_div=1, spp=1, indirect_samples=0,
+                                          area_light_samples=1))
+    rng = np.random.default_rng(5)
+    cams = []
+    for _ in range(12):
+        eye = np.array([2.5, 1.6, 2.5]) + rng.uniform(-0.5, 0.5, 3)
+        look = eye + rng.normal(size=3)
+        cams.append(CameraParams("perspective", tuple(eye), tuple(look), (0, 1, 0), 24, 18,
+                                 fov_y_deg=float(rng.uniform(10, 150))))
+    culled = []
+    n_culled = 0
+    for c in cams:
+        culled.append(WalkthroughRenderer(bake).render(c, 0.0, fill="both", strict=False))
+        sy = math.tan(math.radians(c.fov_y_deg) / 2)
+        n_culled += int(np.count_nonzero(~reconstruct._visible_faces(
+            c, bake.views, bake.depth, np.array([0, 1]), np.array([0, 0]), sy * c.width / c.height, sy, 33.0)))
+    assert n_culled >= 12  # the closed room lets the culling work
+    monkeypatch.setattr(reconstruct, "_visible_faces",
+                        lambda camera, eyes, depth, vb, tg, sx, sy, margin: np.ones((vb.shape[0], 6), bool))
+    for c, frame in zip(cams, culled, strict=True):
+        full = WalkthroughRenderer(bake).render(c, 0.0, fill="both", strict=False)
+        np.testing.assert_array_equal(frame.radiance, full.radiance)
+        np.testing.assert_array_equal(frame.provenance, full.provenance)
