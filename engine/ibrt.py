@@ -464,11 +464,14 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
             nv = res[a, 1]
             z0 = zr[a, 0]
             z1 = zr[a, 1]
+            if not (z0 <= z1):
+                continue  # no usable patch in this LDI
+            eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(z0) + abs(z1))  # depth slack for rounding
             if not use_tree:
                 # ---- linear march: every pixel whose dilated square the projected ray crosses
                 t0, t1 = _slab(uvr[a, 0] - margin, uvr[a, 1] + margin, ou, du, iu, t_lo, best_t)
                 t0, t1 = _slab(uvr[a, 2] - margin, uvr[a, 3] + margin, ov, dv, iv, t0, t1)
-                t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
+                t0, t1 = _slab(z0 - eps, z1 + eps, ow, dw, iw, t0, t1)
                 if not (t0 <= t1):
                     continue
                 va = ov + t0 * dv
@@ -506,10 +509,9 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
             size = 1 << rl
             t0, t1 = _slab(uvr[a, 0] - margin, uvr[a, 1] + margin, ou, du, iu, t_lo, best_t)
             t0, t1 = _slab(uvr[a, 2] - margin, uvr[a, 3] + margin, ov, dv, iv, t0, t1)
-            t0, t1 = _slab(z0, z1, ow, dw, iw, t0, t1)
+            t0, t1 = _slab(z0 - eps, z1 + eps, ow, dw, iw, t0, t1)
             if not (t0 <= t1):
                 continue
-            eps = 1e-7 * h + 1e-12 * (abs(ow) + abs(z0) + abs(z1))
             # start at the deepest node whose block holds every pixel the dilated segment can touch
             ua = ou + t0 * du
             ub = ou + t1 * du
