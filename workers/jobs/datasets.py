@@ -454,6 +454,18 @@ def _write_concurrently(store: ObjectStore, *args: Any) -> Any:
         proxy.close()
 
 
+def _used(baked: BakedDataset, out: Any) -> dict[str, Any]:
+    """What the relight read of the dataset: its images (indices into the manifest's ``images``,
+    listed when at most 64) and triangles."""
+    used = np.asarray(getattr(out, "lights_used", np.zeros(0, np.int64)), np.int64)
+    images = np.asarray(baked.kept_from)[used] if used.size else used
+    res: dict[str, Any] = {"n_dataset_images_used": int(images.size),
+                           "n_triangles_used": int(getattr(out, "n_triangles_used", 0))}
+    if images.size <= 64:
+        res["dataset_images_used"] = sorted(int(i) for i in images)
+    return res
+
+
 def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Relight a baked dataset; returns ``{"artifact_key", "counts", "timings", ...}``."""
     t_start = time.perf_counter()
@@ -488,7 +500,7 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
         "bake_key": bake_key,
         "exact": out.exact,
         "counts": {"n_outside": out.n_outside, "n_singular": out.n_singular, "n_lights_expanded": out.n_lights,
-                   "width": w, "height": h, "bake_cache_hit": int(hit)},
+                   "width": w, "height": h, "bake_cache_hit": int(hit), **_used(baked, out)},
         "timings": {**out.timings, "load": t_load, "encode": t_encode},
     })
     t0 = time.perf_counter()

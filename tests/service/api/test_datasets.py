@@ -361,3 +361,24 @@ def test_bake_is_queued_and_delete_waits_for_it(client: TestClient) -> None:
     assert client.post(f"/v1/datasets/{did}/bake", json={}).status_code == 404  # gone
     bad = client.post(f"/v1/datasets/{did}/bake", json={"params": {"max_face_radius_deg": 120}})
     assert bad.status_code == 422 and "params.max_face_radius_deg" in fields(bad)
+
+
+def test_file_names_are_metadata_only(client: TestClient, store_dir: Path) -> None:
+    """HARD_CASES 17: names like ../../x are only labels; files live under their sha256 in the store,
+    and a name with a control character (NUL) is refused."""
+    manifest, files = subset(3)
+    m = json.loads(json.dumps(manifest))
+    renamed: dict[str, bytes] = {}
+    for i, img in enumerate(m["images"]):
+        new = ["../../evil.png", "C:\\..\\x.png", "/etc/passwd"][i]
+        renamed[new] = files[img["file"]]
+        img["file"] = new
+    renamed.update({k: files[k] for k in ("depth.exr", "mask.png")})
+    r = client.post("/v1/datasets", files=multipart(m, renamed))
+    assert r.status_code == 201, r.text
+    assert not (store_dir.parent / "evil.png").exists() and not (store_dir.parent.parent / "evil.png").exists()
+    for img in r.json()["manifest"]["images"]:
+        assert (store_dir / "blobs" / img["sha256"]).is_file()
+    m["images"][0]["file"] = "a\x00b.png"
+    r = client.post("/v1/datasets", json=with_shas({**manifest}, files) | {"images": m["images"]})
+    assert r.status_code == 422 and "images.0.file" in fields(r)

@@ -76,6 +76,7 @@ def test_generate_bake_relight_round_trip(client: TestClient, worker_process: An
     rel = _ok(client.post("/v1/relights?wait=30", json={"dataset_id": did, "bake": {"half": False},
                                                         "lights": [light]}), logs())
     assert rel["artifact"]["result"]["exact"] is True
+    assert rel["artifact"]["result"]["counts"]["dataset_images_used"] == [5]  # only what the request needs
     exr = client.get(rel["links"]["image.exr"])
     assert exr.status_code == 200 and exr.headers["content-type"] == "image/x-exr"
     relit = _decode(exr.content, ".exr")
