@@ -212,6 +212,7 @@ def pareto(settings: list[dict]) -> None:
 
 def plot(results: dict) -> None:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -236,6 +237,8 @@ def plot(results: dict) -> None:
         front = sorted((s for s in sc["settings"] if s["pareto"]), key=lambda s: s["render_ms"])
         ax.plot([s["render_ms"] for s in front], [s["lrms_mean"] for s in front], "k--", lw=1, label="Pareto front")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
         ax.set_xlabel("render time per view (ms, median)")
         ax.set_ylabel("LRMS vs ground truth (mean of views)")
         ax.set_title(sc["scene"])
@@ -358,7 +361,11 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=128, help="image size (default 128)")
     ap.add_argument("--views", type=int, default=8, help="views per scene (default 8)")
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated sample scenes")
+    ap.add_argument("--replot", action="store_true", help="only redraw the plot from docs/data/ldc_accuracy.json")
     args = ap.parse_args(argv)
+    if args.replot:
+        plot(json.loads(DATA.read_text()))
+        return 0
     t0 = time.perf_counter()
     if args.quick:
         size, n_views, ldc_res, fs, gens = 64, 2, (128,), (4,), (0, 1)
