@@ -51,6 +51,7 @@ from api_schemas.service import ArtifactManifest, JobPublic, ReferenceRenderPara
 __all__ = [
     "MAX_DATASET_IMAGES",
     "MAX_DATASET_SAMPLES",
+    "MAX_EXPANDED_LIGHTS",
     "BakeParams",
     "BakeRequest",
     "CompositeRequest",
@@ -572,6 +573,31 @@ class RelightRequest(FrozenModel):
     exposure_stops: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-30, le=30)] = 0.0
     """Exposure of the PNG preview (the EXR is always linear, unscaled)."""
 
+    @model_validator(mode="after")
+    def _budget(self) -> Self:
+        raise_errors("RelightRequest", _light_budget_errors(self.lights))
+        return self
+
+
+MAX_EXPANDED_LIGHTS = 16384
+"""Most point / directional lights one request may expand to (rect samples + environment lights)."""
+
+
+def _expanded(light: Any) -> int:
+    if isinstance(light, RelightRectLight):
+        return light.samples
+    if isinstance(light, RelightEnvironmentLight):
+        return light.n_lights
+    return 1
+
+
+def _light_budget_errors(lights: list[Any]) -> list[InitErrorDetails]:
+    total = sum(_expanded(light) for light in lights)
+    if total <= MAX_EXPANDED_LIGHTS:
+        return []
+    return [error_at(("lights",), "too_many_lights", f"the lights expand to {total} point / directional lights "
+                     f"(rect samples + environment n_lights), more than the limit of {MAX_EXPANDED_LIGHTS}", None)]
+
 
 class RelightPublic(FrozenModel):
     artifact_key: Sha256
@@ -605,6 +631,11 @@ class CompositeRequest(FrozenModel):
     region before the ratio ``I_object / I_background`` is taken."""
     max_ratio: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=1, le=1e6)] = 8.0
     """Clamp of the ratio where the object lights an (almost) black background."""
+
+    @model_validator(mode="after")
+    def _budget(self) -> Self:
+        raise_errors("CompositeRequest", _light_budget_errors(self.lights))
+        return self
     exposure_stops: Annotated[float, Field(strict=True, allow_inf_nan=False, ge=-30, le=30)] = 0.0
 
     @field_validator("plate_transfer")

@@ -317,6 +317,9 @@ def test_relight_needs_a_baked_visible_dataset(client: TestClient) -> None:
     assert r.status_code == 422 and "lights.0.position.2" in fields(r)
     r = client.post("/v1/datasets/generate", json={"scene_id": "3" * 64})
     assert r.status_code == 404
+    many = [{"type": "environment", "image_sha256": "2" * 64, "n_lights": 4096}] * 5
+    r = client.post("/v1/relights", json={"dataset_id": did, "lights": many})
+    assert r.status_code == 422 and "expand to 20480" in fields(r)["lights"]
 
 
 def test_datasets_are_per_api_key(make_app: Any) -> None:
