@@ -384,6 +384,42 @@ def _background_fill(out, dep, ids, prov, W, H):
             prov[q] = PROV_BACKGROUND_FILL
 
 
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _background_fill_sparse(out, dep, ids, prov, W, H, holes):
+    """``_background_fill`` for a few holes: scan from each hole to its nearest filled pixels
+    (same result, cost proportional to the hole runs instead of the image)."""
+    src = np.full(holes.shape[0], -1, np.int64)
+    for h in nb.prange(holes.shape[0]):
+        q = holes[h]
+        y = q // W
+        x = q - y * W
+        best = -1
+        bz = -1.0
+        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            xx = x + dx
+            yy = y + dy
+            while 0 <= xx < W and 0 <= yy < H and prov[yy * W + xx] == PROV_HOLE:
+                xx += dx
+                yy += dy
+            if 0 <= xx < W and 0 <= yy < H:
+                j = yy * W + xx
+                zj = np.inf if prov[j] == PROV_SKY else dep[j]
+                if zj > bz:
+                    best, bz = j, zj
+        src[h] = best
+    # serial on purpose: a second prange over the same range would be fused with the first by
+    # numba, and the scans would then see holes already filled by other iterations
+    for h in range(holes.shape[0]):
+        j = src[h]
+        if j >= 0:
+            q = holes[h]
+            for k in range(3):
+                out[q, k] = out[j, k]
+            dep[q] = dep[j]
+            ids[q] = ids[j]
+            prov[q] = PROV_BACKGROUND_FILL
+
+
 # ---------------------------------------------------------------------------- driver
 
 
@@ -531,13 +567,18 @@ def reproject(camera: CameraParams, eyes: np.ndarray, depth: np.ndarray, object_
              prov)
     if fill in ("background", "both"):
         # a hole whose whole row and column are empty is reached by a second pass
+        holes = np.flatnonzero(prov == PROV_HOLE)
         for _ in range(8):
-            before = int(np.count_nonzero(prov == PROV_HOLE))
-            if before == 0:
+            if holes.size == 0:
                 break
-            _background_fill(out, dep, ids, prov, W, H)
-            if int(np.count_nonzero(prov == PROV_HOLE)) == before:
+            if holes.size * 20 < prov.size:  # few holes: scan from each
+                _background_fill_sparse(out, dep, ids, prov, W, H, holes)
+            else:
+                _background_fill(out, dep, ids, prov, W, H)
+            left = np.flatnonzero(prov == PROV_HOLE)
+            if left.size == holes.size:
                 break
+            holes = left
     timings["fill"] = time.perf_counter() - t1
     if not np.all(np.isfinite(out)):
         raise NonFiniteOutputError("reconstruction produced non-finite values")

@@ -366,3 +366,22 @@ def test_face_culling_changes_nothing(monkeypatch) -> None:
         full = WalkthroughRenderer(bake).render(c, 0.0, fill="both", strict=False)
         np.testing.assert_array_equal(frame.radiance, full.radiance)
         np.testing.assert_array_equal(frame.provenance, full.provenance)
+
+
+def test_sparse_background_fill_matches_sweeps() -> None:
+    from engine.walkthrough import reconstruct as rc
+
+    rng = np.random.default_rng(11)
+    W, H = 37, 23
+    for frac in (0.02, 0.3, 0.9):
+        prov = np.where(rng.random(W * H) < frac, rc.PROV_HOLE, rc.PROV_REPROJECTED).astype(np.uint8)
+        prov[rng.random(W * H) < 0.05] = rc.PROV_SKY
+        out = rng.random((W * H, 3)).astype(np.float32)
+        dep = rng.random(W * H).astype(np.float32)
+        ids = rng.integers(0, 5, W * H).astype(np.int32)
+        a = [out.copy(), dep.copy(), ids.copy(), prov.copy()]
+        b = [out.copy(), dep.copy(), ids.copy(), prov.copy()]
+        rc._background_fill(*a, W, H)
+        rc._background_fill_sparse(*b, W, H, np.flatnonzero(prov == rc.PROV_HOLE))
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
