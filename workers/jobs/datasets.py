@@ -566,21 +566,21 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     depth_name, mask_name = "distance.exr", "mask.png"
     shas: dict[str, str] = {}
+    names = [f"image_{i:04d}.exr" for i in range(ds.images.shape[0])]
     with tempfile.TemporaryDirectory(prefix="ibr-generate-") as tmpdir:
         tmp = Path(tmpdir)
         # the renderer's depth AOV (distance along the pixel-centre ray, 0 = no hit): the loader's
         # points_from_depth(depth, camera, "distance") then gives exactly the generator's points
         depth, _ = surface_aovs(loaded.runtime, camera)
         depth = np.where(surface, depth, 0.0).astype(np.float32)
-        files: dict[str, bytes] = {
-            depth_name: _image_bytes(tmp, depth_name, depth[:, :, None]),
-            mask_name: _image_bytes(tmp, mask_name, surface.astype(np.float32)[:, :, None]),
-        }
-        names = [f"image_{i:04d}.exr" for i in range(ds.images.shape[0])]
-        for name, img in zip(names, ds.images, strict=True):
-            files[name] = _image_bytes(tmp, name, img)
-    for name, data in files.items():
-        shas[name] = str(store_file(store, data, max_pixels=MAX_FILE_PIXELS)["sha256"])
+        todo: list[tuple[str, Any]] = [(depth_name, depth[:, :, None]),
+                                       (mask_name, surface.astype(np.float32)[:, :, None])]
+        todo += list(zip(names, ds.images, strict=True))
+        for i, (name, pixels) in enumerate(todo):
+            # one file at a time (encoded, validated and stored like an upload): memory stays at one file
+            data = _image_bytes(tmp, name, pixels)
+            shas[name] = str(store_file(store, data, max_pixels=MAX_FILE_PIXELS)["sha256"])
+            progress.report(0.9 + 0.02 * (i + 1) / len(todo), "storing dataset")
     cam_doc = req.camera.model_dump(mode="json") if req.camera is not None else _scene_camera_doc(store, req.scene_id)
     manifest = DatasetManifest.model_validate({
         "name": f"generated-{req.scene_id[:12]}",
