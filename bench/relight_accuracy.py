@@ -292,6 +292,7 @@ def _plots(res: dict) -> list[str]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     names = []
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -310,6 +311,7 @@ def _plots(res: dict) -> list[str]:
     ax[0].set_ylabel("MAE (8-bit grey levels)")
     ax[0].set_xscale("log")
     ax[0].set_xticks([2, 5, 10, 20], ["2", "5", "10", "20"])
+    ax[0].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax[0].axhline(PAPER_MAE, color="grey", lw=0.8, ls=":")
     ax[0].text(2, PAPER_MAE * 1.05, "paper's 3.40 (real frog)", color="grey", fontsize=7)
     ax[1].set_xlabel("stored MiB (log)")
