@@ -55,6 +55,7 @@ if TYPE_CHECKING:
     from workers.store import ObjectStore
 
 __all__ = [
+    "ids_in_active_jobs",
     "BAKE_TIMEOUT_S",
     "BATCH_TTL_S",
     "BakeMissing",
@@ -726,3 +727,40 @@ def batch_status(redis: Redis, batch_id: str, *, store: ObjectStore | None = Non
     stage = "done" if n_open == 0 else f"{n - n_open} of {n} renders done"
     return BatchPublic(id=batch_id, scene_ids=scene_ids, renders=renders,
                        progress=JobProgress(fraction=min(1.0, frac), stage=stage), counts=counts)
+
+
+def ids_in_active_jobs(redis: Redis, keys: Iterable[str]) -> set[str]:
+    """String values stored under any of ``keys`` (at any depth) in the payloads of queued,
+    scheduled, deferred or started jobs of every queue: e.g. the scene or dataset ids that a
+    DELETE must not pull from under a running job."""
+    wanted = frozenset(keys)
+    ids: list[str] = []
+    for name in QUEUE_NAMES:
+        q = get_queue(redis, name)
+        ids += q.get_job_ids()
+        for reg in (q.started_job_registry, q.scheduled_job_registry, q.deferred_job_registry):
+            ids += reg.get_job_ids(cleanup=False)
+    out: set[str] = set()
+    for job in Job.fetch_many(list(dict.fromkeys(ids)), connection=redis, serializer=JSONSerializer):
+        if job is None:
+            continue
+        try:
+            args = job.args
+        except Exception:  # an unreadable payload cannot be attributed to anything
+            continue
+        _collect_ids(args, wanted, out)
+    return out
+
+
+def _collect_ids(value: Any, keys: frozenset[str], out: set[str], depth: int = 0) -> None:
+    if depth > 8:
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if k in keys and isinstance(v, str):
+                out.add(v)
+            else:
+                _collect_ids(v, keys, out, depth + 1)
+    elif isinstance(value, list | tuple):
+        for v in value:
+            _collect_ids(v, keys, out, depth + 1)

@@ -22,7 +22,6 @@ from pydantic import ValidationError
 from redis import Redis
 from rq import Retry
 from rq.job import Job
-from rq.serializers import JSONSerializer
 
 from api_schemas.datasets import (
     BakeRequest,
@@ -84,13 +83,12 @@ from workers.datasets import (
 )
 from workers.queues import (
     BAKE_TIMEOUT_S,
-    QUEUE_NAMES,
     RENDER_RETRY_INTERVALS_S,
     RENDER_TIMEOUT_S,
     QueueName,
     enqueue_unique,
     fetch_job,
-    get_queue,
+    ids_in_active_jobs,
     job_public,
 )
 from workers.store import NotFound, ObjectStore
@@ -196,39 +194,6 @@ def _upload_status(store: ObjectStore, manifest: DatasetManifest, owner: str | N
     missing, received = missing_files(store, manifest, dataset_id)
     return DatasetUploadStatus(dataset_id=dataset_id, state="pending", missing=missing, received=received,
                                links=links)
-
-
-def _active_dataset_ids(redis: Redis) -> set[str]:
-    ids: list[str] = []
-    for name in QUEUE_NAMES:
-        q = get_queue(redis, name)
-        ids += q.get_job_ids()
-        for reg in (q.started_job_registry, q.scheduled_job_registry, q.deferred_job_registry):
-            ids += reg.get_job_ids(cleanup=False)
-    out: set[str] = set()
-    for job in Job.fetch_many(list(dict.fromkeys(ids)), connection=redis, serializer=JSONSerializer):
-        if job is None:
-            continue
-        try:
-            args = job.args
-        except Exception:  # an unreadable payload cannot be attributed to a dataset
-            continue
-        _collect(args, out)
-    return out
-
-
-def _collect(value: Any, out: set[str], depth: int = 0) -> None:
-    if depth > 8:
-        return
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if k in ("dataset_id", "object_dataset_id", "background_dataset_id") and isinstance(v, str):
-                out.add(v)
-            else:
-                _collect(v, out, depth + 1)
-    elif isinstance(value, list | tuple):
-        for v in value:
-            _collect(v, out, depth + 1)
 
 
 def _enqueue(redis: Redis, queue: QueueName, func: str, payload: dict[str, Any], kind: str, key: str,
@@ -483,7 +448,7 @@ def remove_dataset(dataset_id: DatasetId, store: StoreDep, redis: RedisDep, owne
     """Delete a dataset (409 while a queued or running job uses it). Its files stay (content-addressed)."""
     if not dataset_visible(store, dataset_id, owner) or not store.exists(f"datasets/{dataset_id}.json"):
         raise NotFound(dataset_id)
-    if dataset_id in _active_dataset_ids(redis):
+    if dataset_id in ids_in_active_jobs(redis, ("dataset_id", "object_dataset_id", "background_dataset_id")):
         raise HTTPException(409, f"dataset {dataset_id} is used by a queued or running job; cancel it or wait")
     try:
         delete_dataset(store, dataset_id, owner)

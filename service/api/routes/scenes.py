@@ -11,9 +11,6 @@ import numpy as np
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
-from redis import Redis
-from rq.job import Job
-from rq.serializers import JSONSerializer
 
 from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
@@ -33,7 +30,7 @@ from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import read_multipart
 from service.core.config import Settings
 from workers.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, store_scene
-from workers.queues import QUEUE_NAMES, get_queue
+from workers.queues import ids_in_active_jobs
 from workers.store import NotFound, ObjectStore
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -126,40 +123,6 @@ def _parse_scene_json(raw: bytes, bare_allowed: bool) -> Scene:
         return SceneCreate.model_validate_json(raw).scene
     except ValidationError as exc:
         raise ValidationProblem.from_pydantic(exc, SceneCreate) from None
-
-
-def _active_scene_ids(redis: Redis) -> set[str]:
-    """Scene ids referenced by queued / scheduled / deferred / started jobs (any kind)."""
-    ids: list[str] = []
-    for name in QUEUE_NAMES:
-        q = get_queue(redis, name)
-        ids += q.get_job_ids()
-        for reg in (q.started_job_registry, q.scheduled_job_registry, q.deferred_job_registry):
-            ids += reg.get_job_ids(cleanup=False)
-    out: set[str] = set()
-    for job in Job.fetch_many(list(dict.fromkeys(ids)), connection=redis, serializer=JSONSerializer):
-        if job is None:
-            continue
-        try:
-            args = job.args
-        except Exception:  # an unreadable payload cannot be attributed to a scene
-            continue
-        _collect_scene_ids(args, out)
-    return out
-
-
-def _collect_scene_ids(value: Any, out: set[str], depth: int = 0) -> None:
-    if depth > 8:
-        return
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if k in ("scene_id", "scene") and isinstance(v, str):
-                out.add(v)
-            else:
-                _collect_scene_ids(v, out, depth + 1)
-    elif isinstance(value, list | tuple):
-        for v in value:
-            _collect_scene_ids(v, out, depth + 1)
 
 
 def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: str | None) -> tuple[ScenePublic, bool]:
@@ -513,7 +476,7 @@ def remove_scene(scene_id: SceneId, store: StoreDep, redis: RedisDep, owner: Own
 
     if not scene_visible(store, scene_id, owner) or not store.exists(f"scenes/{scene_id}.json"):
         raise NotFound(scene_id)
-    if scene_id in _active_scene_ids(redis):
+    if scene_id in ids_in_active_jobs(redis, ("scene_id", "scene")):
         raise HTTPException(409, f"scene {scene_id} is used by a queued or running job; cancel it or wait")
     if owner is None:
         for who in scene_owners(store, scene_id):  # auth off: one namespace, delete for everybody
