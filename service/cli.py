@@ -6,7 +6,10 @@ http://127.0.0.1:8000, key from ``IBR_API_KEY``): ``ibr scenes add|list|show|del
 ``ibr render`` (request a render, follow it with a progress bar, fetch the image; ``--method
 ldc+llf`` renders from the scene's bake), ``ibr bake`` (bake a scene, ``--wait`` follows its parts),
 ``ibr bakes list|show|delete``,
-``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``. Local, no service:
+``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``; illumination datasets: ``ibr datasets
+upload|list|show|delete|generate|bake``, ``ibr relight``, ``ibr composite``; walkthroughs:
+``ibr walkthrough`` (request, follow with a progress bar, fetch the MP4 / frames),
+``ibr walkthroughs show|fetch|delete``. Local, no service:
 ``ibr render-local``, ``ibr validate``, ``ibr schema``, ``ibr samples``.
 
 Exit codes: 0 ok, 2 bad input (with a message naming the field or file), 3 the
@@ -17,15 +20,19 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NoReturn, TypeVar
 
 import typer
 
 if TYPE_CHECKING:
+    from api_schemas.datasets import FileUploadPublic, RelightPublic
     from api_schemas.scene import Scene
-    from service.client import Client
+    from api_schemas.service import ArtifactManifest, JobPublic
+    from api_schemas.walkthrough import WalkthroughPublic
+    from service.client import ApiError, Client
 
 T = TypeVar("T")
 
@@ -259,9 +266,18 @@ def _call(fn: Callable[[], T]) -> T:
     try:
         return fn()
     except ApiError as exc:
-        _fail(str(exc), code=2 if 400 <= exc.status < 500 and exc.status not in (401, 403, 429) else 3)
+        _api_fail(exc)
     except httpx.HTTPError as exc:
         _fail(f"cannot reach the API: {exc}", code=3)
+
+
+def _api_fail(exc: ApiError) -> NoReturn:
+    """Exit for an API error: 4 when a job failed or was canceled, 2 for bad input (4xx), else 3."""
+    from service.client import JobFailed
+
+    if isinstance(exc, JobFailed):
+        _fail(str(exc), code=4)
+    _fail(str(exc), code=2 if 400 <= exc.status < 500 and exc.status not in (401, 403, 429) else 3)
 
 
 def _scene_doc(scene_arg: str) -> tuple[dict[str, Any], dict[str, Path]]:
@@ -315,8 +331,6 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                       method: str = "reference", bake: dict[str, Any] | None = None,
                       missing_bake: str | None = None) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from api_schemas.service import JobPublic
 
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
@@ -547,6 +561,561 @@ def batch(
             if not any(b.counts.get(k, 0) for k in ("queued", "started")):
                 break
             time.sleep(1.0)
+
+
+# ------------------------------------------------------------------------------ progress bars
+
+
+@contextmanager
+def _bar(label: str) -> Iterator[Callable[[float, str], None]]:
+    """A transient progress bar on stderr: ``update(fraction, description)``."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+                  TimeRemainingColumn(), transient=True) as bar:
+        task = bar.add_task(label, total=1.0)
+
+        def update(fraction: float, description: str) -> None:
+            bar.update(task, completed=fraction, description=description or label)
+
+        yield update
+
+
+def _job_progress(update: Callable[[float, str], None]) -> Callable[[JobPublic], None]:
+    def show(j: JobPublic) -> None:
+        update(j.progress.fraction, j.progress.stage or j.state)
+
+    return show
+
+
+def _write(output: Path, data: bytes) -> None:
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_bytes(data)
+    typer.echo(str(output))
+
+
+def _report(manifest: ArtifactManifest) -> None:
+    """Counts and timings of a result on stderr."""
+    res = manifest.result
+    if isinstance(res.get("counts"), dict):
+        typer.echo("counts: " + ", ".join(f"{k}={v}" for k, v in res["counts"].items()
+                                          if isinstance(v, int | float)), err=True)
+    if "exact" in res:
+        typer.echo(f"exact: {res['exact']}", err=True)
+    if isinstance(res.get("timings"), dict):
+        typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in res["timings"].items()
+                                           if isinstance(v, int | float)), err=True)
+
+
+# ------------------------------------------------------------------------------ illumination datasets
+
+datasets_app = typer.Typer(help="Illumination datasets (upload, generate from a scene, bake)", no_args_is_help=True)
+app.add_typer(datasets_app, name="datasets")
+WaitOpt = Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")]
+
+
+def _dataset_bake_params(layout: str | None, half: bool | None, compress: float | None,
+                         max_face_radius: float | None) -> dict[str, Any]:
+    return {k: v for k, v in {"layout": layout, "half": half, "compress": compress,
+                              "max_face_radius_deg": max_face_radius}.items() if v is not None}
+
+
+BakeLayoutOpt = Annotated[str | None, typer.Option("--layout", help="Bake layout: pixel_major or tiled")]
+HalfOpt = Annotated[bool | None, typer.Option("--half/--no-half", help="Bake: float16 where safe (default) or float32")]
+CompressOpt = Annotated[float | None, typer.Option(help="Bake: low-rank store at this relative RMS error (0..1)")]
+FaceRadiusOpt = Annotated[float | None, typer.Option("--max-face-radius",
+                                                     help="Bake: coverage rule, largest triangle circumradius (deg)")]
+
+
+@datasets_app.command("upload")
+def datasets_upload(
+    path: Annotated[Path, typer.Argument(help="Manifest JSON file, or a directory holding manifest.json; the "
+                                              "files it names are read next to it")],
+    resumable: Annotated[bool, typer.Option("--resumable/--multipart",
+                                            help="Send the manifest, PUT only the files the server lacks, commit "
+                                                 "(default); or everything in one multipart request")] = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Upload an illumination dataset (validated locally first); prints the dataset id."""
+    import pydantic
+
+    from api_schemas import format_validation_error
+    from api_schemas.datasets import DatasetManifest
+    from service.client import read_dataset_dir, with_sha256s
+
+    try:
+        manifest, files = read_dataset_dir(path)
+    except ValueError as exc:
+        _fail(str(exc))
+    try:
+        full = with_sha256s(manifest, files)
+        DatasetManifest.model_validate(full)
+    except ValueError as exc:
+        if isinstance(exc, pydantic.ValidationError):
+            lines = [f"  manifest.{e['field']}: {e['message']}" for e in format_validation_error(exc)]
+            _fail(f"{path}: invalid dataset manifest\n" + "\n".join(lines))
+        _fail(f"{path}: {exc}")
+    with _client(api_url, api_key) as c:
+        if not resumable:
+            ds = _call(lambda: c.upload_dataset(manifest, files))
+        else:
+            with _bar("upload") as update:
+                def show(done: int, total: int, name: str) -> None:
+                    update(done / max(total, 1), f"upload {name}")
+
+                ds = _call(lambda: c.upload_dataset_resumable(manifest, files, on_progress=show))
+    typer.echo(f"dataset {ds.name}: {ds.n_images} images {ds.width}x{ds.height}, "
+               f"{'distant' if ds.distant else 'point'} lights, {ds.total_bytes} bytes", err=True)
+    typer.echo(ds.id)
+
+
+@datasets_app.command("list")
+def datasets_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """List stored datasets."""
+    with _client(api_url, api_key) as c:
+        res = _call(c.list_datasets)
+    for d in res.items:
+        typer.echo(f"{d.id}  {d.name}  images={d.n_images} {d.width}x{d.height} "
+                   f"{'distant' if d.distant else 'point'} {d.source.get('kind', 'upload')}")
+
+
+@datasets_app.command("show")
+def datasets_show(dataset_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Show one dataset (canonical manifest with every file's sha256) as JSON."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.get_dataset(dataset_id)).model_dump_json(indent=2))
+
+
+@datasets_app.command("delete")
+def datasets_delete(dataset_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Delete a dataset (refused while a job uses it)."""
+    with _client(api_url, api_key) as c:
+        _call(lambda: c.delete_dataset(dataset_id))
+
+
+@datasets_app.command("generate")
+def datasets_generate(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
+    region: Annotated[str | None, typer.Option(help="sphere, hemisphere or upper_front_quarter")] = None,
+    layout: Annotated[str | None, typer.Option(help="grid or geodesic")] = None,
+    spacing: Annotated[float | None, typer.Option(help="Light spacing in degrees (0.5..90)")] = None,
+    radius: Annotated[float | None, typer.Option(help="Light sphere radius (default: automatic)")] = None,
+    max_lights: Annotated[int | None, typer.Option(help="Refuse placements with more lights")] = None,
+    spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel of each image")] = None,
+    width: Annotated[int | None, typer.Option(help="Override the camera width")] = None,
+    height: Annotated[int | None, typer.Option(help="Override the camera height")] = None,
+    wait: WaitOpt = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Generate a dataset by rendering a scene under point lights over a sphere; prints the dataset id
+    (with --no-wait: the generation job id)."""
+    placement = {k: v for k, v in {"region": region, "layout": layout, "spacing_deg": spacing,
+                                   "radius": radius}.items() if v is not None}
+    camera: dict[str, Any] | None = None
+    if width is not None or height is not None:
+        if _is_id(scene):
+            _fail("--width/--height: give the scene as a file or sample name (its camera is resized)")
+        doc, _ = _scene_doc(scene)
+        camera = dict(doc["camera"])
+        camera.update({k: v for k, v in {"width": width, "height": height}.items() if v is not None})
+    scene_id = _scene_id_of(scene, api_url, api_key)
+    with _client(api_url, api_key) as c:
+        g = _call(lambda: c.generate_dataset(scene_id, placement=placement or None,
+                                             params={"spp": spp} if spp is not None else None, camera=camera,
+                                             max_lights=max_lights, wait=2.0 if wait else 0.0))
+        typer.echo(f"generation {g.artifact_key} ({g.status})", err=True)
+        if g.dataset_id is None and not wait:
+            typer.echo(g.job.id if g.job is not None else g.artifact_key)
+            return
+        with _bar("generate") as update:
+            did = _call(lambda: c.wait_generation(g, on_progress=_job_progress(update)))
+    typer.echo(did)
+
+
+@datasets_app.command("bake")
+def datasets_bake(
+    dataset_id: str,
+    layout: BakeLayoutOpt = None,
+    half: HalfOpt = None,
+    compress: CompressOpt = None,
+    max_face_radius: FaceRadiusOpt = None,
+    wait: WaitOpt = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Bake a dataset for relighting (triangulate the lights, reorganise the images); prints the bake key."""
+    params = _dataset_bake_params(layout, half, compress, max_face_radius)
+    with _client(api_url, api_key) as c:
+        b = _call(lambda: c.bake_dataset(dataset_id, params, wait=2.0 if wait else 0.0))
+        typer.echo(f"bake {b.artifact_key} ({b.status})", err=True)
+        if wait and b.artifact is None:
+            with _bar("bake") as update:
+                b = _call(lambda: c.wait_dataset_bake(b, params, on_progress=_job_progress(update)))
+        if b.artifact is not None:
+            _report(b.artifact)
+    typer.echo(b.artifact_key)
+
+
+def _is_id(value: str) -> bool:
+    import re
+
+    return re.fullmatch(r"[0-9a-f]{64}", value) is not None
+
+
+def _floats(text: str, n: tuple[int, ...], what: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        _fail(f"{what}: {text!r} is not a comma-separated list of numbers")
+    if len(vals) not in n:
+        _fail(f"{what}: {text!r} must have {' or '.join(str(k) for k in n)} numbers")
+    return vals
+
+
+def _rgb(text: str, what: str) -> list[float]:
+    v = _floats(text, (1, 3), what)
+    return v * 3 if len(v) == 1 else v
+
+
+def _parse_lights(specs: list[str], lights_file: Path | None, c: Client | None) -> list[dict[str, Any]]:
+    """``--light`` values (JSON objects or shorthands) and a ``--lights`` JSON file -> RelightLight dicts.
+    Environment maps (``env:FILE[:N]``) are uploaded with ``c``."""
+    lights: list[dict[str, Any]] = []
+    if lights_file is not None:
+        try:
+            doc = json.loads(lights_file.read_text())
+        except (OSError, ValueError) as exc:
+            _fail(f"--lights {lights_file}: {exc}")
+        if isinstance(doc, dict) and "lights" in doc:
+            doc = doc["lights"]
+        if not isinstance(doc, list) or not all(isinstance(x, dict) for x in doc):
+            _fail(f"--lights {lights_file}: must be a JSON list of light objects (or {{\"lights\": [...]}})")
+        lights += doc
+    for i, spec in enumerate(specs):
+        what = f"--light #{i + 1} ({spec!r})"
+        if spec.lstrip().startswith("{"):
+            try:
+                light = json.loads(spec)
+            except ValueError as exc:
+                _fail(f"{what}: not valid JSON: {exc}")
+            if not isinstance(light, dict):
+                _fail(f"{what}: must be a JSON object")
+            lights.append(light)
+            continue
+        kind, _, rest = spec.partition(":")
+        parts = rest.split(":")
+        if kind == "point" and rest:
+            light = {"type": "point", "position": _floats(parts[0], (3,), what)}
+            if len(parts) > 1:
+                light["intensity"] = _rgb(parts[1], what)
+        elif kind in ("directional", "dir") and rest:
+            light = {"type": "directional", "direction": _floats(parts[0], (3,), what)}
+            if len(parts) > 1:
+                light["irradiance"] = _rgb(parts[1], what)
+        elif kind in ("environment", "env") and rest:
+            env = Path(parts[0])
+            if not env.is_file():
+                _fail(f"{what}: environment map {env} not found")
+            light = {"type": "environment", "image_sha256": _upload(c, env).sha256}
+            if len(parts) > 1:
+                try:
+                    light["n_lights"] = int(parts[1])
+                except ValueError:
+                    _fail(f"{what}: the number of lights must be an integer")
+        else:
+            _fail(f"{what}: use a JSON object, point:X,Y,Z[:I], directional:DX,DY,DZ[:E] or env:FILE.exr[:N]")
+        lights.append(light)
+    if not lights:
+        _fail("give at least one --light (or --lights FILE)")
+    return lights
+
+
+def _upload(c: Client | None, path: Path) -> FileUploadPublic:
+    if c is None:
+        _fail(f"{path}: no API client to upload it with")
+    if not path.is_file():
+        _fail(f"{path}: no such file")
+    return _call(lambda: c.upload_file(path))
+
+
+def _relit_outputs(c: Client, key: str, kind: Literal["relight", "composite"], output: Path | None,
+                   outside: Path | None) -> None:
+    if output is not None:
+        which: Literal["exr", "png"] = "exr" if output.suffix.lower() == ".exr" else "png"
+        _write(output, _call(lambda: c.download_relight(key, which, kind=kind)))
+    if outside is not None:
+        _write(outside, _call(lambda: c.download_relight(key, "outside", kind=kind)))
+
+
+def _check_image_out(output: Path | None, what: str = "-o") -> None:
+    if output is not None and output.suffix.lower() not in (".png", ".exr"):
+        _fail(f"{what} {output}: the service delivers .png or .exr")
+
+
+def _run_relight(c: Client, kind: Literal["relight", "composite"], submit: Callable[[], RelightPublic],
+                 wait: bool) -> ArtifactManifest | None:
+    r = _call(submit)
+    typer.echo(f"{kind} {r.artifact_key} ({r.status})", err=True)
+    if r.artifact is not None:
+        return r.artifact
+    if not wait:
+        typer.echo(r.job.id if r.job is not None else r.artifact_key)
+        return None
+    with _bar(kind) as update:
+        return _call(lambda: c.wait_relight(r, on_progress=_job_progress(update), kind=kind))
+
+
+LightOpt = Annotated[list[str] | None, typer.Option(
+    "--light", help="A light: JSON ({\"type\": \"point\", \"position\": [x, y, z], \"intensity\": [r, g, b]}) or "
+                    "point:X,Y,Z[:I], directional:DX,DY,DZ[:E] (direction the light travels), env:FILE.exr[:N]; "
+                    "repeat to superpose")]
+LightsFileOpt = Annotated[Path | None, typer.Option("--lights", help="JSON file with a list of lights")]
+
+
+@app.command()
+def relight(
+    dataset: Annotated[str, typer.Argument(help="Dataset id")],
+    light: LightOpt = None,
+    lights_file: LightsFileOpt = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Save the relit image (.png or .exr)")] = None,
+    outside: Annotated[Path | None, typer.Option(help="Save the coverage mask PNG (white: light outside the "
+                                                      "dataset's coverage)")] = None,
+    exposure: Annotated[float | None, typer.Option(help="Exposure of the PNG in stops")] = None,
+    min_light_distance: Annotated[float | None, typer.Option(help="Point lights nearer than this contribute 0")
+                                  ] = None,
+    layout: BakeLayoutOpt = None,
+    half: HalfOpt = None,
+    compress: CompressOpt = None,
+    max_face_radius: FaceRadiusOpt = None,
+    bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
+                                               help="Bake the dataset first when it is not baked")] = True,
+    wait: WaitOpt = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Relight a dataset under new lights (superposed) and fetch the image."""
+    import httpx
+
+    from service.client import ApiError
+
+    _check_image_out(output)
+    _check_image_out(outside, "--outside")
+    bake_params = _dataset_bake_params(layout, half, compress, max_face_radius)
+    with _client(api_url, api_key) as c:
+        lights = _parse_lights(light or [], lights_file, c)
+
+        def submit() -> RelightPublic:
+            return c.relight(dataset, lights, bake=bake_params or None, exposure_stops=exposure,
+                             min_light_distance=min_light_distance, wait=10.0 if wait else 0.0)
+
+        try:
+            r = submit()
+        except ApiError as exc:
+            if not (exc.status == 409 and bake_missing and any(e.get("type") == "not_baked" for e in exc.errors)):
+                _api_fail(exc)
+            typer.echo(f"dataset {dataset} is not baked with these parameters: baking it first", err=True)
+            b = _call(lambda: c.bake_dataset(dataset, bake_params, wait=2.0))
+            with _bar("bake") as update:
+                _call(lambda: c.wait_dataset_bake(b, bake_params, on_progress=_job_progress(update)))
+            r = _call(submit)
+        except httpx.HTTPError as exc:
+            _fail(f"cannot reach the API: {exc}", code=3)
+        manifest = _run_relight(c, "relight", lambda: r, wait)
+        if manifest is None:
+            return
+        _report(manifest)
+        _relit_outputs(c, manifest.key, "relight", output, outside)
+        if output is None and outside is None:
+            typer.echo(manifest.key)
+
+
+@app.command()
+def composite(
+    object_dataset: Annotated[str, typer.Option("--object", help="Dataset id of the object in its surroundings")],
+    background_dataset: Annotated[str, typer.Option("--background", help="Dataset id of the surroundings alone "
+                                                                         "(same lights and view)")],
+    plate: Annotated[Path, typer.Option(help="Background plate image")],
+    mask: Annotated[Path, typer.Option(help="Object mask image (object where the first channel > 0.5)")],
+    active: Annotated[Path | None, typer.Option(help="Active region mask (default: the mask dilated by --margin)")
+                      ] = None,
+    margin: Annotated[int | None, typer.Option(help="Active region: object mask dilated by this many pixels")
+                      ] = None,
+    plate_transfer: Annotated[str | None, typer.Option(help="srgb, linear or gamma:<g> (8/16-bit plates)")] = None,
+    light: LightOpt = None,
+    lights_file: LightsFileOpt = None,
+    eps: Annotated[float | None, typer.Option(help="Near-black guard of the ratio")] = None,
+    max_ratio: Annotated[float | None, typer.Option(help="Clamp of the ratio")] = None,
+    exposure: Annotated[float | None, typer.Option(help="Exposure of the PNG in stops")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Save the composite (.png or .exr)")] = None,
+    wait: WaitOpt = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Composite a relit object into a background plate (both datasets must be baked: 'ibr datasets bake')."""
+    _check_image_out(output)
+    with _client(api_url, api_key) as c:
+        lights = _parse_lights(light or [], lights_file, c)
+        body: dict[str, Any] = {"object_dataset_id": object_dataset, "background_dataset_id": background_dataset,
+                                "plate_sha256": _upload(c, plate).sha256,
+                                "object_mask_sha256": _upload(c, mask).sha256, "lights": lights}
+        if active is not None:
+            body["active_region_sha256"] = _upload(c, active).sha256
+        body.update({k: v for k, v in {"active_margin_px": margin, "plate_transfer": plate_transfer, "eps": eps,
+                                       "max_ratio": max_ratio, "exposure_stops": exposure}.items() if v is not None})
+        manifest = _run_relight(c, "composite", lambda: c.composite(body, wait=10.0 if wait else 0.0), wait)
+        if manifest is None:
+            return
+        _report(manifest)
+        _relit_outputs(c, manifest.key, "composite", output, None)
+        if output is None:
+            typer.echo(manifest.key)
+
+
+# ------------------------------------------------------------------------------ walkthroughs
+
+walkthroughs_app = typer.Typer(help="Walkthroughs (camera paths rendered from base range images)",
+                               no_args_is_help=True)
+app.add_typer(walkthroughs_app, name="walkthroughs")
+
+
+def _path_request(path: Path, width: int | None, height: int | None) -> dict[str, Any]:
+    """A camera path file: a JSON list of frames ``{"time", "camera"}``, or an object with ``frames``
+    (and optionally other WalkthroughRequest fields). Cameras without ``type`` are perspective."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        _fail(f"--path {path}: {exc}")
+    req: dict[str, Any] = {"frames": doc} if isinstance(doc, list) else doc
+    if not isinstance(req, dict) or not isinstance(req.get("frames"), list):
+        _fail(f"--path {path}: must be a JSON list of frames or an object with 'frames'")
+    frames: list[Any] = req["frames"]
+    for i, f in enumerate(frames):
+        if not isinstance(f, dict) or not isinstance(f.get("camera"), dict):
+            _fail(f"--path {path}: frames.{i} must be an object with a 'camera'")
+        cam = f["camera"]
+        cam.setdefault("type", "perspective")
+        if width is not None:
+            cam["width"] = width
+        if height is not None:
+            cam["height"] = height
+    return req
+
+
+def _walkthrough_outputs(c: Client, key: str, output: Path | None, frames_dir: Path | None, n: int,
+                         frame_format: Literal["png", "exr", "provenance"]) -> None:
+    if output is not None:
+        _write(output, _call(lambda: c.download_walkthrough_video(key)))
+    if frames_dir is not None:
+        frames_dir.mkdir(parents=True, exist_ok=True)
+        ext = "exr" if frame_format == "exr" else "png"
+        suffix = ".provenance" if frame_format == "provenance" else ""
+        for i in range(n):
+            (frames_dir / f"frame_{i:05d}{suffix}.{ext}").write_bytes(
+                _call(lambda i=i: c.download_walkthrough_frame(key, i, frame_format)))  # type: ignore[misc]
+        typer.echo(str(frames_dir))
+
+
+def _follow_walkthrough(c: Client, w: WalkthroughPublic) -> WalkthroughPublic:
+    with _bar("walkthrough") as update:
+        def show(p: WalkthroughPublic) -> None:
+            stage = "bake" if p.frames_done == 0 and p.progress < 1 / 3 else f"frames {p.frames_done}/{p.frames}"
+            update(p.progress, f"{p.status} {stage}")
+
+        return _call(lambda: c.wait_walkthrough(w, on_progress=show))
+
+
+FrameFormatOpt = Annotated[str, typer.Option("--frame-format", help="Frames saved by --frames-dir: png, exr or "
+                                                                     "provenance")]
+
+
+@app.command()
+def walkthrough(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (with a view_space)")],
+    path: Annotated[Path, typer.Option("--path", help="Camera path JSON: a list of frames {time, camera} (or "
+                                                      "an object with 'frames')")],
+    quality: Annotated[str | None, typer.Option(help="low, medium or high (default: the path file's, or "
+                                                     "medium)")] = None,
+    fill: Annotated[str | None, typer.Option(help="Hole fill: none, foreground, background, both, trace")] = None,
+    face_res: Annotated[int | None, typer.Option(help="Base cube face resolution (even)")] = None,
+    indirect: Annotated[int | None, typer.Option(help="Indirect paths per base pixel (0: no GI)")] = None,
+    max_views: Annotated[int | None, typer.Option(help="Cap on base viewpoints")] = None,
+    max_time_samples: Annotated[int | None, typer.Option(help="Cap on time samples")] = None,
+    chunk_frames: Annotated[int | None, typer.Option(help="Frames per render job")] = None,
+    fps: Annotated[int | None, typer.Option(help="MP4 frame rate")] = None,
+    width: Annotated[int | None, typer.Option(help="Override every frame's width")] = None,
+    height: Annotated[int | None, typer.Option(help="Override every frame's height")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Save the MP4 (implies --wait)")] = None,
+    frames_dir: Annotated[Path | None, typer.Option(help="Save every frame in this directory (implies --wait)")
+                          ] = None,
+    frame_format: FrameFormatOpt = "png",
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the walkthrough with a progress bar")
+                    ] = False,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Render a camera path through a scene's view space from walkthrough bases; prints the walkthrough key."""
+    if output is not None and output.suffix.lower() != ".mp4":
+        _fail(f"-o {output}: the walkthrough video is an .mp4")
+    if frame_format not in ("png", "exr", "provenance"):
+        _fail(f"--frame-format {frame_format!r}: use png, exr or provenance")
+    req = _path_request(path, width, height)
+    bake_doc = dict(req.get("bake") or {})
+    bake_doc.update({k: v for k, v in {"quality": quality, "face_res": face_res, "indirect_samples": indirect,
+                                       "max_views": max_views, "max_time_samples": max_time_samples}.items()
+                     if v is not None})
+    if bake_doc:
+        req["bake"] = bake_doc
+    req.update({k: v for k, v in {"fill": fill, "chunk_frames": chunk_frames, "fps": fps}.items() if v is not None})
+    req["scene_id"] = _scene_id_of(scene, api_url, api_key)
+    with _client(api_url, api_key) as c:
+        w = _call(lambda: c.walkthrough(req))
+        typer.echo(f"walkthrough {w.key} ({w.status}, {w.frames} frames, bake {w.bake_key[:12]})", err=True)
+        if wait or output is not None or frames_dir is not None:
+            w = _follow_walkthrough(c, w)
+            typer.echo(f"finished: {w.frames_done} frames", err=True)
+            _walkthrough_outputs(c, w.key, output, frames_dir, w.frames, frame_format)  # type: ignore[arg-type]
+    typer.echo(w.key)
+
+
+@walkthroughs_app.command("show")
+def walkthroughs_show(key: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Show a walkthrough (state, progress, jobs, links) as JSON."""
+    with _client(api_url, api_key) as c:
+        typer.echo(_call(lambda: c.get_walkthrough(key)).model_dump_json(indent=2))
+
+
+@walkthroughs_app.command("fetch")
+def walkthroughs_fetch(
+    key: str,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Save the MP4")] = None,
+    frames_dir: Annotated[Path | None, typer.Option(help="Save every frame in this directory")] = None,
+    frame_format: FrameFormatOpt = "png",
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Wait for it to finish first")] = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Download a walkthrough's MP4 and / or frames."""
+    if output is not None and output.suffix.lower() != ".mp4":
+        _fail(f"-o {output}: the walkthrough video is an .mp4")
+    if frame_format not in ("png", "exr", "provenance"):
+        _fail(f"--frame-format {frame_format!r}: use png, exr or provenance")
+    with _client(api_url, api_key) as c:
+        w = _call(lambda: c.get_walkthrough(key))
+        if w.status != "finished":
+            if not wait:
+                _fail(f"walkthrough {key} is {w.status} ({w.frames_done}/{w.frames} frames)", code=4
+                      if w.status == "failed" else 2)
+            w = _follow_walkthrough(c, w)
+        _walkthrough_outputs(c, key, output, frames_dir, w.frames, frame_format)  # type: ignore[arg-type]
+
+
+@walkthroughs_app.command("delete")
+def walkthroughs_delete(key: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
+    """Delete a walkthrough's video, frames and request (refused while its jobs run; the bake stays)."""
+    with _client(api_url, api_key) as c:
+        _call(lambda: c.delete_walkthrough(key))
 
 
 if __name__ == "__main__":

@@ -9,21 +9,39 @@
         b = c.wait_bake(c.bake(scene.id, {"ldc_resolution": 256}))      # BakePublic, finished
         r = c.render(scene.id, method="ldc+llf", bake={"ldc_resolution": 256}, wait=30)
 
+        ds = c.upload_dataset_resumable(*read_dataset_dir("ball/"))         # DatasetPublic
+        c.wait_dataset_bake(c.bake_dataset(ds.id))                           # DatasetBakePublic, finished
+        rel = c.wait_relight(c.relight(ds.id, [{"type": "point", "position": [0, 2, 3]}]))
+        png = c.download_relight(rel.key, "png")                             # also "exr", "outside"
+        w = c.wait_walkthrough(c.walkthrough({"scene_id": scene.id, "frames": [...]}), on_progress=print)
+        mp4 = c.download_walkthrough_video(w.key)
+
 Errors from the API (problem+json) raise :class:`ApiError` with the status, the
-title/detail and the per-field errors; connection problems raise ``httpx`` errors.
+title/detail and the per-field errors; a job that ended failed or canceled raises
+:class:`JobFailed` (an ApiError); connection problems raise ``httpx`` errors.
 The client imports no engine code: other applications can use it on their own.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 import httpx
 
+from api_schemas.datasets import (
+    DatasetBakePublic,
+    DatasetList,
+    DatasetPublic,
+    DatasetUploadStatus,
+    FileUploadPublic,
+    GenerationPublic,
+    RelightPublic,
+)
 from api_schemas.service import (
     ArtifactManifest,
     BakeList,
@@ -35,6 +53,10 @@ from api_schemas.service import (
     SceneList,
     ScenePublic,
 )
+from api_schemas.walkthrough import WalkthroughPublic
+
+FileData = bytes | Path
+"""A file's bytes, or a path to read them from (read when sent)."""
 
 
 class ApiError(Exception):
@@ -48,6 +70,10 @@ class ApiError(Exception):
         lines = [f"{status} {title}" + (f": {detail}" if detail else "")]
         lines += [f"  {e.get('field') or '(body)'}: {e.get('message')}" for e in self.errors]
         super().__init__("\n".join(lines))
+
+
+class JobFailed(ApiError):
+    """A job (render, bake, relight, walkthrough ...) ended failed or canceled: ``detail`` says why."""
 
 
 class Client:
@@ -161,7 +187,7 @@ class Client:
             return self.artifact(r.artifact_key)
         j = self.wait_job(r.job.id, timeout=timeout, on_progress=on_progress)
         if j.state != "finished":
-            raise ApiError(500 if j.state == "failed" else 409, f"render job {j.state}", j.error or "")
+            raise JobFailed(500 if j.state == "failed" else 409, f"render job {j.state}", j.error or "")
         return self.artifact(r.artifact_key)
 
     # ------------------------------------------------------------------ bakes
@@ -190,7 +216,7 @@ class Client:
             if b.state == "finished":
                 return b
             if b.state in ("failed", "canceled", "missing"):
-                raise ApiError(500 if b.state == "failed" else 409, f"bake {b.state}", b.error or "")
+                raise JobFailed(500 if b.state == "failed" else 409, f"bake {b.state}", b.error or "")
             if time.monotonic() > deadline:
                 raise TimeoutError(f"bake {b.key} still {b.state} after {timeout} s")
             time.sleep(delay)
@@ -212,6 +238,250 @@ class Client:
 
     def get_batch(self, batch_id: str) -> BatchPublic:
         return BatchPublic.model_validate(self._request("GET", f"/v1/batches/{batch_id}").json())
+
+    # ------------------------------------------------------------------ datasets: upload
+    def upload_dataset(self, manifest: Mapping[str, Any], files: Mapping[str, FileData]) -> DatasetPublic:
+        """Store a dataset in one multipart request: ``manifest`` (a ``DatasetManifest`` as a dict)
+        plus ``files`` mapping each file name the manifest uses to its bytes or path."""
+        parts: list[tuple[str, tuple[str | None, bytes, str]]] = [
+            ("manifest", (None, json.dumps(dict(manifest)).encode(), "application/json"))]
+        parts += [(name, (name, _bytes(data), "application/octet-stream")) for name, data in files.items()]
+        return DatasetPublic.model_validate(self._request("POST", "/v1/datasets", files=parts).json())
+
+    def dataset_upload_status(self, manifest: Mapping[str, Any]) -> DatasetUploadStatus:
+        """Send a manifest with every file's sha256: which files the server still needs."""
+        r = self._request("POST", "/v1/datasets", json=dict(manifest))
+        return DatasetUploadStatus.model_validate(r.json())
+
+    def upload_file(self, data: FileData, sha256: str | None = None) -> FileUploadPublic:
+        """PUT one file (dataset image, depth, mask, environment map, plate) by its sha256."""
+        blob = _bytes(data)
+        sha = sha256 or hashlib.sha256(blob).hexdigest()
+        r = self._request("PUT", f"/v1/datasets/uploads/{sha}", content=blob,
+                          headers={"Content-Type": "application/octet-stream"})
+        return FileUploadPublic.model_validate(r.json())
+
+    def commit_dataset(self, dataset_id: str) -> DatasetPublic:
+        return DatasetPublic.model_validate(self._request("POST", f"/v1/datasets/{dataset_id}/commit").json())
+
+    def upload_dataset_resumable(self, manifest: Mapping[str, Any], files: Mapping[str, FileData],
+                                 on_progress: Callable[[int, int, str], None] | None = None) -> DatasetPublic:
+        """Resumable upload: fill in the sha256s, send the manifest, PUT only the files the server
+        lacks (``on_progress(done, total, name)`` after each), commit. Run again after an interruption:
+        files already received are not sent again."""
+        full = with_sha256s(manifest, files)
+        status = self.dataset_upload_status(full)
+        if status.state == "committed":
+            return self.get_dataset(status.dataset_id)
+        total = len(status.missing)
+        for i, item in enumerate(status.missing):
+            if item.name not in files:
+                raise ValueError(f"{item.field}: no file {item.name!r} given")
+            self._request("PUT", item.upload_url, content=_bytes(files[item.name]),
+                          headers={"Content-Type": "application/octet-stream"})
+            if on_progress is not None:
+                on_progress(i + 1, total, item.name)
+        return self.commit_dataset(status.dataset_id)
+
+    # ------------------------------------------------------------------ datasets: read, generate, bake
+    def list_datasets(self) -> DatasetList:
+        return DatasetList.model_validate(self._request("GET", "/v1/datasets", params={"limit": 1000}).json())
+
+    def get_dataset(self, dataset_id: str) -> DatasetPublic:
+        return DatasetPublic.model_validate(self._request("GET", f"/v1/datasets/{dataset_id}").json())
+
+    def delete_dataset(self, dataset_id: str) -> None:
+        self._request("DELETE", f"/v1/datasets/{dataset_id}")
+
+    def download_dataset_file(self, dataset_id: str, sha256: str) -> bytes:
+        return self._request("GET", f"/v1/datasets/{dataset_id}/files/{sha256}").content
+
+    def generate_dataset(self, scene_id: str, placement: Mapping[str, Any] | None = None,
+                         params: Mapping[str, Any] | None = None, camera: Mapping[str, Any] | None = None,
+                         max_lights: int | None = None, ground_truth: Sequence[Mapping[str, Any]] = (),
+                         wait: float = 0.0) -> GenerationPublic:
+        """Render a stored scene under point lights placed over a sphere (``LightPlacement`` fields)
+        into a dataset (bake queue); ``dataset_id`` is set once finished."""
+        body: dict[str, Any] = {"scene_id": scene_id}
+        for k, v in (("placement", placement), ("params", params), ("camera", camera)):
+            if v is not None:
+                body[k] = dict(v)
+        if max_lights is not None:
+            body["max_lights"] = max_lights
+        if ground_truth:
+            body["ground_truth"] = [dict(x) for x in ground_truth]
+        r = self._request("POST", "/v1/datasets/generate", json=body, params={"wait": wait} if wait else None)
+        return GenerationPublic.model_validate(r.json())
+
+    def get_generation(self, key: str) -> ArtifactManifest:
+        return ArtifactManifest.model_validate(self._request("GET", f"/v1/datasets/generations/{key}").json())
+
+    def wait_generation(self, g: GenerationPublic, timeout: float = 3600.0,
+                        on_progress: Callable[[JobPublic], None] | None = None) -> str:
+        """The generated dataset's id, waiting for the generation job if needed (ApiError if it failed)."""
+        if g.dataset_id is not None:
+            return g.dataset_id
+        self._wait_ok(g.job, "dataset generation", timeout, on_progress)
+        return str(self.get_generation(g.artifact_key).result["dataset_id"])
+
+    def bake_dataset(self, dataset_id: str, params: Mapping[str, Any] | None = None,
+                     wait: float = 0.0) -> DatasetBakePublic:
+        """Bake a dataset for relighting (``BakeParams`` fields); ``cached`` when it exists already."""
+        r = self._request("POST", f"/v1/datasets/{dataset_id}/bake", json={"params": dict(params or {})},
+                          params={"wait": wait} if wait else None)
+        return DatasetBakePublic.model_validate(r.json())
+
+    def wait_dataset_bake(self, b: DatasetBakePublic, params: Mapping[str, Any] | None = None,
+                          timeout: float = 3600.0,
+                          on_progress: Callable[[JobPublic], None] | None = None) -> DatasetBakePublic:
+        """The finished bake (with its artifact), waiting for its job if needed (ApiError if it failed).
+        ``params``: the bake params ``b`` was requested with (the finished bake is fetched by asking again)."""
+        if b.artifact is not None:
+            return b
+        self._wait_ok(b.job, "dataset bake", timeout, on_progress)
+        done = self.bake_dataset(b.dataset_id, params)  # the same request again: the stored artifact
+        if done.artifact is None or done.artifact_key != b.artifact_key:
+            raise ApiError(409, "dataset bake not stored after its job finished (other params?)", b.artifact_key)
+        return done
+
+    # ------------------------------------------------------------------ relight, composite
+    def relight(self, dataset_id: str, lights: Sequence[Mapping[str, Any]], bake: Mapping[str, Any] | None = None,
+                exposure_stops: float | None = None, min_light_distance: float | None = None,
+                wait: float = 0.0) -> RelightPublic:
+        """Relight a baked dataset under ``lights`` (``RelightLight`` dicts, superposed). 409 (ApiError)
+        when the dataset is not baked with ``bake`` (default bake params)."""
+        body: dict[str, Any] = {"dataset_id": dataset_id, "lights": [dict(x) for x in lights]}
+        if bake:
+            body["bake"] = dict(bake)
+        if exposure_stops is not None:
+            body["exposure_stops"] = exposure_stops
+        if min_light_distance is not None:
+            body["min_light_distance"] = min_light_distance
+        r = self._request("POST", "/v1/relights", json=body, params={"wait": wait} if wait else None)
+        return RelightPublic.model_validate(r.json())
+
+    def composite(self, request: Mapping[str, Any], wait: float = 0.0) -> RelightPublic:
+        """Composite a relit object into a plate (a ``CompositeRequest`` as a dict; upload the plate
+        and masks first with :meth:`upload_file`)."""
+        r = self._request("POST", "/v1/composites", json=dict(request), params={"wait": wait} if wait else None)
+        return RelightPublic.model_validate(r.json())
+
+    def get_relight(self, key: str, kind: Literal["relight", "composite"] = "relight") -> ArtifactManifest:
+        return ArtifactManifest.model_validate(self._request("GET", f"/v1/{kind}s/{key}").json())
+
+    def wait_relight(self, r: RelightPublic, timeout: float = 600.0,
+                     on_progress: Callable[[JobPublic], None] | None = None,
+                     kind: Literal["relight", "composite"] = "relight") -> ArtifactManifest:
+        """The result's manifest (counts, timings), waiting for its job if needed (ApiError if it failed)."""
+        if r.artifact is not None:
+            return r.artifact
+        self._wait_ok(r.job, kind, timeout, on_progress)
+        return self.get_relight(r.artifact_key, kind)
+
+    def download_relight(self, key: str, which: Literal["exr", "png", "outside"] = "png",
+                         kind: Literal["relight", "composite"] = "relight") -> bytes:
+        """The relit (or composite) image: ``exr`` linear float, ``png`` sRGB preview, ``outside`` the
+        coverage mask (white where a light direction fell outside the dataset)."""
+        name = "outside.png" if which == "outside" else f"image.{which}"
+        return self._request("GET", f"/v1/{kind}s/{key}/{name}").content
+
+    # ------------------------------------------------------------------ walkthroughs
+    def walkthrough(self, request: Mapping[str, Any]) -> WalkthroughPublic:
+        """Request a walkthrough (a ``WalkthroughRequest`` as a dict: scene_id, frames, bake, fill, ...)."""
+        return WalkthroughPublic.model_validate(self._request("POST", "/v1/walkthroughs", json=dict(request)).json())
+
+    def get_walkthrough(self, key: str) -> WalkthroughPublic:
+        return WalkthroughPublic.model_validate(self._request("GET", f"/v1/walkthroughs/{key}").json())
+
+    def delete_walkthrough(self, key: str) -> None:
+        """Delete a walkthrough's video, frames and request (409 ApiError while its jobs run)."""
+        self._request("DELETE", f"/v1/walkthroughs/{key}")
+
+    def wait_walkthrough(self, w: WalkthroughPublic, timeout: float = 3600.0, poll: float = 0.3,
+                         on_progress: Callable[[WalkthroughPublic], None] | None = None) -> WalkthroughPublic:
+        """Poll a walkthrough until it is finished (returned) or failed (ApiError naming the first error)."""
+        deadline = time.monotonic() + timeout
+        delay = poll
+        while True:
+            if on_progress is not None:
+                on_progress(w)
+            if w.status == "finished":
+                return w
+            if w.status == "failed":
+                raise JobFailed(500, "walkthrough failed", w.error or "")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"walkthrough {w.key} still {w.status} after {timeout} s")
+            time.sleep(delay)
+            delay = min(2.0, delay * 1.3)
+            w = self.get_walkthrough(w.key)
+
+    def download_walkthrough_video(self, key: str) -> bytes:
+        """The finished walkthrough's MP4 (H.264) preview."""
+        return self._request("GET", f"/v1/walkthroughs/{key}/video.mp4").content
+
+    def download_walkthrough_frame(self, key: str, index: int,
+                                   kind: Literal["png", "exr", "provenance"] = "png") -> bytes:
+        """Frame ``index``: ``png`` sRGB, ``exr`` linear radiance, ``provenance`` 8-bit codes (PNG)."""
+        return self._request("GET", f"/v1/walkthroughs/{key}/frames/{index}.{kind}").content
+
+    # ------------------------------------------------------------------ helpers
+    def _wait_ok(self, job: JobPublic | None, what: str, timeout: float,
+                 on_progress: Callable[[JobPublic], None] | None) -> None:
+        if job is None:
+            raise ApiError(404, f"{what}: no job and no result")
+        j = self.wait_job(job.id, timeout=timeout, on_progress=on_progress)
+        if j.state != "finished":
+            raise JobFailed(500 if j.state == "failed" else 409, f"{what} job {j.state}", j.error or "")
+
+
+def _bytes(data: FileData) -> bytes:
+    return Path(data).read_bytes() if isinstance(data, Path) else bytes(data)
+
+
+def with_sha256s(manifest: Mapping[str, Any], files: Mapping[str, FileData]) -> dict[str, Any]:
+    """A copy of ``manifest`` with the sha256 of every file it names filled in (ValueError naming
+    the field when a file is missing from ``files``)."""
+    m: dict[str, Any] = json.loads(json.dumps(dict(manifest)))
+    refs: list[tuple[str, dict[str, Any]]] = [(f"images.{i}", img) for i, img in enumerate(m.get("images") or [])
+                                              if isinstance(img, dict)]
+    for part in ("geometry", "mask"):
+        ref = m.get(part)
+        if isinstance(ref, dict) and "file" in ref:
+            refs.append((part, ref))
+    for field, ref in refs:
+        name = ref.get("file")
+        if not isinstance(name, str) or name not in files:
+            raise ValueError(f"{field}.file: no file {name!r}")
+        ref["sha256"] = hashlib.sha256(_bytes(files[name])).hexdigest()
+    return m
+
+
+def read_dataset_dir(path: str | Path) -> tuple[dict[str, Any], dict[str, Path]]:
+    """A dataset on disk: ``path`` is a manifest JSON file, or a directory holding ``manifest.json``;
+    every file the manifest names is looked up next to it. Returns (manifest, {name: path}); raises
+    ValueError naming the field (or the manifest) when something is missing or unreadable."""
+    p = Path(path)
+    mpath = p / "manifest.json" if p.is_dir() else p
+    if not mpath.is_file():
+        raise ValueError(f"{mpath}: no such manifest file")
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{mpath}: not valid JSON: {exc}") from None
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{mpath}: the manifest must be a JSON object")
+    files: dict[str, Path] = {}
+    refs: list[tuple[str, Any]] = [(f"images.{i}", img) for i, img in enumerate(manifest.get("images") or [])]
+    refs += [(part, manifest.get(part)) for part in ("geometry", "mask")]
+    for field, ref in refs:
+        if not isinstance(ref, dict) or "file" not in ref:
+            continue
+        name = ref["file"]
+        f = mpath.parent / str(name)
+        if not f.is_file():
+            raise ValueError(f"{field}.file: {name!r} not found next to the manifest ({f})")
+        files[str(name)] = f
+    return manifest, files
 
 
 def _error(r: httpx.Response) -> ApiError:
