@@ -59,12 +59,14 @@ __all__ = [
     "chunk_key",
     "chunks",
     "check_against_scene",
+    "delete_walkthrough",
     "enqueue_walkthrough",
     "read_request",
     "video_job_id",
     "walkthrough_bake_key",
     "walkthrough_key",
     "walkthrough_status",
+    "WalkthroughInUse",
 ]
 
 WALKTHROUGH_BAKE_JOB = "workers.jobs.walkthrough.walkthrough_bake_job"
@@ -160,6 +162,53 @@ def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldErro
         if len(errors) >= 20:
             break
     return errors
+
+
+class WalkthroughInUse(RuntimeError):
+    """A walkthrough cannot be deleted while one of its jobs is queued or running (HTTP 409)."""
+
+
+def delete_walkthrough(redis: Redis, store: ObjectStore, wkey: str) -> None:
+    """Remove walkthrough ``wkey``: its manifest and video, every chunk artifact (frames), its
+    request record and its job records. The bake stays (shared by every walkthrough of the scene
+    with the same bake settings). Raises :class:`WalkthroughInUse` while one of its chunk or video
+    jobs runs, or waits in a queue while the walkthrough can still finish (cancel them or wait); the
+    jobs left waiting by a failed walkthrough (e.g. the video job behind a canceled chunk) are
+    canceled. Idempotent for an unknown key."""
+    from rq.job import Job, JobStatus
+    from rq.serializers import JSONSerializer
+
+    from workers.artifacts import delete_artifact
+    from workers.queues import JobNotCancelable, JobNotFound, cancel
+
+    req = read_request(store, wkey)
+    if req is None:
+        return
+    ckeys = [chunk_key(wkey, i, a, b) for i, (a, b) in enumerate(chunks(req))]
+    ids = [chunk_job_id(k) for k in ckeys] + [video_job_id(wkey)]
+    ended = {JobStatus.FINISHED, JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED}
+    jobs = [j for j in Job.fetch_many(ids, connection=redis, serializer=JSONSerializer) if j is not None]
+    status = {j.id: j.get_status(refresh=True) for j in jobs}
+    running = [jid for jid, st in status.items() if st == JobStatus.STARTED]
+    waiting = [jid for jid, st in status.items() if st not in ended and st != JobStatus.STARTED]
+    pub = walkthrough_status(redis, store, wkey)
+    failed = pub is not None and pub.status == "failed"
+    busy = running + ([] if failed else waiting)
+    if busy:
+        raise WalkthroughInUse(f"walkthrough {wkey} has {len(busy)} queued or running job(s) ({busy[0]}"
+                               f"{', ...' if len(busy) > 1 else ''}); cancel them (POST /v1/jobs/<id>/cancel) "
+                               "or wait")
+    for jid in waiting:  # a failed walkthrough: these could never run usefully
+        try:
+            cancel(redis, jid)
+        except (JobNotFound, JobNotCancelable):
+            pass  # ended meanwhile
+    delete_artifact(store, wkey)  # the manifest first: from here on the walkthrough is not finished
+    for k in ckeys:
+        delete_artifact(store, k)
+    store.delete(_record_key(wkey))
+    for job in jobs:
+        job.delete(remove_from_queue=True)
 
 
 def _retry() -> Retry:

@@ -6,13 +6,15 @@ inside it, every time inside the animation: 422 naming ``frames.<i>.camera.eye``
 and the video job (``workers/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
 already rendered answers 200. ``GET /v1/walkthroughs/{key}`` shows the state, the progress
 (frames done) and, once finished, links to ``video.mp4`` and the frame chunks (artifacts).
+``DELETE /v1/walkthroughs/{key}`` removes the video, the frames and the request (204; 409 while
+its jobs are queued or running; the shared bake stays).
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Body, Path, Response
+from fastapi import APIRouter, Body, HTTPException, Path, Response
 from fastapi.concurrency import run_in_threadpool
 
 from api_schemas.errors import FieldError
@@ -24,9 +26,11 @@ from service.api.routes.artifacts import _blob_response
 from workers.artifacts import get_scene
 from workers.store import NotFound
 from workers.walkthroughs import (
+    WalkthroughInUse,
     check_against_scene,
     chunk_key,
     chunks,
+    delete_walkthrough,
     enqueue_walkthrough,
     read_request,
     walkthrough_status,
@@ -116,6 +120,26 @@ def _status(redis: Any, store: Any, key: str, owner: str | None) -> WalkthroughP
 async def read_walkthrough(key: KeyPath, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> WalkthroughPublic:
     """A walkthrough: state, frames done, jobs, and the video / frame links once finished."""
     return await run_in_threadpool(_status, redis, store, key, owner)
+
+
+def _delete(redis: Any, store: Any, key: str, owner: str | None) -> None:
+    req = read_request(store, key)
+    if req is None or not scene_visible(store, req.scene_id, owner):
+        raise NotFound(key)
+    try:
+        delete_walkthrough(redis, store, key)
+    except WalkthroughInUse as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+@router.delete("/{key}", status_code=204, response_class=Response,
+               responses=problem_responses(401, 404, 409, 422, 429, 503))
+async def remove_walkthrough(key: KeyPath, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> Response:
+    """Delete a walkthrough: its video, frames and request (409 while one of its jobs is queued or
+    running; a failed walkthrough's waiting jobs are canceled). The bake stays: other walkthroughs of
+    the scene with the same bake settings share it."""
+    await run_in_threadpool(_delete, redis, store, key, owner)
+    return Response(status_code=204)
 
 
 def _frame_blob(store: Any, key: str, owner: str | None, name: str, media_type: str) -> Response:
