@@ -1,0 +1,109 @@
+"""``ibr walkthrough`` / ``ibr walkthroughs ...`` and the Python client's walkthrough calls against a live
+local stack (embedded Redis, real bake and render workers, uvicorn API): a tiny animated room, four
+16x12 frames from tiny bases, the MP4 and the frames fetched, then deleted."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from engine.imageio import read_image
+from service.cli import app
+from service.client import ApiError, Client
+from service.up import start_stack
+from tests.service.api.test_walkthroughs import ROOM, _frames
+
+TINY = ["--quality", "low", "--face-res", "16", "--indirect", "0", "--max-views", "2", "--max-time-samples", "3"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def stack() -> Iterator[Any]:
+    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL") if k in os.environ}
+    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
+        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+        try:
+            yield st
+        finally:
+            st.stop()
+            os.environ.update(saved)
+
+
+def test_walkthrough_from_the_command_line(stack: Any, tmp_path: Path) -> None:
+    runner = CliRunner()
+    api = ["--api", stack.api_url]
+    scene_file = tmp_path / "room.json"
+    scene_file.write_text(json.dumps(ROOM))
+    path = tmp_path / "path.json"
+    frames = _frames(4)
+    for f in frames:  # cameras without a type are perspective
+        del f["camera"]["type"]
+    path.write_text(json.dumps(frames))
+
+    # bad input first: exit 2 naming the field and the allowed range, nothing queued
+    bad = json.loads(json.dumps(frames))
+    bad[2]["camera"]["eye"] = [0, 0.5, 0]
+    bad[3]["time"] = 2.5
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(tmp_path / "bad.json"), *TINY, *api])
+    assert res.exit_code == 2, res.output
+    assert "frames.2.camera.eye" in res.output and "outside the scene's path view space" in res.output
+    assert "frames.3.time" in res.output and "[0, 2]" in res.output
+    res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), "--quality", "ultra", *api])
+    assert res.exit_code == 2 and "bake.quality" in res.output
+    res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), "-o", str(tmp_path / "x.gif"),
+                              *api])
+    assert res.exit_code == 2 and ".mp4" in res.output
+
+    out, frames_dir = tmp_path / "walk.mp4", tmp_path / "frames"
+    res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), *TINY, "--chunk-frames", "2",
+                              "--fps", "8", "--fill", "both", "-o", str(out), "--frames-dir", str(frames_dir), *api])
+    assert res.exit_code == 0, res.output
+    key = res.stdout.strip().splitlines()[-1]
+    assert len(key) == 64 and "4 frames" in res.stderr and "finished: 4 frames" in res.stderr
+    data = out.read_bytes()
+    assert data[4:8] == b"ftyp" and len(data) > 200
+    pngs = sorted(frames_dir.glob("frame_*.png"))
+    assert [p.name for p in pngs] == [f"frame_{i:05d}.png" for i in range(4)]
+    img, _ = read_image(pngs[1])
+    assert img.shape[:2] == (12, 16) and img.max() > 0
+
+    res = runner.invoke(app, ["walkthroughs", "show", key, *api])
+    assert res.exit_code == 0 and json.loads(res.stdout)["status"] == "finished"
+    exr_dir = tmp_path / "exr"
+    res = runner.invoke(app, ["walkthroughs", "fetch", key, "--frames-dir", str(exr_dir), "--frame-format", "exr",
+                              *api])
+    assert res.exit_code == 0, res.output
+    assert len(list(exr_dir.glob("frame_*.exr"))) == 4
+
+    with Client(stack.api_url) as c:
+        # the client: the same request is finished at once; frames and video by key
+        sid = c.create_scene(ROOM).id
+        w = c.walkthrough({"scene_id": sid, "frames": _frames(4), "chunk_frames": 2, "fps": 8, "fill": "both",
+                           "bake": {"quality": "low", "face_res": 16, "indirect_samples": 0, "max_views": 2,
+                                    "max_time_samples": 3}})
+        assert w.key == key and w.status == "finished"
+        assert c.wait_walkthrough(w).frames_done == 4
+        assert c.download_walkthrough_video(key) == data
+        assert c.download_walkthrough_frame(key, 0, "provenance")[:4] == b"\x89PNG"
+
+    res = runner.invoke(app, ["walkthroughs", "delete", key, *api])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["walkthroughs", "show", key, *api])
+    assert res.exit_code == 2
+    with Client(stack.api_url) as c, pytest.raises(ApiError) as e:
+        c.download_walkthrough_video(key)
+    assert e.value.status == 404
