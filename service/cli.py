@@ -701,6 +701,10 @@ def datasets_generate(
     layout: Annotated[str | None, typer.Option(help="grid or geodesic")] = None,
     spacing: Annotated[float | None, typer.Option(help="Light spacing in degrees (0.5..90)")] = None,
     radius: Annotated[float | None, typer.Option(help="Light sphere radius (default: automatic)")] = None,
+    center: Annotated[str | None, typer.Option(help="Light sphere centre X,Y,Z (default: centroid of the "
+                                                    "visible surface)")] = None,
+    params: Annotated[str | None, typer.Option(help="Reference render params as JSON, e.g. "
+                                                    "'{\"spp\": 4, \"max_depth\": 2}'")] = None,
     max_lights: Annotated[int | None, typer.Option(help="Refuse placements with more lights")] = None,
     spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel of each image")] = None,
     width: Annotated[int | None, typer.Option(help="Override the camera width")] = None,
@@ -711,8 +715,20 @@ def datasets_generate(
 ) -> None:
     """Generate a dataset by rendering a scene under point lights over a sphere; prints the dataset id
     (with --no-wait: the generation job id)."""
-    placement = {k: v for k, v in {"region": region, "layout": layout, "spacing_deg": spacing,
-                                   "radius": radius}.items() if v is not None}
+    placement: dict[str, Any] = {k: v for k, v in {"region": region, "layout": layout, "spacing_deg": spacing,
+                                                   "radius": radius}.items() if v is not None}
+    if center is not None:
+        placement["center"] = _floats(center, (3,), "--center")
+    render_params: dict[str, Any] = {}
+    if params is not None:
+        try:
+            render_params = json.loads(params)
+        except ValueError as exc:
+            _fail(f"--params: not valid JSON: {exc}")
+        if not isinstance(render_params, dict):
+            _fail("--params: must be a JSON object")
+    if spp is not None:
+        render_params["spp"] = spp
     camera: dict[str, Any] | None = None
     if width is not None or height is not None:
         if _is_id(scene):
@@ -723,7 +739,7 @@ def datasets_generate(
     scene_id = _scene_id_of(scene, api_url, api_key)
     with _client(api_url, api_key) as c:
         g = _call(lambda: c.generate_dataset(scene_id, placement=placement or None,
-                                             params={"spp": spp} if spp is not None else None, camera=camera,
+                                             params=render_params or None, camera=camera,
                                              max_lights=max_lights, wait=2.0 if wait else 0.0))
         typer.echo(f"generation {g.artifact_key} ({g.status})", err=True)
         if g.dataset_id is None and not wait:

@@ -158,3 +158,63 @@ def test_client_resumable_upload_and_relight(stack: Any, tmp_path: Path) -> None
         with pytest.raises(ApiError) as e:
             c.get_dataset(ds.id)
         assert e.value.status == 404
+
+
+def test_generate_bake_composite_from_the_command_line(stack: Any, tmp_path: Path) -> None:
+    """Object (sphere on a floor) and background (the floor alone) datasets generated from scenes with the
+    same lights, baked, and the object composited into a grey plate: object pixels are the relit object,
+    the plate is darkened in the sphere's shadow."""
+    from tests.service.api.conftest import small_scene
+    from tests.service.api.test_datasets import write_bytes
+
+    runner = CliRunner()
+    api = ["--api", stack.api_url]
+    scene = small_scene()
+    floor = small_scene(objects=[o for o in scene["objects"] if o["type"] == "plane"])
+    params = json.dumps({"spp": 1, "max_depth": 1, "glossy_samples": 1, "area_light_samples": 1, "seed": 3})
+    ids = []
+    for name, sc in (("object", scene), ("floor", floor)):
+        f = tmp_path / f"{name}.json"
+        f.write_text(json.dumps(sc))
+        res = runner.invoke(app, ["datasets", "generate", str(f), "--region", "hemisphere", "--spacing", "30",
+                                  "--center", "0,0.5,0", "--radius", "3", "--params", params, *api])
+        assert res.exit_code == 0, res.output
+        ids.append(res.stdout.strip().splitlines()[-1])
+        res = runner.invoke(app, ["datasets", "bake", ids[-1], *api])
+        assert res.exit_code == 0, res.output
+    obj_id, bg_id = ids
+    res = runner.invoke(app, ["datasets", "generate", str(tmp_path / "object.json"), "--region", "hemisphere",
+                              "--spacing", "30", "--center", "0,0.5", *api])
+    assert res.exit_code == 2 and "--center" in res.output
+    with Client(stack.api_url) as c:
+        obj_ds, bg_ds = c.get_dataset(obj_id), c.get_dataset(bg_id)
+        assert obj_ds.source["kind"] == "generated" and obj_ds.n_images == bg_ds.n_images > 10
+        depth = [read_image_bytes(c.download_dataset_file(d.id, getattr(d.manifest.geometry, "sha256", "")))
+                 for d in (obj_ds, bg_ds)]
+    obj_mask = np.abs(depth[0][:, :, 0] - depth[1][:, :, 0]) > 1e-4
+    assert 10 < obj_mask.sum() < obj_mask.size // 2
+    plate, mask = tmp_path / "plate.exr", tmp_path / "mask.exr"
+    plate.write_bytes(write_bytes(np.full((16, 24, 3), 0.25, np.float32), ".exr", "float"))
+    mask.write_bytes(write_bytes(obj_mask.astype(np.float32), ".exr", "float"))
+    light = "point:1.5,2.5,1.0:9"
+    out = tmp_path / "comp.exr"
+    res = runner.invoke(app, ["composite", "--object", obj_id, "--background", bg_id, "--plate", str(plate),
+                              "--mask", str(mask), "--margin", "6", "--light", light, "-o", str(out), *api])
+    assert res.exit_code == 0, res.output
+    assert f"n_object={int(obj_mask.sum())}" in res.stderr
+    comp, _ = read_image(out)
+    relit = tmp_path / "relit.exr"
+    res = runner.invoke(app, ["relight", obj_id, "--light", light, "-o", str(relit), *api])
+    assert res.exit_code == 0, res.output
+    assert np.array_equal(comp[obj_mask], read_image(relit)[0][obj_mask])
+    assert comp[~obj_mask].min() < 0.25 * 0.9 and comp[~obj_mask].max() == pytest.approx(0.25)
+    res = runner.invoke(app, ["composite", "--object", obj_id, "--background", "4" * 64, "--plate", str(plate),
+                              "--mask", str(mask), "--light", light, *api])
+    assert res.exit_code == 2
+
+
+def read_image_bytes(data: bytes) -> np.ndarray:
+    with tempfile.NamedTemporaryFile(suffix=".exr") as f:
+        f.write(data)
+        f.flush()
+        return read_image(f.name, transfer="linear")[0]
