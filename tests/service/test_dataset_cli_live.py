@@ -95,6 +95,21 @@ def test_dataset_upload_relight_from_the_command_line(stack: Any, tmp_path: Path
                               "point:10,5,300:90000", "--no-half", "-o", str(png), *api])
     assert res.exit_code == 0, res.output
     assert png.read_bytes()[:4] == b"\x89PNG"
+    # an environment map (uploaded by the CLI) and a lights file, superposed
+    from tests.service.api.test_datasets import write_bytes
+
+    sky = tmp_path / "sky.exr"
+    sky.write_bytes(write_bytes(np.full((8, 16, 3), 0.5, np.float32), ".exr", "float"))
+    (tmp_path / "lights.json").write_text(json.dumps({"lights": [json.loads(spec)]}))  # dataset light 3 again
+    res = runner.invoke(app, ["relight", did, "--light", f"env:{sky}:8", "--lights", str(tmp_path / "lights.json"),
+                              "--no-half", "-o", str(tmp_path / "env.exr"), *api])
+    assert res.exit_code == 0, res.output
+    assert "n_lights_expanded=9" in res.stderr, res.stderr
+    # the sky's 8 directions all lie outside the 12 lights' narrow cone: counted, never extrapolated
+    assert f"n_outside={int(mask.sum())}" in res.stderr
+    np.testing.assert_allclose(read_image(tmp_path / "env.exr")[0][mask], relit[mask], rtol=1e-6, atol=1e-7)
+    res = runner.invoke(app, ["relight", did, "--light", f"env:{tmp_path / 'nope.exr'}", *api])
+    assert res.exit_code == 2 and "nope.exr" in res.output
     res = runner.invoke(app, ["relight", did, "--light", "directional:0,0,-1", "--layout", "tiled",
                               "--fail-missing", *api])
     assert res.exit_code == 2 and "dataset_id" in res.output and "not baked" in res.output
