@@ -22,8 +22,9 @@ import json
 import sys
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NoReturn, TypeVar, cast, get_args
 
 import typer
 
@@ -1019,8 +1020,18 @@ def _path_request(path: Path, width: int | None, height: int | None) -> dict[str
     return req
 
 
+FrameFormat = Literal["png", "exr", "provenance"]
+
+
+def _frame_format(value: str) -> FrameFormat:
+    for fmt in get_args(FrameFormat):
+        if value == fmt:
+            return cast(FrameFormat, fmt)
+    _fail(f"--frame-format {value!r}: use png, exr or provenance")
+
+
 def _walkthrough_outputs(c: Client, key: str, output: Path | None, frames_dir: Path | None, n: int,
-                         frame_format: Literal["png", "exr", "provenance"]) -> None:
+                         frame_format: FrameFormat) -> None:
     if output is not None:
         _write(output, _call(lambda: c.download_walkthrough_video(key)))
     if frames_dir is not None:
@@ -1029,7 +1040,7 @@ def _walkthrough_outputs(c: Client, key: str, output: Path | None, frames_dir: P
         suffix = ".provenance" if frame_format == "provenance" else ""
         for i in range(n):
             (frames_dir / f"frame_{i:05d}{suffix}.{ext}").write_bytes(
-                _call(lambda i=i: c.download_walkthrough_frame(key, i, frame_format)))  # type: ignore[misc]
+                _call(partial(c.download_walkthrough_frame, key, i, frame_format)))
         typer.echo(str(frames_dir))
 
 
@@ -1074,8 +1085,7 @@ def walkthrough(
     """Render a camera path through a scene's view space from walkthrough bases; prints the walkthrough key."""
     if output is not None and output.suffix.lower() != ".mp4":
         _fail(f"-o {output}: the walkthrough video is an .mp4")
-    if frame_format not in ("png", "exr", "provenance"):
-        _fail(f"--frame-format {frame_format!r}: use png, exr or provenance")
+    fmt = _frame_format(frame_format)
     req = _path_request(path, width, height)
     bake_doc = dict(req.get("bake") or {})
     bake_doc.update({k: v for k, v in {"quality": quality, "face_res": face_res, "indirect_samples": indirect,
@@ -1091,7 +1101,7 @@ def walkthrough(
         if wait or output is not None or frames_dir is not None:
             w = _follow_walkthrough(c, w)
             typer.echo(f"finished: {w.frames_done} frames", err=True)
-            _walkthrough_outputs(c, w.key, output, frames_dir, w.frames, frame_format)  # type: ignore[arg-type]
+            _walkthrough_outputs(c, w.key, output, frames_dir, w.frames, fmt)
     typer.echo(w.key)
 
 
@@ -1115,8 +1125,7 @@ def walkthroughs_fetch(
     """Download a walkthrough's MP4 and / or frames."""
     if output is not None and output.suffix.lower() != ".mp4":
         _fail(f"-o {output}: the walkthrough video is an .mp4")
-    if frame_format not in ("png", "exr", "provenance"):
-        _fail(f"--frame-format {frame_format!r}: use png, exr or provenance")
+    fmt = _frame_format(frame_format)
     with _client(api_url, api_key) as c:
         w = _call(lambda: c.get_walkthrough(key))
         if w.status != "finished":
@@ -1124,7 +1133,7 @@ def walkthroughs_fetch(
                 _fail(f"walkthrough {key} is {w.status} ({w.frames_done}/{w.frames} frames)", code=4
                       if w.status == "failed" else 2)
             w = _follow_walkthrough(c, w)
-        _walkthrough_outputs(c, key, output, frames_dir, w.frames, frame_format)  # type: ignore[arg-type]
+        _walkthrough_outputs(c, key, output, frames_dir, w.frames, fmt)
 
 
 @walkthroughs_app.command("delete")

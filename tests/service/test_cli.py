@@ -60,3 +60,34 @@ def test_schema_and_samples_commands(tmp_path):
     assert json.loads((tmp_path / "s.json").read_text())["title"] == "Scene"
     r = runner.invoke(app, ["samples"])
     assert "cornell_box" in r.output and "teapot_glossy" in r.output
+
+
+def test_dataset_and_walkthrough_commands_check_their_input_before_calling(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        env = {"IBR_API_URL": f"http://127.0.0.1:{s.getsockname()[1]}"}
+    ds = "a" * 64
+    r = runner.invoke(app, ["relight", ds, "--light", "point:1,2"], env=env)
+    assert r.exit_code == 2 and "--light #1" in r.output and "3 numbers" in r.output
+    r = runner.invoke(app, ["relight", ds, "--light", "point:1,2,3", "-o", str(tmp_path / "x.jpg")], env=env)
+    assert r.exit_code == 2 and "x.jpg" in r.output
+    (tmp_path / "lights.json").write_text('{"not": "a list"}')
+    r = runner.invoke(app, ["relight", ds, "--lights", str(tmp_path / "lights.json")], env=env)
+    assert r.exit_code == 2 and "--lights" in r.output
+    r = runner.invoke(app, ["relight", ds, "--light", '{"type": "point", "position": [1, 2, 3]}'], env=env)
+    assert r.exit_code == 3 and "cannot reach" in r.output  # well-formed: it got as far as the API
+    r = runner.invoke(app, ["datasets", "upload", str(tmp_path / "none")], env=env)
+    assert r.exit_code == 2 and "no such manifest" in r.output
+    (tmp_path / "m.json").write_text(json.dumps({"images": [{"file": "a.png", "direction": [0, 0, 1],
+                                                             "intensity": 1}]}))
+    r = runner.invoke(app, ["datasets", "upload", str(tmp_path / "m.json")], env=env)
+    assert r.exit_code == 2 and "images.0.file" in r.output and "a.png" in r.output
+    r = runner.invoke(app, ["walkthrough", ds, "--path", str(tmp_path / "none.json")], env=env)
+    assert r.exit_code == 2 and "--path" in r.output
+    (tmp_path / "p.json").write_text(json.dumps([{"time": 0}]))
+    r = runner.invoke(app, ["walkthrough", ds, "--path", str(tmp_path / "p.json")], env=env)
+    assert r.exit_code == 2 and "frames.0" in r.output and "camera" in r.output
+    r = runner.invoke(app, ["walkthroughs", "fetch", ds, "--frame-format", "gif"], env=env)
+    assert r.exit_code == 2 and "png, exr or provenance" in r.output
