@@ -3,7 +3,8 @@
 In memory an image is linear radiance: ``(h, w, c) float32`` with ``c`` in 1, 3, 4 (grey, RGB,
 RGBA with *associated* / premultiplied alpha, the EXR convention). Files are either
 
-- scene-referred, stored linear: ``.exr`` (float or half, ZIP compressed, lossless), ``.hdr``
+- scene-referred, stored linear: ``.exr`` (float or half, lossless compression: ZIP by default,
+  ``compression=`` picks ``zips``, ``rle``, ``piz`` or ``none``), ``.hdr``
   (Radiance RGBE, ~1 % precision, RGB only, no negatives) and ``.tif``/``.tiff`` with float or
   half samples;
 - display-referred, stored sRGB-encoded after an explicit exposure: ``.png`` (8 or 16 bit),
@@ -25,7 +26,12 @@ Rules (``../shared/design/ALGORITHMS.md`` "Shared conventions", ``HARD_CASES.md`
 - Every write is atomic (temporary file in the same directory, fsync, ``os.replace``): a reader
   never sees a half-written image and a crash leaves the old file intact.
 - Output is byte-deterministic: the ``DateTime`` stamp OpenImageIO would add is suppressed, so
-  the same pixels and metadata give the same file (useful for content-addressed caches).
+  the same pixels, metadata and compression give the same file (useful for content-addressed caches).
+- :func:`encode_image` returns the bytes :func:`write_image` would write (same checks, same bytes),
+  for callers that ship them elsewhere (an object store): it encodes in a RAM-backed scratch file
+  when there is one and skips the fsyncs, since no file is kept.
+- 8-bit display encoding goes through exact code-value thresholds (one table look-up and one
+  comparison per sample), bit-identical to ``rint(tonemap_srgb(x) * 255)`` in float64.
 
 Metadata: callers put what is needed to reproduce an image in ``metadata`` -- the camera
 (``{"camera": {...}}``), the scene hash, the technique and its render parameters, the exposure
@@ -47,6 +53,8 @@ import math
 import os
 import re
 import secrets
+import tempfile
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +66,7 @@ import OpenImageIO as oiio
 from engine.errors import ImageFormatError, InvalidInputError, NonFiniteOutputError
 
 __all__ = [
+    "COMPRESSIONS",
     "DEFAULT_MAX_PIXELS",
     "HALF_MAX",
     "SUPPORTED_EXTENSIONS",
@@ -65,6 +74,7 @@ __all__ = [
     "read_image",
     "srgb_decode",
     "srgb_encode",
+    "encode_image",
     "tonemap_srgb",
     "write_image",
 ]
@@ -99,6 +109,18 @@ _FORMATS: dict[str, _Format] = {
     ".tiff": _Format("tiff", ("float", "half", "uint16"), "description", (1, 3, 4)),
 }
 SUPPORTED_EXTENSIONS = tuple(_FORMATS)
+
+COMPRESSIONS: dict[str, tuple[str, ...]] = {
+    "openexr": ("zip", "zips", "rle", "piz", "none"),
+    "tiff": ("zip", "lzw", "none"),
+    "png": ("default", "fast"),
+}
+"""Lossless ``compression`` choices per OpenImageIO format (the first is the default); other
+formats take none. EXR: ``zip`` (zlib, 16 scanlines per block; the smallest files here),
+``zips`` (1 scanline), ``rle`` (cheap, wins only on flat images such as ids), ``piz`` (wavelet),
+``none`` (fastest, largest). PNG: ``default`` is libpng's (zlib level 6, adaptive row filters);
+``fast`` is zlib level 1 with the 'sub' row filter (about 3-4x faster, files 10-40 % larger)."""
+_PNG_FAST = {"png:compressionLevel": 1, "png:filter": 16}
 
 _OIIO_TYPES = {
     "float": oiio.FLOAT,
@@ -166,6 +188,7 @@ def write_image(
     pixel_type: str | None = None,
     exposure_stops: float = 0.0,
     metadata: Mapping[str, Any] | None = None,
+    compression: str | None = None,
 ) -> None:
     """Write ``pixels`` to ``path`` atomically; the format comes from the extension.
 
@@ -185,19 +208,83 @@ def write_image(
         metadata: ``str -> str | int | float | bool | None | dict | list``, stored under
             ``ibr:<key>`` (see the module docstring). Put the camera, scene hash and render
             parameters here.
+        compression: lossless codec, one of :data:`COMPRESSIONS` for the format (``None``: its
+            default, ``zip`` for EXR and TIFF, libpng's default for PNG).
 
     Raises:
         ImageFormatError: unknown extension.
-        InvalidInputError: bad shape/dtype/pixel_type/metadata, half overflow (``|x| > 65504``),
+        InvalidInputError: bad shape/dtype/pixel_type/metadata/compression, half overflow (``|x| > 65504``),
             values outside float32 range, negative values or alpha for RGBE, alpha for JPEG,
             metadata for RGBE.
         NonFiniteOutputError: ``pixels`` holds NaN or Inf (the message gives the count).
         OSError: the directory does not exist or the file system refused the write.
     """
     path = Path(path)
+    fmt, spec, data = _prepare(path, pixels, pixel_type, exposure_stops, metadata, compression)
+    _write_atomic(path, fmt, spec, data)
+
+
+def encode_image(
+    name: str | os.PathLike[str],
+    pixels: Any,
+    *,
+    pixel_type: str | None = None,
+    exposure_stops: float = 0.0,
+    metadata: Mapping[str, Any] | None = None,
+    compression: str | None = None,
+) -> bytes:
+    """The bytes :func:`write_image` would write to a file called ``name``, without keeping a file.
+
+    ``name`` only picks the format (its extension) and names the image in errors; arguments,
+    checks and errors are those of :func:`write_image`, and the bytes are identical. OpenImageIO
+    writes files only, so the image goes through a scratch file (in ``/dev/shm`` when writable,
+    else the temp directory) that is read back and removed; without fsync, as it is not kept.
+    Safe to call from several threads at once (OpenImageIO releases the GIL while encoding).
+    """
+    path = Path(name)
+    fmt, spec, data = _prepare(path, pixels, pixel_type, exposure_stops, metadata, compression)
+    scratch = _scratch_dir() / f"ibr-encode-{secrets.token_hex(8)}{path.suffix.lower()}"
+    try:
+        out = oiio.ImageOutput.create(fmt.oiio_name)
+        if out is None:
+            raise ImageFormatError(f"cannot encode {path}: {oiio.geterror()}")
+        try:
+            if not out.open(str(scratch), spec) or not out.write_image(data):
+                raise OSError(f"cannot encode {path}: {out.geterror()}")
+        finally:
+            closed = out.close()
+        if not closed:
+            raise OSError(f"cannot encode {path}: {out.geterror()}")
+        return scratch.read_bytes()
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(scratch)
+
+
+_SCRATCH: Path | None = None
+
+
+def _scratch_dir() -> Path:
+    global _SCRATCH
+    if _SCRATCH is None:
+        shm = Path("/dev/shm")
+        _SCRATCH = shm if shm.is_dir() and os.access(shm, os.W_OK | os.X_OK) else Path(tempfile.gettempdir())
+    return _SCRATCH
+
+
+def _prepare(
+    path: Path,
+    pixels: Any,
+    pixel_type: str | None,
+    exposure_stops: float,
+    metadata: Mapping[str, Any] | None,
+    compression: str | None,
+) -> tuple[_Format, oiio.ImageSpec, np.ndarray]:
+    """Validate and convert: the format, the OpenImageIO spec and the samples to write."""
     fmt = _format_for(path)
     ptype = _resolve_pixel_type(path, fmt, pixel_type)
     _check_exposure(exposure_stops)
+    codec = _resolve_compression(path, fmt, compression)
     px = _as_hwc(pixels, "pixels")
 
     n_bad = int(px.size - np.count_nonzero(np.isfinite(px)))
@@ -219,8 +306,11 @@ def write_image(
 
     attrs = _encode_metadata(metadata, fmt, path)
     if display:
-        data = _encode_display(px, exposure_stops, 255 if ptype == "uint8" else 65535)
-        data = data.astype(np.uint8 if ptype == "uint8" else np.uint16)
+        if ptype == "uint8" and c in (1, 3):
+            data = _srgb8_codes(px, exposure_stops)
+        else:
+            data = _encode_display(px, exposure_stops, 255 if ptype == "uint8" else 65535)
+            data = data.astype(np.uint8 if ptype == "uint8" else np.uint16)
         attrs["oiio:ColorSpace"] = "sRGB"
         if c == 4:
             attrs["oiio:UnassociatedAlpha"] = 1
@@ -245,7 +335,9 @@ def write_image(
             if c == 1:
                 data = np.repeat(data, 3, axis=2)  # RGBE is RGB only; grey becomes R = G = B
     if fmt.oiio_name in ("openexr", "tiff"):
-        attrs["compression"] = "zip"
+        attrs["compression"] = codec
+    elif codec == "fast":
+        attrs.update(_PNG_FAST)
     if fmt.oiio_name == "tiff" and ptype == "half":
         attrs["tiff:half"] = 1  # otherwise OIIO widens half TIFF samples to float
 
@@ -253,7 +345,17 @@ def write_image(
     spec.attribute("DateTime", "")  # suppress the time stamp: byte-deterministic files
     for name, value in attrs.items():
         spec.attribute(name, value)
-    _write_atomic(path, fmt, spec, np.ascontiguousarray(data))
+    return fmt, spec, np.ascontiguousarray(data)
+
+
+def _resolve_compression(path: Path, fmt: _Format, compression: str | None) -> str | None:
+    allowed = COMPRESSIONS.get(fmt.oiio_name, ())
+    if compression is None:
+        return allowed[0] if allowed else None
+    if compression not in allowed:
+        choices = f"one of {allowed}" if allowed else "None (the format has no compression choice)"
+        raise InvalidInputError(f"compression {compression!r} is not available for {path.suffix}; use {choices}")
+    return compression
 
 
 def _encode_display(px: np.ndarray, exposure_stops: float, levels: int) -> np.ndarray:
@@ -270,6 +372,66 @@ def _encode_display(px: np.ndarray, exposure_stops: float, levels: int) -> np.nd
     if c == 4:
         encoded = np.concatenate([encoded, alpha], axis=2)
     return np.rint(encoded * levels)
+
+
+# Exact 8-bit sRGB codes by thresholds. The reference is ``rint(srgb_encode(c) * 255)`` in float64
+# for c = clip(x * 2**exposure, 0, 1); it is non-decreasing in c, so code k starts at a threshold t_k
+# (the smallest float64 with code >= k), found once by bisection over the bit patterns of [0, 1]
+# (non-negative doubles order like their bits). A sample's top 20 bits (sign, exponent, 8 mantissa
+# bits) pick a bucket holding at most one threshold: code = base[bucket] + (c >= threshold[bucket]).
+_BUCKET_SHIFT = np.uint64(44)
+_SRGB8: tuple[np.ndarray, np.ndarray] | None = None
+_SRGB8_LOCK = threading.Lock()
+
+
+def _reference_srgb8(c: np.ndarray) -> np.ndarray:
+    """Code values of clipped linear values c in [0, 1], computed as the float64 reference path does."""
+    return np.rint(srgb_encode(c) * 255)
+
+
+def _srgb8_thresholds() -> np.ndarray:
+    """t_1 .. t_255 (float64): the smallest c in [0, 1] with reference code >= k."""
+    k = np.arange(1, 256, dtype=np.float64)
+    lo = np.zeros(255, np.int64)  # code(bits 0 = 0.0) = 0 < k
+    hi = np.full(255, np.float64(1.0).view(np.int64), np.int64)  # code(1.0) = 255 >= k
+    while np.any(hi - lo > 1):
+        mid = lo + (hi - lo) // 2
+        up = _reference_srgb8(mid.view(np.float64)) >= k
+        hi = np.where(up, mid, hi)
+        lo = np.where(up, lo, mid)
+    return hi.view(np.float64)
+
+
+def _srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
+    global _SRGB8
+    with _SRGB8_LOCK:
+        if _SRGB8 is None:
+            t = _srgb8_thresholds()
+            n = int(np.float64(1.0).view(np.uint64) >> _BUCKET_SHIFT) + 1
+            starts = (np.arange(n, dtype=np.uint64) << _BUCKET_SHIFT).view(np.float64)
+            base = _reference_srgb8(starts).astype(np.uint8)
+            thresh = np.full(n, np.inf)
+            buckets = (t.view(np.uint64) >> _BUCKET_SHIFT).astype(np.int64)
+            inside = t > starts[buckets]  # a threshold at a bucket's start is already in its base
+            if len(np.unique(buckets[inside])) != int(np.count_nonzero(inside)):
+                raise AssertionError("two sRGB code thresholds share a bucket; lower _BUCKET_SHIFT")
+            thresh[buckets[inside]] = t[inside]
+            _SRGB8 = (base, thresh)
+    return _SRGB8
+
+
+def _srgb8_codes(px: np.ndarray, exposure_stops: float) -> np.ndarray:
+    """uint8 codes of grey/RGB linear pixels, bit-identical to ``_encode_display(px, e, 255)``."""
+    base, thresh = _srgb8_tables()
+    c = px.astype(np.float64)
+    if exposure_stops != 0.0:
+        c *= 2.0**exposure_stops
+    np.clip(c, 0.0, 1.0, out=c)
+    c += 0.0  # -0.0 -> +0.0 (its sign bit would make a negative index)
+    bucket = c.view(np.int64) >> np.int64(_BUCKET_SHIFT)  # intp indices: numpy's fast gather path
+    codes = base[bucket]
+    codes += c >= thresh[bucket]
+    return codes
 
 
 def _write_atomic(path: Path, fmt: _Format, spec: oiio.ImageSpec, data: np.ndarray) -> None:

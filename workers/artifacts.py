@@ -151,8 +151,14 @@ def write_artifact(
     engine_version: str,
     blobs: Mapping[str, tuple[bytes, str]],
     result: Mapping[str, Any],
+    *,
+    max_workers: int = 1,
 ) -> ArtifactManifest:
     """Write every blob (``name -> (bytes, content_type)``), then the manifest.
+
+    With ``max_workers > 1`` the blob writes run concurrently on that many threads (their fsyncs
+    or S3 round trips overlap); the manifest is still written only after every blob write has
+    returned, and not at all when one failed (its error is raised once the others finished).
 
     ``key`` must equal ``artifact_key(kind, inputs, params, engine_version)`` (ValueError
     otherwise: publishing content under another request's key would serve wrong results).
@@ -163,6 +169,8 @@ def write_artifact(
     expected = artifact_key(kind, inputs, params, engine_version)
     if key != expected:
         raise ValueError(f"artifact key {key!r} does not match its inputs (expected {expected})")
+    if isinstance(max_workers, bool) or not isinstance(max_workers, int) or max_workers < 1:
+        raise ValueError(f"max_workers must be an int >= 1, got {max_workers!r}")
     infos: list[BlobInfo] = []
     for name in sorted(blobs):
         if _BLOB_NAME.fullmatch(name) is None or name in (".", "..", MANIFEST_NAME):
@@ -189,8 +197,17 @@ def write_artifact(
     if existing is not None:
         return existing
     prefix = artifact_prefix(key)
-    for info in infos:
-        store.put_bytes(prefix + info.name, blobs[info.name][0], info.content_type)
+    if max_workers > 1 and len(infos) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(min(max_workers, len(infos)), thread_name_prefix="ibr-artifact") as pool:
+            futures = [pool.submit(store.put_bytes, prefix + info.name, blobs[info.name][0], info.content_type)
+                       for info in infos]
+            for future in futures:
+                future.result()  # re-raises a failed write; leaving the block waits for the rest
+    else:
+        for info in infos:
+            store.put_bytes(prefix + info.name, blobs[info.name][0], info.content_type)
     store.put_bytes(manifest_key(key), manifest_bytes, "application/json")
     return manifest
 

@@ -11,33 +11,43 @@ scene cache below stays warm across jobs):
    per-process :class:`RendererCache`, apply the request's camera;
 4. render with a progress callback that saves ``job.meta["progress"]`` a few times per second
    and raises :class:`JobCanceled` once cancellation was requested (flag key or RQ status);
-5. write ``radiance.exr`` (float32, linear), ``preview.png`` (sRGB, exposure 0) and the AOVs
-   ``depth.exr``, ``normal.exr``, ``object_id.exr``, ``material_id.exr`` (engine.imageio
-   writes 1/3/4-channel images only, so each AOV is its own file; ids are stored as float32,
-   exact below 2**24, -1 where nothing is hit), each with ``ibr:`` metadata (camera, scene id
-   and hash, render parameters, engine version), then the manifest LAST via ``write_artifact``.
+5. encode (:func:`encode_render_blobs`) ``preview.png`` (8-bit sRGB, exposure 0), ``radiance.exr``
+   (float32, linear) and the AOVs ``depth.exr``, ``normal.exr``, ``object_id.exr``,
+   ``material_id.exr`` (engine.imageio writes 1/3/4-channel images only, so each AOV is its own
+   file; ids are stored as float32, exact below 2**24, -1 where nothing is hit), plus
+   ``provenance.png`` for the LDC methods, each with ``ibr:`` metadata (camera, scene id and hash,
+   render parameters, engine version); then write the blobs concurrently and the manifest LAST via
+   ``write_artifact(..., max_workers=STORE_WRITERS)``.
 
 A render that produces NaN/Inf raises ``engine.errors.NonFiniteOutputError`` before anything is
 written: the job fails with that message and no manifest exists (HARD_CASES 13). Images are
 byte-deterministic (engine.imageio suppresses timestamps, the renderer is deterministic per
 seed), so a re-run writes identical blobs under the same key.
+
+Encoding is the main cost after the render itself (``bench/render_latency.py``): the images are
+encoded in memory (``engine.imageio.encode_image``: no scratch-file fsync) on a small thread pool
+(OpenImageIO and numpy release the GIL), the preview first, with lossless codecs picked per image
+by measurement (:data:`EXR_COMPRESSION`, PNG ``fast``); the 8-bit sRGB transform is exact.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from pydantic import ValidationError
 from rq import get_current_job
 
 from api_schemas.service import RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from engine.errors import NonFiniteOutputError
-from engine.imageio import write_image
+from engine.imageio import encode_image
 from engine.reference import ReferenceParams
 from workers.cache import CachedBakeRenderer, RendererCache, runtime_scene_bytes
 from workers.jobs.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
@@ -52,10 +62,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "AOV_BLOBS",
+    "EXR_COMPRESSION",
     "JobCanceled",
     "NonFiniteOutputError",
     "ProgressReporter",
     "SceneNotFound",
+    "encode_render_blobs",
     "render_job",
     "renderer_cache",
 ]
@@ -66,6 +78,17 @@ AOV_BLOBS = ("depth.exr", "normal.exr", "object_id.exr", "material_id.exr")
 PROVENANCE_BLOB = "provenance.png"
 """LDC methods: 8-bit grey PNG whose pixel value IS the provenance code (not a brightness)."""
 PROVENANCE_CODES = {0: "background", 1: "warped", 2: "hole-filled", 3: "gathered", 4: "traced"}
+
+EXR_COMPRESSION = {"radiance.exr": "zip", "depth.exr": "zip", "normal.exr": "zip", "object_id.exr": "zip",
+                   "material_id.exr": "zip"}
+"""Lossless EXR codec per blob (engine.imageio.COMPRESSIONS), chosen by measurement on 512x512 LDC and
+reference renders (``bench/render_latency.py``, docs/performance.md)."""
+PNG_COMPRESSION = "fast"
+"""zlib level 1 + 'sub' row filter for the PNGs: ~4x faster than libpng's default, files ~30 % larger."""
+ENCODE_THREADS = 3
+STORE_WRITERS = 4
+
+_SCRATCH = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK | os.X_OK) else None
 
 # Share of the job's progress bar per stage (loading and writing are short next to rendering).
 _LOAD_END = 0.05
@@ -160,10 +183,38 @@ def _json_safe(value: Any) -> Any:
     return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
-def _image_bytes(tmp: Path, name: str, pixels: Any, metadata: dict[str, Any]) -> bytes:
-    path = tmp / name
-    write_image(path, pixels, metadata=metadata)
-    return path.read_bytes()
+def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any]) -> dict[str, tuple[bytes, str]]:
+    """The artifact's image blobs ``name -> (bytes, content type)`` of one render.
+
+    ``images``: ``radiance`` (h, w, 3) float32, ``depth`` (h, w), ``normal`` (h, w, 3), ``object_id``
+    and ``material_id`` (h, w) int, and for the LDC methods ``provenance`` (h, w) uint8 codes.
+    ``meta`` goes into every image's ``ibr:`` metadata (plus ``exposure_stops`` for the preview and
+    ``aov`` for the AOVs). Encoded concurrently on :data:`ENCODE_THREADS` threads, the preview
+    first; the EXRs hold the render's float32 values bit for bit, the preview is
+    ``rint(tonemap_srgb(radiance) * 255)`` exactly. NaN/Inf raise ``NonFiniteOutputError``.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    work: list[tuple[str, str, Any, dict[str, Any], str]] = [
+        ("preview.png", PNG, images["radiance"], {**meta, "exposure_stops": 0.0}, PNG_COMPRESSION),
+        ("radiance.exr", EXR, images["radiance"], meta, EXR_COMPRESSION["radiance.exr"]),
+        ("normal.exr", EXR, images["normal"], {**meta, "aov": "normal"}, EXR_COMPRESSION["normal.exr"]),
+        ("depth.exr", EXR, images["depth"], {**meta, "aov": "depth"}, EXR_COMPRESSION["depth.exr"]),
+        ("object_id.exr", EXR, images["object_id"], {**meta, "aov": "object_id"}, EXR_COMPRESSION["object_id.exr"]),
+        ("material_id.exr", EXR, images["material_id"], {**meta, "aov": "material_id"},
+         EXR_COMPRESSION["material_id.exr"]),
+    ]
+
+    def encode(name: str, pixels: Any, metadata: dict[str, Any], compression: str) -> bytes:
+        if name.endswith("_id.exr"):
+            pixels = np.asarray(pixels).astype(np.float32)  # exact below 2**24
+        return encode_image(name, pixels, metadata=metadata, compression=compression)
+
+    with ThreadPoolExecutor(ENCODE_THREADS, thread_name_prefix="ibr-encode") as pool:
+        futures = {name: (pool.submit(encode, name, px, md, comp), ctype) for name, ctype, px, md, comp in work}
+        if images.get("provenance") is not None:
+            futures[PROVENANCE_BLOB] = (pool.submit(_provenance_png, images["provenance"]), PNG)
+        return {name: (f.result(), ctype) for name, (f, ctype) in futures.items()}
 
 
 def _load(store: ObjectStore, scene_id: str) -> LoadedScene:
@@ -228,24 +279,15 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
         "engine_version": ENGINE_VERSION,
         "artifact_key": key,
     }
-    with tempfile.TemporaryDirectory(prefix="ibr-render-") as tmpdir:
-        tmp = Path(tmpdir)
-        blobs: dict[str, tuple[bytes, str]] = {
-            "radiance.exr": (_image_bytes(tmp, "radiance.exr", out.radiance, meta), EXR),
-            "preview.png": (_image_bytes(tmp, "preview.png", out.radiance, {**meta, "exposure_stops": 0.0}), PNG),
-            "depth.exr": (_image_bytes(tmp, "depth.exr", out.depth, {**meta, "aov": "depth"}), EXR),
-            "normal.exr": (_image_bytes(tmp, "normal.exr", out.normal, {**meta, "aov": "normal"}), EXR),
-            "object_id.exr": (_image_bytes(tmp, "object_id.exr", out.object_id.astype("float32"),
-                                           {**meta, "aov": "object_id"}), EXR),
-            "material_id.exr": (_image_bytes(tmp, "material_id.exr", out.material_id.astype("float32"),
-                                             {**meta, "aov": "material_id"}), EXR),
-        }
+    blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
+                                 "object_id": out.object_id, "material_id": out.material_id}, meta)
     progress.check_canceled()  # last chance before the commit
     timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
     result = _json_safe({"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports})
     t0 = time.perf_counter()
-    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result)
+    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,
+                   max_workers=STORE_WRITERS)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
     progress.report(1.0, "done", force=True, check=False)  # committed: too late to cancel
@@ -259,24 +301,28 @@ class BakeUnavailable(RuntimeError):
     """The render's bake is missing or failed: the message says which and what to do."""
 
 
-def _provenance_png(tmp: Path, codes: Any) -> bytes:
-    """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding)."""
-    import numpy as np
+def _provenance_png(codes: Any) -> bytes:
+    """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding), encoded in a
+    RAM-backed scratch directory when there is one (no fsync: the file is not kept)."""
     import OpenImageIO as oiio
 
     arr = np.ascontiguousarray(codes, dtype=np.uint8)
-    path = tmp / PROVENANCE_BLOB
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
-    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
-    spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
-    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
-        err = out.geterror()
+    with tempfile.TemporaryDirectory(prefix="ibr-render-", dir=_SCRATCH) as tmpdir:
+        path = Path(tmpdir) / PROVENANCE_BLOB
+        out = oiio.ImageOutput.create(str(path))
+        if out is None:
+            raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
+        spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
+        spec.attribute("DateTime", "")
+        spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
+        spec.attribute("png:compressionLevel", 1)
+        spec.attribute("png:filter", 16)
+        if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
+            err = out.geterror()
+            out.close()
+            raise RuntimeError(f"writing {PROVENANCE_BLOB} failed: {err}")
         out.close()
-        raise RuntimeError(f"writing {PROVENANCE_BLOB} failed: {err}")
-    out.close()
-    return path.read_bytes()
+        return path.read_bytes()
 
 
 def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
@@ -336,30 +382,10 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     meta: dict[str, Any] = {"camera": camera.to_dict(), "scene_id": req.scene_id, "scene_hash": loaded.scene_hash,
                             "method": req.method, "bake_key": bkey, "engine_version": ENGINE_VERSION,
                             "artifact_key": key}
-    with tempfile.TemporaryDirectory(prefix="ibr-render-") as tmpdir:
-        tmp = Path(tmpdir)
-        # Encoding 6 images costs about as much as an LDC render at 512 x 512 (EXR zip, sRGB PNG);
-        # OpenImageIO and numpy release the GIL, so the encoders run side by side.
-        from concurrent.futures import ThreadPoolExecutor
-
-        jobs: dict[str, tuple[Any, str]] = {
-            "radiance.exr": ((tmp, "radiance.exr", out.radiance, meta), EXR),
-            "preview.png": ((tmp, "preview.png", out.radiance, {**meta, "exposure_stops": 0.0}), PNG),
-            "depth.exr": ((tmp, "depth.exr", out.depth, {**meta, "aov": "depth"}), EXR),
-            "normal.exr": ((tmp, "normal.exr", out.normal, {**meta, "aov": "normal"}), EXR),
-            "object_id.exr": ((tmp, "object_id.exr", out.object_id.astype("float32"), {**meta, "aov": "object_id"}),
-                              EXR),
-            "material_id.exr": ((tmp, "material_id.exr", out.material_id.astype("float32"),
-                                 {**meta, "aov": "material_id"}), EXR),
-        }
-        with ThreadPoolExecutor(max_workers=4, thread_name_prefix="ibr-encode") as pool:
-            futures = {name: (pool.submit(_image_bytes, *args), ctype) for name, (args, ctype) in jobs.items()}
-            prov_future = pool.submit(_provenance_png, tmp, out.provenance)
-            blobs: dict[str, tuple[bytes, str]] = {name: (f.result(), ctype) for name, (f, ctype) in futures.items()}
-            blobs[PROVENANCE_BLOB] = (prov_future.result(), PNG)
+    blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
+                                 "object_id": out.object_id, "material_id": out.material_id,
+                                 "provenance": out.provenance}, meta)
     progress.check_canceled()
-    import numpy as np
-
     prov = np.bincount(np.asarray(out.provenance, dtype=np.int64).ravel(), minlength=5)
     timings = {**out.timings, "load_bake": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "hole_pixels": int(np.count_nonzero(out.hole_mask)),
@@ -368,7 +394,8 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     result = _json_safe({"timings": timings, "counts": counts, "plan": out.plan, "bake_key": bkey,
                          "mesh_reports": loaded.mesh_reports})
     t0 = time.perf_counter()
-    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result)
+    write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,
+                   max_workers=STORE_WRITERS)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
     progress.report(1.0, "done", force=True, check=False)
