@@ -353,12 +353,7 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                 def show(j: JobPublic) -> None:
                     bar.update(task, completed=j.progress.fraction, description=j.progress.stage or j.state)
 
-                from service.client import ApiError
-
-                try:
-                    manifest = _call(lambda: c.wait_render(r, on_progress=show))
-                except ApiError as exc:  # the job itself failed
-                    _fail(str(exc), code=4)
+                manifest = _call(lambda: c.wait_render(r, on_progress=show))  # a failed job: JobFailed, exit 4
         else:
             manifest = r.artifact
         if manifest.result.get("timings"):
@@ -441,7 +436,6 @@ def bake(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from api_schemas.service import BakePublic
-    from service.client import ApiError
 
     params = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
                                 "llf_f": llf_f, "llf_resolution": llf_resolution,
@@ -458,10 +452,7 @@ def bake(
                 def show(p: BakePublic) -> None:
                     bar.update(task, completed=p.progress.fraction, description=p.progress.stage or p.state)
 
-                try:
-                    b = _call(lambda: c.wait_bake(b, on_progress=show))
-                except ApiError as exc:
-                    _fail(str(exc), code=4)
+                b = _call(lambda: c.wait_bake(b, on_progress=show))  # a failed bake: JobFailed, exit 4
         if b.plan is not None:
             typer.echo(f"plan: light field {'yes' if b.plan.get('bake_llf') else 'no'} ({b.plan.get('reason')}); "
                        f"parts: {', '.join(p.name for p in b.parts)}", err=True)
