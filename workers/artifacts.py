@@ -157,8 +157,9 @@ def write_artifact(
     """Write every blob (``name -> (bytes, content_type)``), then the manifest.
 
     With ``max_workers > 1`` the blob writes run concurrently on that many threads (their fsyncs
-    or S3 round trips overlap); the manifest is still written only after every blob write has
-    returned, and not at all when one failed (its error is raised once the others finished).
+    or S3 round trips overlap), started in the order of ``blobs`` (put what a client waits for
+    first); the manifest is still written only after every blob write has returned, and not at
+    all when one failed (its error is raised once the others finished).
 
     ``key`` must equal ``artifact_key(kind, inputs, params, engine_version)`` (ValueError
     otherwise: publishing content under another request's key would serve wrong results).
@@ -201,8 +202,9 @@ def write_artifact(
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(min(max_workers, len(infos)), thread_name_prefix="ibr-artifact") as pool:
-            futures = [pool.submit(store.put_bytes, prefix + info.name, blobs[info.name][0], info.content_type)
-                       for info in infos]
+            by_name = {info.name: info for info in infos}
+            futures = [pool.submit(store.put_bytes, prefix + name, blobs[name][0], by_name[name].content_type)
+                       for name in blobs]
             for future in futures:
                 future.result()  # re-raises a failed write; leaving the block waits for the rest
     else:

@@ -151,6 +151,23 @@ def test_concurrent_blob_writes_overlap_and_the_manifest_comes_last(tmp_path: Pa
         assert art.read_blob(store.inner, key, name) == data
 
 
+def test_concurrent_writes_start_in_the_callers_order(tmp_path: Path) -> None:
+    blobs = {name: (name.encode() * 50, "application/octet-stream") for name in ("z.png", "a.exr", "m.exr")}
+    store = SlowRecording(LocalStore(tmp_path / "s"), delay=0.0)
+    started: list[str] = []
+    real = store.put_bytes
+
+    def put(key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        with store.lock:
+            started.append(key.rsplit("/", 1)[1])
+        real(key, data, content_type)
+
+    store.put_bytes = put  # type: ignore[method-assign]
+    _commit(store, blobs, workers=2)
+    # FIFO pool of 2: z.png is taken before m.exr can be (in sorted order it would be started last)
+    assert started.index("z.png") < started.index("m.exr") and started[-1] == "manifest.json"
+
+
 def test_a_failed_concurrent_write_publishes_no_artifact(tmp_path: Path) -> None:
     blobs = {f"b{i}.bin": (bytes([i]) * 100, "application/octet-stream") for i in range(5)}
     inner = LocalStore(tmp_path / "s")
