@@ -399,7 +399,8 @@ NOTES = [
     "sample): bit-identical to `rint(tonemap_srgb(x) * 255)` in float64 (tests compare every threshold +-1 ulp), "
     "several times faster; `write_image` uses it too. PNGs are written with zlib level 1 and the 'sub' row "
     "filter (`compression=\"fast\"`, lossless, ~3-4x faster than libpng's default, files ~30-40 % larger).",
-    "- The 6-7 images are encoded on 3 threads, the preview first; blob writes run on 4 threads and the "
+    "- The 6-7 images are encoded on 3 threads, the preview first; blob writes run on 4 threads (again the "
+    "preview first) and the "
     "manifest is written only after every blob write returned (`write_artifact(max_workers=4)`; a failed "
     "blob write publishes nothing).",
     "- EXRs stay ZIP (lossless, the smallest files; readable everywhere). Measured alternatives on a 512x512 "
