@@ -795,6 +795,9 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
         w_out[i, 0], w_out[i, 1], w_out[i, 2] = w0, w1, w2
 
 
+_GROUPS = 64  # scratch-sharing groups of chunks for the parallel loop (any count gives the same result)
+
+
 def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
                     grid_items, kinds, lp, lint, lnorm, min_dist2, pix, out, outside, singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
@@ -806,91 +809,135 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
     emitter normal (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 and
     outside / singular (h*w,) bool, written at ``pix[i]`` only; touched (T,) uint8
     set to 1 for every triangle whose three lights were read (racing writes all store 1).
+
+    Fixed chunks of _CHUNK consecutive rows (the same for any thread count, so results do not
+    depend on it), light by light: pass A computes every row's sphere point and irradiance
+    factor in branch-free loops over the chunk (SIMD across pixels, float64, the same
+    operations as per pixel), pass B searches the triangle (first the one the previous row
+    hit: neighbouring pixels see a light in nearly the same direction), reads the three
+    samples and accumulates (per pixel in light order, as a per-pixel loop would).
     """
     n = points.shape[0]
     m = kinds.shape[0]
     cx, cy, cz = center[0], center[1], center[2]
     r2 = radius * radius
-    # fixed-size chunks of consecutive pixels (the same for any thread count, so results do not
-    # depend on it); within a chunk each light remembers its last triangle
     n_chunks = (n + _CHUNK - 1) // _CHUNK
-    for ci in nb.prange(n_chunks):
-        last = np.full(m, -1, np.int64)
-        for i in range(ci * _CHUNK, min(n, (ci + 1) * _CHUNK)):
-            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-            acc0 = 0.0
-            acc1 = 0.0
-            acc2 = 0.0
-            out_i = False
-            sing_i = False
+    n_groups = min(_GROUPS, n_chunks)
+    for gi in nb.prange(n_groups):
+        sx = np.empty(_CHUNK)
+        sy = np.empty(_CHUNK)
+        sz = np.empty(_CHUNK)
+        fac = np.empty(_CHUNK)
+        d2s = np.empty(_CHUNK)
+        acc = np.empty((3, _CHUNK))
+        out_f = np.empty(_CHUNK, np.bool_)
+        sing_f = np.empty(_CHUNK, np.bool_)
+        for ci in range(gi * n_chunks // n_groups, (gi + 1) * n_chunks // n_groups):
+            i0 = ci * _CHUNK
+            nc = min(n, i0 + _CHUNK) - i0
+            acc[:, :nc] = 0.0
+            out_f[:nc] = False
+            sing_f[:nc] = False
             for j in range(m):
                 kd = kinds[j]
+                lx, ly, lz = lp[j, 0], lp[j, 1], lp[j, 2]
+                # ---- pass A: sphere point (sx, sy, sz) and irradiance factor of every row
                 if kd == 1:
-                    dx, dy, dz = lp[j, 0], lp[j, 1], lp[j, 2]
-                    g0, g1, g2 = lint[j, 0], lint[j, 1], lint[j, 2]
+                    for r in range(nc):
+                        fac[r] = 1.0
+                        d2s[r] = math.inf
+                    if distant_ds:
+                        for r in range(nc):
+                            sx[r], sy[r], sz[r] = lx, ly, lz
+                    else:
+                        inv_len = 1.0 / math.sqrt(lx * lx + ly * ly + lz * lz)
+                        ux, uy, uz = lx * inv_len, ly * inv_len, lz * inv_len
+                        for r in range(nc):
+                            ox, oy, oz = points[i0 + r, 0] - cx, points[i0 + r, 1] - cy, points[i0 + r, 2] - cz
+                            b = ox * ux + oy * uy + oz * uz
+                            cc = ox * ox + oy * oy + oz * oz - r2
+                            t = -b + math.sqrt(max(b * b - cc, 0.0))
+                            sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
                 else:
-                    dx, dy, dz = lp[j, 0] - px, lp[j, 1] - py, lp[j, 2] - pz
-                    d2 = dx * dx + dy * dy + dz * dz
-                    if d2 <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
-                        sing_i = True
+                    nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
+                    for r in range(nc):
+                        px, py, pz = points[i0 + r, 0], points[i0 + r, 1], points[i0 + r, 2]
+                        dx, dy, dz = lx - px, ly - py, lz - pz
+                        d2 = dx * dx + dy * dy + dz * dz
+                        d2s[r] = d2
+                        f = 1.0 / d2
+                        sq = math.sqrt(d2)
+                        if kd >= 2:
+                            c = -(dx * nx + dy * ny + dz * nz) / sq
+                            if kd == 3:
+                                c = abs(c)
+                            f = f * c if c > 0.0 else -1.0
+                        fac[r] = f
+                        if distant_ds:
+                            sx[r], sy[r], sz[r] = dx, dy, dz
+                        else:
+                            inv_len = 1.0 / sq
+                            ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
+                            ox, oy, oz = px - cx, py - cy, pz - cz
+                            b = ox * ux + oy * uy + oz * uz
+                            cc = ox * ox + oy * oy + oz * oz - r2
+                            t = -b + math.sqrt(max(b * b - cc, 0.0))
+                            sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
+                # ---- pass B: triangle search, three samples, accumulation
+                last = -1
+                l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
+                for r in range(nc):
+                    if d2s[r] <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
+                        sing_f[r] = True
                         continue
-                    f = 1.0 / d2
-                    if kd >= 2:
-                        # area-light sample: intensity I cos(theta_emitter), one- or two-sided
-                        c = -(dx * lnorm[j, 0] + dy * lnorm[j, 1] + dz * lnorm[j, 2]) / math.sqrt(d2)
-                        if kd == 3:
-                            c = abs(c)
-                        if c <= 0.0:
-                            continue
-                        f *= c
-                    g0, g1, g2 = lint[j, 0] * f, lint[j, 1] * f, lint[j, 2] * f
-                if distant_ds:
-                    sx, sy, sz = dx, dy, dz
-                else:
-                    # exit point of the ray P + t u (P inside the sphere) from the light sphere
-                    inv_len = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
-                    ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
-                    ox, oy, oz = px - cx, py - cy, pz - cz
-                    b = ox * ux + oy * uy + oz * uz
-                    cc = ox * ox + oy * oy + oz * oz - r2
-                    t = -b + math.sqrt(max(b * b - cc, 0.0))
-                    sx, sy, sz = ox + t * ux, oy + t * uy, oz + t * uz
-                tri, w0, w1, w2 = _locate_hint(sx, sy, sz, last[j], inv, grid_n, grid_start, grid_items)
-                if tri < 0:
-                    out_i = True
-                    continue
-                last[j] = tri
-                touched[tri] = 1
-                ka = tris[tri, 0]
-                kb = tris[tri, 1]
-                kc = tris[tri, 2]
-                if distant_ds:
-                    fa, fb, fc = w0, w1, w2
-                else:
-                    ex, ey, ez = lpos[ka, 0] - px, lpos[ka, 1] - py, lpos[ka, 2] - pz
-                    fa = w0 * (ex * ex + ey * ey + ez * ez)
-                    ex, ey, ez = lpos[kb, 0] - px, lpos[kb, 1] - py, lpos[kb, 2] - pz
-                    fb = w1 * (ex * ex + ey * ey + ez * ez)
-                    ex, ey, ez = lpos[kc, 0] - px, lpos[kc, 1] - py, lpos[kc, 2] - pz
-                    fc = w2 * (ex * ex + ey * ey + ez * ez)
-                v0 = (fa * inv_int[ka, 0] * _fetch(store, lut, i, ka, 0)
-                      + fb * inv_int[kb, 0] * _fetch(store, lut, i, kb, 0)
-                      + fc * inv_int[kc, 0] * _fetch(store, lut, i, kc, 0))
-                v1 = (fa * inv_int[ka, 1] * _fetch(store, lut, i, ka, 1)
-                      + fb * inv_int[kb, 1] * _fetch(store, lut, i, kb, 1)
-                      + fc * inv_int[kc, 1] * _fetch(store, lut, i, kc, 1))
-                v2 = (fa * inv_int[ka, 2] * _fetch(store, lut, i, ka, 2)
-                      + fb * inv_int[kb, 2] * _fetch(store, lut, i, kb, 2)
-                      + fc * inv_int[kc, 2] * _fetch(store, lut, i, kc, 2))
-                acc0 += v0 * g0
-                acc1 += v1 * g1
-                acc2 += v2 * g2
-            q = pix[i]
-            out[q, 0] = acc0
-            out[q, 1] = acc1
-            out[q, 2] = acc2
-            outside[q] = out_i
-            singular[q] = sing_i
+                    f = fac[r]
+                    if f < 0.0:  # area-light sample facing away
+                        continue
+                    tri, w0, w1, w2 = _locate_hint(sx[r], sy[r], sz[r], last, inv, grid_n, grid_start, grid_items)
+                    if tri < 0:
+                        out_f[r] = True
+                        continue
+                    if tri != last:
+                        touched[tri] = 1
+                        last = tri
+                    i = i0 + r
+                    ka = tris[tri, 0]
+                    kb = tris[tri, 1]
+                    kc = tris[tri, 2]
+                    if distant_ds:
+                        fa, fb, fc = w0, w1, w2
+                    else:
+                        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+                        ex, ey, ez = lpos[ka, 0] - px, lpos[ka, 1] - py, lpos[ka, 2] - pz
+                        fa = w0 * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = lpos[kb, 0] - px, lpos[kb, 1] - py, lpos[kb, 2] - pz
+                        fb = w1 * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = lpos[kc, 0] - px, lpos[kc, 1] - py, lpos[kc, 2] - pz
+                        fc = w2 * (ex * ex + ey * ey + ez * ez)
+                    v0 = (fa * inv_int[ka, 0] * _fetch(store, lut, i, ka, 0)
+                          + fb * inv_int[kb, 0] * _fetch(store, lut, i, kb, 0)
+                          + fc * inv_int[kc, 0] * _fetch(store, lut, i, kc, 0))
+                    v1 = (fa * inv_int[ka, 1] * _fetch(store, lut, i, ka, 1)
+                          + fb * inv_int[kb, 1] * _fetch(store, lut, i, kb, 1)
+                          + fc * inv_int[kc, 1] * _fetch(store, lut, i, kc, 1))
+                    v2 = (fa * inv_int[ka, 2] * _fetch(store, lut, i, ka, 2)
+                          + fb * inv_int[kb, 2] * _fetch(store, lut, i, kb, 2)
+                          + fc * inv_int[kc, 2] * _fetch(store, lut, i, kc, 2))
+                    if kd == 1:
+                        acc[0, r] += v0 * l0
+                        acc[1, r] += v1 * l1
+                        acc[2, r] += v2 * l2
+                    else:
+                        acc[0, r] += v0 * (l0 * f)
+                        acc[1, r] += v1 * (l1 * f)
+                        acc[2, r] += v2 * (l2 * f)
+            for r in range(nc):
+                q = pix[i0 + r]
+                out[q, 0] = acc[0, r]
+                out[q, 1] = acc[1, r]
+                out[q, 2] = acc[2, r]
+                outside[q] = out_f[r]
+                singular[q] = sing_f[r]
 
 
 class _DualKernel:
