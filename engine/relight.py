@@ -832,12 +832,19 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
         acc = np.empty((3, _CHUNK))
         out_f = np.empty(_CHUNK, np.bool_)
         sing_f = np.empty(_CHUNK, np.bool_)
-        for ci in range(gi * n_chunks // n_groups, (gi + 1) * n_chunks // n_groups):
+        qx = np.empty(_CHUNK)
+        qy = np.empty(_CHUNK)
+        qz = np.empty(_CHUNK)
+        for ci in range(gi, n_chunks, n_groups):  # interleaved: every group (thread) sees all of the frame
             i0 = ci * _CHUNK
             nc = min(n, i0 + _CHUNK) - i0
             acc[:, :nc] = 0.0
             out_f[:nc] = False
             sing_f[:nc] = False
+            for r in range(nc):  # the chunk's points as three contiguous rows (vectorisable loops below)
+                qx[r] = points[i0 + r, 0]
+                qy[r] = points[i0 + r, 1]
+                qz[r] = points[i0 + r, 2]
             for j in range(m):
                 kd = kinds[j]
                 lx, ly, lz = lp[j, 0], lp[j, 1], lp[j, 2]
@@ -853,11 +860,30 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                         inv_len = 1.0 / math.sqrt(lx * lx + ly * ly + lz * lz)
                         ux, uy, uz = lx * inv_len, ly * inv_len, lz * inv_len
                         for r in range(nc):
-                            ox, oy, oz = points[i0 + r, 0] - cx, points[i0 + r, 1] - cy, points[i0 + r, 2] - cz
+                            ox, oy, oz = qx[r] - cx, qy[r] - cy, qz[r] - cz
                             b = ox * ux + oy * uy + oz * uz
                             cc = ox * ox + oy * oy + oz * oz - r2
-                            t = -b + math.sqrt(max(b * b - cc, 0.0))
-                            sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
+                            e = b * b - cc
+                            t = -b + math.sqrt(e if e > 0.0 else 0.0)
+                            sx[r] = ox + t * ux
+                            sy[r] = oy + t * uy
+                            sz[r] = oz + t * uz
+                elif kd == 0 and not distant_ds:  # the common case, branch-free
+                    for r in range(nc):
+                        dx, dy, dz = lx - qx[r], ly - qy[r], lz - qz[r]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        d2s[r] = d2
+                        fac[r] = 1.0 / d2
+                        inv_len = 1.0 / math.sqrt(d2)
+                        ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
+                        ox, oy, oz = qx[r] - cx, qy[r] - cy, qz[r] - cz
+                        b = ox * ux + oy * uy + oz * uz
+                        cc = ox * ox + oy * oy + oz * oz - r2
+                        e = b * b - cc
+                        t = -b + math.sqrt(e if e > 0.0 else 0.0)
+                        sx[r] = ox + t * ux
+                        sy[r] = oy + t * uy
+                        sz[r] = oz + t * uz
                 else:
                     nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
                     for r in range(nc):
