@@ -768,25 +768,6 @@ def _locate(x, y, z, inv, grid_n, grid_start, grid_items):
     return -1, 0.0, 0.0, 0.0
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _locate_hint(x, y, z, hint, inv, grid_n, grid_start, grid_items):
-    """``_locate`` that first tries triangle ``hint`` (the one the same light hit at the previous
-    pixel: neighbouring pixels see a light in nearly the same direction)."""
-    if hint >= 0:
-        t = hint
-        a0 = inv[t, 0, 0] * x + inv[t, 0, 1] * y + inv[t, 0, 2] * z
-        a1 = inv[t, 1, 0] * x + inv[t, 1, 1] * y + inv[t, 1, 2] * z
-        a2 = inv[t, 2, 0] * x + inv[t, 2, 1] * y + inv[t, 2, 2] * z
-        s = a0 + a1 + a2
-        if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
-            a0 = max(a0, 0.0)
-            a1 = max(a1, 0.0)
-            a2 = max(a2, 0.0)
-            s = a0 + a1 + a2
-            return t, a0 / s, a1 / s, a2 / s
-    return _locate(x, y, z, inv, grid_n, grid_start, grid_items)
-
-
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
     for i in nb.prange(dirs.shape[0]):
@@ -909,8 +890,13 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                             cc = ox * ox + oy * oy + oz * oz - r2
                             t = -b + math.sqrt(max(b * b - cc, 0.0))
                             sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
-                # ---- pass B: triangle search, three samples, accumulation
+                # ---- pass B: triangle search, three samples, accumulation. The current triangle's
+                # search matrix, vertex lights, their positions and 1/intensity live in locals.
                 last = -1
+                ka = kb = kc = 0
+                m00 = m01 = m02 = m10 = m11 = m12 = m20 = m21 = m22 = 0.0
+                ax = ay = az = bx = by = bz = gx = gy = gz = 0.0
+                ia0 = ia1 = ia2 = ib0 = ib1 = ib2 = ic0 = ic1 = ic2 = 0.0
                 l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
                 for r in range(nc):
                     if d2s[r] <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
@@ -919,36 +905,57 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                     f = fac[r]
                     if f < 0.0:  # area-light sample facing away
                         continue
-                    tri, w0, w1, w2 = _locate_hint(sx[r], sy[r], sz[r], last, inv, grid_n, grid_start, grid_items)
+                    x, y, z = sx[r], sy[r], sz[r]
+                    tri = -1
+                    if last >= 0:  # the previous row's triangle first (_locate's test)
+                        a0 = m00 * x + m01 * y + m02 * z
+                        a1 = m10 * x + m11 * y + m12 * z
+                        a2 = m20 * x + m21 * y + m22 * z
+                        s = a0 + a1 + a2
+                        if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
+                            a0 = max(a0, 0.0)
+                            a1 = max(a1, 0.0)
+                            a2 = max(a2, 0.0)
+                            s = a0 + a1 + a2
+                            tri, w0, w1, w2 = last, a0 / s, a1 / s, a2 / s
                     if tri < 0:
-                        out_f[r] = True
-                        continue
+                        tri, w0, w1, w2 = _locate(x, y, z, inv, grid_n, grid_start, grid_items)
+                        if tri < 0:
+                            out_f[r] = True
+                            continue
                     if tri != last:
                         touched[tri] = 1
                         last = tri
+                        m00, m01, m02 = inv[tri, 0, 0], inv[tri, 0, 1], inv[tri, 0, 2]
+                        m10, m11, m12 = inv[tri, 1, 0], inv[tri, 1, 1], inv[tri, 1, 2]
+                        m20, m21, m22 = inv[tri, 2, 0], inv[tri, 2, 1], inv[tri, 2, 2]
+                        ka, kb, kc = tris[tri, 0], tris[tri, 1], tris[tri, 2]
+                        ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
+                        bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
+                        gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
+                        ia0, ia1, ia2 = inv_int[ka, 0], inv_int[ka, 1], inv_int[ka, 2]
+                        ib0, ib1, ib2 = inv_int[kb, 0], inv_int[kb, 1], inv_int[kb, 2]
+                        ic0, ic1, ic2 = inv_int[kc, 0], inv_int[kc, 1], inv_int[kc, 2]
                     i = i0 + r
-                    ka = tris[tri, 0]
-                    kb = tris[tri, 1]
-                    kc = tris[tri, 2]
                     if distant_ds:
                         fa, fb, fc = w0, w1, w2
                     else:
-                        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-                        ex, ey, ez = lpos[ka, 0] - px, lpos[ka, 1] - py, lpos[ka, 2] - pz
+                        px, py, pz = qx[r], qy[r], qz[r]
+                        ex, ey, ez = ax - px, ay - py, az - pz
                         fa = w0 * (ex * ex + ey * ey + ez * ez)
-                        ex, ey, ez = lpos[kb, 0] - px, lpos[kb, 1] - py, lpos[kb, 2] - pz
+                        ex, ey, ez = bx - px, by - py, bz - pz
                         fb = w1 * (ex * ex + ey * ey + ez * ez)
-                        ex, ey, ez = lpos[kc, 0] - px, lpos[kc, 1] - py, lpos[kc, 2] - pz
+                        ex, ey, ez = gx - px, gy - py, gz - pz
                         fc = w2 * (ex * ex + ey * ey + ez * ez)
-                    v0 = (fa * inv_int[ka, 0] * _fetch(store, lut, i, ka, 0)
-                          + fb * inv_int[kb, 0] * _fetch(store, lut, i, kb, 0)
-                          + fc * inv_int[kc, 0] * _fetch(store, lut, i, kc, 0))
-                    v1 = (fa * inv_int[ka, 1] * _fetch(store, lut, i, ka, 1)
-                          + fb * inv_int[kb, 1] * _fetch(store, lut, i, kb, 1)
-                          + fc * inv_int[kc, 1] * _fetch(store, lut, i, kc, 1))
-                    v2 = (fa * inv_int[ka, 2] * _fetch(store, lut, i, ka, 2)
-                          + fb * inv_int[kb, 2] * _fetch(store, lut, i, kb, 2)
-                          + fc * inv_int[kc, 2] * _fetch(store, lut, i, kc, 2))
+                    v0 = (fa * ia0 * _fetch(store, lut, i, ka, 0)
+                          + fb * ib0 * _fetch(store, lut, i, kb, 0)
+                          + fc * ic0 * _fetch(store, lut, i, kc, 0))
+                    v1 = (fa * ia1 * _fetch(store, lut, i, ka, 1)
+                          + fb * ib1 * _fetch(store, lut, i, kb, 1)
+                          + fc * ic1 * _fetch(store, lut, i, kc, 1))
+                    v2 = (fa * ia2 * _fetch(store, lut, i, ka, 2)
+                          + fb * ib2 * _fetch(store, lut, i, kb, 2)
+                          + fc * ic2 * _fetch(store, lut, i, kc, 2))
                     if kd == 1:
                         acc[0, r] += v0 * l0
                         acc[1, r] += v1 * l1
