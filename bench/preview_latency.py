@@ -121,6 +121,7 @@ def measure(scene: str, size: int, steps: int, spp: int, dx: float, ldc: int, me
             ref_steps: int) -> dict[str, Any]:
     for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS"):
         os.environ.pop(k, None)
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
         stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
         try:
@@ -145,7 +146,7 @@ def measure(scene: str, size: int, steps: int, spp: int, dx: float, ldc: int, me
         bake_info = {"key": b["key"], "wall_s": b["wall_s"], "parts": len(b["parts"]),
                      "llf": bool(plan.get("bake_llf")), "ldc_resolution": ldc}
     return {"scene": scene, "size": size, "steps": steps, "ref_steps": ref_steps, "spp": spp, "dx_px": dx,
-            "bake": bake_info, "methods": results}
+            "bake": bake_info, "methods": results, "load": (load_before, os.getloadavg()[0])}
 
 
 def report(res: dict[str, Any], argv: str) -> str:
@@ -161,8 +162,9 @@ def report(res: dict[str, Any], argv: str) -> str:
         "`python -m bench.preview_latency` (issue 7; loopback only, bounded).",
         "",
         f"Measured with `python -m bench.preview_latency {argv}` ({date.today().isoformat()}, "
-        f"{os.cpu_count()} cores, {platform.machine()}; headless chromium, the API, Redis and the workers share "
-        "the machine).",
+        f"{os.cpu_count()} cores, {platform.machine()}, 1-minute load average {res['load'][0]:.1f} before and "
+        f"{res['load'][1]:.1f} after: other work shared the cores; headless chromium, the API, Redis and the "
+        "workers share the machine).",
         "",
         f"Orbiting `{res['scene']}` at {res['size']}x{res['size']}, drag steps of {res['dx_px']:g} px "
         f"({res['steps']} per LDC method, {res['ref_steps']} for `reference`, spp {res['spp']}), each waited "
