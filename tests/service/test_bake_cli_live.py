@@ -4,10 +4,6 @@ local stack (embedded Redis, real bake and render workers, uvicorn API)."""
 from __future__ import annotations
 
 import json
-import os
-import socket
-import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,26 +13,7 @@ from typer.testing import CliRunner
 from engine.imageio import read_image
 from service.cli import app
 from service.client import ApiError, Client
-from service.up import start_stack
 from tests.service.test_client_cli_live import SMALL
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def stack() -> Iterator[Any]:
-    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL") if k in os.environ}
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
-        try:
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
 
 
 @pytest.mark.slow

@@ -5,10 +5,7 @@ tiny real dataset: 12 photographs of DiLiGenT's ball cropped to 40x40 (tests/ser
 from __future__ import annotations
 
 import json
-import os
-import socket
 import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,26 +16,7 @@ from typer.testing import CliRunner
 from engine.imageio import read_image
 from service.cli import app
 from service.client import ApiError, Client, read_dataset_dir, with_sha256s
-from service.up import start_stack
 from tests.service.api.test_datasets import diligent_ball, subset
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def stack() -> Iterator[Any]:
-    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL") if k in os.environ}
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
-        try:
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
 
 
 def _dataset_dir(root: Path, k: int = 12, drop: tuple[int, ...] = ()) -> tuple[Path, dict[str, Any]]:
