@@ -294,9 +294,14 @@ def bake_ldc_axis_job(payload: dict[str, Any]) -> dict[str, Any]:
     loaded, caster, plan = _scene_and_caster(store, p.scene_id)
     t_load = time.perf_counter() - t0
     progress.report(0.1, f"casting LDC axis {part.axis}", force=True)
+
+    def on_progress(frac: float, stage: str) -> None:
+        what = "casting" if stage == "cast" else "shading"
+        progress.report(0.1 + 0.8 * frac, f"{what} LDC axis {part.axis}")
+
     ax = bake_ldc_axis(loaded.runtime, caster, part.axis, p.params.ldc_resolution, plan=plan,
                        area_light_samples=p.params.area_light_samples, seed=p.params.seed,
-                       max_layers=p.params.max_layers, max_bytes=BAKE_MAX_PART_BYTES)
+                       max_layers=p.params.max_layers, max_bytes=BAKE_MAX_PART_BYTES, progress=on_progress)
     progress.report(0.9, "writing", force=True)
     timings = {k: v for k, v in ax.timings.items() if isinstance(v, float)}
     counts = {k: v for k, v in ax.timings.items() if not isinstance(v, float)}
