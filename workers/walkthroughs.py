@@ -227,6 +227,8 @@ def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughReques
     if read_manifest(store, wkey) is not None:
         return wkey, True
     store.put_bytes(_record_key(wkey), req.model_dump_json().encode(), "application/json")
+    # listed under its scene, so deleting the scene finds it (workers.scene_outputs)
+    store.put_bytes(f"walkthroughs-by-scene/{req.scene_id}/{wkey}", b"", "application/octet-stream")
     bkey = walkthrough_bake_key(req.scene_id, req.bake)
     deps: list[str] = []
     if read_manifest(store, bkey) is None:

@@ -31,6 +31,7 @@ from service.api.limits import read_multipart
 from service.core.config import Settings
 from workers.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, store_scene
 from workers.queues import ids_in_active_jobs
+from workers.scene_outputs import SceneOutputsInUse, delete_scene_outputs
 from workers.store import NotFound, ObjectStore
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -471,15 +472,23 @@ def read_scene(scene_id: SceneId, store: StoreDep, owner: OwnerDep) -> ScenePubl
     responses=problem_responses(401, 404, 409, 422, 429, 503),
 )
 def remove_scene(scene_id: SceneId, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> Response:
-    """Delete a scene (409 while a queued or running job uses it)."""
+    """Delete a scene (409 while a queued or running job uses it). The last owner's delete also
+    removes the scene's LDC bakes, walkthroughs and walkthrough bakes."""
     from fastapi import HTTPException
 
     if not scene_visible(store, scene_id, owner) or not store.exists(f"scenes/{scene_id}.json"):
         raise NotFound(scene_id)
-    if scene_id in ids_in_active_jobs(redis, ("scene_id", "scene")):
+    owners = set(scene_owners(store, scene_id))
+    last = owner is None or owners <= {owner}
+    if last:  # checks every job of the scene and its outputs first; nothing changes on 409
+        try:
+            delete_scene_outputs(redis, store, scene_id)
+        except SceneOutputsInUse as exc:
+            raise HTTPException(409, str(exc)) from None
+    elif scene_id in ids_in_active_jobs(redis, ("scene_id", "scene")):
         raise HTTPException(409, f"scene {scene_id} is used by a queued or running job; cancel it or wait")
     if owner is None:
-        for who in scene_owners(store, scene_id):  # auth off: one namespace, delete for everybody
+        for who in owners:  # auth off: one namespace, delete for everybody
             store.delete(f"scene-owners/{scene_id}/{who}")
     else:
         remove_scene_owner(store, scene_id, owner)
