@@ -721,15 +721,13 @@ def datasets_generate(
             _fail("--params: must be a JSON object")
     if spp is not None:
         render_params["spp"] = spp
-    camera: dict[str, Any] | None = None
-    if width is not None or height is not None:
-        if _is_id(scene):
-            _fail("--width/--height: give the scene as a file or sample name (its camera is resized)")
-        doc, _ = _scene_doc(scene)
-        camera = dict(doc["camera"])
-        camera.update({k: v for k, v in {"width": width, "height": height}.items() if v is not None})
     scene_id = _scene_id_of(scene, api_url, api_key)
     with _client(api_url, api_key) as c:
+        camera: dict[str, Any] | None = None
+        if width is not None or height is not None:  # the scene's own camera, resized
+            doc = _call(lambda: c.get_scene_document(scene_id)) if _is_id(scene) else _scene_doc(scene)[0]
+            camera = dict(doc["camera"])
+            camera.update({k: v for k, v in {"width": width, "height": height}.items() if v is not None})
         g = _call(lambda: c.generate_dataset(scene_id, placement=placement or None,
                                              params=render_params or None, camera=camera,
                                              max_lights=max_lights, wait=2.0 if wait else 0.0))

@@ -126,6 +126,11 @@ class Client:
     def get_scene(self, scene_id: str) -> ScenePublic:
         return ScenePublic.model_validate(self._request("GET", f"/v1/scenes/{scene_id}").json())
 
+    def get_scene_document(self, scene_id: str) -> dict[str, Any]:
+        """The stored scene JSON (``GET /v1/scenes/{id}/document``)."""
+        doc: dict[str, Any] = self._request("GET", f"/v1/scenes/{scene_id}/document").json()
+        return doc
+
     def list_scenes(self) -> SceneList:
         return SceneList.model_validate(self._request("GET", "/v1/scenes").json())
 

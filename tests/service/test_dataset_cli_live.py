@@ -179,6 +179,15 @@ def test_generate_bake_composite_from_the_command_line(stack: Any, tmp_path: Pat
     res = runner.invoke(app, ["datasets", "generate", str(tmp_path / "object.json"), "--region", "hemisphere",
                               "--spacing", "30", "--center", "0,0.5", *api])
     assert res.exit_code == 2 and "--center" in res.output
+    with Client(stack.api_url) as c:  # a stored scene given by id, its camera resized (GET .../document)
+        sid = c.create_scene(floor).id
+    res = runner.invoke(app, ["datasets", "generate", sid, "--region", "hemisphere", "--spacing", "45",
+                              "--center", "0,0.5,0", "--radius", "3", "--params", params, "--width", "12",
+                              "--height", "8", *api])
+    assert res.exit_code == 0, res.output
+    with Client(stack.api_url) as c:
+        small = c.get_dataset(res.stdout.strip().splitlines()[-1])
+        assert (small.width, small.height) == (12, 8)
     with Client(stack.api_url) as c:
         obj_ds, bg_ds = c.get_dataset(obj_id), c.get_dataset(bg_id)
         assert obj_ds.source["kind"] == "generated" and obj_ds.n_images == bg_ds.n_images > 10

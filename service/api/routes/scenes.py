@@ -136,7 +136,8 @@ def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: s
     public, new_record = store_scene(store, scene, meshes, owner)
     add_scene_owner(store, public.id, owner)  # after the record: a visible scene always exists
     created = new_record if owner is None else (new_record or not had_marker)
-    return public.model_copy(update={"links": {"self": f"/v1/scenes/{public.id}"}}), created
+    return public.model_copy(update={"links": {"self": f"/v1/scenes/{public.id}",
+                                               "document": f"/v1/scenes/{public.id}/document"}}), created
 
 
 # ------------------------------------------------------------------------------ mesh pre-checks
@@ -454,7 +455,8 @@ def list_all_scenes(
     """List the scenes this API key stored, oldest first."""
     visible = visible_scene_ids(store, owner)
     scenes = [s for s in list_scenes(store) if visible is None or s.id in visible]
-    page = [s.model_copy(update={"links": {"self": f"/v1/scenes/{s.id}"}}) for s in scenes[offset:offset + limit]]
+    page = [s.model_copy(update={"links": {"self": f"/v1/scenes/{s.id}", "document": f"/v1/scenes/{s.id}/document"}})
+            for s in scenes[offset:offset + limit]]
     return SceneList(items=page, total=len(scenes))
 
 
@@ -464,7 +466,20 @@ def read_scene(scene_id: SceneId, store: StoreDep, owner: OwnerDep) -> ScenePubl
     if not scene_visible(store, scene_id, owner):
         raise NotFound(scene_id)
     _, _, public = get_scene(store, scene_id)
-    return public.model_copy(update={"links": {"self": f"/v1/scenes/{public.id}"}})
+    return public.model_copy(update={"links": {"self": f"/v1/scenes/{public.id}",
+                                               "document": f"/v1/scenes/{public.id}/document"}})
+
+
+@router.get("/{scene_id}/document", response_model=Scene, response_model_exclude_none=True,
+            responses=problem_responses(401, 404, 422, 429, 503))
+def read_scene_document(scene_id: SceneId, store: StoreDep, owner: OwnerDep) -> Scene:
+    """The scene itself (the JSON document as stored, mesh files referenced by path): what a client
+    needs to derive cameras or requests from a stored scene. Posting it again with the same mesh
+    files gives the same id."""
+    if not scene_visible(store, scene_id, owner):
+        raise NotFound(scene_id)
+    scene, _, _ = get_scene(store, scene_id)
+    return scene
 
 
 @router.delete(

@@ -77,6 +77,22 @@ def test_multipart_teapot(client: TestClient, store_dir: Path) -> None:
     assert again.status_code == 200 and again.json()["id"] == body["id"]
 
 
+def test_scene_document_round_trips_to_the_same_id(client: TestClient) -> None:
+    sid = client.post("/v1/scenes", json={"scene": small_scene()}).json()["id"]
+    got = client.get(f"/v1/scenes/{sid}")
+    assert got.json()["links"]["document"] == f"/v1/scenes/{sid}/document"
+    doc = client.get(f"/v1/scenes/{sid}/document")
+    assert doc.status_code == 200, doc.text
+    assert doc.json()["camera"]["width"] == small_scene()["camera"]["width"]
+    assert client.post("/v1/scenes", json={"scene": doc.json()}).json()["id"] == sid
+    # with mesh files: the document names them by path, the same files give the same id again
+    data = TEAPOT_PLY.read_bytes()
+    tid = client.post("/v1/scenes", files=_multipart(teapot_scene(), {"meshes/teapot.ply": data})).json()["id"]
+    tdoc = client.get(f"/v1/scenes/{tid}/document").json()
+    assert client.post("/v1/scenes", files=_multipart(tdoc, {"meshes/teapot.ply": data})).json()["id"] == tid
+    assert client.get(f"/v1/scenes/{'0' * 64}/document").status_code == 404
+
+
 def test_multipart_missing_and_extra_parts_are_named(client: TestClient, store_dir: Path) -> None:
     before = _all_files(store_dir)
     r = client.post("/v1/scenes", files=_multipart(teapot_scene(), {"meshes/other.ply": b"ply\n"}))
