@@ -14,7 +14,7 @@ import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, Field, StringConstraints, WithJsonSchema
+from pydantic import AfterValidator, Field, StringConstraints, ValidationInfo, WithJsonSchema, field_validator
 from pydantic_core import PydanticCustomError
 
 from api_schemas.common import FrozenModel
@@ -147,6 +147,31 @@ class BakeParams(FrozenModel):
 
 MissingBake = Literal["fail", "bake"]
 
+RenderOutput = Literal["preview", "radiance", "depth", "normal", "object_id", "material_id", "provenance"]
+"""One image of a render's artifact: ``preview`` (preview.png, 8-bit sRGB), ``radiance``
+(radiance.exr, linear float), the AOVs ``depth``, ``normal``, ``object_id``, ``material_id``
+(``<name>.exr``) and, for the LDC methods, ``provenance`` (provenance.png)."""
+
+RENDER_OUTPUTS: tuple[str, ...] = ("preview", "radiance", "depth", "normal", "object_id", "material_id",
+                                   "provenance")
+"""Every :data:`RenderOutput`, in the canonical order (the order of a normalised ``outputs`` list)."""
+
+
+def _check_outputs(value: list[str] | None) -> list[str] | None:
+    if value is None:
+        return None
+    if not value:
+        raise PydanticCustomError(
+            "render_outputs_empty",
+            "outputs must name at least one of {allowed} (or be left out for all of them)",
+            {"allowed": ", ".join(RENDER_OUTPUTS)},
+        )
+    present = set(value)
+    return [name for name in RENDER_OUTPUTS if name in present]  # canonical: same set, same artifact key
+
+
+RenderOutputs = Annotated[list[RenderOutput] | None, AfterValidator(_check_outputs)]
+
 
 class RenderRequest(FrozenModel):
     """Body of ``POST /v1/renders``: a view of a stored scene by a method."""
@@ -163,6 +188,25 @@ class RenderRequest(FrozenModel):
     missing_bake: MissingBake = "fail"
     """When the bake does not exist yet: ``fail`` answers 409 naming the bake to request;
     ``bake`` requests it and queues the render to run when it is done (the answer says so)."""
+    outputs: RenderOutputs = None
+    """Which images the artifact holds; None (the default): all of them (``provenance`` only for the
+    LDC methods). An interactive client asks for what it shows, e.g. ``["preview"]`` or
+    ``["preview", "radiance"]``: the job encodes and stores only those (a 512x512 LDC view saves
+    most of its encode time). The list is normalised (order, duplicates) and is part of the
+    artifact key; a request with a subset is answered from the full artifact when that exists."""
+
+    @field_validator("outputs")
+    @classmethod
+    def _outputs_fit_method(cls, value: list[str] | None, info: ValidationInfo) -> list[str] | None:
+        method = info.data.get("method")
+        if value is not None and "provenance" in value and method is not None and not method_needs_bake(method):
+            raise PydanticCustomError(
+                "render_outputs_method",
+                "'provenance' exists for the LDC methods only (method is '{method}'); allowed for "
+                "'reference': {allowed}",
+                {"method": method, "allowed": ", ".join(n for n in RENDER_OUTPUTS if n != "provenance")},
+            )
+        return value
 
 
 class RenderPublic(FrozenModel):

@@ -217,6 +217,8 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
     ``missing_bake`` (what to do when the bake is missing does not change the image); the bake
     params for the methods that read a bake, the reference params for ``reference`` (JSON types)."""
     params = req.model_dump(mode="json", exclude={"scene_id", "missing_bake"})
+    if params.get("outputs") is None:  # every image (the default): the key of a full artifact stays as it was
+        params.pop("outputs", None)
     if method_needs_bake(req.method):
         params.pop("params")  # the LDC methods shade with the bake's settings
     else:

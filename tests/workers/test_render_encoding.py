@@ -17,7 +17,7 @@ import pytest
 from engine.errors import NonFiniteOutputError
 from engine.imageio import read_image, tonemap_srgb
 from workers import artifacts as art
-from workers.jobs.render import EXR, PNG, PROVENANCE_CODES, encode_render_blobs
+from workers.jobs.render import EXR, OUTPUT_BLOBS, PNG, PROVENANCE_CODES, encode_render_blobs
 from workers.store import LocalStore, NotFound, StoreUnavailable
 
 
@@ -96,6 +96,33 @@ def test_encoding_is_deterministic_and_reference_renders_have_no_provenance() ->
     no_prov = {k: v for k, v in out.items() if k != "provenance"}
     b = encode_render_blobs(no_prov, meta)
     assert "provenance.png" not in b and {k: v for k, v in a.items() if k != "provenance.png"} == b
+
+
+@pytest.mark.parametrize("outputs", [["preview"], ["radiance"], ["preview", "radiance"], ["provenance", "depth"],
+                                     ["material_id", "object_id", "normal"]])
+def test_an_outputs_subset_encodes_exactly_those_blobs_with_the_same_bytes(outputs: list[str]) -> None:
+    out = _render_like(seed=5)
+    meta = {"scene_id": "d" * 64, "method": "ldc+ibrt:1"}
+    full = encode_render_blobs(out, meta)
+    lean = encode_render_blobs(out, meta, outputs)
+    assert set(lean) == {OUTPUT_BLOBS[o] for o in outputs}
+    assert lean == {name: full[name] for name in lean}  # same bytes and content types as in a full artifact
+    assert encode_render_blobs(out, meta, list(OUTPUT_BLOBS)) == full
+
+
+def test_bad_outputs_are_refused_before_encoding() -> None:
+    out = _render_like(seed=6)
+    with pytest.raises(ValueError, match="non-empty subset"):
+        encode_render_blobs(out, {}, [])
+    with pytest.raises(ValueError, match="'aovs'"):
+        encode_render_blobs(out, {}, ["preview", "aovs"])
+    no_prov = {k: v for k, v in out.items() if k != "provenance"}
+    with pytest.raises(ValueError, match="only the LDC methods"):
+        encode_render_blobs(no_prov, {}, ["preview", "provenance"])
+    # the schema's names and the job's names are the same set
+    from api_schemas.service import RENDER_OUTPUTS
+
+    assert set(RENDER_OUTPUTS) == set(OUTPUT_BLOBS)
 
 
 def test_a_non_finite_render_encodes_nothing() -> None:

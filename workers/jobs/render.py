@@ -16,7 +16,9 @@ scene cache below stays warm across jobs):
    ``material_id.exr`` (engine.imageio writes 1/3/4-channel images only, so each AOV is its own
    file; ids are stored as float32, exact below 2**24, -1 where nothing is hit), plus
    ``provenance.png`` for the LDC methods, each with ``ibr:`` metadata (camera, scene id and hash,
-   render parameters, engine version); then write the blobs concurrently and the manifest LAST via
+   render parameters, engine version) -- only those the request's ``outputs`` names when it names
+   any (an interactive client asks for the preview alone; the subset is part of the artifact key);
+   then write the blobs concurrently and the manifest LAST via
    ``write_artifact(..., max_workers=STORE_WRITERS)``.
 
 A render that produces NaN/Inf raises ``engine.errors.NonFiniteOutputError`` before anything is
@@ -36,7 +38,7 @@ import json
 import os
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -65,6 +67,7 @@ __all__ = [
     "EXR_COMPRESSION",
     "JobCanceled",
     "NonFiniteOutputError",
+    "OUTPUT_BLOBS",
     "ProgressReporter",
     "SceneNotFound",
     "encode_render_blobs",
@@ -183,18 +186,33 @@ def _json_safe(value: Any) -> Any:
     return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
-def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any]) -> dict[str, tuple[bytes, str]]:
+OUTPUT_BLOBS = {"preview": "preview.png", "radiance": "radiance.exr", "depth": "depth.exr", "normal": "normal.exr",
+                "object_id": "object_id.exr", "material_id": "material_id.exr", "provenance": PROVENANCE_BLOB}
+"""``RenderRequest.outputs`` name -> the artifact blob it stands for."""
+
+
+def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any],
+                        outputs: Collection[str] | None = None) -> dict[str, tuple[bytes, str]]:
     """The artifact's image blobs ``name -> (bytes, content type)`` of one render.
 
     ``images``: ``radiance`` (h, w, 3) float32, ``depth`` (h, w), ``normal`` (h, w, 3), ``object_id``
     and ``material_id`` (h, w) int, and for the LDC methods ``provenance`` (h, w) uint8 codes.
     ``meta`` goes into every image's ``ibr:`` metadata (plus ``exposure_stops`` for the preview and
-    ``aov`` for the AOVs). Encoded concurrently on :data:`ENCODE_THREADS` threads, the preview
-    first; the EXRs hold the render's float32 values bit for bit, the preview is
-    ``rint(tonemap_srgb(radiance) * 255)`` exactly. NaN/Inf raise ``NonFiniteOutputError``.
+    ``aov`` for the AOVs). ``outputs`` (``RenderRequest.outputs`` names, see :data:`OUTPUT_BLOBS`):
+    encode only these; None: all of them (``provenance`` when ``images`` has it). Encoded
+    concurrently on :data:`ENCODE_THREADS` threads, the preview first; the EXRs hold the render's
+    float32 values bit for bit, the preview is ``rint(tonemap_srgb(radiance) * 255)`` exactly.
+    NaN/Inf raise ``NonFiniteOutputError``.
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    if outputs is not None:
+        unknown = sorted(set(outputs) - set(OUTPUT_BLOBS))
+        if unknown or not outputs:
+            raise ValueError(f"outputs {unknown or '[]'}: pick a non-empty subset of {sorted(OUTPUT_BLOBS)}")
+        if "provenance" in outputs and images.get("provenance") is None:
+            raise ValueError("outputs asks for 'provenance', which only the LDC methods produce")
+    want = set(OUTPUT_BLOBS) if outputs is None else set(outputs)
     work: list[tuple[str, str, Any, dict[str, Any], str]] = [
         ("preview.png", PNG, images["radiance"], {**meta, "exposure_stops": 0.0}, PNG_COMPRESSION),
         ("radiance.exr", EXR, images["radiance"], meta, EXR_COMPRESSION["radiance.exr"]),
@@ -204,16 +222,22 @@ def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any]) -> dict
         ("material_id.exr", EXR, images["material_id"], {**meta, "aov": "material_id"},
          EXR_COMPRESSION["material_id.exr"]),
     ]
+    blob_names = {OUTPUT_BLOBS[o] for o in want}
+    work = [w for w in work if w[0] in blob_names]
+    provenance = images.get("provenance") if PROVENANCE_BLOB in blob_names else None
 
     def encode(name: str, pixels: Any, metadata: dict[str, Any], compression: str) -> bytes:
         if name.endswith("_id.exr"):
             pixels = np.asarray(pixels).astype(np.float32)  # exact below 2**24
         return encode_image(name, pixels, metadata=metadata, compression=compression)
 
+    if len(work) + (provenance is not None) == 1 and work:  # one image: no pool
+        name, ctype, px, md, comp = work[0]
+        return {name: (encode(name, px, md, comp), ctype)}
     with ThreadPoolExecutor(ENCODE_THREADS, thread_name_prefix="ibr-encode") as pool:
         futures = {name: (pool.submit(encode, name, px, md, comp), ctype) for name, ctype, px, md, comp in work}
-        if images.get("provenance") is not None:
-            futures[PROVENANCE_BLOB] = (pool.submit(_provenance_png, images["provenance"]), PNG)
+        if provenance is not None:
+            futures[PROVENANCE_BLOB] = (pool.submit(_provenance_png, provenance), PNG)
         return {name: (f.result(), ctype) for name, (f, ctype) in futures.items()}
 
 
@@ -280,7 +304,7 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
         "artifact_key": key,
     }
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
-                                 "object_id": out.object_id, "material_id": out.material_id}, meta)
+                                 "object_id": out.object_id, "material_id": out.material_id}, meta, req.outputs)
     progress.check_canceled()  # last chance before the commit
     timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
@@ -384,7 +408,7 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                             "artifact_key": key}
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
                                  "object_id": out.object_id, "material_id": out.material_id,
-                                 "provenance": out.provenance}, meta)
+                                 "provenance": out.provenance}, meta, req.outputs)
     progress.check_canceled()
     prov = np.bincount(np.asarray(out.provenance, dtype=np.int64).ravel(), minlength=5)
     timings = {**out.timings, "load_bake": t_load, "encode": time.perf_counter() - t0}

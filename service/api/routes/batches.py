@@ -12,6 +12,7 @@ from api_schemas.errors import FieldError
 from api_schemas.service import BatchPublic, BatchRequest, JobId
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, add_scene_owner, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
+from service.api.routes.renders import BAKE_MISSING_409
 from service.api.routes.scenes import SAMPLE_SCENE, _limit_errors
 from service.core.config import Settings
 from workers.artifacts import mesh_paths, scene_id_for, store_scene
@@ -67,7 +68,7 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, owner: str | 
     "",
     response_model=BatchPublic,
     status_code=202,
-    responses={**problem_responses(400, 401, 413, 422, 429, 503)},
+    responses={**problem_responses(400, 401, 413, 422, 429, 503), **BAKE_MISSING_409},
 )
 async def create_batch(
     batch: Annotated[BatchRequest, Body(openapi_examples={"default": {"summary": "One scene, no renders yet",

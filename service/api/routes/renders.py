@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import time
+import weakref
 from typing import Annotated, Any, Literal
 
+import anyio
+import anyio.to_thread
 from fastapi import APIRouter, Body, Query, Response
 from fastapi.concurrency import run_in_threadpool
+from redis import Redis
 from rq.job import Job
 
 from api_schemas.errors import FieldError
@@ -15,20 +19,23 @@ from api_schemas.service import ArtifactManifest, BakePublic, JobPublic, RenderP
 from service.api.deps import MetricsDep, OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from workers.artifacts import get_scene, read_manifest
-from workers.queues import enqueue_render, fetch_job, job_public
+from workers.queues import enqueue_render, fetch_job, job_public, render_artifact_key
 from workers.store import NotFound
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
 
 MAX_WAIT_S = 60.0
-# Waiting for a job: one HGET of its status every 5..20 ms for the first 2 s (interactive LDC
-# views finish in a few hundred ms; a coarse back-off answered them up to 170 ms late), then
-# every 250 ms.
-_POLL_FIRST_S = 0.005
-_POLL_FINE_MAX_S = 0.02
-_POLL_FINE_S = 2.0
-_POLL_SLOW_S = 0.25
+# Waiting for a job: block on RQ's result stream of the job (``rq:results:<job id>``; the worker
+# writes the result and the job's final status in one MULTI/EXEC) with XREAD BLOCK, in slices of
+# at most _WAIT_SLICE_S, re-reading the job's status after each slice. The answer leaves within
+# about a millisecond of the job's end; a job that ends without a result (canceled, stopped, its
+# worker died and maintenance failed it, deleted) is noticed by the status read at the end of the
+# slice. Blocking reads run on their own thread limiter (_WAIT_THREADS per event loop), so waiting
+# requests never take the threads other endpoints run on; a slice frees its thread every 250 ms.
+_WAIT_SLICE_S = 0.25
+_WAIT_THREADS = 32
 _ENDED_STATUSES = {b"finished", b"failed", b"canceled", b"stopped"}
+_limiters: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, anyio.CapacityLimiter] = weakref.WeakKeyDictionary()
 
 _STATUS: dict[str, Literal["queued", "running", "finished", "failed"]] = {
     "queued": "queued", "started": "running", "finished": "finished", "failed": "failed", "canceled": "failed",
@@ -38,6 +45,16 @@ RENDER_EXAMPLE: dict[str, Any] = {
     "scene_id": "0" * 64,
     "params": {"spp": 4, "max_depth": 4, "seed": 0},
 }
+
+
+BAKE_MISSING_409: dict[int | str, dict[str, Any]] = {409: {
+    **problem_responses(409)[409],
+    "description": "Bake missing: an LDC method (`ldc`, `ldc+llf`, `ldc+ibrt:k`) asked for a bake of the scene that "
+                   "does not exist yet and `missing_bake` is `fail`. The problem (type "
+                   "`urn:ibr:problem:bake-missing`) names the bake to request with POST /v1/scenes/{scene_id}/bakes "
+                   "(or send `missing_bake: bake`).",
+}}
+"""OpenAPI entry of the 409 of the render endpoints (``POST /v1/renders``, ``POST /v1/batches``)."""
 
 
 def artifact_links(key: str) -> dict[str, str]:
@@ -78,7 +95,8 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels
         200: {"description": "The artifact: cached, or rendered within `wait` seconds (or the job failed)"},
         202: {"model": RenderPublic, "description": "Queued or running; poll the job named by Location",
               "headers": {"Location": {"schema": {"type": "string"}, "description": "The job's URL"}}},
-        **problem_responses(400, 401, 404, 409, 413, 422, 429, 503),
+        **problem_responses(400, 401, 404, 413, 422, 429, 503),
+        **BAKE_MISSING_409,
     },
 )
 async def request_render(
@@ -94,6 +112,12 @@ async def request_render(
 ) -> RenderPublic:
     """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job."""
     await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels)
+    if req.outputs is not None:  # a subset of the images: the full artifact, when it exists, holds them
+        full_key = render_artifact_key(req.model_copy(update={"outputs": None}))
+        manifest = await run_in_threadpool(read_manifest, store, full_key)
+        if manifest is not None:
+            metrics.render_cache.labels("hit").inc()
+            return _answer(full_key, None, manifest, cached=True)
     key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)  # BakeMissing: 409
     if job is None:
         manifest = await run_in_threadpool(read_manifest, store, key)
@@ -133,20 +157,53 @@ def _bake_of(req: RenderRequest, job: Job, redis: Any, store: Any) -> BakePublic
     return None if pub.state == "finished" else pub
 
 
+def _wait_limiter() -> anyio.CapacityLimiter:
+    loop = asyncio.get_running_loop()
+    limiter = _limiters.get(loop)
+    if limiter is None:
+        limiter = _limiters[loop] = anyio.CapacityLimiter(_WAIT_THREADS)
+    return limiter
+
+
+def _result_stream(job_id: str) -> str:
+    from rq.results import Result
+
+    return str(Result.get_key(job_id))  # type: ignore[no-untyped-call]
+
+
+def _status_and_last_result(redis: Redis, job: Job) -> tuple[Any, Any]:
+    """The job's status and the id of the newest entry of its result stream (``0-0``: none), read
+    atomically: a result written after this read has a larger id."""
+    with redis.pipeline(transaction=True) as p:
+        p.hget(job.key, "status")
+        p.xrevrange(_result_stream(job.id), "+", "-", count=1)
+        status, newest = p.execute()
+    return status, newest[0][0] if newest else b"0-0"
+
+
+def _block_for_result(redis: Redis, job: Job, last_id: Any, timeout_s: float) -> tuple[Any, Any]:
+    """Block up to ``timeout_s`` for a result newer than ``last_id``; then the job's status and the
+    newest result id seen."""
+    answer: Any = redis.xread({_result_stream(job.id): last_id}, block=max(1, int(timeout_s * 1000)))
+    if answer and answer[0][1]:
+        last_id = answer[0][1][-1][0]
+    return redis.hget(job.key, "status"), last_id
+
+
 async def _wait_for(job: Job, wait: float) -> JobPublic:
     """Wait until the job ends or ``wait`` seconds pass; its last public state."""
     public = await run_in_threadpool(job_public, job)
     if public.state not in ("queued", "started") or wait <= 0:
         return public
-    started = time.monotonic()
-    deadline = started + wait
-    delay = _POLL_FIRST_S
-    while time.monotonic() < deadline:
-        await asyncio.sleep(min(delay, max(0.0, deadline - time.monotonic())))
-        elapsed = time.monotonic() - started
-        delay = min(_POLL_FINE_MAX_S if elapsed < _POLL_FINE_S else _POLL_SLOW_S, delay * 1.5)
-        status = await run_in_threadpool(job.connection.hget, job.key, "status")
-        if status is None or status in _ENDED_STATUSES:  # gone, or ended
+    deadline = time.monotonic() + wait
+    redis = job.connection
+    status, last_id = await run_in_threadpool(_status_and_last_result, redis, job)
+    limiter = _wait_limiter()
+    while status is not None and status not in _ENDED_STATUSES:  # None: the job is gone
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
             break
+        status, last_id = await anyio.to_thread.run_sync(_block_for_result, redis, job, last_id,
+                                                         min(_WAIT_SLICE_S, remaining), limiter=limiter)
     fresh = await run_in_threadpool(fetch_job, job.connection, job.id)
     return await run_in_threadpool(job_public, fresh) if fresh is not None else public
