@@ -57,6 +57,10 @@ class ReferenceParams:
     """Reference renderer settings.
 
     spp: antialiasing samples per pixel (N), stratified, box filter.
+    pixel_jitter: jitter each sample inside its stratum (True: the box-filtered image); False
+        puts it at the stratum centre (spp=1: the pixel centre, the image model of one
+        point sample per pixel that the image-based methods render; used as their ground
+        truth in bench/ldc_equal_error.py).
     max_depth: mirror / glossy recursion depth (0 = no reflections).
     glossy_samples: M lobe samples per glossy hit (only the first glossy bounce
         of a chain branches; deeper glossy bounces take one sample).
@@ -81,6 +85,7 @@ class ReferenceParams:
     seed: int = 0
     chunk_pixels: int = 16384
     pipelines: int = 2
+    pixel_jitter: bool = True
 
     def __post_init__(self) -> None:
         checks = {
@@ -92,6 +97,8 @@ class ReferenceParams:
             v = getattr(self, name)
             if not isinstance(v, int) or not (lo <= v <= hi):
                 raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+        if not isinstance(self.pixel_jitter, bool):
+            raise InvalidInputError(f"pixel_jitter must be true or false, got {self.pixel_jitter!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -487,8 +494,9 @@ def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
 
 @_dual
 def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, stream, center,
-                  o_out, d_out, d32_out, pix_out):
-    """spp jittered camera rays per pixel on a gx x gy stratified grid (box filter).
+                  o_out, d_out, d32_out, pix_out, jitter=True):
+    """spp jittered camera rays per pixel on a gx x gy stratified grid (box filter); ``jitter``
+    False: at the stratum centres.
     The jitter of sample j of pixel q is uniform(stream, q * spp + j, 0..1): independent of chunking.
     Perspective: sx_scale = tan(fov/2) * aspect, sy_scale = tan(fov/2); orthographic: half extents."""
     for a in nb.prange(ids.shape[0]):
@@ -498,8 +506,10 @@ def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, s
         for j in range(spp):
             r = a * spp + j
             k = q * spp + j
-            fx = (qx + ((j % gx) + uniform(stream, k, 0)) / gx) / width
-            fy = (qy + ((j // gx) + uniform(stream, k, 1)) / gy) / height
+            jx = uniform(stream, k, 0) if jitter else 0.5
+            jy = uniform(stream, k, 1) if jitter else 0.5
+            fx = (qx + ((j % gx) + jx) / gx) / width
+            fy = (qy + ((j // gx) + jy) / gy) / height
             sx = (2.0 * fx - 1.0) * sx_scale
             sy = (1.0 - 2.0 * fy) * sy_scale
             if ortho:
@@ -716,7 +726,8 @@ class ReferenceRenderer:
         gy = -(-params.spp // gx)
         _camera_batch.pick(serial)(ids, params.spp, gx, gy, camera.width, camera.height,
                                    camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
-                                   sxs, sys_, stream_key(params.seed, 0), sc.center, o32, d, d32, pix)
+                                   sxs, sys_, stream_key(params.seed, 0), sc.center, o32, d, d32, pix,
+                                   bool(params.pixel_jitter))
         weight = np.ones((n, 3))
         kind = np.zeros(n, np.int8)
         depth = np.zeros(n, np.int32)

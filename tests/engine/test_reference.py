@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from engine.errors import NonFiniteOutputError
+from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
@@ -43,6 +43,32 @@ def test_point_light_inverse_square_and_cosine():
     L = I / math.pi * h / d2 ** 1.5
     want = L.reshape(64, 8, 64, 8).mean(axis=(1, 3))
     np.testing.assert_allclose(out.radiance[..., 0], want, rtol=5e-3)
+
+
+def test_unjittered_samples_are_stratum_centres():
+    """pixel_jitter=False: one sample is the pixel centre exactly (the point-sampled image the
+    image-based methods make); 4 spp are the centres of the 2 x 2 strata; the seed plays no part."""
+    I, h = 7.0, 0.8
+    cam = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 16, 16, ortho_height=2.0)
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))],
+               [dict(type="point", position=(0.0, h, 0.0), intensity=(I, I, I))])
+
+    def analytic(sub):
+        px = (np.arange(16 * sub) + 0.5) / (16 * sub) * 2.0 - 1.0
+        X, Z = np.meshgrid(px, px)
+        L = I / math.pi * h / (X ** 2 + Z ** 2 + h ** 2) ** 1.5
+        return L.reshape(16, sub, 16, sub).mean(axis=(1, 3))
+
+    one = render_reference(sc, cam, ReferenceParams(spp=1, pixel_jitter=False, seed=1))
+    np.testing.assert_allclose(one.radiance[..., 0], analytic(1), rtol=5e-5)  # float32 ray origins
+    assert np.array_equal(one.radiance, render_reference(sc, cam, ReferenceParams(spp=1, pixel_jitter=False,
+                                                                                    seed=9)).radiance)
+    four = render_reference(sc, cam, ReferenceParams(spp=4, pixel_jitter=False))
+    np.testing.assert_allclose(four.radiance[..., 0], analytic(2), rtol=5e-5)
+    jittered = render_reference(sc, cam, ReferenceParams(spp=1))
+    assert not np.allclose(jittered.radiance, one.radiance, rtol=1e-5)
+    with pytest.raises(InvalidInputError, match="pixel_jitter"):
+        ReferenceParams(pixel_jitter="no")
 
 
 def _corner_factor(a, b, c):
