@@ -1,31 +1,35 @@
 """Render latency through the API with a warm render worker (issue 4, "Interactive use": a 512x512 view
-of a baked scene in under 250 ms end to end).
+of a baked scene in under 250 ms end to end, p50/p99 over 50 random views in docs/performance.md).
 
 Starts the real stack on this machine (embedded Redis, one bake and one render worker, the API via uvicorn;
-``service.up.start_stack``) in a temporary data directory with a local store, uploads the sample scenes,
-bakes ``--scene`` through the API and waits for the bake, then per method of ``--methods`` sends
-``--warmup`` + ``--n`` render requests (``--ref-n`` for ``reference``), each with a NEW camera (the scene's
-camera orbited by a random angle, so no request is an artifact-cache hit):
+``service.up.start_stack``) in a temporary data directory with a local store and uploads the sample scenes.
+Then per scene of ``--scenes``: bake it through the API (LDC ``--ldc``) and wait for the bake; per method
+of ``--methods`` send ``--warmup`` + ``--views`` render requests, each a NEW random camera (the scene's
+camera orbited by a random azimuth and elevation, so no request is an artifact-cache hit), once per
+``--outputs`` variant (``all``: no ``outputs`` field, every image; ``preview``: ``outputs: ["preview"]``,
+what an interactive client shows; ``preview+radiance``), each request with its own camera (a subset
+request for a view already rendered in full would be answered from that artifact), the variants' order
+alternating from view to view so neither is always second:
 
 - ``request``: ``POST /v1/renders?wait=30`` until its 200 answer (job queued, run by the warm render
-  worker, artifact committed, the API's server-side polling noticed it);
-- ``+ preview``: that plus ``GET image.png`` (the preview an interactive client shows).
+  worker, artifact committed, the API's wait noticed the job's end);
+- ``+ preview``: that plus ``GET image.png`` (the end-to-end time an interactive client sees).
 
 Besides the client-side times it reports the job's own numbers from the artifact's result (render stages,
 ``encode``, ``store``, ``job_total``) and RQ's time stamps (queue wait, and the time from the job's end to
-the API's answer, i.e. the server-side poll delay), so each request's time splits into its parts.
+the API's answer), so each request's time splits into its parts.
 
-Then ``--encode-runs`` times of the encode + store path in THIS process on real data (the last LDC
-render's images read back from the store): the previous implementation (``engine.imageio.write_image``
-per image into a disk temp dir, EXR ZIP, float64 sRGB, libpng defaults; sequential blob writes) against
-the job's current one (``workers.jobs.render.encode_render_blobs`` + ``write_artifact(max_workers=4)``),
-so their ratio comes from one run on the same data.
+Then ``--encode-runs`` times, in THIS process, on the last ``all`` render of the last scene (its images read
+back from the store): each blob encoded alone (EXR ZIP and uncompressed, PNG fast and libpng's default),
+the job's encode of every blob vs only the preview vs preview + radiance, and the store commit
+(``write_artifact``) of each set -- ratios from one run on the same data.
 
-    python -m bench.render_latency [--scene teapot_glossy] [--n 20] [--warmup 3] [--ref-n 3] [--ref-spp 1]
-                                   [--methods ldc,ldc+llf,ldc+ibrt:1,reference] [--ldc 256] [--label after]
+    python -m bench.render_latency [--scenes mirror_box,teapot_glossy] [--views 50] [--warmup 3] [--size 512]
+                                   [--methods ldc,ldc+llf,ldc+ibrt:1] [--outputs all,preview] [--ldc 256]
+                                   [--label session3]
 
-Saves the run under ``--label`` in ``docs/data/render_latency.json`` and rewrites the
-``render_latency`` block of docs/performance.md from every label stored there (``--no-doc``: print only).
+Saves the run under ``--label`` in ``docs/data/render_latency.json`` and rewrites the ``render_latency``
+block of docs/performance.md from every label stored there (``--no-doc``: print only).
 """
 
 from __future__ import annotations
@@ -53,6 +57,10 @@ ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "performance.md"
 DATA = ROOT / "docs" / "data" / "render_latency.json"
 STAGES = ("warp", "holes", "fill", "surfaces", "highlights", "gather", "ibrt")
+GOAL_MS = 250.0
+VARIANTS: dict[str, list[str] | None] = {"all": None, "preview": ["preview"],
+                                         "preview+radiance": ["preview", "radiance"]}
+"""``--outputs`` variant -> the request's ``outputs`` (None: the field left out, every image)."""
 
 
 def _free_port() -> int:
@@ -62,8 +70,9 @@ def _free_port() -> int:
 
 
 def pct(xs: list[float], q: float) -> float:
+    """Nearest-rank percentile (q in 0..1): with 50 samples p99 is the largest."""
     s = sorted(xs)
-    return s[min(len(s) - 1, int(round(q * (len(s) - 1))))]
+    return s[min(len(s) - 1, max(0, math.ceil(q * len(s)) - 1))]
 
 
 def _ts(value: str | None) -> float | None:
@@ -131,71 +140,34 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         v = [x for x in vals if x is not None]
         return statistics.median(v) if v else None
 
+    def p99(vals: list[float | None]) -> float | None:
+        v = [x for x in vals if x is not None]
+        return pct(v, 0.99) if v else None
+
     keys = sorted({k for r in rows for k in r["timings_ms"]})
+    req, prev = [r["request_ms"] for r in rows], [r["with_preview_ms"] for r in rows]
+    after = [r["answer_after_end_ms"] for r in rows]
     return {
         "n": len(rows),
-        "request_p50_ms": med([r["request_ms"] for r in rows]), "request_p95_ms": pct([r["request_ms"] for r in rows],
-                                                                                      0.95),
-        "with_preview_p50_ms": med([r["with_preview_ms"] for r in rows]),
-        "with_preview_p95_ms": pct([r["with_preview_ms"] for r in rows], 0.95),
+        "request_p50_ms": med(req), "request_p95_ms": pct(req, 0.95), "request_p99_ms": pct(req, 0.99),
+        "with_preview_p50_ms": med(prev), "with_preview_p95_ms": pct(prev, 0.95),
+        "with_preview_p99_ms": pct(prev, 0.99),
         "timings_p50_ms": {k: med([r["timings_ms"].get(k) for r in rows]) for k in keys},
         "queue_p50_ms": med([r["queue_ms"] for r in rows]),
         "rq_job_p50_ms": med([r["rq_job_ms"] for r in rows]),
-        "answer_after_end_p50_ms": med([r["answer_after_end_ms"] for r in rows]),
+        "answer_after_end_p50_ms": med(after), "answer_after_end_p99_ms": p99(after),
         "artifact_bytes_p50": med([r["artifact_bytes"] for r in rows]),
         "blobs_p50": {k: med([r["blobs"].get(k) for r in rows]) for k in rows[0]["blobs"]},
     }
 
 
-# ---------------------------------------------------------------------------- in-process encode path
+# ---------------------------------------------------------------------------- in-process encode / store profile
 
 
-def _legacy_encode(out: dict[str, np.ndarray], meta: dict[str, Any]) -> dict[str, tuple[bytes, str]]:
-    """The encode path before the render-latency work (kept here as the yardstick): one
-    ``engine.imageio.write_image`` per image (atomic write with fsync into a disk temp dir, EXR ZIP,
-    float64 sRGB transform, libpng's default zlib level) on a 4-thread pool."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    import OpenImageIO as oiio
-
-    from engine.imageio import write_image
-    from workers.jobs.render import PROVENANCE_CODES
-
-    def provenance(tmp: Path, codes: np.ndarray) -> bytes:
-        path = tmp / "provenance.png"
-        out = oiio.ImageOutput.create(str(path))
-        spec = oiio.ImageSpec(codes.shape[1], codes.shape[0], 1, "uint8")
-        spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
-        out.open(str(path), spec)
-        out.write_image(np.ascontiguousarray(codes, dtype=np.uint8)[:, :, None])
-        out.close()
-        return path.read_bytes()
-
-    def enc(tmp: Path, name: str, px: Any, md: dict[str, Any]) -> bytes:
-        write_image(tmp / name, px, metadata=md)
-        return (tmp / name).read_bytes()
-
-    with tempfile.TemporaryDirectory(prefix="ibr-render-") as tmpdir:
-        tmp = Path(tmpdir)
-        jobs = {"radiance.exr": (out["radiance"], meta),
-                "preview.png": (out["radiance"], {**meta, "exposure_stops": 0.0}),
-                "depth.exr": (out["depth"], {**meta, "aov": "depth"}),
-                "normal.exr": (out["normal"], {**meta, "aov": "normal"}),
-                "object_id.exr": (out["object_id"].astype("float32"), {**meta, "aov": "object_id"}),
-                "material_id.exr": (out["material_id"].astype("float32"), {**meta, "aov": "material_id"})}
-        with ThreadPoolExecutor(max_workers=4) as pool:
-            fut = {n: pool.submit(enc, tmp, n, px, md) for n, (px, md) in jobs.items()}
-            prov = pool.submit(provenance, tmp, out["provenance"])
-            blobs = {n: (f.result(), "image/png" if n.endswith(".png") else "image/x-exr") for n, f in fut.items()}
-            blobs["provenance.png"] = (prov.result(), "image/png")
-    return blobs
-
-
-def encode_profile(store_dir: Path, key: str, runs: int) -> dict[str, Any]:
-    """Old vs new encode + store of one real LDC render (read back from the stack's store), same process."""
+def _read_back(store_dir: Path, key: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A stored render's arrays (as the job had them) and metadata, from its artifact's blobs."""
     from engine.imageio import read_image
-    from workers.artifacts import read_blob, read_manifest, write_artifact
-    from workers.jobs.render import encode_render_blobs
+    from workers.artifacts import read_blob, read_manifest
     from workers.store.local import LocalStore
 
     src = LocalStore(store_dir)
@@ -213,43 +185,62 @@ def encode_profile(store_dir: Path, key: str, runs: int) -> dict[str, Any]:
            "material_id": arrays["material_id"][..., 0].astype(np.int32),
            "provenance": np.rint(arrays["provenance"][..., 0] * 255).astype(np.uint8)}
     meta = {"scene_id": manifest.inputs["scene"], "method": manifest.params.get("method", "?"), "artifact_key": key}
-    times: dict[str, list[float]] = {"legacy_encode": [], "encode": [], "legacy_store": [], "store": [],
-                                     "lean_encode": []}
-    sizes: dict[str, dict[str, int]] = {}
+    return out, meta
+
+
+def encode_profile(store_dir: Path, key: str, runs: int) -> dict[str, Any]:
+    """Per blob encode cost (alone, one thread) with the job's codec and an alternative, and the job's
+    encode + store of every blob vs the lean sets, on one real 512x512 LDC render, same process."""
+    from engine.imageio import encode_image
+    from workers.artifacts import write_artifact
+    from workers.jobs.render import OUTPUT_BLOBS, STORE_WRITERS, _provenance_png, encode_render_blobs
+    from workers.store.local import LocalStore
+
+    out, meta = _read_back(store_dir, key)
+    src_of = {"preview.png": "radiance", "radiance.exr": "radiance", "depth.exr": "depth", "normal.exr": "normal",
+              "object_id.exr": "object_id", "material_id.exr": "material_id"}
+    codecs = {".png": ("fast", None), ".exr": ("zip", "none")}  # (the job's, the alternative); None = default
+    per_blob: dict[str, dict[str, Any]] = {}
+    for name, src in src_of.items():
+        px = out[src].astype(np.float32) if name.endswith("_id.exr") else out[src]
+        entry: dict[str, Any] = {}
+        for label, codec in zip(("job", "alt"), codecs[name[name.rindex("."):]], strict=True):
+            times, data = [], b""
+            for _ in range(runs):
+                t0 = time.perf_counter()
+                data = encode_image(name, px, metadata=meta, compression=codec)
+                times.append(1e3 * (time.perf_counter() - t0))
+            entry[label] = {"codec": codec or "libpng default", "ms": statistics.median(times), "bytes": len(data)}
+        per_blob[name] = entry
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        data = _provenance_png(out["provenance"])
+        times.append(1e3 * (time.perf_counter() - t0))
+    per_blob["provenance.png"] = {"job": {"codec": "zlib 1", "ms": statistics.median(times), "bytes": len(data)}}
+
+    sets = {"all": None, "preview+radiance": ["preview", "radiance"], "preview": ["preview"]}
+    enc: dict[str, list[float]] = {k: [] for k in sets}
+    store: dict[str, list[float]] = {k: [] for k in sets}
+    nblobs: dict[str, int] = {}
     with tempfile.TemporaryDirectory(prefix="ibr-bench-store-", dir=store_dir.parent) as sdir:
         dst = LocalStore(Path(sdir))
         for i in range(runs):
-            for label, fn, workers in (("legacy", _legacy_encode, 1), ("", None, 4)):
+            for label, outputs in (sets.items() if i % 2 == 0 else reversed(sets.items())):
                 t0 = time.perf_counter()
-                blobs = fn(out, meta) if fn is not None else encode_render_blobs(out, meta)
+                blobs = encode_render_blobs(out, meta, outputs)
                 t1 = time.perf_counter()
-                # a fresh artifact key per run: same blob writes, no "already committed" shortcut
-                params = {"run": i, "label": label}
-                akey = _key(params)
-                write_artifact(dst, akey, "bench", {}, params, "bench", blobs, {}, max_workers=workers)
+                params = {"run": i, "label": label}  # a fresh key per run: real blob writes every time
+                write_artifact(dst, _key(params), "bench", {}, params, "bench", blobs, {},
+                               max_workers=STORE_WRITERS)
                 t2 = time.perf_counter()
-                times[f"{label}_encode".lstrip("_")].append(1e3 * (t1 - t0))
-                times[f"{label}_store".lstrip("_")].append(1e3 * (t2 - t1))
-                sizes[label or "new"] = {n: len(b) for n, (b, _) in blobs.items()}
-            t0 = time.perf_counter()
-            _lean_encode(out, meta)
-            times["lean_encode"].append(1e3 * (time.perf_counter() - t0))
-    return {"runs": runs, "p50_ms": {k: statistics.median(v) for k, v in times.items()}, "sizes": sizes}
-
-
-def _lean_encode(out: dict[str, np.ndarray], meta: dict[str, Any]) -> dict[str, bytes]:
-    """Only what an interactive client shows or downloads: preview.png and radiance.exr."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from engine.imageio import encode_image
-    from workers.jobs.render import EXR_COMPRESSION, PNG_COMPRESSION
-
-    with ThreadPoolExecutor(2) as pool:
-        png = pool.submit(encode_image, "preview.png", out["radiance"], metadata={**meta, "exposure_stops": 0.0},
-                          compression=PNG_COMPRESSION)
-        exr = pool.submit(encode_image, "radiance.exr", out["radiance"], metadata=meta,
-                          compression=EXR_COMPRESSION["radiance.exr"])
-        return {"preview.png": png.result(), "radiance.exr": exr.result()}
+                enc[label].append(1e3 * (t1 - t0))
+                store[label].append(1e3 * (t2 - t1))
+                nblobs[label] = len(blobs)
+    assert set(OUTPUT_BLOBS.values()) >= set(per_blob)
+    return {"runs": runs, "key": key, "per_blob": per_blob,
+            "encode_p50_ms": {k: statistics.median(v) for k, v in enc.items()},
+            "store_p50_ms": {k: statistics.median(v) for k, v in store.items()}, "blobs": nblobs}
 
 
 def _key(params: dict[str, Any]) -> str:
@@ -261,47 +252,61 @@ def _key(params: dict[str, Any]) -> str:
 # ---------------------------------------------------------------------------- main measurement
 
 
-def measure(scene: str, size: int, n: int, warmup: int, ref_n: int, ref_spp: int, ldc: int, methods: list[str],
-            encode_runs: int, seed: int) -> dict[str, Any]:
+def measure_scene(c: httpx.Client, scene_id: str, cam: dict[str, Any], size: int, views: int, warmup: int,
+                  ldc: int, methods: list[str], variants: list[str], rng: np.random.Generator) -> dict[str, Any]:
+    load_before = os.getloadavg()[0]
+    b = bake(c, scene_id, ldc)
+    results: dict[str, dict[str, Any]] = {}
+    for m in methods:
+        rows: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
+        for i in range(warmup + views):
+            order = variants if i % 2 == 0 else list(reversed(variants))
+            for v in order:  # a camera per request: a subset request would be served from a full artifact
+                body: dict[str, Any] = {"scene_id": scene_id, "method": m, "camera": orbit_camera(cam, size, rng),
+                                        "bake": {"ldc_resolution": ldc, "llf": "auto"}}
+                if VARIANTS[v] is not None:
+                    body["outputs"] = VARIANTS[v]
+                row = one_request(c, body, warmup=i < warmup)
+                if i >= warmup:
+                    rows[v].append(row)
+        for v in variants:
+            results[f"{m} {v}"] = {"method": m, "outputs": v, **summarize(rows[v]), "rows": rows[v]}
+            r = results[f"{m} {v}"]
+            t = r["timings_p50_ms"]
+            print(f"  {m:<11} outputs={v:<16} + preview p50 {r['with_preview_p50_ms']:6.0f} ms p99 "
+                  f"{r['with_preview_p99_ms']:6.0f} ms | job_total {t.get('job_total', 0):5.0f}"
+                  f" render {t.get('total', 0):5.0f} encode {t.get('encode', 0):4.0f}"
+                  f" store {t.get('store', 0):4.0f} | answer after end "
+                  f"{r['answer_after_end_p50_ms'] or 0:4.1f} ms", flush=True)
+    return {"bake": b, "methods": results, "load": [load_before, os.getloadavg()[0]]}
+
+
+def measure(scenes: list[str], size: int, views: int, warmup: int, ldc: int, methods: list[str],
+            variants: list[str], encode_runs: int, seed: int) -> dict[str, Any]:
     for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS"):
         os.environ.pop(k, None)
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(seed)
-    results: dict[str, Any] = {}
+    per_scene: dict[str, Any] = {}
+    enc = None
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
         stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
         try:
             ids = load_samples(stack.api_url, log=lambda s: None)
-            scene_id = ids[scene]
             with httpx.Client(base_url=stack.api_url, timeout=120) as c:
-                base = c.get(f"/v1/scenes/{scene_id}").json()
-                cam = base.get("scene", {}).get("camera") or _sample_camera(scene)
-                b = bake(c, scene_id, ldc) if any(m != "reference" for m in methods) else None
-                last_ldc_key = None
-                for m in methods:
-                    count = ref_n if m == "reference" else n
-                    body: dict[str, Any] = {"scene_id": scene_id, "method": m}
-                    if m == "reference":
-                        body["params"] = {"spp": ref_spp}
-                    else:
-                        body["bake"] = {"ldc_resolution": ldc, "llf": "auto"}
-                    rows = []
-                    for i in range(warmup + count):
-                        row = one_request(c, {**body, "camera": orbit_camera(cam, size, rng)}, warmup=i < warmup)
-                        if i >= warmup:
-                            rows.append(row)
-                    results[m] = {**summarize(rows), "rows": rows}
-                    if m != "reference":
-                        last_ldc_key = rows[-1]["key"]
-                    print(f"{m}: request p50 {results[m]['request_p50_ms']:.0f} ms, + preview p50 "
-                          f"{results[m]['with_preview_p50_ms']:.0f} ms, job_total p50 "
-                          f"{results[m]['timings_p50_ms'].get('job_total', float('nan')):.0f} ms", flush=True)
-            enc = encode_profile(Path(stack.env["IBR_STORE_URL"]), last_ldc_key, encode_runs) \
-                if last_ldc_key and encode_runs else None
+                for scene in scenes:
+                    print(f"{scene}:", flush=True)
+                    base = c.get(f"/v1/scenes/{ids[scene]}").json()
+                    cam = base.get("scene", {}).get("camera") or _sample_camera(scene)
+                    per_scene[scene] = measure_scene(c, ids[scene], cam, size, views, warmup, ldc, methods, variants,
+                                                     rng)
+            last = [r for r in per_scene[scenes[-1]]["methods"].values() if r["outputs"] == "all"]
+            if last and encode_runs:
+                enc = encode_profile(Path(stack.env["IBR_STORE_URL"]), last[-1]["rows"][-1]["key"], encode_runs)
         finally:
             stack.stop()
-    return {"date": date.today().isoformat(), "scene": scene, "size": size, "n": n, "warmup": warmup, "ref_n": ref_n,
-            "ref_spp": ref_spp, "ldc": ldc, "bake": b, "methods": results, "encode_profile": enc,
+    return {"date": date.today().isoformat(), "scenes": per_scene, "size": size, "views": views, "warmup": warmup,
+            "ldc": ldc, "methods_run": methods, "variants": variants, "encode_profile": enc,
             "load": [load_before, os.getloadavg()[0]], "cores": os.cpu_count(), "machine": platform.machine()}
 
 
@@ -319,140 +324,245 @@ def _ms(v: float | None) -> str:
     return "n/a" if v is None else f"{v:,.0f}"
 
 
+def _ms1(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:,.1f}"
+
+
+def report_views(label: str, res: dict[str, Any]) -> list[str]:
+    """The block of one ``--views`` run (several scenes, outputs variants, p50/p99)."""
+    lines = ["", f"### {label}: `{res['argv']}`", "",
+             f"{res['date']}, {res['size']}x{res['size']}, LDC {res['ldc']}; per scene, method and outputs variant "
+             f"{res['views']} random views (each a new camera, no cache hits) after {res['warmup']} warm-up ones; "
+             f"1-minute load average {res['load'][0]:.1f} before and {res['load'][1]:.1f} after the run "
+             f"({res['cores']} cores; the client, the API, Redis and both workers share them)."]
+    goal: list[str] = []
+    for scene, sres in res["scenes"].items():
+        by = sres["methods"]
+        lines += ["", f"#### `{scene}` (bake {sres['bake']['wall_s']:.0f} s, {sres['bake']['parts']} parts; load "
+                  f"{sres['load'][0]:.1f} -> {sres['load'][1]:.1f})", "",
+                  "| method | outputs | **request -> preview shown, p50 / p99** | request -> 200 answer, p50 / p99 | "
+                  "job | ... render | ... encode | ... store | queue wait | job end -> answer, p50 / p99 | "
+                  "artifact KiB |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in by.values():
+            t = r["timings_p50_ms"]
+            lines.append(
+                f"| `{r['method']}` | {r['outputs']} | **{_ms(r['with_preview_p50_ms'])}** / "
+                f"{_ms(r['with_preview_p99_ms'])} | {_ms(r['request_p50_ms'])} / {_ms(r['request_p99_ms'])} | "
+                f"{_ms(t.get('job_total'))} | {_ms(t.get('total'))} | {_ms(t.get('encode'))} | {_ms(t.get('store'))} | "
+                f"{_ms1(r['queue_p50_ms'])} | {_ms1(r['answer_after_end_p50_ms'])} / "
+                f"{_ms1(r['answer_after_end_p99_ms'])} | {r['artifact_bytes_p50'] / 1024:,.0f} |")
+        stages = []
+        for r in by.values():
+            t = r["timings_p50_ms"]
+            if r["outputs"] == res["variants"][0] and "warp" in t:
+                stages.append(f"`{r['method']}` " + " / ".join(
+                    _ms((t.get("holes") or 0) + (t.get("fill") or 0)) if s == "holes" else _ms(t.get(s))
+                    for s in STAGES if s != "fill"))
+        if stages:
+            lines += ["", "Render stages warp / holes+fill / surfaces / highlights / gather / ibrt (p50 ms): "
+                      + "; ".join(stages) + "."]
+        if "all" in res["variants"] and len(res["variants"]) > 1:
+            ratios = []
+            for m in res["methods_run"]:
+                full = by.get(f"{m} all")
+                for v in res["variants"]:
+                    lean = by.get(f"{m} {v}")
+                    if v != "all" and full and lean:
+                        ratios.append(f"`{m}` {full['with_preview_p50_ms'] / lean['with_preview_p50_ms']:.2f}x "
+                                      f"({v}; encode {_ms(full['timings_p50_ms'].get('encode'))} -> "
+                                      f"{_ms(lean['timings_p50_ms'].get('encode'))} ms)")
+            lines += ["", "Every image vs fewer, same run (ratio of the p50s of request -> preview shown): " + ", ".join(ratios)
+                      + "."]
+        key = next((k for k in (f"ldc+ibrt:1 {v}" for v in ("preview", "preview+radiance", "all")) if k in by), None)
+        if key:
+            r = by[key]
+            p50, p99 = r["with_preview_p50_ms"], r["with_preview_p99_ms"]
+            t = r["timings_p50_ms"]
+            render, enc_store = t.get("total", 0.0), t.get("encode", 0.0) + t.get("store", 0.0)
+            verdict = "met" if p50 <= GOAL_MS else f"not met by {p50 - GOAL_MS:.0f} ms"
+            goal.append(f"`{scene}` p50 {p50:.0f} ms / p99 {p99:.0f} ms ({verdict}; of the p50: render "
+                        f"{render:.0f}, encode + store {enc_store:.0f}, the rest "
+                        f"{p50 - render - enc_store:.0f} ms: queue, RQ, "
+                        f"answer, HTTP, PNG download)")
+    if goal:
+        lines += ["", f"**Goal (<= {GOAL_MS:.0f} ms end to end for `ldc+ibrt:1`, the interactive request "
+                  f"`outputs: [\"preview\"]`):** " + "; ".join(goal) + "."]
+    e = res.get("encode_profile")
+    if e:
+        lines += ["", f"Encode and store cost per blob of one 512x512 `{e['key'][:12]}` render (the last `all` "
+                  f"render above, read back; one thread, p50 of {e['runs']} runs):", "",
+                  "| blob | the job's codec: ms / KiB | alternative: ms / KiB |", "|---|---:|---:|"]
+        for name, d in e["per_blob"].items():
+            alt = d.get("alt")
+            lines.append(f"| {name} | {d['job']['codec']}: {d['job']['ms']:.1f} / {d['job']['bytes'] / 1024:,.0f} | "
+                         + (f"{alt['codec']}: {alt['ms']:.1f} / {alt['bytes'] / 1024:,.0f}" if alt else "n/a") + " |")
+        enc, st, nb = e["encode_p50_ms"], e["store_p50_ms"], e["blobs"]
+        ratio = (enc["all"] + st["all"]) / (enc["preview"] + st["preview"])
+        lines += ["", "The job's encode (3 threads) + store commit (blobs on 4 threads with an fsync each, then the "
+                  "manifest): " + ", ".join(f"{k} ({nb[k]} blobs) {enc[k]:.0f} + {st[k]:.0f} ms" for k in enc)
+                  + f"; every image vs the preview alone: **{ratio:.1f}x**."]
+    return lines
+
+
 def report(runs: dict[str, Any]) -> str:
     lines = ["## Render latency through the API (warm render worker)", "",
              "`python -m bench.render_latency` (issue 4, interactive use: a 512x512 view of a baked scene in "
              "<= 250 ms end to end). Real stack: embedded Redis, one bake and one render worker, the API "
              "(uvicorn), local store, all on this 2-core machine with the client. Each request is a new camera "
-             "(no artifact-cache hits); times in ms, p50 unless marked."]
-    for label, res in runs.items():
-        meths = list(res["methods"])
-        by = res["methods"]
-        lines += ["", f"### {label}: `{res['argv']}`", "",
-                  f"{res['date']}, scene `{res['scene']}` {res['size']}x{res['size']}, LDC {res['ldc']} "
-                  f"(bake {res['bake']['wall_s']:.0f} s, {res['bake']['parts']} parts)" if res.get("bake") else "",
-                  f"{res['n']} requests per LDC method after {res['warmup']} warm-up ones, {res['ref_n']} for "
-                  f"`reference` (spp {res['ref_spp']}); 1-minute load average {res['load'][0]:.1f} before and "
-                  f"{res['load'][1]:.1f} after.", "",
-                  "| | " + " | ".join(f"`{m}`" for m in meths) + " |", "|---|" + "---:|" * len(meths)]
-
-        def row(title: str, f: Any, by: dict[str, Any] = by, meths: list[str] = meths) -> str:
-            return f"| {title} | " + " | ".join(f(by[m]) for m in meths) + " |"
-
-        def tm(k: str) -> Any:
-            return lambda r: _ms(r["timings_p50_ms"].get(k))
-
-        lines += [
-            row("**request -> preview downloaded, p50 / p95**",
-                lambda r: f"**{_ms(r['with_preview_p50_ms'])}** / {_ms(r['with_preview_p95_ms'])}"),
-            row("request -> 200 answer, p50 / p95",
-                lambda r: f"{_ms(r['request_p50_ms'])} / {_ms(r['request_p95_ms'])}"),
-            row("queue wait (enqueue -> job start)", lambda r: _ms(r["queue_p50_ms"])),
-            row("job (`job_total`)", tm("job_total")),
-            row("... renderer (`total`)", tm("total")),
-            row("... render stages warp / holes+fill / surfaces / highlights / gather / ibrt", lambda r: " / ".join(
-                _ms(r["timings_p50_ms"].get(s)) if s != "holes" else
-                _ms((r["timings_p50_ms"].get("holes") or 0) + (r["timings_p50_ms"].get("fill") or 0))
-                for s in STAGES if s != "fill") if "warp" in r["timings_p50_ms"] else "n/a"),
-            row("... encode (all images)", tm("encode")),
-            row("... store (blobs + manifest)", tm("store")),
-            row("RQ bookkeeping around the job", lambda r: _ms(
-                None if r["rq_job_p50_ms"] is None or "job_total" not in r["timings_p50_ms"] else
-                r["rq_job_p50_ms"] - r["timings_p50_ms"]["job_total"])),
-            row("job end -> API answer (server-side polling)", lambda r: _ms(r["answer_after_end_p50_ms"])),
-            row("request -> job end (the answer if the API saw the end at once)", lambda r: _ms(statistics.median(
-                x["request_ms"] - x["answer_after_end_ms"] for x in r["rows"]
-                if x["answer_after_end_ms"] is not None))),
-            row("artifact size (KiB)", lambda r: f"{r['artifact_bytes_p50'] / 1024:,.0f}"),
-        ]
-        ldc_m = [m for m in meths if m != "reference"]
-        if ldc_m:
-            def share(r: dict[str, Any]) -> str:
-                t, whole = r["timings_p50_ms"], r["with_preview_p50_ms"]
-                enc = t["encode"] + t.get("store", 0.0)
-                return (f"{t['total'] / whole:.0%} render / {enc / whole:.0%} encode+store"
-                        f" / {(r['answer_after_end_p50_ms'] or 0.0) / whole:.0%} waiting for the API's next poll")
-
-            shares = ", ".join(f"`{m}` {share(by[m])}" for m in ldc_m)
-            lines += ["", f"Share of the request -> preview time (p50s): {shares}."]
-        e = res.get("encode_profile")
-        if e:
-            p = e["p50_ms"]
-            old, new = p["legacy_encode"] + p["legacy_store"], p["encode"] + p["store"]
-            lines += ["", f"Encode + store of one real LDC render in one process ({e['runs']} runs each, alternating, "
-                      f"p50, same data): previous path {p['legacy_encode']:.0f} + {p['legacy_store']:.0f} ms, current "
-                      f"{p['encode']:.0f} + {p['store']:.0f} ms: **{old / new:.1f}x** (encode "
-                      f"{p['legacy_encode'] / p['encode']:.1f}x, store {p['legacy_store'] / p['store']:.1f}x); "
-                      f"encoding only preview + radiance (a possible lean mode) {p['lean_encode']:.0f} ms. "
-                      "Blob sizes (KiB) previous -> current: " + ", ".join(
-                          f"{n} {e['sizes']['legacy'][n] / 1024:,.0f} -> {e['sizes']['new'][n] / 1024:,.0f}"
-                          for n in sorted(e["sizes"]["new"])) + "."]
-    lines += ["", "### What the encode/store path does now, and what is left", "", *NOTES]
+             "(no artifact-cache hits); times in ms. \"request -> preview shown\" is `POST /v1/renders?wait=30` "
+             "until its 200 answer plus `GET image.png`."]
+    new = {k: v for k, v in runs.items() if "scenes" in v}
+    old = {k: v for k, v in runs.items() if "scenes" not in v}
+    for label, res in new.items():
+        lines += report_views(label, res)
+    lines += ["", "### What a request's time is made of now", "", *NOTES]
+    if old:
+        lines += ["", "### Earlier runs (one scene, 20 views, before the `outputs` field and the blocking wait)"]
+        for label, res in old.items():
+            lines += report_legacy(label, res)
     return "\n".join(lines)
 
 
+def report_legacy(label: str, res: dict[str, Any]) -> list[str]:
+    """The block of a stored run of the earlier one-scene format (kept for the history)."""
+    lines: list[str] = []
+    meths = list(res["methods"])
+    by = res["methods"]
+    lines += ["", f"#### {label}: `{res['argv']}`", "",
+              f"{res['date']}, scene `{res['scene']}` {res['size']}x{res['size']}, LDC {res['ldc']} "
+              f"(bake {res['bake']['wall_s']:.0f} s, {res['bake']['parts']} parts)" if res.get("bake") else "",
+              f"{res['n']} requests per LDC method after {res['warmup']} warm-up ones, {res['ref_n']} for "
+              f"`reference` (spp {res['ref_spp']}); 1-minute load average {res['load'][0]:.1f} before and "
+              f"{res['load'][1]:.1f} after.", "",
+              "| | " + " | ".join(f"`{m}`" for m in meths) + " |", "|---|" + "---:|" * len(meths)]
+
+    def row(title: str, f: Any, by: dict[str, Any] = by, meths: list[str] = meths) -> str:
+        return f"| {title} | " + " | ".join(f(by[m]) for m in meths) + " |"
+
+    def tm(k: str) -> Any:
+        return lambda r: _ms(r["timings_p50_ms"].get(k))
+
+    lines += [
+        row("**request -> preview downloaded, p50 / p95**",
+            lambda r: f"**{_ms(r['with_preview_p50_ms'])}** / {_ms(r['with_preview_p95_ms'])}"),
+        row("request -> 200 answer, p50 / p95",
+            lambda r: f"{_ms(r['request_p50_ms'])} / {_ms(r['request_p95_ms'])}"),
+        row("queue wait (enqueue -> job start)", lambda r: _ms(r["queue_p50_ms"])),
+        row("job (`job_total`)", tm("job_total")),
+        row("... renderer (`total`)", tm("total")),
+        row("... render stages warp / holes+fill / surfaces / highlights / gather / ibrt", lambda r: " / ".join(
+            _ms(r["timings_p50_ms"].get(s)) if s != "holes" else
+            _ms((r["timings_p50_ms"].get("holes") or 0) + (r["timings_p50_ms"].get("fill") or 0))
+            for s in STAGES if s != "fill") if "warp" in r["timings_p50_ms"] else "n/a"),
+        row("... encode (all images)", tm("encode")),
+        row("... store (blobs + manifest)", tm("store")),
+        row("RQ bookkeeping around the job", lambda r: _ms(
+            None if r["rq_job_p50_ms"] is None or "job_total" not in r["timings_p50_ms"] else
+            r["rq_job_p50_ms"] - r["timings_p50_ms"]["job_total"])),
+        row("job end -> API answer (server-side polling)", lambda r: _ms(r["answer_after_end_p50_ms"])),
+        row("request -> job end (the answer if the API saw the end at once)", lambda r: _ms(statistics.median(
+            x["request_ms"] - x["answer_after_end_ms"] for x in r["rows"]
+            if x["answer_after_end_ms"] is not None))),
+        row("artifact size (KiB)", lambda r: f"{r['artifact_bytes_p50'] / 1024:,.0f}"),
+    ]
+    ldc_m = [m for m in meths if m != "reference"]
+    if ldc_m:
+        def share(r: dict[str, Any]) -> str:
+            t, whole = r["timings_p50_ms"], r["with_preview_p50_ms"]
+            enc = t["encode"] + t.get("store", 0.0)
+            return (f"{t['total'] / whole:.0%} render / {enc / whole:.0%} encode+store"
+                    f" / {(r['answer_after_end_p50_ms'] or 0.0) / whole:.0%} waiting for the API's next poll")
+
+        shares = ", ".join(f"`{m}` {share(by[m])}" for m in ldc_m)
+        lines += ["", f"Share of the request -> preview time (p50s): {shares}."]
+    e = res.get("encode_profile")
+    if e:
+        p = e["p50_ms"]
+        old, new = p["legacy_encode"] + p["legacy_store"], p["encode"] + p["store"]
+        lines += ["", f"Encode + store of one real LDC render in one process ({e['runs']} runs each, alternating, "
+                  f"p50, same data): previous path {p['legacy_encode']:.0f} + {p['legacy_store']:.0f} ms, current "
+                  f"{p['encode']:.0f} + {p['store']:.0f} ms: **{old / new:.1f}x** (encode "
+                  f"{p['legacy_encode'] / p['encode']:.1f}x, store {p['legacy_store'] / p['store']:.1f}x); "
+                  f"encoding only preview + radiance (a possible lean mode) {p['lean_encode']:.0f} ms. "
+                  "Blob sizes (KiB) previous -> current: " + ", ".join(
+                      f"{n} {e['sizes']['legacy'][n] / 1024:,.0f} -> {e['sizes']['new'][n] / 1024:,.0f}"
+                      for n in sorted(e["sizes"]["new"])) + "."]
+    return lines
+
+
 NOTES = [
-    "- Images are encoded in memory (`engine.imageio.encode_image`: same checks and bytes as `write_image`, "
-    "scratch file in `/dev/shm`, no fsync). Before, each image was written atomically with two fsyncs into a "
-    "disk temp directory, read back, and written (with fsync) once more by the store.",
-    "- The preview's sRGB transform uses exact code-value thresholds (one table look-up and one comparison per "
-    "sample): bit-identical to `rint(tonemap_srgb(x) * 255)` in float64 (tests compare every threshold +-1 ulp), "
-    "several times faster; `write_image` uses it too. PNGs are written with zlib level 1 and the 'sub' row "
-    "filter (`compression=\"fast\"`, lossless, ~3-4x faster than libpng's default, files ~30-40 % larger).",
-    "- The 6-7 images are encoded on 3 threads, the preview first; blob writes run on 4 threads (again the "
-    "preview first) and the "
-    "manifest is written only after every blob write returned (`write_artifact(max_workers=4)`; a failed "
-    "blob write publishes nothing).",
-    "- EXRs stay ZIP (lossless, the smallest files; readable everywhere). Measured alternatives on a 512x512 "
-    "render: `none` encodes the radiance ~4x faster (~11 vs ~35-55 ms CPU) but makes it 1.8x larger (3.1 MiB); "
-    "ZIP levels 1-3 save under 20 %; RLE does not shrink float radiance at all; PIZ is slower. Switching is one "
-    "entry of `workers.jobs.render.EXR_COMPRESSION`.",
-    "- Left outside this work, and the reason the end-to-end p50 hardly moves: the API's server-side wait "
-    "polls the job at 50 ms, then 1.5x longer each time (`service/api/routes/renders.py`), i.e. at 50, 125, "
-    "238, 406, 659 ms after the request, so every job that ends between ~240 and ~400 ms is answered at "
-    "~410-440 ms (row \"job end -> API answer\"; the row below it is what an answer at the job's end would "
-    "give). Blocking on the job's completion (RQ 3's result stream, `XREAD BLOCK`) or polling every ~10-20 ms "
-    "would turn the job's savings into end-to-end savings. A lean "
-    "request flag (preview + radiance only, see \"a possible lean mode\" above) needs a `RenderRequest` "
-    "field in `api_schemas/service.py`, so it is not built.",
+    "- **Waiting** (`service/api/routes/renders.py`): `POST /v1/renders?wait=` blocks on the job's RQ result "
+    "stream (`XREAD BLOCK` on `rq:results:<job id>`, which the worker writes in the same MULTI/EXEC as the "
+    "job's final status) in slices of 250 ms, re-reading the status after each slice, so the answer leaves "
+    "about a millisecond after the job's end (column \"job end -> answer\": RQ's end stamp to the client "
+    "having the answer, which also holds the manifest read and the HTTP answer). A job that ends without a "
+    "result (canceled, a dead worker's job failed by maintenance, deleted) is noticed at the end of the "
+    "slice. The blocking reads run on their own 32-thread limiter, so waiting requests never starve the "
+    "threads of other endpoints. Before: polling, first with a 1.5x back-off (answers up to 170 ms late), "
+    "then every 5-20 ms.",
+    "- **Outputs** (`RenderRequest.outputs`): an interactive client asks for `[\"preview\"]` (the browser "
+    "preview asks for what it shows: preview, radiance for exposure and comparisons, provenance for the LDC "
+    "methods); the job encodes and stores only those, the rest of the job is unchanged. The subset is part "
+    "of the artifact key (a lean artifact is never served for a full request; full-request keys are what "
+    "they were), and a subset request is answered from the full artifact when that exists.",
+    "- **Encoding**: images are encoded in memory (`engine.imageio.encode_image`, no scratch-file fsync) on "
+    "3 threads, the preview first, with an exact table-driven sRGB transform and PNG zlib level 1 + 'sub' "
+    "filter; EXRs stay ZIP (the table above shows what uncompressed would save in time and cost in size: "
+    "with `outputs` an interactive request no longer encodes the EXRs at all, so the lossless, smallest "
+    "codec stays for the full artifacts). Switching is one entry of `workers.jobs.render.EXR_COMPRESSION`.",
+    "- **Store**: every blob is written to a temp file, fsynced, renamed, and the manifest last "
+    "(`write_artifact(max_workers=4)`: blob writes overlap, a failed one publishes nothing). With the "
+    "preview alone that is one blob + the manifest.",
+    "- What is left is the render itself (engine work, `docs/ldc.md`) and a fixed ~10-20 ms of HTTP, RQ "
+    "bookkeeping and the PNG download.",
 ]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="teapot_glossy")
+    ap.add_argument("--scenes", default="mirror_box,teapot_glossy")
     ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--n", type=int, default=20, help="measured requests per LDC method")
+    ap.add_argument("--views", "--n", dest="views", type=int, default=50,
+                    help="measured random views per scene, method and outputs variant")
     ap.add_argument("--warmup", type=int, default=3)
-    ap.add_argument("--ref-n", type=int, default=3, help="measured requests for the (slow) reference method")
-    ap.add_argument("--ref-spp", type=int, default=1)
-    ap.add_argument("--ldc", type=int, default=256, help="LDC resolution of the bake")
-    ap.add_argument("--methods", default="ldc,ldc+llf,ldc+ibrt:1,reference")
+    ap.add_argument("--ldc", type=int, default=256, help="LDC resolution of the bakes")
+    ap.add_argument("--methods", default="ldc,ldc+llf,ldc+ibrt:1")
+    ap.add_argument("--outputs", default="all,preview", help=f"variants, comma-separated: {', '.join(VARIANTS)}")
     ap.add_argument("--encode-runs", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--label", default="current", help="name of this run in docs/data/render_latency.json")
     ap.add_argument("--no-doc", action="store_true")
     ap.add_argument("--doc-only", action="store_true", help="rewrite the doc block from the stored runs only")
-    ap.add_argument("--import-run", metavar="FILE", help="with --doc-only: also store --label from FILE's runs")
+    ap.add_argument("--drop", default="", help="with --doc-only: comma-separated labels to remove from the data")
     a = ap.parse_args()
     if a.doc_only:
         runs = json.loads(DATA.read_text()) if DATA.exists() else {}
-        if a.import_run:
-            runs[a.label] = json.loads(Path(a.import_run).read_text())[a.label]
-            DATA.write_text(json.dumps(runs, indent=1) + "\n")
+        for label in filter(None, a.drop.split(",")):
+            runs.pop(label, None)
+        DATA.write_text(json.dumps(runs, indent=1) + "\n")
         replace_block(DOC, "render_latency", report(runs))
         print(f"wrote the render_latency block of {DOC}")
         return
-    res = measure(a.scene, a.size, a.n, a.warmup, a.ref_n, a.ref_spp, a.ldc, [m.strip() for m in a.methods.split(",")],
-                  a.encode_runs, a.seed)
-    res["argv"] = (f"python -m bench.render_latency --scene {a.scene} --size {a.size} --n {a.n} --warmup {a.warmup} "
-                   f"--ref-n {a.ref_n} --ref-spp {a.ref_spp} --ldc {a.ldc} --methods {a.methods} --label {a.label}")
-    print(json.dumps({**res, "methods": {m: {k: v for k, v in r.items() if k != "rows"}
-                                         for m, r in res["methods"].items()}}, indent=1))
+    variants = [v.strip() for v in a.outputs.split(",")]
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        ap.error(f"--outputs: unknown variant(s) {bad}; choose from {list(VARIANTS)}")
+    methods = [m.strip() for m in a.methods.split(",")]
+    if "reference" in methods:
+        ap.error("--methods: the LDC methods only (the reference renderer takes seconds per 512x512 view)")
+    scenes = [s.strip() for s in a.scenes.split(",")]
+    res = measure(scenes, a.size, a.views, a.warmup, a.ldc, methods, variants, a.encode_runs, a.seed)
+    res["argv"] = (f"python -m bench.render_latency --scenes {a.scenes} --size {a.size} --views {a.views} "
+                   f"--warmup {a.warmup} --ldc {a.ldc} --methods {a.methods} --outputs {a.outputs} --label {a.label}")
+    print(json.dumps({**res, "scenes": {s: {**r, "methods": {m: {k: v for k, v in x.items() if k != "rows"}
+                                                            for m, x in r["methods"].items()}}
+                                        for s, r in res["scenes"].items()}}, indent=1))
     if a.no_doc:
         return
     runs = json.loads(DATA.read_text()) if DATA.exists() else {}
-    runs[a.label] = res
+    runs.pop(a.label, None)
+    runs = {a.label: res, **runs}  # newest first
     DATA.parent.mkdir(parents=True, exist_ok=True)
     DATA.write_text(json.dumps(runs, indent=1) + "\n")
     replace_block(DOC, "render_latency", report(runs))

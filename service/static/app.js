@@ -328,7 +328,10 @@ function requestBody(method = currentMethod()) {
   const spp = sppText === "" ? undefined : Number(sppText);
   const p = {};
   if (spp !== undefined) p.spp = Number.isFinite(spp) ? spp : sppText; // let the API judge it
-  const body = { scene_id: view.scene.id, camera: cam, method: method.name, params: p };
+  // Ask only for the images this page shows (the job then skips encoding the AOV EXRs): the preview,
+  // the radiance (exposure and compare read it) and, for the LDC methods, the provenance overlay.
+  const outputs = method.needsBake ? ["preview", "radiance", "provenance"] : ["preview", "radiance"];
+  const body = { scene_id: view.scene.id, camera: cam, method: method.name, params: p, outputs };
   if (method.needsBake) body.bake = bakeParams();
   return body;
 }

@@ -113,6 +113,14 @@ def test_orbit_ldc_view_changes_image(page: Page) -> None:
     shot(page, "13-ldc-orbited")
 
 
+def test_the_page_asks_only_for_the_images_it_shows(page: Page, stack: Stack) -> None:
+    """``outputs``: preview, radiance (exposure, compare) and provenance; no AOV EXRs."""
+    key = page.locator("#view").get_attribute("data-key")
+    manifest = httpx.get(f"{stack.api_url}/v1/artifacts/{key}", timeout=30).json()
+    assert {b["name"] for b in manifest["blobs"]} == {"preview.png", "radiance.exr", "provenance.png"}
+    assert manifest["params"]["outputs"] == ["preview", "radiance", "provenance"]
+
+
 def test_provenance_view(page: Page, capabilities: dict[str, Any]) -> None:
     page.check("#provenance")
     img = page.locator("#provenance-img")
