@@ -16,7 +16,10 @@ splatted with a z-buffer (distance along the pixel ray, like the reference's dep
   component >= 1/sqrt(3) = 0.577 along some axis, so one LDI always keeps it; this stops
   edge-on surfaces (thin walls, a wall parallel to an axis) from smearing.
 - **Sides.** Surfaces are two-sided like the reference; the side facing the eye picks the
-  sample's ``diffuse[:, side]``. Back faces of CLOSED objects (the inner side; effect plan
+  sample's ``diffuse[:, side]``. Samples within the depth slack count as one surface only
+  when the same side faces the eye (else the nearer wins: a sheet seen from behind just
+  under one seen from the front, as the teapot's lid under its rim, showed through as dark
+  speckle, LRMS 0.201 -> 0.179 on teapot_glossy at 256x256). Back faces of CLOSED objects (the inner side; effect plan
   ``closed_objects``) are culled.
 - **Holes.** A pixel is a hole when no sample covers it, or when at least ``hole_neighbors``
   (6) of its 8 neighbours are covered and nearer than ``(1 - hole_rel_depth)`` (0.95) times
@@ -202,9 +205,16 @@ def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win
                 off = math.sqrt(ddx * ddx + ddy * ddy)
                 z = zbuf[y, x]
                 b = best_off[y, x]
-                # same surface (within tol): the better-centred sample wins; a tie within
-                # 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer
-                if dist < z - tol or (dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))):
+                # same surface (within tol, same side): the better-centred sample wins; a tie
+                # within 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer.
+                # Opposite sides are never one surface: a sample seen from behind next to one
+                # seen from the front is another sheet (a lid under a rim, the inner wall of a
+                # thin part), so the plain depth test orders them
+                if side == win_side[y, x]:
+                    win = dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))
+                else:
+                    win = dist < z
+                if dist < z - tol or win:
                     zbuf[y, x] = dist
                     best_off[y, x] = off
                     win_axis[y, x] = axis_id
