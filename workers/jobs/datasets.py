@@ -27,6 +27,7 @@ import os
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -409,49 +410,28 @@ def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: 
                 "outside.png": (msk.result(), PNG)}
 
 
-class _ConcurrentBlobWrites:
-    """A store proxy for ``write_artifact``: blob writes run concurrently in threads, and the
-    manifest write waits for all of them first, so the commit order (every blob durable before the
-    manifest) is kept while the blobs' fsyncs overlap. Everything else is delegated."""
-
-    def __init__(self, store: ObjectStore, manifest_suffix: str = "/manifest.json"):
-        from concurrent.futures import ThreadPoolExecutor
-
-        self._store = store
-        self._suffix = manifest_suffix
-        self._pool = ThreadPoolExecutor(4, thread_name_prefix="ibr-store")
-        self._pending: list[Any] = []
-
-    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
-        if key.endswith(self._suffix):
-            self.flush()
-            self._store.put_bytes(key, data, content_type)
-        else:
-            self._pending.append(self._pool.submit(self._store.put_bytes, key, data, content_type))
-
-    def flush(self) -> None:
-        pending, self._pending = self._pending, []
-        for f in pending:
-            f.result()  # re-raises a failed write: the manifest is then never written
-
-    def close(self) -> None:
-        try:
-            self.flush()
-        finally:
-            self._pool.shutdown(wait=True)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._store, name)
-
-
 def _write_concurrently(store: ObjectStore, *args: Any) -> Any:
+    """``write_artifact`` with the blob writes (and their fsyncs) overlapping; manifest last."""
     from workers.artifacts import write_artifact
 
-    proxy = _ConcurrentBlobWrites(store)
-    try:
-        return write_artifact(proxy, *args)
-    finally:
-        proxy.close()
+    return write_artifact(store, *args, max_workers=4)
+
+
+def _start_output_job(model: type[BaseModel], payload: dict[str, Any], name: str,
+                      key_of: Callable[[Any], str]) -> tuple[Any, str, ObjectStore, dict[str, Any] | None]:
+    """The common start of the relight and composite jobs: validate the payload, check the key
+    matches the request, and return ``(request, key, store, cached result or None)``."""
+    p = _validate(model, payload, name)
+    _check_engine()
+    req = p.request
+    key = key_of(req)
+    if key != p.artifact_key:
+        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    from workers.artifacts import read_manifest
+
+    store = _worker_store()
+    existing = read_manifest(store, key)
+    return req, key, store, None if existing is None else {"artifact_key": key, **existing.result}
 
 
 def _used(baked: BakedDataset, out: Any) -> dict[str, Any]:
@@ -469,19 +449,11 @@ def _used(baked: BakedDataset, out: Any) -> dict[str, Any]:
 def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Relight a baked dataset; returns ``{"artifact_key", "counts", "timings", ...}``."""
     t_start = time.perf_counter()
-    p: RelightJobPayload = _validate(RelightJobPayload, payload, "relight")
-    _check_engine()
-    req = p.request
-    key = relight_artifact_key(req)
-    if key != p.artifact_key:
-        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    req, key, store, cached = _start_output_job(RelightJobPayload, payload, "relight", relight_artifact_key)
+    if cached is not None:
+        return cached
     from engine.relight import relight
-    from workers.artifacts import read_manifest
 
-    store = _worker_store()
-    existing = read_manifest(store, key)
-    if existing is not None:
-        return {"artifact_key": key, **existing.result}
     progress = ProgressReporter(get_current_job())
     bake_key = bake_artifact_key(req.dataset_id, req.bake)
     t0 = time.perf_counter()
@@ -649,20 +621,12 @@ def _scene_camera_doc(store: ObjectStore, scene_id: str) -> dict[str, Any]:
 def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Composite an object dataset into a background plate (``engine.composite``)."""
     t_start = time.perf_counter()
-    p: CompositeJobPayload = _validate(CompositeJobPayload, payload, "composite")
-    _check_engine()
-    req = p.request
-    key = composite_artifact_key(req)
-    if key != p.artifact_key:
-        raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
+    req, key, store, cached = _start_output_job(CompositeJobPayload, payload, "composite", composite_artifact_key)
+    if cached is not None:
+        return cached
     from engine.composite import active_region_around, composite
     from engine.relight import relight
-    from workers.artifacts import read_manifest
 
-    store = _worker_store()
-    existing = read_manifest(store, key)
-    if existing is not None:
-        return {"artifact_key": key, **existing.result}
     progress = ProgressReporter(get_current_job())
     t0 = time.perf_counter()
     lights = _engine_lights(store, list(req.lights))
