@@ -699,6 +699,57 @@ def _check(ldc: LDC, accel: IBRTAccel) -> None:
                                 f"this LDC has {ns.tolist()}: rebuild it with build_accel(ldc)")
 
 
+@nb.njit(cache=True, nogil=True)
+def _self_info(d, nrm, h, out):
+    """Per ray: the origin's unit normal, d . normal and the self distance (module docstring)."""
+    for i in range(d.shape[0]):
+        n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        ln = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if ln > 0.0:
+            n0, n1, n2 = n0 / ln, n1 / ln, n2 / ln
+        else:
+            n0 = n1 = n2 = 0.0
+        dn = d[i, 0] * n0 + d[i, 1] * n1 + d[i, 2] * n2
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = n0, n1, n2, dn
+        out[i, 4] = SELF_PIXELS * h / max(abs(dn), 0.2)
+
+
+def trace_args(ldc: LDC) -> tuple:
+    """The LDC's arrays as the trace kernel takes them (build once per LDC for ``trace_prepared``)."""
+    perm, org, hs, res = _frame_arrays(ldc)
+    offs_t = tuple(np.ascontiguousarray(ax.ldi.offsets, dtype=np.int64) for ax in ldc.axes)
+    depth_t = tuple(np.ascontiguousarray(ax.ldi.depth, dtype=np.float64) for ax in ldc.axes)
+    gn_t = tuple(np.ascontiguousarray(ax.geo_normal, dtype=np.float32) for ax in ldc.axes)
+    return perm, org, hs, res, offs_t, depth_t, gn_t
+
+
+def trace_prepared(ldc: LDC, args: tuple, accel: IBRTAccel, o: np.ndarray, d: np.ndarray, *,
+                   origin_normals: np.ndarray | None = None, self_eps: float = DEFAULT_SELF_EPS,
+                   t_min: np.ndarray | None = None, t_max: np.ndarray | None = None,
+                   use_tree: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """``trace`` without the checks, for callers whose rays are already valid: o, d (n, 3)
+    C-contiguous float64 with unit d, ``args = trace_args(ldc)``. Returns (axis (n,) int8,
+    sample (n,) int64, t (n,) float64, n_steps, n_tests); no side or point (callers compute
+    what they need in their own kernels)."""
+    n = o.shape[0]
+    selfinfo = np.zeros((n, 5))
+    if origin_normals is not None and n:
+        _self_info(d, np.ascontiguousarray(origin_normals, dtype=np.float64), float(ldc.h), selfinfo)
+    tlo = np.zeros(n) if t_min is None else t_min
+    thi = np.full(n, np.inf) if t_max is None else t_max
+    out_axis = np.empty(n, dtype=np.int8)
+    out_sample = np.empty(n, dtype=np.int64)
+    out_t = np.empty(n)
+    work = np.zeros(((n + _CHUNK - 1) // _CHUNK, 2), dtype=np.int64)
+    if n:
+        perm, org, hs, res, offs_t, depth_t, gn_t = args
+        _trace_kernel(o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+                      accel.layer_root, accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link,
+                      accel.zrange, accel.uvrange, accel.margin, accel.min_cos, float(self_eps), out_axis, out_sample,
+                      out_t, work)
+    return out_axis, out_sample, out_t, int(work[:, 0].sum()), int(work[:, 1].sum())
+
+
 def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals,
          use_tree: bool) -> IBRTHits:
     _check(ldc, accel)
@@ -707,36 +758,20 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_
     self_eps = float(self_eps)
     o, d, tlo, thi = _rays(origins, dirs, t_min, t_max)
     n = o.shape[0]
-    selfinfo = np.zeros((n, 5))
+    nrm = None
     if origin_normals is not None:
         nrm = np.asarray(origin_normals, dtype=np.float64)
         if nrm.shape != (n, 3) or not np.all(np.isfinite(nrm)):
             raise InvalidInputError(f"origin_normals must be (n, 3) = {(n, 3)} finite, got {nrm.shape}")
-        ln = np.linalg.norm(nrm, axis=1, keepdims=True)
-        nrm = np.where(ln > 0, nrm / np.where(ln > 0, ln, 1.0), 0.0)
-        dn = np.einsum("ij,ij->i", d, nrm)
-        selfinfo[:, :3] = nrm
-        selfinfo[:, 3] = dn
-        selfinfo[:, 4] = SELF_PIXELS * ldc.h / np.maximum(np.abs(dn), 0.2)
-    perm, org, hs, res = _frame_arrays(ldc)
-    out_axis = np.empty(n, dtype=np.int8)
-    out_sample = np.empty(n, dtype=np.int64)
-    out_t = np.empty(n)
-    work = np.zeros(((n + _CHUNK - 1) // _CHUNK, 2), dtype=np.int64)
-    offs_t = tuple(np.ascontiguousarray(ax.ldi.offsets, dtype=np.int64) for ax in ldc.axes)
-    depth_t = tuple(np.ascontiguousarray(ax.ldi.depth, dtype=np.float64) for ax in ldc.axes)
-    gn_t = tuple(np.ascontiguousarray(ax.geo_normal, dtype=np.float32) for ax in ldc.axes)
+    args = trace_args(ldc)
     prev = nb.get_num_threads()
     if threads is not None:
         if not (1 <= int(threads) <= nb.config.NUMBA_NUM_THREADS):
             raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}], got {threads!r}")
         nb.set_num_threads(int(threads))
     try:
-        if n:
-            _trace_kernel(o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
-                          accel.layer_root, accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link,
-                          accel.zrange, accel.uvrange, accel.margin, accel.min_cos, self_eps, out_axis, out_sample,
-                          out_t, work)
+        out_axis, out_sample, out_t, n_steps, n_tests = trace_prepared(
+            ldc, args, accel, o, d, origin_normals=nrm, self_eps=self_eps, t_min=tlo, t_max=thi, use_tree=use_tree)
     finally:
         if threads is not None:
             nb.set_num_threads(prev)
@@ -751,7 +786,7 @@ def _run(ldc: LDC, accel: IBRTAccel, origins, dirs, t_min, t_max, threads, self_
                 side[sel] = (np.einsum("ij,ij->i", ng, d[sel]) > 0.0).astype(np.int8)
         point[hit] = o[hit] + out_t[hit, None] * d[hit]
     return IBRTHits(hit=hit, axis=out_axis, sample=out_sample, side=side, t=out_t, point=point,
-                    n_steps=int(work[:, 0].sum()), n_tests=int(work[:, 1].sum()))
+                    n_steps=n_steps, n_tests=n_tests)
 
 
 def trace(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarray, *,

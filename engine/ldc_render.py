@@ -50,7 +50,7 @@ from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
 from .raycast import RayCaster, make_caster
 from .scene import CameraParams, RuntimeScene
-from .view_pass import gather_reflections, highlights
+from .view_pass import gather_params, gather_point, highlight_params, highlight_point
 from .warp import warp_ldc
 
 PROV_NONE = 0
@@ -103,84 +103,344 @@ def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
     return method, int(ibrt_generations)
 
 
-@nb.njit(cache=True, parallel=True, nogil=True)
-def _gather_samples(sel, idx, side, origin, fu, fv, fw, h, nu, offsets, depth, geo, nrm, material, obj, diffuse,
-                    vis, p, ng, ns, mat, obj_out, diff, bits):
-    """Rows ``sel`` of the outputs from LDC samples ``idx[sel]`` on ``side[sel]`` of one axis:
-    world point (pixel found by binary search in the CSR offsets), normals flipped to the side
-    (shading normal falling back to the geometric one), ids, diffuse radiance, bits."""
-    words = bits.shape[1]
-    for t in nb.prange(sel.shape[0]):
-        r = sel[t]
-        s = idx[r]
-        k = np.searchsorted(offsets, s, side="right") - 1
-        a = (k % nu + 0.5) * h
-        b = (k // nu + 0.5) * h
-        for c in range(3):
-            p[r, c] = origin[c] + a * fu[c] + b * fv[c] + depth[s] * fw[c]
-        sd = side[r]
-        sg = 1.0 if sd == 0 else -1.0
-        g0, g1, g2 = sg * geo[s, 0], sg * geo[s, 1], sg * geo[s, 2]
-        n0, n1, n2 = sg * nrm[s, 0], sg * nrm[s, 1], sg * nrm[s, 2]
-        if n0 * g0 + n1 * g1 + n2 * g2 <= 0.0:
-            n0, n1, n2 = g0, g1, g2
-        ng[r, 0], ng[r, 1], ng[r, 2] = g0, g1, g2
-        ns[r, 0], ns[r, 1], ns[r, 2] = n0, n1, n2
-        mat[r] = material[s]
-        obj_out[r] = obj[s]
-        for c in range(3):
-            diff[r, c] = diffuse[s, sd, c]
-        for q in range(words):
-            bits[r, q] = vis[s, sd, q]
+# ----------------------------------------------------------------------------- fused per-pixel kernels
+# One launch per LDC axis with that axis' arrays passed one by one: numba indexes a tuple of
+# arrays with a run-time index, and unpacks tuples of arrays in calls, at the price of
+# reference counting per access (measured: several times the work itself).
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sample_point(org, fu, fv, fw, h, nu, offs, depth, s):
+    """World position of sample s of an axis (its pixel found by binary search in the CSR offsets)."""
+    k = np.searchsorted(offs, s, side="right") - 1
+    aa = (k % nu + 0.5) * h
+    bb = (k // nu + 0.5) * h
+    dep = depth[s]
+    return (org[0] + aa * fu[0] + bb * fv[0] + dep * fw[0],
+            org[1] + aa * fu[1] + bb * fv[1] + dep * fw[1],
+            org[2] + aa * fu[2] + bb * fv[2] + dep * fw[2])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sample_normals(geo, nrm, s, sd):
+    """Geometric and shading normal of sample s flipped to side sd (the shading normal falls
+    back to the geometric one when it is on the other side)."""
+    sg = 1.0 if sd == 0 else -1.0
+    g0, g1, g2 = sg * geo[s, 0], sg * geo[s, 1], sg * geo[s, 2]
+    n0, n1, n2 = sg * nrm[s, 0], sg * nrm[s, 1], sg * nrm[s, 2]
+    if n0 * g0 + n1 * g1 + n2 * g2 <= 0.0:
+        n0, n1, n2 = g0, g1, g2
+    return g0, g1, g2, n0, n1, n2
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, max_move, px, py, pz, g0, g1, g2, n0, n1, n2):
+    """The pixel ray o + t d meets the plane of triangle t: move p there (when within max_move)
+    and interpolate the shading normal (barycentrics clamped to [-0.25, 1.25]: mild
+    extrapolation across the triangle's edges), flipped like g. Returns (p, ns), unchanged when
+    the ray misses the plane or the crossing is too far."""
+    den = dx * g0 + dy * g1 + dz * g2
+    if abs(den) < 1e-9:
+        return px, py, pz, n0, n1, n2
+    ax, ay, az = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
+    tt = ((ax - ox) * g0 + (ay - oy) * g1 + (az - oz) * g2) / den
+    if not tt > 0.0:
+        return px, py, pz, n0, n1, n2
+    qx, qy, qz = ox + tt * dx, oy + tt * dy, oz + tt * dz
+    ex, ey, ez = qx - px, qy - py, qz - pz
+    if not (ex * ex + ey * ey + ez * ez <= max_move * max_move):
+        return px, py, pz, n0, n1, n2
+    e1x, e1y, e1z = tri_p[t, 1, 0] - ax, tri_p[t, 1, 1] - ay, tri_p[t, 1, 2] - az
+    e2x, e2y, e2z = tri_p[t, 2, 0] - ax, tri_p[t, 2, 1] - ay, tri_p[t, 2, 2] - az
+    vx, vy, vz = qx - ax, qy - ay, qz - az
+    d00 = e1x * e1x + e1y * e1y + e1z * e1z
+    d01 = e1x * e2x + e1y * e2y + e1z * e2z
+    d11 = e2x * e2x + e2y * e2y + e2z * e2z
+    d20 = vx * e1x + vy * e1y + vz * e1z
+    d21 = vx * e2x + vy * e2y + vz * e2z
+    dd = d00 * d11 - d01 * d01
+    if not dd > 0.0:
+        return px, py, pz, n0, n1, n2
+    bu = min(max((d11 * d20 - d01 * d21) / dd, -0.25), 1.25)
+    bv = min(max((d00 * d21 - d01 * d20) / dd, -0.25), 1.25)
+    bw = min(max(1.0 - bu - bv, -0.25), 1.25)
+    m0 = bw * tri_n[t, 0, 0] + bu * tri_n[t, 1, 0] + bv * tri_n[t, 2, 0]
+    m1 = bw * tri_n[t, 0, 1] + bu * tri_n[t, 1, 1] + bv * tri_n[t, 2, 1]
+    m2 = bw * tri_n[t, 0, 2] + bu * tri_n[t, 1, 2] + bv * tri_n[t, 2, 2]
+    ln = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if not ln > 1e-12:
+        return px, py, pz, n0, n1, n2
+    sg = 1.0 if g0 * tri_ng[t, 0] + g1 * tri_ng[t, 1] + g2 * tri_ng[t, 2] >= 0.0 else -1.0
+    m0, m1, m2 = sg * m0 / ln, sg * m1 / ln, sg * m2 / ln
+    if m0 * g0 + m1 * g1 + m2 * g2 <= 0.0:
+        m0, m1, m2 = g0, g1, g2
+    return qx, qy, qz, m0, m1, m2
+
+
+@nb.njit(cache=True, nogil=True)
+def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
+    """The covered pixels the view pass runs on (row-major) and how many get highlights and
+    reflections."""
+    n = obj_id.shape[0]
+    out = np.empty(n, np.int64)
+    m = 0
+    n_hl = 0
+    n_rf = 0
+    for i in range(n):
+        if obj_id[i] < 0:
+            continue
+        mt = mat_id[i]
+        hl = want_hl and (force or hl_mat[mt])
+        rf = want_rf and (force or rf_mat[mt])
+        if hl or rf:
+            out[m] = i
+            m += 1
+            n_hl += hl
+            n_rf += rf
+    return out[:m], n_hl, n_rf
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm,
+                     mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
+                     tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
+                     radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
+    """One parallel group of ``_view_pass_kernel``: the whole view-dependent pass of the camera
+    pixels ``pix`` whose sample is on LDC axis ``axis`` (-1: the raycast fill's records
+    ``rc_*``), in one pass: surface record, ``refine`` onto the sample's triangle, direction to
+    the eye, highlights and the light-field gather, added to ``radiance`` (flat (h*w, 3));
+    ``normal`` gets the shading normal used. With ``trace``: the pixel's mirror ray into
+    ``ray_*`` (row = position in pix). Blocks of 64 pixels are dealt round-robin to the
+    ``groups`` (mirror and glossy pixels cluster in the image)."""
+    ortho, eye, right, up, fwd, W, H, th, aspect, hh, px_size, ortho_px = cam
+    kr = gp[0]
+    dirs = gp[7]
+    bits = vis2 if axis >= 0 else rc_bits
+    n = pix.shape[0]
+    nblk = (n + 63) // 64
+    cand = np.empty(dirs.shape[0] + 8, np.int64)
+    for blk in range(grp, nblk, groups):
+        for i in range(blk * 64, min(n, blk * 64 + 64)):
+            r = pix[i]
+            if s_axis[r] != axis:
+                continue
+            if axis >= 0:
+                s = s_idx[r]
+                sd = s_side[r]
+                px, py, pz = _sample_point(org, fu, fv, fw, h, nu, offs, depth, s)
+                g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+                m = mat_a[s]
+                brow = 2 * s + sd
+                if refine:
+                    x = r % W + 0.5
+                    y = r // W + 0.5
+                    sx = 2.0 * x / W - 1.0
+                    sy = 1.0 - 2.0 * y / H
+                    if ortho:
+                        ax_ = sx * hh * aspect
+                        ay_ = sy * hh
+                        ox = eye[0] + ax_ * right[0] + ay_ * up[0]
+                        oy = eye[1] + ax_ * right[1] + ay_ * up[1]
+                        oz = eye[2] + ax_ * right[2] + ay_ * up[2]
+                        dx, dy, dz = fwd[0], fwd[1], fwd[2]
+                        reach = ortho_px
+                    else:
+                        ax_ = sx * th * aspect
+                        ay_ = sy * th
+                        dx = fwd[0] + ax_ * right[0] + ay_ * up[0]
+                        dy = fwd[1] + ax_ * right[1] + ay_ * up[1]
+                        dz = fwd[2] + ax_ * right[2] + ay_ * up[2]
+                        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+                        dx /= ln
+                        dy /= ln
+                        dz /= ln
+                        ox, oy, oz = eye[0], eye[1], eye[2]
+                        ex, ey, ez = px - ox, py - oy, pz - oz
+                        reach = px_size * math.sqrt(ex * ex + ey * ey + ez * ez)
+                    lim = 2.0 * (ldc_h + reach)
+                    px, py, pz, n0, n1, n2 = _refine_point(ox, oy, oz, dx, dy, dz, prim[s], tri_p, tri_n, tri_ng,
+                                                           lim, px, py, pz, g0, g1, g2, n0, n1, n2)
+            else:  # a pixel of the raycast fill
+                j = rc_row[r]
+                px, py, pz = rc_p[j, 0], rc_p[j, 1], rc_p[j, 2]
+                g0, g1, g2 = rc_ng[j, 0], rc_ng[j, 1], rc_ng[j, 2]
+                n0, n1, n2 = rc_ns[j, 0], rc_ns[j, 1], rc_ns[j, 2]
+                m = rc_mat[j]
+                brow = j
+            if ortho:
+                wo0, wo1, wo2 = -fwd[0], -fwd[1], -fwd[2]
+            else:
+                wo0, wo1, wo2 = eye[0] - px, eye[1] - py, eye[2] - pz
+                ln = math.sqrt(wo0 * wo0 + wo1 * wo1 + wo2 * wo2)
+                if not ln > 0.0:
+                    ln = 1.0
+                wo0 /= ln
+                wo1 /= ln
+                wo2 /= ln
+            normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
+            if want_hl and (force or hl_mat[m]):
+                h0, h1, h2 = highlight_point(r, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, bits, brow, force,
+                                             hp)
+                radiance[r, 0] += h0
+                radiance[r, 1] += h1
+                radiance[r, 2] += h2
+            if want_rf and (force or rf_mat[m]):
+                f0, f1, f2, u = gather_point(px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, mirror, True, force,
+                                             cand, gp)
+                radiance[r, 0] += f0
+                radiance[r, 1] += f1
+                radiance[r, 2] += f2
+                lookups[i] = u
+                if gathered_mat[m]:
+                    prov[r] = 3
+                if trace:
+                    c = n0 * wo0 + n1 * wo1 + n2 * wo2
+                    d0, d1, d2 = 2.0 * c * n0 - wo0, 2.0 * c * n1 - wo1, 2.0 * c * n2 - wo2
+                    ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                    d0 /= ln
+                    d1 /= ln
+                    d2 /= ln
+                    live = force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
+                                     g0 * d0 + g1 * d1 + g2 * d2 > 0.0)
+                    ray_live[i] = live
+                    if live:
+                        ray_o[i, 0], ray_o[i, 1], ray_o[i, 2] = px, py, pz
+                        ray_d[i, 0], ray_d[i, 1], ray_d[i, 2] = d0, d1, d2
+                        ray_ng[i, 0], ray_ng[i, 1], ray_ng[i, 2] = g0, g1, g2
+                        ray_thr[i, 0], ray_thr[i, 1], ray_thr[i, 2] = kr[m, 0], kr[m, 1], kr[m, 2]
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _refine(rows, o, d, prim, tri_p, tri_n, tri_ng, max_move, p, ng, ns):
-    """For row rows[i] (pixel ray o[i] + t d[i], sample triangle prim[i]): move p to the ray's
-    crossing with the triangle's plane (when within max_move[i] of the sample) and interpolate
-    the shading normal there (barycentrics clamped to [-0.25, 1.25]: mild extrapolation
-    across the triangle's edges), flipped like ng; ng is unchanged."""
-    for i in nb.prange(rows.shape[0]):
-        r = rows[i]
-        t = prim[i]
-        g0, g1, g2 = ng[r, 0], ng[r, 1], ng[r, 2]
-        den = d[i, 0] * g0 + d[i, 1] * g1 + d[i, 2] * g2
-        if abs(den) < 1e-9:
+def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm, mat_a,
+                      vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p, tri_n,
+                      tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp, radiance,
+                      normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
+    for grp in nb.prange(groups):
+        _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm,
+                         mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
+                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
+                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
+                    normal, obj_id, mat_id, prov, s_axis, s_idx, s_side):
+    """Hole pixels whose eye ray hit LDC axis ``axis`` show the hit sample's diffuse radiance,
+    distance, shading normal and ids (provenance 2)."""
+    for i in nb.prange(holes.shape[0]):
+        if hit_axis[i] != axis:
             continue
-        ax, ay, az = tri_p[t, 0, 0], tri_p[t, 0, 1], tri_p[t, 0, 2]
-        tt = ((ax - o[i, 0]) * g0 + (ay - o[i, 1]) * g1 + (az - o[i, 2]) * g2) / den
-        if not tt > 0.0:
-            continue
-        qx, qy, qz = o[i, 0] + tt * d[i, 0], o[i, 1] + tt * d[i, 1], o[i, 2] + tt * d[i, 2]
-        dx, dy, dz = qx - p[r, 0], qy - p[r, 1], qz - p[r, 2]
-        if not (dx * dx + dy * dy + dz * dz <= max_move[i] * max_move[i]):
-            continue
-        e1x, e1y, e1z = tri_p[t, 1, 0] - ax, tri_p[t, 1, 1] - ay, tri_p[t, 1, 2] - az
-        e2x, e2y, e2z = tri_p[t, 2, 0] - ax, tri_p[t, 2, 1] - ay, tri_p[t, 2, 2] - az
-        vx, vy, vz = qx - ax, qy - ay, qz - az
-        d00 = e1x * e1x + e1y * e1y + e1z * e1z
-        d01 = e1x * e2x + e1y * e2y + e1z * e2z
-        d11 = e2x * e2x + e2y * e2y + e2z * e2z
-        d20 = vx * e1x + vy * e1y + vz * e1z
-        d21 = vx * e2x + vy * e2y + vz * e2z
-        dd = d00 * d11 - d01 * d01
-        if not dd > 0.0:
-            continue
-        bu = min(max((d11 * d20 - d01 * d21) / dd, -0.25), 1.25)
-        bv = min(max((d00 * d21 - d01 * d20) / dd, -0.25), 1.25)
-        bw = min(max(1.0 - bu - bv, -0.25), 1.25)
-        n0 = bw * tri_n[t, 0, 0] + bu * tri_n[t, 1, 0] + bv * tri_n[t, 2, 0]
-        n1 = bw * tri_n[t, 0, 1] + bu * tri_n[t, 1, 1] + bv * tri_n[t, 2, 1]
-        n2 = bw * tri_n[t, 0, 2] + bu * tri_n[t, 1, 2] + bv * tri_n[t, 2, 2]
-        ln = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        if not ln > 1e-12:
-            continue
-        sg = 1.0 if g0 * tri_ng[t, 0] + g1 * tri_ng[t, 1] + g2 * tri_ng[t, 2] >= 0.0 else -1.0
-        n0, n1, n2 = sg * n0 / ln, sg * n1 / ln, sg * n2 / ln
-        if n0 * g0 + n1 * g1 + n2 * g2 <= 0.0:
-            n0, n1, n2 = g0, g1, g2
-        p[r, 0], p[r, 1], p[r, 2] = qx, qy, qz
-        ns[r, 0], ns[r, 1], ns[r, 2] = n0, n1, n2
+        r = holes[i]
+        s = hit_sample[i]
+        sd = 1 if geo[s, 0] * d[i, 0] + geo[s, 1] * d[i, 1] + geo[s, 2] * d[i, 2] > 0.0 else 0
+        _, _, _, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+        radiance[r, 0], radiance[r, 1], radiance[r, 2] = diff[s, sd, 0], diff[s, sd, 1], diff[s, sd, 2]
+        depth[r] = hit_t[i]
+        normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
+        obj_id[r] = obj_a[s]
+        mat_id[r] = mat_a[s]
+        prov[r] = 2
+        s_axis[r] = axis
+        s_idx[r] = s
+        s_side[r] = sd
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
+                 last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr):
+    """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
+    axis -1, missed everything)."""
+    kr = gp[0]
+    dirs = gp[7]
+    n = o.shape[0]
+    nblk = (n + 63) // 64
+    cand = np.empty(dirs.shape[0] + 8, np.int64)
+    for blk in range(grp, nblk, groups):
+        for i in range(blk * 64, min(n, blk * 64 + 64)):
+            if hit_axis[i] != axis:
+                continue
+            q = owner[i]
+            if axis < 0:
+                for c in range(3):
+                    acc[q, c] += thr[i, c] * bg[c]
+                continue
+            s = hit_sample[i]
+            d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+            t = hit_t[i]
+            px, py, pz = o[i, 0] + t * d0, o[i, 1] + t * d1, o[i, 2] + t * d2
+            sd = 1 if geo[s, 0] * d0 + geo[s, 1] * d1 + geo[s, 2] * d2 > 0.0 else 0
+            g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+            m = mat_a[s]
+            wo0, wo1, wo2 = -d0, -d1, -d2
+            h0, h1, h2 = highlight_point(i, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, vis2, 2 * s + sd,
+                                         force, hp)
+            l0 = diff[s, sd, 0] + h0
+            l1 = diff[s, sd, 1] + h1
+            l2 = diff[s, sd, 2] + h2
+            if has_llf:
+                f0, f1, f2, u = gather_point(px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, last, True, force,
+                                             cand, gp)
+                l0 += f0
+                l1 += f1
+                l2 += f2
+                lookups[i] = u
+            acc[q, 0] += thr[i, 0] * l0
+            acc[q, 1] += thr[i, 1] * l1
+            acc[q, 2] += thr[i, 2] * l2
+            if last:
+                continue
+            c = n0 * wo0 + n1 * wo1 + n2 * wo2
+            e0, e1, e2 = 2.0 * c * n0 - wo0, 2.0 * c * n1 - wo1, 2.0 * c * n2 - wo2
+            ln = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            e0 /= ln
+            e1 /= ln
+            e2 /= ln
+            go = force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and g0 * e0 + g1 * e1 + g2 * e2 > 0.0)
+            cont[i] = go
+            if go:
+                n_o[i, 0], n_o[i, 1], n_o[i, 2] = px, py, pz
+                n_d[i, 0], n_d[i, 1], n_d[i, 2] = e0, e1, e2
+                n_ng[i, 0], n_ng[i, 1], n_ng[i, 2] = g0, g1, g2
+                for c3 in range(3):
+                    n_thr[i, c3] = thr[i, c3] * kr[m, c3]
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg, last,
+                has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr):
+    """One generation of traced mirror rays, the hits on one LDC axis (module docstring of
+    ``_shade_group``): at each hit the sample's diffuse radiance + its highlights toward the
+    ray + its glossy gather (+ the mirror cone on the ``last`` generation) times the ray's
+    throughput into ``acc[owner]`` (owners are distinct within a generation); a miss adds the
+    background. Hits on mirrors continue (``cont``, ``n_*``: the next generation's rays)."""
+    for grp in nb.prange(groups):
+        _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr)
+
+
+def _ldc_axes(ldc: LDC) -> list[tuple]:
+    """Per LDC axis the arrays the fused kernels take: frame (origin, u, v, w, h, nu), CSR
+    offsets, depth, geometric and shading normal, material, object, diffuse, visibility as (2 n,
+    W) (row 2 s + side) and triangle id."""
+    out = []
+    c = np.ascontiguousarray
+    for ax in ldc.axes:
+        f = ax.ldi.frame
+        vis = c(ax.visibility, dtype=np.uint64)
+        out.append((c(f.origin, np.float64), c(f.u, np.float64), c(f.v, np.float64), c(f.w, np.float64), float(f.h),
+                    int(f.nu), c(ax.ldi.offsets, np.int64), c(ax.ldi.depth, np.float64), c(ax.geo_normal, np.float32),
+                    c(ax.normal, np.float32), c(ax.material, np.int32), c(ax.object, np.int32),
+                    c(ax.diffuse, np.float32), vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32)))
+    return out
+
+
+def _no_gather_params(scene: RuntimeScene) -> tuple:
+    """``gather_params`` of an empty light field (typed like a real one; never gathered from)."""
+    mt = scene.materials
+    z3 = np.zeros((0, 3))
+    return (mt.kr, mt.kg, mt.gloss_exponent, 1.0, 3, 1, np.full((3, 3, 2), -1, np.int64), z3, np.zeros(1, np.int64),
+            np.zeros(0), np.zeros((0, 3), np.float32), z3, z3, z3, z3, np.zeros(0), 1,
+            np.asarray(scene.background, np.float64).reshape(3))
 
 
 class LDCViewRenderer:
@@ -218,7 +478,13 @@ class LDCViewRenderer:
         if bad:
             raise InvalidInputError(f"unknown warp options {sorted(bad)}")
         self._accel = None
+        self._trace_args = None
         self._lock = threading.Lock()
+        # kernel tables built once per renderer (the LDC, LLF and scene are immutable)
+        self._axes = _ldc_axes(ldc)
+        self._bounds = scene.bounds
+        self._hp = highlight_params(scene, self.area_light_samples, self.seed)
+        self._gp = gather_params(scene, llf) if llf is not None else _no_gather_params(scene)
         mt = scene.materials
         self._has_ks = (np.any(mt.ks > 0, axis=1) & (mt.shininess > 0))
         self._has_kr = np.any(mt.kr > 0, axis=1)
@@ -247,28 +513,6 @@ class LDCViewRenderer:
         return int(n)
 
     # ------------------------------------------------------------------ helpers
-    def _sample_surface(self, axis: np.ndarray, idx: np.ndarray, side: np.ndarray):
-        """World point, normals (flipped to ``side``, shading normal falling back to the
-        geometric one), material and visibility bits of LDC samples."""
-        ldc = self.ldc
-        m = axis.shape[0]
-        p = np.empty((m, 3))
-        ng = np.empty((m, 3))
-        ns = np.empty((m, 3))
-        mat = np.empty(m, np.int32)
-        obj = np.empty(m, np.int32)
-        diff = np.empty((m, 3))
-        bits = np.zeros((m, ldc.visibility_words), np.uint64)
-        for a, ax in enumerate(ldc.axes):
-            sel = np.flatnonzero(axis == a)
-            if not sel.size:
-                continue
-            fr = ax.ldi.frame
-            _gather_samples(sel, idx, side, fr.origin, fr.u, fr.v, fr.w, fr.h, fr.nu, ax.ldi.offsets, ax.ldi.depth,
-                            ax.geo_normal, ax.normal, ax.material, ax.object, ax.diffuse, ax.visibility,
-                            p, ng, ns, mat, obj, diff, bits)
-        return p, ng, ns, mat, obj, diff, bits
-
     def _hole_rays(self, camera: CameraParams, w) -> np.ndarray:
         """The hole pixels worth a ray: covered pixels flagged as holes (a far surface seen
         through a crack), and uncovered pixels within ``hole_search_px`` of a covered one whose
@@ -285,7 +529,7 @@ class LDCViewRenderer:
         if self.hole_search_px is None or not pix.size:
             return pix
         o, d = camera_rays(camera, pix % camera.width + 0.5, pix // camera.width + 0.5)
-        lo, hi = self.scene.bounds
+        lo, hi = self._bounds
         pad = self.ldc.h
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / d
@@ -294,14 +538,6 @@ class LDCViewRenderer:
         tn = np.nanmax(np.minimum(t0, t1), axis=1)
         tf = np.nanmin(np.maximum(t0, t1), axis=1)
         return pix[tf >= np.maximum(tn, 0.0)]
-
-    def _wo(self, camera: CameraParams, p: np.ndarray) -> np.ndarray:
-        _, _, fwd = camera.basis()
-        if camera.kind == "orthographic":
-            return np.ascontiguousarray(np.broadcast_to(-fwd, p.shape))
-        wo = np.asarray(camera.eye, np.float64)[None] - p
-        ln = np.linalg.norm(wo, axis=1, keepdims=True)
-        return wo / np.where(ln > 0, ln, 1.0)
 
     # ------------------------------------------------------------------ render
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
@@ -379,34 +615,32 @@ class LDCViewRenderer:
         rc_surf = None
         if fill != "none" and holes.size:
             o, d = camera_rays(camera, holes % W + 0.5, holes // W + 0.5)
-            # the warp's (covered) value is replaced by the ray's answer
-            radiance[holes] = ldc.background
-            depth[holes] = 0.0
-            normal[holes] = 0.0
-            obj_id[holes] = -1
-            mat_id[holes] = -1
-            prov[holes] = PROV_NONE
-            s_axis[holes] = -1
-            s_idx[holes] = -1
             if fill == "ibrt":
-                from .ibrt import trace
-
-                hits = trace(ldc, self.accel, o, d)
-                counts["fill_ibrt_steps"] = hits.n_steps
-                hp = holes[hits.hit]
-                if hp.size:
-                    s_axis[hp] = hits.axis[hits.hit]
-                    s_idx[hp] = hits.sample[hits.hit]
-                    s_side[hp] = hits.side[hits.hit]
-                    _, _, ns_, mat_, obj_, diff_, _ = self._sample_surface(s_axis[hp], s_idx[hp], s_side[hp])
-                    radiance[hp] = diff_
-                    depth[hp] = hits.t[hits.hit]
-                    normal[hp] = ns_
-                    obj_id[hp] = obj_
-                    mat_id[hp] = mat_
-                    prov[hp] = PROV_FILLED
-                filled = int(hp.size)
+                h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
+                counts["fill_ibrt_steps"] = n_steps
+                # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
+                radiance[holes] = ldc.background
+                depth[holes] = 0.0
+                normal[holes] = 0.0
+                obj_id[holes] = -1
+                mat_id[holes] = -1
+                prov[holes] = PROV_NONE
+                s_axis[holes] = -1
+                s_idx[holes] = -1
+                for a, (_, _, _, _, _, _, _, _, geo, nrm, mat_a, obj_a, diff, _, _) in enumerate(self._axes):
+                    _fill_from_hits(a, holes, h_axis, h_sample, h_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
+                                    normal, obj_id, mat_id, prov, s_axis, s_idx, s_side)
+                filled = int(np.count_nonzero(h_axis >= 0))
             else:
+                # the warp's (covered) value is replaced by the ray's answer
+                radiance[holes] = ldc.background
+                depth[holes] = 0.0
+                normal[holes] = 0.0
+                obj_id[holes] = -1
+                mat_id[holes] = -1
+                prov[holes] = PROV_NONE
+                s_axis[holes] = -1
+                s_idx[holes] = -1
                 rc_pix, rc_surf = self._raycast_fill(o, d, holes, radiance, depth, normal, obj_id, mat_id, prov)
                 filled = int(rc_pix.size)
         timings["fill"] = time.perf_counter() - t0
@@ -415,62 +649,73 @@ class LDCViewRenderer:
                           "why": f"{holes.size} hole pixels" if holes.size else "no holes"}
         report(0.5, "fill")
 
-        # ---- 3. view-dependent pass
-        covered = obj_id >= 0
-        mats = np.where(covered, mat_id, 0)
+        # ---- 3. view-dependent pass: one fused kernel over the selected pixels
+        t0 = time.perf_counter()
         nondiffuse = self._has_ks | self._has_kr | self._has_kg
         want_vp = force or self.plan.needs_view_pass
-        sel_hl = covered & (True if force else self._has_ks[mats]) if want_vp else np.zeros_like(covered)
         reflect = method != "ldc"
         refl_mat = self._has_kr | self._has_kg
-        sel_rf = covered & (True if force else refl_mat[mats]) if (want_vp and reflect) else np.zeros_like(covered)
-        if reflect and self.llf is None and sel_rf.any():
-            if force and not self.plan.needs_llf:
-                sel_rf[:] = False
-                passes["gather_note"] = {"why": "forced, but there is no LLF to gather from"}
-            else:
-                raise InvalidInputError(f"method {method!r} needs the bake's LLF (the scene has glossy or mirror "
-                                        "materials) but this bake has none; use method 'ldc' or rebake with an LLF")
-        vp_pix = np.flatnonzero(sel_hl | sel_rf)
+        want_rf = want_vp and reflect
+        if want_rf and self.llf is None:
+            covered = obj_id >= 0
+            if force or np.any(covered & refl_mat[np.where(covered, mat_id, 0)]):
+                if force and not self.plan.needs_llf:
+                    want_rf = False
+                    passes["gather_note"] = {"why": "forced, but there is no LLF to gather from"}
+                else:
+                    raise InvalidInputError(f"method {method!r} needs the bake's LLF (the scene has glossy or mirror "
+                                            "materials) but this bake has none; use method 'ldc' or rebake with an "
+                                            "LLF")
+        vp_pix, n_hl, n_rf = _select_view_pass(obj_id, mat_id, self._has_ks, refl_mat, bool(want_vp), bool(want_rf),
+                                               force)
         counts["view_pass_pixels"] = int(vp_pix.size)
-        counts["highlight_pixels"] = int(sel_hl.sum())
-        counts["reflection_pixels"] = int(sel_rf.sum())
+        counts["highlight_pixels"] = int(n_hl)
+        counts["reflection_pixels"] = int(n_rf)
         why_vp = ("forced on every covered pixel" if force else
                   ("the plan has non-diffuse materials" if self.plan.needs_view_pass
                    else "skipped: every material is diffuse"))
-        t0 = time.perf_counter()
-        if vp_pix.size:
-            p, ng, ns, mat, bits = self._pixel_surfaces(camera, vp_pix, s_axis, s_idx, s_side, rc_pix, rc_surf)
-            wo = self._wo(camera, p)
-            normal[vp_pix] = ns  # the (refined) shading normal the view pass used
-        timings["surfaces"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        if sel_hl.any():
-            pos = np.flatnonzero(sel_hl[vp_pix])
-            spec = highlights(sc, p[pos], ng[pos], ns[pos], wo[pos], mat[pos], bits[pos],
-                              area_light_samples=self.area_light_samples, seed=self.seed, force=force)
-            radiance[vp_pix[pos]] += spec
-        timings["highlights"] = time.perf_counter() - t0
-        passes["highlights"] = {"ran": bool(sel_hl.any()), "why": why_vp,
-                                "pixels": int(sel_hl.sum())}
-        report(0.6, "highlights")
-
-        t0 = time.perf_counter()
-        counts["gather_lookups"] = 0
-        counts["gather_pixels"] = 0
         trace_mirror = method == "ldc+ibrt" and k > 0
-        if sel_rf.any():
-            pos = np.flatnonzero(sel_rf[vp_pix])
-            refl, n_look = gather_reflections(sc, self.llf, p[pos], ng[pos], ns[pos], wo[pos], mat[pos],
-                                              mirror=not trace_mirror, glossy=True, force=force)
-            radiance[vp_pix[pos]] += refl
-            counts["gather_lookups"] = n_look
-            gathered = vp_pix[pos][refl_mat[mat[pos]] if not trace_mirror else self._has_kg[mat[pos]]]
-            prov[gathered] = PROV_GATHERED
-            counts["gather_pixels"] = int(gathered.size)
-        timings["gather"] = time.perf_counter() - t0
-        passes["gather"] = {"ran": bool(sel_rf.any()),
+        nv = vp_pix.size
+        lookups = np.zeros(nv, np.int64)
+        nr = nv if (trace_mirror and n_rf) else 0
+        ray_o, ray_d, ray_ng, ray_thr = (np.empty((nr, 3)) for _ in range(4))
+        ray_live = np.zeros(nr, np.bool_)
+        gathered_mat = self._has_kg if trace_mirror else refl_mat
+        if nv:
+            if rc_surf is not None:
+                rc_row = np.full(H * W, -1, np.int64)
+                rc_row[rc_pix] = np.arange(rc_pix.size)
+                rc_p, rc_ng, rc_ns, rc_mat, rc_bits = rc_surf
+                if rc_bits.shape[1] != ldc.visibility_words:
+                    rc_bits = np.zeros((rc_pix.size, ldc.visibility_words), np.uint64)
+            else:
+                rc_row = np.zeros(0, np.int64)
+                rc_p = rc_ng = rc_ns = np.zeros((0, 3))
+                rc_mat = np.zeros(0, np.int32)
+                rc_bits = np.zeros((0, ldc.visibility_words), np.uint64)
+            args = (rc_row, np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
+                    np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
+                    np.ascontiguousarray(rc_bits, np.uint64), self._camera_tuple(camera), self.refine_surface,
+                    float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat, bool(want_vp),
+                    bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal, prov,
+                    lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+            for a, (org, fu, fv, fw, h, nu, offs, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
+                _view_pass_kernel(_groups(), a, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, dep, geo,
+                                  nrm, mat_a, vis2, prim, *args)
+            if rc_surf is not None:  # pixels of the raycast fill (no LDC sample)
+                org, fu, fv, fw, h, nu, offs, dep, geo, nrm, mat_a, _, _, vis2, prim = self._axes[0]
+                _view_pass_kernel(_groups(), -1, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, dep, geo,
+                                  nrm, mat_a, vis2, prim, *args)
+        # the fused kernel does surface records, refinement, highlights and the gather: all in "surfaces"
+        timings["surfaces"] = time.perf_counter() - t0
+        timings["highlights"] = 0.0
+        timings["gather"] = 0.0
+        passes["highlights"] = {"ran": bool(n_hl), "why": why_vp, "pixels": int(n_hl)}
+        report(0.6, "highlights")
+        counts["gather_lookups"] = int(lookups.sum())
+        # provenance is at most PROV_FILLED before this pass: the gathered ones were set by the kernel
+        counts["gather_pixels"] = int(np.count_nonzero(prov[vp_pix] == PROV_GATHERED)) if n_rf else 0
+        passes["gather"] = {"ran": bool(n_rf),
                             "what": ("glossy lobe" if trace_mirror else "mirror cone + glossy lobe"),
                             "why": ("method 'ldc' has no reflections" if not reflect else why_vp)}
         report(0.75, "gather")
@@ -478,13 +723,14 @@ class LDCViewRenderer:
         t0 = time.perf_counter()
         counts["traced_rays"] = 0
         counts["ibrt_steps"] = 0
-        if trace_mirror and sel_rf.any():
-            pos = np.flatnonzero(sel_rf[vp_pix])
-            traced = self._trace_mirrors(vp_pix[pos], p[pos], ng[pos], ns[pos], wo[pos], mat[pos], k, radiance,
-                                         counts, force)
+        if nr:
+            live = np.flatnonzero(ray_live)
+            traced = vp_pix[live]
+            self._trace_mirrors(traced, ray_o[live], ray_d[live], ray_ng[live], ray_thr[live], k, radiance, counts,
+                                force)
             prov[traced[self._has_kr[mat_id[traced]]]] = PROV_TRACED
         timings["ibrt"] = time.perf_counter() - t0
-        passes["ibrt"] = {"ran": bool(trace_mirror and sel_rf.any()), "generations": k,
+        passes["ibrt"] = {"ran": bool(trace_mirror and n_rf), "generations": k,
                           "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
         report(0.95, "ibrt")
 
@@ -503,50 +749,6 @@ class LDCViewRenderer:
                                material_id=mat_id.reshape(H, W).astype(np.int32),
                                provenance=prov.reshape(H, W).astype(np.uint8), hole_mask=w.hole_mask,
                                timings=timings, counts=counts, plan=plan)
-
-    def _pixel_surfaces(self, camera, pix, s_axis, s_idx, s_side, rc_pix, rc_surf):
-        """Surface records (point, normals facing the eye, material, bits) of covered pixels.
-        With ``refine_surface`` an LDC sample's point moves to where the pixel-centre ray meets
-        the sample's triangle plane and its shading normal is interpolated there (the LDI keeps
-        triangle id and barycentrics per sample): highlights and reflection directions are then
-        evaluated per pixel instead of per (up to several pixels wide) splat."""
-        m = pix.shape[0]
-        p = np.empty((m, 3))
-        ng = np.empty((m, 3))
-        ns = np.empty((m, 3))
-        mat = np.empty(m, np.int32)
-        bits = np.zeros((m, self.ldc.visibility_words), np.uint64)
-        from_ldc = s_axis[pix] >= 0
-        if from_ldc.any():
-            q = pix[from_ldc]
-            p[from_ldc], ng[from_ldc], ns[from_ldc], mat[from_ldc], _, _, bits[from_ldc] = \
-                self._sample_surface(s_axis[q], s_idx[q], s_side[q])
-            if self.refine_surface:
-                sel = np.flatnonzero(from_ldc)
-                prim = np.empty(q.size, np.int32)
-                for a, ax in enumerate(self.ldc.axes):
-                    on = s_axis[q] == a
-                    prim[on] = ax.ldi.prim[s_idx[q][on]]
-                o, d = camera_rays(camera, q % camera.width + 0.5, q // camera.width + 0.5)
-                sc = self.scene
-                # the winning sample lies within about a pixel footprint or an LDC cell of the pixel's ray
-                if camera.kind == "perspective":
-                    px_size = 2.0 * math.tan(math.radians(camera.fov_y_deg) * 0.5) / camera.height
-                    reach = px_size * np.linalg.norm(p[sel] - o, axis=1)
-                else:
-                    reach = np.full(sel.size, camera.ortho_height / camera.height)
-                lim = 2.0 * (self.ldc.h + reach)
-                _refine(sel, o, d, prim, sc.tri_p, sc.tri_n, sc.tri_ng, lim, p, ng, ns)
-        if (~from_ldc).any():
-            q = pix[~from_ldc]
-            j = np.searchsorted(rc_pix, q)
-            if rc_surf is None or np.any(j >= rc_pix.size) or np.any(rc_pix[np.minimum(j, rc_pix.size - 1)] != q):
-                raise AssertionError("covered pixel without a surface record")  # pragma: no cover
-            rp, rng_, rns, rmat, rbits = rc_surf
-            p[~from_ldc], ng[~from_ldc], ns[~from_ldc], mat[~from_ldc] = rp[j], rng_[j], rns[j], rmat[j]
-            if bits.shape[1]:
-                bits[~from_ldc] = rbits[j]
-        return p, ng, ns, mat, bits
 
     def _raycast_fill(self, o, d, holes, radiance, depth, normal, obj_id, mat_id, prov):
         """Interim fill: Embree rays against the triangles, shaded with the bake's diffuse model."""
@@ -578,60 +780,60 @@ class LDCViewRenderer:
         bits = vis[r, side] if store else np.zeros((pix.size, 0), np.uint64)
         return pix, (p, g, n, mat, bits)
 
-    def _trace_mirrors(self, pix, p, ng, ns, wo, mat, k, radiance, counts, force) -> np.ndarray:
-        """k generations of image-based mirror rays ending in the cone gather (module docstring).
-        Adds kr x (traced radiance) to ``radiance[pix]``; returns the pixels that traced."""
-        from .ibrt import trace
+    def _camera_tuple(self, camera: CameraParams) -> tuple:
+        right, up, fwd = camera.basis()
+        th = float(np.tan(np.radians(camera.fov_y_deg) * 0.5))
+        px_size = 2.0 * math.tan(math.radians(camera.fov_y_deg) * 0.5) / camera.height
+        return (camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd, int(camera.width),
+                int(camera.height), th, camera.width / camera.height, 0.5 * camera.ortho_height, px_size,
+                camera.ortho_height / camera.height)
 
-        sc, ldc = self.scene, self.ldc
-        mt = sc.materials
+    def _trace(self, o: np.ndarray, d: np.ndarray, origin_normals: np.ndarray | None = None):
+        """(axis, sample, t, n_steps, n_tests) of rays o + t d (d unit) through the LDC."""
+        from .ibrt import trace_args, trace_prepared
+
+        if self._trace_args is None:
+            self._trace_args = trace_args(self.ldc)
+        return trace_prepared(self.ldc, self._trace_args, self.accel, np.ascontiguousarray(o, np.float64),
+                              np.ascontiguousarray(d, np.float64), origin_normals=origin_normals)
+
+    def _trace_mirrors(self, pix, o, d, ng_o, thr, k, radiance, counts, force) -> None:
+        """k generations of image-based mirror rays (origins o, unit directions d, surface
+        normals ng_o at the origins, throughput thr = kr) ending in the cone gather (module
+        docstring); adds the traced radiance to ``radiance[pix]``."""
+        ldc = self.ldc
         bg = np.asarray(ldc.background, np.float64)
-        # generation 0: the pixels' own mirror rays
-        c = np.einsum("ij,ij->i", ns, wo)
-        d = 2.0 * c[:, None] * ns - wo
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        live = (self._has_kr[mat] & (np.einsum("ij,ij->i", ng, d) > 0.0)) | force
-        out_pix = pix[live]
-        thr = mt.kr[mat[live]].astype(np.float64)
-        o, d, ng_o = p[live], d[live], ng[live]
-        owner = np.arange(out_pix.size)
-        acc = np.zeros((out_pix.size, 3))
+        owner = np.arange(pix.size)
+        acc = np.zeros((pix.size, 3))
         for gen in range(1, k + 1):
-            if not owner.size:
+            n = owner.size
+            if not n:
                 break
-            hits = trace(ldc, self.accel, o, d, origin_normals=ng_o)  # leaves the surface it starts on
-            counts["traced_rays"] += int(owner.size)
-            counts["ibrt_steps"] += hits.n_steps
-            miss = ~hits.hit
-            if miss.any():
-                np.add.at(acc, owner[miss], thr[miss] * bg)
-            h = np.flatnonzero(hits.hit)
-            if not h.size:
-                break
-            hp, hng, hns, hmat, _, hdiff, hbits = self._sample_surface(hits.axis[h], hits.sample[h], hits.side[h])
-            hp = hits.point[h]  # where the ray meets the sample's patch
-            hwo = -d[h]
-            local = hdiff + highlights(sc, hp, hng, hns, hwo, hmat, hbits, area_light_samples=self.area_light_samples,
-                                       seed=self.seed, force=force)
+            h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d, ng_o)  # leaves the surface it starts on
+            counts["traced_rays"] += int(n)
+            counts["ibrt_steps"] += n_steps
             last = gen == k
-            if self.llf is not None:
-                g_refl, n_look = gather_reflections(sc, self.llf, hp, hng, hns, hwo, hmat, mirror=last, glossy=True,
-                                                    force=force)
-                local += g_refl
-                counts["gather_lookups"] += n_look
-            np.add.at(acc, owner[h], thr[h] * local)
+            lookups = np.zeros(n, np.int64)
+            cont = np.zeros(n, np.bool_)
+            m = 0 if last else n
+            n_o, n_d, n_ng, n_thr = (np.empty((m, 3)) for _ in range(4))
+            for a in range(-1, 3):
+                _, _, _, _, _, _, _, _, geo, nrm, mat_a, _, diff, vis2, _ = self._axes[max(a, 0)]
+                _shade_hits(_groups(), a, h_axis, h_sample, h_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
+                            last, self.llf is not None, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng,
+                            n_thr)
+            counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break
-            # next generation: mirror rays of the hits that are mirrors
-            c = np.einsum("ij,ij->i", hns, hwo)
-            nd = 2.0 * c[:, None] * hns - hwo
-            nd /= np.linalg.norm(nd, axis=1, keepdims=True)
-            cont = (self._has_kr[hmat] & (np.einsum("ij,ij->i", hng, nd) > 0.0)) | force
-            owner = owner[h][cont]
-            thr = thr[h][cont] * mt.kr[hmat[cont]]
-            o, d, ng_o = hp[cont], nd[cont], hng[cont]
-        radiance[out_pix] += acc
-        return out_pix
+            nxt = np.flatnonzero(cont)
+            owner = owner[nxt]
+            o, d, ng_o, thr = n_o[nxt], n_d[nxt], n_ng[nxt], n_thr[nxt]
+        radiance[pix] += acc
+
+
+def _groups() -> int:
+    """Parallel groups for the fused kernels: one per numba thread."""
+    return max(1, int(nb.get_num_threads()))
 
 
 __all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "MAX_IBRT_GENERATIONS", "METHODS", "PROV_FILLED",

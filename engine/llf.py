@@ -112,7 +112,7 @@ def lattice_index_table(f: int) -> np.ndarray:
     return tab
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def direction_to_lattice(dx, dy, dz, f):
     """Continuous lattice coordinates (A, B) and hemisphere (0: z >= 0, 1: z < 0) of a unit direction."""
     az = abs(dz)
@@ -126,7 +126,7 @@ def direction_to_lattice(dx, dy, dz, f):
     return sa * f * r * (1.0 - t), sb * f * r * t, 0 if dz >= 0.0 else 1
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def candidate_directions(dx, dy, dz, f, radius, table, out):
     """Write the indices of the directions in a (2 radius) x (2 radius) lattice window around
     direction (dx, dy, dz), both hemispheres, into ``out``; returns how many. Every direction

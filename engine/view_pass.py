@@ -82,58 +82,77 @@ def _phong_pow(c, s):
     return math.exp(s * math.log(c))
 
 
-@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _highlights(p, ng, ns, wo, mat, bits, ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent, force, out):
-    n = p.shape[0]
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def highlight_point(key, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, bits, brow, force, hp):
+    """Phong highlights (r, g, b) at one point (module docstring); ``bits[brow]`` the point's
+    (W,) uint64 visibility words, ``hp`` the tuple of ``highlight_params``, ``key`` the point's
+    counter for rect-light jitter. Shared by ``highlights`` and the fused renderer kernels;
+    inlined into them (a call passing many arrays costs more than the work)."""
+    ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
+        extent = hp
+    if not force and (not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0):
+        return 0.0, 0.0, 0.0
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
     nrect = rc.shape[0]
     gg = r_g * r_g
     per = npt + ndir + nrect * gg
     words = bits.shape[1]
-    for i in nb.prange(n):
-        out[i, 0] = out[i, 1] = out[i, 2] = 0.0
-        m = mat[i]
-        if not force and (not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0):
+    c = n0 * wo0 + n1 * wo1 + n2 * wo2
+    wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
+    mx = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
+    mag = OFFSET_REL * (mx + OFFSET_EXTENT * extent)
+    ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
+    spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
+    a0 = a1 = a2 = 0.0
+    for j in range(per):
+        li = j
+        su = sv = 0.0
+        if j >= npt + ndir:
+            li = npt + ndir + (j - npt - ndir) // gg
+            su = uniform(stream, key * per + j, 0)
+            sv = uniform(stream, key * per + j, 1)
+        if words > 0:
+            if (bits[brow, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
+                continue
+        ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
+                                                        dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+        if not ok:
             continue
-        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
-        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
-        wo0, wo1, wo2 = wo[i, 0], wo[i, 1], wo[i, 2]
-        c = n0 * wo0 + n1 * wo1 + n2 * wo2
-        wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
-        mx = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
-        mag = OFFSET_REL * (mx + OFFSET_EXTENT * extent)
-        ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
-        spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
-        a0 = a1 = a2 = 0.0
-        for j in range(per):
-            li = j
-            su = sv = 0.0
-            if j >= npt + ndir:
-                li = npt + ndir + (j - npt - ndir) // gg
-                su = uniform(stream, i * per + j, 0)
-                sv = uniform(stream, i * per + j, 1)
-            if words > 0:
-                if (bits[i, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
-                    continue
-            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
-                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
-            if not ok:
-                continue
-            cos_g = g0 * lx + g1 * ly + g2 * lz
-            cos_s = n0 * lx + n1 * ly + n2 * lz
-            if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
-                continue
-            ca = wr0 * lx + wr1 * ly + wr2 * lz
-            if ca <= spec_cut[m]:
-                continue
-            fs = spec_norm * _phong_pow(ca, shin[m]) * cos_s
-            a0 += ks[m, 0] * fs * e0
-            a1 += ks[m, 1] * fs * e1
-            a2 += ks[m, 2] * fs * e2
-        out[i, 0], out[i, 1], out[i, 2] = a0, a1, a2
+        cos_g = g0 * lx + g1 * ly + g2 * lz
+        cos_s = n0 * lx + n1 * ly + n2 * lz
+        if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
+            continue
+        ca = wr0 * lx + wr1 * ly + wr2 * lz
+        if ca <= spec_cut[m]:
+            continue
+        fs = spec_norm * _phong_pow(ca, shin[m]) * cos_s
+        a0 += ks[m, 0] * fs * e0
+        a1 += ks[m, 1] * fs * e1
+        a2 += ks[m, 2] * fs * e2
+    return a0, a1, a2
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
+    for i in nb.prange(p.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = highlight_point(i, p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2],
+                                                          ns[i, 0], ns[i, 1], ns[i, 2], wo[i, 0], wo[i, 1], wo[i, 2],
+                                                          mat[i], bits, i, force, hp)
+
+
+def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: int = 0) -> tuple:
+    """The scene's material and light tables as the tuple ``highlight_point`` takes."""
+    mt, lt = scene.materials, scene.lights
+    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
+    r_area = np.linalg.norm(a, axis=1)
+    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
+    spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
+    r_g = max(1, int(round(math.sqrt(area_light_samples))))
+    return (mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction,
+            lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area, lt.rect_radiance,
+            lt.rect_two_sided, r_g, stream_key(seed, 11), np.asarray(scene.center, np.float64),
+            float(scene.extent))
 
 
 def _check_points(p, ng, ns, wo, mat):
@@ -155,29 +174,21 @@ def highlights(scene: RuntimeScene, p, ng, ns, wo, mat, bits=None, *, area_light
     bits = np.zeros((n, 0), np.uint64) if bits is None else np.ascontiguousarray(bits, dtype=np.uint64)
     if bits.ndim != 2 or bits.shape[0] != n:
         raise InvalidInputError("view pass: bits must be (n, W) uint64")
-    mt, lt = scene.materials, scene.lights
+    lt = scene.lights
     if bits.shape[1] and bits.shape[1] != (lt.count + 63) // 64:
         raise InvalidInputError(f"view pass: bits have {bits.shape[1]} words, the scene's lights need "
                                 f"{(lt.count + 63) // 64}")
     out = np.zeros((n, 3))
     if n == 0 or lt.count == 0:
         return out
-    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
-    r_area = np.linalg.norm(a, axis=1)
-    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
-    spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
-    r_g = max(1, int(round(math.sqrt(area_light_samples))))
-    _highlights(p, ng, ns, wo, mat, bits, mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity,
-                lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
-                lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11), scene.center, scene.extent,
-                bool(force), out)
+    _highlights(p, ng, ns, wo, mat, bits, bool(force), highlight_params(scene, area_light_samples, seed), out)
     return out
 
 
 # ----------------------------------------------------------------------------- gather
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _lookup(j, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
     """Radiance arriving at p from LLF direction j (bilinear over the 4 nearest pixels of view j,
     first sample beyond p's tangent plane in each). Returns (r, g, b)."""
@@ -224,7 +235,7 @@ def _lookup(j, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv,
     return r0, r1, r2
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off, pk_depth, pk_rad,
           origin, fu, fv, fw, fh, res, bg):
     """Normalised cos^n_c-weighted radiance of the k_dirs LLF directions nearest to d.
@@ -263,7 +274,7 @@ def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
     return bg[0], bg[1], bg[2], used
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table, dirs, cand, pk_off,
           pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
     """Weighted sums over the lobe cos^g_eff around d (see module docstring). mode 0:
@@ -325,53 +336,69 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table,
     return 0.0, 0.0, 0.0, used
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def gather_point(px, py, pz, g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, m, do_mirror, do_glossy, force, cand, gp):
+    """Reflected radiance (r, g, b) toward wo at one point by light-field gather and the number
+    of lookups (module docstring); ``cand`` an int64 scratch array of at least n_directions + 8,
+    ``gp`` the tuple of ``gather_params``. Shared by ``gather_reflections`` and the fused
+    renderer kernels; inlined into them."""
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg = gp
+    r0 = r1 = r2 = 0.0
+    lookups = 0
+    c = s0 * wo0 + s1 * wo1 + s2 * wo2
+    d0, d1, d2 = 2 * c * s0 - wo0, 2 * c * s1 - wo1, 2 * c * s2 - wo2
+    ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    d0 /= ln
+    d1 /= ln
+    d2 /= ln
+    if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
+                                g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
+        l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off,
+                              pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+        r0 += kr[m, 0] * l0
+        r1 += kr[m, 1] * l1
+        r2 += kr[m, 2] * l2
+        lookups += u
+    if do_glossy and (force or kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
+        g = gexp[m]
+        if not g >= 0.0:
+            g = 0.0
+        if g <= n_c:  # the LLF resolves the lobe: the reference's estimator over the directions
+            g_eff = max(g, 1e-6)
+            l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, 0, f, table, dirs,
+                                  cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+            k = (g + 2.0) / (g + 1.0)
+        else:  # narrower than the LLF resolves: the mirror cone's radiance x E_lobe[cos_i]
+            l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
+                                  pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+            k = max(s0 * d0 + s1 * d1 + s2 * d2, 0.0)
+        r0 += kg[m, 0] * k * l0
+        r1 += kg[m, 1] * k * l1
+        r2 += kg[m, 2] * k * l2
+        lookups += u
+    return r0, r1, r2, lookups
+
+
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _gather(p, ng, ns, wo, mat, kr, kg, gexp, do_mirror, do_glossy, force, n_c, k_dirs, f, table, dirs, pk_off,
-            pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, out, lookups):
+def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
     n = p.shape[0]
-    nd = dirs.shape[0]
+    nd = gp[7].shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
     for blk in nb.prange(nblk):
         cand = np.empty(nd + 8, np.int64)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
-            out[i, 0] = out[i, 1] = out[i, 2] = 0.0
-            lookups[i] = 0
-            m = mat[i]
-            px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-            g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
-            s0, s1, s2 = ns[i, 0], ns[i, 1], ns[i, 2]
-            wo0, wo1, wo2 = wo[i, 0], wo[i, 1], wo[i, 2]
-            c = s0 * wo0 + s1 * wo1 + s2 * wo2
-            d0, d1, d2 = 2 * c * s0 - wo0, 2 * c * s1 - wo1, 2 * c * s2 - wo2
-            ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            d0 /= ln
-            d1 /= ln
-            d2 /= ln
-            if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
-                                        g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
-                l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off,
-                                      pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
-                out[i, 0] += kr[m, 0] * l0
-                out[i, 1] += kr[m, 1] * l1
-                out[i, 2] += kr[m, 2] * l2
-                lookups[i] += u
-            if do_glossy and (force or kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
-                g = gexp[m]
-                if not g >= 0.0:
-                    g = 0.0
-                if g <= n_c:  # the LLF resolves the lobe: the reference's estimator over the directions
-                    g_eff = max(g, 1e-6)
-                    l0, l1, l2, u = _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, 0, f, table, dirs,
-                                          cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
-                    k = (g + 2.0) / (g + 1.0)
-                else:  # narrower than the LLF resolves: the mirror cone's radiance x E_lobe[cos_i]
-                    l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
-                                          pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
-                    k = max(s0 * d0 + s1 * d1 + s2 * d2, 0.0)
-                out[i, 0] += kg[m, 0] * k * l0
-                out[i, 1] += kg[m, 1] * k * l1
-                out[i, 2] += kg[m, 2] * k * l2
-                lookups[i] += u
+            out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(
+                p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2], ns[i, 0], ns[i, 1], ns[i, 2], wo[i, 0],
+                wo[i, 1], wo[i, 2], mat[i], do_mirror, do_glossy, force, cand, gp)
+
+
+def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIRECTIONS, background=None) -> tuple:
+    """The scene's reflection tables and the LLF's packed arrays as the tuple ``gather_point`` takes."""
+    if not (1 <= cone_directions <= 16):
+        raise InvalidInputError("cone_directions must be in [1, 16]")
+    bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
+    mt = scene.materials
+    return (mt.kr, mt.kg, mt.gloss_exponent, mirror_cone_exponent(llf), int(cone_directions), *_llf_args(llf), bg)
 
 
 def _llf_args(llf: LLF):
@@ -386,17 +413,13 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
     glossy lobe, see module docstring) and the number of LLF lookups made. ``force``: gather
     for every point even where kr / kg are 0 (adds exact zeros there)."""
     p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
-    if not (1 <= cone_directions <= 16):
-        raise InvalidInputError("cone_directions must be in [1, 16]")
-    bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
+    gp = gather_params(scene, llf, cone_directions, background)
     n = p.shape[0]
     out = np.zeros((n, 3))
     lookups = np.zeros(n, np.int64)
     if n == 0:
         return out, 0
-    mt = scene.materials
-    _gather(p, ng, ns, wo, mat, mt.kr, mt.kg, mt.gloss_exponent, mirror, glossy, bool(force), mirror_cone_exponent(llf),
-            cone_directions, *_llf_args(llf), bg, out, lookups)
+    _gather(p, ng, ns, wo, mat, mirror, glossy, bool(force), gp, out, lookups)
     if not np.all(np.isfinite(out)):
         raise NonFiniteOutputError("light-field gather produced non-finite radiance")
     return out, int(lookups.sum())
