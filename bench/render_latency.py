@@ -153,6 +153,9 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "with_preview_p50_ms": med(prev), "with_preview_p95_ms": pct(prev, 0.95),
         "with_preview_p99_ms": pct(prev, 0.99),
         "timings_p50_ms": {k: med([r["timings_ms"].get(k) for r in rows]) for k in keys},
+        "job_other_p50_ms": med([r["timings_ms"]["job_total"] - r["timings_ms"].get("total", 0.0)
+                                 - r["timings_ms"].get("encode", 0.0) - r["timings_ms"].get("store", 0.0)
+                                 for r in rows if "job_total" in r["timings_ms"]]),
         "queue_p50_ms": med([r["queue_ms"] for r in rows]),
         "rq_job_p50_ms": med([r["rq_job_ms"] for r in rows]),
         "answer_after_end_p50_ms": med(after), "answer_after_end_p99_ms": p99(after),
@@ -256,6 +259,11 @@ def measure_scene(c: httpx.Client, scene_id: str, cam: dict[str, Any], size: int
                   ldc: int, methods: list[str], variants: list[str], rng: np.random.Generator) -> dict[str, Any]:
     load_before = os.getloadavg()[0]
     b = bake(c, scene_id, ldc)
+    # The bake just wrote its parts (tens of MB): until the kernel has written them back, every fsync of
+    # the render jobs' store commits waits for that too (ext4 data=ordered). Start from a clean page cache.
+    t0 = time.perf_counter()
+    os.sync()
+    b["sync_s"] = time.perf_counter() - t0
     results: dict[str, dict[str, Any]] = {}
     for m in methods:
         rows: dict[str, list[dict[str, Any]]] = {v: [] for v in variants}
@@ -310,6 +318,23 @@ def measure(scenes: list[str], size: int, views: int, warmup: int, ldc: int, met
             "load": [load_before, os.getloadavg()[0]], "cores": os.cpu_count(), "machine": platform.machine()}
 
 
+def _compact(value: Any) -> Any:
+    """For the stored data: floats rounded to 0.1, each request's row cut to its client-side times and
+    the job's main timings (the p50s of everything else stay in the summaries)."""
+    if isinstance(value, float):
+        return round(value, 1)
+    if isinstance(value, list):
+        return [_compact(v) for v in value]
+    if isinstance(value, dict):
+        if "request_ms" in value:  # one request's row
+            value = {k: v for k, v in value.items() if k in ("request_ms", "with_preview_ms", "queue_ms",
+                                                             "answer_after_end_ms", "timings_ms")}
+            value["timings_ms"] = {k: v for k, v in value["timings_ms"].items()
+                                   if k in ("total", "encode", "store", "job_total")}
+        return {k: _compact(v) for k, v in value.items()}
+    return value
+
+
 def _sample_camera(scene: str) -> dict[str, Any]:
     from samples import sample_path
 
@@ -341,26 +366,27 @@ def report_views(label: str, res: dict[str, Any]) -> list[str]:
         lines += ["", f"#### `{scene}` (bake {sres['bake']['wall_s']:.0f} s, {sres['bake']['parts']} parts; load "
                   f"{sres['load'][0]:.1f} -> {sres['load'][1]:.1f})", "",
                   "| method | outputs | **request -> preview shown, p50 / p99** | request -> 200 answer, p50 / p99 | "
-                  "job | ... render | ... encode | ... store | queue wait | job end -> answer, p50 / p99 | "
+                  "job | ... render | ... encode | ... store | ... other | queue wait | job end -> answer, p50 / p99 | "
                   "artifact KiB |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in by.values():
             t = r["timings_p50_ms"]
             lines.append(
                 f"| `{r['method']}` | {r['outputs']} | **{_ms(r['with_preview_p50_ms'])}** / "
                 f"{_ms(r['with_preview_p99_ms'])} | {_ms(r['request_p50_ms'])} / {_ms(r['request_p99_ms'])} | "
                 f"{_ms(t.get('job_total'))} | {_ms(t.get('total'))} | {_ms(t.get('encode'))} | {_ms(t.get('store'))} | "
+                f"{_ms1(r.get('job_other_p50_ms'))} | "
                 f"{_ms1(r['queue_p50_ms'])} | {_ms1(r['answer_after_end_p50_ms'])} / "
                 f"{_ms1(r['answer_after_end_p99_ms'])} | {r['artifact_bytes_p50'] / 1024:,.0f} |")
         stages = []
+        skip = {"total", "job_total", "encode", "store", "load_bake", "load_scene"}
         for r in by.values():
             t = r["timings_p50_ms"]
             if r["outputs"] == res["variants"][0] and "warp" in t:
-                stages.append(f"`{r['method']}` " + " / ".join(
-                    _ms((t.get("holes") or 0) + (t.get("fill") or 0)) if s == "holes" else _ms(t.get(s))
-                    for s in STAGES if s != "fill"))
+                stages.append(f"`{r['method']}` " + ", ".join(
+                    f"{k} {_ms(v)}" for k, v in t.items() if k not in skip and v is not None and v >= 0.5))
         if stages:
-            lines += ["", "Render stages warp / holes+fill / surfaces / highlights / gather / ibrt (p50 ms): "
+            lines += ["", "Render stages as the renderer reports them (p50 ms, stages under 0.5 ms left out): "
                       + "; ".join(stages) + "."]
         if "all" in res["variants"] and len(res["variants"]) > 1:
             ratios = []
@@ -372,15 +398,16 @@ def report_views(label: str, res: dict[str, Any]) -> list[str]:
                         ratios.append(f"`{m}` {full['with_preview_p50_ms'] / lean['with_preview_p50_ms']:.2f}x "
                                       f"({v}; encode {_ms(full['timings_p50_ms'].get('encode'))} -> "
                                       f"{_ms(lean['timings_p50_ms'].get('encode'))} ms)")
-            lines += ["", "Every image vs fewer, same run (ratio of the p50s of request -> preview shown): " + ", ".join(ratios)
-                      + "."]
+            lines += ["", "Every image vs fewer, same run (ratio of the p50s of request -> preview shown): "
+                      + ", ".join(ratios) + "."]
         key = next((k for k in (f"ldc+ibrt:1 {v}" for v in ("preview", "preview+radiance", "all")) if k in by), None)
         if key:
             r = by[key]
             p50, p99 = r["with_preview_p50_ms"], r["with_preview_p99_ms"]
             t = r["timings_p50_ms"]
             render, enc_store = t.get("total", 0.0), t.get("encode", 0.0) + t.get("store", 0.0)
-            verdict = "met" if p50 <= GOAL_MS else f"not met by {p50 - GOAL_MS:.0f} ms"
+            verdict = ("p50 met" if p50 <= GOAL_MS else f"p50 over by {p50 - GOAL_MS:.0f} ms") + (
+                ", p99 met" if p99 <= GOAL_MS else f", p99 over by {p99 - GOAL_MS:.0f} ms")
             goal.append(f"`{scene}` p50 {p50:.0f} ms / p99 {p99:.0f} ms ({verdict}; of the p50: render "
                         f"{render:.0f}, encode + store {enc_store:.0f}, the rest "
                         f"{p50 - render - enc_store:.0f} ms: queue, RQ, "
@@ -494,28 +521,35 @@ def report_legacy(label: str, res: dict[str, Any]) -> list[str]:
 NOTES = [
     "- **Waiting** (`service/api/routes/renders.py`): `POST /v1/renders?wait=` blocks on the job's RQ result "
     "stream (`XREAD BLOCK` on `rq:results:<job id>`, which the worker writes in the same MULTI/EXEC as the "
-    "job's final status) in slices of 250 ms, re-reading the status after each slice, so the answer leaves "
-    "about a millisecond after the job's end (column \"job end -> answer\": RQ's end stamp to the client "
-    "having the answer, which also holds the manifest read and the HTTP answer). A job that ends without a "
-    "result (canceled, a dead worker's job failed by maintenance, deleted) is noticed at the end of the "
-    "slice. The blocking reads run on their own 32-thread limiter, so waiting requests never starve the "
-    "threads of other endpoints. Before: polling, first with a 1.5x back-off (answers up to 170 ms late), "
-    "then every 5-20 ms.",
-    "- **Outputs** (`RenderRequest.outputs`): an interactive client asks for `[\"preview\"]` (the browser "
-    "preview asks for what it shows: preview, radiance for exposure and comparisons, provenance for the LDC "
-    "methods); the job encodes and stores only those, the rest of the job is unchanged. The subset is part "
-    "of the artifact key (a lean artifact is never served for a full request; full-request keys are what "
-    "they were), and a subset request is answered from the full artifact when that exists.",
-    "- **Encoding**: images are encoded in memory (`engine.imageio.encode_image`, no scratch-file fsync) on "
-    "3 threads, the preview first, with an exact table-driven sRGB transform and PNG zlib level 1 + 'sub' "
-    "filter; EXRs stay ZIP (the table above shows what uncompressed would save in time and cost in size: "
-    "with `outputs` an interactive request no longer encodes the EXRs at all, so the lossless, smallest "
-    "codec stays for the full artifacts). Switching is one entry of `workers.jobs.render.EXR_COMPRESSION`.",
-    "- **Store**: every blob is written to a temp file, fsynced, renamed, and the manifest last "
-    "(`write_artifact(max_workers=4)`: blob writes overlap, a failed one publishes nothing). With the "
-    "preview alone that is one blob + the manifest.",
-    "- What is left is the render itself (engine work, `docs/ldc.md`) and a fixed ~10-20 ms of HTTP, RQ "
-    "bookkeeping and the PNG download.",
+    "job's final status) in slices of 250 ms, re-reading the status after each slice. A job that ends "
+    "without a result (canceled, a dead worker's job failed by maintenance, deleted) is noticed at the end "
+    "of its slice. The blocking reads run on their own 32-thread limiter, so waiting requests never starve "
+    "the threads of other endpoints. Column \"job end -> answer\" runs from RQ's end stamp to the client "
+    "holding the answer: in a probe on this machine (load ~4) the wait returned 2.5 ms after the stamp "
+    "(RQ's own success bookkeeping comes first), the final job state and the manifest were read 3.5 ms later "
+    "(one thread hop), and the answer reached the client 3.5 ms after that. Before: polling, first with a "
+    "1.5x back-off (answers up to 170 ms late), then every 5-20 ms.",
+    "- **Outputs** (`RenderRequest.outputs`): an interactive client asks for `[\"preview\"]`; the browser "
+    "preview asks for what it shows (preview, radiance for exposure and comparisons, provenance for the LDC "
+    "methods: the `preview+radiance` rows are its cost). The job encodes and stores only those. The subset "
+    "is part of the artifact key (a lean artifact is never served for a full request; full-request keys "
+    "are what they were), and a subset request is answered from the full artifact of the same view when "
+    "that exists.",
+    "- **Encoding**: in memory (`engine.imageio.encode_image`, no scratch-file fsync) on 3 threads, the "
+    "preview first, exact table-driven sRGB transform, PNG zlib level 1 + 'sub' filter. EXRs stay ZIP: "
+    "uncompressed would be ~2-4x faster per EXR but 2-140x larger (table above), and with `outputs` an "
+    "interactive request no longer encodes any EXR. The preview alone is 13-38 ms of a lean job; about "
+    "half of it is the sRGB transform in NumPy (a serial `nogil` numba kernel doing the same float64 "
+    "operations gave bit-identical codes 4.8x faster, 13.0 -> 2.7 ms at 512x512, in a prototype: "
+    "`engine/imageio.py`, not changed here).",
+    "- **Store**: every blob goes to a temp file, is fsynced and renamed, then the manifest the same way "
+    "(`write_artifact(max_workers=4)`: blob writes overlap, a failed one publishes nothing). One blob + "
+    "manifest is 5 fsyncs (file, directory, new artifact directory, manifest, directory): ~2.5 ms when the "
+    "disk is quiet, 20-25 ms while other processes write (ext4 commits their dirty data first); the "
+    "benchmark syncs after each bake so its own bake does not count.",
+    "- **The rest of the p50** (the goal line's \"rest\"): queue wait 4-8 ms (RQ's dequeue), the job's own "
+    "bookkeeping 4-10 ms (\"other\": payload check, progress saves, counts), job end -> answer 5-8 ms, the "
+    "PNG download ~5 ms. The p99s are the shared machine's tails (load 3-4 from other sessions' work).",
 ]
 
 
@@ -540,7 +574,7 @@ def main() -> None:
         runs = json.loads(DATA.read_text()) if DATA.exists() else {}
         for label in filter(None, a.drop.split(",")):
             runs.pop(label, None)
-        DATA.write_text(json.dumps(runs, indent=1) + "\n")
+        DATA.write_text(json.dumps(runs, separators=(",", ":")) + "\n")  # rows make it large: compact
         replace_block(DOC, "render_latency", report(runs))
         print(f"wrote the render_latency block of {DOC}")
         return
@@ -562,9 +596,9 @@ def main() -> None:
         return
     runs = json.loads(DATA.read_text()) if DATA.exists() else {}
     runs.pop(a.label, None)
-    runs = {a.label: res, **runs}  # newest first
+    runs = {a.label: _compact(res), **runs}  # newest first
     DATA.parent.mkdir(parents=True, exist_ok=True)
-    DATA.write_text(json.dumps(runs, indent=1) + "\n")
+    DATA.write_text(json.dumps(runs, separators=(",", ":")) + "\n")  # rows make it large: compact
     replace_block(DOC, "render_latency", report(runs))
     print(f"wrote the render_latency block of {DOC} and {DATA}")
 
