@@ -419,13 +419,14 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
     here rather than called per ray and axis: numba calls with many array arguments cost
     more than a whole traversal)."""
     n = o.shape[0]
-    stk_i = np.empty((_STACK, 5), dtype=np.int64)
-    stk_f = np.empty((_STACK, 2))
-    ct0 = np.empty(4)
-    ct1 = np.empty(4)
-    cid = np.empty(4, dtype=np.int64)
-    order = np.empty(3, dtype=np.int64)
-    key = np.empty(3)
+    # scratch written per step: padded so no other thread's scratch shares its cache lines
+    stk_i = np.empty((_STACK + 4, 5), dtype=np.int64)[2:_STACK + 2]
+    stk_f = np.empty((_STACK + 16, 2))[8:_STACK + 8]
+    ct0 = np.empty(36)[16:20]
+    ct1 = np.empty(36)[16:20]
+    cid = np.empty(36, dtype=np.int64)[16:20]
+    order = np.empty(35, dtype=np.int64)[16:19]
+    key = np.empty(35)[16:19]
     lim = 0.5 + margin
     n_steps = 0
     n_tests = 0
@@ -659,13 +660,17 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, dep
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _trace_kernel(o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree, layer_root,
-                  root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps, out_axis, out_sample,
-                  out_t, work):
-    for ci in nb.prange(work.shape[0]):
-        _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
-                     layer_root, root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps,
-                     out_axis, out_sample, out_t, work)
+def _trace_kernel(groups, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+                  layer_root, root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps, out_axis,
+                  out_sample, out_t, work):
+    # chunks dealt round-robin to ``groups`` (one per thread): neighbouring rays cost alike (a
+    # mirror sphere's rays are contiguous), so contiguous halves would leave one thread idle
+    nch = work.shape[0]
+    for g in nb.prange(groups):
+        for ci in range(g, nch, groups):
+            _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+                         layer_root, root_level, lo_n, hi_n, first, mask, link, zr, uvr, margin, min_cos, self_eps,
+                         out_axis, out_sample, out_t, work)
 
 
 # ----------------------------------------------------------------------------- API
@@ -743,7 +748,8 @@ def trace_prepared(ldc: LDC, args: tuple, accel: IBRTAccel, o: np.ndarray, d: np
     work = np.zeros(((n + _CHUNK - 1) // _CHUNK, 2), dtype=np.int64)
     if n:
         perm, org, hs, res, offs_t, depth_t, gn_t = args
-        _trace_kernel(o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t, gn_t, use_tree,
+        _trace_kernel(max(1, nb.get_num_threads()), o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t, depth_t,
+                      gn_t, use_tree,
                       accel.layer_root, accel.root_level, accel.lo, accel.hi, accel.first, accel.mask, accel.link,
                       accel.zrange, accel.uvrange, accel.margin, accel.min_cos, float(self_eps), out_axis, out_sample,
                       out_t, work)

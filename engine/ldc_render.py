@@ -50,7 +50,7 @@ from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
 from .raycast import RayCaster, make_caster
 from .scene import CameraParams, RuntimeScene
-from .view_pass import gather_params, gather_point, highlight_params, highlight_point
+from .view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point
 from .warp import warp_ldc
 
 PROV_NONE = 0
@@ -110,9 +110,9 @@ def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _sample_point(org, fu, fv, fw, h, nu, offs, depth, s):
-    """World position of sample s of an axis (its pixel found by binary search in the CSR offsets)."""
-    k = np.searchsorted(offs, s, side="right") - 1
+def _sample_point(org, fu, fv, fw, h, nu, spix, depth, s):
+    """World position of sample s of an axis (``spix``: the LDI pixel of every sample)."""
+    k = np.int64(spix[s])
     aa = (k % nu + 0.5) * h
     bb = (k // nu + 0.5) * h
     dep = depth[s]
@@ -201,7 +201,7 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm,
+def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
                      mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
                      tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                      radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
@@ -213,12 +213,12 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
     ``ray_*`` (row = position in pix). Blocks of 64 pixels are dealt round-robin to the
     ``groups`` (mirror and glossy pixels cluster in the image)."""
     ortho, eye, right, up, fwd, W, H, th, aspect, hh, px_size, ortho_px = cam
-    kr = gp[0]
-    dirs = gp[7]
+    # unpacked once per thread (see ``gather_point``)
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_ = gp
+    cand, best_c, pt = gather_scratch(dirs.shape[0])
     bits = vis2 if axis >= 0 else rc_bits
     n = pix.shape[0]
     nblk = (n + 63) // 64
-    cand = np.empty(dirs.shape[0] + 8, np.int64)
     for blk in range(grp, nblk, groups):
         for i in range(blk * 64, min(n, blk * 64 + 64)):
             r = pix[i]
@@ -227,7 +227,7 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
             if axis >= 0:
                 s = s_idx[r]
                 sd = s_side[r]
-                px, py, pz = _sample_point(org, fu, fv, fw, h, nu, offs, depth, s)
+                px, py, pz = _sample_point(org, fu, fv, fw, h, nu, spix, depth, s)
                 g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
                 m = mat_a[s]
                 brow = 2 * s + sd
@@ -285,8 +285,11 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
                 radiance[r, 1] += h1
                 radiance[r, 2] += h2
             if want_rf and (force or rf_mat[m]):
-                f0, f1, f2, u = gather_point(px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, mirror, True, force,
-                                             cand, gp)
+                pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
+                pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
+                f0, f1, f2, u = gather_point(pt, m, mirror, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
+                                             table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
+                                             bg_)
                 radiance[r, 0] += f0
                 radiance[r, 1] += f1
                 radiance[r, 2] += f2
@@ -311,12 +314,12 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm, mat_a,
+def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm, mat_a,
                       vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p, tri_n,
                       tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp, radiance,
                       normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
     for grp in nb.prange(groups):
-        _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, depth, geo, nrm,
+        _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
                          mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
                          tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
@@ -350,11 +353,11 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
                  last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr):
     """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
     axis -1, missed everything)."""
-    kr = gp[0]
-    dirs = gp[7]
+    # unpacked once per thread (see ``gather_point``)
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_ = gp
+    cand, best_c, pt = gather_scratch(dirs.shape[0])
     n = o.shape[0]
     nblk = (n + 63) // 64
-    cand = np.empty(dirs.shape[0] + 8, np.int64)
     for blk in range(grp, nblk, groups):
         for i in range(blk * 64, min(n, blk * 64 + 64)):
             if hit_axis[i] != axis:
@@ -378,8 +381,11 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
             l1 = diff[s, sd, 1] + h1
             l2 = diff[s, sd, 2] + h2
             if has_llf:
-                f0, f1, f2, u = gather_point(px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, last, True, force,
-                                             cand, gp)
+                pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
+                pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
+                f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
+                                             table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
+                                             bg_)
                 l0 += f0
                 l1 += f1
                 l2 += f2
@@ -419,8 +425,8 @@ def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo
 
 
 def _ldc_axes(ldc: LDC) -> list[tuple]:
-    """Per LDC axis the arrays the fused kernels take: frame (origin, u, v, w, h, nu), CSR
-    offsets, depth, geometric and shading normal, material, object, diffuse, visibility as (2 n,
+    """Per LDC axis the arrays the fused kernels take: frame (origin, u, v, w, h, nu), the LDI
+    pixel of every sample (int32), depth, geometric and shading normal, material, object, diffuse, visibility as (2 n,
     W) (row 2 s + side) and triangle id."""
     out = []
     c = np.ascontiguousarray
@@ -428,8 +434,9 @@ def _ldc_axes(ldc: LDC) -> list[tuple]:
         f = ax.ldi.frame
         vis = c(ax.visibility, dtype=np.uint64)
         out.append((c(f.origin, np.float64), c(f.u, np.float64), c(f.v, np.float64), c(f.w, np.float64), float(f.h),
-                    int(f.nu), c(ax.ldi.offsets, np.int64), c(ax.ldi.depth, np.float64), c(ax.geo_normal, np.float32),
-                    c(ax.normal, np.float32), c(ax.material, np.int32), c(ax.object, np.int32),
+                    int(f.nu), ax.ldi.sample_pixels().astype(np.int32), c(ax.ldi.depth, np.float64),
+                    c(ax.geo_normal, np.float32), c(ax.normal, np.float32), c(ax.material, np.int32),
+                    c(ax.object, np.int32),
                     c(ax.diffuse, np.float32), vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32)))
     return out
 
@@ -593,14 +600,15 @@ class LDCViewRenderer:
         timings["holes"] = w.timings["holes"]
         H, W = camera.height, camera.width
         radiance = w.radiance.reshape(-1, 3).astype(np.float64)
-        depth = w.depth.reshape(-1).copy()
-        normal = w.normal.reshape(-1, 3).copy()
-        obj_id = w.object_id.reshape(-1).copy()
-        mat_id = w.material_id.reshape(-1).copy()
-        prov = w.provenance.reshape(-1).copy()
-        s_axis = w.sample_axis.reshape(-1).copy()
-        s_idx = w.sample_index.reshape(-1).copy()
-        s_side = w.sample_side.reshape(-1).copy()
+        # the warp's images are this render's own: updated in place (flat views)
+        depth = w.depth.reshape(-1)
+        normal = w.normal.reshape(-1, 3)
+        obj_id = w.object_id.reshape(-1)
+        mat_id = w.material_id.reshape(-1)
+        prov = w.provenance.reshape(-1)
+        s_axis = w.sample_axis.reshape(-1)
+        s_idx = w.sample_index.reshape(-1)
+        s_side = w.sample_side.reshape(-1)
         passes["warp"] = {"ran": True, "why": "always: the LDC's view-independent radiance"}
         counts["warped_pixels"] = int((prov == PROV_WARPED).sum())
         counts["hole_pixels"] = w.n_holes
@@ -699,12 +707,12 @@ class LDCViewRenderer:
                     float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat, bool(want_vp),
                     bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal, prov,
                     lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
-            for a, (org, fu, fv, fw, h, nu, offs, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
-                _view_pass_kernel(_groups(), a, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, dep, geo,
+            for a, (org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
+                _view_pass_kernel(_groups(), a, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, dep, geo,
                                   nrm, mat_a, vis2, prim, *args)
             if rc_surf is not None:  # pixels of the raycast fill (no LDC sample)
-                org, fu, fv, fw, h, nu, offs, dep, geo, nrm, mat_a, _, _, vis2, prim = self._axes[0]
-                _view_pass_kernel(_groups(), -1, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, offs, dep, geo,
+                org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim = self._axes[0]
+                _view_pass_kernel(_groups(), -1, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, dep, geo,
                                   nrm, mat_a, vis2, prim, *args)
         # the fused kernel does surface records, refinement, highlights and the gather: all in "surfaces"
         timings["surfaces"] = time.perf_counter() - t0
@@ -743,11 +751,11 @@ class LDCViewRenderer:
                 "force_all_passes": force, "passes": passes, "effects": self.plan.to_dict(),
                 "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
         report(1.0, "done")
-        return LDCRenderResult(radiance=out, depth=depth.reshape(H, W).astype(np.float32),
-                               normal=normal.reshape(H, W, 3).astype(np.float32),
-                               object_id=obj_id.reshape(H, W).astype(np.int32),
-                               material_id=mat_id.reshape(H, W).astype(np.int32),
-                               provenance=prov.reshape(H, W).astype(np.uint8), hole_mask=w.hole_mask,
+        return LDCRenderResult(radiance=out, depth=depth.reshape(H, W).astype(np.float32, copy=False),
+                               normal=normal.reshape(H, W, 3).astype(np.float32, copy=False),
+                               object_id=obj_id.reshape(H, W).astype(np.int32, copy=False),
+                               material_id=mat_id.reshape(H, W).astype(np.int32, copy=False),
+                               provenance=prov.reshape(H, W).astype(np.uint8, copy=False), hole_mask=w.hole_mask,
                                timings=timings, counts=counts, plan=plan)
 
     def _raycast_fill(self, o, d, holes, radiance, depth, normal, obj_id, mat_id, prov):

@@ -62,6 +62,7 @@ from .scene import RuntimeScene
 INV_PI = 1.0 / math.pi
 GLOSSY_LOG_CUT = 10.0  # skip directions whose lobe weight is below e^-10 of the best one
 CONE_DIRECTIONS = 3
+MAX_CONE_DIRECTIONS = 16
 _BLOCK = 64
 
 
@@ -235,14 +236,32 @@ def _lookup(j, px, py, pz, g0, g1, g2, pk_off, pk_depth, pk_rad, origin, fu, fv,
     return r0, r1, r2
 
 
+@nb.njit(cache=True, nogil=True)
+def padded_empty(n, dtype):
+    """np.empty(n, dtype) with 128 bytes of padding on each side: per-thread scratch arrays
+    written per point must not share a cache line with another thread's (false sharing
+    serialised the threads)."""
+    return np.empty(n + 32, dtype)[16:16 + n]
+
+
+@nb.njit(cache=True, nogil=True)
+def gather_scratch(n_directions):
+    """(cand, best_c, pt): the scratch arrays the gather needs, allocated once per thread or block."""
+    return (padded_empty(n_directions + 8 + MAX_CONE_DIRECTIONS, np.int64),
+            padded_empty(MAX_CONE_DIRECTIONS, np.float64), padded_empty(12, np.float64))
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off, pk_depth, pk_rad,
-          origin, fu, fv, fw, fh, res, bg):
+def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c, pk_off, pk_depth,
+          pk_rad, origin, fu, fv, fw, fh, res, bg):
     """Normalised cos^n_c-weighted radiance of the k_dirs LLF directions nearest to d.
-    Returns (r, g, b, lookups)."""
+    Returns (r, g, b, lookups). Scratch (no allocation per call): ``cand`` (int64, n_directions
+    + 8 + MAX_CONE_DIRECTIONS; its tail holds the best indices), ``best_c`` (float64,
+    MAX_CONE_DIRECTIONS)."""
     nc = candidate_directions(d0, d1, d2, f, 3, table, cand)
-    best_i = np.empty(k_dirs, np.int64)
-    best_c = np.full(k_dirs, -2.0)
+    best_i = cand[cand.shape[0] - MAX_CONE_DIRECTIONS:]
+    for q in range(k_dirs):
+        best_c[q] = -2.0
     for t in range(nc):
         jd = cand[t]
         c = dirs[jd, 0] * d0 + dirs[jd, 1] * d1 + dirs[jd, 2] * d2
@@ -336,13 +355,17 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table,
     return 0.0, 0.0, 0.0, used
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def gather_point(px, py, pz, g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, m, do_mirror, do_glossy, force, cand, gp):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off,
+                 pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
     """Reflected radiance (r, g, b) toward wo at one point by light-field gather and the number
-    of lookups (module docstring); ``cand`` an int64 scratch array of at least n_directions + 8,
-    ``gp`` the tuple of ``gather_params``. Shared by ``gather_reflections`` and the fused
-    renderer kernels; inlined into them."""
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg = gp
+    of lookups (module docstring). ``pt`` (12,) float64: p, ng, ns, wo; ``cand``, ``best_c`` the
+    scratch arrays of ``gather_scratch``; then the tables of ``gather_params`` (pass them one by
+    one, unpacked once per thread: unpacking a tuple of arrays per point costs reference counts
+    on arrays every thread shares, which serialises the threads). Shared by
+    ``gather_reflections`` and the fused renderer kernels."""
+    px, py, pz, g0, g1, g2 = pt[0], pt[1], pt[2], pt[3], pt[4], pt[5]
+    s0, s1, s2, wo0, wo1, wo2 = pt[6], pt[7], pt[8], pt[9], pt[10], pt[11]
     r0 = r1 = r2 = 0.0
     lookups = 0
     c = s0 * wo0 + s1 * wo1 + s2 * wo2
@@ -353,7 +376,7 @@ def gather_point(px, py, pz, g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, m, do_mirror
     d2 /= ln
     if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
                                 g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
-        l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, pk_off,
+        l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c, pk_off,
                               pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
         r0 += kr[m, 0] * l0
         r1 += kr[m, 1] * l1
@@ -369,7 +392,7 @@ def gather_point(px, py, pz, g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, m, do_mirror
                                   cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
             k = (g + 2.0) / (g + 1.0)
         else:  # narrower than the LLF resolves: the mirror cone's radiance x E_lobe[cos_i]
-            l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
+            l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c,
                                   pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
             k = max(s0 * d0 + s1 * d1 + s2 * d2, 0.0)
         r0 += kg[m, 0] * k * l0
@@ -381,20 +404,23 @@ def gather_point(px, py, pz, g0, g1, g2, s0, s1, s2, wo0, wo1, wo2, m, do_mirror
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg = gp
     n = p.shape[0]
-    nd = gp[7].shape[0]
+    nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
     for blk in nb.prange(nblk):
-        cand = np.empty(nd + 8, np.int64)
+        cand, best_c, pt = gather_scratch(nd)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            for c in range(3):
+                pt[c], pt[3 + c], pt[6 + c], pt[9 + c] = p[i, c], ng[i, c], ns[i, c], wo[i, c]
             out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(
-                p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2], ns[i, 0], ns[i, 1], ns[i, 2], wo[i, 0],
-                wo[i, 1], wo[i, 2], mat[i], do_mirror, do_glossy, force, cand, gp)
+                pt, mat[i], do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs,
+                pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
 
 
 def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIRECTIONS, background=None) -> tuple:
     """The scene's reflection tables and the LLF's packed arrays as the tuple ``gather_point`` takes."""
-    if not (1 <= cone_directions <= 16):
+    if not (1 <= cone_directions <= MAX_CONE_DIRECTIONS):
         raise InvalidInputError("cone_directions must be in [1, 16]")
     bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
     mt = scene.materials
@@ -432,7 +458,7 @@ def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth,
     nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
     for blk in nb.prange(nblk):
-        cand = np.empty(nd + 8, np.int64)
+        cand, best_c, _ = gather_scratch(nd)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
             if exponent > 0.0:
@@ -442,7 +468,8 @@ def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth,
                                       fv, fw, fh, res, bg)
             else:
                 r0, r1, r2, _ = _cone(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, d[i, 0], d[i, 1], d[i, 2], n_c, k_dirs,
-                                      f, table, dirs, cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                                      f, table, dirs, cand, best_c, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh,
+                                      res, bg)
             out[i, 0], out[i, 1], out[i, 2] = r0, r1, r2
 
 
