@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 import weakref
+from collections.abc import Collection
 from typing import Annotated, Any, Literal
 
 import anyio
@@ -57,13 +58,22 @@ BAKE_MISSING_409: dict[int | str, dict[str, Any]] = {409: {
 """OpenAPI entry of the 409 of the render endpoints (``POST /v1/renders``, ``POST /v1/batches``)."""
 
 
-def artifact_links(key: str) -> dict[str, str]:
+_LINKED_BLOBS = (("image.exr", "radiance.exr"), ("image.png", "preview.png"), ("provenance.png", "provenance.png"))
+
+
+def artifact_links(key: str, blobs: Collection[str] = ("radiance.exr", "preview.png")) -> dict[str, str]:
+    """The artifact's URLs: its manifest and the images it holds (``blobs``: blob names)."""
     base = f"/v1/artifacts/{key}"
-    return {"artifact": base, "image.exr": f"{base}/image.exr", "image.png": f"{base}/image.png"}
+    return {"artifact": base, **{link: f"{base}/{link}" for link, blob in _LINKED_BLOBS if blob in blobs}}
 
 
-def _answer(key: str, job: JobPublic | None, manifest: ArtifactManifest | None, cached: bool) -> RenderPublic:
-    links = artifact_links(key)
+def _answer(key: str, job: JobPublic | None, manifest: ArtifactManifest | None, cached: bool,
+            outputs: Collection[str] | None = None) -> RenderPublic:
+    if manifest is not None:
+        links = artifact_links(key, [b.name for b in manifest.blobs])
+    else:  # not rendered yet: what the request asked for
+        links = artifact_links(key, ("radiance.exr", "preview.png") if outputs is None else
+                               [f"{o}.exr" if o == "radiance" else f"{o}.png" for o in outputs])
     if job is not None:
         links["job"] = f"/v1/jobs/{job.id}"
     if manifest is not None:
@@ -140,10 +150,10 @@ async def request_render(
     if public.state == "finished" and manifest is not None:
         return _answer(key, public, manifest, cached=False)
     if public.state in ("failed", "canceled"):
-        return _answer(key, public, None, cached=False).model_copy(update={"bake": bake})
+        return _answer(key, public, None, cached=False, outputs=req.outputs).model_copy(update={"bake": bake})
     response.status_code = 202
     response.headers["Location"] = f"/v1/jobs/{public.id}"
-    return _answer(key, public, None, cached=False).model_copy(update={"bake": bake})
+    return _answer(key, public, None, cached=False, outputs=req.outputs).model_copy(update={"bake": bake})
 
 
 def _bake_of(req: RenderRequest, job: Job, redis: Any, store: Any) -> BakePublic | None:

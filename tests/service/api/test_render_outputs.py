@@ -63,6 +63,10 @@ def test_outputs_are_part_of_the_artifact_key_and_the_default_key_is_unchanged(c
     c = client.post("/v1/renders", json={"scene_id": sid, "camera": CAM}).json()
     assert a["job"]["id"] == b["job"]["id"]  # normalised: same set, same artifact, same job
     assert c["job"]["id"] != a["job"]["id"] and c["artifact_key"] == render_artifact_key(full)
+    # links name only the images the artifact will hold
+    assert {"image.png", "image.exr"} <= set(a["links"]) and {"image.png", "image.exr"} <= set(c["links"])
+    d = client.post("/v1/renders", json={"scene_id": sid, "camera": CAM, "outputs": ["preview"]}).json()
+    assert set(d["links"]) == {"artifact", "image.png", "job"}
 
 
 def test_openapi_documents_the_409_of_the_render_endpoints(client: TestClient) -> None:
@@ -130,12 +134,13 @@ def test_a_lean_render_through_a_worker(client: TestClient, worker_process: Any,
     png = client.get(f"/v1/artifacts/{lkey}/image.png")
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     assert client.get(f"/v1/artifacts/{lkey}/image.exr").status_code == 404
+    assert set(lean.json()["links"]) == {"artifact", "image.png", "job"}
 
     # the full request is never served the lean artifact
     full = client.post("/v1/renders?wait=60", json=body)
     assert full.status_code == 200 and full.json()["status"] == "finished", full.text
     fkey = full.json()["artifact_key"]
-    assert fkey != lkey
+    assert fkey != lkey and set(full.json()["links"]) == {"artifact", "image.png", "image.exr", "job"}
     assert {b["name"] for b in full.json()["artifact"]["blobs"]} == {
         "preview.png", "radiance.exr", "depth.exr", "normal.exr", "object_id.exr", "material_id.exr"}
     # same view, same pixels (the bytes differ: each image's metadata names its artifact key)
