@@ -60,6 +60,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba as nb
 import numpy as np
 import OpenImageIO as oiio
 
@@ -421,17 +422,36 @@ def _srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _srgb8_codes(px: np.ndarray, exposure_stops: float) -> np.ndarray:
-    """uint8 codes of grey/RGB linear pixels, bit-identical to ``_encode_display(px, e, 255)``."""
+    """uint8 codes of grey/RGB linear pixels, bit-identical to ``_encode_display(px, e, 255)``
+    (finite input: callers refuse NaN/Inf first). One pass of :func:`_srgb8_kernel`: the same
+    float64 operations as the NumPy form it replaced, ~5x faster at 512x512 (the render preview)."""
     base, thresh = _srgb8_tables()
-    c = px.astype(np.float64)
-    if exposure_stops != 0.0:
-        c *= 2.0**exposure_stops
-    np.clip(c, 0.0, 1.0, out=c)
-    c += 0.0  # -0.0 -> +0.0 (its sign bit would make a negative index)
-    bucket = c.view(np.int64) >> np.int64(_BUCKET_SHIFT)  # intp indices: numpy's fast gather path
-    codes = base[bucket]
-    codes += c >= thresh[bucket]
-    return codes
+    flat = np.ascontiguousarray(px).reshape(-1)
+    out = np.empty(flat.size, np.uint8)
+    scale = 2.0**exposure_stops if exposure_stops != 0.0 else 1.0  # x * 1.0 == x: the same bits
+    _srgb8_kernel(flat, np.float64(scale), base, thresh, np.int64(_BUCKET_SHIFT), out)
+    return out.reshape(px.shape)
+
+
+@nb.njit(cache=True, nogil=True)
+def _srgb8_kernel(flat, scale, base, thresh, shift, out):
+    """code = base[bucket(c)] + (c >= thresh[bucket(c)]) with c = clip(x * scale, 0, 1) in float64 and
+    bucket(c) = bits(c) >> shift (serial, nogil: safe from several threads at once)."""
+    bits = np.empty(1, np.float64)
+    ibits = bits.view(np.int64)
+    for i in range(flat.size):
+        c = np.float64(flat[i]) * scale
+        if c > 1.0:
+            c = 1.0
+        elif not c >= 0.0:  # negative (or NaN, which callers never pass)
+            c = 0.0
+        c += 0.0  # -0.0 -> +0.0 (its sign bit would make a negative index)
+        bits[0] = c
+        b = ibits[0] >> shift
+        code = base[b]
+        if c >= thresh[b]:
+            code += 1
+        out[i] = code
 
 
 def _write_atomic(path: Path, fmt: _Format, spec: oiio.ImageSpec, data: np.ndarray) -> None:
