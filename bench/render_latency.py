@@ -536,12 +536,11 @@ NOTES = [
     "are what they were), and a subset request is answered from the full artifact of the same view when "
     "that exists.",
     "- **Encoding**: in memory (`engine.imageio.encode_image`, no scratch-file fsync) on 3 threads, the "
-    "preview first, exact table-driven sRGB transform, PNG zlib level 1 + 'sub' filter. EXRs stay ZIP: "
-    "uncompressed would be ~2-4x faster per EXR but 2-140x larger (table above), and with `outputs` an "
-    "interactive request no longer encodes any EXR. The preview alone is 13-38 ms of a lean job; about "
-    "half of it is the sRGB transform in NumPy (a serial `nogil` numba kernel doing the same float64 "
-    "operations gave bit-identical codes 4.8x faster, 13.0 -> 2.7 ms at 512x512, in a prototype: "
-    "`engine/imageio.py`, not changed here).",
+    "preview first, PNG zlib level 1 + 'sub' filter. EXRs stay ZIP: uncompressed would be ~2-4x faster per "
+    "EXR but 2-140x larger (table above), and with `outputs` an interactive request no longer encodes any "
+    "EXR. The preview's exact table-driven sRGB transform is one serial `nogil` numba pass doing the same "
+    "float64 operations as the NumPy form it replaced (bit-identical codes, 4x faster: 9.1 -> 2.3 ms at "
+    "512x512); what is left of the preview's encode is mostly zlib.",
     "- **Store**: every blob goes to a temp file, is fsynced and renamed, then the manifest the same way "
     "(`write_artifact(max_workers=4)`: blob writes overlap, a failed one publishes nothing). One blob + "
     "manifest is 5 fsyncs (file, directory, new artifact directory, manifest, directory): ~2.5 ms when the "
