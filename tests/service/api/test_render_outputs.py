@@ -157,3 +157,26 @@ def test_a_lean_render_through_a_worker(client: TestClient, worker_process: Any,
     assert sub.status_code == 200 and sub.json()["status"] == "cached" and sub.json()["artifact_key"] == fkey
     assert sub.json()["job"] is None
     assert worker.alive()
+
+
+def test_many_waiting_requests_leave_the_default_threads_to_other_endpoints(client: TestClient) -> None:
+    """More waiting renders than the default thread pool (40) has threads: the blocking reads run on
+    their own limiter in short slices, so a sync endpoint still answers at once."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    sid = _scene(client)
+    n_waiting = 45
+
+    def wait(i: int) -> int:
+        cam = {**CAM, "width": 8 + i}
+        return client.post("/v1/renders?wait=2.5", json={"scene_id": sid, "camera": cam}).status_code
+
+    with ThreadPoolExecutor(n_waiting) as pool:
+        futures = [pool.submit(wait, i) for i in range(n_waiting)]
+        time.sleep(1.0)  # all of them are waiting now (no worker)
+        t0 = time.monotonic()
+        r = client.get("/v1/jobs", params={"state": "queued", "limit": 5})  # a sync (threadpool) endpoint
+        took = time.monotonic() - t0
+        assert r.status_code == 200 and not any(f.done() for f in futures)
+    assert took < 0.5, took
+    assert [f.result() for f in futures] == [202] * n_waiting
