@@ -28,8 +28,10 @@ from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils
 from numba.core import types as nbtypes
-from numba.extending import overload
+from numba.extending import intrinsic, overload
 
 from .errors import InvalidInputError
 from .relight_compress import LowRankStore, block_order, compress_store
@@ -689,10 +691,57 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
 # ============================================================================ kernels
 
 _CONE_EPS = 1e-12
-_CHUNK = 256
-# numba has no CPU float16 type: half stores reach the kernel as uint16 bits, decoded through
-# a 256 KiB table (stays in L2; one load per sample)
-_HALF_LUT = np.arange(65536, dtype=np.uint16).view(np.float16).astype(np.float32)
+_CHUNK = 256  # rows per chunk = TILE: a chunk is one tile of the tiled store
+_UNIT = 8  # consecutive chunks one scratch group runs in a row (neighbouring 16 x 16 blocks: output rows,
+#            points and pixel indices stay in the same pages and prefetch streams)
+
+
+@intrinsic
+def _half(typingctx, bits):
+    """float16 bits (uint16) -> float32, exact for zero, subnormal and normal values (the bake never
+    stores Inf or NaN). numba has no CPU float16 type; this replaces the former 256 KiB lookup table
+    (one dependent load per sample) with 32-bit integer operations the loop vectoriser takes."""
+    if bits != nbtypes.uint16:
+        return None
+
+    def codegen(context, builder, sig, args):
+        i32, f32 = ir.IntType(32), ir.FloatType()
+        x = builder.zext(args[0], i32)
+        sign = builder.shl(builder.and_(x, ir.Constant(i32, 0x8000)), ir.Constant(i32, 16))
+        em = builder.and_(x, ir.Constant(i32, 0x7FFF))  # exponent and mantissa
+        # normal: rebias the exponent (15 -> 127) and widen the mantissa (10 -> 23 bits)
+        normal = builder.add(builder.shl(em, ir.Constant(i32, 13)), ir.Constant(i32, 112 << 23))
+        # zero or subnormal: mantissa x 2^-24, exact in float32
+        sub = builder.bitcast(builder.fmul(builder.uitofp(em, f32), ir.Constant(f32, 2.0 ** -24)), i32)
+        mag = builder.select(builder.icmp_unsigned(">=", em, ir.Constant(i32, 0x400)), normal, sub)
+        return builder.bitcast(builder.or_(mag, sign), f32)
+    return nbtypes.float32(nbtypes.uint16), codegen
+
+
+def _make_prefetch(rw: int):
+    @intrinsic
+    def prefetch(typingctx, arr, idx):
+        """Hint the cache line holding arr[idx] (1-D array) into L1; never faults (an index past the
+        end is harmless), no effect on results."""
+        if not (isinstance(arr, nbtypes.Array) and arr.ndim == 1 and isinstance(idx, nbtypes.Integer)):
+            return None
+
+        def codegen(context, builder, sig, args):
+            aryty = sig.args[0]
+            ary = context.make_array(aryty)(context, builder, args[0])
+            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]], wraparound=False)
+            i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+            fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                                "llvm.prefetch.p0")
+            builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, rw), ir.Constant(i32, 3),
+                              ir.Constant(i32, 1)])
+            return context.get_dummy_value()
+        return nbtypes.none(arr, idx), codegen
+    return prefetch
+
+
+_prefetch = _make_prefetch(0)  # for reading
+_prefetch_w = _make_prefetch(1)  # for writing (the output rows)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -704,14 +753,15 @@ def _lr_dot(u, b, u0, b0, r):
     return s
 
 
-def _fetch(store, lut, i, k, c):  # pragma: no cover - replaced by the overload in numba code
+def _fetch(store, i, k, c):  # pragma: no cover - replaced by the overload in numba code
     raise NotImplementedError
 
 
 @overload(_fetch, inline="always")
-def _fetch_impl(store, lut, i, k, c):
+def _fetch_impl(store, i, k, c):
+    """Value (float32, stored scale) of store row i, kept light k, channel c, for every store kind."""
     if isinstance(store, nbtypes.BaseTuple):  # low-rank factors (u, b, u_off, b_off, rank)
-        def lowrank(store, lut, i, k, c):
+        def lowrank(store, i, k, c):
             u, b, u_off, b_off, rank = store
             t = i >> _TILE_SHIFT
             r = rank[t]
@@ -719,11 +769,73 @@ def _fetch_impl(store, lut, i, k, c):
         return lowrank
     if store.ndim == 4:  # tiled: (tile, light, row in tile, channel)
         if store.dtype == nbtypes.uint16:
-            return lambda store, lut, i, k, c: lut[store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]]
-        return lambda store, lut, i, k, c: store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]
+            return lambda store, i, k, c: _half(store[i >> _TILE_SHIFT, k, i & (TILE - 1), c])
+        return lambda store, i, k, c: store[i >> _TILE_SHIFT, k, i & (TILE - 1), c]
     if store.dtype == nbtypes.uint16:
-        return lambda store, lut, i, k, c: lut[store[i, k, c]]
-    return lambda store, lut, i, k, c: store[i, k, c]
+        return lambda store, i, k, c: _half(store[i, k, c])
+    return lambda store, i, k, c: store[i, k, c]
+
+
+def _flat(store):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_flat, inline="always")
+def _flat_impl(store):
+    """A tiled store as one flat array (hoisted out of the loops: reshape calls into the runtime)."""
+    if not isinstance(store, nbtypes.BaseTuple) and store.ndim == 4:
+        return lambda store: store.reshape(-1)
+    return lambda store: np.zeros(1, np.float32)
+
+
+def _run(flat, store, tile, k):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_run, inline="always")
+def _run_impl(flat, store, tile, k):
+    """The TILE x 3 values of light k in a tile, as a contiguous 1-D view (tiled store): row r,
+    channel c is run[3 r + c], strides the loop vectoriser sees as constants."""
+    if not isinstance(store, nbtypes.BaseTuple) and store.ndim == 4:
+        def run(flat, store, tile, k):
+            o = (tile * store.shape[1] + k) * (TILE * 3)
+            return flat[o:o + TILE * 3]
+        return run
+    return lambda flat, store, tile, k: flat
+
+
+def _run_value(run, store, i, r, k, c):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_run_value, inline="always")
+def _run_value_impl(run, store, i, r, k, c):
+    """_fetch(store, i, k, c) for row r of the chunk, through its light run when the store is tiled."""
+    if not isinstance(store, nbtypes.BaseTuple) and store.ndim == 4:
+        if store.dtype == nbtypes.uint16:
+            return lambda run, store, i, r, k, c: _half(run[3 * r + c])
+        return lambda run, store, i, r, k, c: run[3 * r + c]
+    return lambda run, store, i, r, k, c: _fetch(store, i, k, c)
+
+
+def _prefetch_runs(flat, store, tile, ka, kb, kc):  # pragma: no cover - replaced by the overload
+    raise NotImplementedError
+
+
+@overload(_prefetch_runs, inline="always")
+def _prefetch_runs_impl(flat, store, tile, ka, kb, kc):
+    """Prefetch three lights' runs of a tile (tiled store; nothing for the other kinds)."""
+    if not isinstance(store, nbtypes.BaseTuple) and store.ndim == 4:
+        step = 512 // store.dtype.bitwidth  # elements per 64-byte cache line
+
+        def pf(flat, store, tile, ka, kb, kc):
+            base = tile * store.shape[1]
+            for k in (ka, kb, kc):
+                o = (base + k) * (TILE * 3)
+                for e in range(0, TILE * 3, step):
+                    _prefetch(flat, o + e)
+        return pf
+    return lambda flat, store, tile, ka, kb, kc: None
 
 
 def _put(out, r, j, c, v):  # pragma: no cover - replaced by the overload in numba code
@@ -779,31 +891,57 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
 _GROUPS = 64  # scratch-sharing groups of chunks for the parallel loop (any count gives the same result)
 
 
-def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
+@nb.njit(cache=True, nogil=True)
+def _group_chunks(gi, n_groups, n_chunks):
+    """The chunks scratch group gi runs, in order: units gi, gi + n_groups, ... of _UNIT chunks each."""
+    n_units = (n_chunks + _UNIT - 1) // _UNIT
+    out = np.empty(((n_units - gi + n_groups - 1) // n_groups) * _UNIT, np.int64)
+    c = 0
+    for u in range(gi, n_units, n_groups):
+        for ci in range(u * _UNIT, min((u + 1) * _UNIT, n_chunks)):
+            out[c] = ci
+            c += 1
+    return out[:c]
+
+
+def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
                     grid_items, kinds, lp, lint, lnorm, min_dist2, pix, out, outside, singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
-    points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16);
-    lpos (K, 3); inv_int (K, 3) = 1 / dataset
-    intensity; kinds (M,) int64; lp (M, 3) light position or direction toward the light;
-    lint (M, 3) intensity (point, oriented) or irradiance (directional); lnorm (M, 3)
-    emitter normal (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 and
-    outside / singular (h*w,) bool, written at ``pix[i]`` only; touched (T,) uint8
-    set to 1 for every triangle whose three lights were read (racing writes all store 1).
+    points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16),
+    or the low-rank factors; lpos (K, 3); inv_int (K, 3) = 1 / (dataset intensity x store scale);
+    kinds (M,) int64; lp (M, 3) light position or direction toward the light; lint (M, 3)
+    intensity (point, oriented) or irradiance (directional); lnorm (M, 3) emitter normal
+    (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 and outside / singular
+    (h*w,) bool, written at ``pix[i]`` only; touched (T,) uint8 set to 1 for every triangle
+    whose three lights were read (racing writes all store 1).
 
-    Fixed chunks of _CHUNK consecutive rows (the same for any thread count, so results do not
-    depend on it), light by light: pass A computes every row's sphere point and irradiance
-    factor in branch-free loops over the chunk (SIMD across pixels, float64, the same
-    operations as per pixel), pass B searches the triangle (first the one the previous row
-    hit: neighbouring pixels see a light in nearly the same direction), reads the three
-    samples and accumulates (per pixel in light order, as a per-pixel loop would).
+    Fixed chunks of _CHUNK consecutive rows (one tile of the tiled store; the same chunks for
+    any thread count, so results do not depend on it). A scratch group runs _UNIT consecutive
+    chunks, then skips to its next unit (units dealt round-robin, so both threads see all of
+    the frame). Light by light:
+    - pass A: every row's sphere point and irradiance factor, branch-free loops (SIMD);
+    - pass B1: the chunk's triangle = the one the first usable row falls in (cube-map search);
+    - pass B2 (SIMD across rows, in simple loops the vectoriser takes): every row's cone test
+      and weights against that triangle, the three lights' runs of the tile decoded, and the
+      accumulation of the rows the triangle contains (most rows: a 16 x 16 block sees a light
+      in nearly one direction);
+    - pass B3 (scalar): the other rows, previous-row triangle first, then the cube-map search.
+    Every row's value is computed with the same float64 operations in the same order as a
+    per-pixel loop would (bit-identical to the former kernel; see docs/relighting.md "Speed").
+    While a chunk is processed, the next chunk's points and output rows, and its runs of the
+    current triangle's lights, are prefetched.
     """
     n = points.shape[0]
     m = kinds.shape[0]
     cx, cy, cz = center[0], center[1], center[2]
     r2 = radius * radius
     n_chunks = (n + _CHUNK - 1) // _CHUNK
-    n_groups = min(_GROUPS, n_chunks)
+    n_units = (n_chunks + _UNIT - 1) // _UNIT
+    n_groups = min(_GROUPS, n_units)
+    flat = _flat(store)
+    pflat = points.reshape(-1)
+    oflat = out.reshape(-1)
     for gi in nb.prange(n_groups):
         sx = np.empty(_CHUNK)
         sy = np.empty(_CHUNK)
@@ -813,12 +951,33 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
         acc = np.empty((3, _CHUNK))
         out_f = np.empty(_CHUNK, np.bool_)
         sing_f = np.empty(_CHUNK, np.bool_)
+        done = np.empty(_CHUNK, np.bool_)
+        wa = np.empty(_CHUNK)
+        wb = np.empty(_CHUNK)
+        wc = np.empty(_CHUNK)
+        va = np.empty((3, _CHUNK), np.float32)
+        vb = np.empty((3, _CHUNK), np.float32)
+        vc = np.empty((3, _CHUNK), np.float32)
         qx = np.empty(_CHUNK)
         qy = np.empty(_CHUNK)
         qz = np.empty(_CHUNK)
-        for ci in range(gi, n_chunks, n_groups):  # interleaved: every group (thread) sees all of the frame
+        for ci in _group_chunks(gi, n_groups, n_chunks):
+            unit = ci // _UNIT
             i0 = ci * _CHUNK
             nc = min(n, i0 + _CHUNK) - i0
+            # the group's next chunk: the next of this unit, else the first of its next unit
+            cn = ci + 1 if (ci + 1) % _UNIT != 0 else (unit + n_groups) * _UNIT
+            n0 = cn * _CHUNK
+            ncn = min(n, n0 + _CHUNK) - n0 if cn < n_chunks else 0
+            for e in range(0, 3 * ncn, 8):
+                _prefetch(pflat, 3 * n0 + e)
+            for k in range(0, ncn, 16):  # one 16-pixel output row of the block per 16 store rows
+                q = pix[n0 + k]
+                for e in range(0, 48, 16):
+                    _prefetch_w(oflat, 3 * q + e)
+                _prefetch_w(oflat, 3 * q + 47)
+                _prefetch_w(outside, q)
+                _prefetch_w(singular, q)
             acc[:, :nc] = 0.0
             out_f[:nc] = False
             sing_f[:nc] = False
@@ -868,7 +1027,7 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                 else:
                     nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
                     for r in range(nc):
-                        px, py, pz = points[i0 + r, 0], points[i0 + r, 1], points[i0 + r, 2]
+                        px, py, pz = qx[r], qy[r], qz[r]
                         dx, dy, dz = lx - px, ly - py, lz - pz
                         d2 = dx * dx + dy * dy + dz * dz
                         d2s[r] = d2
@@ -890,15 +1049,87 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                             cc = ox * ox + oy * oy + oz * oz - r2
                             t = -b + math.sqrt(max(b * b - cc, 0.0))
                             sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
-                # ---- pass B: triangle search, three samples, accumulation. The current triangle's
-                # search matrix, vertex lights, their positions and 1/intensity live in locals.
+                l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
+                # ---- pass B1: the chunk's triangle = the one its first usable row falls in
+                t0 = -1
+                for r in range(nc):
+                    if d2s[r] > min_dist2 and fac[r] >= 0.0:
+                        t0, w0, w1, w2 = _locate(sx[r], sy[r], sz[r], inv, grid_n, grid_start, grid_items)
+                        break
+                if t0 >= 0:
+                    touched[t0] = 1
+                    m00, m01, m02 = inv[t0, 0, 0], inv[t0, 0, 1], inv[t0, 0, 2]
+                    m10, m11, m12 = inv[t0, 1, 0], inv[t0, 1, 1], inv[t0, 1, 2]
+                    m20, m21, m22 = inv[t0, 2, 0], inv[t0, 2, 1], inv[t0, 2, 2]
+                    ka, kb, kc = tris[t0, 0], tris[t0, 1], tris[t0, 2]
+                    if ncn > 0:  # neighbouring blocks mostly see the same triangle
+                        _prefetch_runs(flat, store, cn, ka, kb, kc)
+                    ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
+                    bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
+                    gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
+                    ia0, ia1, ia2 = inv_int[ka, 0], inv_int[ka, 1], inv_int[ka, 2]
+                    ib0, ib1, ib2 = inv_int[kb, 0], inv_int[kb, 1], inv_int[kb, 2]
+                    ic0, ic1, ic2 = inv_int[kc, 0], inv_int[kc, 1], inv_int[kc, 2]
+                    # ---- pass B2 (SIMD across rows): _locate's test and weights against t0 ...
+                    for r in range(nc):
+                        x, y, z = sx[r], sy[r], sz[r]
+                        a0 = m00 * x + m01 * y + m02 * z
+                        a1 = m10 * x + m11 * y + m12 * z
+                        a2 = m20 * x + m21 * y + m22 * z
+                        s = a0 + a1 + a2
+                        done[r] = ((s > 0.0) & (min(a0, min(a1, a2)) >= -_CONE_EPS * s) & (d2s[r] > min_dist2)
+                                   & (fac[r] >= 0.0))
+                        a0 = max(a0, 0.0)
+                        a1 = max(a1, 0.0)
+                        a2 = max(a2, 0.0)
+                        s = a0 + a1 + a2
+                        wa[r], wb[r], wc[r] = a0 / s, a1 / s, a2 / s  # rows outside t0: unused (masked)
+                    if not distant_ds:
+                        for r in range(nc):
+                            px, py, pz = qx[r], qy[r], qz[r]
+                            ex, ey, ez = ax - px, ay - py, az - pz
+                            wa[r] = wa[r] * (ex * ex + ey * ey + ez * ez)
+                            ex, ey, ez = bx - px, by - py, bz - pz
+                            wb[r] = wb[r] * (ex * ex + ey * ey + ez * ez)
+                            ex, ey, ez = gx - px, gy - py, gz - pz
+                            wc[r] = wc[r] * (ex * ex + ey * ey + ez * ez)
+                    # ... the three lights' values of the chunk's rows ...
+                    run_a, run_b = _run(flat, store, ci, ka), _run(flat, store, ci, kb)
+                    run_c = _run(flat, store, ci, kc)
+                    for r in range(nc):
+                        i = i0 + r
+                        va[0, r] = _run_value(run_a, store, i, r, ka, 0)
+                        va[1, r] = _run_value(run_a, store, i, r, ka, 1)
+                        va[2, r] = _run_value(run_a, store, i, r, ka, 2)
+                        vb[0, r] = _run_value(run_b, store, i, r, kb, 0)
+                        vb[1, r] = _run_value(run_b, store, i, r, kb, 1)
+                        vb[2, r] = _run_value(run_b, store, i, r, kb, 2)
+                        vc[0, r] = _run_value(run_c, store, i, r, kc, 0)
+                        vc[1, r] = _run_value(run_c, store, i, r, kc, 1)
+                        vc[2, r] = _run_value(run_c, store, i, r, kc, 2)
+                    # ... and the accumulation of the rows t0 contains (a select, not a branch)
+                    for r in range(nc):
+                        fa, fb, fc, f = wa[r], wb[r], wc[r], fac[r]
+                        v0 = fa * ia0 * va[0, r] + fb * ib0 * vb[0, r] + fc * ic0 * vc[0, r]
+                        v1 = fa * ia1 * va[1, r] + fb * ib1 * vb[1, r] + fc * ic1 * vc[1, r]
+                        v2 = fa * ia2 * va[2, r] + fb * ib2 * vb[2, r] + fc * ic2 * vc[2, r]
+                        ok = done[r]
+                        c0, c1, c2 = acc[0, r], acc[1, r], acc[2, r]
+                        acc[0, r] = c0 + v0 * (l0 * f) if ok else c0  # directional: f = 1, l0 * 1 = l0
+                        acc[1, r] = c1 + v1 * (l1 * f) if ok else c1
+                        acc[2, r] = c2 + v2 * (l2 * f) if ok else c2
+                else:
+                    done[:nc] = False
+                # ---- pass B3 (scalar): the rows t0 does not contain. The current triangle's search
+                # matrix, vertex lights, their positions and 1/intensity live in locals.
                 last = -1
                 ka = kb = kc = 0
                 m00 = m01 = m02 = m10 = m11 = m12 = m20 = m21 = m22 = 0.0
                 ax = ay = az = bx = by = bz = gx = gy = gz = 0.0
                 ia0 = ia1 = ia2 = ib0 = ib1 = ib2 = ic0 = ic1 = ic2 = 0.0
-                l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
                 for r in range(nc):
+                    if done[r]:
+                        continue
                     if d2s[r] <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
                         sing_f[r] = True
                         continue
@@ -907,7 +1138,7 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                         continue
                     x, y, z = sx[r], sy[r], sz[r]
                     tri = -1
-                    if last >= 0:  # the previous row's triangle first (_locate's test)
+                    if last >= 0:  # the previous such row's triangle first (_locate's test)
                         a0 = m00 * x + m01 * y + m02 * z
                         a1 = m10 * x + m11 * y + m12 * z
                         a2 = m20 * x + m21 * y + m22 * z
@@ -947,23 +1178,18 @@ def _relight_kernel(points, store, lut, lpos, inv_int, distant_ds, center, radiu
                         fb = w1 * (ex * ex + ey * ey + ez * ez)
                         ex, ey, ez = gx - px, gy - py, gz - pz
                         fc = w2 * (ex * ex + ey * ey + ez * ez)
-                    v0 = (fa * ia0 * _fetch(store, lut, i, ka, 0)
-                          + fb * ib0 * _fetch(store, lut, i, kb, 0)
-                          + fc * ic0 * _fetch(store, lut, i, kc, 0))
-                    v1 = (fa * ia1 * _fetch(store, lut, i, ka, 1)
-                          + fb * ib1 * _fetch(store, lut, i, kb, 1)
-                          + fc * ic1 * _fetch(store, lut, i, kc, 1))
-                    v2 = (fa * ia2 * _fetch(store, lut, i, ka, 2)
-                          + fb * ib2 * _fetch(store, lut, i, kb, 2)
-                          + fc * ic2 * _fetch(store, lut, i, kc, 2))
-                    if kd == 1:
-                        acc[0, r] += v0 * l0
-                        acc[1, r] += v1 * l1
-                        acc[2, r] += v2 * l2
-                    else:
-                        acc[0, r] += v0 * (l0 * f)
-                        acc[1, r] += v1 * (l1 * f)
-                        acc[2, r] += v2 * (l2 * f)
+                    v0 = (fa * ia0 * _fetch(store, i, ka, 0)
+                          + fb * ib0 * _fetch(store, i, kb, 0)
+                          + fc * ic0 * _fetch(store, i, kc, 0))
+                    v1 = (fa * ia1 * _fetch(store, i, ka, 1)
+                          + fb * ib1 * _fetch(store, i, kb, 1)
+                          + fc * ic1 * _fetch(store, i, kc, 1))
+                    v2 = (fa * ia2 * _fetch(store, i, ka, 2)
+                          + fb * ib2 * _fetch(store, i, kb, 2)
+                          + fc * ic2 * _fetch(store, i, kc, 2))
+                    acc[0, r] += v0 * (l0 * f)
+                    acc[1, r] += v1 * (l1 * f)
+                    acc[2, r] += v2 * (l2 * f)
             for r in range(nc):
                 q = pix[i0 + r]
                 out[q, 0] = acc[0, r]
@@ -993,7 +1219,7 @@ class _DualKernel:
 _RELIGHT = _DualKernel(_relight_kernel)
 
 
-def _exact_kernel(store, lut, pix, ks, scales, ratios, out):
+def _exact_kernel(store, pix, ks, scales, ratios, out):
     """out[pix[i]] = sum_j (stored value of light ks[j] / scales[j]) x ratios[j], in float32; a ratio
     of exactly 1 adds the value unscaled (so one light at its own intensity is the stored image)."""
     n = pix.size
@@ -1003,7 +1229,7 @@ def _exact_kernel(store, lut, pix, ks, scales, ratios, out):
             for c in range(3):
                 acc = np.float32(0.0)
                 for j in range(ks.size):
-                    v = _fetch(store, lut, i, ks[j], c)
+                    v = _fetch(store, i, ks[j], c)
                     if scales[j] != 1.0:
                         v = v / scales[j]
                     r = ratios[j, c]
@@ -1297,7 +1523,7 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         # light(s) exactly at dataset lights: the stored images, scaled, no interpolation; float32
         # arithmetic in the order of ``sum_j light_values(k_j) * ratio_j`` (bit-identical to it)
         ratios = np.ascontiguousarray((li / baked.intensities[exact]).astype(np.float32))
-        _EXACT.pick(serial)(baked.kernel_store(), _HALF_LUT, baked.pixel_index, exact,
+        _EXACT.pick(serial)(baked.kernel_store(), baked.pixel_index, exact,
                             baked.store_scale[exact].astype(np.float32), ratios, img)
         timings["kernel_s"] = time.perf_counter() - t1
         used = np.unique(exact)
@@ -1313,7 +1539,7 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
                 raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}]")
             nb.set_num_threads(int(threads))
         try:
-            kern(baked.points, baked.kernel_store(), _HALF_LUT, baked.light_positions, inv_int, baked.distant,
+            kern(baked.points, baked.kernel_store(), baked.light_positions, inv_int, baked.distant,
                  baked.sphere_center, radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
                  baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, baked.pixel_index, img,
                  outside, singular, touched)

@@ -70,9 +70,10 @@ def _locate_naive(baked, s):
     return -1, None
 
 
-def naive_relight(baked, point_lights=(), toward_lights=()):
+def naive_relight(baked, point_lights=(), toward_lights=(), rows=None):
     """Eq. 1 per pixel. point_lights: [(position, intensity rgb)], toward_lights: [(dir toward light,
-    irradiance rgb)]. Returns (h, w, 3) float64 and the outside mask."""
+    irradiance rgb)]. Returns (h, w, 3) float64 and the outside mask. ``rows``: only these store rows
+    (the other pixels stay 0 / not outside), to keep larger datasets affordable."""
     h, w = baked.shape
     out = np.zeros((h * w, 3))
     outside = np.zeros(h * w, bool)
@@ -80,7 +81,8 @@ def naive_relight(baked, point_lights=(), toward_lights=()):
     c, r = baked.sphere_center, baked.sphere_radius
     lights = [(np.asarray(p, float), np.asarray(i, float), False) for p, i in point_lights]
     lights += [(np.asarray(d, float) / np.linalg.norm(d), np.asarray(e, float), True) for d, e in toward_lights]
-    for row, pix in enumerate(baked.pixel_index):
+    for row in (range(len(baked.pixel_index)) if rows is None else rows):
+        pix = baked.pixel_index[row]
         p = baked.points[row]
         for pos, inten, directional in lights:
             if directional:
