@@ -653,6 +653,9 @@ class LDCViewRenderer:
                 filled = int(rc_pix.size)
         timings["fill"] = time.perf_counter() - t0
         counts["filled_pixels"] = filled
+        # hole rays that met nothing: background the warp could not tell from a hole (most of
+        # ``hole_pixels`` is uncovered background next to silhouettes; Embree agrees, docs/ldc.md)
+        counts["hole_ray_misses"] = int(holes.size - filled) if fill != "none" else 0
         passes["fill"] = {"ran": bool(fill != "none" and holes.size), "how": fill,
                           "why": f"{holes.size} hole pixels" if holes.size else "no holes"}
         report(0.5, "fill")
