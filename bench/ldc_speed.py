@@ -110,8 +110,10 @@ def main(argv=None) -> int:
              "(both threads). `view pass`: the fused per-pixel kernels (surface records, refinement, highlights, "
              "gather; `surfaces` + `highlights` + `gather` in the result's timings). "
              + ("`before`: the renderer before the fused kernels (`bench/ldc_render_before.py`), rendered "
-                "interleaved with the current one in this run; `x` = before / now (medians); images identical "
-                "(max |difference| of the radiance: `diff`)." if ab_cols else ""), "",
+                "interleaved with the current one in this run; `x` = before / now (medians); `diff`: max "
+                "|difference| of the radiance over the views (0: identical images; a rect light's highlight "
+                "jitter is now keyed by the pixel, and a traced mirror ray may differ in the last bit, see the "
+                "notes)." if ab_cols else ""), "",
              "| scene | LDC | LLF dirs | method | median ms | p90 ms | cpu ms | warp | holes+fill | view pass | ibrt |"
              + (" before ms | x | diff |" if ab_cols else ""),
              "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if ab_cols else "")]
@@ -121,7 +123,7 @@ def main(argv=None) -> int:
                 f"{w['cpu']:.0f} | {st['warp']:.0f} | {st['holes'] + st['fill']:.0f} | "
                 f"{st['surfaces'] + st['highlights'] + st['gather']:.0f} | {st['ibrt']:.0f} |")
         if ab_cols:
-            line += f" {w['old']:.0f} | {w['old'] / w['med']:.2f} | {w['diff']:.0e} |"
+            line += f" {w['old']:.0f} | {w['old'] / w['med']:.2f} | {w['diff']:.1g} |"
         lines.append(line)
     replace_block(DOC, "ldc_speed", "\n".join(lines))
     print(f"wrote {DOC.relative_to(ROOT)}")

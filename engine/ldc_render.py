@@ -214,7 +214,8 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
     ``groups`` (mirror and glossy pixels cluster in the image)."""
     ortho, eye, right, up, fwd, W, H, th, aspect, hh, px_size, ortho_px = cam
     # unpacked once per thread (see ``gather_point``)
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_ = gp
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
+        c_idx, c_xyz = gp
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     bits = vis2 if axis >= 0 else rc_bits
     n = pix.shape[0]
@@ -289,7 +290,7 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
                 pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
                 f0, f1, f2, u = gather_point(pt, m, mirror, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
                                              table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
-                                             bg_)
+                                             bg_, c_off, c_idx, c_xyz)
                 radiance[r, 0] += f0
                 radiance[r, 1] += f1
                 radiance[r, 2] += f2
@@ -354,7 +355,8 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
     """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
     axis -1, missed everything)."""
     # unpacked once per thread (see ``gather_point``)
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_ = gp
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
+        c_idx, c_xyz = gp
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     n = o.shape[0]
     nblk = (n + 63) // 64
@@ -385,7 +387,7 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
                 pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
                 f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
                                              table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
-                                             bg_)
+                                             bg_, c_off, c_idx, c_xyz)
                 l0 += f0
                 l1 += f1
                 l2 += f2
@@ -447,7 +449,8 @@ def _no_gather_params(scene: RuntimeScene) -> tuple:
     z3 = np.zeros((0, 3))
     return (mt.kr, mt.kg, mt.gloss_exponent, 1.0, 3, 1, np.full((3, 3, 2), -1, np.int64), z3, np.zeros(1, np.int64),
             np.zeros(0), np.zeros((0, 3), np.float32), z3, z3, z3, z3, np.zeros(0), 1,
-            np.asarray(scene.background, np.float64).reshape(3))
+            np.asarray(scene.background, np.float64).reshape(3), np.zeros(10, np.int64), np.zeros(0, np.int64),
+            np.zeros((3, 0)))
 
 
 class LDCViewRenderer:

@@ -54,7 +54,7 @@ import numpy as np
 
 from .errors import InvalidInputError, NonFiniteOutputError
 from .lights import light_sample
-from .llf import LLF, candidate_directions
+from .llf import LLF, candidate_directions, direction_to_lattice
 from .raycast import OFFSET_EXTENT, OFFSET_REL
 from .rng import stream_key, uniform
 from .scene import RuntimeScene
@@ -251,20 +251,64 @@ def gather_scratch(n_directions):
             padded_empty(MAX_CONE_DIRECTIONS, np.float64), padded_empty(12, np.float64))
 
 
+@nb.njit(cache=True, nogil=True)
+def _cone_tables(f, table, dirs, radius):
+    """Per lattice cell (a0, b0) (floor of a direction's lattice coordinates, row (a0 + f) (2 f +
+    1) + b0 + f) the candidate directions ``candidate_directions`` lists for it, in its order:
+    offsets, direction indices and their (3, N) coordinates (contiguous for the dot products)."""
+    side = 2 * f + 1
+    off = np.zeros(side * side + 1, np.int64)
+    cand = np.empty(dirs.shape[0] + 8 + (2 * radius + 2) ** 2 * 2, np.int64)
+    total = 0
+    for pass_ in range(2):
+        if pass_ == 1:
+            idx = np.empty(total, np.int64)
+            xyz = np.empty((3, total))
+        for a0 in range(-f, f + 1):
+            for b0 in range(-f, f + 1):
+                cell = (a0 + f) * side + b0 + f
+                n = 0
+                for a in range(max(a0 - radius + 1, -f), min(a0 + radius, f) + 1):
+                    rem = f - abs(a)
+                    for b in range(max(b0 - radius + 1, -rem), min(b0 + radius, rem) + 1):
+                        i0 = table[a + f, b + f, 0]
+                        cand[n] = i0
+                        n += 1
+                        i1 = table[a + f, b + f, 1]
+                        if i1 != i0:
+                            cand[n] = i1
+                            n += 1
+                if pass_ == 0:
+                    off[cell + 1] = n
+                else:
+                    for t in range(n):
+                        k = off[cell] + t
+                        idx[k] = cand[t]
+                        xyz[0, k] = dirs[cand[t], 0]
+                        xyz[1, k] = dirs[cand[t], 1]
+                        xyz[2, k] = dirs[cand[t], 2]
+        if pass_ == 0:
+            for c in range(side * side):
+                off[c + 1] += off[c]
+            total = off[side * side]
+    return off, idx, xyz
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c, pk_off, pk_depth,
+def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, c_off, c_idx, c_xyz, cand, best_c, pk_off, pk_depth,
           pk_rad, origin, fu, fv, fw, fh, res, bg):
     """Normalised cos^n_c-weighted radiance of the k_dirs LLF directions nearest to d.
-    Returns (r, g, b, lookups). Scratch (no allocation per call): ``cand`` (int64, n_directions
-    + 8 + MAX_CONE_DIRECTIONS; its tail holds the best indices), ``best_c`` (float64,
-    MAX_CONE_DIRECTIONS)."""
-    nc = candidate_directions(d0, d1, d2, f, 3, table, cand)
+    Returns (r, g, b, lookups). The candidates are those of ``candidate_directions`` (radius 3),
+    precomputed per lattice cell (``_cone_tables``: c_off, c_idx, c_xyz). Scratch (no
+    allocation per call): ``cand`` (int64, n_directions + 8 + MAX_CONE_DIRECTIONS; its tail
+    holds the best indices), ``best_c`` (float64, MAX_CONE_DIRECTIONS)."""
+    A, B, _ = direction_to_lattice(d0, d1, d2, f)
+    cell = (int(math.floor(A)) + f) * (2 * f + 1) + int(math.floor(B)) + f
     best_i = cand[cand.shape[0] - MAX_CONE_DIRECTIONS:]
     for q in range(k_dirs):
         best_c[q] = -2.0
-    for t in range(nc):
-        jd = cand[t]
-        c = dirs[jd, 0] * d0 + dirs[jd, 1] * d1 + dirs[jd, 2] * d2
+    for t in range(c_off[cell], c_off[cell + 1]):
+        c = c_xyz[0, t] * d0 + c_xyz[1, t] * d1 + c_xyz[2, t] * d2
         if c > best_c[k_dirs - 1]:
             q = k_dirs - 1
             while q > 0 and best_c[q - 1] < c:
@@ -272,7 +316,7 @@ def _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand,
                 best_i[q] = best_i[q - 1]
                 q -= 1
             best_c[q] = c
-            best_i[q] = jd
+            best_i[q] = c_idx[t]
     lmax = n_c * math.log(max(best_c[0], 1e-300))
     sw = 0.0
     r0 = r1 = r2 = 0.0
@@ -357,7 +401,7 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table,
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off,
-                 pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg):
+                 pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, c_idx, c_xyz):
     """Reflected radiance (r, g, b) toward wo at one point by light-field gather and the number
     of lookups (module docstring). ``pt`` (12,) float64: p, ng, ns, wo; ``cand``, ``best_c`` the
     scratch arrays of ``gather_scratch``; then the tables of ``gather_params`` (pass them one by
@@ -376,8 +420,8 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp,
     d2 /= ln
     if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
                                 g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
-        l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c, pk_off,
-                              pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+        l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, c_off, c_idx, c_xyz, cand, best_c,
+                              pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
         r0 += kr[m, 0] * l0
         r1 += kr[m, 1] * l1
         r2 += kr[m, 2] * l2
@@ -392,7 +436,7 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp,
                                   cand, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
             k = (g + 2.0) / (g + 1.0)
         else:  # narrower than the LLF resolves: the mirror cone's radiance x E_lobe[cos_i]
-            l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, table, dirs, cand, best_c,
+            l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, c_off, c_idx, c_xyz, cand, best_c,
                                   pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
             k = max(s0 * d0 + s1 * d1 + s2 * d2, 0.0)
         r0 += kg[m, 0] * k * l0
@@ -404,7 +448,8 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp,
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg = gp
+    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, \
+        c_idx, c_xyz = gp
     n = p.shape[0]
     nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
@@ -415,7 +460,7 @@ def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
                 pt[c], pt[3 + c], pt[6 + c], pt[9 + c] = p[i, c], ng[i, c], ns[i, c], wo[i, c]
             out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(
                 pt, mat[i], do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs,
-                pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg)
+                pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, c_idx, c_xyz)
 
 
 def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIRECTIONS, background=None) -> tuple:
@@ -424,7 +469,9 @@ def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIR
         raise InvalidInputError("cone_directions must be in [1, 16]")
     bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
     mt = scene.materials
-    return (mt.kr, mt.kg, mt.gloss_exponent, mirror_cone_exponent(llf), int(cone_directions), *_llf_args(llf), bg)
+    c_off, c_idx, c_xyz = _cone_tables(llf.f, llf.table, llf.directions, 3)
+    return (mt.kr, mt.kg, mt.gloss_exponent, mirror_cone_exponent(llf), int(cone_directions), *_llf_args(llf), bg,
+            c_off, c_idx, c_xyz)
 
 
 def _llf_args(llf: LLF):
@@ -453,7 +500,7 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw,
-              fh, res, bg, out):
+              fh, res, bg, c_off, c_idx, c_xyz, out):
     n = p.shape[0]
     nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
@@ -468,8 +515,8 @@ def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth,
                                       fv, fw, fh, res, bg)
             else:
                 r0, r1, r2, _ = _cone(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, d[i, 0], d[i, 1], d[i, 2], n_c, k_dirs,
-                                      f, table, dirs, cand, best_c, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh,
-                                      res, bg)
+                                      f, c_off, c_idx, c_xyz, cand, best_c, pk_off, pk_depth, pk_rad, origin, fu,
+                                      fv, fw, fh, res, bg)
             out[i, 0], out[i, 1], out[i, 2] = r0, r1, r2
 
 
@@ -502,6 +549,7 @@ def gather_incoming(llf: LLF, p, ng, d, *, exponent: float = 0.0, cone_direction
         raise InvalidInputError("gather_incoming: exponent must be finite and >= 0")
     out = np.zeros(p.shape)
     bg = np.asarray(background, dtype=np.float64).reshape(3)
-    _incoming(p, ng, d, float(exponent), int(cone_directions), mirror_cone_exponent(llf), *_llf_args(llf), bg, out)
+    _incoming(p, ng, d, float(exponent), int(cone_directions), mirror_cone_exponent(llf), *_llf_args(llf), bg,
+              *_cone_tables(llf.f, llf.table, llf.directions, 3), out)
     return out
 

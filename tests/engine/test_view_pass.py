@@ -232,3 +232,24 @@ def test_huge_exponents_stay_finite_hard_case_8(env):
         # straight below the light, looking straight down: the peak (s+2)/(2pi) I / d^2 is reached
         exact = highlights(sc, np.array([[0.5, 0.0, 0.0]]), up[:1], up[:1], up[:1], m[:1])
         assert exact[0, 0] == pytest.approx(0.5 * (e + 2) / (2 * np.pi) * 1.0 / 1.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("f", [1, 4, 8, 13])
+def test_cone_tables_list_the_candidates_of_every_lattice_cell(f):
+    """The cone gather's per-cell candidate table holds, for any direction, exactly the list
+    (same directions, same order) ``candidate_directions`` builds for it at radius 3."""
+    from engine.llf import candidate_directions, direction_to_lattice, lattice_index_table, octahedron_directions
+    from engine.view_pass import _cone_tables
+
+    table, dirs = lattice_index_table(f), octahedron_directions(f)
+    off, idx, xyz = _cone_tables(f, table, dirs, 3)
+    rng = np.random.default_rng(f)
+    d = rng.normal(size=(3000, 3))
+    d = np.vstack([d / np.linalg.norm(d, axis=1, keepdims=True), dirs, -dirs, np.eye(3), -np.eye(3)])
+    out = np.empty(len(dirs) + 200, np.int64)
+    for v in d:
+        n = candidate_directions(v[0], v[1], v[2], f, 3, table, out)
+        a, b, _ = direction_to_lattice(v[0], v[1], v[2], f)
+        cell = (int(np.floor(a)) + f) * (2 * f + 1) + int(np.floor(b)) + f
+        assert np.array_equal(idx[off[cell]:off[cell + 1]], out[:n])
+    assert np.array_equal(xyz.T, dirs[idx])
