@@ -912,9 +912,10 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
     or the low-rank factors; lpos (K, 3); inv_int (K, 3) = 1 / (dataset intensity x store scale);
     kinds (M,) int64; lp (M, 3) light position or direction toward the light; lint (M, 3)
     intensity (point, oriented) or irradiance (directional); lnorm (M, 3) emitter normal
-    (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 and outside / singular
-    (h*w,) bool, written at ``pix[i]`` only; touched (T,) uint8 set to 1 for every triangle
-    whose three lights were read (racing writes all store 1).
+    (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 written at ``pix[i]``
+    only; outside / singular (h*w,) bool, zeroed by the caller, set at ``pix[i]`` where true;
+    touched (T,) uint8 set to 1 for every triangle whose three lights were read (racing writes
+    all store 1).
 
     Fixed chunks of _CHUNK consecutive rows (one tile of the tiled store; the same chunks for
     any thread count, so results do not depend on it). A scratch group runs _UNIT consecutive
@@ -976,8 +977,6 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                 for e in range(0, 48, 16):
                     _prefetch_w(oflat, 3 * q + e)
                 _prefetch_w(oflat, 3 * q + 47)
-                _prefetch_w(outside, q)
-                _prefetch_w(singular, q)
             acc[:, :nc] = 0.0
             out_f[:nc] = False
             sing_f[:nc] = False
@@ -1195,8 +1194,10 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                 out[q, 0] = acc[0, r]
                 out[q, 1] = acc[1, r]
                 out[q, 2] = acc[2, r]
-                outside[q] = out_f[r]
-                singular[q] = sing_f[r]
+                if out_f[r]:  # the flags arrive zeroed: only set ones are written (rare)
+                    outside[q] = True
+                if sing_f[r]:
+                    singular[q] = True
 
 
 class _DualKernel:
