@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import sys
 import time
@@ -109,6 +110,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--no-doc", action="store_true")
     ap.add_argument("--doc-only", action="store_true", help="rewrite the doc block from the saved JSON")
+    ap.add_argument("--ab", metavar="REV", default=None,
+                    help="also time engine/relight.py as of git revision REV against the working tree's, same "
+                         "baked dataset, interleaved rounds, and check the images are bit-identical")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     if args.doc_only:
@@ -176,6 +180,9 @@ def main(argv=None) -> int:
                generate_s=t_gen, bakes={n: {kk: v for kk, v in b.items() if kk != "baked"} for n, b in bakes.items()},
                bandwidth_bytes_per_s=bw, strict_bound_s=strict, best_p50_s=best, rounds=rounds,
                run_s=time.perf_counter() - t_start)
+    if args.ab:
+        res["ab"] = ab_old_kernel(args.ab, bakes["tiled"]["baked"], {"1 point light": point, "64-light environment "
+                                  "map": env}, args.runs, args.rounds, log)
     DATA.parent.mkdir(parents=True, exist_ok=True)
     saved = _load_all()
     saved[f"{args.res}x{args.res}"] = res
@@ -200,6 +207,63 @@ def _load_all() -> dict:
     if "config" in saved:
         return {f"{saved['config']['res']}x{saved['config']['res']}": saved}
     return saved
+
+
+def _old_relight_module(rev: str):
+    """engine/relight.py as of git revision ``rev``, imported as a separate module."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:engine/relight.py"], capture_output=True, text=True,
+                         check=True).stdout
+    src = src.replace("from .", "from engine.")
+    path = Path(tempfile.gettempdir()) / f"relight_ab_{rev}" / "relight_ab_old.py"
+    path.parent.mkdir(exist_ok=True)
+    if not path.exists() or path.read_text() != src:  # unchanged file: numba's cache stays valid
+        path.write_text(src)
+    spec = importlib.util.spec_from_file_location("relight_ab_old", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["relight_ab_old"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> dict:
+    """p50 of ``relight(...).timings["kernel_s"]`` with the old and the current module, same baked data,
+    1 and 2 threads, best of ``rounds`` interleaved rounds; images, masks and lights_used compared."""
+    import engine.relight as new
+
+    old = _old_relight_module(rev)
+    fields = set(old.BakedDataset.__dataclass_fields__)
+    baked_old = old.BakedDataset(**{f: getattr(baked, f) for f in baked.__dataclass_fields__ if f in fields})
+
+    def as_old(light):
+        if isinstance(light, new.PointLight):
+            return old.PointLight(light.position, light.intensity)
+        return old.EnvironmentLight(light.image, n_lights=light.n_lights, method=light.method, seed=light.seed,
+                                    scale=light.scale)
+
+    out: dict = {"rev": rev, "identical": {}, "best_p50_s": {}}
+    for cname, light in cases.items():
+        a, b = old.relight(baked_old, as_old(light)), new.relight(baked, light)
+        out["identical"][cname] = bool(np.array_equal(a.image.view(np.uint32), b.image.view(np.uint32))
+                                       and np.array_equal(a.outside_mask, b.outside_mask)
+                                       and np.array_equal(a.singular_mask, b.singular_mask)
+                                       and np.array_equal(a.lights_used, b.lights_used))
+    best: dict = {}
+    for _ in range(rounds):
+        for thr in (1, 2):
+            for cname, light in cases.items():
+                n = runs if cname == "1 point light" else max(5, runs // 4)
+                for which, mod, bk, lt in (("old", old, baked_old, as_old(light)), ("new", new, baked, light)):
+                    mod.relight(bk, lt, threads=thr)
+                    p50 = float(np.median([mod.relight(bk, lt, threads=thr).timings["kernel_s"] for _ in range(n)]))
+                    key = f"{thr}|{cname}|{which}"
+                    best[key] = min(best.get(key, math.inf), p50)
+    out["best_p50_s"] = best
+    log(f"A/B against {rev}: " + ", ".join(f"{k} {1e3 * v:.1f} ms" for k, v in best.items()))
+    return out
 
 
 def report(res: dict) -> str:
@@ -240,6 +304,19 @@ def report(res: dict) -> str:
              "many threads; for the environment map the bound is 64 x the one-light bound. When other "
              "sessions load the machine, 2 threads can be slower than 1. Raw numbers, every round: "
              "`docs/data/relight_speed.json`.")
+    if "ab" in res:
+        ab, b = res["ab"], res["ab"]["best_p50_s"]
+        L.append("")
+        L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: `engine/relight.py` at that revision against "
+                 f"this one, same tiled store, `timings[\"kernel_s\"]`, best of the rounds' p50):")
+        L.append("")
+        L.append("| case | threads | old ms | new ms | speed-up | bit-identical |")
+        L.append("|---|---|---|---|---|---|")
+        for cname, same in ab["identical"].items():
+            for thr in (1, 2):
+                o, n = b[f"{thr}|{cname}|old"], b[f"{thr}|{cname}|new"]
+                L.append(f"| {cname} | {thr} | {1e3 * o:.1f} | {1e3 * n:.1f} | {o / n:.2f}x | "
+                         f"{'yes' if same else 'NO'} |")
     return "\n".join(L)
 
 
