@@ -359,7 +359,8 @@ def report_views(label: str, res: dict[str, Any]) -> list[str]:
              f"{res['date']}, {res['size']}x{res['size']}, LDC {res['ldc']}; per scene, method and outputs variant "
              f"{res['views']} random views (each a new camera, no cache hits) after {res['warmup']} warm-up ones; "
              f"1-minute load average {res['load'][0]:.1f} before and {res['load'][1]:.1f} after the run "
-             f"({res['cores']} cores; the client, the API, Redis and both workers share them)."]
+             f"({res['cores']} cores; the client, the API, Redis and both workers share them)."
+             + (f" {res['note']}" if res.get("note") else "")]
     goal: list[str] = []
     for scene, sres in res["scenes"].items():
         by = sres["methods"]
@@ -565,6 +566,7 @@ def main() -> None:
     ap.add_argument("--encode-runs", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--label", default="current", help="name of this run in docs/data/render_latency.json")
+    ap.add_argument("--note", default="", help="one sentence stored with the run (e.g. the code version measured)")
     ap.add_argument("--no-doc", action="store_true")
     ap.add_argument("--doc-only", action="store_true", help="rewrite the doc block from the stored runs only")
     ap.add_argument("--drop", default="", help="with --doc-only: comma-separated labels to remove from the data")
@@ -586,6 +588,7 @@ def main() -> None:
         ap.error("--methods: the LDC methods only (the reference renderer takes seconds per 512x512 view)")
     scenes = [s.strip() for s in a.scenes.split(",")]
     res = measure(scenes, a.size, a.views, a.warmup, a.ldc, methods, variants, a.encode_runs, a.seed)
+    res["note"] = a.note
     res["argv"] = (f"python -m bench.render_latency --scenes {a.scenes} --size {a.size} --views {a.views} "
                    f"--warmup {a.warmup} --ldc {a.ldc} --methods {a.methods} --outputs {a.outputs} --label {a.label}")
     print(json.dumps({**res, "scenes": {s: {**r, "methods": {m: {k: v for k, v in x.items() if k != "rows"}
