@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
+from llvmlite import binding as llvm_binding
 from llvmlite import ir
 from numba.core import cgutils
 from numba.core import types as nbtypes
@@ -696,26 +697,38 @@ _UNIT = 8  # consecutive chunks one scratch group runs in a row (neighbouring 16
 #            points and pixel indices stay in the same pages and prefetch streams)
 
 
-@intrinsic
-def _half(typingctx, bits):
-    """float16 bits (uint16) -> float32, exact for zero, subnormal and normal values (the bake never
-    stores Inf or NaN). numba has no CPU float16 type; this replaces the former 256 KiB lookup table
-    (one dependent load per sample) with 32-bit integer operations the loop vectoriser takes."""
-    if bits != nbtypes.uint16:
-        return None
+def _make_half(hardware: bool):
+    @intrinsic
+    def half(typingctx, bits):
+        """float16 bits (uint16) -> float32, exact for zero, subnormal and normal values (the bake
+        never stores Inf or NaN). numba has no CPU float16 type. ``hardware``: LLVM's half -> float
+        extension (one F16C ``vcvtph2ps``); otherwise 32-bit integer operations (sign, exponent
+        rebias 15 -> 127, mantissa widened 10 -> 23 bits; subnormals as mantissa x 2^-24). Both are
+        vectorisable, unlike the 256 KiB lookup table used before."""
+        if bits != nbtypes.uint16:
+            return None
 
-    def codegen(context, builder, sig, args):
-        i32, f32 = ir.IntType(32), ir.FloatType()
-        x = builder.zext(args[0], i32)
-        sign = builder.shl(builder.and_(x, ir.Constant(i32, 0x8000)), ir.Constant(i32, 16))
-        em = builder.and_(x, ir.Constant(i32, 0x7FFF))  # exponent and mantissa
-        # normal: rebias the exponent (15 -> 127) and widen the mantissa (10 -> 23 bits)
-        normal = builder.add(builder.shl(em, ir.Constant(i32, 13)), ir.Constant(i32, 112 << 23))
-        # zero or subnormal: mantissa x 2^-24, exact in float32
-        sub = builder.bitcast(builder.fmul(builder.uitofp(em, f32), ir.Constant(f32, 2.0 ** -24)), i32)
-        mag = builder.select(builder.icmp_unsigned(">=", em, ir.Constant(i32, 0x400)), normal, sub)
-        return builder.bitcast(builder.or_(mag, sign), f32)
-    return nbtypes.float32(nbtypes.uint16), codegen
+        def codegen(context, builder, sig, args):
+            i32, f32 = ir.IntType(32), ir.FloatType()
+            if hardware:
+                return builder.fpext(builder.bitcast(args[0], ir.HalfType()), f32)
+            x = builder.zext(args[0], i32)
+            sign = builder.shl(builder.and_(x, ir.Constant(i32, 0x8000)), ir.Constant(i32, 16))
+            em = builder.and_(x, ir.Constant(i32, 0x7FFF))  # exponent and mantissa
+            normal = builder.add(builder.shl(em, ir.Constant(i32, 13)), ir.Constant(i32, 112 << 23))
+            sub = builder.bitcast(builder.fmul(builder.uitofp(em, f32), ir.Constant(f32, 2.0 ** -24)), i32)
+            mag = builder.select(builder.icmp_unsigned(">=", em, ir.Constant(i32, 0x400)), normal, sub)
+            return builder.bitcast(builder.or_(mag, sign), f32)
+        return nbtypes.float32(nbtypes.uint16), codegen
+    return half
+
+
+_half_bits = _make_half(False)
+_half_hw = _make_half(True)
+# numba compiles for the host CPU: with F16C the hardware conversion (without it LLVM would call a
+# runtime helper the JIT may not provide, so the integer version is used)
+_HOST_F16C = "+f16c" in llvm_binding.get_host_cpu_features().flatten().split(",")
+_half = _half_hw if _HOST_F16C else _half_bits
 
 
 def _make_prefetch(rw: int):
@@ -816,6 +829,18 @@ def _run_value_impl(run, store, i, r, k, c):
             return lambda run, store, i, r, k, c: _half(run[3 * r + c])
         return lambda run, store, i, r, k, c: run[3 * r + c]
     return lambda run, store, i, r, k, c: _fetch(store, i, k, c)
+
+
+def _simd_store(store):  # pragma: no cover - replaced by the overload in numba code
+    raise NotImplementedError
+
+
+@overload(_simd_store, inline="always")
+def _simd_store_impl(store):
+    """True for a tiled float16/float32 store: its light runs are contiguous per tile, so pass B2
+    (all rows against the chunk's triangle) reads them as vectors."""
+    simd = not isinstance(store, nbtypes.BaseTuple) and store.ndim == 4
+    return lambda store: simd
 
 
 def _prefetch_runs(flat, store, tile, ka, kb, kc):  # pragma: no cover - replaced by the overload
@@ -1049,12 +1074,14 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                             t = -b + math.sqrt(max(b * b - cc, 0.0))
                             sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
                 l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
-                # ---- pass B1: the chunk's triangle = the one its first usable row falls in
+                # ---- pass B1: the chunk's triangle = the one its first usable row falls in (tiled
+                # stores; pixel-major and low-rank rows are gathers either way: all rows go to B3)
                 t0 = -1
-                for r in range(nc):
-                    if d2s[r] > min_dist2 and fac[r] >= 0.0:
-                        t0, w0, w1, w2 = _locate(sx[r], sy[r], sz[r], inv, grid_n, grid_start, grid_items)
-                        break
+                if _simd_store(store):
+                    for r in range(nc):
+                        if d2s[r] > min_dist2 and fac[r] >= 0.0:
+                            t0, w0, w1, w2 = _locate(sx[r], sy[r], sz[r], inv, grid_n, grid_start, grid_items)
+                            break
                 if t0 >= 0:
                     touched[t0] = 1
                     m00, m01, m02 = inv[t0, 0, 0], inv[t0, 0, 1], inv[t0, 0, 2]

@@ -191,23 +191,30 @@ def test_simd_kernel_matches_naive_on_a_multi_chunk_half_store(layout):
 
 
 def test_float16_bit_decode_matches_numpy():
-    """The kernels decode float16 bits with integer operations (no lookup table): every finite
-    value, subnormals and -0 included, equals numpy's float16 -> float32 conversion bit for bit."""
+    """The kernels decode float16 bits without a lookup table, by F16C (hosts that have it) or by
+    integer operations: every finite value, subnormals and -0 included, equals numpy's float16 ->
+    float32 conversion bit for bit, for both implementations."""
     import numba as nb
 
-    from engine.relight import _half
+    from engine.relight import _HOST_F16C, _half_bits, _half_hw
 
     @nb.njit
-    def decode(bits, out):
+    def decode_bits(bits, out):
         for i in range(bits.size):
-            out[i] = _half(bits[i])
+            out[i] = _half_bits(bits[i])
+
+    @nb.njit
+    def decode_hw(bits, out):
+        for i in range(bits.size):
+            out[i] = _half_hw(bits[i])
 
     bits = np.arange(65536, dtype=np.uint16)
     ref = bits.view(np.float16).astype(np.float32)
     finite = np.isfinite(ref)
-    out = np.empty(bits.size, np.float32)
-    decode(bits, out)
-    assert np.array_equal(out[finite].view(np.uint32), ref[finite].view(np.uint32))
+    for decode in (decode_bits, decode_hw) if _HOST_F16C else (decode_bits,):
+        out = np.empty(bits.size, np.float32)
+        decode(bits, out)
+        assert np.array_equal(out[finite].view(np.uint32), ref[finite].view(np.uint32))
 
 
 def test_error_decreases_with_light_density():
