@@ -330,13 +330,14 @@ def test_fused_kernels_match_the_unfused_renderer(shiny):
     gather_reflections and ibrt.trace): the same image bit for bit (traced mirror rays: up to
     rare pixels whose ray direction differs in the last bit), the same provenance, normals and
     counts, for every method, the forced passes and both fills (point and directional lights; a
-    rect light's jitter is now keyed by the pixel, not by its rank among the pixels)."""
+    rect light's jitter is now keyed by the pixel, not by its rank among the pixels). The frozen
+    renderer predates the silhouette rays: they are off here (tested on their own below)."""
     from bench.ldc_render_before import LDCViewRenderer as Unfused
 
     sc, caster, plan, ldc, llf = shiny
     cam = CameraParams("perspective", (1.4, 0.9, 2.4), (-0.2, -0.1, 0.0), (0, 1, 0), 64, 56, 45.0)
     for kw in ({}, {"caster": caster}):
-        new, old = LDCViewRenderer(sc, ldc, llf, plan, **kw), Unfused(sc, ldc, llf, plan, **kw)
+        new, old = LDCViewRenderer(sc, ldc, llf, plan, silhouette_rays=False, **kw), Unfused(sc, ldc, llf, plan, **kw)
         for method, opts in (("ldc", {}), ("ldc+llf", {}), ("ldc+ibrt:1", {}), ("ldc+ibrt:3", {}),
                              ("ldc+llf", {"force_all_passes": True}), ("ldc+ibrt:2", {"force_all_passes": True}),
                              ("ldc+llf", {"fill": "raycast"}), ("ldc+ibrt:1", {"fill": "none"})):
@@ -357,3 +358,28 @@ def test_fused_kernels_match_the_unfused_renderer(shiny):
             assert {k: v for k, v in a.counts.items() if k in b.counts and k not in skip} == \
                 {k: v for k, v in b.counts.items() if k not in skip}, (method, opts)
             assert a.counts["view_pass_pixels"] > 0
+
+
+def test_silhouette_rays_resolve_what_the_splats_guessed(shiny):
+    """Pixels at visibility edges of the warped image get their own image-based eye ray: far
+    fewer pixels show another object than the pixel-centre reference does (the splats'
+    footprints reach past silhouettes), and the image gets closer to the reference."""
+    sc, caster, plan, ldc, llf = shiny
+    cam = CameraParams("perspective", (1.7, 0.6, 2.1), (-0.1, -0.2, 0.0), (0, 1, 0), 128, 112, 45.0)
+    ref = render_reference(sc, cam, ReferenceParams(spp=1, pixel_jitter=False, max_depth=4, glossy_samples=64))
+    covered = ref.object_id >= 0
+    on = LDCViewRenderer(sc, ldc, llf, plan).render(cam, "ldc+ibrt:1")
+    off = LDCViewRenderer(sc, ldc, llf, plan, silhouette_rays=False).render(cam, "ldc+ibrt:1")
+    wrong_on = int(np.count_nonzero(on.object_id != ref.object_id))
+    wrong_off = int(np.count_nonzero(off.object_id != ref.object_id))
+    assert off.counts["silhouette_rays"] == 0 and on.counts["silhouette_rays"] > 0.02 * covered.sum()
+    assert on.counts["silhouette_changed"] > 0
+    assert on.counts["hole_rays"] == off.counts["hole_rays"]
+    assert wrong_on < 0.5 * wrong_off, (wrong_on, wrong_off)
+    assert lrms(on.radiance, ref.radiance, covered) < lrms(off.radiance, ref.radiance, covered)
+    assert on.plan["silhouette_rays"] is True and off.plan["silhouette_rays"] is False
+    # no fill, no rays: the warp's answer stands
+    none = LDCViewRenderer(sc, ldc, llf, plan).render(cam, "ldc+ibrt:1", fill="none")
+    assert none.counts["silhouette_rays"] == 0 and none.plan["silhouette_rays"] is False
+    with pytest.raises(InvalidInputError, match="silhouette_rel_depth"):
+        LDCViewRenderer(sc, ldc, llf, plan, silhouette_rel_depth=0.0)
