@@ -54,6 +54,7 @@ from scipy.ndimage import maximum_filter
 from .camera import camera_rays
 from .effects import EffectPlan, analyze, plan_from_dict
 from .errors import InvalidInputError, NonFiniteOutputError
+from .geometry.adjacency import locate_on_mesh, triangle_neighbours
 from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
 from .raycast import RayCaster, make_caster
@@ -142,11 +143,33 @@ def _sample_normals(geo, nrm, s, sd):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, max_move, px, py, pz, g0, g1, g2, n0, n1, n2):
-    """The pixel ray o + t d meets the plane of triangle t: move p there (when within max_move)
-    and interpolate the shading normal (barycentrics clamped to [-0.25, 1.25]: mild
-    extrapolation across the triangle's edges), flipped like g. Returns (p, ns), unchanged when
-    the ray misses the plane or the crossing is too far."""
+def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, nbr, max_move, px, py, pz, g0, g1, g2, n0, n1,
+                  n2):
+    """The pixel ray o + t d meets the surface of the sample's triangle t: move p there (when
+    within max_move) and interpolate the shading normal, flipped like g. With the mesh's edge
+    neighbours ``nbr`` ((nt, 3), ``engine.geometry.adjacency``; (0, 3): none) the walk first
+    crosses edges to the triangle the ray crosses (up to 8 steps); where it ends inside a
+    triangle that triangle's barycentrics are used, otherwise (a border, a silhouette, too many
+    steps) triangle t's, clamped to [-0.25, 1.25] (mild extrapolation across its edges).
+    Returns (p, ns), unchanged when the ray misses the plane or the crossing is too far."""
+    if nbr.shape[0] > 0:
+        ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, t, tri_p, tri_ng, nbr, 8)
+        if ok and min(bw, min(bu, bv)) >= -1e-6:
+            qx, qy, qz = ox + s2 * dx, oy + s2 * dy, oz + s2 * dz
+            ex, ey, ez = qx - px, qy - py, qz - pz
+            if ex * ex + ey * ey + ez * ez <= max_move * max_move:
+                bw, bu, bv = max(bw, 0.0), max(bu, 0.0), max(bv, 0.0)
+                m0 = bw * tri_n[t2, 0, 0] + bu * tri_n[t2, 1, 0] + bv * tri_n[t2, 2, 0]
+                m1 = bw * tri_n[t2, 0, 1] + bu * tri_n[t2, 1, 1] + bv * tri_n[t2, 2, 1]
+                m2 = bw * tri_n[t2, 0, 2] + bu * tri_n[t2, 1, 2] + bv * tri_n[t2, 2, 2]
+                ln = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+                if ln > 1e-12:
+                    # flipped to the side the sample was seen from (g), like the sample's own normal
+                    sg = 1.0 if g0 * tri_ng[t2, 0] + g1 * tri_ng[t2, 1] + g2 * tri_ng[t2, 2] >= 0.0 else -1.0
+                    m0, m1, m2 = sg * m0 / ln, sg * m1 / ln, sg * m2 / ln
+                    if m0 * g0 + m1 * g1 + m2 * g2 <= 0.0:
+                        m0, m1, m2 = g0, g1, g2
+                    return qx, qy, qz, m0, m1, m2
     den = dx * g0 + dy * g1 + dz * g2
     if abs(den) < 1e-9:
         return px, py, pz, n0, n1, n2
@@ -210,7 +233,7 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
-                     mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
+                     mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
                      tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                      radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
     """One parallel group of ``_view_pass_kernel``: the whole view-dependent pass of the camera
@@ -268,7 +291,7 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
                         reach = px_size * math.sqrt(ex * ex + ey * ey + ez * ez)
                     lim = 2.0 * (ldc_h + reach)
                     px, py, pz, n0, n1, n2 = _refine_point(ox, oy, oz, dx, dy, dz, prim[s], tri_p, tri_n, tri_ng,
-                                                           lim, px, py, pz, g0, g1, g2, n0, n1, n2)
+                                                           nbr, lim, px, py, pz, g0, g1, g2, n0, n1, n2)
             else:  # a pixel of the raycast fill
                 j = rc_row[r]
                 px, py, pz = rc_p[j, 0], rc_p[j, 1], rc_p[j, 2]
@@ -324,12 +347,12 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm, mat_a,
-                      vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p, tri_n,
+                      vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p, tri_n,
                       tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp, radiance,
                       normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
     for grp in nb.prange(groups):
         _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
-                         mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, ldc_h, tri_p,
+                         mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
                          tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
 
@@ -512,7 +535,7 @@ class LDCViewRenderer:
     def __init__(self, scene: RuntimeScene, ldc: LDC, llf: LLF | None, plan: EffectPlan | dict | None = None, *,
                  caster: RayCaster | None = None, area_light_samples: int = 16, seed: int = 0,
                  warp_options: dict | None = None, hole_search_px: int | None = 3, refine_surface: bool = True,
-                 silhouette_rays: bool = True, silhouette_rel_depth: float = 0.1):
+                 refine_walk: bool = True, silhouette_rays: bool = True, silhouette_rel_depth: float = 0.1):
         if not isinstance(ldc, LDC):
             raise InvalidInputError("LDCViewRenderer needs an LDC")
         if ldc.n_lights != scene.lights.count:
@@ -533,6 +556,10 @@ class LDCViewRenderer:
             raise InvalidInputError("hole_search_px must be None or an integer in [0, 64]")
         self.hole_search_px = hole_search_px
         self.refine_surface = bool(refine_surface)
+        self.refine_walk = bool(refine_walk)
+        # edge neighbours for the refinement's walk to the triangle the pixel ray crosses
+        self._nbr = triangle_neighbours(scene.tri_p) if (self.refine_surface and self.refine_walk) \
+            else np.zeros((0, 3), np.int32)
         self.silhouette_rays = bool(silhouette_rays)
         if not (isinstance(silhouette_rel_depth, (int, float)) and 0.0 < float(silhouette_rel_depth) <= 10.0):
             raise InvalidInputError("silhouette_rel_depth must be a number in (0, 10]")
@@ -778,9 +805,9 @@ class LDCViewRenderer:
             args = (rc_row, np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
                     np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
                     np.ascontiguousarray(rc_bits, np.uint64), self._camera_tuple(camera), self.refine_surface,
-                    float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat, bool(want_vp),
-                    bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal, prov,
-                    lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+                    self._nbr, float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
+                    bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal,
+                    prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
             for a, (org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
                 _view_pass_kernel(_groups(), a, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, dep, geo,
                                   nrm, mat_a, vis2, prim, *args)
@@ -821,7 +848,8 @@ class LDCViewRenderer:
             raise NonFiniteOutputError("LDC render produced non-finite values")
         timings["total"] = time.perf_counter() - t_start
         plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,
-                "refine_surface": self.refine_surface, "silhouette_rays": self.silhouette_rays and fill != "none",
+                "refine_surface": self.refine_surface, "refine_walk": self.refine_surface and self.refine_walk,
+                "silhouette_rays": self.silhouette_rays and fill != "none",
                 "force_all_passes": force, "passes": passes, "effects": self.plan.to_dict(),
                 "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
         report(1.0, "done")
