@@ -25,6 +25,7 @@ import math
 import time
 import types
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numba as nb
 import numpy as np
@@ -277,13 +278,76 @@ class BakedDataset:
     @property
     def nbytes(self) -> int:
         lr = self.lowrank.nbytes if self.lowrank is not None else 0
-        return int(self.store.nbytes + lr + self.points.nbytes + self.pixel_index.nbytes)
+        # + the kernel's float32 points and int32 pixel index (derived on the first relight)
+        return int(self.store.nbytes + lr + self.points.nbytes + self.pixel_index.nbytes
+                   + self.pixel_index.size * 16)
+
+    @cached_property
+    def kernel_geometry(self) -> KernelGeometry:
+        """The surface points and pixel index in the relight kernel's compact form, derived on first use
+        and kept with this object (not a field: never serialised, artifacts are unchanged)."""
+        return KernelGeometry.of(self)
 
     def kernel_store(self):
         """What the relight kernel reads: the store (float16 as uint16 bits) or the low-rank factors."""
         if self.lowrank is not None:
             return self.lowrank.kernel_args()
         return self.store.view(np.uint16) if self.store.dtype == np.float16 else self.store
+
+
+@dataclass(frozen=True)
+class KernelGeometry:
+    """What the relight kernel reads per pixel besides the store, at 16 bytes a pixel instead of 32.
+
+    origin (3,) float64: the kernel frame's origin, the sphere centre (distant dataset: the centre of
+        the points' bounding box); every position the kernel sees is relative to it.
+    points (n_chunks, 3, 256) float32: ``baked.points - origin`` rounded to float32, one contiguous
+        row per axis and chunk of 256 store rows (the last chunk zero-padded).
+    rounding: a bound on ``|points(float32) - (baked.points - origin)|`` for every point
+        (2^-24 x the largest |point - origin| per rounded point, kept with a factor 2 margin). A light
+        within ``min_light_distance + 4 x rounding`` of a float32 point is decided and computed from
+        the float64 point (so the singular rule is the float64 one).
+    pixel_index (n,) int32 (int64 for frames of 2^31 pixels or more): ``baked.pixel_index``.
+    runs (ceil(n / 16),) uint8: 1 where store rows 16 g .. 16 g + 15 are 16 consecutive pixels.
+    unused_pixels: the flat pixels without a store row (zero in every relit image).
+    """
+
+    origin: np.ndarray
+    points: np.ndarray
+    rounding: float
+    pixel_index: np.ndarray
+    runs: np.ndarray
+    unused_pixels: np.ndarray
+
+    @staticmethod
+    def of(baked: BakedDataset) -> KernelGeometry:
+        p64 = baked.points
+        if baked.distant:
+            origin = 0.5 * (p64.min(axis=0) + p64.max(axis=0)) if p64.shape[0] else np.zeros(3)
+        else:
+            origin = np.asarray(baked.sphere_center, np.float64)
+        o = p64 - origin
+        n = o.shape[0]
+        n_chunks = (n + _CHUNK - 1) // _CHUNK
+        pad = np.zeros((n_chunks * _CHUNK, 3), np.float32)
+        pad[:n] = o
+        pts = np.ascontiguousarray(pad.reshape(n_chunks, _CHUNK, 3).transpose(0, 2, 1))
+        far = float(np.sqrt(np.max(np.einsum("ij,ij->i", o, o)))) if n else 0.0
+        h, w = baked.shape
+        idx_t = np.int32 if h * w < 2 ** 31 else np.int64
+        used = np.zeros(h * w, bool)
+        used[baked.pixel_index] = True
+        g = np.full((n + 15) // 16 * 16, -1, np.int64)
+        g[:n] = baked.pixel_index
+        g = g.reshape(-1, 16)
+        runs = np.all(g[:, 1:] - g[:, :-1] == 1, axis=1).astype(np.uint8)
+        return KernelGeometry(origin=origin, points=pts, rounding=2.0 ** -23 * far, runs=runs,
+                              pixel_index=baked.pixel_index.astype(idx_t),
+                              unused_pixels=np.nonzero(~used)[0].astype(idx_t))
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.points.nbytes + self.pixel_index.nbytes + self.runs.nbytes + self.unused_pixels.nbytes)
 
 
 def _dedupe(dirs: np.ndarray, pos: np.ndarray, tol_rad: float):
@@ -693,6 +757,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
 
 _CONE_EPS = 1e-12
 _CHUNK = 256  # rows per chunk = TILE: a chunk is one tile of the tiled store
+_MAX_PASSES = 4  # triangles per chunk and light in the SIMD pass B (the rest: scalar pass B3)
+_SIMD_MIN_ROWS = 32  # fewer rows left than this: the scalar pass B3 is cheaper than another SIMD pass
 _UNIT = 8  # consecutive chunks one scratch group runs in a row (neighbouring 16 x 16 blocks: output rows,
 #            points and pixel indices stay in the same pages and prefetch streams)
 
@@ -929,64 +995,115 @@ def _group_chunks(gi, n_groups, n_chunks):
     return out[:c]
 
 
-def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tris, inv, grid_n, grid_start,
-                    grid_items, kinds, lp, lint, lnorm, min_dist2, pix, out, outside, singular, touched):
+@nb.njit(cache=True, nogil=True, inline="always")
+def _f32(x):
+    return np.float32(x)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, ox, oy, oz, r2):
+    """Scalar pass A for one row and light in the kernel frame (origin = sphere centre): (d2, den, sx,
+    sy, sz) with d2 = |l - P|^2 (inf for directional lights), den the irradiance denominator (the
+    light's contribution is its intensity / den; den < 0 = an area sample facing away) and s a
+    positive multiple of the direction from the centre to the sphere point (the cone test and the
+    normalised weights do not depend on its length). The SIMD loops of pass A are the same
+    operations per row."""
+    if kd == 1:
+        if distant_ds:
+            return math.inf, 1.0, lx, ly, lz
+        b = ox * lx + oy * ly + oz * lz
+        cc = ox * ox + oy * oy + oz * oz - r2
+        e = b * b - cc
+        t = math.sqrt(e if e > 0.0 else 0.0) - b
+        return math.inf, 1.0, ox + t * lx, oy + t * ly, oz + t * lz
+    dx, dy, dz = lx - ox, ly - oy, lz - oz
+    d2 = dx * dx + dy * dy + dz * dz
+    den = d2
+    if kd >= 2:
+        c = -(dx * nx + dy * ny + dz * nz) / math.sqrt(d2)
+        if kd == 3:
+            c = abs(c)
+        den = d2 / c if c > 0.0 else -1.0
+    if distant_ds:
+        return d2, den, dx, dy, dz
+    b = ox * dx + oy * dy + oz * dz
+    cc = ox * ox + oy * oy + oz * oz - r2
+    e = b * b - cc * d2
+    t = math.sqrt(e if e > 0.0 else 0.0) - b
+    return d2, den, d2 * ox + t * dx, d2 * oy + t * dy, d2 * oz + t * dz
+
+
+def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, radius, tris, inv, grid_n,
+                    grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, out, outside,
+                    singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
-    points (n, 3) f64; store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits (uint16),
-    or the low-rank factors; lpos (K, 3); inv_int (K, 3) = 1 / (dataset intensity x store scale);
-    kinds (M,) int64; lp (M, 3) light position or direction toward the light; lint (M, 3)
-    intensity (point, oriented) or irradiance (directional); lnorm (M, 3) emitter normal
-    (oriented). pix (n,) flat pixel of each store row; out (h*w, 3) f32 written at ``pix[i]``
-    only; outside / singular (h*w,) bool, zeroed by the caller, set at ``pix[i]`` where true;
-    touched (T,) uint8 set to 1 for every triangle whose three lights were read (racing writes
-    all store 1).
+    Kernel frame: every position relative to ``origin`` (the sphere centre; for a distant dataset the
+    centre of the points' bounding box). kpts (n_chunks, 3, _CHUNK) float32: the surface points in that
+    frame, one contiguous row per axis and chunk (zero padded); points64 (n, 3) float64 the baked
+    points (world frame), used for the rows whose light is within ``near2`` (squared) of the float32
+    point: whether the light is closer than ``min_dist2`` (singular) is decided, and the row computed,
+    in float64 from the exact point. store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits
+    (uint16), or the low-rank factors; lpos (K, 3) dataset light positions in the kernel frame; inv_int
+    (K, 3) = 1 / (dataset intensity x store scale); kinds (M,) int64; lp (M, 3) light position (kernel
+    frame) or direction toward the light; lint (M, 3) intensity (point, oriented) or irradiance
+    (directional); lnorm (M, 3) emitter normal (oriented). pix (n,) flat pixel of each store row; out
+    (h*w, 3) f32 written at ``pix[i]`` only; outside / singular (h*w,) bool, zeroed by the caller, set
+    at ``pix[i]`` where true; touched (T,) uint8 set to 1 for every triangle whose three lights were
+    read (racing writes all store 1).
 
-    Fixed chunks of _CHUNK consecutive rows (one tile of the tiled store; the same chunks for
-    any thread count, so results do not depend on it). A scratch group runs _UNIT consecutive
-    chunks, then skips to its next unit (units dealt round-robin, so both threads see all of
-    the frame). Light by light:
-    - pass A: every row's sphere point and irradiance factor, branch-free loops (SIMD);
+    Fixed chunks of _CHUNK consecutive rows (one tile of the tiled store; the same chunks for any
+    thread count, so results do not depend on it). A scratch group runs _UNIT consecutive chunks,
+    then skips to its next unit (units dealt round-robin, so both threads see all of the frame).
+    Light by light:
+    - pass A (SIMD): every row's sphere direction s (a positive multiple of the sphere point: one
+      sqrt, no division), |l - P|^2 and the irradiance denominator;
     - pass B1: the chunk's triangle = the one the first usable row falls in (cube-map search);
-    - pass B2 (SIMD across rows, in simple loops the vectoriser takes): every row's cone test
-      and weights against that triangle, the three lights' runs of the tile decoded, and the
-      accumulation of the rows the triangle contains (most rows: a 16 x 16 block sees a light
-      in nearly one direction);
-    - pass B3 (scalar): the other rows, previous-row triangle first, then the cube-map search.
-    Every row's value is computed with the same float64 operations in the same order as a
-    per-pixel loop would (bit-identical to the former kernel; see docs/relighting.md "Speed").
-    While a chunk is processed, the next chunk's points and output rows, and its runs of the
-    current triangle's lights, are prefetched.
+    - pass B2 (SIMD across rows, in simple loops the vectoriser takes): every row's cone test against
+      that triangle, its weights times the squared distances to the three vertex lights times the
+      irradiance factor (one division per row), the three lights' runs of the tile decoded, and the
+      accumulation of the rows the triangle contains (most rows: a 16 x 16 block sees a light in
+      nearly one direction);
+    - pass B3 (scalar): the other rows, previous-row triangle first, then the cube-map search; the
+      same operations per row as B2 (a tiled and a pixel-major store give the same image).
+    While a chunk is processed, the next chunk's points and output rows, and its runs of the current
+    triangle's lights, are prefetched.
     """
-    n = points.shape[0]
+    n = points64.shape[0]
     m = kinds.shape[0]
-    cx, cy, cz = center[0], center[1], center[2]
+    gx0, gy0, gz0 = origin[0], origin[1], origin[2]
     r2 = radius * radius
     n_chunks = (n + _CHUNK - 1) // _CHUNK
     n_units = (n_chunks + _UNIT - 1) // _UNIT
     n_groups = min(_GROUPS, n_units)
     flat = _flat(store)
-    pflat = points.reshape(-1)
+    kflat = kpts.reshape(-1)
     oflat = out.reshape(-1)
+    simd = _simd_store(store)
     for gi in nb.prange(n_groups):
         sx = np.empty(_CHUNK)
         sy = np.empty(_CHUNK)
         sz = np.empty(_CHUNK)
-        fac = np.empty(_CHUNK)
+        den = np.empty(_CHUNK)
         d2s = np.empty(_CHUNK)
-        acc = np.empty((3, _CHUNK))
+        acc0 = np.empty(_CHUNK, np.float32)
+        acc1 = np.empty(_CHUNK, np.float32)
+        acc2 = np.empty(_CHUNK, np.float32)
         out_f = np.empty(_CHUNK, np.bool_)
         sing_f = np.empty(_CHUNK, np.bool_)
-        done = np.empty(_CHUNK, np.bool_)
+        todo = np.empty(_CHUNK, np.bool_)
+        hit = np.empty(_CHUNK, np.bool_)
         wa = np.empty(_CHUNK)
         wb = np.empty(_CHUNK)
         wc = np.empty(_CHUNK)
+        fa32 = np.empty(_CHUNK, np.float32)
+        fb32 = np.empty(_CHUNK, np.float32)
+        fc32 = np.empty(_CHUNK, np.float32)
         va = np.empty((3, _CHUNK), np.float32)
         vb = np.empty((3, _CHUNK), np.float32)
         vc = np.empty((3, _CHUNK), np.float32)
-        qx = np.empty(_CHUNK)
-        qy = np.empty(_CHUNK)
-        qz = np.empty(_CHUNK)
+        out_f[:] = False
+        sing_f[:] = False
         for ci in _group_chunks(gi, n_groups, n_chunks):
             unit = ci // _UNIT
             i0 = ci * _CHUNK
@@ -995,94 +1112,85 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
             cn = ci + 1 if (ci + 1) % _UNIT != 0 else (unit + n_groups) * _UNIT
             n0 = cn * _CHUNK
             ncn = min(n, n0 + _CHUNK) - n0 if cn < n_chunks else 0
-            for e in range(0, 3 * ncn, 8):
-                _prefetch(pflat, 3 * n0 + e)
+            if ncn > 0:
+                for e in range(0, 3 * _CHUNK, 16):
+                    _prefetch(kflat, 3 * n0 + e)
             for k in range(0, ncn, 16):  # one 16-pixel output row of the block per 16 store rows
                 q = pix[n0 + k]
                 for e in range(0, 48, 16):
                     _prefetch_w(oflat, 3 * q + e)
                 _prefetch_w(oflat, 3 * q + 47)
-            acc[:, :nc] = 0.0
-            out_f[:nc] = False
-            sing_f[:nc] = False
-            for r in range(nc):  # the chunk's points as three contiguous rows (vectorisable loops below)
-                qx[r] = points[i0 + r, 0]
-                qy[r] = points[i0 + r, 1]
-                qz[r] = points[i0 + r, 2]
+            # the chunk's points: three contiguous float32 rows
+            qx = kflat[3 * i0:3 * i0 + _CHUNK]
+            qy = kflat[3 * i0 + _CHUNK:3 * i0 + 2 * _CHUNK]
+            qz = kflat[3 * i0 + 2 * _CHUNK:3 * i0 + 3 * _CHUNK]
+            for r in range(_CHUNK):
+                acc0[r] = np.float32(0.0)
+                acc1[r] = np.float32(0.0)
+                acc2[r] = np.float32(0.0)
+            flags = False
             for j in range(m):
                 kd = kinds[j]
                 lx, ly, lz = lp[j, 0], lp[j, 1], lp[j, 2]
-                # ---- pass A: sphere point (sx, sy, sz) and irradiance factor of every row
+                nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
+                # ---- pass A: sphere direction, squared distance and irradiance denominator of every row
                 if kd == 1:
-                    for r in range(nc):
-                        fac[r] = 1.0
+                    for r in range(_CHUNK):
+                        den[r] = 1.0
                         d2s[r] = math.inf
                     if distant_ds:
-                        for r in range(nc):
+                        for r in range(_CHUNK):
                             sx[r], sy[r], sz[r] = lx, ly, lz
                     else:
-                        inv_len = 1.0 / math.sqrt(lx * lx + ly * ly + lz * lz)
-                        ux, uy, uz = lx * inv_len, ly * inv_len, lz * inv_len
-                        for r in range(nc):
-                            ox, oy, oz = qx[r] - cx, qy[r] - cy, qz[r] - cz
-                            b = ox * ux + oy * uy + oz * uz
+                        for r in range(_CHUNK):
+                            ox, oy, oz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
+                            b = ox * lx + oy * ly + oz * lz
                             cc = ox * ox + oy * oy + oz * oz - r2
                             e = b * b - cc
-                            t = -b + math.sqrt(e if e > 0.0 else 0.0)
-                            sx[r] = ox + t * ux
-                            sy[r] = oy + t * uy
-                            sz[r] = oz + t * uz
+                            t = math.sqrt(e if e > 0.0 else 0.0) - b
+                            sx[r] = ox + t * lx
+                            sy[r] = oy + t * ly
+                            sz[r] = oz + t * lz
                 elif kd == 0 and not distant_ds:  # the common case, branch-free
-                    for r in range(nc):
-                        dx, dy, dz = lx - qx[r], ly - qy[r], lz - qz[r]
+                    for r in range(_CHUNK):
+                        ox, oy, oz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
+                        dx, dy, dz = lx - ox, ly - oy, lz - oz
                         d2 = dx * dx + dy * dy + dz * dz
                         d2s[r] = d2
-                        fac[r] = 1.0 / d2
-                        inv_len = 1.0 / math.sqrt(d2)
-                        ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
-                        ox, oy, oz = qx[r] - cx, qy[r] - cy, qz[r] - cz
-                        b = ox * ux + oy * uy + oz * uz
+                        den[r] = d2
+                        b = ox * dx + oy * dy + oz * dz
                         cc = ox * ox + oy * oy + oz * oz - r2
-                        e = b * b - cc
-                        t = -b + math.sqrt(e if e > 0.0 else 0.0)
-                        sx[r] = ox + t * ux
-                        sy[r] = oy + t * uy
-                        sz[r] = oz + t * uz
+                        e = b * b - cc * d2
+                        t = math.sqrt(e if e > 0.0 else 0.0) - b
+                        sx[r] = d2 * ox + t * dx
+                        sy[r] = d2 * oy + t * dy
+                        sz[r] = d2 * oz + t * dz
                 else:
-                    nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
                     for r in range(nc):
-                        px, py, pz = qx[r], qy[r], qz[r]
-                        dx, dy, dz = lx - px, ly - py, lz - pz
-                        d2 = dx * dx + dy * dy + dz * dz
-                        d2s[r] = d2
-                        f = 1.0 / d2
-                        sq = math.sqrt(d2)
-                        if kd >= 2:
-                            c = -(dx * nx + dy * ny + dz * nz) / sq
-                            if kd == 3:
-                                c = abs(c)
-                            f = f * c if c > 0.0 else -1.0
-                        fac[r] = f
-                        if distant_ds:
-                            sx[r], sy[r], sz[r] = dx, dy, dz
-                        else:
-                            inv_len = 1.0 / sq
-                            ux, uy, uz = dx * inv_len, dy * inv_len, dz * inv_len
-                            ox, oy, oz = px - cx, py - cy, pz - cz
-                            b = ox * ux + oy * uy + oz * uz
-                            cc = ox * ox + oy * oy + oz * oz - r2
-                            t = -b + math.sqrt(max(b * b - cc, 0.0))
-                            sx[r], sy[r], sz[r] = ox + t * ux, oy + t * uy, oz + t * uz
+                        d2s[r], den[r], sx[r], sy[r], sz[r] = _sphere_point(
+                            kd, distant_ds, lx, ly, lz, nx, ny, nz, np.float64(qx[r]), np.float64(qy[r]),
+                            np.float64(qz[r]), r2)
                 l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
-                # ---- pass B1: the chunk's triangle = the one its first usable row falls in (tiled
-                # stores; pixel-major and low-rank rows are gathers either way: all rows go to B3)
-                t0 = -1
-                if _simd_store(store):
+                # rows to do: usable (not within near2 of the light, not an area sample facing away) and
+                # not yet accumulated; the unusable rows (rare) go to pass B3
+                n_todo = 0
+                for r in range(_CHUNK):
+                    u = (r < nc) & (d2s[r] > near2) & (den[r] > 0.0)
+                    todo[r] = u
+                    n_todo += u
+                n_rest = nc - n_todo  # unusable rows
+                # ---- pass B (SIMD, tiled stores; pixel-major and low-rank rows are gathers either way:
+                # all rows go to B3): a triangle = the one the first row to do falls in (cube-map search),
+                # tested against every row of the chunk; then the next one, while >= _SIMD_MIN_ROWS rows
+                # are left (a 16 x 16 block mostly needs one or two triangles)
+                for _ in range(_MAX_PASSES if simd else 0):
+                    t0 = -1
                     for r in range(nc):
-                        if d2s[r] > min_dist2 and fac[r] >= 0.0:
+                        if todo[r]:
                             t0, w0, w1, w2 = _locate(sx[r], sy[r], sz[r], inv, grid_n, grid_start, grid_items)
                             break
-                if t0 >= 0:
+                    if t0 < 0:  # outside coverage: pass B3 marks it
+                        break
                     touched[t0] = 1
                     m00, m01, m02 = inv[t0, 0, 0], inv[t0, 0, 1], inv[t0, 0, 2]
                     m10, m11, m12 = inv[t0, 1, 0], inv[t0, 1, 1], inv[t0, 1, 2]
@@ -1093,36 +1201,37 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                     ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
                     bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
                     gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
-                    ia0, ia1, ia2 = inv_int[ka, 0], inv_int[ka, 1], inv_int[ka, 2]
-                    ib0, ib1, ib2 = inv_int[kb, 0], inv_int[kb, 1], inv_int[kb, 2]
-                    ic0, ic1, ic2 = inv_int[kc, 0], inv_int[kc, 1], inv_int[kc, 2]
-                    # ---- pass B2 (SIMD across rows): _locate's test and weights against t0 ...
-                    for r in range(nc):
+                    ia0, ia1, ia2 = _f32(inv_int[ka, 0] * l0), _f32(inv_int[ka, 1] * l1), _f32(inv_int[ka, 2] * l2)
+                    ib0, ib1, ib2 = _f32(inv_int[kb, 0] * l0), _f32(inv_int[kb, 1] * l1), _f32(inv_int[kb, 2] * l2)
+                    ic0, ic1, ic2 = _f32(inv_int[kc, 0] * l0), _f32(inv_int[kc, 1] * l1), _f32(inv_int[kc, 2] * l2)
+                    # _locate's test against t0, weights x irradiance factor ...
+                    for r in range(_CHUNK):
                         x, y, z = sx[r], sy[r], sz[r]
                         a0 = m00 * x + m01 * y + m02 * z
                         a1 = m10 * x + m11 * y + m12 * z
                         a2 = m20 * x + m21 * y + m22 * z
                         s = a0 + a1 + a2
-                        done[r] = ((s > 0.0) & (min(a0, min(a1, a2)) >= -_CONE_EPS * s) & (d2s[r] > min_dist2)
-                                   & (fac[r] >= 0.0))
+                        hit[r] = (s > 0.0) & (min(a0, min(a1, a2)) >= -_CONE_EPS * s) & todo[r]
                         a0 = max(a0, 0.0)
                         a1 = max(a1, 0.0)
                         a2 = max(a2, 0.0)
-                        s = a0 + a1 + a2
-                        wa[r], wb[r], wc[r] = a0 / s, a1 / s, a2 / s  # rows outside t0: unused (masked)
+                        g = 1.0 / ((a0 + a1 + a2) * den[r])  # rows outside t0: unused (masked)
+                        wa[r], wb[r], wc[r] = a0 * g, a1 * g, a2 * g
                     if not distant_ds:
-                        for r in range(nc):
-                            px, py, pz = qx[r], qy[r], qz[r]
+                        for r in range(_CHUNK):
+                            px, py, pz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
                             ex, ey, ez = ax - px, ay - py, az - pz
                             wa[r] = wa[r] * (ex * ex + ey * ey + ez * ez)
                             ex, ey, ez = bx - px, by - py, bz - pz
                             wb[r] = wb[r] * (ex * ex + ey * ey + ez * ez)
                             ex, ey, ez = gx - px, gy - py, gz - pz
                             wc[r] = wc[r] * (ex * ex + ey * ey + ez * ez)
-                    # ... the three lights' values of the chunk's rows ...
+                    for r in range(_CHUNK):
+                        fa32[r], fb32[r], fc32[r] = wa[r], wb[r], wc[r]
+                    # ... the three lights' values of the rows ...
                     run_a, run_b = _run(flat, store, ci, ka), _run(flat, store, ci, kb)
                     run_c = _run(flat, store, ci, kc)
-                    for r in range(nc):
+                    for r in range(_CHUNK):
                         i = i0 + r
                         va[0, r] = _run_value(run_a, store, i, r, ka, 0)
                         va[1, r] = _run_value(run_a, store, i, r, ka, 1)
@@ -1133,36 +1242,50 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                         vc[0, r] = _run_value(run_c, store, i, r, kc, 0)
                         vc[1, r] = _run_value(run_c, store, i, r, kc, 1)
                         vc[2, r] = _run_value(run_c, store, i, r, kc, 2)
-                    # ... and the accumulation of the rows t0 contains (a select, not a branch)
-                    for r in range(nc):
-                        fa, fb, fc, f = wa[r], wb[r], wc[r], fac[r]
-                        v0 = fa * ia0 * va[0, r] + fb * ib0 * vb[0, r] + fc * ic0 * vc[0, r]
-                        v1 = fa * ia1 * va[1, r] + fb * ib1 * vb[1, r] + fc * ic1 * vc[1, r]
-                        v2 = fa * ia2 * va[2, r] + fb * ib2 * vb[2, r] + fc * ic2 * vc[2, r]
-                        ok = done[r]
-                        c0, c1, c2 = acc[0, r], acc[1, r], acc[2, r]
-                        acc[0, r] = c0 + v0 * (l0 * f) if ok else c0  # directional: f = 1, l0 * 1 = l0
-                        acc[1, r] = c1 + v1 * (l1 * f) if ok else c1
-                        acc[2, r] = c2 + v2 * (l2 * f) if ok else c2
-                else:
-                    done[:nc] = False
+                    # ... and the accumulation of the rows t0 contains (a select, not a branch; float32:
+                    # the values are float16 or float32, the weights' rounding is 2^-24)
+                    for r in range(_CHUNK):
+                        ua, ub, uc = fa32[r], fb32[r], fc32[r]
+                        v0 = ua * ia0 * va[0, r] + ub * ib0 * vb[0, r] + uc * ic0 * vc[0, r]
+                        v1 = ua * ia1 * va[1, r] + ub * ib1 * vb[1, r] + uc * ic1 * vc[1, r]
+                        v2 = ua * ia2 * va[2, r] + ub * ib2 * vb[2, r] + uc * ic2 * vc[2, r]
+                        ok = hit[r]
+                        c0, c1, c2 = acc0[r], acc1[r], acc2[r]
+                        acc0[r] = c0 + v0 if ok else c0
+                        acc1[r] = c1 + v1 if ok else c1
+                        acc2[r] = c2 + v2 if ok else c2
+                    # the rows still to do: how many, and their range
+                    n_todo = 0
+                    for r in range(_CHUNK):
+                        t = todo[r] > hit[r]  # still to do: not hit by this triangle
+                        todo[r] = t
+                        n_todo += t
+                    if n_todo < _SIMD_MIN_ROWS:
+                        break
                 # ---- pass B3 (scalar): the rows t0 does not contain. The current triangle's search
                 # matrix, vertex lights, their positions and 1/intensity live in locals.
                 last = -1
                 ka = kb = kc = 0
                 m00 = m01 = m02 = m10 = m11 = m12 = m20 = m21 = m22 = 0.0
                 ax = ay = az = bx = by = bz = gx = gy = gz = 0.0
-                ia0 = ia1 = ia2 = ib0 = ib1 = ib2 = ic0 = ic1 = ic2 = 0.0
+                ia0 = ia1 = ia2 = ib0 = ib1 = ib2 = ic0 = ic1 = ic2 = np.float32(0.0)
+                if n_todo + n_rest == 0:
+                    continue
                 for r in range(nc):
-                    if done[r]:
+                    if not todo[r] and d2s[r] > near2 and den[r] > 0.0:  # accumulated in pass B
                         continue
-                    if d2s[r] <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
-                        sing_f[r] = True
+                    i = i0 + r
+                    d2, dn, x, y, z = d2s[r], den[r], sx[r], sy[r], sz[r]
+                    px, py, pz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
+                    if d2 <= near2:  # the light is at the float32 point's rounding scale: exact point
+                        px, py, pz = points64[i, 0] - gx0, points64[i, 1] - gy0, points64[i, 2] - gz0
+                        d2, dn, x, y, z = _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, px, py, pz, r2)
+                        if d2 <= min_dist2:  # <=: a cutoff of 0 still catches d = 0
+                            sing_f[r] = True
+                            flags = True
+                            continue
+                    if dn <= 0.0:  # area-light sample facing away
                         continue
-                    f = fac[r]
-                    if f < 0.0:  # area-light sample facing away
-                        continue
-                    x, y, z = sx[r], sy[r], sz[r]
                     tri = -1
                     if last >= 0:  # the previous such row's triangle first (_locate's test)
                         a0 = m00 * x + m01 * y + m02 * z
@@ -1170,15 +1293,12 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                         a2 = m20 * x + m21 * y + m22 * z
                         s = a0 + a1 + a2
                         if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
-                            a0 = max(a0, 0.0)
-                            a1 = max(a1, 0.0)
-                            a2 = max(a2, 0.0)
-                            s = a0 + a1 + a2
-                            tri, w0, w1, w2 = last, a0 / s, a1 / s, a2 / s
+                            tri = last
                     if tri < 0:
                         tri, w0, w1, w2 = _locate(x, y, z, inv, grid_n, grid_start, grid_items)
                         if tri < 0:
                             out_f[r] = True
+                            flags = True
                             continue
                     if tri != last:
                         touched[tri] = 1
@@ -1190,41 +1310,60 @@ def _relight_kernel(points, store, lpos, inv_int, distant_ds, center, radius, tr
                         ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
                         bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
                         gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
-                        ia0, ia1, ia2 = inv_int[ka, 0], inv_int[ka, 1], inv_int[ka, 2]
-                        ib0, ib1, ib2 = inv_int[kb, 0], inv_int[kb, 1], inv_int[kb, 2]
-                        ic0, ic1, ic2 = inv_int[kc, 0], inv_int[kc, 1], inv_int[kc, 2]
-                    i = i0 + r
-                    if distant_ds:
-                        fa, fb, fc = w0, w1, w2
-                    else:
-                        px, py, pz = qx[r], qy[r], qz[r]
+                        ia0, ia1, ia2 = _f32(inv_int[ka, 0] * l0), _f32(inv_int[ka, 1] * l1), _f32(inv_int[ka, 2] * l2)
+                        ib0, ib1, ib2 = _f32(inv_int[kb, 0] * l0), _f32(inv_int[kb, 1] * l1), _f32(inv_int[kb, 2] * l2)
+                        ic0, ic1, ic2 = _f32(inv_int[kc, 0] * l0), _f32(inv_int[kc, 1] * l1), _f32(inv_int[kc, 2] * l2)
+                    # the weights exactly as pass B2 computes them
+                    a0 = m00 * x + m01 * y + m02 * z
+                    a1 = m10 * x + m11 * y + m12 * z
+                    a2 = m20 * x + m21 * y + m22 * z
+                    a0 = max(a0, 0.0)
+                    a1 = max(a1, 0.0)
+                    a2 = max(a2, 0.0)
+                    g = 1.0 / ((a0 + a1 + a2) * dn)
+                    fa, fb, fc = a0 * g, a1 * g, a2 * g
+                    if not distant_ds:
                         ex, ey, ez = ax - px, ay - py, az - pz
-                        fa = w0 * (ex * ex + ey * ey + ez * ez)
+                        fa = fa * (ex * ex + ey * ey + ez * ez)
                         ex, ey, ez = bx - px, by - py, bz - pz
-                        fb = w1 * (ex * ex + ey * ey + ez * ez)
+                        fb = fb * (ex * ex + ey * ey + ez * ez)
                         ex, ey, ez = gx - px, gy - py, gz - pz
-                        fc = w2 * (ex * ex + ey * ey + ez * ez)
-                    v0 = (fa * ia0 * _fetch(store, i, ka, 0)
-                          + fb * ib0 * _fetch(store, i, kb, 0)
-                          + fc * ic0 * _fetch(store, i, kc, 0))
-                    v1 = (fa * ia1 * _fetch(store, i, ka, 1)
-                          + fb * ib1 * _fetch(store, i, kb, 1)
-                          + fc * ic1 * _fetch(store, i, kc, 1))
-                    v2 = (fa * ia2 * _fetch(store, i, ka, 2)
-                          + fb * ib2 * _fetch(store, i, kb, 2)
-                          + fc * ic2 * _fetch(store, i, kc, 2))
-                    acc[0, r] += v0 * (l0 * f)
-                    acc[1, r] += v1 * (l1 * f)
-                    acc[2, r] += v2 * (l2 * f)
-            for r in range(nc):
-                q = pix[i0 + r]
-                out[q, 0] = acc[0, r]
-                out[q, 1] = acc[1, r]
-                out[q, 2] = acc[2, r]
-                if out_f[r]:  # the flags arrive zeroed: only set ones are written (rare)
-                    outside[q] = True
-                if sing_f[r]:
-                    singular[q] = True
+                        fc = fc * (ex * ex + ey * ey + ez * ez)
+                    ua, ub, uc = _f32(fa), _f32(fb), _f32(fc)  # float32 from here, as in pass B2
+                    v0 = (ua * ia0 * _fetch(store, i, ka, 0)
+                          + ub * ib0 * _fetch(store, i, kb, 0)
+                          + uc * ic0 * _fetch(store, i, kc, 0))
+                    v1 = (ua * ia1 * _fetch(store, i, ka, 1)
+                          + ub * ib1 * _fetch(store, i, kb, 1)
+                          + uc * ic1 * _fetch(store, i, kc, 1))
+                    v2 = (ua * ia2 * _fetch(store, i, ka, 2)
+                          + ub * ib2 * _fetch(store, i, kb, 2)
+                          + uc * ic2 * _fetch(store, i, kc, 2))
+                    acc0[r] += v0
+                    acc1[r] += v1
+                    acc2[r] += v2
+            for r0 in range(0, nc, 16):
+                if runs[(i0 + r0) >> 4]:  # 16 rows = 16 consecutive pixels (a block row): 48 floats
+                    q = 3 * pix[i0 + r0]
+                    o = oflat[q:q + 48]
+                    for k in range(16):
+                        o[3 * k] = acc0[r0 + k]
+                        o[3 * k + 1] = acc1[r0 + k]
+                        o[3 * k + 2] = acc2[r0 + k]
+                else:
+                    for r in range(r0, min(nc, r0 + 16)):
+                        q = 3 * pix[i0 + r]
+                        oflat[q] = acc0[r]
+                        oflat[q + 1] = acc1[r]
+                        oflat[q + 2] = acc2[r]
+            if flags:  # outside / singular flags (rare); the arrays arrive zeroed
+                for r in range(nc):
+                    if out_f[r]:
+                        outside[pix[i0 + r]] = True
+                    if sing_f[r]:
+                        singular[pix[i0 + r]] = True
+                    out_f[r] = False
+                    sing_f[r] = False
 
 
 class _DualKernel:
@@ -1543,7 +1682,9 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         raise InvalidInputError("min_light_distance must be finite and >= 0")
     t1 = time.perf_counter()
     timings = {"expand_lights_s": t1 - t0}
-    img = np.zeros((h * w, 3), np.float32)
+    geom = baked.kernel_geometry
+    img = np.empty((h * w, 3), np.float32)  # every store row is written by the kernels
+    img[geom.unused_pixels] = 0.0
     outside = np.zeros(h * w, bool)
     singular = np.zeros(h * w, bool)
     exact = _exact_indices(baked, kinds, lp) if exact_fast_path else None
@@ -1551,7 +1692,7 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         # light(s) exactly at dataset lights: the stored images, scaled, no interpolation; float32
         # arithmetic in the order of ``sum_j light_values(k_j) * ratio_j`` (bit-identical to it)
         ratios = np.ascontiguousarray((li / baked.intensities[exact]).astype(np.float32))
-        _EXACT.pick(serial)(baked.kernel_store(), baked.pixel_index, exact,
+        _EXACT.pick(serial)(baked.kernel_store(), geom.pixel_index, exact,
                             baked.store_scale[exact].astype(np.float32), ratios, img)
         timings["kernel_s"] = time.perf_counter() - t1
         used = np.unique(exact)
@@ -1566,11 +1707,19 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
             if not (1 <= int(threads) <= nb.config.NUMBA_NUM_THREADS):
                 raise InvalidInputError(f"threads must be in [1, {nb.config.NUMBA_NUM_THREADS}]")
             nb.set_num_threads(int(threads))
+        # the kernel frame: positions relative to geom.origin; directions toward directional lights unit
+        lp_k = lp.copy()
+        pos = kinds != _K_DIRECTIONAL
+        lp_k[pos] -= geom.origin
+        if np.any(~pos):
+            lp_k[~pos] /= np.linalg.norm(lp_k[~pos], axis=1, keepdims=True)
+        lpos_k = baked.light_positions if baked.distant else np.ascontiguousarray(baked.light_positions - geom.origin)
+        near2 = (float(min_light_distance) + 4.0 * geom.rounding) ** 2
         try:
-            kern(baked.points, baked.kernel_store(), baked.light_positions, inv_int, baked.distant,
-                 baked.sphere_center, radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
-                 baked.grid_items, kinds, lp, li, ln, float(min_light_distance) ** 2, baked.pixel_index, img,
-                 outside, singular, touched)
+            kern(geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int, baked.distant,
+                 radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, kinds,
+                 lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index, geom.runs, img, outside,
+                 singular, touched)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
