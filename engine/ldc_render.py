@@ -424,9 +424,11 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                 last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr):
+                 last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng,
+                 nbr, ldc_h):
     """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
-    axis -1, missed everything)."""
+    axis -1, missed everything). With edge neighbours ``nbr`` (non-empty) each hit is refined
+    like a camera pixel: onto the triangle the ray crosses, with its interpolated normal."""
     # unpacked once per thread (see ``gather_point``)
     kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
         c_idx, c_xyz = gp
@@ -448,6 +450,9 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
             px, py, pz = o[i, 0] + t * d0, o[i, 1] + t * d1, o[i, 2] + t * d2
             sd = 1 if geo[s, 0] * d0 + geo[s, 1] * d1 + geo[s, 2] * d2 > 0.0 else 0
             g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+            if nbr.shape[0] > 0:
+                px, py, pz, n0, n1, n2 = _refine_point(o[i, 0], o[i, 1], o[i, 2], d0, d1, d2, prim[s], tri_p, tri_n,
+                                                       tri_ng, nbr, 3.0 * ldc_h, px, py, pz, g0, g1, g2, n0, n1, n2)
             m = mat_a[s]
             wo0, wo1, wo2 = -d0, -d1, -d2
             h0, h1, h2 = highlight_point(i, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, vis2, 2 * s + sd,
@@ -488,7 +493,8 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg, last,
-                has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr):
+                has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng, nbr,
+                ldc_h):
     """One generation of traced mirror rays, the hits on one LDC axis (module docstring of
     ``_shade_group``): at each hit the sample's diffuse radiance + its highlights toward the
     ray + its glossy gather (+ the mirror cone on the ``last`` generation) times the ray's
@@ -496,7 +502,8 @@ def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo
     background. Hits on mirrors continue (``cont``, ``n_*``: the next generation's rays)."""
     for grp in nb.prange(groups):
         _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr)
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n,
+                     tri_ng, nbr, ldc_h)
 
 
 def _ldc_axes(ldc: LDC) -> list[tuple]:
@@ -927,11 +934,12 @@ class LDCViewRenderer:
             cont = np.zeros(n, np.bool_)
             m = 0 if last else n
             n_o, n_d, n_ng, n_thr = (np.empty((m, 3)) for _ in range(4))
+            sc = self.scene
             for a in range(-1, 3):
-                _, _, _, _, _, _, _, _, geo, nrm, mat_a, _, diff, vis2, _ = self._axes[max(a, 0)]
+                _, _, _, _, _, _, _, _, geo, nrm, mat_a, _, diff, vis2, prim = self._axes[max(a, 0)]
                 _shade_hits(_groups(), a, h_axis, h_sample, h_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
                             last, self.llf is not None, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng,
-                            n_thr)
+                            n_thr, prim, sc.tri_p, sc.tri_n, sc.tri_ng, self._nbr, float(ldc.h))
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break
