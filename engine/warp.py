@@ -179,25 +179,37 @@ def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
             out_ok[s] = True
 
 
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands):
+    """Z-buffer writes in CSR order, in ``bands`` horizontal bands of the image (one per
+    thread): each band applies every sample to its own rows only, so each pixel sees the
+    samples in CSR order whatever the band count (the serial pass's image, bit for bit)."""
+    for g in nb.prange(bands):
+        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side,
+                    g * H // bands, (g + 1) * H // bands)
+
+
 @nb.njit(cache=True, nogil=True)
-def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side):
-    """Serial z-buffer writes in CSR order (deterministic)."""
+def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, r0, r1):
+    """The z-buffer writes of image rows r0 <= y < r1 (0, H: the serial pass)."""
     for s in range(out_ok.shape[0]):
         if not out_ok[s]:
             continue
-        pxf = out_f[s, 0]
         pyf = out_f[s, 1]
-        ex = out_f[s, 2]
         ey = out_f[s, 3]
+        iy = int(math.floor(pyf))
+        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0, r0)
+        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1, r1 - 1)
+        if y0 > y1:
+            continue
+        pxf = out_f[s, 0]
+        ex = out_f[s, 2]
         dist = out_f[s, 4]
         tol = out_f[s, 5]
         side = out_side[s]
         ix = int(math.floor(pxf))
-        iy = int(math.floor(pyf))
         x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
         x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
-        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0)
-        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
         for y in range(y0, y1 + 1):
             for x in range(x0, x1 + 1):
                 ddx = x + 0.5 - pxf
@@ -295,6 +307,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
+    bands = max(1, int(nb.get_num_threads()))  # z-buffer bands: one per numba thread
     t0 = time.perf_counter()
     for ax in ldc.axes:
         f = ax.ldi.frame
@@ -305,7 +318,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
                  ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
                  out_f, out_side, out_ok)
-        _write(ax.axis, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side)
+        _write(ax.axis, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
