@@ -6,7 +6,10 @@ Pure arrays in, arrays out. Shared by every worker type. Never imports
 
 import numba as _numba
 
-ENGINE_VERSION = "0.1.0"
+# Part of every artifact key (bakes, renders, relights): bump it when the same request would
+# now produce different bytes, so caches never serve an older engine's answer.
+# 0.2.0: LDC renders (silhouette rays, the refinement's mesh walk) and relights (float32 kernel).
+ENGINE_VERSION = "0.2.0"
 
 # Numba's default pick on Linux is GNU OpenMP, whose idle worker threads spin after each
 # parallel region. The renderer alternates numba kernels with single-threaded Embree
