@@ -308,7 +308,8 @@ class KernelGeometry:
         within ``min_light_distance + 4 x rounding`` of a float32 point is decided and computed from
         the float64 point (so the singular rule is the float64 one).
     pixel_index (n,) int32 (int64 for frames of 2^31 pixels or more): ``baked.pixel_index``.
-    runs (ceil(n / 16),) uint8: 1 where store rows 16 g .. 16 g + 15 are 16 consecutive pixels.
+    runs (ceil(n / 16),) uint8: 1 where store rows 16 g .. 16 g + 15 are 16 consecutive pixels;
+    run_pixels = pixel_index[::16].
     unused_pixels: the flat pixels without a store row (zero in every relit image).
     """
 
@@ -317,6 +318,7 @@ class KernelGeometry:
     rounding: float
     pixel_index: np.ndarray
     runs: np.ndarray
+    run_pixels: np.ndarray
     unused_pixels: np.ndarray
 
     @staticmethod
@@ -343,11 +345,13 @@ class KernelGeometry:
         runs = np.all(g[:, 1:] - g[:, :-1] == 1, axis=1).astype(np.uint8)
         return KernelGeometry(origin=origin, points=pts, rounding=2.0 ** -23 * far, runs=runs,
                               pixel_index=baked.pixel_index.astype(idx_t),
+                              run_pixels=np.ascontiguousarray(baked.pixel_index[::16].astype(idx_t)),
                               unused_pixels=np.nonzero(~used)[0].astype(idx_t))
 
     @property
     def nbytes(self) -> int:
-        return int(self.points.nbytes + self.pixel_index.nbytes + self.runs.nbytes + self.unused_pixels.nbytes)
+        return int(self.points.nbytes + self.pixel_index.nbytes + self.runs.nbytes + self.run_pixels.nbytes
+                   + self.unused_pixels.nbytes)
 
 
 def _dedupe(dirs: np.ndarray, pos: np.ndarray, tol_rad: float):
@@ -819,8 +823,62 @@ def _make_prefetch(rw: int):
     return prefetch
 
 
+@intrinsic
+def _store_run48(typingctx, out, q, a0, a1, a2, r0):
+    """out[q + 3 k + c] = (a0, a1, a2)[c][r0 + k] for k < 16: one 16-pixel RGB output run built from three
+    float32 channel rows by vector shuffles. When &out[q] is 64-byte aligned the three cache lines are
+    written with non-temporal stores (the frame is far larger than the caches: no read-for-ownership of
+    lines that are overwritten whole, no eviction of the store runs); otherwise ordinary stores."""
+    arr1 = (isinstance(out, nbtypes.Array) and out.ndim == 1 and out.dtype == nbtypes.float32)
+    if not (arr1 and all(isinstance(a, nbtypes.Array) and a.ndim == 1 and a.dtype == nbtypes.float32
+                         for a in (a0, a1, a2)) and isinstance(q, nbtypes.Integer)
+            and isinstance(r0, nbtypes.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        f32 = ir.FloatType()
+        i32, i64 = ir.IntType(32), ir.IntType(64)
+        v16 = ir.VectorType(f32, 16)
+
+        def ptr(k, idx):
+            aryty = sig.args[k]
+            ary = context.make_array(aryty)(context, builder, args[k])
+            idx = context.cast(builder, idx, sig.args[1 if k == 0 else 5], nbtypes.intp)
+            return cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+
+        dst = ptr(0, args[1])
+        rows = [builder.load(builder.bitcast(ptr(k, args[5]), v16.as_pointer()), align=4) for k in (2, 3, 4)]
+        ab = builder.shuffle_vector(rows[0], rows[1], ir.Constant(ir.VectorType(i32, 32), list(range(32))))
+        cc = builder.shuffle_vector(rows[2], rows[2], ir.Constant(ir.VectorType(i32, 32), list(range(16)) * 2))
+        mask = [(k // 3) + 16 * (k % 3) for k in range(48)]
+        il = builder.shuffle_vector(ab, cc, ir.Constant(ir.VectorType(i32, 48), mask))
+        parts = [builder.shuffle_vector(il, il, ir.Constant(ir.VectorType(i32, 16), list(range(16 * j, 16 * j + 16))))
+                 for j in range(3)]
+        aligned = builder.icmp_unsigned("==", builder.and_(builder.ptrtoint(dst, i64), ir.Constant(i64, 63)),
+                                        ir.Constant(i64, 0))
+        base = builder.bitcast(dst, v16.as_pointer())
+        with builder.if_else(aligned) as (nt, plain):
+            with nt:
+                for j in range(3):
+                    st = builder.store(parts[j], builder.gep(base, [ir.Constant(i32, j)]), align=64)
+                    st.set_metadata("nontemporal", builder.module.add_metadata([ir.Constant(i32, 1)]))
+            with plain:
+                for j in range(3):
+                    builder.store(parts[j], builder.gep(base, [ir.Constant(i32, j)]), align=4)
+        return context.get_dummy_value()
+    return nbtypes.none(out, q, a0, a1, a2, r0), codegen
+
+
+@intrinsic
+def _fence(typingctx):
+    """Order the non-temporal stores before the kernel returns (a full fence: mfence on x86)."""
+    def codegen(context, builder, sig, args):
+        builder.fence("seq_cst")
+        return context.get_dummy_value()
+    return nbtypes.none(), codegen
+
+
 _prefetch = _make_prefetch(0)  # for reading
-_prefetch_w = _make_prefetch(1)  # for writing (the output rows)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1033,9 +1091,9 @@ def _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, ox, oy, oz, r2):
     return d2, den, d2 * ox + t * dx, d2 * oy + t * dy, d2 * oz + t * dz
 
 
-def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, radius, tris, inv, grid_n,
-                    grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, out, outside,
-                    singular, touched):
+def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, tris, inv, grid_n,
+                    grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
+                    outside, singular, touched):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
     Kernel frame: every position relative to ``origin`` (the sphere centre; for a distant dataset the
@@ -1044,7 +1102,7 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
     points (world frame), used for the rows whose light is within ``near2`` (squared) of the float32
     point: whether the light is closer than ``min_dist2`` (singular) is decided, and the row computed,
     in float64 from the exact point. store (n, K, 3) or tiled (n_tiles, K, TILE, 3), f32 or f16 bits
-    (uint16), or the low-rank factors; lpos (K, 3) dataset light positions in the kernel frame; inv_int
+    (uint16), or the low-rank factors; lpos32 (K, 3) float32 dataset light positions in the kernel frame; inv_int
     (K, 3) = 1 / (dataset intensity x store scale); kinds (M,) int64; lp (M, 3) light position (kernel
     frame) or direction toward the light; lint (M, 3) intensity (point, oriented) or irradiance
     (directional); lnorm (M, 3) emitter normal (oriented). pix (n,) flat pixel of each store row; out
@@ -1115,11 +1173,6 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
             if ncn > 0:
                 for e in range(0, 3 * _CHUNK, 16):
                     _prefetch(kflat, 3 * n0 + e)
-            for k in range(0, ncn, 16):  # one 16-pixel output row of the block per 16 store rows
-                q = pix[n0 + k]
-                for e in range(0, 48, 16):
-                    _prefetch_w(oflat, 3 * q + e)
-                _prefetch_w(oflat, 3 * q + 47)
             # the chunk's points: three contiguous float32 rows
             qx = kflat[3 * i0:3 * i0 + _CHUNK]
             qy = kflat[3 * i0 + _CHUNK:3 * i0 + 2 * _CHUNK]
@@ -1170,7 +1223,11 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                         d2s[r], den[r], sx[r], sy[r], sz[r] = _sphere_point(
                             kd, distant_ds, lx, ly, lz, nx, ny, nz, np.float64(qx[r]), np.float64(qy[r]),
                             np.float64(qz[r]), r2)
-                l0, l1, l2 = lint[j, 0], lint[j, 1], lint[j, 2]
+                # the light's largest channel goes into the float64 factor (so the float32 weights are
+                # in the range of the result, for any distance), the channel ratios into the constants
+                lmax = max(lint[j, 0], max(lint[j, 1], lint[j, 2]))
+                lmax = lmax if lmax > 0.0 else 1.0
+                l0, l1, l2 = lint[j, 0] / lmax, lint[j, 1] / lmax, lint[j, 2] / lmax
                 # rows to do: usable (not within near2 of the light, not an area sample facing away) and
                 # not yet accumulated; the unusable rows (rare) go to pass B3
                 n_todo = 0
@@ -1198,9 +1255,9 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                     ka, kb, kc = tris[t0, 0], tris[t0, 1], tris[t0, 2]
                     if ncn > 0:  # neighbouring blocks mostly see the same triangle
                         _prefetch_runs(flat, store, cn, ka, kb, kc)
-                    ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
-                    bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
-                    gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
+                    ax, ay, az = lpos32[ka, 0], lpos32[ka, 1], lpos32[ka, 2]
+                    bx, by, bz = lpos32[kb, 0], lpos32[kb, 1], lpos32[kb, 2]
+                    cx, cy, cz = lpos32[kc, 0], lpos32[kc, 1], lpos32[kc, 2]
                     ia0, ia1, ia2 = _f32(inv_int[ka, 0] * l0), _f32(inv_int[ka, 1] * l1), _f32(inv_int[ka, 2] * l2)
                     ib0, ib1, ib2 = _f32(inv_int[kb, 0] * l0), _f32(inv_int[kb, 1] * l1), _f32(inv_int[kb, 2] * l2)
                     ic0, ic1, ic2 = _f32(inv_int[kc, 0] * l0), _f32(inv_int[kc, 1] * l1), _f32(inv_int[kc, 2] * l2)
@@ -1215,19 +1272,22 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                         a0 = max(a0, 0.0)
                         a1 = max(a1, 0.0)
                         a2 = max(a2, 0.0)
-                        g = 1.0 / ((a0 + a1 + a2) * den[r])  # rows outside t0: unused (masked)
+                        g = lmax / ((a0 + a1 + a2) * den[r])  # rows outside t0: unused (masked)
                         wa[r], wb[r], wc[r] = a0 * g, a1 * g, a2 * g
-                    if not distant_ds:
+                    # ... times the squared distances to the three vertex lights (float32: relative
+                    # rounding 2^-24 per operation, the positions are scene-sized) ...
+                    if distant_ds:
                         for r in range(_CHUNK):
-                            px, py, pz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
+                            fa32[r], fb32[r], fc32[r] = wa[r], wb[r], wc[r]
+                    else:
+                        for r in range(_CHUNK):
+                            px, py, pz = qx[r], qy[r], qz[r]
                             ex, ey, ez = ax - px, ay - py, az - pz
-                            wa[r] = wa[r] * (ex * ex + ey * ey + ez * ez)
+                            fa32[r] = _f32(wa[r]) * (ex * ex + ey * ey + ez * ez)
                             ex, ey, ez = bx - px, by - py, bz - pz
-                            wb[r] = wb[r] * (ex * ex + ey * ey + ez * ez)
-                            ex, ey, ez = gx - px, gy - py, gz - pz
-                            wc[r] = wc[r] * (ex * ex + ey * ey + ez * ez)
-                    for r in range(_CHUNK):
-                        fa32[r], fb32[r], fc32[r] = wa[r], wb[r], wc[r]
+                            fb32[r] = _f32(wb[r]) * (ex * ex + ey * ey + ez * ez)
+                            ex, ey, ez = cx - px, cy - py, cz - pz
+                            fc32[r] = _f32(wc[r]) * (ex * ex + ey * ey + ez * ez)
                     # ... the three lights' values of the rows ...
                     run_a, run_b = _run(flat, store, ci, ka), _run(flat, store, ci, kb)
                     run_c = _run(flat, store, ci, kc)
@@ -1267,7 +1327,7 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                 last = -1
                 ka = kb = kc = 0
                 m00 = m01 = m02 = m10 = m11 = m12 = m20 = m21 = m22 = 0.0
-                ax = ay = az = bx = by = bz = gx = gy = gz = 0.0
+                ax = ay = az = bx = by = bz = cx = cy = cz = np.float32(0.0)
                 ia0 = ia1 = ia2 = ib0 = ib1 = ib2 = ic0 = ic1 = ic2 = np.float32(0.0)
                 if n_todo + n_rest == 0:
                     continue
@@ -1307,9 +1367,9 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                         m10, m11, m12 = inv[tri, 1, 0], inv[tri, 1, 1], inv[tri, 1, 2]
                         m20, m21, m22 = inv[tri, 2, 0], inv[tri, 2, 1], inv[tri, 2, 2]
                         ka, kb, kc = tris[tri, 0], tris[tri, 1], tris[tri, 2]
-                        ax, ay, az = lpos[ka, 0], lpos[ka, 1], lpos[ka, 2]
-                        bx, by, bz = lpos[kb, 0], lpos[kb, 1], lpos[kb, 2]
-                        gx, gy, gz = lpos[kc, 0], lpos[kc, 1], lpos[kc, 2]
+                        ax, ay, az = lpos32[ka, 0], lpos32[ka, 1], lpos32[ka, 2]
+                        bx, by, bz = lpos32[kb, 0], lpos32[kb, 1], lpos32[kb, 2]
+                        cx, cy, cz = lpos32[kc, 0], lpos32[kc, 1], lpos32[kc, 2]
                         ia0, ia1, ia2 = _f32(inv_int[ka, 0] * l0), _f32(inv_int[ka, 1] * l1), _f32(inv_int[ka, 2] * l2)
                         ib0, ib1, ib2 = _f32(inv_int[kb, 0] * l0), _f32(inv_int[kb, 1] * l1), _f32(inv_int[kb, 2] * l2)
                         ic0, ic1, ic2 = _f32(inv_int[kc, 0] * l0), _f32(inv_int[kc, 1] * l1), _f32(inv_int[kc, 2] * l2)
@@ -1320,16 +1380,16 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                     a0 = max(a0, 0.0)
                     a1 = max(a1, 0.0)
                     a2 = max(a2, 0.0)
-                    g = 1.0 / ((a0 + a1 + a2) * dn)
-                    fa, fb, fc = a0 * g, a1 * g, a2 * g
+                    g = lmax / ((a0 + a1 + a2) * dn)
+                    ua, ub, uc = _f32(a0 * g), _f32(a1 * g), _f32(a2 * g)  # float32 from here, as in pass B
                     if not distant_ds:
-                        ex, ey, ez = ax - px, ay - py, az - pz
-                        fa = fa * (ex * ex + ey * ey + ez * ez)
-                        ex, ey, ez = bx - px, by - py, bz - pz
-                        fb = fb * (ex * ex + ey * ey + ez * ez)
-                        ex, ey, ez = gx - px, gy - py, gz - pz
-                        fc = fc * (ex * ex + ey * ey + ez * ez)
-                    ua, ub, uc = _f32(fa), _f32(fb), _f32(fc)  # float32 from here, as in pass B2
+                        p32x, p32y, p32z = _f32(px), _f32(py), _f32(pz)
+                        ex, ey, ez = ax - p32x, ay - p32y, az - p32z
+                        ua = ua * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = bx - p32x, by - p32y, bz - p32z
+                        ub = ub * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = cx - p32x, cy - p32y, cz - p32z
+                        uc = uc * (ex * ex + ey * ey + ez * ez)
                     v0 = (ua * ia0 * _fetch(store, i, ka, 0)
                           + ub * ib0 * _fetch(store, i, kb, 0)
                           + uc * ic0 * _fetch(store, i, kc, 0))
@@ -1344,18 +1404,14 @@ def _relight_kernel(kpts, points64, origin, store, lpos, inv_int, distant_ds, ra
                     acc2[r] += v2
             for r0 in range(0, nc, 16):
                 if runs[(i0 + r0) >> 4]:  # 16 rows = 16 consecutive pixels (a block row): 48 floats
-                    q = 3 * pix[i0 + r0]
-                    o = oflat[q:q + 48]
-                    for k in range(16):
-                        o[3 * k] = acc0[r0 + k]
-                        o[3 * k + 1] = acc1[r0 + k]
-                        o[3 * k + 2] = acc2[r0 + k]
+                    _store_run48(oflat, 3 * run_pix[(i0 + r0) >> 4], acc0, acc1, acc2, r0)
                 else:
                     for r in range(r0, min(nc, r0 + 16)):
                         q = 3 * pix[i0 + r]
                         oflat[q] = acc0[r]
                         oflat[q + 1] = acc1[r]
                         oflat[q + 2] = acc2[r]
+            _fence()
             if flags:  # outside / singular flags (rare); the arrays arrive zeroed
                 for r in range(nc):
                     if out_f[r]:
@@ -1683,7 +1739,10 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
     t1 = time.perf_counter()
     timings = {"expand_lights_s": t1 - t0}
     geom = baked.kernel_geometry
-    img = np.empty((h * w, 3), np.float32)  # every store row is written by the kernels
+    # every store row is written by the kernels; 64-byte aligned for the non-temporal output runs
+    buf = np.empty(h * w * 3 + 16, np.float32)
+    off = (-buf.ctypes.data % 64) // 4
+    img = buf[off:off + h * w * 3].reshape(h * w, 3)
     img[geom.unused_pixels] = 0.0
     outside = np.zeros(h * w, bool)
     singular = np.zeros(h * w, bool)
@@ -1713,13 +1772,14 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         lp_k[pos] -= geom.origin
         if np.any(~pos):
             lp_k[~pos] /= np.linalg.norm(lp_k[~pos], axis=1, keepdims=True)
-        lpos_k = baked.light_positions if baked.distant else np.ascontiguousarray(baked.light_positions - geom.origin)
+        lpos_k = baked.light_positions - (0.0 if baked.distant else geom.origin)
+        lpos_k = np.ascontiguousarray(lpos_k.astype(np.float32))
         near2 = (float(min_light_distance) + 4.0 * geom.rounding) ** 2
         try:
             kern(geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int, baked.distant,
                  radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, kinds,
-                 lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index, geom.runs, img, outside,
-                 singular, touched)
+                 lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index, geom.runs, geom.run_pixels,
+                 img, outside, singular, touched)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
