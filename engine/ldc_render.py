@@ -399,6 +399,70 @@ def _silhouette_pixels(obj_id, depth, is_hole, h, w, rel_jump):
     return out[:m]
 
 
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _silhouette_mesh_test(pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H, prim0, prim1, prim2, tri_p, tri_ng,
+                          tri_obj, nbr, tol):
+    """Silhouette pixels ``pix`` (eye rays o, d; image-based hits h_*, updated in place): the
+    candidates are the ray's own hit and the warp's winners of the 3x3 neighbourhood (one side
+    of a silhouette shows the surface the other side's splats overreached). Each candidate's
+    triangle is walked along the ray (``locate_on_mesh``); the nearest crossing - the ray
+    really crosses that mesh there - decides the surface, at the crossing's distance. Of the
+    candidates on that surface (the same object, crossed within ``tol`` of it) the sample that gives the
+    radiance is the pixel's own warp winner if it is one, else the ray's hit, else the first
+    (the nearer a sample is to the pixel, the less its baked shading, shadow edges included,
+    differs from the pixel's). Where no candidate is crossed the image-based answer stays.
+    Returns how many pixels took a mesh-tested hit."""
+    n_acc = 0
+    for i in nb.prange(pix.shape[0]):
+        r = pix[i]
+        x = r % W
+        y = r // W
+        ca = np.empty(10, np.int64)
+        cs = np.empty(10, np.int64)
+        ct = np.full(10, np.inf)
+        co = np.empty(10, np.int64)
+        best_t = np.inf
+        best_o = -1
+        for k in range(10):
+            ca[k] = -1
+            if k == 9:
+                a = h_axis[i]
+                sm = h_sample[i]
+            else:
+                xx = x + k % 3 - 1
+                yy = y + k // 3 - 1
+                if xx < 0 or yy < 0 or xx >= W or yy >= H:
+                    continue
+                j = yy * W + xx
+                a = s_axis[j]
+                sm = s_idx[j]
+            if a < 0:
+                continue
+            t = prim0[sm] if a == 0 else (prim1[sm] if a == 1 else prim2[sm])
+            ok, t2, s2, bw, bu, bv = locate_on_mesh(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], t, tri_p,
+                                                    tri_ng, nbr, 8)
+            if ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0:
+                ca[k] = a
+                cs[k] = sm
+                ct[k] = s2
+                co[k] = tri_obj[t2]
+                if s2 < best_t:
+                    best_t = s2
+                    best_o = co[k]
+        if best_t == np.inf:
+            continue
+        pick = -1
+        for k in (4, 9, 0, 1, 2, 3, 5, 6, 7, 8):  # own winner, the ray's hit, the neighbours
+            if ca[k] >= 0 and co[k] == best_o and ct[k] <= best_t + tol:
+                pick = k
+                break
+        h_axis[i] = ca[pick]
+        h_sample[i] = cs[pick]
+        h_t[i] = best_t
+        n_acc += 1
+    return n_acc
+
+
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
                     normal, obj_id, mat_id, prov, s_axis, s_idx, s_side):
@@ -542,7 +606,8 @@ class LDCViewRenderer:
     def __init__(self, scene: RuntimeScene, ldc: LDC, llf: LLF | None, plan: EffectPlan | dict | None = None, *,
                  caster: RayCaster | None = None, area_light_samples: int = 16, seed: int = 0,
                  warp_options: dict | None = None, hole_search_px: int | None = 3, refine_surface: bool = True,
-                 refine_walk: bool = True, silhouette_rays: bool = True, silhouette_rel_depth: float = 0.1):
+                 refine_walk: bool = True, silhouette_mesh_test: bool = True, silhouette_rays: bool = True,
+                 silhouette_rel_depth: float = 0.1):
         if not isinstance(ldc, LDC):
             raise InvalidInputError("LDCViewRenderer needs an LDC")
         if ldc.n_lights != scene.lights.count:
@@ -564,9 +629,13 @@ class LDCViewRenderer:
         self.hole_search_px = hole_search_px
         self.refine_surface = bool(refine_surface)
         self.refine_walk = bool(refine_walk)
-        # edge neighbours for the refinement's walk to the triangle the pixel ray crosses
-        self._nbr = triangle_neighbours(scene.tri_p) if (self.refine_surface and self.refine_walk) \
+        self.silhouette_mesh_test = bool(silhouette_mesh_test)
+        # edge neighbours for the walks to the triangle a ray crosses (refinement, silhouette test)
+        walk = self.refine_surface and self.refine_walk
+        self._nbr = triangle_neighbours(scene.tri_p) if (walk or self.silhouette_mesh_test) \
             else np.zeros((0, 3), np.int32)
+        self._nbr_refine = self._nbr if walk else np.zeros((0, 3), np.int32)
+        self._tri_obj = np.ascontiguousarray(scene.tri_object, np.int64)
         self.silhouette_rays = bool(silhouette_rays)
         if not (isinstance(silhouette_rel_depth, (int, float)) and 0.0 < float(silhouette_rel_depth) <= 10.0):
             raise InvalidInputError("silhouette_rel_depth must be a number in (0, 10]")
@@ -728,6 +797,15 @@ class LDCViewRenderer:
             if fill == "ibrt":
                 h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
                 counts["fill_ibrt_steps"] = n_steps
+                counts["silhouette_mesh_hits"] = 0
+                if sil.size and self.silhouette_mesh_test:
+                    # the image-based answer is within a cell of the silhouette; the mesh test
+                    # decides by the triangles the pixel ray crosses (docs/ldc.md)
+                    sl = slice(n_holes, None)
+                    counts["silhouette_mesh_hits"] = int(_silhouette_mesh_test(
+                        sil, o[sl], d[sl], h_axis[sl], h_sample[sl], h_t[sl], s_axis, s_idx, W, H, self._axes[0][14],
+                        self._axes[1][14], self._axes[2][14], sc.tri_p, sc.tri_ng, self._tri_obj, self._nbr,
+                        2.0 * float(ldc.h)))
                 # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
                 radiance[holes] = ldc.background
                 depth[holes] = 0.0
@@ -812,7 +890,7 @@ class LDCViewRenderer:
             args = (rc_row, np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
                     np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
                     np.ascontiguousarray(rc_bits, np.uint64), self._camera_tuple(camera), self.refine_surface,
-                    self._nbr, float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
+                    self._nbr_refine, float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
                     bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal,
                     prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
             for a, (org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
@@ -857,6 +935,7 @@ class LDCViewRenderer:
         plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,
                 "refine_surface": self.refine_surface, "refine_walk": self.refine_surface and self.refine_walk,
                 "silhouette_rays": self.silhouette_rays and fill != "none",
+                "silhouette_mesh_test": self.silhouette_mesh_test and self.silhouette_rays and fill == "ibrt",
                 "force_all_passes": force, "passes": passes, "effects": self.plan.to_dict(),
                 "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
         report(1.0, "done")
@@ -939,7 +1018,7 @@ class LDCViewRenderer:
                 _, _, _, _, _, _, _, _, geo, nrm, mat_a, _, diff, vis2, prim = self._axes[max(a, 0)]
                 _shade_hits(_groups(), a, h_axis, h_sample, h_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
                             last, self.llf is not None, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng,
-                            n_thr, prim, sc.tri_p, sc.tri_n, sc.tri_ng, self._nbr, float(ldc.h))
+                            n_thr, prim, sc.tri_p, sc.tri_n, sc.tri_ng, self._nbr_refine, float(ldc.h))
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break

@@ -338,7 +338,8 @@ def test_fused_kernels_match_the_unfused_renderer(shiny):
     sc, caster, plan, ldc, llf = shiny
     cam = CameraParams("perspective", (1.4, 0.9, 2.4), (-0.2, -0.1, 0.0), (0, 1, 0), 64, 56, 45.0)
     for kw in ({}, {"caster": caster}):
-        new = LDCViewRenderer(sc, ldc, llf, plan, silhouette_rays=False, refine_walk=False, **kw)
+        new = LDCViewRenderer(sc, ldc, llf, plan, silhouette_rays=False, refine_walk=False, silhouette_mesh_test=False,
+                              **kw)
         old = Unfused(sc, ldc, llf, plan, **kw)
         for method, opts in (("ldc", {}), ("ldc+llf", {}), ("ldc+ibrt:1", {}), ("ldc+ibrt:3", {}),
                              ("ldc+llf", {"force_all_passes": True}), ("ldc+ibrt:2", {"force_all_passes": True}),
@@ -385,6 +386,16 @@ def test_silhouette_rays_resolve_what_the_splats_guessed(shiny):
     assert lrms(on.radiance, ref.radiance, changed) < 0.8 * lrms(off.radiance, ref.radiance, changed)
     assert on.plan["silhouette_rays"] is True and off.plan["silhouette_rays"] is False
     # no fill, no rays: the warp's answer stands
+    # the mesh test (on by default): of the rays' candidates, the nearest whose triangle the
+    # pixel ray really crosses
+    ibrt_only = LDCViewRenderer(sc, ldc, llf, plan, silhouette_mesh_test=False).render(cam, "ldc+ibrt:1")
+    wrong_ibrt = int(np.count_nonzero(ibrt_only.object_id != ref.object_id))
+    assert on.counts["silhouette_mesh_hits"] > 0.5 * on.counts["silhouette_rays"]
+    assert ibrt_only.counts["silhouette_mesh_hits"] == 0 and not ibrt_only.plan["silhouette_mesh_test"]
+    assert wrong_on <= wrong_ibrt, (wrong_on, wrong_ibrt)
+    # and the image is closer to the reference (0.087 vs 0.092 here; no silhouette rays: 0.091)
+    assert lrms(on.radiance, ref.radiance, covered) < lrms(ibrt_only.radiance, ref.radiance, covered)
+    assert lrms(on.radiance, ref.radiance, covered) < lrms(off.radiance, ref.radiance, covered)
     none = LDCViewRenderer(sc, ldc, llf, plan).render(cam, "ldc+ibrt:1", fill="none")
     assert none.counts["silhouette_rays"] == 0 and none.plan["silhouette_rays"] is False
     with pytest.raises(InvalidInputError, match="silhouette_rel_depth"):
@@ -400,8 +411,8 @@ def test_refinement_walk_finds_the_crossed_triangle(shiny):
     sc, caster, plan, ldc, llf = shiny
     cam = CameraParams("perspective", (1.7, 0.6, 2.1), (-0.1, -0.2, 0.0), (0, 1, 0), 128, 112, 45.0)
     ref = render_reference(sc, cam, ReferenceParams(spp=1, pixel_jitter=False, max_depth=4, glossy_samples=64))
-    walk = LDCViewRenderer(sc, ldc, llf, plan).render(cam, "ldc+ibrt:1")
-    flat = LDCViewRenderer(sc, ldc, llf, plan, refine_walk=False).render(cam, "ldc+ibrt:1")
+    walk = LDCViewRenderer(sc, ldc, llf, plan, silhouette_mesh_test=False).render(cam, "ldc+ibrt:1")
+    flat = LDCViewRenderer(sc, ldc, llf, plan, refine_walk=False, silhouette_mesh_test=False).render(cam, "ldc+ibrt:1")
     assert walk.plan["refine_walk"] is True and flat.plan["refine_walk"] is False
     for r in (walk, flat):
         assert np.array_equal(r.object_id, walk.object_id)  # the walk moves points, not visibility
