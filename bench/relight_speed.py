@@ -115,7 +115,8 @@ def main(argv=None) -> int:
                          "and reuse it when present: generation takes minutes at 1 MP")
     ap.add_argument("--ab", metavar="REV", default=None,
                     help="also time engine/relight.py as of git revision REV against the working tree's, same "
-                         "baked dataset, interleaved rounds, and check the images are bit-identical")
+                         "baked dataset, interleaved rounds, and compare the images (bit-identical or the largest "
+                         "difference) and masks")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     if args.doc_only:
@@ -267,13 +268,18 @@ def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> 
         return old.EnvironmentLight(light.image, n_lights=light.n_lights, method=light.method, seed=light.seed,
                                     scale=light.scale)
 
-    out: dict = {"rev": rev, "identical": {}, "best_p50_s": {}}
+    out: dict = {"rev": rev, "identical": {}, "masks_identical": {}, "max_abs_diff_rel_to_max": {},
+                 "best_p50_s": {}}
     for cname, light in cases.items():
         a, b = old.relight(baked_old, as_old(light)), new.relight(baked, light)
-        out["identical"][cname] = bool(np.array_equal(a.image.view(np.uint32), b.image.view(np.uint32))
-                                       and np.array_equal(a.outside_mask, b.outside_mask)
-                                       and np.array_equal(a.singular_mask, b.singular_mask)
-                                       and np.array_equal(a.lights_used, b.lights_used))
+        masks = bool(np.array_equal(a.outside_mask, b.outside_mask) and np.array_equal(a.singular_mask, b.singular_mask)
+                     and np.array_equal(a.lights_used, b.lights_used))
+        out["identical"][cname] = bool(np.array_equal(a.image.view(np.uint32), b.image.view(np.uint32)) and masks)
+        out["masks_identical"][cname] = masks
+        # the images' largest difference relative to the image maximum (x 255: in 8-bit grey levels of
+        # an image scaled to its maximum)
+        out["max_abs_diff_rel_to_max"][cname] = float(np.max(np.abs(a.image.astype(np.float64) - b.image))
+                                                      / max(float(np.max(np.abs(a.image))), 1e-300))
     best: dict = {}
     for _ in range(rounds):
         for thr in (1, 2):
@@ -333,13 +339,17 @@ def report(res: dict) -> str:
         L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: `engine/relight.py` at that revision against "
                  f"this one, same tiled store, `timings[\"kernel_s\"]`, best of the rounds' p50):")
         L.append("")
-        L.append("| case | threads | old ms | new ms | speed-up | bit-identical |")
-        L.append("|---|---|---|---|---|---|")
+        L.append("| case | threads | old ms | new ms | speed-up | bit-identical | max abs difference / image max "
+                 "| masks, lights_used identical |")
+        L.append("|---|---|---|---|---|---|---|---|")
         for cname, same in ab["identical"].items():
+            d = ab.get("max_abs_diff_rel_to_max", {}).get(cname)
+            masks = ab.get("masks_identical", {}).get(cname, same)
             for thr in (1, 2):
                 o, n = b[f"{thr}|{cname}|old"], b[f"{thr}|{cname}|new"]
                 L.append(f"| {cname} | {thr} | {1e3 * o:.1f} | {1e3 * n:.1f} | {o / n:.2f}x | "
-                         f"{'yes' if same else 'NO'} |")
+                         f"{'yes' if same else 'no'} | {'-' if d is None else f'{d:.2g}'} | "
+                         f"{'yes' if masks else 'NO'} |")
     return "\n".join(L)
 
 

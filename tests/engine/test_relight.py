@@ -123,10 +123,10 @@ def test_directional_is_far_limit_of_point(full20):
     toward = np.array([0.3, 0.5, 0.8])
     toward /= np.linalg.norm(toward)
     e = np.array([1.0, 2.0, 0.5])
-    d = 1e6
-    far = relight(b, PointLight(toward * d, e * d * d)).image
     dirl = relight(b, DirectionalLight(-toward, e)).image
-    np.testing.assert_allclose(far, dirl, rtol=1e-4, atol=1e-7)
+    for d in (1e6, 1e15):  # the kernel's float32 weights carry the light's intensity: in range at any distance
+        far = relight(b, PointLight(toward * d, e * d * d)).image
+        np.testing.assert_allclose(far, dirl, rtol=1e-4, atol=1e-7)
     assert rel_err(dirl, lambert_directional(pts, mask, toward, e), mask) < 0.05
 
 
@@ -549,6 +549,31 @@ def test_points_from_depth_cameras():
     assert not ok[0, 0] and not ok[1, 1] and ok.sum() == 22
     assert np.allclose(p[ok][:, 2], 2.0)
     np.testing.assert_allclose(p[2, 3], [(3.5 - 3.0) / 10 * 2, (2.5 - 2.0) / 10 * 2, 2.0])
+
+
+def test_scene_far_from_the_origin():
+    """The kernel keeps the surface points as float32 offsets from the sphere centre (distant dataset: the
+    points' bounding-box centre): a dataset translated far from the origin relights like the original
+    (float32 world coordinates at 1e4 would be off by ~1e-3, i.e. relative errors ~1e-3)."""
+    ds, pts, mask = make_ds(20.0, h=24)
+    shift = np.array([1e4, -3e3, 7e3])
+    moved = IlluminationDataset(ds.images, ds.light_positions + shift, ds.intensities, pts + shift, mask)
+    b0 = bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=R, half=False)
+    b1 = bake_dataset(moved, sphere_center=shift, sphere_radius=R, half=False)
+    lt = np.array([1.0, 2.0, 3.5])
+    a, c = relight(b0, PointLight(lt, 1.0)), relight(b1, PointLight(lt + shift, 1.0))
+    np.testing.assert_allclose(c.image, a.image, rtol=1e-5, atol=1e-9)
+    assert np.array_equal(c.outside_mask, a.outside_mask)
+    # a distant dataset far from the origin, against the per-pixel reference
+    toward = lat_long_lights(20.0, 1.0)
+    imgs = np.stack([lambert_directional(pts, mask, t) for t in toward])
+    dd = IlluminationDataset(imgs, toward, np.ones((len(toward), 3)), pts + shift, mask, distant=True)
+    bd = bake_dataset(dd, half=False)
+    near = shift + np.array([0.5, 1.5, 3.0])
+    got = relight(bd, [PointLight(near, 2.0), DirectionalLight((-0.2, -0.9, -0.4), 0.5)])
+    want, w_out = naive_relight(bd, [(near, (2.0, 2.0, 2.0))], [((0.2, 0.9, 0.4), (0.5, 0.5, 0.5))])
+    np.testing.assert_allclose(got.image, want, rtol=1e-5, atol=1e-9)
+    assert np.array_equal(got.outside_mask, w_out)
 
 
 def test_serial_kernel_and_threads_agree(full20):
