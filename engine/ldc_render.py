@@ -11,13 +11,16 @@
    needs the triangles; the image-based fill needs only the bake). ``fill="none"`` leaves
    holes as background. **Silhouette rays** (``silhouette_rays=True``, the default; off with
    ``fill="none"``): covered pixels at a visibility edge of the warped image (a 4-neighbour
-   shows another object, nothing, or the same object more than ``silhouette_rel_depth``
-   deeper or nearer) get the same eye ray as the holes. There the splats' footprints, which
-   reach up to about a sample spacing past a silhouette, decided what the pixel shows; the
-   ray decides by the pixel centre (mirror_box, 256x256, LDC 512: pixels showing another
-   object than the point-sampled reference 450-620 -> 11-34 per view, LRMS 0.060 -> 0.033,
-   ~10 % more render time; ``docs/ldc.md``). Their provenance is 2 like the holes'; counts
-   ``silhouette_rays`` and ``silhouette_changed`` (pixels whose object the ray changed).
+   shows another object, nothing, the same object more than ``silhouette_rel_depth``
+   deeper or nearer, or the other side of a sheet) get the same eye ray as the holes. There
+   the splats' footprints, which reach up to about a sample spacing past a silhouette,
+   decided what the pixel shows; the ray decides by the pixel centre, and then the **mesh
+   test** (``silhouette_mesh_test=True``) by the triangles of the candidates (the ray's hit,
+   the warp's 3x3 winners) that the pixel ray really crosses (mirror_box, 256x256, LDC 512:
+   pixels showing another object than the point-sampled reference 450-620 -> 11-34 per view,
+   LRMS 0.060 -> 0.033, ~10 % more render time; ``docs/ldc.md``). Their provenance is 2 like
+   the holes'; counts ``silhouette_rays``, ``silhouette_changed`` (pixels whose object
+   changed) and ``silhouette_mesh_hits``.
 3. **View-dependent pass**, only on the visible pixels whose material needs it (the effect
    plan; ``force_all_passes=True`` runs every pass of the method on every covered pixel,
    for the test that skipping changes nothing): Phong highlights gated by the LDC's
@@ -358,11 +361,12 @@ def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
 
 
 @nb.njit(cache=True, nogil=True)
-def _silhouette_pixels(obj_id, depth, is_hole, h, w, rel_jump):
+def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
     """Covered pixels (row-major, not already holes) at a visibility edge of the warped image: a
-    4-neighbour shows another object or nothing, or the same object at a depth more than
-    ``rel_jump`` (relative) away (a fold: a handle over the body). There the splats' footprints,
-    not the pixel centre, decided what the pixel shows."""
+    4-neighbour shows another object or nothing, the same object at a depth more than
+    ``rel_jump`` (relative) away (a fold: a handle over the body), or the other side of a sheet
+    (``side``: the inside of a rim next to its outside). There the splats' footprints, not the
+    pixel centre, decided what the pixel shows."""
     out = np.empty(h * w, np.int64)
     m = 0
     for y in range(h):
@@ -390,7 +394,7 @@ def _silhouette_pixels(obj_id, depth, is_hole, h, w, rel_jump):
                     if y == h - 1:
                         continue
                     j = i + w
-                if obj_id[j] != o or abs(depth[j] - depth[i]) > lim:
+                if obj_id[j] != o or abs(depth[j] - depth[i]) > lim or side[j] != side[i]:
                     edge = True
                     break
             if edge:
@@ -785,7 +789,7 @@ class LDCViewRenderer:
             # pixels at visibility edges are resolved by their own eye ray too (module docstring)
             is_hole = np.zeros(H * W, np.bool_)
             is_hole[holes] = True
-            sil = _silhouette_pixels(obj_id, depth, is_hole, H, W, self.silhouette_rel_depth)
+            sil = _silhouette_pixels(obj_id, depth, s_side, is_hole, H, W, self.silhouette_rel_depth)
             sil_obj = obj_id[sil].copy()
             holes = np.concatenate([holes, sil])
         counts["silhouette_rays"] = int(sil.size)
