@@ -105,13 +105,17 @@ def _setting_name(ldc_res: int, f: int | None, k: int | None, ss: int = 1) -> st
     return f"{meth} LDC{ldc_res} LLF{llf_direction_count(f)}{tail}"
 
 
-def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log) -> dict:
+def scene_setup(name: str, size: int, n_views: int):
+    """A sample scene for the LDC benchmarks: (runtime scene, caster, effect plan, the fixed
+    views at ``size`` x ``size``, a reference renderer)."""
     ls = load_scene(load_scene_file(sample_path(name)), directory_resolver(SAMPLES_DIR))
     sc = ls.runtime
     caster = EmbreeCaster(sc)
-    plan = analyze(sc)
-    cams = views(ls.camera, size, n_views)
-    ren = ReferenceRenderer(sc, caster)
+    return sc, caster, analyze(sc), views(ls.camera, size, n_views), ReferenceRenderer(sc, caster)
+
+
+def run_scene(name: str, size: int, ldc_resolutions, fs, gens, n_views: int, log) -> dict:
+    sc, caster, plan, cams, ren = scene_setup(name, size, n_views)
     out: dict = {"scene": name, "triangles": sc.n_triangles, "plan": plan.to_dict(), "settings": []}
     # ground truth and reference comparison points
     gts = []

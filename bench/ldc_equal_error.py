@@ -42,18 +42,13 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
-from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, views
-from engine.effects import analyze
+from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
 from engine.ldc import bake_ldc
 from engine.ldc_render import LDCViewRenderer
 from engine.llf import bake_llf
 from engine.metrics import lrms
-from engine.raycast import EmbreeCaster
-from engine.reference import ReferenceParams, ReferenceRenderer
-from samples import SAMPLES_DIR, sample_path
-from workers.scene_loader import directory_resolver, load_scene
+from engine.reference import ReferenceParams
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "accuracy" / "ldc.md"
@@ -104,12 +99,7 @@ def ref_time_at(err: float, ladder: list[dict]) -> float | None:
 
 
 def run_scene(name: str, size: int, n_views: int, ours: list, log) -> dict:
-    ls = load_scene(load_scene_file(sample_path(name)), directory_resolver(SAMPLES_DIR))
-    sc = ls.runtime
-    caster = EmbreeCaster(sc)
-    plan = analyze(sc)
-    cams = views(ls.camera, size, n_views)
-    ren = ReferenceRenderer(sc, caster)
+    sc, caster, plan, cams, ren = scene_setup(name, size, n_views)
     out: dict[str, Any] = {"scene": name, "triangles": sc.n_triangles, "models": {}}
     gts: dict[str, list] = {}
     for model, gt in (("box", GT_BOX), ("point", GT_POINT)):
