@@ -80,7 +80,7 @@ def test_walkthrough_from_the_command_line(stack: Any, tmp_path: Path) -> None:
 
     # a walkthrough whose job is canceled: following it exits 4 naming the frames; then it can be deleted
     res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), *TINY, "--chunk-frames", "2",
-                              "--fill", "none", "--face-res", "18", *api])  # a new bake: the chunks wait behind it
+                              "--fill", "none", "--face-res", "64", *api])  # a new, slower bake: chunks wait behind it
     assert res.exit_code == 0, res.output
     key2 = res.stdout.strip().splitlines()[-1]
     jobs = json.loads(runner.invoke(app, ["walkthroughs", "show", key2, *api]).stdout)["jobs"]

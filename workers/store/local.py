@@ -32,8 +32,10 @@ from workers.store.base import (
 __all__ = ["LocalStore"]
 
 _TEMP_MARK = "~"
-_PUT_ATTEMPTS = 3
-"""A concurrent delete may prune a directory between our mkdir and our open: retry."""
+_PUT_ATTEMPTS = 16
+"""A concurrent delete may prune a directory between our mkdir and our open: retry. (Three
+attempts lost the race once in a fresh-clone CI run of the concurrent prune test on the loaded
+2-core machine; each retry costs a mkdir, so a generous bound is cheap.)"""
 
 
 def _unavailable(what: str, exc: OSError) -> StoreUnavailable:
