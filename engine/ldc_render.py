@@ -145,6 +145,24 @@ def _sample_normals(geo, nrm, s, sd):
     return g0, g1, g2, n0, n1, n2
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _interp_normal(t, bw, bu, bv, tri_n, tri_ng, g0, g1, g2):
+    """Triangle t's vertex normals at barycentrics (bw, bu, bv), normalised and flipped to the
+    side the sample was seen from (g), falling back to g when it points the other way; ok False
+    when the interpolated normal vanishes."""
+    m0 = bw * tri_n[t, 0, 0] + bu * tri_n[t, 1, 0] + bv * tri_n[t, 2, 0]
+    m1 = bw * tri_n[t, 0, 1] + bu * tri_n[t, 1, 1] + bv * tri_n[t, 2, 1]
+    m2 = bw * tri_n[t, 0, 2] + bu * tri_n[t, 1, 2] + bv * tri_n[t, 2, 2]
+    ln = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if not ln > 1e-12:
+        return False, g0, g1, g2
+    sg = 1.0 if g0 * tri_ng[t, 0] + g1 * tri_ng[t, 1] + g2 * tri_ng[t, 2] >= 0.0 else -1.0
+    m0, m1, m2 = sg * m0 / ln, sg * m1 / ln, sg * m2 / ln
+    if m0 * g0 + m1 * g1 + m2 * g2 <= 0.0:
+        m0, m1, m2 = g0, g1, g2
+    return True, m0, m1, m2
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, nbr, max_move, px, py, pz, g0, g1, g2, n0, n1,
                   n2):
@@ -161,17 +179,9 @@ def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, nbr, max_move
             qx, qy, qz = ox + s2 * dx, oy + s2 * dy, oz + s2 * dz
             ex, ey, ez = qx - px, qy - py, qz - pz
             if ex * ex + ey * ey + ez * ez <= max_move * max_move:
-                bw, bu, bv = max(bw, 0.0), max(bu, 0.0), max(bv, 0.0)
-                m0 = bw * tri_n[t2, 0, 0] + bu * tri_n[t2, 1, 0] + bv * tri_n[t2, 2, 0]
-                m1 = bw * tri_n[t2, 0, 1] + bu * tri_n[t2, 1, 1] + bv * tri_n[t2, 2, 1]
-                m2 = bw * tri_n[t2, 0, 2] + bu * tri_n[t2, 1, 2] + bv * tri_n[t2, 2, 2]
-                ln = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-                if ln > 1e-12:
-                    # flipped to the side the sample was seen from (g), like the sample's own normal
-                    sg = 1.0 if g0 * tri_ng[t2, 0] + g1 * tri_ng[t2, 1] + g2 * tri_ng[t2, 2] >= 0.0 else -1.0
-                    m0, m1, m2 = sg * m0 / ln, sg * m1 / ln, sg * m2 / ln
-                    if m0 * g0 + m1 * g1 + m2 * g2 <= 0.0:
-                        m0, m1, m2 = g0, g1, g2
+                ok, m0, m1, m2 = _interp_normal(t2, max(bw, 0.0), max(bu, 0.0), max(bv, 0.0), tri_n, tri_ng, g0,
+                                                g1, g2)
+                if ok:
                     return qx, qy, qz, m0, m1, m2
     den = dx * g0 + dy * g1 + dz * g2
     if abs(den) < 1e-9:
@@ -198,16 +208,9 @@ def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, nbr, max_move
     bu = min(max((d11 * d20 - d01 * d21) / dd, -0.25), 1.25)
     bv = min(max((d00 * d21 - d01 * d20) / dd, -0.25), 1.25)
     bw = min(max(1.0 - bu - bv, -0.25), 1.25)
-    m0 = bw * tri_n[t, 0, 0] + bu * tri_n[t, 1, 0] + bv * tri_n[t, 2, 0]
-    m1 = bw * tri_n[t, 0, 1] + bu * tri_n[t, 1, 1] + bv * tri_n[t, 2, 1]
-    m2 = bw * tri_n[t, 0, 2] + bu * tri_n[t, 1, 2] + bv * tri_n[t, 2, 2]
-    ln = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-    if not ln > 1e-12:
+    ok, m0, m1, m2 = _interp_normal(t, bw, bu, bv, tri_n, tri_ng, g0, g1, g2)
+    if not ok:
         return px, py, pz, n0, n1, n2
-    sg = 1.0 if g0 * tri_ng[t, 0] + g1 * tri_ng[t, 1] + g2 * tri_ng[t, 2] >= 0.0 else -1.0
-    m0, m1, m2 = sg * m0 / ln, sg * m1 / ln, sg * m2 / ln
-    if m0 * g0 + m1 * g1 + m2 * g2 <= 0.0:
-        m0, m1, m2 = g0, g1, g2
     return qx, qy, qz, m0, m1, m2
 
 
