@@ -62,7 +62,7 @@ from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
 from .raycast import RayCaster, make_caster
 from .scene import CameraParams, RuntimeScene
-from .view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point
+from .view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point_u
 from .warp import warp_ldc
 
 PROV_NONE = 0
@@ -253,6 +253,8 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
     # unpacked once per thread (see ``gather_point``)
     kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
         c_idx, c_xyz = gp
+    ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
+        extent = hp
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     bits = vis2 if axis >= 0 else rc_bits
     n = pix.shape[0]
@@ -316,15 +318,15 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
                 wo1 /= ln
                 wo2 /= ln
             normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
+            pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
+            pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
             if want_hl and (force or hl_mat[m]):
-                h0, h1, h2 = highlight_point(r, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, bits, brow, force,
-                                             hp)
+                h0, h1, h2 = highlight_point_u(r, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos, pt_int, dir_dir,
+                                               dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent)
                 radiance[r, 0] += h0
                 radiance[r, 1] += h1
                 radiance[r, 2] += h2
             if want_rf and (force or rf_mat[m]):
-                pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
-                pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
                 f0, f1, f2, u = gather_point(pt, m, mirror, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
                                              table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
                                              bg_, c_off, c_idx, c_xyz)
@@ -503,6 +505,8 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
     # unpacked once per thread (see ``gather_point``)
     kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
         c_idx, c_xyz = gp
+    ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
+        extent = hp
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     n = o.shape[0]
     nblk = (n + 63) // 64
@@ -526,14 +530,15 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
                                                        tri_ng, nbr, 3.0 * ldc_h, px, py, pz, g0, g1, g2, n0, n1, n2)
             m = mat_a[s]
             wo0, wo1, wo2 = -d0, -d1, -d2
-            h0, h1, h2 = highlight_point(i, px, py, pz, g0, g1, g2, n0, n1, n2, wo0, wo1, wo2, m, vis2, 2 * s + sd,
-                                         force, hp)
+            pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
+            pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
+            h0, h1, h2 = highlight_point_u(i, pt, m, vis2, 2 * s + sd, force, ks, shin, spec_cut, pt_pos, pt_int,
+                                           dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center,
+                                           extent)
             l0 = diff[s, sd, 0] + h0
             l1 = diff[s, sd, 1] + h1
             l2 = diff[s, sd, 2] + h2
             if has_llf:
-                pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
-                pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
                 f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
                                              table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
                                              bg_, c_off, c_idx, c_xyz)
