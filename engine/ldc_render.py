@@ -52,7 +52,6 @@ from dataclasses import dataclass, field, replace
 
 import numba as nb
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 from .camera import camera_rays
 from .effects import EffectPlan, analyze, plan_from_dict
@@ -365,16 +364,39 @@ def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _near_covered(covered, r):
+    """(H, W) bool: a covered pixel within the (2r+1) x (2r+1) square around each pixel (a
+    binary dilation; outside the image counts as uncovered)."""
+    H, W = covered.shape
+    row = np.zeros((H, W), np.bool_)
+    for y in nb.prange(H):
+        c = 0  # covered pixels in row y's window [x - r, x + r]
+        for x in range(min(r, W)):
+            c += covered[y, x]
+        for x in range(W):
+            if x + r < W:
+                c += covered[y, x + r]
+            if x - r - 1 >= 0:
+                c -= covered[y, x - r - 1]
+            row[y, x] = c > 0
+    out = np.zeros((H, W), np.bool_)
+    for y in nb.prange(H):
+        for yy in range(max(0, y - r), min(H, y + r + 1)):
+            for x in range(W):
+                out[y, x] |= row[yy, x]
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
     """Covered pixels (row-major, not already holes) at a visibility edge of the warped image: a
     4-neighbour shows another object or nothing, the same object at a depth more than
     ``rel_jump`` (relative) away (a fold: a handle over the body), or the other side of a sheet
     (``side``: the inside of a rim next to its outside). There the splats' footprints, not the
     pixel centre, decided what the pixel shows."""
-    out = np.empty(h * w, np.int64)
-    m = 0
-    for y in range(h):
+    flag = np.zeros(h * w, np.bool_)
+    for y in nb.prange(h):
         for x in range(w):
             i = y * w + x
             o = obj_id[i]
@@ -402,10 +424,8 @@ def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
                 if obj_id[j] != o or abs(depth[j] - depth[i]) > lim or side[j] != side[i]:
                     edge = True
                     break
-            if edge:
-                out[m] = i
-                m += 1
-    return out[:m]
+            flag[i] = edge
+    return np.flatnonzero(flag)
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -421,15 +441,29 @@ def _silhouette_mesh_test(pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H,
     (the nearer a sample is to the pixel, the less its baked shading, shadow edges included,
     differs from the pixel's). Where no candidate is crossed the image-based answer stays.
     Returns how many pixels took a mesh-tested hit."""
+    n = pix.shape[0]
+    nblk = (n + 63) // 64
+    acc = np.zeros(nblk, np.int64)
+    for b in nb.prange(nblk):  # blocks of 64 pixels: the scratch is allocated once per block
+        acc[b] = _silhouette_mesh_block(b * 64, min(n, b * 64 + 64), pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx,
+                                        W, H, prim0, prim1, prim2, tri_p, tri_ng, tri_obj, nbr, tol)
+    return acc.sum()
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _silhouette_mesh_block(i0, i1, pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H, prim0, prim1, prim2, tri_p,
+                           tri_ng, tri_obj, nbr, tol):
+    """Pixels i0 <= i < i1 of ``_silhouette_mesh_test``; returns how many took a mesh-tested hit."""
+    ca = np.empty(10, np.int64)
+    cs = np.empty(10, np.int64)
+    ct = np.empty(10)
+    co = np.empty(10, np.int64)
     n_acc = 0
-    for i in nb.prange(pix.shape[0]):
+    for i in range(i0, i1):
         r = pix[i]
         x = r % W
         y = r // W
-        ca = np.empty(10, np.int64)
-        cs = np.empty(10, np.int64)
-        ct = np.full(10, np.inf)
-        co = np.empty(10, np.int64)
+        ct[:] = np.inf
         best_t = np.inf
         best_o = -1
         for k in range(10):
@@ -703,7 +737,7 @@ class LDCViewRenderer:
         if self.hole_search_px is not None:
             covered = w.sample_axis >= 0
             r = self.hole_search_px
-            near = maximum_filter(covered.view(np.uint8), size=2 * r + 1, mode="constant") > 0 if r else covered
+            near = _near_covered(covered, r) if r else covered
             hm = hm & near
         pix = np.flatnonzero(hm.reshape(-1))
         if self.hole_search_px is None or not pix.size:

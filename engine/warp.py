@@ -258,23 +258,60 @@ def _detect_holes(zbuf, rel, need, out):
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _resolve(axis_id, win_axis, win_idx, win_side, zbuf, diffuse, nrm, material, obj,
-             radiance, depth, normal, mat_id, obj_id, prov):
-    H, W = win_axis.shape
+def _init_buffers(zbuf, best_off, win_axis, win_idx, win_side):
+    H, W = zbuf.shape
     for y in nb.prange(H):
         for x in range(W):
-            if win_axis[y, x] != axis_id:
+            zbuf[y, x] = np.inf
+            best_off[y, x] = np.inf
+            win_axis[y, x] = -1
+            win_idx[y, x] = -1
+            win_side[y, x] = 0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _resolve_pixel(y, x, i, s, diffuse, nrm, material, obj, radiance, normal, mat_id, obj_id):
+    sign = 1.0 if s == 0 else -1.0
+    for c in range(3):
+        radiance[y, x, c] = diffuse[i, s, c]
+        normal[y, x, c] = sign * nrm[i, c]
+    mat_id[y, x] = material[i]
+    obj_id[y, x] = obj[i]
+
+
+@nb.njit(cache=True, parallel=True, nogil=True)
+def _resolve(win_axis, win_idx, win_side, zbuf, bg, diff0, nrm0, mat0, obj0, diff1, nrm1, mat1, obj1, diff2, nrm2,
+             mat2, obj2, radiance, depth, normal, mat_id, obj_id, prov):
+    """Every pixel in one pass: the winning sample's attributes, or the background (depth 0,
+    ids -1, provenance 0) where nothing won. Returns the number of non-finite values written."""
+    H, W = win_axis.shape
+    bad = 0
+    for y in nb.prange(H):
+        for x in range(W):
+            a = win_axis[y, x]
+            if a < 0:
+                for c in range(3):
+                    radiance[y, x, c] = bg[c]
+                    normal[y, x, c] = 0.0
+                depth[y, x] = 0.0
+                mat_id[y, x] = -1
+                obj_id[y, x] = -1
+                prov[y, x] = 0
                 continue
             i = win_idx[y, x]
             s = win_side[y, x]
-            sign = 1.0 if s == 0 else -1.0
-            for c in range(3):
-                radiance[y, x, c] = diffuse[i, s, c]
-                normal[y, x, c] = sign * nrm[i, c]
+            if a == 0:
+                _resolve_pixel(y, x, i, s, diff0, nrm0, mat0, obj0, radiance, normal, mat_id, obj_id)
+            elif a == 1:
+                _resolve_pixel(y, x, i, s, diff1, nrm1, mat1, obj1, radiance, normal, mat_id, obj_id)
+            else:
+                _resolve_pixel(y, x, i, s, diff2, nrm2, mat2, obj2, radiance, normal, mat_id, obj_id)
             depth[y, x] = zbuf[y, x]
-            mat_id[y, x] = material[i]
-            obj_id[y, x] = obj[i]
             prov[y, x] = 1
+            if not (np.isfinite(radiance[y, x, 0]) and np.isfinite(radiance[y, x, 1])
+                    and np.isfinite(radiance[y, x, 2]) and np.isfinite(depth[y, x])):
+                bad += 1
+    return bad
 
 
 def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayCaster | None = None,
@@ -299,11 +336,12 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     ortho = camera.kind == "orthographic"
     th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
     hh = 0.5 * camera.ortho_height
-    zbuf = np.full((H, W), np.inf)
-    win_axis = np.full((H, W), -1, np.int8)
-    win_idx = np.full((H, W), -1, np.int64)
-    win_side = np.zeros((H, W), np.int8)
-    best_off = np.full((H, W), np.inf)
+    zbuf = np.empty((H, W))
+    win_axis = np.empty((H, W), np.int8)
+    win_idx = np.empty((H, W), np.int64)
+    win_side = np.empty((H, W), np.int8)
+    best_off = np.empty((H, W))
+    _init_buffers(zbuf, best_off, win_axis, win_idx, win_side)
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
@@ -326,15 +364,17 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     t_holes = time.perf_counter() - t0
     t0 = time.perf_counter()
     radiance = np.empty((H, W, 3), np.float32)
-    radiance[:] = ldc.background.astype(np.float32)
-    depth = np.zeros((H, W), np.float32)
-    normal = np.zeros((H, W, 3), np.float32)
-    mat_id = np.full((H, W), -1, np.int32)
-    obj_id = np.full((H, W), -1, np.int32)
-    prov = np.zeros((H, W), np.uint8)
-    for ax in ldc.axes:
-        _resolve(ax.axis, win_axis, win_idx, win_side, zbuf, ax.diffuse, ax.normal, ax.material, ax.object,
-                 radiance, depth, normal, mat_id, obj_id, prov)
+    depth = np.empty((H, W), np.float32)
+    normal = np.empty((H, W, 3), np.float32)
+    mat_id = np.empty((H, W), np.int32)
+    obj_id = np.empty((H, W), np.int32)
+    prov = np.empty((H, W), np.uint8)
+    if [ax.axis for ax in ldc.axes] != [0, 1, 2]:
+        raise InvalidInputError("the LDC's axes must be x, y, z in that order")
+    a0, a1, a2 = ldc.axes
+    n_bad = _resolve(win_axis, win_idx, win_side, zbuf, ldc.background.astype(np.float32), a0.diffuse, a0.normal,
+                     a0.material, a0.object, a1.diffuse, a1.normal, a1.material, a1.object, a2.diffuse, a2.normal,
+                     a2.material, a2.object, radiance, depth, normal, mat_id, obj_id, prov)
     t_resolve = time.perf_counter() - t0
     n_holes = int(holes.sum())
     n_filled = 0
@@ -374,7 +414,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
             win_idx[yh, xh] = -1
             n_filled = int(ok.sum())
         t_fill = time.perf_counter() - t0
-    if not np.all(np.isfinite(radiance)) or not np.all(np.isfinite(depth)):
+    if n_bad or (n_filled and (not np.all(np.isfinite(radiance)) or not np.all(np.isfinite(depth)))):
         raise NonFiniteOutputError("LDC warp produced non-finite values")
     return WarpResult(radiance=radiance, depth=depth, normal=normal, material_id=mat_id, object_id=obj_id,
                       sample_axis=win_axis, sample_index=win_idx, sample_side=win_side, hole_mask=holes,

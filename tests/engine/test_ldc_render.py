@@ -424,3 +424,18 @@ def test_refinement_walk_finds_the_crossed_triangle(shiny):
 
     # measured: 0.019 vs 1.13 degrees (the flat box is exact either way)
     assert normal_error(walk) < 0.1 and normal_error(flat) > 0.5, (normal_error(walk), normal_error(flat))
+
+
+def test_near_covered_is_the_binary_dilation():
+    """The renderer's hole-ray filter: a covered pixel within r (a square), as scipy's
+    maximum_filter with a zero border computes it."""
+    from scipy.ndimage import maximum_filter
+
+    from engine.ldc_render import _near_covered
+
+    rng = np.random.default_rng(1)
+    for h, w, r in [(37, 53, 3), (5, 4, 3), (64, 64, 1), (10, 10, 7), (1, 9, 2)]:
+        for p in (0.001, 0.05, 0.5):
+            c = rng.random((h, w)) < p
+            want = maximum_filter(c.view(np.uint8), size=2 * r + 1, mode="constant") > 0
+            assert np.array_equal(_near_covered(c, r), want), (h, w, r, p)
