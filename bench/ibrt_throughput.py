@@ -17,6 +17,16 @@ rays with origins in the scene bounds), measured in one run on one machine:
     python -m bench.ibrt_throughput [--resolutions 256 512] [--size 256] [--repeat 3]
 
 Writes the block ``ibrt`` of docs/ldc.md and docs/data/ibrt_throughput.json.
+
+``--ab REV`` instead times ``engine/ibrt.py`` at git revision REV against the working tree's in
+one process, interleaved (old, new, old, new, ...; the machine is shared, so only the ratio
+is quoted), on the rays the LDC view renderer traces (``LDCViewRenderer._trace`` captured
+while rendering ``--ab-scenes`` at 512x512 from an LDC of resolution 256, 6 views: hole /
+silhouette eye rays and mirror reflection rays) and on random rays; it checks that both
+return the same axis, sample, t, n_steps and n_tests for every ray and writes the result
+under the heading "Traversal A/B" at the end of the ``ibrt`` block:
+
+    python -m bench.ibrt_throughput --ab HEAD~1 [--ab-rounds 15]
 """
 
 from __future__ import annotations
@@ -25,6 +35,9 @@ import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -175,6 +188,173 @@ def measure(name: str, res: int, size: int, repeat: int) -> dict:
                           "same_all": round(rec["same_object_all"], 4)}), flush=True)
     return out
 
+# ----------------------------------------------------------------------------- A/B against a revision
+
+AB_SCENES = ["mirror_box", "teapot_glossy"]
+AB_HEADING = "Traversal A/B"
+
+
+def _old_ibrt_module(rev: str):
+    """engine/ibrt.py as of git revision ``rev``, imported as a separate module."""
+    import importlib.util
+
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:engine/ibrt.py"], capture_output=True, text=True,
+                         check=True).stdout
+    src = src.replace("from .", "from engine.")
+    sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    path = Path(tempfile.gettempdir()) / f"ibrt_ab_{sha}" / "ibrt_ab_old.py"
+    path.parent.mkdir(exist_ok=True)
+    if not path.exists() or path.read_text() != src:  # unchanged file: numba's cache stays valid
+        path.write_text(src)
+    spec = importlib.util.spec_from_file_location("ibrt_ab_old", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["ibrt_ab_old"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod, sha
+
+
+def render_rays(name: str, size: int = 512, ldc_res: int = 256, n_views: int = 6):
+    """(ldc, [(o, d, origin_normals or None), ...]): every batch ``LDCViewRenderer._trace``
+    gets while rendering the scene's ``n_views`` benchmark views with ``ldc+ibrt:1``."""
+    from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
+    from engine.ldc_render import LDCViewRenderer
+    from engine.llf import bake_llf
+
+    sc, caster, plan, cams, _ = scene_setup(name, size, n_views)
+    ldc = bake_ldc(sc, caster, ldc_res, plan=plan)
+    llf = bake_llf(sc, caster, 8, LLF_RES, params=LLF_PARAMS) if plan.needs_llf else None
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    batches: list = []
+    inner = r._trace
+
+    def spy(o, d, origin_normals=None):
+        batches.append((np.array(o, np.float64, order="C"), np.array(d, np.float64, order="C"),
+                        None if origin_normals is None else np.array(origin_normals, np.float64)))
+        return inner(o, d, origin_normals)
+
+    r._trace = spy
+    for cam in cams:
+        r.render(cam, "ldc+ibrt:1")
+    return sc, ldc, batches
+
+
+def _trace_all(mod, ldc, args, acc, batches):
+    return [mod.trace_prepared(ldc, args, acc, o, d, origin_normals=nrm) for o, d, nrm in batches]
+
+
+def _same(ra, rb) -> dict:
+    """Per field: identical over every ray of every batch (np.array_equal; t compared bit for bit)."""
+    out = {}
+    for k, name in enumerate(("axis", "sample", "t")):
+        out[name] = all(np.array_equal(a[k], b[k]) and np.array_equal(np.asarray(a[k]).view(np.uint8),
+                                                                       np.asarray(b[k]).view(np.uint8))
+                        for a, b in zip(ra, rb, strict=True))
+    out["n_steps"] = all(a[3] == b[3] for a, b in zip(ra, rb, strict=True))
+    out["n_tests"] = all(a[4] == b[4] for a, b in zip(ra, rb, strict=True))
+    return out
+
+
+def ab(rev: str, scenes: list[str], rounds: int, log=print) -> dict:
+    """Interleaved timing of ``trace_prepared`` (REV's module against the working tree's) on the
+    renderer's captured rays and on random rays, 2 threads and 1 thread; hits compared."""
+    import numba as nb
+
+    import engine.ibrt as new
+
+    old, sha = _old_ibrt_module(rev)
+    new_sha = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--", "engine/ibrt.py"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", "engine/ibrt.py"]).returncode != 0
+    res: dict = {"rev": rev, "sha": sha, "new": new_sha + (" with uncommitted changes" if dirty else ""),
+                 "rounds": rounds, "scenes": {}}
+    threads_all = sorted({1, max(1, nb.config.NUMBA_NUM_THREADS)}, reverse=True)
+    for name in scenes:
+        sc, ldc, batches = render_rays(name)
+        lo, hi = sc.bounds
+        rng = np.random.default_rng(7)
+        n_rand = 20000
+        ro = lo + rng.random((n_rand, 3)) * (hi - lo)
+        rd = rng.normal(size=(n_rand, 3))
+        rd = np.ascontiguousarray(rd / np.linalg.norm(rd, axis=1, keepdims=True))
+        sets = {"render": batches, "random": [(np.ascontiguousarray(ro), rd, None)]}
+        acc_old, acc_new = old.build_accel(ldc), new.build_accel(ldc)
+        args_old, args_new = old.trace_args(ldc), new.trace_args(ldc)
+        rec: dict = {"ldc_res": 256, "size": 512, "views": 6}
+        for label, bs in sets.items():
+            n = sum(b[0].shape[0] for b in bs)
+            ra = _trace_all(old, ldc, args_old, acc_old, bs)
+            rb = _trace_all(new, ldc, args_new, acc_new, bs)
+            same = _same(ra, rb)
+            r = {"rays": n, "batches": len(bs), "identical": same,
+                 "steps_per_ray": sum(x[3] for x in rb) / max(n, 1), "tests_per_ray": sum(x[4] for x in rb) / max(n, 1)}
+            prev = nb.get_num_threads()
+            for th in threads_all:
+                nb.set_num_threads(th)
+                try:
+                    ts: dict = {"old": [], "new": []}
+                    for _ in range(rounds):
+                        for side, mod, args, acc in (("old", old, args_old, acc_old), ("new", new, args_new, acc_new)):
+                            t0 = time.perf_counter()
+                            _trace_all(mod, ldc, args, acc, bs)
+                            ts[side].append(time.perf_counter() - t0)
+                finally:
+                    nb.set_num_threads(prev)
+                r[f"threads_{th}"] = {
+                    "old_min_s": min(ts["old"]), "new_min_s": min(ts["new"]),
+                    "old_median_s": float(np.median(ts["old"])), "new_median_s": float(np.median(ts["new"])),
+                    "speedup_min": min(ts["old"]) / min(ts["new"]),
+                    "speedup_median": float(np.median(ts["old"]) / np.median(ts["new"])),
+                    # each round's old / new (run back to back, so under about the same load)
+                    "speedup_paired": float(np.median(np.array(ts["old"]) / np.array(ts["new"])))}
+            rec[label] = r
+            log(json.dumps({"scene": name, "set": label, "rays": n, "identical": same,
+                            **{k: {kk: round(vv, 5) for kk, vv in v.items()} for k, v in r.items()
+                               if k.startswith("threads_")}}))
+        res["scenes"][name] = rec
+    return res
+
+
+def _ab_lines(res: dict, rounds: int) -> list[str]:
+    th = sorted({int(k.split("_")[1]) for rec in res["scenes"].values() for s in ("render", "random")
+                 for k in rec[s] if k.startswith("threads_")}, reverse=True)
+    la = os.getloadavg()
+    lines = [f"### {AB_HEADING}", "",
+             f"Measured with `python -m bench.ibrt_throughput --ab {res['rev']} --ab-rounds {rounds}` "
+             f"({time.strftime('%Y-%m-%d')}, load average {la[0]:.1f}): `engine/ibrt.py` at {res['sha']} (old) "
+             f"against {res['new']} (new), `trace_prepared` on the same rays in one process, interleaved, "
+             f"{rounds} rounds; `render` = every batch `LDCViewRenderer._trace` gets while rendering the 6 "
+             "benchmark views at 512x512 from an LDC of resolution 256 with `ldc+ibrt:1` (hole / silhouette eye "
+             "rays and mirror reflection rays), `random` = 20000 rays, origins uniform in the scene bounds.", "",
+             "| scene | rays | identical axis / sample / t / steps / tests | steps + tests per ray | "
+             + " | ".join(f"old / new ms, {t} thread{'s' if t > 1 else ''} (min; median) | speed-up: min; median; "
+                          "**median of the rounds' ratios**" for t in th) + " |",
+             "|---|---|---|---:|" + "---|---:|" * len(th)]
+    for name, rec in res["scenes"].items():
+        for s in ("render", "random"):
+            r = rec[s]
+            ident = " / ".join("yes" if r["identical"][k] else "**NO**"
+                               for k in ("axis", "sample", "t", "n_steps", "n_tests"))
+            row = f"| {name} | {s}: {r['rays']:,} | {ident} | {r['steps_per_ray']:.0f} + {r['tests_per_ray']:.0f} |"
+            for t in th:
+                q = r[f"threads_{t}"]
+                row += (f" {q['old_min_s'] * 1e3:.1f} / {q['new_min_s'] * 1e3:.1f}; {q['old_median_s'] * 1e3:.1f} / "
+                        f"{q['new_median_s'] * 1e3:.1f} | {q['speedup_min']:.2f}x; {q['speedup_median']:.2f}x; "
+                        f"**{q['speedup_paired']:.2f}x** |")
+            lines.append(row)
+    return lines
+
+
+def write_ab(res: dict, rounds: int) -> None:
+    """Replace the A/B part at the end of the ``ibrt`` block (the rest of the block is kept)."""
+    text = DOC.read_text()
+    start, end = "<!-- bench:ibrt:start -->", "<!-- bench:ibrt:end -->"
+    body = text[text.index(start) + len(start):text.index(end)].strip("\n") if start in text else ""
+    cut = body.find(f"### {AB_HEADING}")
+    if cut >= 0:
+        body = body[:cut].rstrip()
+    replace_block(DOC, "ibrt", body + "\n\n" + "\n".join(_ab_lines(res, rounds)))
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -182,7 +362,18 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256, help="camera image side: size^2 primary / random rays")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--scenes", nargs="*", default=SCENES)
+    ap.add_argument("--ab", metavar="REV", default=None,
+                    help="only time engine/ibrt.py at REV against the working tree on the renderer's rays")
+    ap.add_argument("--ab-scenes", nargs="*", default=AB_SCENES)
+    ap.add_argument("--ab-rounds", type=int, default=15)
+    ap.add_argument("--no-write", action="store_true", help="--ab: print only, don't touch docs/ldc.md")
     args = ap.parse_args()
+    if args.ab:
+        res = ab(args.ab, args.ab_scenes, args.ab_rounds)
+        if not args.no_write:
+            write_ab(res, args.ab_rounds)
+            print(f"wrote {DOC}")
+        return
     rows = [measure(n, r, args.size, args.repeat) for n in args.scenes for r in args.resolutions]
     DATA.parent.mkdir(parents=True, exist_ok=True)
     DATA.write_text(json.dumps({"machine": platform.platform(), "cpus": os.cpu_count(),

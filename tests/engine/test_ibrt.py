@@ -30,6 +30,7 @@ from engine.ibrt import (
     SELF_PIXELS,
     IBRTAccel,
     build_accel,
+    sample_records,
     trace,
     trace_linear,
 )
@@ -243,6 +244,33 @@ def test_accel_roundtrip_and_mismatch(baked):
     other = bake_ldc(ls.runtime, caster, 64)
     with pytest.raises(InvalidInputError, match="build_accel"):
         trace(other, acc, o, d)
+
+
+def test_packed_layouts_reproduce_the_separate_arrays(baked):
+    """The traversal's packed node records and Morton-ordered sample records hold exactly the
+    accel's and the LDI's values (the kernel's hits are only bit-identical if they do)."""
+    name, ls, caster, ldc, acc = baked
+    rec = acc.node_records
+    assert rec.shape == (acc.n_nodes, 4) and rec.dtype == np.int32 and rec.flags.c_contiguous
+    assert acc.node_records is rec  # built once per accel
+    f = rec.view(np.float32)
+    assert np.array_equal(f[:, 0].view(np.int32), acc.lo.view(np.int32))
+    assert np.array_equal(f[:, 1].view(np.int32), acc.hi.view(np.int32))
+    assert np.array_equal(rec[:, 2] >> 4, acc.first) and np.array_equal(rec[:, 2] & 15, acc.mask)
+    assert np.array_equal(rec[:, 3], acc.link)
+    assert IBRTAccel.from_arrays(acc.to_arrays()).to_arrays().keys() == acc.to_arrays().keys()  # not stored
+    for ax in ldc.axes:
+        offs_m, srec, orig = sample_records(ax)
+        nu, nv = ax.ldi.frame.nu, ax.ldi.frame.nv
+        assert np.array_equal(np.sort(orig), np.arange(ax.n_samples))
+        assert np.array_equal(srec[:, 0], ax.ldi.depth[orig])
+        assert np.array_equal(srec[:, 1:], ax.geo_normal[orig].astype(np.float64))
+        # pixel (i, j) lives at its Morton code, its samples in layer order
+        for i, j in ((0, 0), (nu // 2, nv // 3), (nu - 1, nv - 1), (nu // 5, nv - 2)):
+            code = int(sum(((i >> b) & 1) << (2 * b) | ((j >> b) & 1) << (2 * b + 1) for b in range(24)))
+            k = j * nu + i
+            assert np.array_equal(orig[offs_m[code]:offs_m[code + 1]],
+                                  np.arange(ax.ldi.offsets[k], ax.ldi.offsets[k + 1]))
 
 
 def test_bad_input(baked):
