@@ -658,34 +658,39 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, sam
                 vh0, vh1 = _slab(ym - margin, ym + half + margin, ov, dv, iv, t0, t1)
                 nx = 0 if du >= 0.0 else 1
                 ny = 0 if dv >= 0.0 else 1
-                # near corner, the two side children, far corner; written without branches (the
-                # live / crossed tests are data dependent and mispredict): every candidate is
-                # stored, only the kept ones advance nc
                 nc = 0
-                for qq in range(4):
-                    c = ((ny ^ (qq >> 1)) << 1) | (nx ^ (qq & 1))
-                    hu = c & 1
-                    hv = c >> 1
-                    a0 = max(uh0 if hu else ul0, vh0 if hv else vl0)
-                    a1 = min(uh1 if hu else ul1, vh1 if hv else vl1)
+                for qq in range(4):  # near corner, the two side children, far corner
+                    if qq == 0:
+                        c = ny * 2 + nx
+                    elif qq == 1:
+                        c = ny * 2 + (1 - nx)
+                    elif qq == 2:
+                        c = (1 - ny) * 2 + nx
+                    else:
+                        c = (1 - ny) * 2 + (1 - nx)
+                    if not (m >> c) & 1:
+                        continue
+                    if c & 1:
+                        a0, a1 = uh0, uh1
+                    else:
+                        a0, a1 = ul0, ul1
+                    if c >> 1:
+                        a0 = max(a0, vh0)
+                        a1 = min(a1, vh1)
+                    else:
+                        a0 = max(a0, vl0)
+                        a1 = min(a1, vl1)
+                    if not (a0 <= a1):
+                        continue
                     ct0[nc] = a0
                     ct1[nc] = a1
                     cid[nc] = c
-                    nc += ((m >> c) & 1) & (1 if a0 <= a1 else 0)
+                    nc += 1
                 for j in range(1, nc):  # only the side children can be out of order
-                    p0 = ct0[j - 1]
-                    q0 = ct0[j]
-                    p1 = ct1[j - 1]
-                    q1 = ct1[j]
-                    pc = cid[j - 1]
-                    qc = cid[j]
-                    sw = p0 > q0
-                    ct0[j - 1] = q0 if sw else p0
-                    ct0[j] = p0 if sw else q0
-                    ct1[j - 1] = q1 if sw else p1
-                    ct1[j] = p1 if sw else q1
-                    cid[j - 1] = qc if sw else pc
-                    cid[j] = pc if sw else qc
+                    if ct0[j - 1] > ct0[j]:
+                        ct0[j - 1], ct0[j] = ct0[j], ct0[j - 1]
+                        ct1[j - 1], ct1[j] = ct1[j], ct1[j - 1]
+                        cid[j - 1], cid[j] = cid[j], cid[j - 1]
                 if lev == 1:
                     # the block's pixels are consecutive in the Morton order, pixel c at kb + c
                     kb = _spread(x0) | (_spread(y0) << 1)
