@@ -121,34 +121,35 @@ def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _sample_point(org, fu, fv, fw, h, nu, spix, depth, s):
-    """World position of sample s of an axis (``spix``: the LDI pixel of every sample)."""
-    k = np.int64(spix[s])
+def _sample_point(org, fu, fv, fw, h, nu, k, dep):
+    """World position of a sample in LDI pixel k at depth ``dep`` of an axis whose frame
+    (origin, u, v, w) is given as 3-tuples (scalars only: an inlined function's array
+    arguments are increfed and decrefed per call)."""
     aa = (k % nu + 0.5) * h
     bb = (k // nu + 0.5) * h
-    dep = depth[s]
     return (org[0] + aa * fu[0] + bb * fv[0] + dep * fw[0],
             org[1] + aa * fu[1] + bb * fv[1] + dep * fw[1],
             org[2] + aa * fu[2] + bb * fv[2] + dep * fw[2])
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _sample_normals(geo, nrm, s, sd):
-    """Geometric and shading normal of sample s flipped to side sd (the shading normal falls
-    back to the geometric one when it is on the other side)."""
+def _sample_normals(a0, a1, a2, b0, b1, b2, sd):
+    """Geometric (a) and shading normal (b) of a sample flipped to side sd (the shading normal
+    falls back to the geometric one when it is on the other side); scalars in and out."""
     sg = 1.0 if sd == 0 else -1.0
-    g0, g1, g2 = sg * geo[s, 0], sg * geo[s, 1], sg * geo[s, 2]
-    n0, n1, n2 = sg * nrm[s, 0], sg * nrm[s, 1], sg * nrm[s, 2]
+    g0, g1, g2 = sg * a0, sg * a1, sg * a2
+    n0, n1, n2 = sg * b0, sg * b1, sg * b2
     if n0 * g0 + n1 * g1 + n2 * g2 <= 0.0:
         n0, n1, n2 = g0, g1, g2
     return g0, g1, g2, n0, n1, n2
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _interp_normal(t, bw, bu, bv, tri_n, tri_ng, g0, g1, g2):
     """Triangle t's vertex normals at barycentrics (bw, bu, bv), normalised and flipped to the
     side the sample was seen from (g), falling back to g when it points the other way; ok False
-    when the interpolated normal vanishes."""
+    when the interpolated normal vanishes. A plain function (LLVM inlines it): inlined by numba
+    its two array arguments were increfed and decrefed per call."""
     m0 = bw * tri_n[t, 0, 0] + bu * tri_n[t, 1, 0] + bv * tri_n[t, 2, 0]
     m1 = bw * tri_n[t, 0, 1] + bu * tri_n[t, 1, 1] + bv * tri_n[t, 2, 1]
     m2 = bw * tri_n[t, 0, 2] + bu * tri_n[t, 1, 2] + bv * tri_n[t, 2, 2]
@@ -256,6 +257,10 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
         extent = hp
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     bits = vis2 if axis >= 0 else rc_bits
+    org_t = (org[0], org[1], org[2])
+    fu_t = (fu[0], fu[1], fu[2])
+    fv_t = (fv[0], fv[1], fv[2])
+    fw_t = (fw[0], fw[1], fw[2])
     n = pix.shape[0]
     nblk = (n + 63) // 64
     for blk in range(grp, nblk, groups):
@@ -266,8 +271,9 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
             if axis >= 0:
                 s = s_idx[r]
                 sd = s_side[r]
-                px, py, pz = _sample_point(org, fu, fv, fw, h, nu, spix, depth, s)
-                g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+                px, py, pz = _sample_point(org_t, fu_t, fv_t, fw_t, h, nu, np.int64(spix[s]), depth[s])
+                g0, g1, g2, n0, n1, n2 = _sample_normals(geo[s, 0], geo[s, 1], geo[s, 2], nrm[s, 0], nrm[s, 1],
+                                                         nrm[s, 2], sd)
                 m = mat_a[s]
                 brow = 2 * s + sd
                 if refine:
@@ -517,7 +523,7 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
         r = holes[i]
         s = hit_sample[i]
         sd = 1 if geo[s, 0] * d[i, 0] + geo[s, 1] * d[i, 1] + geo[s, 2] * d[i, 2] > 0.0 else 0
-        _, _, _, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+        _, _, _, n0, n1, n2 = _sample_normals(geo[s, 0], geo[s, 1], geo[s, 2], nrm[s, 0], nrm[s, 1], nrm[s, 2], sd)
         radiance[r, 0], radiance[r, 1], radiance[r, 2] = diff[s, sd, 0], diff[s, sd, 1], diff[s, sd, 2]
         depth[r] = hit_t[i]
         normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
@@ -558,7 +564,8 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
             t = hit_t[i]
             px, py, pz = o[i, 0] + t * d0, o[i, 1] + t * d1, o[i, 2] + t * d2
             sd = 1 if geo[s, 0] * d0 + geo[s, 1] * d1 + geo[s, 2] * d2 > 0.0 else 0
-            g0, g1, g2, n0, n1, n2 = _sample_normals(geo, nrm, s, sd)
+            g0, g1, g2, n0, n1, n2 = _sample_normals(geo[s, 0], geo[s, 1], geo[s, 2], nrm[s, 0], nrm[s, 1], nrm[s, 2],
+                                                     sd)
             if nbr.shape[0] > 0:
                 px, py, pz, n0, n1, n2 = _refine_point(o[i, 0], o[i, 1], o[i, 2], d0, d1, d2, prim[s], tri_p, tri_n,
                                                        tri_ng, nbr, 3.0 * ldc_h, px, py, pz, g0, g1, g2, n0, n1, n2)
@@ -724,6 +731,10 @@ class LDCViewRenderer:
         n = self.ldc.nbytes + (self.llf.nbytes if self.llf is not None else 0)
         if self._accel is not None:
             n += self._accel.nbytes
+            if "node_records" in self._accel.__dict__:  # the traversal's packed nodes (built on first trace)
+                n += self._accel.node_records.nbytes
+        if self._trace_args is not None:  # the traversal's per-sample records (ibrt.trace_args)
+            n += sum(a.nbytes for g in self._trace_args[4:] for a in g)
         return int(n)
 
     # ------------------------------------------------------------------ helpers

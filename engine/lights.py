@@ -16,6 +16,28 @@ from .raycast import SHADOW_SHORTEN
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def point_light_sample(ox, oy, oz, mag, qx, qy, qz, i0, i1, i2):
+    """``light_sample`` of a point light at q with intensity i, in scalars: inlined into a
+    loop it costs no reference counting (an inlined function's array arguments are increfed
+    and decrefed at every call: measured at ~5 % of an LDC render's CPU time in the
+    highlight loop)."""
+    lx, ly, lz = qx - ox, qy - oy, qz - oz
+    dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+    if dist <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inv_d2 = 1.0 / (dist * dist)
+    return (True, lx / dist, ly / dist, lz / dist, i0 * inv_d2, i1 * inv_d2, i2 * inv_d2,
+            dist * (1.0 - SHADOW_SHORTEN) - mag)
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def directional_light_sample(d0, d1, d2, e0, e1, e2):
+    """``light_sample`` of a directional light travelling along d with irradiance e, in scalars
+    (see ``point_light_sample``)."""
+    return True, -d0, -d1, -d2, e0, e1, e2, 3.0e38
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL,
                  r2s, r_g):
     """Light sample ``j`` seen from the origin o (a surface point moved off its surface by ``mag``).
@@ -30,17 +52,12 @@ def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, r
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
     if j < npt:
-        lx, ly, lz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
-        dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-        if dist <= 0.0:
-            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-        inv_d2 = 1.0 / (dist * dist)
-        return (True, lx / dist, ly / dist, lz / dist, pt_int[j, 0] * inv_d2, pt_int[j, 1] * inv_d2,
-                pt_int[j, 2] * inv_d2, dist * (1.0 - SHADOW_SHORTEN) - mag)
+        return point_light_sample(ox, oy, oz, mag, pt_pos[j, 0], pt_pos[j, 1], pt_pos[j, 2], pt_int[j, 0],
+                                  pt_int[j, 1], pt_int[j, 2])
     if j < npt + ndir:
         q = j - npt
-        return (True, -dir_dir[q, 0], -dir_dir[q, 1], -dir_dir[q, 2], dir_irr[q, 0], dir_irr[q, 1],
-                dir_irr[q, 2], 3.0e38)
+        return directional_light_sample(dir_dir[q, 0], dir_dir[q, 1], dir_dir[q, 2], dir_irr[q, 0], dir_irr[q, 1],
+                                        dir_irr[q, 2])
     gg = r_g * r_g
     q = (j - npt - ndir) // gg
     s = (j - npt - ndir) % gg

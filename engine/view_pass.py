@@ -53,7 +53,7 @@ import numba as nb
 import numpy as np
 
 from .errors import InvalidInputError, NonFiniteOutputError
-from .lights import light_sample
+from .lights import directional_light_sample, light_sample, point_light_sample
 from .llf import LLF, candidate_directions, direction_to_lattice
 from .raycast import OFFSET_EXTENT, OFFSET_REL
 from .rng import stream_key, uniform
@@ -120,8 +120,18 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
         if words > 0:
             if (bits[brow, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
                 continue
-        ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
-                                                        dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+        # point and directional lights through the scalar samplers: no reference counting per light
+        if j < npt:
+            ok, lx, ly, lz, e0, e1, e2, tmax = point_light_sample(ox, oy, oz, mag, pt_pos[j, 0], pt_pos[j, 1],
+                                                                  pt_pos[j, 2], pt_int[j, 0], pt_int[j, 1],
+                                                                  pt_int[j, 2])
+        elif j < npt + ndir:
+            q = j - npt
+            ok, lx, ly, lz, e0, e1, e2, tmax = directional_light_sample(dir_dir[q, 0], dir_dir[q, 1], dir_dir[q, 2],
+                                                                        dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2])
+        else:
+            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
+                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
         if not ok:
             continue
         cos_g = g0 * lx + g1 * ly + g2 * lz
