@@ -80,128 +80,135 @@ class WarpResult:
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
              ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
-             out_f, out_side, out_ok):
+             out_f, out_side, out_ok, groups):
     """Per sample (in parallel): projected position, footprint half-sizes, distance, depth
     slack and visible side into out_f (n, 6) = (px, py, ex, ey, dist, tol); out_ok marks kept ones."""
     aspect = W / H
     npix = offsets.shape[0] - 1
-    for k in nb.prange(npix):
-        s0 = offsets[k]
-        s1 = offsets[k + 1]
-        if s0 == s1:
-            continue
-        a = (k % nu + 0.5) * h
-        b = (k // nu + 0.5) * h
-        bx = origin[0] + a * fu[0] + b * fv[0]
-        by = origin[1] + a * fu[1] + b * fv[1]
-        bz = origin[2] + a * fu[2] + b * fv[2]
-        for s in range(s0, s1):
-            out_ok[s] = False
-            n0, n1, n2 = ng[s, 0], ng[s, 1], ng[s, 2]
-            nw = n0 * fw[0] + n1 * fw[1] + n2 * fw[2]
-            if abs(nw) < min_cos:
-                continue
-            px_ = bx + depth[s] * fw[0]
-            py_ = by + depth[s] * fw[1]
-            pz_ = bz + depth[s] * fw[2]
-            rx, ry, rz = px_ - eye[0], py_ - eye[1], pz_ - eye[2]
-            xc = rx * right[0] + ry * right[1] + rz * right[2]
-            yc = rx * up[0] + ry * up[1] + rz * up[2]
-            zc = rx * fwd[0] + ry * fwd[1] + rz * fwd[2]
-            if ortho:
-                if zc < 0.0:
+    nblk = (npix + 63) // 64
+    for g in nb.prange(groups):  # blocks of 64 LDI pixels dealt round-robin (samples cluster: halves unbalance)
+        for blk in range(g, nblk, groups):
+            for k in range(blk * 64, min(npix, blk * 64 + 64)):
+                s0 = offsets[k]
+                s1 = offsets[k + 1]
+                if s0 == s1:
                     continue
-                vd = n0 * fwd[0] + n1 * fwd[1] + n2 * fwd[2]
-                dist = zc
-            else:
-                dist = math.sqrt(rx * rx + ry * ry + rz * rz)
-                if zc <= 1e-12 * dist or dist == 0.0:
-                    continue
-                vd = n0 * rx + n1 * ry + n2 * rz
-            if vd == 0.0:
-                continue
-            # depth slack within which two samples count as the same surface: about one
-            # LDC cell along the surface at this slope to the view ray
-            cosv = abs(vd) / (dist if not ortho else 1.0)
-            tol = 1.5 * h / max(cosv, 0.25)
-            side = 0 if vd < 0.0 else 1
-            if side == 1 and closed[obj[s]]:
-                continue  # inner side of a closed object: back face
-            # projection and Jacobian (pixels per world unit) at the sample
-            if ortho:
-                kx = W / (2.0 * hh * aspect)
-                ky = H / (2.0 * hh)
-                pxf = (xc * kx / W * 2.0 + 1.0) * 0.5 * W
-                pyf = (1.0 - yc * ky / H * 2.0) * 0.5 * H
-            else:
-                kx = W / (2.0 * th * aspect)
-                ky = H / (2.0 * th)
-                pxf = (xc / zc * kx / W * 2.0 + 1.0) * 0.5 * W
-                pyf = (1.0 - yc / zc * ky / H * 2.0) * 0.5 * H
-            if not (abs(pxf) < 1e9 and abs(pyf) < 1e9):
-                continue
-            # tangent edges of the cell
-            cu = (n0 * fu[0] + n1 * fu[1] + n2 * fu[2]) / nw
-            cv = (n0 * fv[0] + n1 * fv[1] + n2 * fv[2]) / nw
-            ex = 0.0
-            ey = 0.0
-            for e in range(2):
-                if e == 0:
-                    dx = h * (fu[0] - cu * fw[0])
-                    dy = h * (fu[1] - cu * fw[1])
-                    dz = h * (fu[2] - cu * fw[2])
-                else:
-                    dx = h * (fv[0] - cv * fw[0])
-                    dy = h * (fv[1] - cv * fw[1])
-                    dz = h * (fv[2] - cv * fw[2])
-                ex_ = dx * right[0] + dy * right[1] + dz * right[2]
-                ey_ = dx * up[0] + dy * up[1] + dz * up[2]
-                ez_ = dx * fwd[0] + dy * fwd[1] + dz * fwd[2]
-                if ortho:
-                    ex += abs(kx * ex_)
-                    ey += abs(ky * ey_)
-                else:
-                    ex += abs(kx * (ex_ / zc - xc * ez_ / (zc * zc)))
-                    ey += abs(ky * (ey_ / zc - yc * ez_ / (zc * zc)))
-            ex = 0.5 * ex * fp_scale
-            ey = 0.5 * ey * fp_scale
-            if not (ex <= max_fp):
-                ex = max_fp
-            if not (ey <= max_fp):
-                ey = max_fp
-            out_f[s, 0] = pxf
-            out_f[s, 1] = pyf
-            out_f[s, 2] = ex
-            out_f[s, 3] = ey
-            out_f[s, 4] = dist
-            out_f[s, 5] = tol
-            out_side[s] = side
-            out_ok[s] = True
+                a = (k % nu + 0.5) * h
+                b = (k // nu + 0.5) * h
+                bx = origin[0] + a * fu[0] + b * fv[0]
+                by = origin[1] + a * fu[1] + b * fv[1]
+                bz = origin[2] + a * fu[2] + b * fv[2]
+                for s in range(s0, s1):
+                    out_ok[s] = False
+                    n0, n1, n2 = ng[s, 0], ng[s, 1], ng[s, 2]
+                    nw = n0 * fw[0] + n1 * fw[1] + n2 * fw[2]
+                    if abs(nw) < min_cos:
+                        continue
+                    px_ = bx + depth[s] * fw[0]
+                    py_ = by + depth[s] * fw[1]
+                    pz_ = bz + depth[s] * fw[2]
+                    rx, ry, rz = px_ - eye[0], py_ - eye[1], pz_ - eye[2]
+                    xc = rx * right[0] + ry * right[1] + rz * right[2]
+                    yc = rx * up[0] + ry * up[1] + rz * up[2]
+                    zc = rx * fwd[0] + ry * fwd[1] + rz * fwd[2]
+                    if ortho:
+                        if zc < 0.0:
+                            continue
+                        vd = n0 * fwd[0] + n1 * fwd[1] + n2 * fwd[2]
+                        dist = zc
+                    else:
+                        dist = math.sqrt(rx * rx + ry * ry + rz * rz)
+                        if zc <= 1e-12 * dist or dist == 0.0:
+                            continue
+                        vd = n0 * rx + n1 * ry + n2 * rz
+                    if vd == 0.0:
+                        continue
+                    # depth slack within which two samples count as the same surface: about one
+                    # LDC cell along the surface at this slope to the view ray
+                    cosv = abs(vd) / (dist if not ortho else 1.0)
+                    tol = 1.5 * h / max(cosv, 0.25)
+                    side = 0 if vd < 0.0 else 1
+                    if side == 1 and closed[obj[s]]:
+                        continue  # inner side of a closed object: back face
+                    # projection and Jacobian (pixels per world unit) at the sample
+                    if ortho:
+                        kx = W / (2.0 * hh * aspect)
+                        ky = H / (2.0 * hh)
+                        pxf = (xc * kx / W * 2.0 + 1.0) * 0.5 * W
+                        pyf = (1.0 - yc * ky / H * 2.0) * 0.5 * H
+                    else:
+                        kx = W / (2.0 * th * aspect)
+                        ky = H / (2.0 * th)
+                        pxf = (xc / zc * kx / W * 2.0 + 1.0) * 0.5 * W
+                        pyf = (1.0 - yc / zc * ky / H * 2.0) * 0.5 * H
+                    if not (abs(pxf) < 1e9 and abs(pyf) < 1e9):
+                        continue
+                    # tangent edges of the cell
+                    cu = (n0 * fu[0] + n1 * fu[1] + n2 * fu[2]) / nw
+                    cv = (n0 * fv[0] + n1 * fv[1] + n2 * fv[2]) / nw
+                    ex = 0.0
+                    ey = 0.0
+                    for e in range(2):
+                        if e == 0:
+                            dx = h * (fu[0] - cu * fw[0])
+                            dy = h * (fu[1] - cu * fw[1])
+                            dz = h * (fu[2] - cu * fw[2])
+                        else:
+                            dx = h * (fv[0] - cv * fw[0])
+                            dy = h * (fv[1] - cv * fw[1])
+                            dz = h * (fv[2] - cv * fw[2])
+                        ex_ = dx * right[0] + dy * right[1] + dz * right[2]
+                        ey_ = dx * up[0] + dy * up[1] + dz * up[2]
+                        ez_ = dx * fwd[0] + dy * fwd[1] + dz * fwd[2]
+                        if ortho:
+                            ex += abs(kx * ex_)
+                            ey += abs(ky * ey_)
+                        else:
+                            ex += abs(kx * (ex_ / zc - xc * ez_ / (zc * zc)))
+                            ey += abs(ky * (ey_ / zc - yc * ez_ / (zc * zc)))
+                    ex = 0.5 * ex * fp_scale
+                    ey = 0.5 * ey * fp_scale
+                    if not (ex <= max_fp):
+                        ex = max_fp
+                    if not (ey <= max_fp):
+                        ey = max_fp
+                    out_f[s, 0] = pxf
+                    out_f[s, 1] = pyf
+                    out_f[s, 2] = ex
+                    out_f[s, 3] = ey
+                    out_f[s, 4] = dist
+                    out_f[s, 5] = tol
+                    out_side[s] = side
+                    out_ok[s] = True
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands):
-    """Z-buffer writes in CSR order, in ``bands`` horizontal bands of the image (one per
-    thread): each band applies every sample to its own rows only, so each pixel sees the
-    samples in CSR order whatever the band count (the serial pass's image, bit for bit)."""
+    """Z-buffer writes in CSR order, ``bands`` threads each owning the image's 8-row stripes
+    ``g, g + bands, ...`` (interleaved: the bottom of a view - a floor close by - has far more
+    writes than the top): each thread applies every sample to its own rows only, so each
+    pixel sees the samples in CSR order whatever the band count (the serial pass's image, bit
+    for bit)."""
     for g in nb.prange(bands):
-        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side,
-                    g * H // bands, (g + 1) * H // bands)
+        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, g, bands)
 
 
 @nb.njit(cache=True, nogil=True)
-def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, r0, r1):
-    """The z-buffer writes of image rows r0 <= y < r1 (0, H: the serial pass)."""
+def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, g, bands):
+    """The z-buffer writes of the image rows in stripes g, g + bands, ... (8 rows each; 0, 1:
+    the serial pass)."""
     for s in range(out_ok.shape[0]):
         if not out_ok[s]:
             continue
         pyf = out_f[s, 1]
         ey = out_f[s, 3]
         iy = int(math.floor(pyf))
-        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0, r0)
-        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1, r1 - 1)
+        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0)
+        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
         if y0 > y1:
             continue
+        if bands > 1 and (y0 >> 3) == (y1 >> 3) and ((y0 >> 3) % bands) != g:
+            continue  # the whole footprint is in another thread's stripe
         pxf = out_f[s, 0]
         ex = out_f[s, 2]
         dist = out_f[s, 4]
@@ -211,6 +218,8 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis
         x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
         x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
         for y in range(y0, y1 + 1):
+            if ((y >> 3) % bands) != g:
+                continue
             for x in range(x0, x1 + 1):
                 ddx = x + 0.5 - pxf
                 ddy = y + 0.5 - pyf
@@ -235,41 +244,43 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _detect_holes(zbuf, rel, need, out):
+def _detect_holes(zbuf, rel, need, out, groups):
     H, W = zbuf.shape
-    for y in nb.prange(H):
-        for x in range(W):
-            d = zbuf[y, x]
-            if not d < np.inf:
-                out[y, x] = True
-                continue
-            lim = d * (1.0 - rel)
-            c = 0
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    if dx == 0 and dy == 0:
-                        continue
-                    yy = y + dy
-                    xx = x + dx
-                    if 0 <= yy < H and 0 <= xx < W and zbuf[yy, xx] < lim:
-                        c += 1
-            out[y, x] = c >= need
+    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
+        for y in range(g, H, groups):
+            for x in range(W):
+                d = zbuf[y, x]
+                if not d < np.inf:
+                    out[y, x] = True
+                    continue
+                lim = d * (1.0 - rel)
+                c = 0
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        if dx == 0 and dy == 0:
+                            continue
+                        yy = y + dy
+                        xx = x + dx
+                        if 0 <= yy < H and 0 <= xx < W and zbuf[yy, xx] < lim:
+                            c += 1
+                out[y, x] = c >= need
 
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _init_buffers(zbuf, best_off, win_axis, win_idx, win_side):
+def _init_buffers(zbuf, best_off, win_axis, win_idx, win_side, groups):
     H, W = zbuf.shape
-    for y in nb.prange(H):
-        for x in range(W):
-            zbuf[y, x] = np.inf
-            best_off[y, x] = np.inf
-            win_axis[y, x] = -1
-            win_idx[y, x] = -1
-            win_side[y, x] = 0
+    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
+        for y in range(g, H, groups):
+            for x in range(W):
+                zbuf[y, x] = np.inf
+                best_off[y, x] = np.inf
+                win_axis[y, x] = -1
+                win_idx[y, x] = -1
+                win_side[y, x] = 0
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _resolve_pixel(y, x, i, s, diffuse, nrm, material, obj, radiance, normal, mat_id, obj_id):
     sign = 1.0 if s == 0 else -1.0
     for c in range(3):
@@ -281,36 +292,37 @@ def _resolve_pixel(y, x, i, s, diffuse, nrm, material, obj, radiance, normal, ma
 
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _resolve(win_axis, win_idx, win_side, zbuf, bg, diff0, nrm0, mat0, obj0, diff1, nrm1, mat1, obj1, diff2, nrm2,
-             mat2, obj2, radiance, depth, normal, mat_id, obj_id, prov):
+             mat2, obj2, radiance, depth, normal, mat_id, obj_id, prov, groups):
     """Every pixel in one pass: the winning sample's attributes, or the background (depth 0,
     ids -1, provenance 0) where nothing won. Returns the number of non-finite values written."""
     H, W = win_axis.shape
     bad = 0
-    for y in nb.prange(H):
-        for x in range(W):
-            a = win_axis[y, x]
-            if a < 0:
-                for c in range(3):
-                    radiance[y, x, c] = bg[c]
-                    normal[y, x, c] = 0.0
-                depth[y, x] = 0.0
-                mat_id[y, x] = -1
-                obj_id[y, x] = -1
-                prov[y, x] = 0
-                continue
-            i = win_idx[y, x]
-            s = win_side[y, x]
-            if a == 0:
-                _resolve_pixel(y, x, i, s, diff0, nrm0, mat0, obj0, radiance, normal, mat_id, obj_id)
-            elif a == 1:
-                _resolve_pixel(y, x, i, s, diff1, nrm1, mat1, obj1, radiance, normal, mat_id, obj_id)
-            else:
-                _resolve_pixel(y, x, i, s, diff2, nrm2, mat2, obj2, radiance, normal, mat_id, obj_id)
-            depth[y, x] = zbuf[y, x]
-            prov[y, x] = 1
-            if not (np.isfinite(radiance[y, x, 0]) and np.isfinite(radiance[y, x, 1])
-                    and np.isfinite(radiance[y, x, 2]) and np.isfinite(depth[y, x])):
-                bad += 1
+    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
+        for y in range(g, H, groups):
+            for x in range(W):
+                a = win_axis[y, x]
+                if a < 0:
+                    for c in range(3):
+                        radiance[y, x, c] = bg[c]
+                        normal[y, x, c] = 0.0
+                    depth[y, x] = 0.0
+                    mat_id[y, x] = -1
+                    obj_id[y, x] = -1
+                    prov[y, x] = 0
+                    continue
+                i = win_idx[y, x]
+                s = win_side[y, x]
+                if a == 0:
+                    _resolve_pixel(y, x, i, s, diff0, nrm0, mat0, obj0, radiance, normal, mat_id, obj_id)
+                elif a == 1:
+                    _resolve_pixel(y, x, i, s, diff1, nrm1, mat1, obj1, radiance, normal, mat_id, obj_id)
+                else:
+                    _resolve_pixel(y, x, i, s, diff2, nrm2, mat2, obj2, radiance, normal, mat_id, obj_id)
+                depth[y, x] = zbuf[y, x]
+                prov[y, x] = 1
+                if not (np.isfinite(radiance[y, x, 0]) and np.isfinite(radiance[y, x, 1])
+                        and np.isfinite(radiance[y, x, 2]) and np.isfinite(depth[y, x])):
+                    bad += 1
     return bad
 
 
@@ -341,11 +353,11 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     win_idx = np.empty((H, W), np.int64)
     win_side = np.empty((H, W), np.int8)
     best_off = np.empty((H, W))
-    _init_buffers(zbuf, best_off, win_axis, win_idx, win_side)
+    bands = max(1, int(nb.get_num_threads()))  # z-buffer stripes and row groups: one per numba thread
+    _init_buffers(zbuf, best_off, win_axis, win_idx, win_side, bands)
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
-    bands = max(1, int(nb.get_num_threads()))  # z-buffer bands: one per numba thread
     t0 = time.perf_counter()
     for ax in ldc.axes:
         f = ax.ldi.frame
@@ -355,12 +367,12 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         out_ok = np.empty(n, np.bool_)
         _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
                  ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
-                 out_f, out_side, out_ok)
+                 out_f, out_side, out_ok, bands)
         _write(ax.axis, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
-    _detect_holes(zbuf, hole_rel_depth, hole_neighbors, holes)
+    _detect_holes(zbuf, hole_rel_depth, hole_neighbors, holes, bands)
     t_holes = time.perf_counter() - t0
     t0 = time.perf_counter()
     radiance = np.empty((H, W, 3), np.float32)
@@ -374,7 +386,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     a0, a1, a2 = ldc.axes
     n_bad = _resolve(win_axis, win_idx, win_side, zbuf, ldc.background.astype(np.float32), a0.diffuse, a0.normal,
                      a0.material, a0.object, a1.diffuse, a1.normal, a1.material, a1.object, a2.diffuse, a2.normal,
-                     a2.material, a2.object, radiance, depth, normal, mat_id, obj_id, prov)
+                     a2.material, a2.object, radiance, depth, normal, mat_id, obj_id, prov, bands)
     t_resolve = time.perf_counter() - t0
     n_holes = int(holes.sum())
     n_filled = 0

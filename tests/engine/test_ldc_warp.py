@@ -285,14 +285,14 @@ def test_parallel_zbuffer_writes_equal_the_serial_pass(mirror_box):
     closed = np.zeros(64, np.bool_)
     warp_mod._project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object,
                       closed, False, np.asarray(cam.eye, np.float64), right, up, fwd, cam.width, cam.height,
-                      np.tan(np.radians(cam.fov_y_deg) / 2), 0.5, 0.5, 16.0, 1.0, out_f, out_side, out_ok)
+                      np.tan(np.radians(cam.fov_y_deg) / 2), 0.5, 0.5, 16.0, 1.0, out_f, out_side, out_ok, 2)
     assert out_ok.sum() > 1000
     results = []
     for bands in (1, 2, 3):
         bufs = (np.full((83, 97), np.inf), np.full((83, 97), np.inf), np.full((83, 97), -1, np.int8),
                 np.full((83, 97), -1, np.int64), np.zeros((83, 97), np.int8))
         if bands == 1:
-            warp_mod._write_rows(0, out_f, out_side, out_ok, 97, 83, *bufs, 0, 83)  # the serial pass
+            warp_mod._write_rows(0, out_f, out_side, out_ok, 97, 83, *bufs, 0, 1)  # the serial pass
         else:
             warp_mod._write(0, out_f, out_side, out_ok, 97, 83, *bufs, bands)
         results.append(bufs)
