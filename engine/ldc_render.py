@@ -370,6 +370,41 @@ def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
 
 
+@nb.njit(cache=True, nogil=True)
+def _clear_pixels(pix, bg, radiance, depth, normal, obj_id, mat_id, prov, s_axis, s_idx):
+    """Pixels ``pix`` show the background and no sample (before a ray's answer replaces them)."""
+    for i in range(pix.shape[0]):
+        r = pix[i]
+        for c in range(3):
+            radiance[r, c] = bg[c]
+            normal[r, c] = 0.0
+        depth[r] = 0.0
+        obj_id[r] = -1
+        mat_id[r] = -1
+        prov[r] = 0
+        s_axis[r] = -1
+        s_idx[r] = -1
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _to_f32_count_nonfinite(radiance, depth, out):
+    """out (n, 3) float32 = radiance (n, 3) float64; returns how many radiance or depth values
+    are not finite."""
+    n = radiance.shape[0]
+    nblk = (n + 4095) // 4096
+    bad = 0
+    for b in nb.prange(nblk):
+        for i in range(b * 4096, min(n, b * 4096 + 4096)):
+            for c in range(3):
+                v = radiance[i, c]
+                out[i, c] = v
+                if not np.isfinite(v):
+                    bad += 1
+            if not np.isfinite(depth[i]):
+                bad += 1
+    return bad
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _near_covered(covered, r):
     """(H, W) bool: a covered pixel within the (2r+1) x (2r+1) square around each pixel (a
@@ -813,11 +848,11 @@ class LDCViewRenderer:
                 progress(frac, stage)
 
         # ---- 1. warp
-        w = warp_ldc(ldc, camera, fill="none", **self.warp_options)
+        w = warp_ldc(ldc, camera, fill="none", radiance_dtype=np.float64, **self.warp_options)
         timings["warp"] = w.timings["splat"] + w.timings["resolve"]
         timings["holes"] = w.timings["holes"]
         H, W = camera.height, camera.width
-        radiance = w.radiance.reshape(-1, 3).astype(np.float64)
+        radiance = w.radiance.reshape(-1, 3)  # float64, this render's own
         # the warp's images are this render's own: updated in place (flat views)
         depth = w.depth.reshape(-1)
         normal = w.normal.reshape(-1, 3)
@@ -864,28 +899,16 @@ class LDCViewRenderer:
                         self._axes[1][14], self._axes[2][14], sc.tri_p, sc.tri_ng, self._tri_obj, self._nbr,
                         2.0 * float(ldc.h)))
                 # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
-                radiance[holes] = ldc.background
-                depth[holes] = 0.0
-                normal[holes] = 0.0
-                obj_id[holes] = -1
-                mat_id[holes] = -1
-                prov[holes] = PROV_NONE
-                s_axis[holes] = -1
-                s_idx[holes] = -1
+                _clear_pixels(holes, np.asarray(ldc.background, np.float64), radiance, depth, normal, obj_id, mat_id,
+                              prov, s_axis, s_idx)
                 for a, (_, _, _, _, _, _, _, _, geo, nrm, mat_a, obj_a, diff, _, _) in enumerate(self._axes):
                     _fill_from_hits(a, holes, h_axis, h_sample, h_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
                                     normal, obj_id, mat_id, prov, s_axis, s_idx, s_side)
                 filled = int(np.count_nonzero(h_axis[:n_holes] >= 0))
             else:
                 # the warp's (covered) value is replaced by the ray's answer
-                radiance[holes] = ldc.background
-                depth[holes] = 0.0
-                normal[holes] = 0.0
-                obj_id[holes] = -1
-                mat_id[holes] = -1
-                prov[holes] = PROV_NONE
-                s_axis[holes] = -1
-                s_idx[holes] = -1
+                _clear_pixels(holes, np.asarray(ldc.background, np.float64), radiance, depth, normal, obj_id, mat_id,
+                              prov, s_axis, s_idx)
                 rc_pix, rc_surf = self._raycast_fill(o, d, holes, radiance, depth, normal, obj_id, mat_id, prov)
                 filled = int(np.count_nonzero(prov[holes[:n_holes]] == PROV_FILLED))
         timings["fill"] = time.perf_counter() - t0
@@ -985,8 +1008,8 @@ class LDCViewRenderer:
                           "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
         report(0.95, "ibrt")
 
-        out = radiance.reshape(H, W, 3).astype(np.float32)
-        if not np.all(np.isfinite(out)) or not np.all(np.isfinite(depth)):
+        out = np.empty((H, W, 3), np.float32)
+        if _to_f32_count_nonfinite(radiance, depth, out.reshape(-1, 3)):
             raise NonFiniteOutputError("LDC render produced non-finite values")
         timings["total"] = time.perf_counter() - t_start
         plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,

@@ -329,8 +329,10 @@ def _resolve(win_axis, win_idx, win_side, zbuf, bg, diff0, nrm0, mat0, obj0, dif
 def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayCaster | None = None,
              min_cos: float = 0.5, max_footprint: float = 16.0, footprint_scale: float = 1.0,
              hole_rel_depth: float = 0.05, hole_neighbors: int = 6, area_light_samples: int = 16,
-             seed: int = 0) -> WarpResult:
-    """Warp every LDC sample into ``camera`` with a depth test; detect (and optionally fill) holes."""
+             seed: int = 0, radiance_dtype=np.float32) -> WarpResult:
+    """Warp every LDC sample into ``camera`` with a depth test; detect (and optionally fill) holes.
+    ``radiance_dtype`` float64 gives the renderer its working precision directly (the values
+    are the same: the LDC's float32 radiance)."""
     if fill not in ("none", "raycast"):
         raise InvalidInputError(f"fill must be 'none' or 'raycast', got {fill!r}")
     if fill == "raycast" and caster is None:
@@ -375,7 +377,9 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     _detect_holes(zbuf, hole_rel_depth, hole_neighbors, holes, bands)
     t_holes = time.perf_counter() - t0
     t0 = time.perf_counter()
-    radiance = np.empty((H, W, 3), np.float32)
+    if np.dtype(radiance_dtype) not in (np.float32, np.float64):
+        raise InvalidInputError("radiance_dtype must be float32 or float64")
+    radiance = np.empty((H, W, 3), radiance_dtype)
     depth = np.empty((H, W), np.float32)
     normal = np.empty((H, W, 3), np.float32)
     mat_id = np.empty((H, W), np.int32)
@@ -399,7 +403,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         ok = hit.prim >= 0
         # misses: background, no sample
         miss = ~ok
-        radiance[ys[miss], xs[miss]] = ldc.background.astype(np.float32)
+        radiance[ys[miss], xs[miss]] = ldc.background.astype(radiance_dtype)
         depth[ys[miss], xs[miss]] = 0.0
         normal[ys[miss], xs[miss]] = 0.0
         mat_id[ys[miss], xs[miss]] = -1
