@@ -183,20 +183,22 @@ def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _write(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands):
+def _write(axis_id, out_f, out_side, out_ok, W, H, zb, bands):
     """Z-buffer writes in CSR order, ``bands`` threads each owning the image's 8-row stripes
     ``g, g + bands, ...`` (interleaved: the bottom of a view - a floor close by - has far more
     writes than the top): each thread applies every sample to its own rows only, so each
     pixel sees the samples in CSR order whatever the band count (the serial pass's image, bit
     for bit)."""
     for g in nb.prange(bands):
-        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, g, bands)
+        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands)
 
 
 @nb.njit(cache=True, nogil=True)
-def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, g, bands):
+def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands):
     """The z-buffer writes of the image rows in stripes g, g + bands, ... (8 rows each; 0, 1:
-    the serial pass)."""
+    the serial pass). ``zb`` (H, W, 3) float64 per pixel: distance, the winner's offset from
+    the pixel centre, and its code ``8 sample + 2 axis + side`` (-8: none), one cache line
+    per pixel instead of five arrays (see ``_init_buffers``)."""
     for s in range(out_ok.shape[0]):
         if not out_ok[s]:
             continue
@@ -207,8 +209,10 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis
         y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
         if y0 > y1:
             continue
-        if bands > 1 and (y0 >> 3) == (y1 >> 3) and ((y0 >> 3) % bands) != g:
-            continue  # the whole footprint is in another thread's stripe
+        # this thread's first stripe at or after y0's (one integer division per sample, none per row)
+        k = (y0 >> 3) + (g - (y0 >> 3)) % bands
+        if (k << 3) > y1:
+            continue  # the whole footprint is in other threads' stripes
         pxf = out_f[s, 0]
         ex = out_f[s, 2]
         dist = out_f[s, 4]
@@ -217,39 +221,39 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis
         ix = int(math.floor(pxf))
         x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
         x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
-        for y in range(y0, y1 + 1):
-            if ((y >> 3) % bands) != g:
-                continue
-            for x in range(x0, x1 + 1):
-                ddx = x + 0.5 - pxf
-                ddy = y + 0.5 - pyf
-                off = math.sqrt(ddx * ddx + ddy * ddy)
-                z = zbuf[y, x]
-                b = best_off[y, x]
-                # same surface (within tol, same side): the better-centred sample wins; a tie
-                # within 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer.
-                # Opposite sides are never one surface: a sample seen from behind next to one
-                # seen from the front is another sheet (a lid under a rim, the inner wall of a
-                # thin part), so the plain depth test orders them
-                if side == win_side[y, x]:
-                    win = dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))
-                else:
-                    win = dist < z
-                if dist < z - tol or win:
-                    zbuf[y, x] = dist
-                    best_off[y, x] = off
-                    win_axis[y, x] = axis_id
-                    win_idx[y, x] = s
-                    win_side[y, x] = side
+        while (k << 3) <= y1:
+            ya = max(y0, k << 3)
+            yb = min(y1, (k << 3) + 7)
+            k += bands
+            for y in range(ya, yb + 1):
+                for x in range(x0, x1 + 1):
+                    ddx = x + 0.5 - pxf
+                    ddy = y + 0.5 - pyf
+                    off = math.sqrt(ddx * ddx + ddy * ddy)
+                    z = zb[y, x, 0]
+                    b = zb[y, x, 1]
+                    # same surface (within tol, same side): the better-centred sample wins; a tie
+                    # within 0.05 px (layers of one LDI pixel, up to parallax) goes to the nearer.
+                    # Opposite sides are never one surface: a sample seen from behind next to one
+                    # seen from the front is another sheet (a lid under a rim, the inner wall of a
+                    # thin part), so the plain depth test orders them
+                    if side == (np.int64(zb[y, x, 2]) & 1):
+                        win = dist <= z + tol and (off < b - 0.05 or (off <= b + 0.05 and dist < z))
+                    else:
+                        win = dist < z
+                    if dist < z - tol or win:
+                        zb[y, x, 0] = dist
+                        zb[y, x, 1] = off
+                        zb[y, x, 2] = np.float64(8 * s + 2 * axis_id + side)
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _detect_holes(zbuf, rel, need, out, groups):
-    H, W = zbuf.shape
+def _detect_holes(zb, rel, need, out, groups):
+    H, W = zb.shape[0], zb.shape[1]
     for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
         for y in range(g, H, groups):
             for x in range(W):
-                d = zbuf[y, x]
+                d = zb[y, x, 0]
                 if not d < np.inf:
                     out[y, x] = True
                     continue
@@ -261,23 +265,23 @@ def _detect_holes(zbuf, rel, need, out, groups):
                             continue
                         yy = y + dy
                         xx = x + dx
-                        if 0 <= yy < H and 0 <= xx < W and zbuf[yy, xx] < lim:
+                        if 0 <= yy < H and 0 <= xx < W and zb[yy, xx, 0] < lim:
                             c += 1
                 out[y, x] = c >= need
 
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _init_buffers(zbuf, best_off, win_axis, win_idx, win_side, groups):
-    H, W = zbuf.shape
+def _init_buffers(zb, groups):
+    """The z-buffer empty: distance and offset inf, no sample (code -8: sample -1, side 0; sample
+    indices up to 2^50 are exact in the float64 code)."""
+    H, W = zb.shape[0], zb.shape[1]
     for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
         for y in range(g, H, groups):
             for x in range(W):
-                zbuf[y, x] = np.inf
-                best_off[y, x] = np.inf
-                win_axis[y, x] = -1
-                win_idx[y, x] = -1
-                win_side[y, x] = 0
+                zb[y, x, 0] = np.inf
+                zb[y, x, 1] = np.inf
+                zb[y, x, 2] = -8.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -291,17 +295,21 @@ def _resolve_pixel(y, x, i, s, diffuse, nrm, material, obj, radiance, normal, ma
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _resolve(win_axis, win_idx, win_side, zbuf, bg, diff0, nrm0, mat0, obj0, diff1, nrm1, mat1, obj1, diff2, nrm2,
+def _resolve(zb, win_axis, win_idx, win_side, bg, diff0, nrm0, mat0, obj0, diff1, nrm1, mat1, obj1, diff2, nrm2,
              mat2, obj2, radiance, depth, normal, mat_id, obj_id, prov, groups):
-    """Every pixel in one pass: the winning sample's attributes, or the background (depth 0,
-    ids -1, provenance 0) where nothing won. Returns the number of non-finite values written."""
+    """Every pixel in one pass: the winner (axis, sample, side) decoded from the z-buffer, its
+    attributes, or the background (depth 0, ids -1, provenance 0) where nothing won. Returns
+    the number of non-finite values written."""
     H, W = win_axis.shape
     bad = 0
     for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
         for y in range(g, H, groups):
             for x in range(W):
-                a = win_axis[y, x]
-                if a < 0:
+                code = np.int64(zb[y, x, 2])
+                if code < 0:
+                    win_axis[y, x] = -1
+                    win_idx[y, x] = -1
+                    win_side[y, x] = 0
                     for c in range(3):
                         radiance[y, x, c] = bg[c]
                         normal[y, x, c] = 0.0
@@ -310,15 +318,19 @@ def _resolve(win_axis, win_idx, win_side, zbuf, bg, diff0, nrm0, mat0, obj0, dif
                     obj_id[y, x] = -1
                     prov[y, x] = 0
                     continue
-                i = win_idx[y, x]
-                s = win_side[y, x]
+                i = code >> 3
+                a = (code >> 1) & 3
+                s = code & 1
+                win_axis[y, x] = a
+                win_idx[y, x] = i
+                win_side[y, x] = s
                 if a == 0:
                     _resolve_pixel(y, x, i, s, diff0, nrm0, mat0, obj0, radiance, normal, mat_id, obj_id)
                 elif a == 1:
                     _resolve_pixel(y, x, i, s, diff1, nrm1, mat1, obj1, radiance, normal, mat_id, obj_id)
                 else:
                     _resolve_pixel(y, x, i, s, diff2, nrm2, mat2, obj2, radiance, normal, mat_id, obj_id)
-                depth[y, x] = zbuf[y, x]
+                depth[y, x] = zb[y, x, 0]
                 prov[y, x] = 1
                 if not (np.isfinite(radiance[y, x, 0]) and np.isfinite(radiance[y, x, 1])
                         and np.isfinite(radiance[y, x, 2]) and np.isfinite(depth[y, x])):
@@ -350,13 +362,12 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     ortho = camera.kind == "orthographic"
     th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
     hh = 0.5 * camera.ortho_height
-    zbuf = np.empty((H, W))
+    zb = np.empty((H, W, 3))  # distance, offset, winner code per pixel (_write_rows)
     win_axis = np.empty((H, W), np.int8)
     win_idx = np.empty((H, W), np.int64)
     win_side = np.empty((H, W), np.int8)
-    best_off = np.empty((H, W))
     bands = max(1, int(nb.get_num_threads()))  # z-buffer stripes and row groups: one per numba thread
-    _init_buffers(zbuf, best_off, win_axis, win_idx, win_side, bands)
+    _init_buffers(zb, bands)
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
@@ -370,11 +381,11 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
                  ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
                  out_f, out_side, out_ok, bands)
-        _write(ax.axis, out_f, out_side, out_ok, W, H, zbuf, best_off, win_axis, win_idx, win_side, bands)
+        _write(ax.axis, out_f, out_side, out_ok, W, H, zb, bands)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
-    _detect_holes(zbuf, hole_rel_depth, hole_neighbors, holes, bands)
+    _detect_holes(zb, hole_rel_depth, hole_neighbors, holes, bands)
     t_holes = time.perf_counter() - t0
     t0 = time.perf_counter()
     if np.dtype(radiance_dtype) not in (np.float32, np.float64):
@@ -388,7 +399,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     if [ax.axis for ax in ldc.axes] != [0, 1, 2]:
         raise InvalidInputError("the LDC's axes must be x, y, z in that order")
     a0, a1, a2 = ldc.axes
-    n_bad = _resolve(win_axis, win_idx, win_side, zbuf, ldc.background.astype(np.float32), a0.diffuse, a0.normal,
+    n_bad = _resolve(zb, win_axis, win_idx, win_side, ldc.background.astype(np.float32), a0.diffuse, a0.normal,
                      a0.material, a0.object, a1.diffuse, a1.normal, a1.material, a1.object, a2.diffuse, a2.normal,
                      a2.material, a2.object, radiance, depth, normal, mat_id, obj_id, prov, bands)
     t_resolve = time.perf_counter() - t0
