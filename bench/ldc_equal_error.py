@@ -20,6 +20,11 @@ with LRMS <= 3 %. Two image models, both measured in the same run:
   the reference ladder raises its glossy samples (1 .. 64). On the mirror scene (point lights,
   ideal mirrors) one sample per pixel centre is already exact: the ladder is one render.
 
+The goal "x times faster than ONE reference render" is also measured PAIRED: per view the
+reference's first point-ladder render and ours alternate for 3 rounds, the ratio of the two
+minimum times, median over the views (the ladder and our rows run minutes apart, and this
+shared machine's speed drifts by 20 % and more in that time).
+
 Per setting: mean LRMS over the views (over the pixels the ground truth covers), median render
 time (the faster of two renders per view, warm renderer), and the reference time at that error,
 interpolated log-log on the ladder (monotone: each ladder point is the fastest time reaching at
@@ -80,6 +85,33 @@ def _timed(fn, repeats: int = 2) -> tuple[float, Any]:
     return best
 
 
+PAIRED_ROUNDS = 3
+
+
+def _paired_ratio(ren, ref_params: ReferenceParams, r: LDCViewRenderer, method: str, ss: int, cams) -> dict:
+    """One reference render (the point ladder's first point) against ours, interleaved per view
+    for ``PAIRED_ROUNDS`` rounds: per view the ratio of the two minimum times, then the median
+    and range over the views. The machine's speed drifts by 20 % and more between the ladder's
+    runs and ours (other tenants); interleaving puts both sides under the same load."""
+    ratios = []
+    t_ref, t_ours = [], []
+    for cam in cams:
+        a, b = math.inf, math.inf
+        for _ in range(PAIRED_ROUNDS):
+            t0 = time.perf_counter()
+            ren.render(cam, ref_params)
+            a = min(a, time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            r.render(cam, method, supersample=ss)
+            b = min(b, time.perf_counter() - t0)
+        ratios.append(a / b)
+        t_ref.append(a)
+        t_ours.append(b)
+    return {"median": float(np.median(ratios)), "min": float(np.min(ratios)), "max": float(np.max(ratios)),
+            "ref_ms": 1000 * float(np.median(t_ref)), "ours_ms": 1000 * float(np.median(t_ours)),
+            "rounds": PAIRED_ROUNDS}
+
+
 def ref_time_at(err: float, ladder: list[dict]) -> float | None:
     """Reference time reaching LRMS ``err``, log-log interpolated on the ladder's lower envelope;
     None when ``err`` is above the cheapest point's error (the reference is more accurate from the
@@ -136,6 +168,7 @@ def run_scene(name: str, size: int, n_views: int, ours: list, log) -> dict:
             outs.append(o.radiance)
             for k, v in o.timings.items():
                 stages.setdefault(k, []).append(1000 * v)
+        paired = _paired_ratio(ren, point_ladder[0], r, method, ss, cams) if ss == 1 else None
         for model in ("box", "point"):
             if model == "point" and ss > 1:
                 continue  # a supersampled image is not a point-sampled one
@@ -150,6 +183,8 @@ def run_scene(name: str, size: int, n_views: int, ours: list, log) -> dict:
             row["ref_ms_at_equal_error"] = t_ref
             row["speedup_at_equal_error"] = None if t_ref is None else t_ref / row["render_ms"]
             row["speedup_vs_one_reference"] = ladder[0]["render_ms"] / row["render_ms"]
+            if model == "point":
+                row["paired_vs_one_reference"] = paired
             out["models"][model]["ours"].append(row)
             log(f"{name}: {model} {row['name']}: lrms {row['lrms_mean']:.4f} {row['render_ms']:.0f} ms, "
                 f"equal-error speed-up {row['speedup_at_equal_error']}")
@@ -187,13 +222,17 @@ def write_doc(results: dict) -> None:
             lines += [f"**{model}** (ground truth {m['gt_s_per_view']:.1f} s/view). Reference ladder: "
                       + "; ".join(f"{p['name']} {p['lrms_mean']:.4f} in {p['render_ms']:.0f} ms" for p in lad) + ".",
                       "", "| setting | LRMS mean (max) | render ms | reference ms at this LRMS | speed-up at equal "
-                      "error | vs one reference render |", "|---|---:|---:|---:|---:|---:|"]
+                      "error | vs one reference render | paired: ours / reference ms, ratio median (range) |",
+                      "|---|---:|---:|---:|---:|---:|---|"]
             for row in m["ours"]:
                 t = row["ref_ms_at_equal_error"]
                 ts = "-" if t is None else ("beyond" if math.isinf(t) else f"{t:.0f}")
+                pr = row.get("paired_vs_one_reference")
+                ps = (f"{pr['ours_ms']:.0f} / {pr['ref_ms']:.0f}, **{pr['median']:.2f}x** ({pr['min']:.2f}-"
+                      f"{pr['max']:.2f})") if pr else "-"
                 lines.append(f"| {row['name']} | {row['lrms_mean']:.4f} ({row['lrms_max']:.4f}) | "
                              f"{row['render_ms']:.0f} | {ts} | {_fmt_speed(row, lad)} | "
-                             f"{row['speedup_vs_one_reference']:.2f}x |")
+                             f"{row['speedup_vs_one_reference']:.2f}x | {ps} |")
             lines.append("")
     lines += goal_lines(results)
     block = "ldc_equal_error" if cfg["size"] == 256 else f"ldc_equal_error_{cfg['size']}"
@@ -208,15 +247,23 @@ def goal_lines(results: dict) -> list[str]:
         if sc["scene"] == "mirror_box":
             rows = sc["models"]["point"]["ours"]
             ok = [r for r in rows if r["lrms_mean"] <= 0.03]
+
+            def speed(r):  # the paired (interleaved) ratio where measured, else the ladder's
+                return r["paired_vs_one_reference"]["median"] if r.get("paired_vs_one_reference") \
+                    else r["speedup_vs_one_reference"]
             if ok:
-                b = max(ok, key=lambda r: r["speedup_vs_one_reference"])
+                b = max(ok, key=speed)
+                pr = b.get("paired_vs_one_reference")
+                how = (f"{speed(b):.2f}x paired (per-view range {pr['min']:.2f}-{pr['max']:.2f}; "
+                       f"{b['speedup_vs_one_reference']:.2f}x against the ladder's run)") if pr else \
+                    f"{speed(b):.2f}x"
                 out.append(f"- mirror_box (point model, LRMS <= 3 %, >= 3x faster than one reference render): best "
-                           f"{b['name']}: LRMS {b['lrms_mean']:.4f}, {b['speedup_vs_one_reference']:.2f}x "
-                           f"({'met' if b['speedup_vs_one_reference'] >= 3 else 'speed NOT met'}).")
+                           f"{b['name']}: LRMS {b['lrms_mean']:.4f}, {how} "
+                           f"({'met' if speed(b) >= 3 else 'speed NOT met'}).")
             else:
                 b = min(rows, key=lambda r: r["lrms_mean"])
                 out.append(f"- mirror_box: no setting reaches LRMS 3 % (best {b['name']}: {b['lrms_mean']:.4f} at "
-                           f"{b['speedup_vs_one_reference']:.2f}x one reference render): NOT met.")
+                           f"{speed(b):.2f}x one reference render): NOT met.")
         elif sc["scene"] == "teapot_glossy":
             best = None
             for model, m in sc["models"].items():
