@@ -36,8 +36,6 @@ import json
 import os
 import platform
 import subprocess
-import sys
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -196,21 +194,9 @@ AB_HEADING = "Traversal A/B"
 
 def _old_ibrt_module(rev: str):
     """engine/ibrt.py as of git revision ``rev``, imported as a separate module."""
-    import importlib.util
+    from bench.ab_module import module_at
 
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:engine/ibrt.py"], capture_output=True, text=True,
-                         check=True).stdout
-    src = src.replace("from .", "from engine.")
-    sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], capture_output=True, text=True,
-                         check=True).stdout.strip()
-    path = Path(tempfile.gettempdir()) / f"ibrt_ab_{sha}" / "ibrt_ab_old.py"
-    path.parent.mkdir(exist_ok=True)
-    if not path.exists() or path.read_text() != src:  # unchanged file: numba's cache stays valid
-        path.write_text(src)
-    spec = importlib.util.spec_from_file_location("ibrt_ab_old", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["ibrt_ab_old"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
+    mod, sha = module_at(rev, "engine/ibrt.py", "ibrt_ab_old")
     return mod, sha
 
 

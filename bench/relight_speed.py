@@ -235,21 +235,9 @@ def _load_all() -> dict:
 
 def _old_relight_module(rev: str):
     """engine/relight.py as of git revision ``rev``, imported as a separate module."""
-    import importlib.util
-    import subprocess
-    import tempfile
+    from bench.ab_module import module_at
 
-    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:engine/relight.py"], capture_output=True, text=True,
-                         check=True).stdout
-    src = src.replace("from .", "from engine.")
-    path = Path(tempfile.gettempdir()) / f"relight_ab_{rev}" / "relight_ab_old.py"
-    path.parent.mkdir(exist_ok=True)
-    if not path.exists() or path.read_text() != src:  # unchanged file: numba's cache stays valid
-        path.write_text(src)
-    spec = importlib.util.spec_from_file_location("relight_ab_old", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["relight_ab_old"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
+    mod, sha = module_at(rev, "engine/relight.py", "relight_ab_old")
     return mod
 
 
