@@ -192,14 +192,6 @@ AB_SCENES = ["mirror_box", "teapot_glossy"]
 AB_HEADING = "Traversal A/B"
 
 
-def _old_ibrt_module(rev: str):
-    """engine/ibrt.py as of git revision ``rev``, imported as a separate module."""
-    from bench.ab_module import module_at
-
-    mod, sha = module_at(rev, "engine/ibrt.py", "ibrt_ab_old")
-    return mod, sha
-
-
 def render_rays(name: str, size: int = 512, ldc_res: int = 256, n_views: int = 6):
     """(ldc, [(o, d, origin_normals or None), ...]): every batch ``LDCViewRenderer._trace``
     gets while rendering the scene's ``n_views`` benchmark views with ``ldc+ibrt:1``."""
@@ -247,8 +239,9 @@ def ab(rev: str, scenes: list[str], rounds: int, log=print) -> dict:
     import numba as nb
 
     import engine.ibrt as new
+    from bench.ab_module import module_at
 
-    old, sha = _old_ibrt_module(rev)
+    old, sha = module_at(rev, "engine/ibrt.py", "ibrt_ab_old")
     new_sha = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--", "engine/ibrt.py"],
                              capture_output=True, text=True, check=True).stdout.strip()
     dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", "engine/ibrt.py"]).returncode != 0

@@ -16,7 +16,7 @@ import argparse
 
 import numpy as np
 
-from bench.relight_speed import _dataset, _old_relight_module
+from bench.relight_speed import _dataset, old_relight_module
 from engine import relight as new
 from engine.scene import CameraParams
 from tests.engine.relight_naive import naive_relight
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     sel = baked.pixel_index[rows]
     mods = {"working tree": (new, baked)}
     if args.rev:
-        old = _old_relight_module(args.rev)
+        old = old_relight_module(args.rev)
         fields = set(old.BakedDataset.__dataclass_fields__)
         mods[args.rev] = (old, old.BakedDataset(**{f: getattr(baked, f) for f in baked.__dataclass_fields__
                                                   if f in fields}))

@@ -29,6 +29,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
+from bench.ab_module import module_at
 from bench.docs_writer import replace_block
 from engine.geometry.mesh import TriMesh
 from engine.reference import ReferenceParams
@@ -233,12 +234,9 @@ def _load_all() -> dict:
     return saved
 
 
-def _old_relight_module(rev: str):
+def old_relight_module(rev: str):
     """engine/relight.py as of git revision ``rev``, imported as a separate module."""
-    from bench.ab_module import module_at
-
-    mod, sha = module_at(rev, "engine/relight.py", "relight_ab_old")
-    return mod
+    return module_at(rev, "engine/relight.py", "relight_ab_old")[0]
 
 
 def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> dict:
@@ -246,7 +244,7 @@ def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> 
     1 and 2 threads, best of ``rounds`` interleaved rounds; images, masks and lights_used compared."""
     import engine.relight as new
 
-    old = _old_relight_module(rev)
+    old = old_relight_module(rev)
     fields = set(old.BakedDataset.__dataclass_fields__)
     baked_old = old.BakedDataset(**{f: getattr(baked, f) for f in baked.__dataclass_fields__ if f in fields})
 

@@ -86,7 +86,6 @@ SELF_PIXELS = 2.0
 MAX_TREE_LEVELS = 24
 _STACK = 4 * MAX_TREE_LEVELS + 8
 _CHUNK = 32
-_PREFETCH = True
 
 _ARRAY_FIELDS = ("root_level", "size", "node_base", "layer_root", "lo", "hi", "first", "mask", "link",
                  "zrange", "uvrange", "n_samples")
@@ -694,9 +693,8 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, sam
                 if lev == 1:
                     # the block's pixels are consecutive in the Morton order, pixel c at kb + c
                     kb = _spread(x0) | (_spread(y0) << 1)
-                    if _PREFETCH:
-                        for j in range(nc):
-                            _prefetch(samp, 4 * (offs[kb + cid[j]] + layer))
+                    for j in range(nc):
+                        _prefetch(samp, 4 * (offs[kb + cid[j]] + layer))
                     for j in range(nc):
                         if ct0[j] >= best_t:
                             break
@@ -839,6 +837,16 @@ def trace_args(ldc: LDC) -> tuple:
     perm, org, hs, res = _frame_arrays(ldc)
     parts = [sample_records(ax) for ax in ldc.axes]
     return perm, org, hs, res, tuple(p[0] for p in parts), tuple(p[1] for p in parts), tuple(p[2] for p in parts)
+
+
+def trace_nbytes(args: tuple, accel: IBRTAccel) -> int:
+    """Memory of the traversal's structures for one LDC: the per-sample records of
+    ``trace_args`` and the accel's packed node records once they are built (neither is
+    stored; the accel's own arrays are ``accel.nbytes``)."""
+    n = sum(a.nbytes for g in args[4:] for a in g)
+    if "node_records" in accel.__dict__:  # a cached_property, built on the first trace
+        n += accel.node_records.nbytes
+    return int(n)
 
 
 def trace_prepared(ldc: LDC, args: tuple, accel: IBRTAccel, o: np.ndarray, d: np.ndarray, *,

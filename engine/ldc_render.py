@@ -766,10 +766,10 @@ class LDCViewRenderer:
         n = self.ldc.nbytes + (self.llf.nbytes if self.llf is not None else 0)
         if self._accel is not None:
             n += self._accel.nbytes
-            if "node_records" in self._accel.__dict__:  # the traversal's packed nodes (built on first trace)
-                n += self._accel.node_records.nbytes
-        if self._trace_args is not None:  # the traversal's per-sample records (ibrt.trace_args)
-            n += sum(a.nbytes for g in self._trace_args[4:] for a in g)
+            if self._trace_args is not None:
+                from .ibrt import trace_nbytes
+
+                n += trace_nbytes(self._trace_args, self._accel)
         return int(n)
 
     # ------------------------------------------------------------------ helpers
