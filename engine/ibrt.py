@@ -78,6 +78,7 @@ from numba.extending import intrinsic
 
 from .errors import InvalidInputError
 from .ldc import LDC
+from .sched import next_block
 
 DEFAULT_MARGIN = 0.05
 DEFAULT_MIN_COS = 0.5
@@ -745,11 +746,15 @@ def _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, sam
 def _trace_kernel(groups, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, samp_t, use_tree,
                   layer_root, root_level, nodef, nodei, zr, uvr, margin, min_cos, self_eps, out_axis, out_sample, out_t,
                   work):
-    # chunks dealt round-robin to ``groups`` (one per thread): neighbouring rays cost alike (a
-    # mirror sphere's rays are contiguous), so contiguous halves would leave one thread idle
+    # the ``groups`` threads take chunks from a shared counter (``engine.sched``): neighbouring
+    # rays cost alike (a mirror sphere's rays are contiguous), and a core may be busy elsewhere
     nch = work.shape[0]
-    for g in nb.prange(groups):
-        for ci in range(g, nch, groups):
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):
+        while True:
+            ci = next_block(counter)
+            if ci >= nch:
+                break
             _trace_chunk(ci, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t, samp_t, use_tree,
                          layer_root, root_level, nodef, nodei, zr, uvr, margin, min_cos, self_eps, out_axis,
                          out_sample, out_t, work)

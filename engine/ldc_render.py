@@ -61,6 +61,7 @@ from .ldc import LDC, shade_samples, surface_attributes
 from .llf import LLF
 from .raycast import RayCaster, make_caster
 from .scene import CameraParams, RuntimeScene
+from .sched import next_block
 from .view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point_u
 from .warp import warp_ldc
 
@@ -238,7 +239,7 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
+def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
                      mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
                      tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                      radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
@@ -247,8 +248,8 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
     ``rc_*``), in one pass: surface record, ``refine`` onto the sample's triangle, direction to
     the eye, highlights and the light-field gather, added to ``radiance`` (flat (h*w, 3));
     ``normal`` gets the shading normal used. With ``trace``: the pixel's mirror ray into
-    ``ray_*`` (row = position in pix). Blocks of 64 pixels are dealt round-robin to the
-    ``groups`` (mirror and glossy pixels cluster in the image)."""
+    ``ray_*`` (row = position in pix). The threads take blocks of 64 pixels from ``counter``
+    (``engine.sched``: mirror and glossy pixels cluster in the image, and a core may be busy)."""
     ortho, eye, right, up, fwd, W, H, th, aspect, hh, px_size, ortho_px = cam
     # unpacked once per thread (see ``gather_point``)
     kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
@@ -263,7 +264,10 @@ def _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv,
     fw_t = (fw[0], fw[1], fw[2])
     n = pix.shape[0]
     nblk = (n + 63) // 64
-    for blk in range(grp, nblk, groups):
+    while True:
+        blk = next_block(counter)
+        if blk >= nblk:
+            break
         for i in range(blk * 64, min(n, blk * 64 + 64)):
             r = pix[i]
             if s_axis[r] != axis:
@@ -363,8 +367,9 @@ def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                       vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p, tri_n,
                       tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp, radiance,
                       normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
-    for grp in nb.prange(groups):
-        _view_pass_group(grp, groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):
+        _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
                          mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
                          tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
@@ -571,7 +576,7 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
+def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
                  last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng,
                  nbr, ldc_h):
     """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
@@ -585,7 +590,10 @@ def _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, th
     cand, best_c, pt = gather_scratch(dirs.shape[0])
     n = o.shape[0]
     nblk = (n + 63) // 64
-    for blk in range(grp, nblk, groups):
+    while True:
+        blk = next_block(counter)
+        if blk >= nblk:
+            break
         for i in range(blk * 64, min(n, blk * 64 + 64)):
             if hit_axis[i] != axis:
                 continue
@@ -652,8 +660,9 @@ def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo
     ray + its glossy gather (+ the mirror cone on the ``last`` generation) times the ray's
     throughput into ``acc[owner]`` (owners are distinct within a generation); a miss adds the
     background. Hits on mirrors continue (``cont``, ``n_*``: the next generation's rays)."""
-    for grp in nb.prange(groups):
-        _shade_group(grp, groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):
+        _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
                      last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
 

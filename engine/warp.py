@@ -47,6 +47,7 @@ from .errors import InvalidInputError, NonFiniteOutputError
 from .ldc import LDC, shade_samples, surface_attributes
 from .raycast import RayCaster
 from .scene import CameraParams
+from .sched import next_block
 
 PROV_NONE = 0
 PROV_WARPED = 1
@@ -86,8 +87,12 @@ def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
     aspect = W / H
     npix = offsets.shape[0] - 1
     nblk = (npix + 63) // 64
-    for g in nb.prange(groups):  # blocks of 64 LDI pixels dealt round-robin (samples cluster: halves unbalance)
-        for blk in range(g, nblk, groups):
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):  # blocks of 64 LDI pixels from a shared counter (samples cluster: engine.sched)
+        while True:
+            blk = next_block(counter)
+            if blk >= nblk:
+                break
             for k in range(blk * 64, min(npix, blk * 64 + 64)):
                 s0 = offsets[k]
                 s1 = offsets[k + 1]
@@ -250,8 +255,12 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands):
 @nb.njit(cache=True, parallel=True, nogil=True)
 def _detect_holes(zb, rel, need, out, groups):
     H, W = zb.shape[0], zb.shape[1]
-    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
-        for y in range(g, H, groups):
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):  # rows from a shared counter: the image's halves differ in work (engine.sched)
+        while True:
+            y = next_block(counter)
+            if y >= H:
+                break
             for x in range(W):
                 d = zb[y, x, 0]
                 if not d < np.inf:
@@ -276,8 +285,12 @@ def _init_buffers(zb, groups):
     """The z-buffer empty: distance and offset inf, no sample (code -8: sample -1, side 0; sample
     indices up to 2^50 are exact in the float64 code)."""
     H, W = zb.shape[0], zb.shape[1]
-    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
-        for y in range(g, H, groups):
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):  # rows from a shared counter: the image's halves differ in work (engine.sched)
+        while True:
+            y = next_block(counter)
+            if y >= H:
+                break
             for x in range(W):
                 zb[y, x, 0] = np.inf
                 zb[y, x, 1] = np.inf
@@ -302,8 +315,12 @@ def _resolve(zb, win_axis, win_idx, win_side, bg, diff0, nrm0, mat0, obj0, diff1
     the number of non-finite values written."""
     H, W = win_axis.shape
     bad = 0
-    for g in nb.prange(groups):  # rows dealt round-robin: the image's halves differ in work
-        for y in range(g, H, groups):
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(groups):  # rows from a shared counter: the image's halves differ in work (engine.sched)
+        while True:
+            y = next_block(counter)
+            if y >= H:
+                break
             for x in range(W):
                 code = np.int64(zb[y, x, 2])
                 if code < 0:

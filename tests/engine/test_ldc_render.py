@@ -439,3 +439,26 @@ def test_near_covered_is_the_binary_dilation():
             c = rng.random((h, w)) < p
             want = maximum_filter(c.view(np.uint8), size=2 * r + 1, mode="constant") > 0
             assert np.array_equal(_near_covered(c, r), want), (h, w, r, p)
+
+
+def test_render_is_identical_for_any_thread_count(shiny):
+    """The kernels take their blocks from a shared counter (engine.sched): which thread runs
+    which block depends on timing, the image must not."""
+    import numba as nb
+
+    sc, caster, plan, ldc, llf = shiny
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    cam = CameraParams("perspective", (1.4, 0.8, 2.4), (-0.2, -0.1, 0.0), (0, 1, 0), 80, 72, 45.0)
+    before = nb.get_num_threads()
+    outs = []
+    try:
+        for th in (1, min(2, nb.config.NUMBA_NUM_THREADS), 1):
+            nb.set_num_threads(th)
+            outs.append(r.render(cam, "ldc+ibrt:2"))
+    finally:
+        nb.set_num_threads(before)
+    assert outs[0].counts["traced_rays"] > 100 and outs[0].counts["hole_rays"] > 0
+    for o in outs[1:]:
+        for key in ("radiance", "depth", "normal", "object_id", "provenance"):
+            assert np.array_equal(getattr(outs[0], key), getattr(o, key)), key
+        assert o.counts == outs[0].counts
