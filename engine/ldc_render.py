@@ -478,8 +478,10 @@ def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
 def _silhouette_mesh_test(pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H, prim0, prim1, prim2, tri_p, tri_ng,
                           tri_obj, nbr, tol):
     """Silhouette pixels ``pix`` (eye rays o, d; image-based hits h_*, updated in place): the
-    candidates are the ray's own hit and the warp's winners of the 3x3 neighbourhood (one side
-    of a silhouette shows the surface the other side's splats overreached). Each candidate's
+    candidates are the warp's winners of the 3x3 neighbourhood (one side of a silhouette shows
+    the surface the other side's splats overreached) and the ray's own hit where one is given
+    (h_axis >= 0; the renderer runs this test BEFORE tracing: only the pixels it leaves at -1
+    take an image-based ray). Each candidate's
     triangle is walked along the ray (``locate_on_mesh``); the nearest crossing - the ray
     really crosses that mesh there - decides the surface, at the crossing's distance. Of the
     candidates on that surface (the same object, crossed within ``tol`` of it) the sample that gives the
@@ -896,17 +898,28 @@ class LDCViewRenderer:
         if fill != "none" and holes.size:
             o, d = camera_rays(camera, holes % W + 0.5, holes // W + 0.5)
             if fill == "ibrt":
-                h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
-                counts["fill_ibrt_steps"] = n_steps
                 counts["silhouette_mesh_hits"] = 0
                 if sil.size and self.silhouette_mesh_test:
-                    # the image-based answer is within a cell of the silhouette; the mesh test
-                    # decides by the triangles the pixel ray crosses (docs/ldc.md)
+                    # Silhouette pixels: the mesh test decides first, from the triangles of the warp's
+                    # 3x3 winners the pixel ray crosses (docs/ldc.md); only the pixels where the ray
+                    # crosses none of them take an image-based ray (whose answer is within a cell of
+                    # the silhouette anyway). Hole pixels always take one.
+                    h_axis = np.full(holes.size, -1, np.int8)
+                    h_sample = np.full(holes.size, -1, np.int64)
+                    h_t = np.full(holes.size, np.inf)
                     sl = slice(n_holes, None)
                     counts["silhouette_mesh_hits"] = int(_silhouette_mesh_test(
                         sil, o[sl], d[sl], h_axis[sl], h_sample[sl], h_t[sl], s_axis, s_idx, W, H, self._axes[0][14],
                         self._axes[1][14], self._axes[2][14], sc.tri_p, sc.tri_ng, self._tri_obj, self._nbr,
                         2.0 * float(ldc.h)))
+                    ray = np.concatenate([np.arange(n_holes), n_holes + np.flatnonzero(h_axis[sl] < 0)])
+                    r_axis, r_sample, r_t, n_steps, _ = self._trace(o[ray], d[ray])
+                    h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
+                    counts["fill_ibrt_rays"] = int(ray.size)
+                else:
+                    h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
+                    counts["fill_ibrt_rays"] = int(holes.size)
+                counts["fill_ibrt_steps"] = n_steps
                 # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
                 _clear_pixels(holes, np.asarray(ldc.background, np.float64), radiance, depth, normal, obj_id, mat_id,
                               prov, s_axis, s_idx)
