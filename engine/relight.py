@@ -762,6 +762,9 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
 _CONE_EPS = 1e-12
 _CHUNK = 256  # rows per chunk = TILE: a chunk is one tile of the tiled store
 _MAX_PASSES = 4  # triangles per chunk and light in the SIMD pass B (the rest: scalar pass B3)
+_F32_BAND = 512.0  # the float32 cone test's border, in units of its error bound's 2^-24 N |s| (see the kernel)
+_F32_WELL = 0.81  # the float32 geometry's points: |P - c| <= 0.9 R (nearer the sphere: the float64 test)
+_F32_LIGHT_RANGE = 2.0 ** 20  # the float32 geometry's lights: within 2^20 sphere radii of the centre
 _SIMD_MIN_ROWS = 32  # fewer rows left than this: the scalar pass B3 is cheaper than another SIMD pass
 _UNIT = 8  # consecutive chunks one scratch group runs in a row (neighbouring 16 x 16 blocks: output rows,
 #            points and pixel indices stay in the same pages and prefetch streams)
@@ -1102,7 +1105,7 @@ def _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, ox, oy, oz, r2):
     return d2, den, d2 * ox + t * dx, d2 * oy + t * dy, d2 * oz + t * dz
 
 
-def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, tris, inv, grid_n,
+def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv, grid_n,
                     grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
                     outside, singular, touched, flagged):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
@@ -1144,13 +1147,13 @@ def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, 
     n_units = (n_chunks + _UNIT - 1) // _UNIT
     n_groups = min(_GROUPS, n_units)
     for gi in nb.prange(n_groups):
-        _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, tris, inv,
+        _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
                        grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs,
                        run_pix, out, outside, singular, touched, flagged)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, tris, inv, grid_n,
+def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv, grid_n,
                   grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
                   outside, singular, touched, flagged):
     """One scratch group of ``_relight_kernel``, in its own function: the parallel kernel is a
@@ -1187,6 +1190,18 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
     fa32 = np.empty(_CHUNK, np.float32)
     fb32 = np.empty(_CHUNK, np.float32)
     fc32 = np.empty(_CHUNK, np.float32)
+    sx32 = np.empty(_CHUNK, np.float32)
+    sy32 = np.empty(_CHUNK, np.float32)
+    sz32 = np.empty(_CHUNK, np.float32)
+    d2s32 = np.empty(_CHUNK, np.float32)
+    bet32 = np.empty(_CHUNK, np.float32)
+    bord = np.zeros(_CHUNK, np.bool_)
+    bordw = bord.view(np.uint64)
+    # float32 pass A: a light nearer than this (squared, float32) to a row's point sends the row to pass B3,
+    # which decides with the float64 d2 against near2 (the float32 d2 is within 2^-20 of it; the 1e-12
+    # radii floor keeps the float32 geometry away from underflow)
+    rsc = radius * fscale
+    nh32 = _f32(max(near2 * fscale * fscale * (1.0 + 2.0 ** -12), 1e-12 * rsc * rsc))
     va = np.empty((3, _CHUNK), np.float32)
     vb = np.empty((3, _CHUNK), np.float32)
     vc = np.empty((3, _CHUNK), np.float32)
@@ -1216,8 +1231,41 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
             kd = kinds[j]
             lx, ly, lz = lp[j, 0], lp[j, 1], lp[j, 2]
             nx, ny, nz = lnorm[j, 0], lnorm[j, 1], lnorm[j, 2]
+            # the float32 geometry (one point light of a tiled store, the common case; the light within
+            # 2^20 sphere radii: no float32 overflow or underflow in the scaled frame): pass A and the
+            # cone test in float32, rows whose test is within its error bound re-tested in float64
+            f32 = simd and kd == 0 and not distant_ds and max(abs(lx), max(abs(ly), abs(lz))) <= _F32_LIGHT_RANGE * radius
             # ---- pass A: sphere direction, squared distance and irradiance denominator of every row
-            if kd == 1:
+            if f32:
+                # in the frame scaled by fscale (a power of two: exact) the radius is in [1, 2); the light
+                # position as float32 hi + lo, so d = l - P is accurate to float32 rounding of d itself
+                lsx, lsy, lsz = lx * fscale, ly * fscale, lz * fscale
+                lxh, lyh, lzh = _f32(lsx), _f32(lsy), _f32(lsz)
+                lxl, lyl, lzl = _f32(lsx - lxh), _f32(lsy - lyh), _f32(lsz - lzh)
+                fs32 = _f32(fscale)
+                rs2 = _f32(rsc * rsc)
+                well = _f32(_F32_WELL * rsc * rsc)
+                for r in range(_CHUNK):
+                    ox, oy, oz = qx[r] * fs32, qy[r] * fs32, qz[r] * fs32
+                    dx, dy, dz = (lxh - ox) + lxl, (lyh - oy) + lyl, (lzh - oz) + lzl
+                    d2 = dx * dx + dy * dy + dz * dz
+                    b = ox * dx + oy * dy + oz * dz
+                    oo = ox * ox + oy * oy + oz * oz
+                    e = b * b - (oo - rs2) * d2
+                    t = math.sqrt(e if e > np.float32(0.0) else np.float32(0.0)) - b
+                    sx32[r] = d2 * ox + t * dx
+                    sy32[r] = d2 * oy + t * dy
+                    sz32[r] = d2 * oz + t * dz
+                    d2s32[r] = d2
+                    # the cone test's error bound is proportional to d2 for points well inside the sphere;
+                    # the others always take the float64 test
+                    bet32[r] = d2 if oo <= well else np.float32(np.inf)
+                n_todo = 0  # (a separate loop: an integer count in pass A halves its vector width)
+                for r in range(_CHUNK):
+                    u = (r < nc) & (d2s32[r] > nh32)
+                    todo[r] = u
+                    n_todo += u
+            elif kd == 1:
                 for r in range(_CHUNK):
                     den[r] = 1.0
                     d2s[r] = math.inf
@@ -1260,11 +1308,12 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
             l0, l1, l2 = lint[j, 0] / lmax, lint[j, 1] / lmax, lint[j, 2] / lmax
             # rows to do: usable (not within near2 of the light, not an area sample facing away) and
             # not yet accumulated; the unusable rows (rare) go to pass B3
-            n_todo = 0
-            for r in range(_CHUNK):
-                u = (r < nc) & (d2s[r] > near2) & (den[r] > 0.0)
-                todo[r] = u
-                n_todo += u
+            if not f32:
+                n_todo = 0
+                for r in range(_CHUNK):
+                    u = (r < nc) & (d2s[r] > near2) & (den[r] > 0.0)
+                    todo[r] = u
+                    n_todo += u
             n_rest = nc - n_todo  # unusable rows
             # ---- pass B (SIMD, tiled stores; pixel-major and low-rank rows are gathers either way:
             # all rows go to B3): a triangle = the one the first row to do falls in (cube-map search),
@@ -1274,7 +1323,12 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
                 t0 = -1
                 for r in range(nc):
                     if todo[r]:
-                        t0, w0, w1, w2 = _locate(sx[r], sy[r], sz[r], inv, grid_n, grid_start, grid_items)
+                        if f32:  # the float64 direction (as the float64 kernel locates it)
+                            _, _, x, y, z = _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, np.float64(qx[r]),
+                                                          np.float64(qy[r]), np.float64(qz[r]), r2)
+                        else:
+                            x, y, z = sx[r], sy[r], sz[r]
+                        t0, w0, w1, w2 = _locate(x, y, z, inv, grid_n, grid_start, grid_items)
                         break
                 if t0 < 0:  # outside coverage: pass B3 marks it
                     break
@@ -1291,8 +1345,72 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
                 ia0, ia1, ia2 = _f32(inv_int[ka, 0] * l0), _f32(inv_int[ka, 1] * l1), _f32(inv_int[ka, 2] * l2)
                 ib0, ib1, ib2 = _f32(inv_int[kb, 0] * l0), _f32(inv_int[kb, 1] * l1), _f32(inv_int[kb, 2] * l2)
                 ic0, ic1, ic2 = _f32(inv_int[kc, 0] * l0), _f32(inv_int[kc, 1] * l1), _f32(inv_int[kc, 2] * l2)
+                if f32:
+                    # the cone test in float32: a row is inside t0 for sure when every cone coordinate is
+                    # >= the bound of its float32 error, outside when one is below -bound, else on the
+                    # border (re-tested below). Bound: |a32 - a64| <= 175 u N |s| (u = 2^-24, N the largest
+                    # row sum of |inv[t0]|, |s| <= 3.42 d2 R in the scaled frame, points with |o|^2 <=
+                    # _F32_WELL R^2), used with a factor ~3 margin
+                    n00, n01, n02 = _f32(m00), _f32(m01), _f32(m02)
+                    n10, n11, n12 = _f32(m10), _f32(m11), _f32(m12)
+                    n20, n21, n22 = _f32(m20), _f32(m21), _f32(m22)
+                    nrm = max(abs(m00) + abs(m01) + abs(m02), max(abs(m10) + abs(m11) + abs(m12),
+                                                                  abs(m20) + abs(m21) + abs(m22)))
+                    cb = _f32(_F32_BAND * 2.0 ** -24 * nrm * rsc)
+                    lm32 = _f32(lmax * fscale * fscale)
+                    for r in range(_CHUNK):
+                        x, y, z = sx32[r], sy32[r], sz32[r]
+                        a0 = n00 * x + n01 * y + n02 * z
+                        a1 = n10 * x + n11 * y + n12 * z
+                        a2 = n20 * x + n21 * y + n22 * z
+                        mn = min(a0, min(a1, a2))
+                        bb = cb * bet32[r]
+                        tr = todo[r]
+                        sure = mn >= bb
+                        hit[r] = sure & tr
+                        bd = (mn >= -bb) & (not sure) & tr
+                        bord[r] = bd
+                        a0 = max(a0, np.float32(0.0))
+                        a1 = max(a1, np.float32(0.0))
+                        a2 = max(a2, np.float32(0.0))
+                        g = lm32 / ((a0 + a1 + a2) * d2s32[r])
+                        px, py, pz = qx[r], qy[r], qz[r]
+                        ex, ey, ez = ax - px, ay - py, az - pz
+                        fa32[r] = (a0 * g) * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = bx - px, by - py, bz - pz
+                        fb32[r] = (a1 * g) * (ex * ex + ey * ey + ez * ez)
+                        ex, ey, ez = cx - px, cy - py, cz - pz
+                        fc32[r] = (a2 * g) * (ex * ex + ey * ey + ez * ez)
+                    # the rows within the float32 test's error bound: _locate's float64 test and float64
+                    # weights, exactly as the float64 pass below computes them
+                    for w in range(_CHUNK // 8):  # 8 flags a word: the border rows are rare
+                        if bordw[w] == 0:
+                            continue
+                        for r in range(8 * w, 8 * w + 8):
+                            if not bord[r]:
+                                continue
+                            _, dn, x, y, z = _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, np.float64(qx[r]),
+                                                           np.float64(qy[r]), np.float64(qz[r]), r2)
+                            a0 = m00 * x + m01 * y + m02 * z
+                            a1 = m10 * x + m11 * y + m12 * z
+                            a2 = m20 * x + m21 * y + m22 * z
+                            s = a0 + a1 + a2
+                            if s > 0.0 and min(a0, min(a1, a2)) >= -_CONE_EPS * s:
+                                hit[r] = True
+                                a0 = max(a0, 0.0)
+                                a1 = max(a1, 0.0)
+                                a2 = max(a2, 0.0)
+                                g = lmax / ((a0 + a1 + a2) * dn)
+                                px, py, pz = qx[r], qy[r], qz[r]
+                                ex, ey, ez = ax - px, ay - py, az - pz
+                                fa32[r] = _f32(a0 * g) * (ex * ex + ey * ey + ez * ez)
+                                ex, ey, ez = bx - px, by - py, bz - pz
+                                fb32[r] = _f32(a1 * g) * (ex * ex + ey * ey + ez * ez)
+                                ex, ey, ez = cx - px, cy - py, cz - pz
+                                fc32[r] = _f32(a2 * g) * (ex * ex + ey * ey + ez * ez)
+                            bord[r] = False
                 # _locate's test against t0, weights x irradiance factor ...
-                for r in range(_CHUNK):
+                for r in range(_CHUNK if not f32 else 0):
                     x, y, z = sx[r], sy[r], sz[r]
                     a0 = m00 * x + m01 * y + m02 * z
                     a1 = m10 * x + m11 * y + m12 * z
@@ -1306,7 +1424,9 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
                     wa[r], wb[r], wc[r] = a0 * g, a1 * g, a2 * g
                 # ... times the squared distances to the three vertex lights (float32: relative
                 # rounding 2^-24 per operation, the positions are scene-sized) ...
-                if distant_ds:
+                if f32:
+                    pass
+                elif distant_ds:
                     for r in range(_CHUNK):
                         fa32[r], fb32[r], fc32[r] = wa[r], wb[r], wc[r]
                 else:
@@ -1362,11 +1482,16 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
             if n_todo + n_rest == 0:
                 continue
             for r in range(nc):
-                if not todo[r] and d2s[r] > near2 and den[r] > 0.0:  # accumulated in pass B
-                    continue
                 i = i0 + r
-                d2, dn, x, y, z = d2s[r], den[r], sx[r], sy[r], sz[r]
                 px, py, pz = np.float64(qx[r]), np.float64(qy[r]), np.float64(qz[r])
+                if f32:
+                    if not todo[r] and d2s32[r] > nh32:  # accumulated in pass B
+                        continue
+                    d2, dn, x, y, z = _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, px, py, pz, r2)
+                else:
+                    if not todo[r] and d2s[r] > near2 and den[r] > 0.0:  # accumulated in pass B
+                        continue
+                    d2, dn, x, y, z = d2s[r], den[r], sx[r], sy[r], sz[r]
                 if d2 <= near2:  # the light is at the float32 point's rounding scale: exact point
                     px, py, pz = points64[i, 0] - gx0, points64[i, 1] - gy0, points64[i, 2] - gz0
                     d2, dn, x, y, z = _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, px, py, pz, r2)
@@ -1820,9 +1945,11 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         lpos_k = baked.light_positions - (0.0 if baked.distant else geom.origin)
         lpos_k = np.ascontiguousarray(lpos_k.astype(np.float32))
         near2 = (float(min_light_distance) + 4.0 * geom.rounding) ** 2
+        # the power of two that brings the radius into [1, 2) for the float32 geometry (exact scaling)
+        fscale = math.ldexp(1.0, -math.frexp(radius)[1] + 1)
         try:
             kern(geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int, baked.distant,
-                 radius, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, kinds,
+                 radius, fscale, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, kinds,
                  lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index, geom.runs, geom.run_pixels,
                  img, outside, singular, touched, flagged)
         finally:

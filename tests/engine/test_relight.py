@@ -190,6 +190,85 @@ def test_simd_kernel_matches_naive_on_a_multi_chunk_half_store(layout):
         assert np.array_equal(again.image, got.image) and np.array_equal(again.outside_mask, got.outside_mask)
 
 
+@pytest.mark.parametrize("half", [False, True])
+def test_float32_geometry_border_rows_get_the_float64_answer(half):
+    """The tiled store's point lights take the float32 sphere direction and cone test; a row whose float32
+    cone coordinates are within their error bound of 0 is re-tested in float64 (HARD_CASES 10). A light ON
+    the sphere sends every row's direction to the light itself: at an edge midpoint of the coverage
+    boundary (latitude 0 of a hemisphere: the triangle on one side, nothing on the other), at an interior
+    edge midpoint and at a vertex (the exact path off), every row lies on an edge or a vertex up to
+    rounding; 1e-9 rad outside the boundary every row is outside coverage for float64, but float32 rounding
+    would take about half of them for inside (without the re-test, n_outside is about n / 2). Every row
+    must get the float64 answer: the naive reference's values and outside mask, and the same outside
+    mask and lights as the pixel-major store (float64 geometry throughout)."""
+    ds, pts, mask = make_ds(15.0, h=48, lat_min=0.0, lat_max=90.0)
+    bt = bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=R, half=half)
+    bp = bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=R, half=half, layout="pixel_major")
+    assert bt.layout == "tiled" and bt.pixel_index.size > 4 * 256
+    lp, tri = bt.light_positions, bt.triangles
+    boundary = [t for t in range(len(tri)) if np.sum(lp[tri[t], 1] == 0.0) == 2]
+    assert boundary
+    t = boundary[len(boundary) // 2]
+    k0, k1 = [k for k in tri[t] if lp[k, 1] == 0.0]
+    on_boundary = (lp[k0] + lp[k1]) / np.linalg.norm(lp[k0] + lp[k1]) * R
+    assert abs(on_boundary[1]) < 1e-15
+    interior = (lp[tri[5, 1]] + lp[tri[5, 2]]) / np.linalg.norm(lp[tri[5, 1]] + lp[tri[5, 2]]) * R
+    vertex = lp[tri[9, 0]]
+    # 1e-9 rad below / above the boundary: outside / inside for float64 (its tolerance is 1e-12 relative),
+    # far below float32's resolution of the direction (~1e-7)
+    below, above = (on_boundary + [0.0, -1e-9 * R, 0.0], on_boundary + [0.0, 1e-9 * R, 0.0])
+    rows = np.arange(0, bt.pixel_index.size, 5)
+    sel = bt.pixel_index[rows]
+    n = bt.pixel_index.size
+    for pos, n_out in ((on_boundary, 0), (interior, 0), (vertex, 0), (below, n), (above, 0)):
+        light = PointLight(pos, 1.0)
+        got = relight(bt, light, exact_fast_path=False)
+        assert not got.exact and got.n_outside == n_out and got.n_singular == 0
+        want, w_out = naive_relight(bt, [(pos, (1.0, 1.0, 1.0))], rows=rows)
+        assert np.array_equal(got.outside_mask.ravel()[sel], w_out.ravel()[sel])
+        np.testing.assert_allclose(got.image.reshape(-1, 3)[sel], want.reshape(-1, 3)[sel], rtol=1e-5, atol=1e-9)
+        _assert_same_relight(got, relight(bp, light, exact_fast_path=False))
+
+
+def test_float32_cone_test_never_accepts_rows_just_outside_coverage():
+    """Rows whose sphere directions are within float32 rounding of the coverage boundary, in chunks whose
+    first row is well inside the boundary triangle (so the SIMD pass tests them all against it): float64
+    puts about half of them outside (the points, float32 numbers, are off the boundary plane by their
+    rounding, ~1e-8 relative; float64's tolerance is 1e-12), and float32 rounding of the direction (~1e-7)
+    would accept many of those as inside without the border re-test. Hemisphere lights rotated to a generic
+    orientation (boundary = a generic plane through the centre), a light on that plane, the points on it up
+    to their rounding, each 16 x 16 block's first pixel clearly on the covered side. The outside mask and
+    the lights must be the float64 geometry's (the pixel-major store), the values the naive reference's."""
+    q, _ = np.linalg.qr(np.random.default_rng(5).normal(size=(3, 3)))
+    up = q @ [0.0, 1.0, 0.0]  # the covered side: up . x >= 0
+    flat = lat_long_lights(15.0, R, lat_min=0.0, lat_max=90.0)
+    lights = flat @ q.T
+    ring = np.nonzero(flat[:, 1] == 0.0)[0]
+    m = lights[ring[3]] + lights[ring[4]]
+    m /= np.linalg.norm(m)
+    side = np.cross(up, m)
+    light = 0.5 * R * m
+    h = 32
+    ys, xs = np.mgrid[0:h, 0:h]
+    pts = (-0.2 * R + (ys / h - 0.5) * 0.1 * R)[..., None] * m + ((xs / h - 0.5) * 0.2 * R)[..., None] * side
+    pts[0::16, 0::16] -= 1e-3 * R * up  # below the plane: the ray through the light leaves above it
+    pts = pts.astype(np.float32).astype(np.float64)  # the kernel's float32 points are these exactly
+    rng = np.random.default_rng(3)
+    imgs = rng.uniform(0.5, 1.0, (len(lights), h, h, 3)).astype(np.float32)
+    ds = IlluminationDataset(imgs, lights, np.ones((len(lights), 3)), pts)
+    bt = bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=R)
+    bp = bake_dataset(ds, sphere_center=[0, 0, 0], sphere_radius=R, layout="pixel_major")
+    assert bt.layout == "tiled" and bt.report["dtype"] == "float16"
+    got = relight(bt, PointLight(light, 1.0))
+    _assert_same_relight(got, relight(bp, PointLight(light, 1.0)))
+    assert 0.2 < got.n_outside / h ** 2 < 0.8
+    assert not got.outside_mask[0::16, 0::16].any()
+    want, w_out = naive_relight(bt, [(light, (1.0, 1.0, 1.0))])
+    agree = w_out == got.outside_mask  # the naive formula's own rounding decides a few rows on the plane
+    assert agree.mean() > 0.97
+    np.testing.assert_allclose(got.image[agree], want[agree], rtol=1e-5, atol=1e-9)
+
+
 def test_float16_bit_decode_matches_numpy():
     """The kernels decode float16 bits without a lookup table, by F16C (hosts that have it) or by
     integer operations: every finite value, subnormals and -0 included, equals numpy's float16 ->
@@ -594,7 +673,16 @@ def test_aligned_output_runs_match_naive():
     np.testing.assert_allclose(got.image.reshape(-1, 3)[sel], want.reshape(-1, 3)[sel], rtol=1e-5, atol=1e-9)
     assert np.all(got.image[~mask] == 0)
     pm = bake_dataset(ds, sphere_center=[0, 0, 0], half=False, layout="pixel_major")
-    assert np.array_equal(got.image, relight(pm, PointLight(*pl[0])).image)
+    _assert_same_relight(got, relight(pm, PointLight(*pl[0])))
+
+
+def _assert_same_relight(a, b, tol=1e-6):
+    """A tiled store's point lights take the float32 geometry (pass A and the cone test in float32, the
+    border rows in float64), a pixel-major store the float64 one: the images agree to ``tol`` of their
+    maximum, the masks and the lights read exactly."""
+    assert np.max(np.abs(a.image.astype(np.float64) - b.image)) <= tol * np.max(np.abs(b.image))
+    assert np.array_equal(a.outside_mask, b.outside_mask) and np.array_equal(a.singular_mask, b.singular_mask)
+    assert np.array_equal(a.lights_used, b.lights_used)
 
 
 def test_serial_kernel_and_threads_agree(full20):
@@ -675,6 +763,6 @@ def test_tiled_layout_equals_pixel_major(full20, half):
     for k in (0, 5, len(bp.light_positions) - 1):
         assert np.array_equal(bt.light_values(k), bp.light_values(k))
     lights = [PointLight((1.0, 2.0, 3.5), 1.0), DirectionalLight((0.3, -0.2, -1.0), 0.5)]
-    assert np.array_equal(relight(bt, lights).image, relight(bp, lights).image)
+    _assert_same_relight(relight(bt, lights), relight(bp, lights))
     assert np.array_equal(relight(bt, PointLight(ds.light_positions[4], 1.0)).image,
                           relight(bp, PointLight(ds.light_positions[4], 1.0)).image)
