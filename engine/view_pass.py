@@ -53,9 +53,9 @@ import numba as nb
 import numpy as np
 
 from .errors import InvalidInputError, NonFiniteOutputError
-from .lights import directional_light_sample, light_sample, point_light_sample
+from .lights import directional_light_sample, light_sample
 from .llf import LLF, candidate_directions, direction_to_lattice
-from .raycast import OFFSET_EXTENT, OFFSET_REL
+from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
 from .rng import stream_key, uniform
 from .scene import RuntimeScene
 
@@ -122,9 +122,25 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
                 continue
         # point and directional lights through the scalar samplers: no reference counting per light
         if j < npt:
-            ok, lx, ly, lz, e0, e1, e2, tmax = point_light_sample(ox, oy, oz, mag, pt_pos[j, 0], pt_pos[j, 1],
-                                                                  pt_pos[j, 2], pt_int[j, 0], pt_int[j, 1],
-                                                                  pt_int[j, 2])
+            # A point light: the tests on the unnormalised direction first (no square root for
+            # lights behind the surface, no division for lights outside the lobe), one division
+            # for the rest (``point_light_sample``'s values up to rounding).
+            vx, vy, vz = pt_pos[j, 0] - ox, pt_pos[j, 1] - oy, pt_pos[j, 2] - oz
+            ug = g0 * vx + g1 * vy + g2 * vz
+            us = n0 * vx + n1 * vy + n2 * vz
+            if ug <= 0.0 or us <= 0.0:
+                continue
+            dist = math.sqrt(vx * vx + vy * vy + vz * vz)
+            ua = wr0 * vx + wr1 * vy + wr2 * vz
+            if ua <= spec_cut[m] * dist or dist * (1.0 - SHADOW_SHORTEN) - mag <= 0.0:
+                continue
+            inv = 1.0 / dist
+            ca = ua * inv
+            fs = spec_norm * _phong_pow(ca, shin[m]) * (us * inv) * (inv * inv)
+            a0 += ks[m, 0] * fs * pt_int[j, 0]
+            a1 += ks[m, 1] * fs * pt_int[j, 1]
+            a2 += ks[m, 2] * fs * pt_int[j, 2]
+            continue
         elif j < npt + ndir:
             q = j - npt
             ok, lx, ly, lz, e0, e1, e2, tmax = directional_light_sample(dir_dir[q, 0], dir_dir[q, 1], dir_dir[q, 2],
