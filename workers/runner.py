@@ -41,6 +41,18 @@ A dead worker's job is therefore noticed within about
 long as one worker of that queue is alive. Worker registration TTL: ``worker_ttl`` (RQ's 420 s),
 refreshed while the worker lives.
 
+Warm-up (render workers only). Before the worker registers with Redis -- so it takes no job
+while numba compiles; other workers keep serving -- :func:`warm_up_render_worker` runs
+``workers.warmup.warm_up``: every engine path of the render queue's jobs on tiny built-in data,
+so the kernels are compiled (empty numba disk cache: minutes) or loaded from the disk cache
+(a few seconds) before the first request instead of inside it. On by default
+(``IBR_WORKER_WARMUP``), off with ``--no-warmup``. A failed step is logged with its traceback
+and the worker starts anyway: the job that needs that kernel then compiles it itself, as without
+a warm-up (docs/service-design.md, "Worker start-up and warm-up"). The bake worker's parent
+never warms up: it must not run a kernel before forking (above); its horses load the kernels
+from the disk cache, which a render worker's warm-up on the same machine (or the image build)
+fills for the bake kernels too.
+
 Retries: jobs are enqueued with ``Retry(max=2, interval=[5, 30])``; the exception handler
 :func:`retry_policy` keeps the retries only for transient failures (store unavailable, Redis
 connection trouble, a dead worker); anything else -- invalid payload or scene, NaN output,
@@ -84,6 +96,7 @@ __all__ = [
     "build_worker",
     "main",
     "retry_policy",
+    "warm_up_render_worker",
 ]
 
 log = logging.getLogger("workers.runner")
@@ -226,6 +239,28 @@ def build_worker(
     return worker
 
 
+def warm_up_render_worker() -> bool:
+    """Run the warm-up (``workers.warmup``) and log its start, its steps and its end; returns
+    whether every step succeeded. Never raises (other than KeyboardInterrupt / SystemExit): a
+    warm-up failure must not keep a render worker from serving."""
+    log.info("warm-up: starting (compiles or loads the render jobs' numba kernels; no jobs are taken meanwhile)")
+    t0 = time.perf_counter()
+    try:
+        from workers.warmup import warm_up
+
+        report = warm_up(logger=log)
+    except Exception:
+        log.exception("warm-up failed after %.1f s; starting anyway (the first jobs compile their kernels)",
+                      time.perf_counter() - t0)
+        return False
+    if report.ok:
+        log.info("warm-up: done in %.1f s: %s", report.seconds, report.summary())
+    else:
+        log.error("warm-up: done in %.1f s with failures: %s; starting anyway (those jobs compile their kernels "
+                  "on first use)", report.seconds, report.summary())
+    return report.ok
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m workers.runner", description="Run an ibr-service RQ worker.")
     p.add_argument("--queue", required=True, choices=QUEUE_NAMES, help="queue to work on")
@@ -240,6 +275,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="extra seconds before a silent job counts as abandoned (default: IBR_HEARTBEAT_GRACE_S or 20)")
     p.add_argument("--worker-ttl", type=int, default=None, metavar="S", help="worker registration TTL (default 420)")
     p.add_argument("--no-scheduler", action="store_true", help="do not run RQ's scheduler in this worker")
+    p.add_argument("--no-warmup", action="store_true",
+                   help="render worker: skip the start-up warm-up of the numba kernels "
+                        "(default: IBR_WORKER_WARMUP, on)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     return p
 
@@ -260,8 +298,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 3
     if args.queue == "render":
         # Import the job module (and the engine) now, so a broken install fails at start-up.
-        # No kernel runs here; the first job compiles or loads them from numba's disk cache.
         import workers.jobs.render  # noqa: F401
+
+        # Compile / load the kernels before registering (module docstring, "Warm-up").
+        if settings.worker_warmup and not args.no_warmup:
+            warm_up_render_worker()
+        else:
+            log.info("warm-up: off (%s); the first jobs compile or load their kernels",
+                     "--no-warmup" if args.no_warmup else "IBR_WORKER_WARMUP=false")
     else:
         # Import only (no kernel runs in the parent, see the module docstring): forked horses
         # inherit the loaded modules instead of importing numba, Embree and the engine per job.

@@ -57,6 +57,10 @@ class WorkerSettings(BaseSettings):
     counts as abandoned (its worker died) and is retried or failed by the next maintenance pass."""
     worker_ttl_s: Annotated[int, Field(ge=15, le=86400)] = 420
     """TTL of the worker's own registration key (RQ's default); refreshed while the worker lives."""
+    worker_warmup: bool = True
+    """Render workers: run ``workers.warmup.warm_up`` (every engine path of the render queue's jobs on
+    tiny built-in data, so numba compiles or loads its kernels) before taking jobs; ``--no-warmup``
+    overrides. Bake workers never warm up (their parent must not run a kernel before forking)."""
 
     @field_validator("redis_url")
     @classmethod
