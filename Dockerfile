@@ -9,8 +9,13 @@ COPY workers workers
 COPY service service
 COPY samples samples
 RUN pip install --no-cache-dir .
-ENV NUMBA_CACHE_DIR=/data/numba-cache \
+# numba's disk cache ships in the image: the warm-up (workers/warmup.py) runs every render-job
+# kernel (and the LDC / LLF / dataset bake kernels it needs) once at build time, so workers load
+# instead of compile (~5 s instead of minutes at start-up; docs/service-design.md, "Worker start-up
+# and warm-up"). The cache is keyed by CPU model: on hosts with another CPU than the build host's,
+# the render worker's start-up warm-up compiles again (before it takes jobs).
+ENV NUMBA_CACHE_DIR=/opt/ibr/numba-cache \
     IBR_DATA_DIR=/data
-RUN mkdir -p /data/numba-cache
+RUN mkdir -p /data "$NUMBA_CACHE_DIR" && python -m workers.warmup && chmod -R a+rwX "$NUMBA_CACHE_DIR"
 EXPOSE 8000
 ENTRYPOINT ["ibr"]
