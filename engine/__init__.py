@@ -9,7 +9,8 @@ import numba as _numba
 # Part of every artifact key (bakes, renders, relights): bump it when the same request would
 # now produce different bytes, so caches never serve an older engine's answer.
 # 0.2.0: LDC renders (silhouette rays, the refinement's mesh walk) and relights (float32 kernel).
-# 0.2.1: LDC renders (silhouette pixels: the mesh test before the image-based ray).
+# 0.2.1: LDC renders (silhouette pixels: the mesh test before the image-based ray) and relights
+# (float32 point-light geometry with a float64 re-test of borderline rows).
 ENGINE_VERSION = "0.2.1"
 
 # Numba's default pick on Linux is GNU OpenMP, whose idle worker threads spin after each
