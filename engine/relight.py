@@ -1409,19 +1409,20 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
                                 ex, ey, ez = cx - px, cy - py, cz - pz
                                 fc32[r] = _f32(a2 * g) * (ex * ex + ey * ey + ez * ez)
                             bord[r] = False
-                # _locate's test against t0, weights x irradiance factor ...
-                for r in range(_CHUNK if not f32 else 0):
-                    x, y, z = sx[r], sy[r], sz[r]
-                    a0 = m00 * x + m01 * y + m02 * z
-                    a1 = m10 * x + m11 * y + m12 * z
-                    a2 = m20 * x + m21 * y + m22 * z
-                    s = a0 + a1 + a2
-                    hit[r] = (s > 0.0) & (min(a0, min(a1, a2)) >= -_CONE_EPS * s) & todo[r]
-                    a0 = max(a0, 0.0)
-                    a1 = max(a1, 0.0)
-                    a2 = max(a2, 0.0)
-                    g = lmax / ((a0 + a1 + a2) * den[r])  # rows outside t0: unused (masked)
-                    wa[r], wb[r], wc[r] = a0 * g, a1 * g, a2 * g
+                else:
+                    # _locate's test against t0, weights x irradiance factor ...
+                    for r in range(_CHUNK):
+                        x, y, z = sx[r], sy[r], sz[r]
+                        a0 = m00 * x + m01 * y + m02 * z
+                        a1 = m10 * x + m11 * y + m12 * z
+                        a2 = m20 * x + m21 * y + m22 * z
+                        s = a0 + a1 + a2
+                        hit[r] = (s > 0.0) & (min(a0, min(a1, a2)) >= -_CONE_EPS * s) & todo[r]
+                        a0 = max(a0, 0.0)
+                        a1 = max(a1, 0.0)
+                        a2 = max(a2, 0.0)
+                        g = lmax / ((a0 + a1 + a2) * den[r])  # rows outside t0: unused (masked)
+                        wa[r], wb[r], wc[r] = a0 * g, a1 * g, a2 * g
                 # ... times the squared distances to the three vertex lights (float32: relative
                 # rounding 2^-24 per operation, the positions are scene-sized) ...
                 if f32:
