@@ -390,8 +390,8 @@ class _Run:
         from engine import ENGINE_VERSION
         from engine.effects import analyze
         from workers.artifacts import write_artifact
-        from workers.bakes import bake_key, llf_direction_count, part_key, plan_parts
-        from workers.jobs.bake import _load, bake_ldc_axis_job, bake_llf_views_job
+        from workers.bakes import bake_key, part_key, plan_parts
+        from workers.jobs.bake import _load, bake_ldc_axis_job, bake_llf_views_job, bake_plan_doc
 
         bkey = bake_key(self.scene_id, params)
         specs = [{**spec, "key": part_key(self.scene_id, bkey, spec)} for spec in plan_parts(params, with_llf)]
@@ -401,10 +401,7 @@ class _Run:
                        "part": part, "part_key": spec["key"]}
             (bake_ldc_axis_job if spec["kind"] == "ldc_axis" else bake_llf_views_job)(payload)
         scene = _load(self.store, self.scene_id).runtime
-        plan = analyze(scene)
-        plan_doc = {**plan.to_dict(), "bake_llf": with_llf, "llf_mode": params.llf,
-                    "llf_directions": llf_direction_count(params.llf_f) if with_llf else 0,
-                    "visibility_words": (scene.lights.count + 63) // 64 if plan.any_occludable else 0}
+        plan_doc = bake_plan_doc(scene, params, analyze(scene))
         result = json.loads(json.dumps({"plan": plan_doc, "parts": specs}, default=str))
         write_artifact(self.store, bkey, "bake", {"scene": self.scene_id}, params.model_dump(mode="json"),
                        ENGINE_VERSION, {"plan.json": (json.dumps(plan_doc, sort_keys=True).encode(),

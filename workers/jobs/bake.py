@@ -156,6 +156,20 @@ def bakes_llf(params: BakeParams, plan: EffectPlan) -> bool:
     return params.llf == "always" or (params.llf == "auto" and plan.needs_llf)
 
 
+def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> dict[str, Any]:
+    """The bake's ``plan.json``: the effect plan plus what this bake stores (light field or not and
+    why, its direction count, visibility words per sample). The plan job writes it; the merge job
+    publishes it with the manifest."""
+    with_llf = bakes_llf(params, plan)
+    return {**plan.to_dict(), "bake_llf": with_llf, "llf_mode": params.llf,
+            "llf_directions": llf_direction_count(params.llf_f) if with_llf else 0,
+            "visibility_words": (scene.lights.count + 63) // 64 if plan.any_occludable else 0,
+            "reason": ("light field forced by llf=always" if params.llf == "always" and not plan.needs_llf
+                       else "glossy or mirror materials need the light field" if with_llf
+                       else "llf=never" if params.llf == "never" and plan.needs_llf
+                       else "no glossy or mirror materials: no light field")}
+
+
 def _ldc_axis_bytes(scene: RuntimeScene, params: BakeParams, words: int) -> list[int]:
     from engine.ldc import LDC_ATTR_BYTES, ldc_pixel_size
     from engine.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
@@ -198,8 +212,9 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
         raise InvalidInputError("cannot bake a scene without surfaces")
     progress.report(0.5, "effect analysis", force=True)
     plan = analyze(scene)
-    with_llf = bakes_llf(p.params, plan)
-    words = (scene.lights.count + 63) // 64 if plan.any_occludable else 0
+    plan_doc = bake_plan_doc(scene, p.params, plan)
+    with_llf = bool(plan_doc["bake_llf"])
+    words = int(plan_doc["visibility_words"])
     axis_bytes = _ldc_axis_bytes(scene, p.params, words)
     if max(axis_bytes) > BAKE_MAX_PART_BYTES:
         raise BakeTooLarge(
@@ -224,13 +239,6 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
     missing = [s for s in specs if not store.exists(manifest_key(s["key"]))]
     progress.report(0.8, f"enqueueing {len(missing)} of {len(specs)} parts", force=True)
     enqueue_parts(_redis(), p.scene_id, p.bake_key, p.params, missing, _owner())
-    plan_doc = {**plan.to_dict(), "bake_llf": with_llf, "llf_mode": p.params.llf,
-                "llf_directions": llf_direction_count(p.params.llf_f) if with_llf else 0,
-                "visibility_words": words,
-                "reason": ("light field forced by llf=always" if p.params.llf == "always" and not plan.needs_llf
-                           else "glossy or mirror materials need the light field" if with_llf
-                           else "llf=never" if p.params.llf == "never" and plan.needs_llf
-                           else "no glossy or mirror materials: no light field")}
     progress.report(1.0, "planned", force=True, check=False)
     out: dict[str, Any] = _json_safe({"plan": plan_doc, "parts": specs,
                                       "reused": [s["name"] for s in specs if s not in missing],
