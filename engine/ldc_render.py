@@ -53,7 +53,6 @@ from dataclasses import dataclass, field, replace
 import numba as nb
 import numpy as np
 
-from .camera import camera_rays
 from .effects import EffectPlan, analyze, plan_from_dict
 from .errors import InvalidInputError, NonFiniteOutputError
 from .geometry.adjacency import locate_on_mesh, triangle_neighbours
@@ -408,6 +407,62 @@ def _to_f32_count_nonfinite(radiance, depth, out):
             if not np.isfinite(depth[i]):
                 bad += 1
     return bad
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _pixel_ray(r, cam):
+    """The eye ray through the centre of flat pixel r (``engine.camera.camera_rays``' arithmetic,
+    operation for operation: the same float64 rays); cam = ``LDCViewRenderer._camera_tuple``."""
+    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
+    sx = 2.0 * (r % W + 0.5) / W - 1.0
+    sy = 1.0 - 2.0 * (r // W + 0.5) / H
+    if ortho:
+        a = sx * hh * aspect
+        b = sy * hh
+        return (eye[0] + a * right[0] + b * up[0], eye[1] + a * right[1] + b * up[1],
+                eye[2] + a * right[2] + b * up[2], fwd[0], fwd[1], fwd[2])
+    a = sx * th * aspect
+    b = sy * th
+    dx = fwd[0] + a * right[0] + b * up[0]
+    dy = fwd[1] + a * right[1] + b * up[1]
+    dz = fwd[2] + a * right[2] + b * up[2]
+    ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return eye[0], eye[1], eye[2], dx / ln, dy / ln, dz / ln
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _pixel_rays(pix, cam):
+    """(o, d), each (n, 3) float64: the eye rays of the flat pixels ``pix`` (``_pixel_ray``)."""
+    n = pix.shape[0]
+    o = np.empty((n, 3))
+    d = np.empty((n, 3))
+    for i in nb.prange(n):
+        o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2] = _pixel_ray(pix[i], cam)
+    return o, d
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _rays_meet_box(pix, cam, lo, hi):
+    """(n,) bool: the eye ray of flat pixel ``pix[i]`` meets the box [lo, hi] at t >= 0 (slab
+    test; an axis the ray is parallel to is skipped, like the NaN-ignoring numpy version)."""
+    n = pix.shape[0]
+    keep = np.empty(n, np.bool_)
+    for i in nb.prange(n):
+        ox, oy, oz, dx, dy, dz = _pixel_ray(pix[i], cam)
+        tn = -np.inf
+        tf = np.inf
+        for a in range(3):
+            oa = ox if a == 0 else (oy if a == 1 else oz)
+            da = dx if a == 0 else (dy if a == 1 else dz)
+            inv = 1.0 / da if da != 0.0 else (np.inf if not math.copysign(1.0, da) < 0.0 else -np.inf)
+            t0 = (lo[a] - oa) * inv
+            t1 = (hi[a] - oa) * inv
+            if t0 != t0 or t1 != t1:
+                continue
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+        keep[i] = tf >= max(tn, 0.0)
+    return keep
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -784,7 +839,7 @@ class LDCViewRenderer:
         return int(n)
 
     # ------------------------------------------------------------------ helpers
-    def _hole_rays(self, camera: CameraParams, w) -> np.ndarray:
+    def _hole_rays(self, cam: tuple, w) -> np.ndarray:
         """The hole pixels worth a ray: covered pixels flagged as holes (a far surface seen
         through a crack), and uncovered pixels within ``hole_search_px`` of a covered one whose
         ray meets the scene's bounds. An uncovered pixel farther from every splat is background:
@@ -799,16 +854,11 @@ class LDCViewRenderer:
         pix = np.flatnonzero(hm.reshape(-1))
         if self.hole_search_px is None or not pix.size:
             return pix
-        o, d = camera_rays(camera, pix % camera.width + 0.5, pix // camera.width + 0.5)
         lo, hi = self._bounds
-        pad = self.ldc.h
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d
-            t0 = ((lo - pad) - o) * inv
-            t1 = ((hi + pad) - o) * inv
-        tn = np.nanmax(np.minimum(t0, t1), axis=1)
-        tf = np.nanmin(np.maximum(t0, t1), axis=1)
-        return pix[tf >= np.maximum(tn, 0.0)]
+        pad = float(self.ldc.h)
+        keep = _rays_meet_box(pix, cam, np.asarray(lo, np.float64) - pad,
+                              np.asarray(hi, np.float64) + pad)
+        return pix[keep]
 
     # ------------------------------------------------------------------ render
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
@@ -858,6 +908,7 @@ class LDCViewRenderer:
             if progress is not None:
                 progress(frac, stage)
 
+        cam = self._camera_tuple(camera)  # the camera as the kernels take it (one basis per render)
         # ---- 1. warp
         w = warp_ldc(ldc, camera, fill="none", radiance_dtype=np.float64, **self.warp_options)
         timings["warp"] = w.timings["splat"] + w.timings["resolve"]
@@ -880,7 +931,7 @@ class LDCViewRenderer:
 
         # ---- 2. holes
         t0 = time.perf_counter()
-        holes = self._hole_rays(camera, w)
+        holes = self._hole_rays(cam, w)
         counts["hole_rays"] = int(holes.size)
         n_holes = int(holes.size)
         sil = np.zeros(0, np.int64)
@@ -896,7 +947,7 @@ class LDCViewRenderer:
         rc_pix = np.zeros(0, np.int64)  # pixels filled by the raycast fill (no LDC sample)
         rc_surf = None
         if fill != "none" and holes.size:
-            o, d = camera_rays(camera, holes % W + 0.5, holes // W + 0.5)
+            o, d = _pixel_rays(holes, cam)
             if fill == "ibrt":
                 counts["silhouette_mesh_hits"] = 0
                 if sil.size and self.silhouette_mesh_test:
@@ -991,7 +1042,7 @@ class LDCViewRenderer:
                 rc_bits = np.zeros((0, ldc.visibility_words), np.uint64)
             args = (rc_row, np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
                     np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
-                    np.ascontiguousarray(rc_bits, np.uint64), self._camera_tuple(camera), self.refine_surface,
+                    np.ascontiguousarray(rc_bits, np.uint64), cam, self.refine_surface,
                     self._nbr_refine, float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
                     bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal,
                     prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)

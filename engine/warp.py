@@ -81,9 +81,11 @@ class WarpResult:
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
              ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_fp, fp_scale,
-             out_f, out_side, out_ok, groups):
+             out_f, out_side, out_box, groups):
     """Per sample (in parallel): projected position, footprint half-sizes, distance, depth
-    slack and visible side into out_f (n, 6) = (px, py, ex, ey, dist, tol); out_ok marks kept ones."""
+    slack and visible side into out_f (n, 6) = (px, py, ex, ey, dist, tol); out_box (n, 4) int32
+    the footprint's pixel rows and columns (y0, y1, x0, x1), clipped to the image; y0 > y1 for a
+    sample that is not splatted (dropped, or its footprint off the image's rows)."""
     aspect = W / H
     npix = offsets.shape[0] - 1
     nblk = (npix + 63) // 64
@@ -104,7 +106,8 @@ def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
                 by = origin[1] + a * fu[1] + b * fv[1]
                 bz = origin[2] + a * fu[2] + b * fv[2]
                 for s in range(s0, s1):
-                    out_ok[s] = False
+                    out_box[s, 0] = 1
+                    out_box[s, 1] = 0
                     n0, n1, n2 = ng[s, 0], ng[s, 1], ng[s, 2]
                     nw = n0 * fw[0] + n1 * fw[1] + n2 * fw[2]
                     if abs(nw) < min_cos:
@@ -184,34 +187,41 @@ def _project(origin, fu, fv, fw, h, nu, offsets, depth, ng, obj, closed,
                     out_f[s, 4] = dist
                     out_f[s, 5] = tol
                     out_side[s] = side
-                    out_ok[s] = True
+                    iy = int(math.floor(pyf))
+                    ix = int(math.floor(pxf))
+                    y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0)
+                    y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
+                    x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
+                    x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
+                    if y0 <= y1 and x0 <= x1:  # else no pixel: stays "not splatted"
+                        out_box[s, 0] = y0
+                        out_box[s, 1] = y1
+                        out_box[s, 2] = x0
+                        out_box[s, 3] = x1
 
 
 @nb.njit(cache=True, parallel=True, nogil=True)
-def _write(axis_id, out_f, out_side, out_ok, W, H, zb, bands):
+def _write(axis_id, out_f, out_side, out_box, W, H, zb, bands):
     """Z-buffer writes in CSR order, ``bands`` threads each owning the image's 8-row stripes
     ``g, g + bands, ...`` (interleaved: the bottom of a view - a floor close by - has far more
     writes than the top): each thread applies every sample to its own rows only, so each
     pixel sees the samples in CSR order whatever the band count (the serial pass's image, bit
     for bit)."""
     for g in nb.prange(bands):
-        _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands)
+        _write_rows(axis_id, out_f, out_side, out_box, W, H, zb, g, bands)
 
 
 @nb.njit(cache=True, nogil=True)
-def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands):
+def _write_rows(axis_id, out_f, out_side, out_box, W, H, zb, g, bands):
     """The z-buffer writes of the image rows in stripes g, g + bands, ... (8 rows each; 0, 1:
     the serial pass). ``zb`` (H, W, 3) float64 per pixel: distance, the winner's offset from
     the pixel centre, and its code ``8 sample + 2 axis + side`` (-8: none), one cache line
-    per pixel instead of five arrays (see ``_init_buffers``)."""
-    for s in range(out_ok.shape[0]):
-        if not out_ok[s]:
-            continue
-        pyf = out_f[s, 1]
-        ey = out_f[s, 3]
-        iy = int(math.floor(pyf))
-        y0 = max(min(int(math.ceil(pyf - ey - 0.5)), iy), 0)
-        y1 = min(max(int(math.floor(pyf + ey - 0.5)), iy), H - 1)
+    per pixel instead of five arrays (see ``_init_buffers``). The footprints' pixel boxes come
+    from ``_project`` (16 bytes per sample: a thread skips the samples outside its stripes
+    without reading their 48-byte records; measured 1.6 -> 1.3 ms per half of an axis)."""
+    for s in range(out_box.shape[0]):
+        y0 = np.int64(out_box[s, 0])
+        y1 = np.int64(out_box[s, 1])
         if y0 > y1:
             continue
         # this thread's first stripe at or after y0's (one integer division per sample, none per row)
@@ -219,13 +229,12 @@ def _write_rows(axis_id, out_f, out_side, out_ok, W, H, zb, g, bands):
         if (k << 3) > y1:
             continue  # the whole footprint is in other threads' stripes
         pxf = out_f[s, 0]
-        ex = out_f[s, 2]
+        pyf = out_f[s, 1]
         dist = out_f[s, 4]
         tol = out_f[s, 5]
         side = out_side[s]
-        ix = int(math.floor(pxf))
-        x0 = max(min(int(math.ceil(pxf - ex - 0.5)), ix), 0)
-        x1 = min(max(int(math.floor(pxf + ex - 0.5)), ix), W - 1)
+        x0 = np.int64(out_box[s, 2])
+        x1 = np.int64(out_box[s, 3])
         while (k << 3) <= y1:
             ya = max(y0, k << 3)
             yb = min(y1, (k << 3) + 7)
@@ -394,11 +403,11 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
         n = ax.n_samples
         out_f = np.empty((n, 6))
         out_side = np.empty(n, np.int8)
-        out_ok = np.empty(n, np.bool_)
+        out_box = np.empty((n, 4), np.int32)
         _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
                  ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
-                 out_f, out_side, out_ok, bands)
-        _write(ax.axis, out_f, out_side, out_ok, W, H, zb, bands)
+                 out_f, out_side, out_box, bands)
+        _write(ax.axis, out_f, out_side, out_box, W, H, zb, bands)
     t_splat = time.perf_counter() - t0
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)

@@ -280,21 +280,21 @@ def test_parallel_zbuffer_writes_equal_the_serial_pass(mirror_box):
     ax = ldc.axes[0]
     n = ax.n_samples
     f = ax.ldi.frame
-    out_f, out_side, out_ok = np.empty((n, 6)), np.empty(n, np.int8), np.empty(n, np.bool_)
+    out_f, out_side, out_box = np.empty((n, 6)), np.empty(n, np.int8), np.empty((n, 4), np.int32)
     right, up, fwd = cam.basis()
     closed = np.zeros(64, np.bool_)
     warp_mod._project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object,
                       closed, False, np.asarray(cam.eye, np.float64), right, up, fwd, cam.width, cam.height,
-                      np.tan(np.radians(cam.fov_y_deg) / 2), 0.5, 0.5, 16.0, 1.0, out_f, out_side, out_ok, 2)
-    assert out_ok.sum() > 1000
+                      np.tan(np.radians(cam.fov_y_deg) / 2), 0.5, 0.5, 16.0, 1.0, out_f, out_side, out_box, 2)
+    assert (out_box[:, 0] <= out_box[:, 1]).sum() > 1000
     results = []
     for bands in (1, 2, 3):
         zb = np.empty((83, 97, 3))
         warp_mod._init_buffers(zb, 2)
         if bands == 1:
-            warp_mod._write_rows(0, out_f, out_side, out_ok, 97, 83, zb, 0, 1)  # the serial pass
+            warp_mod._write_rows(0, out_f, out_side, out_box, 97, 83, zb, 0, 1)  # the serial pass
         else:
-            warp_mod._write(0, out_f, out_side, out_ok, 97, 83, zb, bands)
+            warp_mod._write(0, out_f, out_side, out_box, 97, 83, zb, bands)
         results.append(zb)
     assert np.isfinite(results[0][..., 0]).sum() > 1000
     for zb in results[1:]:
