@@ -465,6 +465,38 @@ def _rays_meet_box(pix, cam, lo, hi):
     return keep
 
 
+_RAY_TILE = 16  # mirror rays are traced in 16 x 16 pixel tiles (see _tile_order)
+
+
+@nb.njit(cache=True, nogil=True)
+def _tile_order(pix, W, T):
+    """The permutation that puts the flat pixels ``pix`` (ascending) in T x T tiles, tile rows
+    top to bottom, tiles left to right, each tile's pixels in their given (row-major) order: a
+    counting sort. Neighbouring mirror rays then traverse the same quadtree nodes and samples
+    one after the other, so the image-based tracer finds them in its caches (mirror stage 1.04-
+    1.09x against row-major order, mirror_box 512x512 LDC 128; each ray's result is independent
+    of the order). The view pass itself stays row-major (measured slightly faster)."""
+    n = pix.shape[0]
+    tw = (W + T - 1) // T
+    key = np.empty(n, np.int64)
+    kmax = 0
+    for i in range(n):
+        k = (pix[i] // W // T) * tw + (pix[i] % W) // T
+        key[i] = k
+        kmax = max(kmax, k)
+    start = np.zeros(kmax + 2, np.int64)
+    for i in range(n):
+        start[key[i] + 1] += 1
+    for k in range(kmax + 1):
+        start[k + 1] += start[k]
+    out = np.empty(n, np.int64)
+    for i in range(n):
+        k = key[i]
+        out[start[k]] = i
+        start[k] += 1
+    return out
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _near_covered(covered, r):
     """(H, W) bool: a covered pixel within the (2r+1) x (2r+1) square around each pixel (a
@@ -1071,7 +1103,9 @@ class LDCViewRenderer:
         counts["traced_rays"] = 0
         counts["ibrt_steps"] = 0
         if nr:
+            # the mirror rays in 16 x 16 pixel tiles (``_tile_order``), the view pass's pixels row-major
             live = np.flatnonzero(ray_live)
+            live = live[_tile_order(vp_pix[live], W, _RAY_TILE)]
             traced = vp_pix[live]
             self._trace_mirrors(traced, ray_o[live], ray_d[live], ray_ng[live], ray_thr[live], k, radiance, counts,
                                 force)

@@ -490,3 +490,14 @@ def test_pixel_rays_are_camera_rays_bit_for_bit(kind):
     got = _rays_meet_box(pix, r._camera_tuple(cam), lo, hi)
     assert want.any() and not want.all()
     assert np.array_equal(got, want)
+
+
+def test_tile_order_is_the_stable_sort_by_tile():
+    """The mirror rays' order: a counting sort of the pixels by 16 x 16 tile, stable."""
+    from engine.ldc_render import _tile_order
+
+    rng = np.random.default_rng(3)
+    for W, H, T, n in [(512, 512, 16, 5000), (37, 23, 16, 300), (10, 7, 4, 70), (5, 5, 16, 1), (64, 64, 8, 0)]:
+        pix = np.sort(rng.choice(W * H, size=min(n, W * H), replace=False)).astype(np.int64)
+        key = (pix // W // T) * ((W + T - 1) // T) + (pix % W) // T
+        assert np.array_equal(_tile_order(pix, W, T), np.argsort(key, kind="stable")), (W, H, T, n)
