@@ -668,7 +668,7 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
 def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
                  last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng,
                  nbr, ldc_h):
-    """One parallel group of ``_shade_hits``: the rays that hit LDC axis ``axis`` (or, with
+    """One parallel group of ``_shade_hits``, one axis: the rays that hit LDC axis ``axis`` (or, with
     axis -1, missed everything). With edge neighbours ``nbr`` (non-empty) each hit is refined
     like a camera pixel: onto the triangle the ray crosses, with its interpolated normal."""
     # unpacked once per thread (see ``gather_point``)
@@ -741,18 +741,35 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _shade_hits(groups, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg, last,
-                has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng, nbr,
-                ldc_h):
-    """One generation of traced mirror rays, the hits on one LDC axis (module docstring of
-    ``_shade_group``): at each hit the sample's diffuse radiance + its highlights toward the
-    ray + its glossy gather (+ the mirror cone on the ``last`` generation) times the ray's
-    throughput into ``acc[owner]`` (owners are distinct within a generation); a miss adds the
-    background. Hits on mirrors continue (``cont``, ``n_*``: the next generation's rays)."""
-    counter = np.zeros(1, np.int64)
+def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last, has_llf, force, hp, gp, acc,
+                    lookups, cont, n_o, n_d, n_ng, n_thr, tri_p, tri_n, tri_ng, nbr, ldc_h, geo0, nrm0, mat0, diff0,
+                    vis0, prim0, geo1, nrm1, mat1, diff1, vis1, prim1, geo2, nrm2, mat2, diff2, vis2, prim2):
+    """One generation of traced mirror rays (module docstring of ``_shade_group``): at each hit
+    the sample's diffuse radiance + its highlights toward the ray + its glossy gather (+ the
+    mirror cone on the ``last`` generation) times the ray's throughput into ``acc[owner]``
+    (owners are distinct within a generation); a miss adds the background. Hits on mirrors
+    continue (``cont``, ``n_*``: the next generation's rays). The misses (axis -1) and the hits
+    on each LDC axis (its arrays ``*0``, ``*1``, ``*2``) in ONE call: a kernel call with these
+    tuples of arrays costs ~150 us of argument typing in numba's dispatcher, and one call per
+    axis was ~1 % of a render. Each axis has its own block counter; a thread done with one axis
+    goes on to the next (the axes' rays are disjoint)."""
+    counters = np.zeros(4, np.int64)
+    c_m = counters[0:1]
+    c_0 = counters[1:2]
+    c_1 = counters[2:3]
+    c_2 = counters[3:4]
     for _ in nb.prange(groups):
-        _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n,
+        _shade_group(c_m, -1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim0, tri_p, tri_n,
+                     tri_ng, nbr, ldc_h)
+        _shade_group(c_0, 0, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim0, tri_p, tri_n,
+                     tri_ng, nbr, ldc_h)
+        _shade_group(c_1, 1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo1, nrm1, mat1, diff1, vis1, bg,
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim1, tri_p, tri_n,
+                     tri_ng, nbr, ldc_h)
+        _shade_group(c_2, 2, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo2, nrm2, mat2, diff2, vis2, bg,
+                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim2, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
 
 
@@ -836,6 +853,8 @@ class LDCViewRenderer:
         self._lock = threading.Lock()
         # kernel tables built once per renderer (the LDC, LLF and scene are immutable)
         self._axes = _ldc_axes(ldc)
+        # per axis (geo, nrm, material, diffuse, visibility, triangle) for _shade_hits
+        self._shade_axes = tuple(x for ax in self._axes for x in (ax[8], ax[9], ax[10], ax[12], ax[13], ax[14]))
         self._bounds = scene.bounds
         self._hp = highlight_params(scene, self.area_light_samples, self.seed)
         self._gp = gather_params(scene, llf) if llf is not None else _no_gather_params(scene)
@@ -1201,11 +1220,9 @@ class LDCViewRenderer:
             m = 0 if last else n
             n_o, n_d, n_ng, n_thr = (np.empty((m, 3)) for _ in range(4))
             sc = self.scene
-            for a in range(-1, 3):
-                _, _, _, _, _, _, _, _, geo, nrm, mat_a, _, diff, vis2, prim = self._axes[max(a, 0)]
-                _shade_hits(_groups(), a, h_axis, h_sample, h_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                            last, self.llf is not None, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng,
-                            n_thr, prim, sc.tri_p, sc.tri_n, sc.tri_ng, self._nbr_refine, float(ldc.h))
+            _shade_hits(_groups(), h_axis, h_sample, h_t, o, d, owner, thr, bg, last, self.llf is not None, force,
+                            self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, sc.tri_p, sc.tri_n,
+                            sc.tri_ng, self._nbr_refine, float(ldc.h), *self._shade_axes)
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break
