@@ -38,6 +38,7 @@ from numba.extending import intrinsic, overload
 from .errors import InvalidInputError
 from .relight_compress import LowRankStore, block_order, compress_store
 from .scene import CameraParams
+from .sched import next_block
 
 HALF_MAX = 65504.0
 HALF_MIN_NORMAL = 6.103515625e-05
@@ -1051,22 +1052,6 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
         w_out[i, 0], w_out[i, 1], w_out[i, 2] = w0, w1, w2
 
 
-_GROUPS = 64  # scratch-sharing groups of chunks for the parallel loop (any count gives the same result)
-
-
-@nb.njit(cache=True, nogil=True)
-def _group_chunks(gi, n_groups, n_chunks):
-    """The chunks scratch group gi runs, in order: units gi, gi + n_groups, ... of _UNIT chunks each."""
-    n_units = (n_chunks + _UNIT - 1) // _UNIT
-    out = np.empty(((n_units - gi + n_groups - 1) // n_groups) * _UNIT, np.int64)
-    c = 0
-    for u in range(gi, n_units, n_groups):
-        for ci in range(u * _UNIT, min((u + 1) * _UNIT, n_chunks)):
-            out[c] = ci
-            c += 1
-    return out[:c]
-
-
 @nb.njit(cache=True, nogil=True, inline="always")
 def _f32(x):
     return np.float32(x)
@@ -1105,8 +1090,8 @@ def _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, ox, oy, oz, r2):
     return d2, den, d2 * ox + t * dx, d2 * oy + t * dy, d2 * oz + t * dz
 
 
-def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv, grid_n,
-                    grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
+def _relight_kernel(workers, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
+                    grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
                     outside, singular, touched, flagged):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
@@ -1126,8 +1111,9 @@ def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, 
     set (so the caller counts the masks only then).
 
     Fixed chunks of _CHUNK consecutive rows (one tile of the tiled store; the same chunks for any
-    thread count, so results do not depend on it). A scratch group runs _UNIT consecutive chunks,
-    then skips to its next unit (units dealt round-robin, so both threads see all of the frame).
+    thread count and schedule, so results do not depend on them). ``workers`` scratch groups (one per
+    thread) take units of _UNIT consecutive chunks from a shared counter (``engine.sched``: a thread
+    that loses its core for a while takes fewer units instead of the other waiting for it).
     Light by light:
     - pass A (SIMD): every row's sphere direction s (a positive multiple of the sphere point: one
       sqrt, no division), |l - P|^2 and the irradiance denominator;
@@ -1139,26 +1125,23 @@ def _relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, 
       nearly one direction);
     - pass B3 (scalar): the other rows, previous-row triangle first, then the cube-map search; the
       same operations per row as B2 (a tiled and a pixel-major store give the same image).
-    While a chunk is processed, the next chunk's points and output rows, and its runs of the current
-    triangle's lights, are prefetched.
+    While a chunk is processed, the next chunk's points (after the first light's pass A) and its runs of
+    the current triangle's lights are prefetched.
     """
-    n = points64.shape[0]
-    n_chunks = (n + _CHUNK - 1) // _CHUNK
-    n_units = (n_chunks + _UNIT - 1) // _UNIT
-    n_groups = min(_GROUPS, n_units)
-    for gi in nb.prange(n_groups):
-        _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
+    counter = np.zeros(1, np.int64)
+    for _ in nb.prange(workers):
+        _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
                        grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs,
                        run_pix, out, outside, singular, touched, flagged)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv, grid_n,
-                  grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
-                  outside, singular, touched, flagged):
-    """One scratch group of ``_relight_kernel``, in its own function: the parallel kernel is a
-    thin prange over the groups, so numba's parfor passes see a few lines instead of the whole
-    kernel (cold compile of a float32 / float16 store 36 / 33 s -> 32 / 27 s on the loaded
+def _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
+                   grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
+                   outside, singular, touched, flagged):
+    """One scratch group of ``_relight_kernel`` (its units taken from ``counter``), in its own function:
+    the parallel kernel is a thin prange over the groups, so numba's parfor passes see a few lines instead of the
+    whole kernel (cold compile of a float32 / float16 store 36 / 33 s -> 32 / 27 s on the loaded
     machine; the images bit-identical, kernel time unchanged: bench.relight_speed --ab)."""
     _wide_vectors()
     n = points64.shape[0]
@@ -1167,7 +1150,6 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
     r2 = radius * radius
     n_chunks = (n + _CHUNK - 1) // _CHUNK
     n_units = (n_chunks + _UNIT - 1) // _UNIT
-    n_groups = min(_GROUPS, n_units)
     flat = _flat(store)
     kflat = kpts.reshape(-1)
     oflat = out.reshape(-1)
@@ -1207,17 +1189,27 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
     vc = np.empty((3, _CHUNK), np.float32)
     out_f[:] = False
     sing_f[:] = False
-    for ci in _group_chunks(gi, n_groups, n_chunks):
-        unit = ci // _UNIT
+    # units of _UNIT consecutive chunks from the shared counter (engine.sched); the next unit is taken when
+    # the current one's last chunk starts, so that chunk can prefetch its successor's points and runs
+    unit = next_block(counter)
+    unit_next = n_units
+    ci = unit * _UNIT - 1
+    while True:
+        ci += 1
+        if ci >= min((unit + 1) * _UNIT, n_chunks):
+            unit = unit_next
+            ci = unit * _UNIT
+        if unit >= n_units:
+            break
         i0 = ci * _CHUNK
         nc = min(n, i0 + _CHUNK) - i0
-        # the group's next chunk: the next of this unit, else the first of its next unit
-        cn = ci + 1 if (ci + 1) % _UNIT != 0 else (unit + n_groups) * _UNIT
+        # the group's next chunk: the next of this unit, else the first of the unit it takes now
+        cn = ci + 1
+        if cn >= min((unit + 1) * _UNIT, n_chunks):
+            unit_next = next_block(counter)
+            cn = unit_next * _UNIT
         n0 = cn * _CHUNK
         ncn = min(n, n0 + _CHUNK) - n0 if cn < n_chunks else 0
-        if ncn > 0:
-            for e in range(0, 3 * _CHUNK, 16):
-                _prefetch(kflat, 3 * n0 + e)
         # the chunk's points: three contiguous float32 rows
         qx = kflat[3 * i0:3 * i0 + _CHUNK]
         qy = kflat[3 * i0 + _CHUNK:3 * i0 + 2 * _CHUNK]
@@ -1301,6 +1293,12 @@ def _relight_group(gi, kpts, points64, origin, store, lpos32, inv_int, distant_d
                     d2s[r], den[r], sx[r], sy[r], sz[r] = _sphere_point(
                         kd, distant_ds, lx, ly, lz, nx, ny, nz, np.float64(qx[r]), np.float64(qy[r]),
                         np.float64(qz[r]), r2)
+            if j == 0 and ncn > 0:
+                # the next chunk's points, after this chunk's pass A rather than at its start (right after the
+                # previous chunk's 48 non-temporal output lines, which hold the fill buffers the prefetches
+                # wait for): bench A/B one point light 1.02-1.06x, bit-identical
+                for e in range(0, 3 * _CHUNK, 16):
+                    _prefetch(kflat, 3 * n0 + e)
             # the light's largest channel goes into the float64 factor (so the float32 weights are
             # in the range of the result, for any distance), the channel ratios into the constants
             lmax = max(lint[j, 0], max(lint[j, 1], lint[j, 2]))
@@ -1948,11 +1946,12 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         near2 = (float(min_light_distance) + 4.0 * geom.rounding) ** 2
         # the power of two that brings the radius into [1, 2) for the float32 geometry (exact scaling)
         fscale = math.ldexp(1.0, -math.frexp(radius)[1] + 1)
+        workers = 1 if serial else max(1, nb.get_num_threads())  # after set_num_threads
         try:
-            kern(geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int, baked.distant,
-                 radius, fscale, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, kinds,
-                 lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index, geom.runs, geom.run_pixels,
-                 img, outside, singular, touched, flagged)
+            kern(workers, geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int,
+                 baked.distant, radius, fscale, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
+                 baked.grid_items, kinds, lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index,
+                 geom.runs, geom.run_pixels, img, outside, singular, touched, flagged)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
