@@ -593,6 +593,10 @@ def _silhouette_mesh_block(i0, i1, pix, o, d, h_axis, h_sample, h_t, s_axis, s_i
     cs = np.empty(10, np.int64)
     ct = np.empty(10)
     co = np.empty(10, np.int64)
+    wt = np.empty(10, np.int64)  # per candidate: start triangle of its walk (-1: none), the walk's result
+    wok = np.empty(10, np.bool_)
+    wt2 = np.empty(10, np.int64)
+    ws2 = np.empty(10)
     n_acc = 0
     for i in range(i0, i1):
         r = pix[i]
@@ -603,6 +607,7 @@ def _silhouette_mesh_block(i0, i1, pix, o, d, h_axis, h_sample, h_t, s_axis, s_i
         best_o = -1
         for k in range(10):
             ca[k] = -1
+            wt[k] = -1
             if k == 9:
                 a = h_axis[i]
                 sm = h_sample[i]
@@ -617,9 +622,26 @@ def _silhouette_mesh_block(i0, i1, pix, o, d, h_axis, h_sample, h_t, s_axis, s_i
             if a < 0:
                 continue
             t = prim0[sm] if a == 0 else (prim1[sm] if a == 1 else prim2[sm])
-            ok, t2, s2, bw, bu, bv = locate_on_mesh(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], t, tri_p,
-                                                    tri_ng, nbr, 8)
-            if ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0:
+            # the walk is a function of (ray, start triangle): neighbours splatted from one sample or
+            # triangle (most of the 3x3 at LDC resolutions below the image's) share its result
+            kk = -1
+            for q in range(k):
+                if wt[q] == t:
+                    kk = q
+                    break
+            if kk >= 0:
+                good = wok[kk]
+                t2 = wt2[kk]
+                s2 = ws2[kk]
+            else:
+                ok, t2, s2, bw, bu, bv = locate_on_mesh(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], t, tri_p,
+                                                        tri_ng, nbr, 8)
+                good = ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0
+            wt[k] = t
+            wok[k] = good
+            wt2[k] = t2
+            ws2[k] = s2
+            if good:
                 ca[k] = a
                 cs[k] = sm
                 ct[k] = s2

@@ -501,3 +501,33 @@ def test_tile_order_is_the_stable_sort_by_tile():
         pix = np.sort(rng.choice(W * H, size=min(n, W * H), replace=False)).astype(np.int64)
         key = (pix // W // T) * ((W + T - 1) // T) + (pix % W) // T
         assert np.array_equal(_tile_order(pix, W, T), np.argsort(key, kind="stable")), (W, H, T, n)
+
+
+def test_silhouette_pixels_match_the_plain_definition():
+    """The parallel silhouette scan flags exactly the pixels of the definition, written out
+    plainly (image borders: a missing neighbour never makes an edge)."""
+    from engine.ldc_render import _silhouette_pixels
+
+    def plain(obj, dep, side, hole, h, w, rel):
+        out = []
+        for y in range(h):
+            for x in range(w):
+                i = y * w + x
+                if obj[i] < 0 or hole[i]:
+                    continue
+                for xx, yy in ((x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)):
+                    j = yy * w + xx
+                    if 0 <= xx < w and 0 <= yy < h and (obj[j] != obj[i] or abs(dep[j] - dep[i]) > rel * dep[i]
+                                                        or side[j] != side[i]):
+                        out.append(i)
+                        break
+        return np.array(out, np.int64)
+
+    rng = np.random.default_rng(0)
+    for h, w in [(1, 1), (1, 5), (5, 1), (2, 2), (3, 3), (17, 23), (40, 31)]:
+        obj = np.where(rng.random(h * w) < 0.8, 1, rng.integers(-1, 2, h * w)).astype(np.int32)
+        dep = (rng.random(h * w) + 1.0).astype(np.float32)
+        side = np.where(rng.random(h * w) < 0.9, 0, 1).astype(np.int8)
+        hole = rng.random(h * w) < 0.05
+        want = plain(obj, dep, side, hole, h, w, 0.05)
+        assert np.array_equal(_silhouette_pixels(obj, dep, side, hole, h, w, 0.05), want), (h, w)
