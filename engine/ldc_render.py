@@ -280,29 +280,10 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                 m = mat_a[s]
                 brow = 2 * s + sd
                 if refine:
-                    x = r % W + 0.5
-                    y = r // W + 0.5
-                    sx = 2.0 * x / W - 1.0
-                    sy = 1.0 - 2.0 * y / H
+                    ox, oy, oz, dx, dy, dz = _pixel_ray(r, ortho, eye, right, up, fwd, W, H, th, aspect, hh)
                     if ortho:
-                        ax_ = sx * hh * aspect
-                        ay_ = sy * hh
-                        ox = eye[0] + ax_ * right[0] + ay_ * up[0]
-                        oy = eye[1] + ax_ * right[1] + ay_ * up[1]
-                        oz = eye[2] + ax_ * right[2] + ay_ * up[2]
-                        dx, dy, dz = fwd[0], fwd[1], fwd[2]
                         reach = ortho_px
                     else:
-                        ax_ = sx * th * aspect
-                        ay_ = sy * th
-                        dx = fwd[0] + ax_ * right[0] + ay_ * up[0]
-                        dy = fwd[1] + ax_ * right[1] + ay_ * up[1]
-                        dz = fwd[2] + ax_ * right[2] + ay_ * up[2]
-                        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-                        dx /= ln
-                        dy /= ln
-                        dz /= ln
-                        ox, oy, oz = eye[0], eye[1], eye[2]
                         ex, ey, ez = px - ox, py - oy, pz - oz
                         reach = px_size * math.sqrt(ex * ex + ey * ey + ez * ez)
                     lim = 2.0 * (ldc_h + reach)
@@ -410,10 +391,11 @@ def _to_f32_count_nonfinite(radiance, depth, out):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _pixel_ray(r, cam):
-    """The eye ray through the centre of flat pixel r (``engine.camera.camera_rays``' arithmetic,
-    operation for operation: the same float64 rays); cam = ``LDCViewRenderer._camera_tuple``."""
-    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
+def _pixel_ray(r, ortho, eye, right, up, fwd, W, H, th, aspect, hh):
+    """The eye ray (o, d) through the centre of flat pixel r (``engine.camera.camera_rays``'
+    arithmetic, operation for operation: the same float64 rays), from the items of
+    ``LDCViewRenderer._camera_tuple`` (unpacked by the caller outside its loop: unpacking a tuple
+    of arrays increfs and decrefs each of them)."""
     sx = 2.0 * (r % W + 0.5) / W - 1.0
     sy = 1.0 - 2.0 * (r // W + 0.5) / H
     if ortho:
@@ -433,11 +415,13 @@ def _pixel_ray(r, cam):
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _pixel_rays(pix, cam):
     """(o, d), each (n, 3) float64: the eye rays of the flat pixels ``pix`` (``_pixel_ray``)."""
+    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
     n = pix.shape[0]
     o = np.empty((n, 3))
     d = np.empty((n, 3))
     for i in nb.prange(n):
-        o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2] = _pixel_ray(pix[i], cam)
+        o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2] = _pixel_ray(pix[i], ortho, eye, right, up, fwd, W, H,
+                                                                          th, aspect, hh)
     return o, d
 
 
@@ -445,10 +429,11 @@ def _pixel_rays(pix, cam):
 def _rays_meet_box(pix, cam, lo, hi):
     """(n,) bool: the eye ray of flat pixel ``pix[i]`` meets the box [lo, hi] at t >= 0 (slab
     test; an axis the ray is parallel to is skipped, like the NaN-ignoring numpy version)."""
+    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
     n = pix.shape[0]
     keep = np.empty(n, np.bool_)
     for i in nb.prange(n):
-        ox, oy, oz, dx, dy, dz = _pixel_ray(pix[i], cam)
+        ox, oy, oz, dx, dy, dz = _pixel_ray(pix[i], ortho, eye, right, up, fwd, W, H, th, aspect, hh)
         tn = -np.inf
         tf = np.inf
         for a in range(3):
