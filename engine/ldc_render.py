@@ -439,7 +439,7 @@ def _rays_meet_box(pix, cam, lo, hi):
         for a in range(3):
             oa = ox if a == 0 else (oy if a == 1 else oz)
             da = dx if a == 0 else (dy if a == 1 else dz)
-            inv = 1.0 / da if da != 0.0 else (np.inf if not math.copysign(1.0, da) < 0.0 else -np.inf)
+            inv = 1.0 / da if da != 0.0 else math.copysign(np.inf, da)
             t0 = (lo[a] - oa) * inv
             t1 = (hi[a] - oa) * inv
             if t0 != t0 or t1 != t1:

@@ -280,7 +280,7 @@ def test_parallel_zbuffer_writes_equal_the_serial_pass(mirror_box):
     ax = ldc.axes[0]
     n = ax.n_samples
     f = ax.ldi.frame
-    out_f, out_side, out_box = np.empty((n, 6)), np.empty(n, np.int8), np.empty((n, 4), np.int32)
+    out_f, out_side, out_box = np.empty((n, 4)), np.empty(n, np.int8), np.empty((n, 4), np.int32)
     right, up, fwd = cam.basis()
     closed = np.zeros(64, np.bool_)
     warp_mod._project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object,
