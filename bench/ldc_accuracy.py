@@ -39,6 +39,7 @@ from engine.effects import analyze
 from engine.ldc import bake_ldc
 from engine.ldc_render import LDCViewRenderer
 from engine.llf import bake_llf, llf_direction_count
+from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
@@ -107,7 +108,9 @@ def _setting_name(ldc_res: int, f: int | None, k: int | None, ss: int = 1) -> st
 
 def scene_setup(name: str, size: int, n_views: int):
     """A sample scene for the LDC benchmarks: (runtime scene, caster, effect plan, the fixed
-    views at ``size`` x ``size``, a reference renderer)."""
+    views at ``size`` x ``size``, a reference renderer). The process gets the workers' malloc
+    policy (``engine.memory``), so renders are timed as a worker runs them."""
+    keep_freed_memory()
     ls = load_scene(load_scene_file(sample_path(name)), directory_resolver(SAMPLES_DIR))
     sc = ls.runtime
     caster = EmbreeCaster(sc)

@@ -296,6 +296,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (RedisError, OSError) as exc:
         print(f"cannot reach Redis at {settings.effective_redis_url}: {exc}", file=sys.stderr)
         return 3
+    # keep image-sized buffers mapped between jobs (engine/memory.py); inherited by forked horses
+    from engine.memory import keep_freed_memory
+
+    if keep_freed_memory(settings.malloc_keep_mib << 20):
+        log.info("malloc: blocks up to 32 MiB from the heap, up to %d MiB of freed memory kept for the next job",
+                 settings.malloc_keep_mib)
     if args.queue == "render":
         # Import the job module (and the engine) now, so a broken install fails at start-up.
         import workers.jobs.render  # noqa: F401
