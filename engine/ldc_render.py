@@ -347,16 +347,40 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _view_pass_kernel(groups, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm, mat_a,
-                      vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p, tri_n,
-                      tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp, radiance,
-                      normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
-    counter = np.zeros(1, np.int64)
+def _view_pass_kernel(groups, with_rc, pix, s_axis, s_idx, s_side, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam,
+                      refine, nbr, ldc_h, tri_p, tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force,
+                      mirror, trace, hp, gp, radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live,
+                      org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0, nrm0, mat0, vis0, prim0,
+                      org1, fu1, fv1, fw1, h1, nu1, spix1, dep1, geo1, nrm1, mat1, vis1, prim1,
+                      org2, fu2, fv2, fw2, h2, nu2, spix2, dep2, geo2, nrm2, mat2, vis2, prim2):
+    """The view-dependent pass of every pixel in ``pix`` in ONE parallel launch: the pixels whose
+    sample is on LDC axis 0, 1, 2 (their arrays ``*0``, ``*1``, ``*2``) and, ``with_rc``, those of
+    the raycast fill (axis -1, records ``rc_*``). Each part has its own block counter and a thread
+    done with one goes on to the next (the parts are disjoint pixels), so there is one launch and
+    one tail instead of one per axis (a numba workqueue launch costs 0.1-0.3 ms here)."""
+    counters = np.zeros(4, np.int64)
+    c_0 = counters[0:1]
+    c_1 = counters[1:2]
+    c_2 = counters[2:3]
+    c_r = counters[3:4]
     for _ in nb.prange(groups):
-        _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
-                         mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
+        _view_pass_group(c_0, 0, pix, s_axis, s_idx, s_side, org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0, nrm0,
+                         mat0, vis0, prim0, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
                          tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
                          radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+        _view_pass_group(c_1, 1, pix, s_axis, s_idx, s_side, org1, fu1, fv1, fw1, h1, nu1, spix1, dep1, geo1, nrm1,
+                         mat1, vis1, prim1, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
+                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
+                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+        _view_pass_group(c_2, 2, pix, s_axis, s_idx, s_side, org2, fu2, fv2, fw2, h2, nu2, spix2, dep2, geo2, nrm2,
+                         mat2, vis2, prim2, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
+                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
+                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+        if with_rc:  # the raycast fill's pixels (no LDC sample; axis 0's arrays are placeholders)
+            _view_pass_group(c_r, -1, pix, s_axis, s_idx, s_side, org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0,
+                             nrm0, mat0, vis0, prim0, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr,
+                             ldc_h, tri_p, tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror,
+                             trace, hp, gp, radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -652,12 +676,13 @@ def _silhouette_mesh_block(i0, i1, pix, o, d, h_axis, h_sample, h_t, s_axis, s_i
     return n_acc
 
 
-@nb.njit(cache=True, parallel=True, nogil=True)
+@nb.njit(cache=True, nogil=True)
 def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
                     normal, obj_id, mat_id, prov, s_axis, s_idx, s_side):
     """Hole pixels whose eye ray hit LDC axis ``axis`` show the hit sample's diffuse radiance,
-    distance, shading normal and ids (provenance 2)."""
-    for i in nb.prange(holes.shape[0]):
+    distance, shading normal and ids (provenance 2). Serial: a few thousand pixels take less
+    than a parallel launch costs (0.1-0.3 ms with numba's workqueue layer here)."""
+    for i in range(holes.shape[0]):
         if hit_axis[i] != axis:
             continue
         r = holes[i]
@@ -1106,19 +1131,16 @@ class LDCViewRenderer:
                 rc_p = rc_ng = rc_ns = np.zeros((0, 3))
                 rc_mat = np.zeros(0, np.int32)
                 rc_bits = np.zeros((0, ldc.visibility_words), np.uint64)
-            args = (rc_row, np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
-                    np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
-                    np.ascontiguousarray(rc_bits, np.uint64), cam, self.refine_surface,
-                    self._nbr_refine, float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
-                    bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp, radiance, normal,
-                    prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
-            for a, (org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim) in enumerate(self._axes):
-                _view_pass_kernel(_groups(), a, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, dep, geo,
-                                  nrm, mat_a, vis2, prim, *args)
-            if rc_surf is not None:  # pixels of the raycast fill (no LDC sample)
-                org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim = self._axes[0]
-                _view_pass_kernel(_groups(), -1, vp_pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, dep, geo,
-                                  nrm, mat_a, vis2, prim, *args)
+            vp_axes = []
+            for org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim in self._axes:
+                vp_axes += [org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, vis2, prim]
+            _view_pass_kernel(_groups(), rc_surf is not None, vp_pix, s_axis, s_idx, s_side, rc_row,
+                              np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
+                              np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
+                              np.ascontiguousarray(rc_bits, np.uint64), cam, self.refine_surface, self._nbr_refine,
+                              float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
+                              bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp,
+                              radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live, *vp_axes)
         # the fused kernel does surface records, refinement, highlights and the gather: all in "surfaces"
         timings["surfaces"] = time.perf_counter() - t0
         timings["highlights"] = 0.0
