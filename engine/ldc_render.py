@@ -702,8 +702,8 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                 last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p, tri_n, tri_ng,
-                 nbr, ldc_h):
+                 last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p,
+                 tri_n, tri_ng, nbr, ldc_h):
     """One parallel group of ``_shade_hits``, one axis: the rays that hit LDC axis ``axis`` (or, with
     axis -1, missed everything). With edge neighbours ``nbr`` (non-empty) each hit is refined
     like a camera pixel: onto the triangle the ray crosses, with its interpolated normal."""
@@ -747,11 +747,10 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
             l0 = diff[s, sd, 0] + h0
             l1 = diff[s, sd, 1] + h1
             l2 = diff[s, sd, 2] + h2
-            # gather_point returns zeros unless the hit is glossy or (last generation) a mirror: test
-            # that here, because the call itself passes ~20 arrays on the stack (not inlined: ~160
-            # pushes per call, 57 % of this kernel's samples on mirror_box where no hit is glossy)
-            if has_llf and (force or kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0 or
-                            (last and (kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0))):
+            # gather_mat: the materials gather_point does anything for in this generation (glossy; mirrors
+            # on the last, the cone's, generation): the call is not inlined and passes ~20 arrays on the
+            # stack (~160 pushes), 57 % of this kernel's samples on mirror_box when it ran for every hit
+            if has_llf and (force or gather_mat[m]):
                 f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
                                              table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
                                              bg_, c_off, c_idx, c_xyz)
@@ -781,9 +780,9 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last, has_llf, force, hp, gp, acc,
-                    lookups, cont, n_o, n_d, n_ng, n_thr, tri_p, tri_n, tri_ng, nbr, ldc_h, geo0, nrm0, mat0, diff0,
-                    vis0, prim0, geo1, nrm1, mat1, diff1, vis1, prim1, geo2, nrm2, mat2, diff2, vis2, prim2):
+def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last, has_llf, gather_mat, force, hp, gp,
+                    acc, lookups, cont, n_o, n_d, n_ng, n_thr, tri_p, tri_n, tri_ng, nbr, ldc_h, geo0, nrm0, mat0,
+                    diff0, vis0, prim0, geo1, nrm1, mat1, diff1, vis1, prim1, geo2, nrm2, mat2, diff2, vis2, prim2):
     """One generation of traced mirror rays (module docstring of ``_shade_group``): at each hit
     the sample's diffuse radiance + its highlights toward the ray + its glossy gather (+ the
     mirror cone on the ``last`` generation) times the ray's throughput into ``acc[owner]``
@@ -792,7 +791,8 @@ def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last,
     on each LDC axis (its arrays ``*0``, ``*1``, ``*2``) in ONE call: a kernel call with these
     tuples of arrays costs ~150 us of argument typing in numba's dispatcher, and one call per
     axis was ~1 % of a render. Each axis has its own block counter; a thread done with one axis
-    goes on to the next (the axes' rays are disjoint)."""
+    goes on to the next (the axes' rays are disjoint). ``gather_mat``: per material, whether the
+    gather does anything in this generation (glossy, and mirrors on the last one)."""
     counters = np.zeros(4, np.int64)
     c_m = counters[0:1]
     c_0 = counters[1:2]
@@ -800,16 +800,20 @@ def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last,
     c_2 = counters[3:4]
     for _ in nb.prange(groups):
         _shade_group(c_m, -1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim0, tri_p, tri_n,
+                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
+                     prim0, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
         _shade_group(c_0, 0, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim0, tri_p, tri_n,
+                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
+                     prim0, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
         _shade_group(c_1, 1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo1, nrm1, mat1, diff1, vis1, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim1, tri_p, tri_n,
+                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
+                     prim1, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
         _shade_group(c_2, 2, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo2, nrm2, mat2, diff2, vis2, bg,
-                     last, has_llf, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim2, tri_p, tri_n,
+                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
+                     prim2, tri_p, tri_n,
                      tri_ng, nbr, ldc_h)
 
 
@@ -1257,9 +1261,10 @@ class LDCViewRenderer:
             m = 0 if last else n
             n_o, n_d, n_ng, n_thr = (np.empty((m, 3)) for _ in range(4))
             sc = self.scene
-            _shade_hits(_groups(), h_axis, h_sample, h_t, o, d, owner, thr, bg, last, self.llf is not None, force,
-                            self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, sc.tri_p, sc.tri_n,
-                            sc.tri_ng, self._nbr_refine, float(ldc.h), *self._shade_axes)
+            gather_mat = (self._has_kg | self._has_kr) if last else self._has_kg
+            _shade_hits(_groups(), h_axis, h_sample, h_t, o, d, owner, thr, bg, last, self.llf is not None,
+                        gather_mat, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, sc.tri_p,
+                        sc.tri_n, sc.tri_ng, self._nbr_refine, float(ldc.h), *self._shade_axes)
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break

@@ -7,8 +7,9 @@ above its mmap threshold (128 KiB, raised dynamically up to 32 MiB) with fresh `
 and gives freed heap tops back to the kernel above its trim threshold, so the next render of
 ANOTHER kind (sizes differ, the dynamic threshold has not caught up) touches fresh pages again:
 on mirror_box 512x512, an LDC render right after a reference render took 800-2,200 minor page
-faults (3-9 MiB) and ran 8-17 ms (15-30 %) slower than right after another LDC render, which
-took none (docs/ldc.md, session 8).
+faults (3-9 MiB), none right after another LDC render. With the policy, LDC and reference
+renders alternating ran ~1.2x faster each (separate-process runs; docs/service-design.md,
+"Memory between jobs").
 
 :func:`keep_freed_memory` raises both thresholds once per process (``mallopt``): blocks up to
 32 MiB come from the heap and up to ``keep_bytes`` of freed memory stays mapped for the next
