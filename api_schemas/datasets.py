@@ -381,7 +381,7 @@ class DatasetUploadStatus(FrozenModel):
 
 
 class BakeParams(FrozenModel):
-    """How a dataset is baked for relighting (``engine.relight.bake_dataset``)."""
+    """How a dataset is baked for relighting (``engine.relighting.relight.bake_dataset``)."""
 
     layout: Literal["pixel_major", "tiled"] = "pixel_major"
     half: StrictBool = True
@@ -414,7 +414,7 @@ class DatasetBakePublic(FrozenModel):
 
 
 class LightPlacement(FrozenModel):
-    """Where the generated dataset's point lights go (``engine.relight_gen.LightPlacement``)."""
+    """Where the generated dataset's point lights go (``engine.relighting.generate.LightPlacement``)."""
 
     region: Literal["sphere", "hemisphere", "upper_front_quarter"] = "upper_front_quarter"
     """``hemisphere``: elevation >= 0 about ``up``; ``upper_front_quarter`` (the paper's): that half,

@@ -5,7 +5,7 @@ For each of the first paper's three scenes and each LDC resolution, on three ray
 points, with no spawn offset and the surface normal passed as ``origin_normals``; random
 rays with origins in the scene bounds), measured in one run on one machine:
 
-- rays/s of ``engine.ibrt.trace`` with 1 and 2 threads, and of Embree (embreex ``run``,
+- rays/s of ``engine.newviews.ibrt.trace`` with 1 and 2 threads, and of Embree (embreex ``run``,
   which releases the GIL, split over the same number of Python threads) on the SAME rays;
   the ratio IBRT / Embree is the number to quote (the machine is shared and noisy);
 - the quadtree's savings against ``trace_linear`` (same hits, no quadtree): cells visited,
@@ -18,7 +18,7 @@ rays with origins in the scene bounds), measured in one run on one machine:
 
 Writes the block ``ibrt`` of docs/ldc.md and docs/data/ibrt_throughput.json.
 
-``--ab REV`` instead times ``engine/ibrt.py`` at git revision REV against the working tree's in
+``--ab REV`` instead times ``engine/newviews/ibrt.py`` at git revision REV against the working tree's in
 one process, interleaved (old, new, old, new, ...; the machine is shared, so only the ratio
 is quoted), on the rays the LDC view renderer traces (``LDCViewRenderer._trace`` captured
 while rendering ``--ab-scenes`` at 512x512 from an LDC of resolution 256, 6 views: hole /
@@ -46,8 +46,8 @@ import numpy as np
 from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
 from engine.camera import camera_rays, pixel_centers
-from engine.ibrt import build_accel, trace, trace_linear
-from engine.ldc import bake_ldc
+from engine.newviews.ibrt import build_accel, trace, trace_linear
+from engine.newviews.ldc import bake_ldc
 from engine.raycast import EmbreeCaster, hit_points
 from samples import SAMPLES_DIR, sample_path
 from workers.scene_loader import directory_resolver, load_scene
@@ -196,8 +196,8 @@ def render_rays(name: str, size: int = 512, ldc_res: int = 256, n_views: int = 6
     """(ldc, [(o, d, origin_normals or None), ...]): every batch ``LDCViewRenderer._trace``
     gets while rendering the scene's ``n_views`` benchmark views with ``ldc+ibrt:1``."""
     from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
-    from engine.ldc_render import LDCViewRenderer
-    from engine.llf import bake_llf
+    from engine.newviews.llf import bake_llf
+    from engine.newviews.renderer import LDCViewRenderer
 
     sc, caster, plan, cams, _ = scene_setup(name, size, n_views)
     ldc = bake_ldc(sc, caster, ldc_res, plan=plan)
@@ -238,13 +238,14 @@ def ab(rev: str, scenes: list[str], rounds: int, log=print) -> dict:
     renderer's captured rays and on random rays, 2 threads and 1 thread; hits compared."""
     import numba as nb
 
-    import engine.ibrt as new
+    import engine.newviews.ibrt as new
     from bench.ab_module import module_at
 
-    old, sha = module_at(rev, "engine/ibrt.py", "ibrt_ab_old")
-    new_sha = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--", "engine/ibrt.py"],
+    old, sha = module_at(rev, "engine/newviews/ibrt.py", "ibrt_ab_old")
+    new_sha = subprocess.run(["git", "-C", str(ROOT), "log", "-1", "--format=%h", "--", "engine/newviews/ibrt.py"],
                              capture_output=True, text=True, check=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--", "engine/ibrt.py"]).returncode != 0
+    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--",
+                            "engine/newviews/ibrt.py"]).returncode != 0
     res: dict = {"rev": rev, "sha": sha, "new": new_sha + (" with uncommitted changes" if dirty else ""),
                  "rounds": rounds, "scenes": {}}
     threads_all = sorted({1, max(1, nb.config.NUMBA_NUM_THREADS)}, reverse=True)
@@ -300,7 +301,8 @@ def _ab_lines(res: dict, rounds: int) -> list[str]:
     la = os.getloadavg()
     lines = [f"### {AB_HEADING}", "",
              f"Measured with `python -m bench.ibrt_throughput --ab {res['rev']} --ab-rounds {rounds}` "
-             f"({time.strftime('%Y-%m-%d')}, load average {la[0]:.1f}): `engine/ibrt.py` at {res['sha']} (old) "
+             f"({time.strftime('%Y-%m-%d')}, load average {la[0]:.1f}): "
+             f"`engine/newviews/ibrt.py` at {res['sha']} (old) "
              f"against {res['new']} (new), `trace_prepared` on the same rays in one process, interleaved, "
              f"{rounds} rounds; `render` = every batch `LDCViewRenderer._trace` gets while rendering the 6 "
              "benchmark views at 512x512 from an LDC of resolution 256 with `ldc+ibrt:1` (hole / silhouette eye "
@@ -342,7 +344,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--scenes", nargs="*", default=SCENES)
     ap.add_argument("--ab", metavar="REV", default=None,
-                    help="only time engine/ibrt.py at REV against the working tree on the renderer's rays")
+                    help="only time engine/newviews/ibrt.py at REV against the working tree on the renderer's rays")
     ap.add_argument("--ab-scenes", nargs="*", default=AB_SCENES)
     ap.add_argument("--ab-rounds", type=int, default=15)
     ap.add_argument("--no-write", action="store_true", help="--ab: print only, don't touch docs/ldc.md")

@@ -4,7 +4,7 @@ Run from the repository root::
 
     python -m bench.ldc_ab HEAD --ldc 128 --method ldc+ibrt:2 --rounds 6 [--scene mirror_box] [--size 512]
 
-The old ``engine/ldc_render.py``, ``warp.py``, ``ibrt.py`` and ``view_pass.py`` are loaded from
+The old ``engine/newviews/renderer.py``, ``warp.py``, ``ibrt.py`` and ``view_pass.py`` are loaded from
 ``REV`` next to the current ones (``bench.ab_module.module_at``; the old renderer uses the old
 siblings), both renderers get the same bake, and every view of ``bench.ldc_accuracy`` is rendered
 by both: first compared (``same`` / ``DIFF max|radiance difference| provenance-pixels``), then
@@ -14,7 +14,7 @@ view's minimum and the mean of each view's median, old -> new, and the ratio. No
 a quick, noisy-machine-proof check of an engine change (this machine's speed drifts 20 % within
 minutes; compare only within one run).
 
-numba's disk cache is keyed by the whole engine source (engine/__init__.py), so the working
+numba's disk cache is keyed by the whole engine source (engine/_numba_setup.py), so the working
 tree's kernels are always the current code; the old modules are cached under the temp directory.
 """
 
@@ -28,18 +28,18 @@ import numpy as np
 
 from bench.ab_module import module_at
 from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
-from engine.ldc import bake_ldc
-from engine.ldc_render import LDCViewRenderer
-from engine.llf import bake_llf
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf
+from engine.newviews.renderer import LDCViewRenderer
 
 
 def old_renderer_module(rev: str):
-    """engine/ldc_render.py at ``rev`` using ``rev``'s warp, ibrt and view_pass."""
+    """engine/newviews/renderer.py at ``rev`` using ``rev``'s warp, ibrt and view_pass."""
     names = {}
     for mod in ("ibrt", "warp", "view_pass"):
-        module_at(rev, f"engine/{mod}.py", f"{mod}_ab_old")
-        names[f"engine.{mod}"] = f"{mod}_ab_old"
-    return module_at(rev, "engine/ldc_render.py", "ldc_render_ab_old", imports=names)
+        module_at(rev, f"engine/newviews/{mod}.py", f"{mod}_ab_old")
+        names[f"engine.newviews.{mod}"] = f"{mod}_ab_old"
+    return module_at(rev, "engine/newviews/renderer.py", "ldc_render_ab_old", imports=names)
 
 
 def main(argv=None) -> int:

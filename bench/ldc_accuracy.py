@@ -35,12 +35,12 @@ import numpy as np
 
 from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
-from engine.effects import analyze
-from engine.ldc import bake_ldc
-from engine.ldc_render import LDCViewRenderer
-from engine.llf import bake_llf, llf_direction_count
 from engine.memory import keep_freed_memory
 from engine.metrics import lrms
+from engine.newviews.effects import analyze
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf, llf_direction_count
+from engine.newviews.renderer import LDCViewRenderer
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams

@@ -52,10 +52,10 @@ import numpy as np
 
 from bench.docs_writer import replace_block
 from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
-from engine.ldc import bake_ldc
-from engine.ldc_render import LDCViewRenderer
-from engine.llf import bake_llf
 from engine.metrics import lrms
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf
+from engine.newviews.renderer import LDCViewRenderer
 from engine.reference import ReferenceParams
 
 ROOT = Path(__file__).resolve().parents[1]

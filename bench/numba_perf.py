@@ -139,9 +139,9 @@ def _profile_ldc(args) -> int:
     import numpy as np  # noqa: F401 - imported with the engine anyway
 
     from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup
-    from engine.ldc import bake_ldc
-    from engine.ldc_render import LDCViewRenderer
-    from engine.llf import bake_llf
+    from engine.newviews.ldc import bake_ldc
+    from engine.newviews.llf import bake_llf
+    from engine.newviews.renderer import LDCViewRenderer
 
     out = Path(args.out)
     sc, caster, plan, cams, _ = scene_setup(args.scene, args.size, 6)

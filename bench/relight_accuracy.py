@@ -32,8 +32,8 @@ from bench.docs_writer import replace_block
 from engine.imageio import read_image, tonemap_srgb, write_image
 from engine.metrics import error_heatmap, lrms
 from engine.reference import ReferenceParams
-from engine.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
-from engine.relight_gen import LightPlacement, generate_dataset, render_ground_truth, surface_aovs
+from engine.relighting.generate import LightPlacement, generate_dataset, render_ground_truth, surface_aovs
+from engine.relighting.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
 from samples import SAMPLES_DIR, sample_path
 from workers.scene_loader import directory_resolver, load_scene
 
@@ -341,7 +341,8 @@ def write_doc(res: dict) -> None:
              "`samples/scenes/teapot_spheres.json` (`shadows`: teapot and five small spheres on a floor, each "
              "casting a shadow), loaded with `workers.scene_loader`, their own camera at "
              f"{cfg['res']}x{cfg['res']} pixels.")
-    L.append("- **Datasets**: `engine.relight_gen.generate_dataset` with `LightPlacement(region=\"hemisphere\", "
+    L.append("- **Datasets**: `engine.relighting.generate.generate_dataset` with "
+             "`LightPlacement(region=\"hemisphere\", "
              f"layout=\"grid\", spacing_deg=s)` for s = {', '.join(f'{s:g}' for s in cfg['spacings'])} deg: point "
              "lights on the upper hemisphere around the centroid of the visible surface, radius 1.5 x the farthest "
              "visible surface point, intensity radius^2 (irradiance 1 at the centre); the scene's own lights, "

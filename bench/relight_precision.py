@@ -6,7 +6,7 @@ lights, on a random sample of store rows: the largest and the mean absolute diff
 kernel's image and the float64 reference (eq. 1 per pixel, linear search, ``np.linalg.solve``), relative
 to the image maximum and in 8-bit grey levels of the image scaled to its maximum, and the largest
 relative difference over pixels above 1 % of the maximum; with ``--rev``, the same for
-``engine/relight.py`` at that git revision (e.g. the float64 kernel before the float32 points).
+``engine/relighting/relight.py`` at that git revision (e.g. the float64 kernel before the float32 points).
 Prints a table; nothing is written.
 """
 
@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 
 from bench.relight_speed import _dataset, old_relight_module
-from engine import relight as new
+from engine.relighting import relight as new
 from engine.scene import CameraParams
 from tests.engine.relight_naive import naive_relight
 

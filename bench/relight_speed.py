@@ -5,7 +5,7 @@ repository root. Writes the ``relight_speed`` block (1024 x 1024, the issue's 1-
 the ``relight_speed_<res>`` block (any other resolution) of ``docs/relighting.md``, and that
 resolution's entry (``"<res>x<res>"``) of ``docs/data/relight_speed.json``.
 
-A generated dataset (``engine.relight_gen``: a glossy ball on a floor that fills the frame,
+A generated dataset (``engine.relighting.generate``: a glossy ball on a floor that fills the frame,
 point lights on the upper hemisphere every ``--spacing`` degrees, reference renderer 1 spp, direct
 light) is baked three ways (tiled float16 = the default, pixel-major float16, low-rank at 1 %
 relative RMS error) and relit with one point light (p50 of ``--runs`` relights), with a 64-light
@@ -33,8 +33,8 @@ from bench.ab_module import module_at
 from bench.docs_writer import replace_block
 from engine.geometry.mesh import TriMesh
 from engine.reference import ReferenceParams
-from engine.relight import EnvironmentLight, IlluminationDataset, PointLight, bake_dataset, relight
-from engine.relight_gen import LightPlacement, generate_dataset
+from engine.relighting.generate import LightPlacement, generate_dataset
+from engine.relighting.relight import EnvironmentLight, IlluminationDataset, PointLight, bake_dataset, relight
 from engine.scene import CameraParams, LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,7 +115,8 @@ def main(argv=None) -> int:
                     help="keep the generated dataset in DIR (one .npy per array, keyed by resolution and spacing) "
                          "and reuse it when present: generation takes minutes at 1 MP")
     ap.add_argument("--ab", metavar="REV", default=None,
-                    help="also time engine/relight.py as of git revision REV against the working tree's, same "
+                    help="also time engine/relighting/relight.py as of git revision REV against the working "
+                    "tree's, same "
                          "baked dataset, interleaved rounds, and compare the images (bit-identical or the largest "
                          "difference) and masks")
     args = ap.parse_args(argv)
@@ -235,14 +236,14 @@ def _load_all() -> dict:
 
 
 def old_relight_module(rev: str):
-    """engine/relight.py as of git revision ``rev``, imported as a separate module."""
-    return module_at(rev, "engine/relight.py", "relight_ab_old")[0]
+    """engine/relighting/relight.py as of git revision ``rev``, imported as a separate module."""
+    return module_at(rev, "engine/relighting/relight.py", "relight_ab_old")[0]
 
 
 def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> dict:
     """p50 of ``relight(...).timings["kernel_s"]`` with the old and the current module, same baked data,
     1 and 2 threads, best of ``rounds`` interleaved rounds; images, masks and lights_used compared."""
-    import engine.relight as new
+    import engine.relighting.relight as new
 
     old = old_relight_module(rev)
     fields = set(old.BakedDataset.__dataclass_fields__)
@@ -322,7 +323,8 @@ def report(res: dict) -> str:
     if "ab" in res:
         ab, b = res["ab"], res["ab"]["best_p50_s"]
         L.append("")
-        L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: `engine/relight.py` at that revision against "
+        L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: "
+                 "`engine/relighting/relight.py` at that revision against "
                  f"this one, same tiled store, `timings[\"kernel_s\"]`, best of the rounds' p50):")
         L.append("")
         L.append("| case | threads | old ms | new ms | speed-up | bit-identical | max abs difference / image max "

@@ -31,11 +31,11 @@ import numpy as np
 
 from api_schemas.scene import load_scene_file
 from bench.docs_writer import replace_block
-from engine.animation import AnimatedScene
 from engine.imageio import write_image
 from engine.metrics import lrms
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams
+from engine.walkthrough.animation import AnimatedScene
 from engine.walkthrough.bake import WalkthroughRenderer, bake_walkthrough, render_bases, walkthrough_preset
 from engine.walkthrough.reconstruct import FILL_MODES
 from engine.walkthrough.viewspace import PathSpace, PolygonSpace, ViewSpace

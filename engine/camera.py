@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import CameraParams
+from engine.scene import CameraParams
 
 
 def camera_rays(cam: CameraParams, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

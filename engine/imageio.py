@@ -64,6 +64,7 @@ import numba as nb
 import numpy as np
 import OpenImageIO as oiio
 
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import ImageFormatError, InvalidInputError, NonFiniteOutputError
 
 __all__ = [

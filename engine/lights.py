@@ -12,7 +12,8 @@ import math
 
 import numba as nb
 
-from .raycast import SHADOW_SHORTEN
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.raycast import SHADOW_SHORTEN
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")

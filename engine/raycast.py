@@ -22,8 +22,9 @@ from typing import Protocol
 import numba as nb
 import numpy as np
 
-from .errors import InvalidInputError
-from .scene import RuntimeScene
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.scene import RuntimeScene
 
 # Self-intersection offset = OFFSET_REL * (max |p - center|_inf + OFFSET_EXTENT * extent).
 # float32 has 2^-24 relative rounding; Embree's watertight test and the cast of the

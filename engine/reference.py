@@ -38,12 +38,13 @@ from dataclasses import asdict, dataclass, field, replace
 import numba as nb
 import numpy as np
 
-from .camera import camera_rays, pixel_centers
-from .errors import InvalidInputError, NonFiniteOutputError
-from .lights import light_sample
-from .raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
-from .rng import stream_key, uniform
-from .scene import CameraParams, RuntimeScene
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.camera import camera_rays, pixel_centers
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.lights import light_sample
+from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
+from engine.rng import stream_key, uniform
+from engine.scene import CameraParams, RuntimeScene
 
 INV_PI = 1.0 / math.pi
 

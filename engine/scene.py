@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InvalidInputError
-from .geometry.mesh import TriMesh
+from engine.errors import InvalidInputError
+from engine.geometry.mesh import TriMesh
 
 
 def _rgb_array(rows: list[tuple[float, float, float]] | np.ndarray, name: str) -> np.ndarray:

@@ -33,6 +33,8 @@ from numba import types as nbtypes
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+
 
 @intrinsic
 def next_block(typingctx, counter):

@@ -6,9 +6,9 @@ A bake request ``(scene_id, BakeParams)`` has a content-addressed key
 ``artifact_key("bake", {"scene": scene_id}, params, ENGINE_VERSION)``. Its work is split into PARTS,
 each its own RQ job on the ``bake`` queue and its own artifact in the store:
 
-- ``ldc-axis-0`` .. ``ldc-axis-2``: one LDI of the LDC each (``engine.ldc.bake_ldc_axis``);
+- ``ldc-axis-0`` .. ``ldc-axis-2``: one LDI of the LDC each (``engine.newviews.ldc.bake_ldc_axis``);
 - ``llf-views-<first>-<last>``: a chunk of ``llf_chunk`` light-field directions
-  (``engine.llf.bake_llf_views``), only when the effect analysis says the scene needs a light field
+  (``engine.newviews.llf.bake_llf_views``), only when the effect analysis says the scene needs a light field
   (``llf: "auto"``) or the request forces it (``llf: "always"``).
 
 Part key = ``artifact_key("bake-part", {"scene": scene_id, "bake": bake_key}, spec, ENGINE_VERSION)``

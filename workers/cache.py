@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Generic, TypeVar
 import numpy as np
 
 if TYPE_CHECKING:
-    from engine.ldc_render import LDCViewRenderer
+    from engine.newviews.renderer import LDCViewRenderer
     from engine.reference import ReferenceRenderer
     from engine.scene import RuntimeScene
     from workers.scene_loader import LoadedScene

@@ -28,7 +28,6 @@ from api_schemas.scene import (
     SphereObject,
     scene_hash,
 )
-from engine.animation import AnimatedScene, LightTrack, TransformTrack
 from engine.errors import InvalidInputError, MeshValidationError
 from engine.geometry import meshio, primitives
 from engine.geometry.mesh import TriMesh
@@ -40,6 +39,7 @@ from engine.scene import (
     SceneObjectPart,
     build_runtime_scene,
 )
+from engine.walkthrough.animation import AnimatedScene, LightTrack, TransformTrack
 
 # Resolves a mesh_file path to (bytes, file type); lets the service serve uploads
 # from the object store while the CLI reads from a directory.

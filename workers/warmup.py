@@ -22,11 +22,11 @@ settings):
   ``bake_llf_views_job``) at an LDC resolution of 8 and an LLF of 6 directions at 4 px, published
   as the bake jobs publish them and read back by the render job's ``load_bake`` (npz round trip);
 - ``workers.jobs.datasets.relight_job`` on a synthetic illumination dataset baked
-  (``engine.relight.bake_dataset``, stored as ``bake_job`` stores it) into every store the
+  (``engine.relighting.relight.bake_dataset``, stored as ``bake_job`` stores it) into every store the
   service can produce -- float16 / float32 x pixel-major / tiled, and low-rank -- each under a
   point, a directional, a rect and an environment light (interpolating kernel) and under a
   light exactly at a dataset light (the exact-hit kernel);
-- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.composite``).
+- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``).
 
 The scene, the dataset and the images are made in code; everything is written to a scratch
 object store in a temporary directory (RAM-backed when ``/dev/shm`` is writable) that is
@@ -249,7 +249,7 @@ def synthetic_dataset(size: int = 24, n_lights: int = 24) -> Any:
     """A small illumination dataset made in code: a bumpy disc (a height field seen from above),
     Lambertian with an ambient floor (every value > 0, so float16 is chosen when asked for), lit
     by ``n_lights`` point lights on a sphere around it."""
-    from engine.relight import IlluminationDataset
+    from engine.relighting.relight import IlluminationDataset
 
     ys, xs = np.mgrid[0:size, 0:size]
     u = (xs + 0.5) / size * 2.0 - 1.0
@@ -388,7 +388,7 @@ class _Run:
         """Run the bake queue's part jobs into the scratch store and publish the bake manifest the
         merge job would (the plan and merge jobs need Redis; the render job reads only this)."""
         from engine import ENGINE_VERSION
-        from engine.effects import analyze
+        from engine.newviews.effects import analyze
         from workers.artifacts import write_artifact
         from workers.bakes import bake_key, part_key, plan_parts
         from workers.jobs.bake import _load, bake_ldc_axis_job, bake_llf_views_job, bake_plan_doc
@@ -415,7 +415,7 @@ class _Run:
         """Bake the synthetic dataset into every store kind and publish each as ``bake_job`` does."""
         from api_schemas.datasets import BakeParams as DatasetBakeParams
         from engine import ENGINE_VERSION
-        from engine.relight import bake_dataset
+        from engine.relighting.relight import bake_dataset
         from workers.artifacts import write_artifact
         from workers.datasets import BAKE_KIND, bake_artifact_key
         from workers.jobs.datasets import NPZ, baked_to_bytes

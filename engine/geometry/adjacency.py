@@ -17,6 +17,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+
 __all__ = ["locate_on_mesh", "triangle_neighbours"]
 
 

@@ -23,15 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..animation import AnimatedScene
-from ..camera import camera_rays, pixel_centers
-from ..errors import InvalidInputError
-from ..reference import ReferenceParams, ReferenceRenderer
-from ..scene import CameraParams
-from .decompose import GeometryProbe, choose_base_views, choose_time_samples
-from .range_images import render_cube
-from .reconstruct import FILL_MODES, PROV_HOLE, PROV_TRACED, FrameResult, _Buffers, reproject
-from .viewspace import BoxSpace, PathSpace, PolygonSpace, ViewSpace
+from engine.camera import camera_rays, pixel_centers
+from engine.errors import InvalidInputError
+from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.scene import CameraParams
+from engine.walkthrough.animation import AnimatedScene
+from engine.walkthrough.decompose import GeometryProbe, choose_base_views, choose_time_samples
+from engine.walkthrough.range_images import render_cube
+from engine.walkthrough.reconstruct import FILL_MODES, PROV_HOLE, PROV_TRACED, FrameResult, _Buffers, reproject
+from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace, ViewSpace
 
 __all__ = ["PRESETS", "WalkthroughBake", "WalkthroughParams", "WalkthroughRenderer", "bake_walkthrough",
            "render_bases", "space_from_dict", "walkthrough_preset"]

@@ -31,11 +31,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..animation import AnimatedScene
-from ..reference import ReferenceRenderer
-from ..scene import RuntimeScene
-from .range_images import _BASIS, CubeRangeImage, render_cube, seen_fraction
-from .viewspace import PathSpace, PolygonSpace, ViewSpace
+from engine.reference import ReferenceRenderer
+from engine.scene import RuntimeScene
+from engine.walkthrough.animation import AnimatedScene
+from engine.walkthrough.range_images import _BASIS, CubeRangeImage, render_cube, seen_fraction
+from engine.walkthrough.viewspace import PathSpace, PolygonSpace, ViewSpace
 
 __all__ = ["GeometryProbe", "choose_base_views", "choose_time_samples", "time_coherence", "view_coherence"]
 
@@ -82,7 +82,7 @@ class GeometryProbe:
         key = (float(eye[0]), float(eye[1]), float(eye[2]), float(t))
         c = self._cubes.get(key)
         if c is None:
-            from ..reference import ReferenceParams
+            from engine.reference import ReferenceParams
 
             c = render_cube(self.renderer(t), np.asarray(eye, np.float64), self.res, ReferenceParams(spp=1),
                             time_value=t, direct=False)

@@ -27,9 +27,10 @@ from dataclasses import dataclass, field, replace
 import numba as nb
 import numpy as np
 
-from ..errors import InvalidInputError
-from ..reference import ReferenceParams, ReferenceRenderer
-from ..scene import CameraParams
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.scene import CameraParams
 
 __all__ = ["CUBE_FACES", "CubeRangeImage", "cube_directions", "direction_to_cube", "face_camera", "render_cube",
            "seen_fraction"]

@@ -45,9 +45,10 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from ..errors import InvalidInputError, NonFiniteOutputError
-from ..scene import CameraParams
-from .range_images import _BASIS
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.scene import CameraParams
+from engine.walkthrough.range_images import _BASIS
 
 __all__ = [
     "FILL_MODES",

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from engine.errors import InvalidInputError
 
 __all__ = ["BoxSpace", "PathSpace", "PolygonSpace", "ViewSpace"]
 

@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 
 from api_schemas.errors import format_validation_error
 from api_schemas.scene import canonical_scene_json, load_scene_file, load_scene_json, scene_hash
-from engine.animation import AnimatedScene, LightTrack, TransformTrack, decompose_affine
 from engine.errors import InvalidInputError
 from engine.scene import LightTable, MaterialTable, SceneObjectPart
+from engine.walkthrough.animation import AnimatedScene, LightTrack, TransformTrack, decompose_affine
 from workers.scene_loader import directory_resolver, load_animated_scene
 
 SAMPLES = Path(__file__).resolve().parents[2] / "samples"

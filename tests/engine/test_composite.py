@@ -6,11 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.composite import active_region_around, composite, composite_ratio
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
-from engine.relight import PointLight, bake_dataset, relight
-from engine.relight_gen import LightPlacement, generate_dataset, object_mask, render_ground_truth, scene_without_objects
+from engine.relighting.composite import active_region_around, composite, composite_ratio
+from engine.relighting.generate import (
+    LightPlacement,
+    generate_dataset,
+    object_mask,
+    render_ground_truth,
+    scene_without_objects,
+)
+from engine.relighting.relight import PointLight, bake_dataset, relight
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 
@@ -82,7 +88,7 @@ def test_near_black_background_never_blows_up():
 
 def test_pixels_without_data_keep_the_plate():
     """A RelightResult's outside-coverage / singular pixels never enter the ratio."""
-    from engine.relight import RelightResult
+    from engine.relighting.relight import RelightResult
 
     h, w = 6, 7
     i_obj = np.full((h, w, 3), 0.25, np.float32)

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import trimesh
 
-from engine.effects import analyze, plan_from_dict
-from engine.ldc import bake_ldc
+from engine.newviews.effects import analyze, plan_from_dict
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.warp import warp_ldc
 from engine.raycast import EmbreeCaster
 from engine.scene import CameraParams
-from engine.warp import warp_ldc
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
 
 PT = dict(type="point", position=(2.0, 3.0, 2.5), intensity=(5.0, 5.0, 5.0))

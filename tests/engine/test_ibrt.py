@@ -1,4 +1,4 @@
-"""Image-based ray tracing through the LDC (engine/ibrt.py) against Embree and slow references.
+"""Image-based ray tracing through the LDC (engine/newviews/ibrt.py) against Embree and slow references.
 
 Measured at LDC resolution 128 (this file's settings; docs/ldc.md has 256):
 
@@ -23,7 +23,7 @@ import trimesh
 from api_schemas import load_scene_file
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError
-from engine.ibrt import (
+from engine.newviews.ibrt import (
     DEFAULT_MARGIN,
     DEFAULT_MIN_COS,
     DEFAULT_SELF_EPS,
@@ -34,7 +34,7 @@ from engine.ibrt import (
     trace,
     trace_linear,
 )
-from engine.ldc import bake_ldc
+from engine.newviews.ldc import bake_ldc
 from engine.raycast import EmbreeCaster, hit_points
 from samples import SAMPLES_DIR, sample_path
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import engine.ldc as ldc_mod
-from engine.ldc import bake_ldc_axis
+import engine.newviews.ldc as ldc_mod
+from engine.newviews.ldc import bake_ldc_axis
 from engine.raycast import EmbreeCaster
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 

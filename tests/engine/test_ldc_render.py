@@ -8,12 +8,12 @@ import pytest
 import trimesh
 from scipy.ndimage import binary_erosion
 
-from engine.effects import analyze
 from engine.errors import InvalidInputError
-from engine.ldc import bake_ldc
-from engine.ldc_render import PROV_FILLED, PROV_GATHERED, PROV_TRACED, LDCViewRenderer, parse_method
-from engine.llf import bake_llf
 from engine.metrics import lrms
+from engine.newviews.effects import analyze
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf
+from engine.newviews.renderer import PROV_FILLED, PROV_GATHERED, PROV_TRACED, LDCViewRenderer, parse_method
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
@@ -323,46 +323,6 @@ def test_huge_exponents_and_degenerate_cameras_hard_cases_8_11(shiny):
             assert res.radiance.shape == (cam.height, cam.width, 3)
 
 
-def test_fused_kernels_match_the_unfused_renderer(shiny):
-    """The fused per-pixel kernels (surface record, refinement, highlights, gather in one pass;
-    traced hits shaded in numba) against the renderer they replaced (bench/ldc_render_before.py:
-    numpy surface records, then one kernel per stage through view_pass.highlights /
-    gather_reflections and ibrt.trace): the same image bit for bit (traced mirror rays: up to
-    rare pixels whose ray direction differs in the last bit), the same provenance, normals and
-    counts, for every method, the forced passes and both fills (point and directional lights; a
-    rect light's jitter is now keyed by the pixel, not by its rank among the pixels). The frozen
-    renderer predates the silhouette rays and the refinement's mesh walk: both are off here (tested
-    on their own below)."""
-    from bench.ldc_render_before import LDCViewRenderer as Unfused
-
-    sc, caster, plan, ldc, llf = shiny
-    cam = CameraParams("perspective", (1.4, 0.9, 2.4), (-0.2, -0.1, 0.0), (0, 1, 0), 64, 56, 45.0)
-    for kw in ({}, {"caster": caster}):
-        new = LDCViewRenderer(sc, ldc, llf, plan, silhouette_rays=False, refine_walk=False, silhouette_mesh_test=False,
-                              **kw)
-        old = Unfused(sc, ldc, llf, plan, **kw)
-        for method, opts in (("ldc", {}), ("ldc+llf", {}), ("ldc+ibrt:1", {}), ("ldc+ibrt:3", {}),
-                             ("ldc+llf", {"force_all_passes": True}), ("ldc+ibrt:2", {"force_all_passes": True}),
-                             ("ldc+llf", {"fill": "raycast"}), ("ldc+ibrt:1", {"fill": "none"})):
-            if "caster" not in kw and opts.get("fill") == "raycast":
-                continue
-            a, b = new.render(cam, method, **opts), old.render(cam, method, **opts)
-            for key in ("depth", "normal", "object_id", "material_id", "provenance", "hole_mask"):
-                assert np.array_equal(getattr(a, key), getattr(b, key)), (method, opts, key)
-            traced = method.startswith("ldc+ibrt")
-            same = np.all(a.radiance == b.radiance, axis=2)
-            if not traced:
-                assert same.all(), (method, opts)
-            else:  # a mirror ray's direction may differ in the last bit (numpy's vs the kernel's
-                # sums) and its hit flip at a patch edge: rare pixels, bounded by the radiance range
-                assert (~same).mean() <= 0.002, (method, opts)
-                assert np.abs(a.radiance - b.radiance).max() <= 1.0
-            skip = {"ibrt_steps", "gather_lookups"} if traced else set()
-            assert {k: v for k, v in a.counts.items() if k in b.counts and k not in skip} == \
-                {k: v for k, v in b.counts.items() if k not in skip}, (method, opts)
-            assert a.counts["view_pass_pixels"] > 0
-
-
 def test_silhouette_rays_resolve_what_the_splats_guessed(shiny):
     """Pixels at visibility edges of the warped image get their own image-based eye ray: far
     fewer pixels show another object than the pixel-centre reference does (the splats'
@@ -431,7 +391,7 @@ def test_near_covered_is_the_binary_dilation():
     maximum_filter with a zero border computes it."""
     from scipy.ndimage import maximum_filter
 
-    from engine.ldc_render import _near_covered
+    from engine.newviews.renderer import _near_covered
 
     rng = np.random.default_rng(1)
     for h, w, r in [(37, 53, 3), (5, 4, 3), (64, 64, 1), (10, 10, 7), (1, 9, 2)]:
@@ -469,7 +429,7 @@ def test_pixel_rays_are_camera_rays_bit_for_bit(kind):
     """The renderer's numba eye rays (fill and hole search) are engine.camera.camera_rays' rays,
     and its slab test keeps exactly the pixels the numpy slab test keeps."""
     from engine.camera import camera_rays
-    from engine.ldc_render import _pixel_rays, _rays_meet_box
+    from engine.newviews.renderer import _pixel_rays, _rays_meet_box
 
     cam = CameraParams(kind=kind, eye=(0.3, 1.1, 3.2), look_at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=97,
                        height=61, fov_y_deg=47.0, ortho_height=2.5)
@@ -494,7 +454,7 @@ def test_pixel_rays_are_camera_rays_bit_for_bit(kind):
 
 def test_tile_order_is_the_stable_sort_by_tile():
     """The mirror rays' order: a counting sort of the pixels by 16 x 16 tile, stable."""
-    from engine.ldc_render import _tile_order
+    from engine.newviews.renderer import _tile_order
 
     rng = np.random.default_rng(3)
     for W, H, T, n in [(512, 512, 16, 5000), (37, 23, 16, 300), (10, 7, 4, 70), (5, 5, 16, 1), (64, 64, 8, 0)]:
@@ -506,7 +466,7 @@ def test_tile_order_is_the_stable_sort_by_tile():
 def test_silhouette_pixels_match_the_plain_definition():
     """The parallel silhouette scan flags exactly the pixels of the definition, written out
     plainly (image borders: a missing neighbour never makes an edge)."""
-    from engine.ldc_render import _silhouette_pixels
+    from engine.newviews.renderer import _silhouette_pixels
 
     def plain(obj, dep, side, hole, h, w, rel):
         out = []

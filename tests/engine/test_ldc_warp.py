@@ -9,12 +9,12 @@ from scipy.ndimage import binary_erosion
 
 from api_schemas import load_scene_file
 from engine.errors import InvalidInputError
-from engine.ldc import bake_ldc, bake_ldc_axis, estimate_ldc_bytes, ldc_pixel_size, merge_ldc
 from engine.metrics import lrms
+from engine.newviews.ldc import bake_ldc, bake_ldc_axis, estimate_ldc_bytes, ldc_pixel_size, merge_ldc
+from engine.newviews.warp import PROV_FILLED, warp_ldc
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, EmbreeCaster
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
-from engine.warp import PROV_FILLED, warp_ldc
 from samples import SAMPLES_DIR, sample_path
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
 from workers.scene_loader import directory_resolver, load_scene
@@ -152,7 +152,7 @@ def test_visibility_bits_with_70_lights():
     vis = part.visibility
     assert vis.shape == (part.n_samples, 2, 2) and vis.dtype == np.uint64
     # brute force: one occlusion query per (sample, light) through the public API
-    from engine.ldc import surface_attributes
+    from engine.newviews.ldc import surface_attributes
 
     p, ng, _ = surface_attributes(sc, part.ldi.prim, part.ldi.u, part.ldi.v)
     mag = OFFSET_REL * (np.abs(p - sc.center).max(axis=1) + OFFSET_EXTENT * sc.extent)
@@ -272,7 +272,7 @@ def test_parallel_zbuffer_writes_equal_the_serial_pass(mirror_box):
     samples in CSR order, so 2 and 3 bands give the serial pass's images bit for bit."""
     import numba as nb
 
-    from engine import warp as warp_mod
+    from engine.newviews import warp as warp_mod
 
     sc = mirror_box
     ldc = bake_ldc(sc, EmbreeCaster(sc), 128)

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from engine.errors import InvalidInputError
-from engine.ldi import LDIFrame, axis_frame, build_ldi, estimate_ldi_bytes
+from engine.newviews.ldi import LDIFrame, axis_frame, build_ldi, estimate_ldi_bytes
 from engine.raycast import EmbreeCaster, ReferenceCaster
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from engine.errors import InvalidInputError
-from engine.ldc import LDC, LDCAxis, bake_ldc, surface_attributes
-from engine.ldi import build_ldi
-from engine.llf import (
+from engine.newviews.ldc import LDC, LDCAxis, bake_ldc, surface_attributes
+from engine.newviews.ldi import build_ldi
+from engine.newviews.llf import (
     LLF,
     LLFView,
     bake_llf,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.errors import InvalidInputError
-from engine.relight import (
+from engine.relighting.relight import (
     DirectionalLight,
     EnvironmentLight,
     IlluminationDataset,
@@ -275,7 +275,7 @@ def test_float16_bit_decode_matches_numpy():
     float32 conversion bit for bit, for both implementations."""
     import numba as nb
 
-    from engine.relight import _HOST_F16C, _half_bits, _half_hw
+    from engine.relighting.relight import _HOST_F16C, _half_bits, _half_hw
 
     @nb.njit
     def decode_bits(bits, out):

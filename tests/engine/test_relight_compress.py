@@ -8,9 +8,9 @@ import pytest
 
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
-from engine.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
-from engine.relight_compress import block_order
-from engine.relight_gen import LightPlacement, generate_dataset
+from engine.relighting.compress import block_order
+from engine.relighting.generate import LightPlacement, generate_dataset
+from engine.relighting.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 

@@ -9,8 +9,7 @@ from scipy.spatial import cKDTree
 
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
-from engine.relight import DirectionalLight, PointLight, bake_dataset, locate_directions, points_from_depth, relight
-from engine.relight_gen import (
+from engine.relighting.generate import (
     LightPlacement,
     generate_dataset,
     object_mask,
@@ -18,6 +17,14 @@ from engine.relight_gen import (
     render_ground_truth,
     scene_without_objects,
     surface_aovs,
+)
+from engine.relighting.relight import (
+    DirectionalLight,
+    PointLight,
+    bake_dataset,
+    locate_directions,
+    points_from_depth,
+    relight,
 )
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
@@ -85,7 +92,7 @@ def test_geodesic_sphere_is_a_subdivided_icosahedron():
 def test_partial_regions_are_covered_to_their_edge(region, layout):
     """Directions inside the region (even close to its boundary) are covered by the baked
     triangulation; directions clearly outside are not (no extrapolation)."""
-    from engine.relight import IlluminationDataset
+    from engine.relighting.relight import IlluminationDataset
 
     p = LightPlacement(region=region, layout=layout, spacing_deg=10.0, front=(0, 0, 1))
     lights = place_lights(p, (0, 0, 0), 5.0)

@@ -9,11 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from engine.ldc import bake_ldc, surface_attributes
-from engine.llf import bake_llf
-from engine.raycast import EmbreeCaster
-from engine.reference import ReferenceParams, ReferenceRenderer
-from engine.view_pass import (
+from engine.newviews.ldc import bake_ldc, surface_attributes
+from engine.newviews.llf import bake_llf
+from engine.newviews.view_pass import (
     GLOSSY_LOG_CUT,
     gather_incoming,
     gather_reflections,
@@ -21,6 +19,8 @@ from engine.view_pass import (
     lookup_direction,
     mirror_cone_exponent,
 )
+from engine.raycast import EmbreeCaster
+from engine.reference import ReferenceParams, ReferenceRenderer
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
 
 C = np.array([0.3, 0.5, 0.7])
@@ -238,8 +238,13 @@ def test_huge_exponents_stay_finite_hard_case_8(env):
 def test_cone_tables_list_the_candidates_of_every_lattice_cell(f):
     """The cone gather's per-cell candidate table holds, for any direction, exactly the list
     (same directions, same order) ``candidate_directions`` builds for it at radius 3."""
-    from engine.llf import candidate_directions, direction_to_lattice, lattice_index_table, octahedron_directions
-    from engine.view_pass import _cone_tables
+    from engine.newviews.llf import (
+        candidate_directions,
+        direction_to_lattice,
+        lattice_index_table,
+        octahedron_directions,
+    )
+    from engine.newviews.view_pass import _cone_tables
 
     table, dirs = lattice_index_table(f), octahedron_directions(f)
     off, idx, xyz = _cone_tables(f, table, dirs, 3)

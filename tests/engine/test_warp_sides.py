@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import binary_erosion
 
-from engine.effects import analyze
-from engine.ldc import bake_ldc
+from engine.newviews.effects import analyze
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.warp import warp_ldc
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
-from engine.warp import warp_ldc
 from tests.engine.scenes import mat, scene, sphere_mesh
 
 

@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from redis import Redis
 
     from api_schemas.service import BakeParams
-    from engine.effects import EffectPlan
+    from engine.newviews.effects import EffectPlan
     from engine.scene import RuntimeScene
     from workers.scene_loader import LoadedScene
     from workers.store import ObjectStore
@@ -79,7 +79,8 @@ class BakeTooLarge(InvalidInputError):
 # ------------------------------------------------------------------------------------ helpers
 
 PRELOAD_MODULES = (
-    "engine.effects", "engine.ldc", "engine.llf", "engine.reference", "engine.raycast", "workers.scene_loader",
+    "engine.newviews.effects", "engine.newviews.ldc", "engine.newviews.llf", "engine.reference", "engine.raycast",
+    "workers.scene_loader",
     "workers.artifacts", "trimesh", "trimesh.exchange.ply", "trimesh.resolvers", "scipy.sparse.csgraph",
     "embreex.rtcore_scene", "embreex.mesh_construction",
 )
@@ -171,8 +172,8 @@ def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> 
 
 
 def _ldc_axis_bytes(scene: RuntimeScene, params: BakeParams, words: int) -> list[int]:
-    from engine.ldc import LDC_ATTR_BYTES, ldc_pixel_size
-    from engine.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
+    from engine.newviews.ldc import LDC_ATTR_BYTES, ldc_pixel_size
+    from engine.newviews.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
 
     h = ldc_pixel_size(scene, params.ldc_resolution)
     lo, hi = scene.bounds
@@ -194,7 +195,7 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
     "estimates": {...}}``; the merge job and the API read it."""
     p = _validate(BakeJobPayload, payload)
     _check_bake(p)
-    from engine.effects import analyze
+    from engine.newviews.effects import analyze
     from workers.artifacts import manifest_key, read_manifest
 
     store = open_worker_store()
@@ -223,7 +224,7 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
             f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower ldc_resolution or max_layers")
     estimates: dict[str, Any] = {"ldc_axis_bytes_max": axis_bytes, "part_limit_bytes": BAKE_MAX_PART_BYTES}
     if with_llf:
-        from engine.llf import estimate_llf_bytes
+        from engine.newviews.llf import estimate_llf_bytes
 
         chunk_bytes = estimate_llf_bytes(p.params.llf_f, p.params.llf_resolution, p.params.max_layers,
                                          n_views=min(p.params.llf_chunk, llf_direction_count(p.params.llf_f)))
@@ -279,7 +280,7 @@ def _publish_part(store: ObjectStore, p: BakePartPayload, blob_name: str, arrays
 
 
 def _scene_and_caster(store: ObjectStore, scene_id: str) -> tuple[LoadedScene, Any, EffectPlan]:
-    from engine.effects import analyze
+    from engine.newviews.effects import analyze
     from engine.raycast import make_caster
 
     loaded = _load(store, scene_id)
@@ -292,7 +293,7 @@ def bake_ldc_axis_job(payload: dict[str, Any]) -> dict[str, Any]:
     p, store, done = _part_prologue(payload)
     if done is not None:
         return done
-    from engine.ldc import bake_ldc_axis
+    from engine.newviews.ldc import bake_ldc_axis
 
     part = p.part
     assert part.kind == "ldc_axis"
@@ -333,7 +334,7 @@ def bake_llf_views_job(payload: dict[str, Any]) -> dict[str, Any]:
     p, store, done = _part_prologue(payload)
     if done is not None:
         return done
-    from engine.llf import bake_llf_views
+    from engine.newviews.llf import bake_llf_views
 
     part = p.part
     assert part.kind == "llf_views"
@@ -378,8 +379,8 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
                     plan: dict[str, Any], progress: Callable[[float], None] | None = None) -> tuple[Any, Any]:
     """``(LDC, LLF or None)`` from a bake's part artifacts, checked: checksums (``read_blob``),
     array shapes (``from_arrays``) and that the parts fit together (``merge_ldc`` / ``merge_llf``)."""
-    from engine.effects import analyze
-    from engine.ldc import LDCAxis, merge_ldc
+    from engine.newviews.effects import analyze
+    from engine.newviews.ldc import LDCAxis, merge_ldc
 
     axes = []
     views: list[Any] = []
@@ -387,7 +388,7 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
         if spec["kind"] == "ldc_axis":
             axes.append(LDCAxis.from_arrays(_read_part(store, spec["key"], "ldc_axis.npz")))
         else:
-            from engine.llf import LLFView
+            from engine.newviews.llf import LLFView
 
             d = _read_part(store, spec["key"], "llf_views.npz")
             for idx in d["indices"].tolist():
@@ -398,7 +399,7 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
     ldc = merge_ldc(scene, axes, params.ldc_resolution, analyze(scene))
     llf = None
     if plan.get("bake_llf"):
-        from engine.llf import llf_params_dict, merge_llf
+        from engine.newviews.llf import llf_params_dict, merge_llf
 
         llf = merge_llf(params.llf_f, params.llf_resolution, views,
                         llf_params_dict(_reference_params(params), params.max_layers))

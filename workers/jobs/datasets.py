@@ -1,17 +1,17 @@
 """Jobs on illumination datasets: generate (bake queue), bake (bake queue), relight and composite
 (render queue).
 
-- :func:`generate_job`: render a stored scene once per point light (``engine.relight_gen``) and
+- :func:`generate_job`: render a stored scene once per point light (``engine.relighting.generate``) and
   store the result as a dataset in exactly the upload format (float EXR images, a float EXR
   distance map, a PNG mask, the manifest), plus a small artifact mapping the request to the
   dataset id (so the same request is a cache hit).
-- :func:`bake_job`: ``engine.relight.bake_dataset`` on a stored dataset; the baked stack and the
+- :func:`bake_job`: ``engine.relighting.relight.bake_dataset`` on a stored dataset; the baked stack and the
   lookup structures become one content-addressed artifact (``baked.npz``).
 - :func:`relight_job`: the baked dataset (kept warm in this process's LRU, :func:`baked_cache`)
   under new lights -> ``radiance.exr`` (linear float), ``preview.png`` (sRGB), ``outside.png``
   (coverage mask, white = some light direction outside the dataset's coverage), counts and
   timings.
-- :func:`composite_job`: ``engine.composite`` when that module is present.
+- :func:`composite_job`: ``engine.relighting.composite`` when that module is present.
 
 Every job validates its payload, recomputes the artifact key and refuses a mismatch, returns the
 stored result when the artifact already exists, reports progress and honours cancellation
@@ -67,7 +67,7 @@ from workers.queues import engine_version, job_owners
 from workers.settings import get_settings, open_worker_store
 
 if TYPE_CHECKING:
-    from engine.relight import BakedDataset, IlluminationDataset
+    from engine.relighting.relight import BakedDataset, IlluminationDataset
     from workers.store import ObjectStore
 
 __all__ = ["JobCanceled", "bake_job", "baked_cache", "composite_job", "generate_job", "load_illumination_dataset",
@@ -125,12 +125,12 @@ def _image_bytes(tmp: Path, name: str, pixels: Any, **kw: Any) -> bytes:
 def load_illumination_dataset(store: ObjectStore, dataset_id: str,
                               progress: ProgressReporter | None = None, frac: tuple[float, float] = (0.0, 1.0)
                               ) -> IlluminationDataset:
-    """A stored dataset as an ``engine.relight.IlluminationDataset``: images linearised with the
+    """A stored dataset as an ``engine.relighting.relight.IlluminationDataset``: images linearised with the
     manifest's transfer function, surface points from the depth map (or by ray-casting the stored
     scene), the mask combined with the valid depth pixels."""
     from api_schemas.datasets import DepthGeometry, PinholeCamera, SceneGeometry
     from engine.errors import InvalidInputError
-    from engine.relight import IlluminationDataset, points_from_depth
+    from engine.relighting.relight import IlluminationDataset, points_from_depth
     from workers.scene_loader import camera_params
 
     manifest, public = get_dataset(store, dataset_id)
@@ -191,7 +191,7 @@ def _points_from_scene(store: ObjectStore, scene_id: str, camera: Any) -> tuple[
 def baked_to_bytes(baked: BakedDataset) -> bytes:
     """One uncompressed ``.npz`` of a baked dataset (loading is a copy, not a decompression): every
     array field by name, the other fields (shape, flags, sizes) as JSON, a low-rank store
-    (``engine.relight_compress.LowRankStore``) as ``lowrank.<field>`` arrays. Generic over the
+    (``engine.relighting.compress.LowRankStore``) as ``lowrank.<field>`` arrays. Generic over the
     dataclass fields, so a field the engine adds is carried without a change here."""
     arrays: dict[str, np.ndarray] = {}
     meta: dict[str, Any] = {}
@@ -225,7 +225,7 @@ def _json_safe_scalars(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
-    from engine.relight import BakedDataset
+    from engine.relighting.relight import BakedDataset
 
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         meta: dict[str, Any] = json.loads(str(z["_meta"]))
@@ -233,7 +233,7 @@ def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
                                   if k != "_meta" and not k.startswith("lowrank.")}
         lowrank = meta.pop("lowrank", None)
         if lowrank is not None:
-            from engine.relight_compress import LowRankStore
+            from engine.relighting.compress import LowRankStore
 
             lr_args: dict[str, Any] = {k.split(".", 1)[1]: np.ascontiguousarray(z[k]) for k in z.files
                                        if k.startswith("lowrank.")}
@@ -267,7 +267,7 @@ def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     key = bake_artifact_key(p.dataset_id, p.params)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    from engine.relight import bake_dataset
+    from engine.relighting.relight import bake_dataset
     from workers.artifacts import read_manifest, write_artifact
 
     store = _worker_store()
@@ -327,7 +327,7 @@ def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
         RelightPointLight,
         RelightRectLight,
     )
-    from engine.relight import DirectionalLight, EnvironmentLight, PointLight, RectLight
+    from engine.relighting.relight import DirectionalLight, EnvironmentLight, PointLight, RectLight
 
     out: list[Any] = []
     for light in lights:
@@ -452,7 +452,7 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     req, key, store, cached = _start_output_job(RelightJobPayload, payload, "relight", relight_artifact_key)
     if cached is not None:
         return cached
-    from engine.relight import relight
+    from engine.relighting.relight import relight
 
     progress = ProgressReporter(get_current_job())
     bake_key = bake_artifact_key(req.dataset_id, req.bake)
@@ -498,7 +498,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     from api_schemas.datasets import DatasetManifest
     from engine.errors import InvalidInputError
     from engine.reference import ReferenceParams
-    from engine.relight_gen import LightPlacement, generate_dataset, surface_aovs
+    from engine.relighting.generate import LightPlacement, generate_dataset, surface_aovs
     from workers.artifacts import read_manifest, write_artifact
     from workers.jobs.render import _load
     from workers.scene_loader import camera_params
@@ -577,7 +577,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     gt_blobs: dict[str, tuple[bytes, str]] = {}
     n_gt = len(req.ground_truth)
     if n_gt:
-        from engine.relight_gen import render_ground_truth
+        from engine.relighting.generate import render_ground_truth
 
         gt_lights = _engine_lights(store, list(req.ground_truth))
         with tempfile.TemporaryDirectory(prefix="ibr-ground-truth-", dir=_SCRATCH) as tmpdir:
@@ -619,13 +619,13 @@ def _scene_camera_doc(store: ObjectStore, scene_id: str) -> dict[str, Any]:
 
 
 def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
-    """Composite an object dataset into a background plate (``engine.composite``)."""
+    """Composite an object dataset into a background plate (``engine.relighting.composite``)."""
     t_start = time.perf_counter()
     req, key, store, cached = _start_output_job(CompositeJobPayload, payload, "composite", composite_artifact_key)
     if cached is not None:
         return cached
-    from engine.composite import active_region_around, composite
-    from engine.relight import relight
+    from engine.relighting.composite import active_region_around, composite
+    from engine.relighting.relight import relight
 
     progress = ProgressReporter(get_current_job())
     t0 = time.perf_counter()

@@ -365,8 +365,8 @@ def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
 
 
 def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> CachedBakeRenderer:
-    from engine.effects import analyze
-    from engine.ldc_render import LDCViewRenderer
+    from engine.newviews.effects import analyze
+    from engine.newviews.renderer import LDCViewRenderer
     from workers.bakes import bake_complete
     from workers.jobs.bake import BakeFailed, load_bake
 
@@ -385,7 +385,7 @@ def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> Ca
 def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress: ProgressReporter,
                       t_start: float) -> dict[str, Any]:
     """``ldc``, ``ldc+llf``, ``ldc+ibrt:k``: render from the scene's bake (LDC + LLF) with
-    ``engine.ldc_render.LDCViewRenderer``, cached per bake in this worker."""
+    ``engine.newviews.renderer.LDCViewRenderer``, cached per bake in this worker."""
     from workers.artifacts import write_artifact
     from workers.bakes import bake_key
 

@@ -43,7 +43,7 @@ from workers.walkthroughs import (
 )
 
 if TYPE_CHECKING:
-    from engine.animation import AnimatedScene
+    from engine.walkthrough.animation import AnimatedScene
     from engine.walkthrough.bake import WalkthroughBake
     from engine.walkthrough.viewspace import ViewSpace
     from workers.store import ObjectStore

@@ -21,9 +21,9 @@ def test_resize_updates_the_total_and_evicts_when_over_budget() -> None:
 
 
 def test_bake_renderers_share_the_budget_with_reference_renderers() -> None:
-    from engine.effects import analyze
-    from engine.ldc import bake_ldc
-    from engine.ldc_render import LDCViewRenderer
+    from engine.newviews.effects import analyze
+    from engine.newviews.ldc import bake_ldc
+    from engine.newviews.renderer import LDCViewRenderer
     from engine.raycast import make_caster
     from workers.scene_loader import load_scene
 

@@ -42,12 +42,13 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from .camera import camera_rays
-from .errors import InvalidInputError, NonFiniteOutputError
-from .ldc import LDC, shade_samples, surface_attributes
-from .raycast import RayCaster
-from .scene import CameraParams
-from .sched import next_block
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.camera import camera_rays
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.newviews.ldc import LDC, shade_samples, surface_attributes
+from engine.raycast import RayCaster
+from engine.scene import CameraParams
+from engine.sched import next_block
 
 PROV_NONE = 0
 PROV_WARPED = 1

@@ -76,9 +76,10 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-from .errors import InvalidInputError
-from .ldc import LDC
-from .sched import next_block
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.newviews.ldc import LDC
+from engine.sched import next_block
 
 DEFAULT_MARGIN = 0.05
 DEFAULT_MIN_COS = 0.5

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scene import RuntimeScene
+from engine.scene import RuntimeScene
 
 KINDS = ("diffuse", "highlight", "glossy", "mirror")
 # the convexity test is O(vertices x faces); above this many triangles we don't try (occludable)
@@ -68,7 +68,7 @@ def plan_from_dict(d: dict) -> EffectPlan:
                           convex_single_object=bool(d["convex_single_object"]), has_emission=bool(d["has_emission"]),
                           has_ambient=bool(d["has_ambient"]), animated=bool(d.get("animated", False)))
     except (KeyError, TypeError) as e:
-        from .errors import InvalidInputError
+        from engine.errors import InvalidInputError
 
         raise InvalidInputError(f"effect plan dict is malformed: {e}") from None
 

@@ -26,9 +26,9 @@ import numpy as np
 from scipy.linalg import polar
 from scipy.spatial.transform import Rotation, Slerp
 
-from .errors import InvalidInputError
-from .geometry.mesh import TriMesh
-from .scene import LightTable, MaterialTable, RuntimeScene, SceneObjectPart, build_runtime_scene
+from engine.errors import InvalidInputError
+from engine.geometry.mesh import TriMesh
+from engine.scene import LightTable, MaterialTable, RuntimeScene, SceneObjectPart, build_runtime_scene
 
 __all__ = ["AnimatedScene", "LightTrack", "TransformTrack", "decompose_affine"]
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-from .errors import InvalidInputError
+from engine.errors import InvalidInputError
 
 
 def _image(name: str, a, shape=None) -> tuple[np.ndarray, np.ndarray | None]:

@@ -13,7 +13,7 @@ sparser (in solid angle) than near its vertices. Order: a ascending, b ascending
 (``direction_to_lattice``), so the directions near a given one are found in a small window
 of the lattice (``candidate_directions``), without a search over all n.
 
-**Views.** ``LLFView`` ``index`` = a parallel-projection LDI (``engine/ldi.py``) whose rays
+**Views.** ``LLFView`` ``index`` = a parallel-projection LDI (``engine/newviews/ldi.py``) whose rays
 travel along ``direction`` (= the frame's ``w``); its square frame (``resolution`` x
 ``resolution``) is perpendicular to the direction and covers the scene's bounding sphere
 (centre and half-diagonal of the bounds) plus one pixel on every side. ``radiance`` (n, 3)
@@ -21,7 +21,7 @@ float32 is, per sample, the radiance leaving the sample toward ``-direction`` (b
 the view's rays, toward its reference plane), i.e. what a viewer looking along
 ``direction`` sees at that layer. So the radiance ARRIVING at a point p from direction d
 (light travelling along -d) is read in the view whose direction is d, at the first sample
-beyond p along its pixel rays (``engine/view_pass.py``).
+beyond p along its pixel rays (``engine/newviews/view_pass.py``).
 
 **Radiance = the reference renderer.** Every sample is shaded by
 ``ReferenceRenderer.shade_hits`` as if it were the first hit of a camera ray travelling
@@ -43,11 +43,12 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from .errors import InvalidInputError
-from .ldi import DEFAULT_MAX_BYTES, LDI, LDIFrame, build_ldi, estimate_ldi_bytes
-from .raycast import RayCaster
-from .reference import ReferenceParams, ReferenceRenderer
-from .scene import RuntimeScene
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.newviews.ldi import DEFAULT_MAX_BYTES, LDI, LDIFrame, build_ldi, estimate_ldi_bytes
+from engine.raycast import RayCaster
+from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.scene import RuntimeScene
 
 MAX_FREQUENCY = 64  # 16,386 directions
 MAX_LLF_RESOLUTION = 1024

@@ -2,10 +2,10 @@
 
 ``LDCViewRenderer(scene, ldc, llf, plan).render(camera, method, ibrt_generations=k)``:
 
-1. **Warp** (``engine/warp.py``): every LDC sample into the camera with a depth test; holes
+1. **Warp** (``engine/newviews/warp.py``): every LDC sample into the camera with a depth test; holes
    flagged (uncovered pixels and far surfaces seen through cracks).
 2. **Hole filling**: ``fill="ibrt"`` (default) traces one image-based ray per hole pixel from
-   the eye through the LDC (``engine/ibrt.py``); a hit shows that sample's diffuse radiance,
+   the eye through the LDC (``engine/newviews/ibrt.py``); a hit shows that sample's diffuse radiance,
    a miss the background. ``fill="raycast"`` (the interim fill) casts Embree rays against
    the scene's triangles instead and shades the hits with the bake's diffuse model (it
    needs the triangles; the image-based fill needs only the bake). ``fill="none"`` leaves
@@ -24,7 +24,7 @@
 3. **View-dependent pass**, only on the visible pixels whose material needs it (the effect
    plan; ``force_all_passes=True`` runs every pass of the method on every covered pixel,
    for the test that skipping changes nothing): Phong highlights gated by the LDC's
-   visibility bits (``engine/view_pass.py``), then reflections:
+   visibility bits (``engine/newviews/view_pass.py``), then reflections:
 
    - ``ldc``: no reflections (warp + holes + highlights: everything the LDC alone holds);
    - ``ldc+llf``: light-field gather for mirror (3-direction cone) and glossy (lobe) terms;
@@ -53,16 +53,17 @@ from dataclasses import dataclass, field, replace
 import numba as nb
 import numpy as np
 
-from .effects import EffectPlan, analyze, plan_from_dict
-from .errors import InvalidInputError, NonFiniteOutputError
-from .geometry.adjacency import locate_on_mesh, triangle_neighbours
-from .ldc import LDC, shade_samples, surface_attributes
-from .llf import LLF
-from .raycast import RayCaster, make_caster
-from .scene import CameraParams, RuntimeScene
-from .sched import next_block
-from .view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point_u
-from .warp import warp_ldc
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.geometry.adjacency import locate_on_mesh, triangle_neighbours
+from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
+from engine.newviews.ldc import LDC, shade_samples, surface_attributes
+from engine.newviews.llf import LLF
+from engine.newviews.view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point_u
+from engine.newviews.warp import warp_ldc
+from engine.raycast import RayCaster, make_caster
+from engine.scene import CameraParams, RuntimeScene
+from engine.sched import next_block
 
 PROV_NONE = 0
 PROV_WARPED = 1
@@ -911,7 +912,7 @@ class LDCViewRenderer:
     @property
     def accel(self):
         if self._accel is None:
-            from .ibrt import build_accel
+            from engine.newviews.ibrt import build_accel
 
             self._accel = build_accel(self.ldc)
         return self._accel
@@ -928,7 +929,7 @@ class LDCViewRenderer:
         if self._accel is not None:
             n += self._accel.nbytes
             if self._trace_args is not None:
-                from .ibrt import trace_nbytes
+                from engine.newviews.ibrt import trace_nbytes
 
                 n += trace_nbytes(self._trace_args, self._accel)
         return int(n)
@@ -1233,7 +1234,7 @@ class LDCViewRenderer:
 
     def _trace(self, o: np.ndarray, d: np.ndarray, origin_normals: np.ndarray | None = None):
         """(axis, sample, t, n_steps, n_tests) of rays o + t d (d unit) through the LDC."""
-        from .ibrt import trace_args, trace_prepared
+        from engine.newviews.ibrt import trace_args, trace_prepared
 
         if self._trace_args is None:
             self._trace_args = trace_args(self.ldc)

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
-from .raycast import RayCaster, all_hits
+from engine.errors import InvalidInputError
+from engine.raycast import RayCaster, all_hits
 
 # bytes per sample in an LDI (depth 8 + prim 4 + u 4 + v 4)
 LDI_SAMPLE_BYTES = 20

@@ -2,7 +2,7 @@
 
 The scene is rendered by the reference renderer (``engine.reference``) once per point light,
 the lights placed over a chosen part of a sphere around the visible surface. The result is an
-:class:`engine.relight.IlluminationDataset` in exactly the upload format (K images, one light
+:class:`engine.relighting.relight.IlluminationDataset` in exactly the upload format (K images, one light
 position and intensity each, the surface points from the renderer's depth AOV, the mask of
 pixels that hit geometry), plus ground-truth renders under any other lights for testing.
 
@@ -29,11 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import camera_rays, pixel_centers
-from .errors import InvalidInputError
-from .raycast import RayCaster, make_caster
-from .reference import ReferenceParams, ReferenceRenderer
-from .relight import (
+from engine.camera import camera_rays, pixel_centers
+from engine.errors import InvalidInputError
+from engine.raycast import RayCaster, make_caster
+from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.relighting.relight import (
     DirectionalLight,
     EnvironmentLight,
     IlluminationDataset,
@@ -43,7 +43,7 @@ from .relight import (
     light_from_dict,
     points_from_depth,
 )
-from .scene import CameraParams, LightTable, RuntimeScene
+from engine.scene import CameraParams, LightTable, RuntimeScene
 
 REGIONS = ("sphere", "hemisphere", "upper_front_quarter")
 LAYOUTS = ("grid", "geodesic")
@@ -372,7 +372,7 @@ def generate_dataset(scene: RuntimeScene, camera: CameraParams, placement: Light
 
     Image k is the reference render (``params``) of the scene lit only by point light k (see the
     module docstring for what is replaced). Surface points: the depth AOV of the pixel-centre rays
-    through :func:`engine.relight.points_from_depth` (``depth_kind="distance"``); mask: pixels
+    through :func:`engine.relighting.relight.points_from_depth` (``depth_kind="distance"``); mask: pixels
     whose centre ray hits geometry. ``progress(fraction, stage)`` is called after every image; an
     exception raised by it (cancellation) stops the generation. The dataset's ``sphere_center`` is
     the placement centre (the bake's default) and ``meta`` records the resolved placement, the

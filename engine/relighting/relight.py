@@ -35,10 +35,11 @@ from numba.core import cgutils
 from numba.core import types as nbtypes
 from numba.extending import intrinsic, overload
 
-from .errors import InvalidInputError
-from .relight_compress import LowRankStore, block_order, compress_store
-from .scene import CameraParams
-from .sched import next_block
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.relighting.compress import LowRankStore, block_order, compress_store
+from engine.scene import CameraParams
+from engine.sched import next_block
 
 HALF_MAX = 65504.0
 HALF_MIN_NORMAL = 6.103515625e-05
@@ -174,7 +175,7 @@ def points_from_depth(depth, camera: CameraParams | None = None, *, depth_kind: 
     distance along the pixel's ray. For an orthographic camera both are the same. Pixels
     whose depth is NaN, Inf or <= 0 are invalid (their point is NaN).
     """
-    from .camera import camera_rays, pixel_centers
+    from engine.camera import camera_rays, pixel_centers
 
     d = _as_array("depth", depth, np.float64, 2)
     h, w = d.shape
@@ -628,7 +629,7 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         ``half_rel_floor``: values below this fraction of their light's max may lose precision
         (default 0: every non-zero value keeps float16's 2^-11 relative precision, HARD_CASES 9).
     compress: None, or the requested relative RMS error (0 < compress < 1) of a low-rank store
-        (``engine.relight_compress``: rank per 256-pixel tile). It is used only when its measured
+        (``engine.relighting.compress``: rank per 256-pixel tile). It is used only when its measured
         error meets the request and it is smaller than the uncompressed store; otherwise the
         uncompressed store is built and ``report["compression_reason"]`` says why. The measured
         errors are in ``report["compression_report"]`` either way.
@@ -1226,7 +1227,8 @@ def _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, dist
             # the float32 geometry (one point light of a tiled store, the common case; the light within
             # 2^20 sphere radii: no float32 overflow or underflow in the scaled frame): pass A and the
             # cone test in float32, rows whose test is within its error bound re-tested in float64
-            f32 = simd and kd == 0 and not distant_ds and max(abs(lx), max(abs(ly), abs(lz))) <= _F32_LIGHT_RANGE * radius
+            f32 = (simd and kd == 0 and not distant_ds
+                   and max(abs(lx), max(abs(ly), abs(lz))) <= _F32_LIGHT_RANGE * radius)
             # ---- pass A: sphere direction, squared distance and irradiance denominator of every row
             if f32:
                 # in the frame scaled by fscale (a power of two: exact) the radius is in [1, 2); the light

@@ -52,12 +52,13 @@ import math
 import numba as nb
 import numpy as np
 
-from .errors import InvalidInputError, NonFiniteOutputError
-from .lights import directional_light_sample, light_sample
-from .llf import LLF, candidate_directions, direction_to_lattice
-from .raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
-from .rng import stream_key, uniform
-from .scene import RuntimeScene
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.lights import directional_light_sample, light_sample
+from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
+from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
+from engine.rng import stream_key, uniform
+from engine.scene import RuntimeScene
 
 INV_PI = 1.0 / math.pi
 GLOSSY_LOG_CUT = 10.0  # skip directions whose lobe weight is below e^-10 of the best one

@@ -31,13 +31,14 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from .effects import EffectPlan, analyze
-from .errors import InvalidInputError
-from .ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
-from .lights import light_sample
-from .raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
-from .rng import stream_key, uniform
-from .scene import RuntimeScene
+from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.errors import InvalidInputError
+from engine.lights import light_sample
+from engine.newviews.effects import EffectPlan, analyze
+from engine.newviews.ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
+from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
+from engine.rng import stream_key, uniform
+from engine.scene import RuntimeScene
 
 INV_PI = 1.0 / math.pi
 MAX_RESOLUTION = 8192
