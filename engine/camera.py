@@ -36,23 +36,3 @@ def pixel_centers(cam: CameraParams) -> tuple[np.ndarray, np.ndarray]:
     """(px, py) of every pixel centre in row-major order, each (h*w,) float64."""
     ys, xs = np.mgrid[0:cam.height, 0:cam.width]
     return xs.ravel() + 0.5, ys.ravel() + 0.5
-
-
-def stratified_pixel_samples(cam: CameraParams, pixel_ids: np.ndarray, spp: int,
-                             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``spp`` jittered samples per pixel on a stratified grid (box filter).
-
-    Returns (px, py, pixel) with pixel-major order; the grid is gx x gy cells with
-    gx = ceil(sqrt(spp)), cells filled row by row.
-    """
-    gx = int(np.ceil(np.sqrt(spp)))
-    j = np.arange(spp)
-    cx, cy = j % gx, j // gx
-    gy = int(np.ceil(spp / gx))
-    pix = np.repeat(pixel_ids.astype(np.int64), spp)
-    jit = rng.random((pix.shape[0], 2))
-    sx = (np.tile(cx, pixel_ids.shape[0]) + jit[:, 0]) / gx
-    sy = (np.tile(cy, pixel_ids.shape[0]) + jit[:, 1]) / gy
-    px = (pix % cam.width) + sx
-    py = (pix // cam.width) + sy
-    return px, py, pix
