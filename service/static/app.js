@@ -1,4 +1,4 @@
-// ibr-service browser preview (issue 7). Plain ES module, no dependencies, nothing from the network
+// ibr-service browser preview. Plain ES module, no dependencies, nothing from the network
 // but this API. See the Help section of index.html for what the controls do.
 
 const KEY_STORAGE = "ibr.apiKey";

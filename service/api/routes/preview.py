@@ -1,4 +1,4 @@
-"""The browser preview page (issue 7): static files at ``/preview/``, ``/`` redirects there,
+"""The browser preview page: static files at ``/preview/``, ``/`` redirects there,
 plus the few API endpoints only the page needs (``/v1/preview/...``).
 
 No build step: ``service/static/{index.html,app.js,app.css}`` are served as they are.
@@ -340,12 +340,13 @@ def _pair(store: ObjectStore, owner: str | None, test: str, ref: str) -> tuple[n
 
 def _compare(store: ObjectStore, owner: str | None, test: str, ref: str) -> Comparison:
     t, r, mask = _pair(store, owner, test, ref)
-    y_t, y_r = luminance(t)[mask], luminance(r)[mask]
-    value = lrms(t, r, mask)
+    lum_t, lum_r = luminance(t), luminance(r)  # the metrics of a luminance image are those of the image
+    y_t, y_r = lum_t[mask], lum_r[mask]
+    value = lrms(lum_t, lum_r, mask)
     return Comparison(
         test=test, ref=ref, lrms=value if math.isfinite(value) else None,
         rms=math.sqrt(float(np.mean(np.square(y_t - y_r)))), mean_ref_luminance=float(np.mean(y_r)),
-        fraction_over_5pct=fraction_over(t, r, 0.05, mask),
+        fraction_over_5pct=fraction_over(lum_t, lum_r, 0.05, mask),
         n_pixels=int(y_r.size), width=int(r.shape[1]), height=int(r.shape[0]),
         links={"heatmap": f"/v1/preview/compare/heatmap.png?test={test}&ref={ref}"},
     )
