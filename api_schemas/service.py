@@ -116,8 +116,10 @@ def _bounds(p: Param) -> Any:
 
 
 class ReferenceRenderParams(FrozenModel):
-    """Settings of the reference renderer (see docs/reference-renderer.md); ranges, defaults and
-    meanings are those of the registry entry ``engine.methods.REFERENCE``."""
+    """Settings of the reference renderer (see docs/reference-renderer.md)."""
+
+    # ranges, defaults and meanings: the registry entry engine.methods.REFERENCE (tests/engine/test_methods.py
+    # checks that these fields are exactly its parameters)
 
     spp: Annotated[int, _bounds(_ref("spp"))] = _ref("spp").default
     max_depth: Annotated[int, _bounds(_ref("max_depth"))] = _ref("max_depth").default
