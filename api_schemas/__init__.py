@@ -1,4 +1,5 @@
-"""Request/response schemas shared by the service and the workers (never imports the engine).
+"""Request/response schemas shared by the service and the workers (of the engine, only its numba-free
+render-method registry ``engine.methods``).
 
 The scene format is documented in ``docs/scene-format.md``; its JSON Schema is
 ``docs/scene.schema.json`` (regenerate with ``python -m api_schemas.export``).

@@ -4,13 +4,13 @@ Resources: scenes (content-addressed), jobs (RQ), renders (a render request crea
 reuses a job whose result is an artifact), artifacts (content-addressed blobs + a
 manifest), batches (many requests in one call). Errors are RFC 9457 problem details.
 
-The service never imports the engine; workers validate job payloads with these same
-models before doing any work.
+Workers validate job payloads with these same models before doing any work. The render methods
+and the reference renderer's parameters come from the registry ``engine.methods`` (pure Python:
+the API process imports it, and no numba).
 """
 
 from __future__ import annotations
 
-import re
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -19,23 +19,36 @@ from pydantic_core import PydanticCustomError
 
 from api_schemas.common import FrozenModel
 from api_schemas.scene import Camera, Scene
+from engine.errors import InvalidInputError
+from engine.methods import (
+    IBRT_GENERATIONS,
+    METHODS,
+    REFERENCE,
+    Param,
+    allowed_forms,
+    method_pattern,
+    parse_method,
+)
+from engine.methods import method_needs_bake as method_needs_bake  # for the routes and job dispatch
 
 Sha256 = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{64}$")]
 """Lower-case hex sha256: scene ids, blob checksums and artifact keys."""
 
 JobId = Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{1,128}$")]
 
-MAX_IBRT_GENERATIONS = 8
-METHOD_PATTERN = r"^(reference|ldc|ldc\+llf|ldc\+ibrt:[0-8])$"
+MAX_IBRT_GENERATIONS = IBRT_GENERATIONS.high
+METHOD_PATTERN = method_pattern()
+"""``^(reference|ldc|ldc\\+llf|ldc\\+ibrt:[0-8])$``, from the registry (``engine.methods``)."""
 
 
 def _check_method(value: str) -> str:
-    if re.fullmatch(METHOD_PATTERN, value) is None:
+    try:
+        parse_method(value)
+    except InvalidInputError:
         raise PydanticCustomError(
-            "render_method",
-            "method must be 'reference', 'ldc', 'ldc+llf' or 'ldc+ibrt:k' with k in 0..{max_k}, got '{value}'",
+            "render_method", "method must be " + allowed_forms() + ", got '{value}'",
             {"max_k": MAX_IBRT_GENERATIONS, "value": value[:40]},
-        )
+        ) from None
     return value
 
 
@@ -43,15 +56,15 @@ RenderMethod = Annotated[
     str,
     AfterValidator(_check_method),
     WithJsonSchema({"type": "string", "pattern": METHOD_PATTERN,
-                    "description": "reference | ldc | ldc+llf | ldc+ibrt:k (k = 0..8 reflection generations)"}),
+                    "description": " | ".join(m.form for m in METHODS) + "".join(
+                        f" ({m.arg.name} = {m.arg.range_text} reflection generations)"
+                        for m in METHODS if m.arg is not None)}),
 ]
-"""``reference`` (the ray tracer), or a method that renders from the scene's bake: ``ldc`` (warp of
+"""A render method of the registry ``engine.methods`` (its module docstring has the table):
+``reference`` (the ray tracer), or a method that renders from the scene's bake: ``ldc`` (warp of
 the layered depth cube only), ``ldc+llf`` (plus highlights and light-field gather), ``ldc+ibrt:k``
-(plus k generations of image-based ray tracing through the LDC ending in a gather, k = 0..8)."""
-
-
-def method_needs_bake(method: str) -> bool:
-    return method != "reference"
+(plus k generations of image-based ray tracing through the LDC ending in a gather, k = 0..8).
+Validated through the registry, kept as sent (the string is part of the artifact key)."""
 
 JobState = Literal["queued", "started", "finished", "failed", "canceled"]
 
@@ -94,16 +107,27 @@ class SceneList(FrozenModel):
 # ------------------------------------------------------------------------------ renders
 
 
+def _ref(name: str) -> Param:
+    return REFERENCE.param(name)
+
+
+def _bounds(p: Param) -> Any:
+    return Field(ge=p.low, le=p.high, description=p.doc)
+
+
 class ReferenceRenderParams(FrozenModel):
     """Settings of the reference renderer (see docs/reference-renderer.md)."""
 
-    spp: Annotated[int, Field(ge=1, le=4096)] = 4
-    max_depth: Annotated[int, Field(ge=0, le=64)] = 4
-    glossy_samples: Annotated[int, Field(ge=1, le=4096)] = 16
-    area_light_samples: Annotated[int, Field(ge=1, le=4096)] = 16
-    indirect_samples: Annotated[int, Field(ge=0, le=65536)] = 0
-    indirect_bounces: Annotated[int, Field(ge=1, le=64)] = 2
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    # ranges, defaults and meanings: the registry entry engine.methods.REFERENCE (tests/engine/test_methods.py
+    # checks that these fields are exactly its parameters)
+
+    spp: Annotated[int, _bounds(_ref("spp"))] = _ref("spp").default
+    max_depth: Annotated[int, _bounds(_ref("max_depth"))] = _ref("max_depth").default
+    glossy_samples: Annotated[int, _bounds(_ref("glossy_samples"))] = _ref("glossy_samples").default
+    area_light_samples: Annotated[int, _bounds(_ref("area_light_samples"))] = _ref("area_light_samples").default
+    indirect_samples: Annotated[int, _bounds(_ref("indirect_samples"))] = _ref("indirect_samples").default
+    indirect_bounces: Annotated[int, _bounds(_ref("indirect_bounces"))] = _ref("indirect_bounces").default
+    seed: Annotated[int, _bounds(_ref("seed"))] = _ref("seed").default
 
 
 class LLFRenderParams(FrozenModel):

@@ -29,7 +29,10 @@ Rules (``../shared/design/ALGORITHMS.md`` "Shared conventions", ``HARD_CASES.md`
   the same pixels, metadata and compression give the same file (useful for content-addressed caches).
 - :func:`encode_image` returns the bytes :func:`write_image` would write (same checks, same bytes),
   for callers that ship them elsewhere (an object store): it encodes in a RAM-backed scratch file
-  when there is one and skips the fsyncs, since no file is kept.
+  when there is one and skips the fsyncs, since no file is kept. :func:`decode_image` reads such
+  bytes back like :func:`read_image`.
+- No numba at import: the API process reads images and computes metrics with this module. The
+  compiled loop of the 8-bit encode (``engine/_srgb8_kernel.py``) is imported on first use.
 - 8-bit display encoding goes through exact code-value thresholds (one table look-up and one
   comparison per sample), bit-identical to ``rint(tonemap_srgb(x) * 255)`` in float64.
 
@@ -60,11 +63,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numba as nb
 import numpy as np
 import OpenImageIO as oiio
 
-from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import ImageFormatError, InvalidInputError, NonFiniteOutputError
 
 __all__ = [
@@ -72,11 +73,13 @@ __all__ = [
     "DEFAULT_MAX_PIXELS",
     "HALF_MAX",
     "SUPPORTED_EXTENSIONS",
+    "decode_image",
+    "encode_display",
+    "encode_image",
     "image_info",
     "read_image",
     "srgb_decode",
     "srgb_encode",
-    "encode_image",
     "tonemap_srgb",
     "write_image",
 ]
@@ -311,7 +314,7 @@ def _prepare(
         if ptype == "uint8" and c in (1, 3):
             data = _srgb8_codes(px, exposure_stops)
         else:
-            data = _encode_display(px, exposure_stops, 255 if ptype == "uint8" else 65535)
+            data = encode_display(px, exposure_stops, 255 if ptype == "uint8" else 65535)
             data = data.astype(np.uint8 if ptype == "uint8" else np.uint16)
         attrs["oiio:ColorSpace"] = "sRGB"
         if c == 4:
@@ -360,8 +363,13 @@ def _resolve_compression(path: Path, fmt: _Format, compression: str | None) -> s
     return compression
 
 
-def _encode_display(px: np.ndarray, exposure_stops: float, levels: int) -> np.ndarray:
-    """Linear associated-alpha pixels -> rounded sRGB code values (float64), straight alpha."""
+def encode_display(px: np.ndarray, exposure_stops: float = 0.0, levels: int = 255) -> np.ndarray:
+    """The display encoding of the integer outputs as code values: ``(h, w, c)`` linear pixels with
+    associated alpha (``c == 4``) -> ``rint(levels * tonemap_srgb(colour, exposure_stops))`` as
+    float64, alpha straight (colour un-premultiplied; fully transparent pixels carry no colour) and
+    linear. ``levels`` 255 gives the samples of an 8-bit PNG (:func:`write_image` writes the same
+    codes through a faster exact path), 65535 those of a 16-bit one. No input checks: finite
+    pixels, as :func:`write_image` requires."""
     x = px.astype(np.float64)
     c = x.shape[2]
     color = x[..., :3] if c == 4 else x
@@ -423,38 +431,21 @@ def _srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _srgb8_codes(px: np.ndarray, exposure_stops: float) -> np.ndarray:
-    """uint8 codes of grey/RGB linear pixels, bit-identical to ``_encode_display(px, e, 255)``
-    (finite input: callers refuse NaN/Inf first). One pass of :func:`_srgb8_kernel`: the same
+    """uint8 codes of grey/RGB linear pixels, bit-identical to ``encode_display(px, e, 255)``
+    (finite input: callers refuse NaN/Inf first). One pass of ``engine._srgb8_kernel``: the same
     float64 operations as the NumPy form it replaced, ~4x faster at 512x512 (the render preview)."""
+    # Deferred on purpose: the compiled loop needs numba, which importing this module must not load
+    # (the API process reads images and computes metrics, and never encodes 8-bit ones).
+    from engine._srgb8_kernel import srgb8_kernel
+
     base, thresh = _srgb8_tables()
     flat = np.ascontiguousarray(px).reshape(-1)
     if flat.dtype not in (np.float32, np.float64):  # float16 / longdouble: to float64 as before
         flat = flat.astype(np.float64)
     out = np.empty(flat.size, np.uint8)
     scale = 2.0**exposure_stops if exposure_stops != 0.0 else 1.0  # x * 1.0 == x: the same bits
-    _srgb8_kernel(flat, np.float64(scale), base, thresh, np.int64(_BUCKET_SHIFT), out)
+    srgb8_kernel(flat, np.float64(scale), base, thresh, np.int64(_BUCKET_SHIFT), out)
     return out.reshape(px.shape)
-
-
-@nb.njit(cache=True, nogil=True)
-def _srgb8_kernel(flat, scale, base, thresh, shift, out):
-    """code = base[bucket(c)] + (c >= thresh[bucket(c)]) with c = clip(x * scale, 0, 1) in float64 and
-    bucket(c) = bits(c) >> shift (serial, nogil: safe from several threads at once)."""
-    bits = np.empty(1, np.float64)
-    ibits = bits.view(np.int64)
-    for i in range(flat.size):
-        c = np.float64(flat[i]) * scale
-        if c > 1.0:
-            c = 1.0
-        elif not c >= 0.0:  # negative (or NaN, which callers never pass)
-            c = 0.0
-        c += 0.0  # -0.0 -> +0.0 (its sign bit would make a negative index)
-        bits[0] = c
-        b = ibits[0] >> shift
-        code = base[b]
-        if c >= thresh[b]:
-            code += 1
-        out[i] = code
 
 
 def _write_atomic(path: Path, fmt: _Format, spec: oiio.ImageSpec, data: np.ndarray) -> None:
@@ -557,6 +548,34 @@ def read_image(
     if alpha_ch >= 0 and spec.get_int_attribute("oiio:UnassociatedAlpha", 0):
         pixels[..., color] *= pixels[..., alpha_ch : alpha_ch + 1]
     return pixels, metadata
+
+
+def decode_image(
+    name: str | os.PathLike[str],
+    data: bytes,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    transfer: str = "auto",
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """:func:`read_image` of an encoded image held in memory (a blob from an object store), the
+    counterpart of :func:`encode_image`.
+
+    ``name`` picks the format (its extension, one of :data:`SUPPORTED_EXTENSIONS`) and names the
+    image in errors; arguments, checks, errors and results are those of :func:`read_image`.
+    OpenImageIO reads files only, so the bytes go through a scratch file (in ``/dev/shm`` when
+    writable) that is removed again.
+    """
+    path = Path(name)
+    _format_for(path)
+    scratch = _scratch_dir() / f"ibr-decode-{secrets.token_hex(8)}{path.suffix.lower()}"
+    try:
+        scratch.write_bytes(data)
+        return read_image(scratch, max_pixels=max_pixels, transfer=transfer)
+    except ImageFormatError as exc:
+        raise ImageFormatError(str(exc).replace(str(scratch), str(path))) from None
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(scratch)
 
 
 def image_info(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -37,6 +37,7 @@ __all__ = [
     "ErrorReport",
     "compare",
     "error_heatmap",
+    "error_heatmap_display",
     "fraction_over",
     "lrms",
     "luminance",
@@ -229,8 +230,16 @@ def error_heatmap(test: Any, ref: Any, *, scale: float | None = None, mask: Any 
 
     The palette is defined on display (sRGB-encoded) values; the returned array is its linear
     decoding, like every image in the engine, so ``write_image("err.png", heatmap)`` (exposure
-    0) stores exactly the viridis colours. ``srgb_encode(heatmap)`` gives the display values.
+    0) stores exactly the viridis colours. :func:`error_heatmap_display` gives the display values.
     """
+    heat: np.ndarray = srgb_decode(error_heatmap_display(test, ref, scale=scale, mask=mask)).astype(np.float32)
+    return heat
+
+
+def error_heatmap_display(test: Any, ref: Any, *, scale: float | None = None, mask: Any = None) -> np.ndarray:
+    """:func:`error_heatmap` as display (sRGB-encoded) values, ``(h, w, 3) float64`` in [0, 1]: the
+    viridis colours themselves, for a caller that encodes them directly (``rint(255 x)`` is the
+    8-bit colour)."""
     s = None if scale is None else _check_threshold(scale, "scale", positive=True)
     t, r, m = _prepare(test, ref, mask)
     y_t, y_r = _luminance64(t), _luminance64(r)
@@ -241,9 +250,9 @@ def error_heatmap(test: Any, ref: Any, *, scale: float | None = None, mask: Any 
     pos = v * (len(_VIRIDIS) - 1)
     lo = np.minimum(np.floor(pos).astype(np.intp), len(_VIRIDIS) - 2)
     frac = (pos - lo)[..., None]
-    rgb = srgb_decode(_VIRIDIS[lo] * (1.0 - frac) + _VIRIDIS[lo + 1] * frac)
+    rgb: np.ndarray = _VIRIDIS[lo] * (1.0 - frac) + _VIRIDIS[lo + 1] * frac
     rgb[~m] = 0.0
-    return rgb.astype(np.float32)
+    return rgb
 
 
 # ----------------------------------------------------------------------------------------------

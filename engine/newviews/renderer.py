@@ -56,6 +56,8 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.geometry.adjacency import locate_on_mesh, triangle_neighbours
+from engine.methods import IBRT_GENERATIONS, LDC_IBRT, allowed_forms
+from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
 from engine.newviews.llf import LLF
@@ -71,9 +73,7 @@ PROV_FILLED = 2
 PROV_GATHERED = 3
 PROV_TRACED = 4
 
-METHODS = ("ldc", "ldc+llf", "ldc+ibrt")
 FILLS = ("ibrt", "raycast", "none")
-MAX_IBRT_GENERATIONS = 8
 
 
 @dataclass
@@ -97,22 +97,13 @@ class LDCRenderResult:
 
 
 def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
-    """("ldc" | "ldc+llf" | "ldc+ibrt", k); also accepts the API's "ldc+ibrt:k"."""
-    if isinstance(method, str) and method.startswith("ldc+ibrt:"):
-        try:
-            ibrt_generations = int(method.split(":", 1)[1])
-        except ValueError:
-            raise InvalidInputError(f"method {method!r}: the part after ':' must be an integer 0..8") from None
-        method = "ldc+ibrt"
-    if method not in METHODS:
-        raise InvalidInputError(f"method must be one of {list(METHODS)} or 'ldc+ibrt:k', got {method!r}")
-    if not isinstance(ibrt_generations, (int, np.integer)) or isinstance(ibrt_generations, bool) or \
-            not (0 <= ibrt_generations <= MAX_IBRT_GENERATIONS):
-        raise InvalidInputError(f"ibrt_generations must be an integer in [0, {MAX_IBRT_GENERATIONS}], "
-                                f"got {ibrt_generations!r}")
-    if method != "ldc+ibrt":
-        ibrt_generations = 0
-    return method, int(ibrt_generations)
+    """("ldc" | "ldc+llf" | "ldc+ibrt", k) of an LDC method of the registry ``engine.methods``: a wire
+    string ("ldc+ibrt:k" carries k) or "ldc+ibrt" with ``ibrt_generations`` (checked for every method)."""
+    k = IBRT_GENERATIONS.check(ibrt_generations, "ibrt_generations")
+    spec = LDC_IBRT.spec(k) if method == LDC_IBRT.name else parse_wire_method(method)
+    if not spec.needs_bake:
+        raise InvalidInputError(f"the LDC renderer renders {allowed_forms(needs_bake=True)}, got {method!r}")
+    return spec.name, spec.ibrt_generations
 
 
 # ----------------------------------------------------------------------------- fused per-pixel kernels
@@ -1280,5 +1271,5 @@ def _groups() -> int:
     return max(1, int(nb.get_num_threads()))
 
 
-__all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "MAX_IBRT_GENERATIONS", "METHODS", "PROV_FILLED",
+__all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
            "PROV_GATHERED", "PROV_NONE", "PROV_TRACED", "PROV_WARPED", "parse_method"]

@@ -1,4 +1,4 @@
-// ibr-service browser preview (issue 7). Plain ES module, no dependencies, nothing from the network
+// ibr-service browser preview. Plain ES module, no dependencies, nothing from the network
 // but this API. See the Help section of index.html for what the controls do.
 
 const KEY_STORAGE = "ibr.apiKey";
@@ -178,11 +178,19 @@ async function loadCapabilities() {
     if (res.ok) caps = await res.json();
   } catch { /* keep the minimal set: the reference renderer only */ }
   const sel = $("method");
-  sel.replaceChildren(...caps.methods.map((m) => new Option(m.name, m.name)));
+  sel.replaceChildren(...caps.methods.map((m) => {
+    const o = new Option(m.name, m.name);
+    // the registry's description (engine/methods.py): what the method renders, from which bake, at what cost
+    if (m.summary) o.title = [m.summary, m.bake && m.bake.length ? `bake: ${m.bake.join(" + ")}` : "no bake",
+      m.cost ? `cost: ${m.cost}` : ""].filter(Boolean).join("\n");
+    return o;
+  }));
+  const spp = ((caps.methods.find((m) => m.name === "reference") || {}).params || []).find((q) => q.name === "spp");
+  if (spp) Object.assign($("spp"), { min: spp.low, max: spp.high, title: `${spp.doc} (${spp.low}..${spp.high})` });
   const ibrt = caps.methods.find((m) => m.k && m.k.length);
   if (ibrt) {
     $("ibrt-k").replaceChildren(...ibrt.k.map((k) => new Option(String(k), String(k))));
-    $("ibrt-k").value = String(ibrt.k.includes(1) ? 1 : ibrt.k[0]);
+    $("ibrt-k").value = String(ibrt.k.includes(ibrt.k_default) ? ibrt.k_default : ibrt.k[0]);
   }
   const want = params.get("method");
   if (want) {

@@ -1,6 +1,6 @@
 """The API endpoints only the preview page uses (``service/api/routes/preview.py``): capabilities that
-never offer a method the API refuses, and the engine-free LRMS / heatmap / exposure / provenance code
-checked against ``engine.metrics`` and ``engine.imageio`` (which the API process must not import)."""
+never offer a method the API refuses, and the 8-bit images it makes from ``engine.imageio`` and
+``engine.metrics`` (heatmap, exposure, provenance) against what the engine's own writer stores."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from engine.imageio import srgb_encode, tonemap_srgb
+from engine.imageio import decode_image, encode_image, srgb_encode, tonemap_srgb
 from engine.metrics import error_heatmap
 from engine.metrics import lrms as engine_lrms
 from service.api.routes import preview
@@ -22,7 +22,7 @@ RNG = np.random.default_rng(7)
 
 
 @pytest.mark.parametrize("channels", [1, 3, 4])
-def test_lrms_and_heatmap_match_engine_metrics(channels: int) -> None:
+def test_heatmap_is_the_engine_heatmap_in_8_bit(channels: int) -> None:
     ref = RNG.gamma(2.0, 0.3, size=(17, 23, channels)).astype(np.float32)
     test = (ref * RNG.uniform(0.7, 1.3, size=ref.shape)).astype(np.float32)
     if channels == 4:
@@ -30,39 +30,53 @@ def test_lrms_and_heatmap_match_engine_metrics(channels: int) -> None:
         test[..., 3] = ref[..., 3]
     mask = preview.coverage_mask(ref)
     engine_mask = ref[..., 3] > 0 if channels == 4 else None
-    assert preview.lrms(test, ref, mask) == pytest.approx(engine_lrms(test, ref, engine_mask), rel=1e-12)
     ours = preview.heatmap(test, ref, mask)
+    assert ours.dtype == np.uint8 and ours.shape == ref.shape[:2] + (3,)
+    # the engine's float32 linear heatmap, re-encoded: equal up to its float32 rounding
     theirs = np.rint(srgb_encode(error_heatmap(test, ref, mask=engine_mask).astype(np.float64)) * 255.0)
     assert np.abs(ours.astype(np.int64) - theirs.astype(np.int64)).max() <= 1
+    if channels == 4:
+        assert not ours[~mask].any() and ours[mask].min(axis=1).max() > 0
 
 
-def test_lrms_of_black_reference() -> None:
-    black = np.zeros((4, 4, 3), np.float32)
-    mask = preview.coverage_mask(black)
-    assert preview.lrms(black, black, mask) == 0.0 == engine_lrms(black, black)
-    other = black.copy()
-    other[0, 0] = 1.0
-    assert preview.lrms(other, black, mask) == np.inf == engine_lrms(other, black)
-
-
+@pytest.mark.parametrize("channels", [1, 3, 4])
 @pytest.mark.parametrize("exposure", [-2.0, 0.0, 1.5])
-def test_exposure_encoding_matches_engine_png_transform(exposure: float) -> None:
-    img = RNG.gamma(1.5, 0.4, size=(9, 11, 3)).astype(np.float32)
+def test_exposure_encoding_is_the_engine_png(channels: int, exposure: float) -> None:
+    img = RNG.gamma(1.5, 0.4, size=(9, 11, channels)).astype(np.float32)
+    if channels == 4:
+        img[..., 3] = RNG.uniform(size=img.shape[:2]) * (RNG.uniform(size=img.shape[:2]) > 0.2)
+        img[..., :3] *= img[..., 3:]  # associated alpha, as the engine's images are
     ours = preview.to_srgb8(img, exposure)
-    theirs = np.rint(tonemap_srgb(img, exposure) * 255.0).astype(np.uint8)
-    np.testing.assert_array_equal(ours, theirs)
+    stored = np.asarray(Image.open(io.BytesIO(encode_image("x.png", img, exposure_stops=exposure))))
+    np.testing.assert_array_equal(ours, stored.reshape(ours.shape))  # what the worker's writer stores
+    if channels == 3:
+        np.testing.assert_array_equal(ours, np.rint(tonemap_srgb(img, exposure) * 255.0).astype(np.uint8))
 
 
-def test_png_and_exr_roundtrip() -> None:
+def test_png_roundtrip_and_provenance_codes() -> None:
     rgb = RNG.integers(0, 256, size=(5, 7, 3), dtype=np.uint8)
     back = np.asarray(Image.open(io.BytesIO(preview.png_bytes(rgb))))
     np.testing.assert_array_equal(back, rgb)
-    codes = preview.read_image(preview.png_bytes(np.repeat(np.arange(35, dtype=np.uint8).reshape(5, 7, 1) % 5, 3, 2)),
-                               ".png")
-    assert codes[..., 0].max() == 4  # PNG codes come back as integers, not normalised
+    grey = (np.arange(35, dtype=np.uint8).reshape(5, 7, 1) % 5) * 51  # provenance-like codes and larger ones
+    codes = decode_image("provenance.png", preview.png_bytes(grey), transfer="linear")[0]
+    np.testing.assert_array_equal(np.rint(codes * 255.0).astype(np.uint8), grey)  # codes, not colours
     colours = preview.provenance_rgb(np.array([[0, 1, 2, 3, 4, 9]]))
     assert [tuple(c) for c in colours[0, :5]] == [rgb for _, rgb in preview.PROVENANCE.values()]
     assert tuple(colours[0, 5]) == (255, 0, 255)
+
+
+def test_capabilities_come_from_the_registry() -> None:
+    from engine.methods import METHODS
+
+    with_bakes = preview.capabilities_of(["/v1/renders", "/v1/scenes/{scene_id}/bakes"])
+    assert [m.name for m in with_bakes.methods] == [m.name for m in METHODS]
+    ibrt = next(m for m in with_bakes.methods if m.k)
+    assert ibrt.name == "ldc+ibrt" and ibrt.k == list(range(9)) and ibrt.k_default == 1
+    assert ibrt.bake == ["LDC", "LLF"] and ibrt.cost
+    ref = with_bakes.methods[0]
+    assert ref.name == "reference" and not ref.needs_bake and "spp" in [p.name for p in ref.params]
+    without = preview.capabilities_of(["/v1/renders"])
+    assert [m.name for m in without.methods] == ["reference"]  # no bake routes: no LDC method
 
 
 # ------------------------------------------------------------------ against the live stack
@@ -107,7 +121,7 @@ def test_compare_exposure_and_errors(stack: Stack, scene_ids: dict[str, str]) ->
     got = httpx.get(f"{api}/v1/preview/compare", params={"test": a, "ref": b}, timeout=30).json()
 
     def exr(key: str) -> np.ndarray:
-        return preview.read_image(httpx.get(f"{api}/v1/artifacts/{key}/image.exr", timeout=30).content)
+        return decode_image("r.exr", httpx.get(f"{api}/v1/artifacts/{key}/image.exr", timeout=30).content)[0]
 
     ta, tb = exr(a), exr(b)
     assert got["lrms"] == pytest.approx(engine_lrms(ta, tb), rel=1e-12)

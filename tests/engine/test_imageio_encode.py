@@ -140,3 +140,74 @@ def test_lossy_or_unknown_codecs_are_refused_with_the_choices(name: str, compres
     allowed = COMPRESSIONS.get({"x.exr": "openexr", "x.png": "png", "x.tif": "tiff"}.get(name, ""), ())
     for choice in allowed:
         assert choice in str(exc.value)
+
+
+# ---------------------------------------------------------------------------------------- decode_image
+
+
+@pytest.mark.parametrize("name,pixel_type", [("r.exr", None), ("r.exr", "half"), ("r.png", None), ("r.png", "uint16"),
+                                              ("r.tif", None), ("r.jpg", None)])
+def test_decode_image_reads_bytes_like_read_image(tmp_path: Path, name: str, pixel_type: str | None) -> None:
+    rng = np.random.default_rng(5)
+    px = rng.uniform(0, 1.2, (9, 14, 3)).astype(np.float32)
+    meta = {"camera": {"eye": [0.1, 2.0, 3.0]}, "n": 3}
+    write_image(tmp_path / name, px, pixel_type=pixel_type, metadata=meta)
+    data = (tmp_path / name).read_bytes()
+    for transfer in ("auto", "linear"):
+        want, want_meta = read_image(tmp_path / name, transfer=transfer)
+        got, got_meta = imageio.decode_image(name, data, transfer=transfer)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, want)
+        assert got_meta == want_meta
+
+
+def test_decode_image_errors_name_the_image_and_leave_no_scratch_file() -> None:
+    before = set(imageio._scratch_dir().glob("ibr-decode-*"))
+    with pytest.raises(imageio.ImageFormatError, match="radiance.exr") as err:
+        imageio.decode_image("radiance.exr", b"not an image")
+    assert "ibr-decode-" not in str(err.value)
+    with pytest.raises(imageio.ImageFormatError, match="unsupported image extension"):
+        imageio.decode_image("radiance.xyz", encode_image("r.exr", np.zeros((2, 2, 3), np.float32)))
+    big = encode_image("r.exr", np.zeros((4, 5, 3), np.float32))
+    with pytest.raises(imageio.ImageFormatError, match="max_pixels"):
+        imageio.decode_image("big.exr", big, max_pixels=19)
+    assert set(imageio._scratch_dir().glob("ibr-decode-*")) == before
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+@pytest.mark.parametrize("exposure", [0.0, -1.5, 2.0])
+def test_encode_display_is_what_the_png_stores(tmp_path: Path, channels: int, exposure: float) -> None:
+    rng = np.random.default_rng(9)
+    px = rng.uniform(-0.1, 1.4, (7, 12, channels)).astype(np.float32)
+    if channels == 4:
+        px[..., 3] = rng.uniform(0, 1, (7, 12)) * (rng.uniform(size=(7, 12)) > 0.2)
+        px[..., :3] *= px[..., 3:]
+    codes = imageio.encode_display(px, exposure, 255)
+    (tmp_path / "a.png").write_bytes(encode_image("a.png", px, exposure_stops=exposure))
+    assert codes.dtype == np.float64 and codes.shape == px.shape
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # the stored (straight) samples
+    inp = oiio.ImageInput.open(str(tmp_path / "a.png"), config)
+    stored = inp.read_image(oiio.UINT8)
+    inp.close()
+    np.testing.assert_array_equal(codes.astype(np.uint8), np.asarray(stored).reshape(px.shape))
+
+
+
+
+def test_imageio_and_metrics_import_without_numba() -> None:
+    """The API process decodes and measures images with these modules and never loads numba; the
+    compiled 8-bit loop is imported on first use only."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, engine.imageio as io, engine.metrics\n"
+            "assert 'numba' not in sys.modules\n"
+            "data = io.encode_image('x.exr', np.ones((2, 3, 3), np.float32))\n"
+            "io.decode_image('x.exr', data); engine.metrics.error_heatmap(np.ones((2, 3)), np.ones((2, 3)))\n"
+            "assert 'numba' not in sys.modules, 'float output and metrics need no numba'\n"
+            "io.encode_image('x.png', np.ones((2, 3, 3), np.float32))\n"
+            "print('numba' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.strip() == "True"  # the 8-bit PNG path loaded the kernel

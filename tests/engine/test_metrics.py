@@ -15,6 +15,7 @@ from engine.metrics import (
     ErrorReport,
     compare,
     error_heatmap,
+    error_heatmap_display,
     fraction_over,
     lrms,
     luminance,
@@ -301,6 +302,19 @@ def test_heatmap_written_as_png_shows_the_palette(tmp_path):
     codes, _ = read_image(tmp_path / "heat.png", transfer="linear")
     np.testing.assert_allclose(codes[0], np.rint(metrics._VIRIDIS * 255) / 255, atol=1.01 / 255)
     np.testing.assert_allclose(srgb_decode(codes[0].astype(np.float64)), heat[0], atol=0.01)
+
+
+def test_heatmap_display_values_are_the_palette(pair):
+    test, ref, mask = pair
+    disp = error_heatmap_display(test, ref, mask=mask)
+    assert disp.shape == (6, 5, 3) and disp.dtype == np.float64
+    assert np.all(disp[~mask] == 0.0) and disp.min() >= 0.0 and disp.max() <= 1.0
+    # the linear heatmap is exactly their decoding; the display values are the viridis colours
+    np.testing.assert_array_equal(error_heatmap(test, ref, mask=mask), srgb_decode(disp).astype(np.float32))
+    ends = error_heatmap_display(np.ones((1, 2, 3)) + [[[0.0], [5.0]]], np.ones((1, 2, 3)))
+    np.testing.assert_array_equal(ends[0], metrics._VIRIDIS[[0, -1]])
+    with pytest.raises(InvalidInputError):
+        error_heatmap_display(test, ref, scale=0.0)
 
 
 def test_viridis_table_is_perceptually_ordered():

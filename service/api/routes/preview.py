@@ -1,4 +1,4 @@
-"""The browser preview page (issue 7): static files at ``/preview/``, ``/`` redirects there,
+"""The browser preview page: static files at ``/preview/``, ``/`` redirects there,
 plus the few API endpoints only the page needs (``/v1/preview/...``).
 
 No build step: ``service/static/{index.html,app.js,app.css}`` are served as they are.
@@ -6,20 +6,17 @@ No build step: ``service/static/{index.html,app.js,app.css}`` are served as they
 because the API stores scenes without offering their JSON back: the page starts a sample
 scene from its own camera and any other scene from a default camera (see the page's help).
 
-``/v1/preview/capabilities`` tells the page what this API can do, read from the API itself:
-the render methods the ``RenderRequest`` model accepts (each candidate name is validated by
-the model, so a name the API refuses is never offered) and which resources are routed
-(bakes, datasets, relights, walkthroughs). LDC methods are offered only when the scene bake
-routes exist too: without them no bake can be made or watched.
+``/v1/preview/capabilities`` tells the page what this API can do: the render methods of the
+registry ``engine.methods`` (the one the request model validates with: name, generations, bake,
+cost) and which resources are routed (bakes, datasets, relights, walkthroughs). LDC methods are
+offered only when the scene bake routes exist too: without them no bake can be made or watched.
 
 ``/v1/preview/compare`` computes the LRMS of one render artifact against another (the
 difference view) and ``/v1/preview/compare/heatmap.png`` its false-colour error map;
 ``/v1/preview/artifacts/{key}/image.png?exposure=`` re-exposes a render from its linear
 ``radiance.exr``; ``/v1/preview/artifacts/{key}/provenance.png`` colours the LDC methods'
-provenance codes. All of it is numpy + OpenImageIO: this process
-never imports numba or ``engine`` (``engine/__init__`` imports numba), so the formulas of
-``engine.metrics.lrms`` / ``error_heatmap`` and ``engine.imageio.tonemap_srgb`` are restated
-here and tested against them (tests/service/api/test_preview_api.py).
+provenance codes. The images are decoded and measured by ``engine.imageio`` and ``engine.metrics``
+(numpy + OpenImageIO; neither imports numba, which this process never loads).
 """
 
 from __future__ import annotations
@@ -39,11 +36,13 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
-from pydantic import ValidationError
 
 from api_schemas.common import FrozenModel
 from api_schemas.errors import FieldError
-from api_schemas.service import ArtifactManifest, RenderRequest, Sha256
+from api_schemas.service import ArtifactManifest, Sha256
+from engine.imageio import decode_image, encode_display
+from engine.methods import METHODS, BakePart
+from engine.metrics import error_heatmap_display, fraction_over, lrms, luminance
 from service.api.deps import OwnerDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from workers.artifacts import read_blob, read_manifest
@@ -123,8 +122,14 @@ def static_file(name: str) -> FileResponse:
 
 # ------------------------------------------------------------------------------ capabilities
 
-MAX_K_PROBE = 32
-"""Largest ``ldc+ibrt:k`` generation count probed against the model."""
+class ParamInfo(FrozenModel):
+    """A setting of the request's ``params`` for a method: integer in ``[low, high]``."""
+
+    name: str
+    default: int
+    low: int
+    high: int
+    doc: str
 
 
 class MethodInfo(FrozenModel):
@@ -133,6 +138,15 @@ class MethodInfo(FrozenModel):
     needs_bake: bool
     k: list[int] = []
     """For ``ldc+ibrt``: the generation counts the API accepts (sent as ``ldc+ibrt:<k>``)."""
+    k_default: int | None = None
+    """For ``ldc+ibrt``: the generation count to offer first."""
+    bake: list[BakePart] = []
+    """The bake parts the method renders from (``LDC``, ``LLF``)."""
+    params: list[ParamInfo] = []
+    """The settings of the request's ``params`` (``reference``: spp, max_depth, ...)."""
+    summary: str = ""
+    cost: str = ""
+    """What the render time grows with."""
 
 
 class Capabilities(FrozenModel):
@@ -153,23 +167,6 @@ class Capabilities(FrozenModel):
     """The ``/v1`` paths of the app's OpenAPI document the flags above were read from."""
 
 
-def _accepted(method: str) -> bool:
-    try:
-        RenderRequest.model_validate({"scene_id": "0" * 64, "method": method})
-    except ValidationError:
-        return False
-    return True
-
-
-@lru_cache(maxsize=1)
-def _accepted_methods() -> tuple[tuple[str, tuple[int, ...]], ...]:
-    out: list[tuple[str, tuple[int, ...]]] = [(m, ()) for m in ("reference", "ldc", "ldc+llf") if _accepted(m)]
-    ks = tuple(k for k in range(MAX_K_PROBE + 1) if _accepted(f"ldc+ibrt:{k}"))
-    if ks:
-        out.append(("ldc+ibrt", ks))
-    return tuple(out)
-
-
 @lru_cache(maxsize=1)
 def _walkthrough_options() -> dict[str, list[str]]:
     """``quality`` and ``fill`` choices of the walkthrough request model (empty without it)."""
@@ -187,11 +184,16 @@ def _walkthrough_options() -> dict[str, list[str]]:
 
 
 def capabilities_of(paths: list[str]) -> Capabilities:
-    """Capabilities given the app's routed paths (the render methods come from the model)."""
+    """Capabilities given the app's routed paths (the render methods come from the registry)."""
     bakes = any(p.startswith("/v1/scenes/{scene_id}/bakes") for p in paths)
     walkthroughs = "/v1/walkthroughs" in paths and any(p.startswith("/v1/walkthroughs/{key}/frames") for p in paths)
-    methods = [MethodInfo(name=m, needs_bake=m != "reference", k=list(ks)) for m, ks in _accepted_methods()
-               if m == "reference" or bakes]
+    methods = [MethodInfo(name=m.name, needs_bake=m.needs_bake,
+                          k=list(range(m.arg.low, m.arg.high + 1)) if m.arg is not None else [],
+                          k_default=m.arg.default if m.arg is not None else None,
+                          bake=list(m.bake), summary=m.summary, cost=m.cost,
+                          params=[ParamInfo(name=p.name, default=p.default, low=p.low, high=p.high, doc=p.doc)
+                                  for p in m.params])
+               for m in METHODS if bakes or not m.needs_bake]
     return Capabilities(
         methods=methods,
         bakes=bakes,
@@ -206,45 +208,14 @@ def capabilities_of(paths: list[str]) -> Capabilities:
 
 @router.get("/v1/preview/capabilities", response_model=Capabilities, tags=["preview"])
 def capabilities(request: Request) -> Capabilities:
-    """Render methods the API accepts and the resources it routes (read from the app's OpenAPI document)."""
+    """Render methods the API accepts (the registry the request model validates with) and the resources it
+    routes (read from the app's OpenAPI document)."""
     # the OpenAPI document lists every routed path (app.routes may hold lazily included routers)
     paths = sorted(p for p in request.app.openapi().get("paths", {}) if p.startswith("/v1/"))
     return capabilities_of(paths)
 
 
 # ------------------------------------------------------------------------------ images (numpy + OpenImageIO)
-
-REC709 = (0.2126, 0.7152, 0.0722)
-VIRIDIS = np.array([
-    (0.2670, 0.0049, 0.3294), (0.2823, 0.0950, 0.4173), (0.2788, 0.1755, 0.4834), (0.2590, 0.2515, 0.5247),
-    (0.2297, 0.3224, 0.5457), (0.1994, 0.3876, 0.5546), (0.1727, 0.4488, 0.5579), (0.1490, 0.5081, 0.5573),
-    (0.1276, 0.5669, 0.5506), (0.1206, 0.6258, 0.5335), (0.1579, 0.6838, 0.5017), (0.2461, 0.7389, 0.4520),
-    (0.3692, 0.7889, 0.3829), (0.5160, 0.8312, 0.2943), (0.6785, 0.8637, 0.1895), (0.8456, 0.8873, 0.0997),
-    (0.9932, 0.9062, 0.1439)], dtype=np.float64)
-"""Viridis at 17 points, the palette of ``engine.metrics.error_heatmap`` (display values)."""
-
-
-def read_image(data: bytes, suffix: str = ".exr") -> np.ndarray:
-    """Decode an image (EXR, PNG; any channel count) to float32 ``(h, w, c)``: EXR values as stored,
-    8-bit PNG values as their integer codes 0..255 (no transfer function, no normalisation)."""
-    import OpenImageIO as oiio
-
-    with tempfile.TemporaryDirectory(prefix="ibr-preview-") as tmp:
-        path = os.path.join(tmp, "in" + suffix)
-        with open(path, "wb") as f:
-            f.write(data)
-        inp = oiio.ImageInput.open(path)
-        if inp is None:
-            raise ValueError(f"cannot read the image: {oiio.geterror()}")
-        try:
-            spec = inp.spec()
-            fmt = "float" if suffix == ".exr" else "uint8"
-            arr = inp.read_image(0, 0, 0, spec.nchannels, fmt)
-        finally:
-            inp.close()
-    if arr is None:
-        raise ValueError("cannot decode the image")
-    return np.asarray(arr, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
 
 
 def png_bytes(rgb8: np.ndarray) -> bytes:
@@ -268,35 +239,11 @@ def png_bytes(rgb8: np.ndarray) -> bytes:
             return f.read()
 
 
-def srgb_encode(x: np.ndarray) -> np.ndarray:
-    """Exact sRGB OETF (``engine.imageio.srgb_encode``)."""
-    x64 = np.asarray(x, dtype=np.float64)
-    power = 1.055 * np.power(np.maximum(x64, 0.0031308), 1.0 / 2.4) - 0.055
-    return np.where(x64 <= 0.0031308, 12.92 * x64, power)
-
-
 def to_srgb8(linear: np.ndarray, exposure_stops: float) -> np.ndarray:
-    """The PNG display transform of ``engine.imageio.write_image`` at an exposure, 8-bit:
-    ``rint(255 srgb_encode(clip(x 2^e, 0, 1)))``; 4 channels are associated alpha, un-premultiplied
-    for the PNG's straight alpha (fully transparent pixels carry no colour); 1 channel becomes grey RGB."""
-    x = linear.astype(np.float64)
-    colour = x[..., :3] if x.shape[2] >= 3 else np.repeat(x[..., :1], 3, axis=2)
-    alpha = np.clip(x[..., 3:4], 0.0, 1.0) if x.shape[2] == 4 else None
-    if alpha is not None:
-        colour = np.where(alpha > 0, colour / np.where(alpha > 0, alpha, 1.0), 0.0)
-    enc = srgb_encode(np.clip(colour * 2.0**exposure_stops, 0.0, 1.0))
-    if alpha is not None:
-        enc = np.concatenate([enc, alpha], axis=2)
-    out: np.ndarray = np.rint(enc * 255.0).astype(np.uint8)
+    """The 8-bit samples the engine's PNG writer stores for ``linear`` at an exposure
+    (``engine.imageio.encode_display``: ``rint(255 srgb_encode(clip(x 2^e, 0, 1)))``, straight alpha)."""
+    out: np.ndarray = encode_display(linear, exposure_stops, 255).astype(np.uint8)
     return out
-
-
-def luminance(img: np.ndarray) -> np.ndarray:
-    """Rec.709 luminance in float64 (1 channel: the value itself; alpha ignored)."""
-    x = img.astype(np.float64, copy=False)
-    if x.shape[2] == 1:
-        return x[..., 0]
-    return REC709[0] * x[..., 0] + REC709[1] * x[..., 1] + REC709[2] * x[..., 2]
 
 
 def coverage_mask(ref: np.ndarray) -> np.ndarray:
@@ -307,30 +254,10 @@ def coverage_mask(ref: np.ndarray) -> np.ndarray:
     return np.ones(ref.shape[:2], dtype=bool)
 
 
-def lrms(test: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
-    """``RMS(Y_test - Y_ref) / mean(Y_ref)`` over ``mask`` (``engine.metrics.lrms``): 0 for identical
-    luminance under a black reference, inf for any difference there."""
-    y_t, y_r = luminance(test)[mask], luminance(ref)[mask]
-    mean = float(np.mean(y_r))
-    rms = math.sqrt(float(np.mean(np.square(y_t - y_r))))
-    if mean == 0.0:
-        return 0.0 if rms == 0.0 else math.inf
-    return rms / mean
-
-
 def heatmap(test: np.ndarray, ref: np.ndarray, mask: np.ndarray, scale: float | None = None) -> np.ndarray:
-    """Viridis map of ``|Y_test - Y_ref| / s`` (``s`` = ``scale`` or the mean reference luminance),
-    clipped to [0, 1], black outside ``mask``: ``engine.metrics.error_heatmap`` as display values, 8-bit."""
-    y_t, y_r = luminance(test), luminance(ref)
-    diff = np.abs(y_t - y_r)
-    s = float(np.mean(y_r[mask])) if scale is None else scale
-    v = (diff > 0).astype(np.float64) if s == 0.0 else np.clip(diff / s, 0.0, 1.0)
-    pos = v * (len(VIRIDIS) - 1)
-    lo = np.minimum(np.floor(pos).astype(np.intp), len(VIRIDIS) - 2)
-    frac = (pos - lo)[..., None]
-    rgb = VIRIDIS[lo] * (1.0 - frac) + VIRIDIS[lo + 1] * frac
-    rgb[~mask] = 0.0
-    out: np.ndarray = np.rint(rgb * 255.0).astype(np.uint8)
+    """``engine.metrics.error_heatmap`` (viridis of ``|Y_test - Y_ref| / scale``, black outside ``mask``)
+    as 8-bit display colours."""
+    out: np.ndarray = np.rint(error_heatmap_display(test, ref, scale=scale, mask=mask) * 255.0).astype(np.uint8)
     return out
 
 
@@ -349,7 +276,7 @@ class _Radiance:
             if hit is not None:
                 self.items.move_to_end((key, blob))
                 return hit
-        img: np.ndarray = read_image(read_blob(store, key, blob))  # ChecksumMismatch -> 404 corrupt
+        img: np.ndarray = decode_image(blob, read_blob(store, key, blob))[0]  # ChecksumMismatch -> 404 corrupt
         img.setflags(write=False)
         with self.lock:
             self.items[(key, blob)] = img
@@ -413,13 +340,13 @@ def _pair(store: ObjectStore, owner: str | None, test: str, ref: str) -> tuple[n
 
 def _compare(store: ObjectStore, owner: str | None, test: str, ref: str) -> Comparison:
     t, r, mask = _pair(store, owner, test, ref)
-    y_t, y_r = luminance(t)[mask], luminance(r)[mask]
-    mean = float(np.mean(y_r))
-    value = lrms(t, r, mask)
+    lum_t, lum_r = luminance(t), luminance(r)  # the metrics of a luminance image are those of the image
+    y_t, y_r = lum_t[mask], lum_r[mask]
+    value = lrms(lum_t, lum_r, mask)
     return Comparison(
         test=test, ref=ref, lrms=value if math.isfinite(value) else None,
-        rms=math.sqrt(float(np.mean(np.square(y_t - y_r)))), mean_ref_luminance=mean,
-        fraction_over_5pct=float(np.count_nonzero(np.abs(y_t - y_r) > 0.05 * mean)) / y_r.size,
+        rms=math.sqrt(float(np.mean(np.square(y_t - y_r)))), mean_ref_luminance=float(np.mean(y_r)),
+        fraction_over_5pct=fraction_over(lum_t, lum_r, 0.05, mask),
         n_pixels=int(y_r.size), width=int(r.shape[1]), height=int(r.shape[0]),
         links={"heatmap": f"/v1/preview/compare/heatmap.png?test={test}&ref={ref}"},
     )
@@ -496,8 +423,9 @@ async def provenance_image(
         manifest = visible_render(store, key, owner, "path.key")
         if not any(b.name == "provenance.png" for b in manifest.blobs):
             raise NotFound(f"artifact {key} has no provenance (method {manifest.params.get('method', '?')})")
-        codes = read_image(read_blob(store, key, "provenance.png"), ".png")
-        return png_bytes(provenance_rgb(np.rint(codes[..., 0]).astype(np.int64)))
+        # linear: the 8-bit values are codes, not colours (read back as code / 255)
+        codes = decode_image("provenance.png", read_blob(store, key, "provenance.png"), transfer="linear")[0]
+        return png_bytes(provenance_rgb(np.rint(codes[..., 0] * 255.0).astype(np.int64)))
 
     return Response(await run_in_threadpool(run), media_type="image/png",
                     headers={"Cache-Control": "private, max-age=31536000, immutable"})

@@ -1,0 +1,306 @@
+"""Render methods: the one registry of what a render request's ``method`` may name.
+
+Every entry documents itself, the way Mitsuba 3's plugins open with a table of their parameters:
+its wire name, the parameters it takes (with ranges and defaults), the bake it renders from and
+what its cost grows with. The request schema (``api_schemas.service``), the routes and job
+dispatch (through ``method_needs_bake``), the preview page's capability list and the LDC renderer
+(``engine.newviews.renderer``) all read this module; pure Python, so the API process imports it
+without numba.
+
+=================  ==================  ===========  ==============================================
+wire form          parameters          bake         renders
+=================  ==================  ===========  ==============================================
+``reference``      the request's       none         the ray tracer (``engine.reference``): ground
+                   ``params``                       truth, cost per pixel and sample
+``ldc``            none                LDC          warp of the layered depth cube, holes filled
+                                                    by image-based rays, highlights; no reflections
+``ldc+llf``        none                LDC + LLF    ``ldc`` + mirror and glossy reflections
+                                                    gathered from the layered light field
+``ldc+ibrt:k``     ``k`` in 0..8       LDC + LLF    ``ldc+llf`` with the mirror term traced through
+                                                    the LDC for k generations (k = 0 is ``ldc+llf``)
+=================  ==================  ===========  ==============================================
+
+The LLF is baked only for scenes with glossy or mirror materials (the effect analysis decides,
+``BakeParams.llf`` overrides); a scene without them renders ``ldc+llf`` from the LDC alone.
+
+A method string is parsed strictly: the parameter of ``ldc+ibrt:k`` is written in canonical
+decimal (``ldc+ibrt:3``, not ``03``, ``+3`` or `` 3``), so every accepted string is the one
+:attr:`MethodSpec.wire` gives back. That matters beyond tidiness: the string is hashed into the
+artifact key as sent, so two spellings of one render would be two cache entries.
+"""
+
+from __future__ import annotations
+
+import operator
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Literal, SupportsIndex
+
+from engine.errors import InvalidInputError
+
+__all__ = [
+    "LDC",
+    "LDC_IBRT",
+    "LDC_LLF",
+    "METHODS",
+    "REFERENCE",
+    "IBRT_GENERATIONS",
+    "BakePart",
+    "Method",
+    "MethodSpec",
+    "Param",
+    "allowed_forms",
+    "get_method",
+    "method_needs_bake",
+    "method_pattern",
+    "parse_method",
+    "wire_names",
+]
+
+BakePart = Literal["LDC", "LLF"]
+"""A part of a scene bake: the layered depth cube (geometry + view-independent radiance) or the
+layered light field (outgoing radiance by direction, for reflections)."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """An integer parameter of a method: ``low <= value <= high``, ``default`` when not given."""
+
+    name: str
+    default: int
+    low: int
+    high: int
+    doc: str
+
+    def __post_init__(self) -> None:
+        if not self.low <= self.default <= self.high:
+            raise ValueError(f"parameter {self.name}: default {self.default} outside [{self.low}, {self.high}]")
+
+    def check(self, value: object, what: str | None = None) -> int:
+        """``value`` (an int or a numpy integer, not a bool or a float) as an int in range, else
+        :class:`InvalidInputError` naming the range."""
+        v = operator.index(value) if isinstance(value, SupportsIndex) and not isinstance(value, bool) else None
+        if v is None or not self.low <= v <= self.high:
+            raise InvalidInputError(f"{what or self.name} must be an integer in [{self.low}, {self.high}], "
+                                    f"got {value!r}")
+        return v
+
+    @property
+    def range_text(self) -> str:
+        return f"{self.low}..{self.high}"
+
+
+@dataclass(frozen=True)
+class Method:
+    """One registry entry.
+
+    ``name`` is the wire name, or with an ``arg`` the name before ``:<arg>`` (``ldc+ibrt`` is sent
+    as ``ldc+ibrt:k``). ``arg`` is the parameter carried in the method string itself; ``params``
+    are the settings of the request's ``params`` object (``reference`` only: the LDC methods take
+    their settings from the bake). ``bake`` names the bake parts the method renders from (empty:
+    none). ``gathers`` says the view-dependent pass gathers reflections from the LLF. ``cost``
+    names what the render time grows with."""
+
+    name: str
+    summary: str
+    bake: tuple[BakePart, ...]
+    cost: str
+    arg: Param | None = None
+    params: tuple[Param, ...] = ()
+    gathers: bool = False
+
+    @property
+    def form(self) -> str:
+        """How the method is written on the wire: ``ldc`` or ``ldc+ibrt:k``."""
+        return self.name if self.arg is None else f"{self.name}:{self.arg.name}"
+
+    @property
+    def needs_bake(self) -> bool:
+        return bool(self.bake)
+
+    def param(self, name: str) -> Param:
+        """The ``params`` entry ``name`` (KeyError if the method has none of that name)."""
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise KeyError(f"method {self.name!r} has no parameter {name!r}")
+
+    def spec(self, arg: object = None) -> MethodSpec:
+        """This method with its string parameter (checked against its range; ``None``: the
+        default); :class:`InvalidInputError` for a parameter the method does not take."""
+        if self.arg is None:
+            if arg is not None:
+                raise InvalidInputError(f"method {self.name!r} takes no parameter, got {arg!r}")
+            return MethodSpec(self, None)
+        value = self.arg.default if arg is None else self.arg.check(arg, f"{self.name}'s {self.arg.name}")
+        return MethodSpec(self, value)
+
+    def wire_names(self) -> Iterator[str]:
+        """Every string that names this method on the wire."""
+        if self.arg is None:
+            yield self.name
+        else:
+            for k in range(self.arg.low, self.arg.high + 1):
+                yield f"{self.name}:{k}"
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A parsed method string: the registry entry and the value of its string parameter."""
+
+    method: Method
+    arg: int | None = None
+
+    @property
+    def name(self) -> str:
+        """The registry name (``ldc+ibrt`` for ``ldc+ibrt:3``)."""
+        return self.method.name
+
+    @property
+    def wire(self) -> str:
+        """The canonical method string (``parse_method(s).wire == s`` for every accepted ``s``)."""
+        return self.method.name if self.arg is None else f"{self.method.name}:{self.arg}"
+
+    @property
+    def needs_bake(self) -> bool:
+        return self.method.needs_bake
+
+    @property
+    def bake(self) -> tuple[BakePart, ...]:
+        return self.method.bake
+
+    @property
+    def gathers(self) -> bool:
+        """The view-dependent pass gathers mirror and glossy reflections from the LLF."""
+        return self.method.gathers
+
+    @property
+    def ibrt_generations(self) -> int:
+        """Mirror generations traced through the LDC (0 for every method but ``ldc+ibrt:k``)."""
+        return self.arg if self.method is LDC_IBRT and self.arg is not None else 0
+
+
+# ------------------------------------------------------------------------------ the methods
+
+REFERENCE = Method(
+    name="reference",
+    summary="The ray tracer (Embree + numba): ground truth, rendered from the scene's triangles.",
+    bake=(),
+    cost="pixels x spp camera rays, each with one shadow ray per point light and area_light_samples per rect "
+         "light, glossy_samples rays at the first glossy hit and one mirror ray per mirror hit (to max_depth), "
+         "plus indirect_samples paths of indirect_bounces bounces per pixel; no bake, no precomputation.",
+    params=(
+        Param("spp", 4, 1, 4096, "antialiasing samples per pixel (stratified jittered grid, box filter)"),
+        Param("max_depth", 4, 0, 64, "mirror / glossy recursion depth"),
+        Param("glossy_samples", 16, 1, 4096, "samples of the glossy lobe at the first glossy bounce of a chain"),
+        Param("area_light_samples", 16, 1, 4096, "shadow rays per rectangular light per shading point "
+              "(g x g jittered grid, g = round(sqrt(n)))"),
+        Param("indirect_samples", 0, 0, 65536, "indirect diffuse paths per pixel (0: direct lighting only)"),
+        Param("indirect_bounces", 2, 1, 64, "diffuse bounces per indirect path"),
+        Param("seed", 0, 0, 2**31 - 1, "random seed"),
+    ),
+)
+
+LDC = Method(
+    name="ldc",
+    summary="Warp of the layered depth cube: holes and silhouettes by image-based rays, Phong highlights; "
+            "no reflections (everything the LDC alone holds).",
+    bake=("LDC",),
+    cost="per view: every LDC sample warped (grows with ldc_resolution^2 x layers, not with the image), one "
+         "image-based ray per hole and silhouette pixel, highlights on glossy pixels; the bake once per scene "
+         "and bake parameters.",
+)
+
+LDC_LLF = Method(
+    name="ldc+llf",
+    summary="ldc plus mirror (3-direction cone) and glossy (lobe) reflections gathered from the layered "
+            "light field.",
+    bake=("LDC", "LLF"),
+    cost="ldc + one light-field gather per glossy or mirror pixel (grows with the reflective pixels and the "
+         "lobe's LLF directions); the LLF bake renders 4 f^2 + 2 views with the reference renderer.",
+    gathers=True,
+)
+
+IBRT_GENERATIONS = Param("k", 1, 0, 8, "reflection generations traced through the LDC (0: the same image as "
+                         "ldc+llf)")
+"""The ``k`` of ``ldc+ibrt:k``."""
+
+LDC_IBRT = Method(
+    name="ldc+ibrt",
+    summary="ldc+llf with the mirror term traced through the LDC for k generations (image-based ray "
+            "tracing), the last ending in the light-field gather; glossy terms are always gathered.",
+    bake=("LDC", "LLF"),
+    cost="ldc+llf + k image-based rays per mirror pixel, each hit shaded (diffuse, highlights, glossy "
+         "gather): grows about linearly with k on mirror pixels only.",
+    arg=IBRT_GENERATIONS,
+    gathers=True,
+)
+
+METHODS: tuple[Method, ...] = (REFERENCE, LDC, LDC_LLF, LDC_IBRT)
+"""Every render method, in the order they are offered (``reference`` is the request's default)."""
+
+_BY_NAME = {m.name: m for m in METHODS}
+_ARG = re.compile(r"0|[1-9][0-9]{0,8}")  # canonical decimal (the string round-trips), short enough for int()
+
+
+def get_method(name: str) -> Method:
+    """The registry entry called ``name`` (``ldc+ibrt``, not ``ldc+ibrt:3``)."""
+    try:
+        return _BY_NAME[name]
+    except KeyError:
+        raise InvalidInputError(f"no render method {name!r}; methods: {allowed_forms()}") from None
+
+
+def allowed_forms(*, needs_bake: bool | None = None) -> str:
+    """The accepted method strings in words: ``'reference', 'ldc', 'ldc+llf' or 'ldc+ibrt:k' with
+    k in 0..8`` (``needs_bake``: only the methods that do, or do not, render from a bake)."""
+    chosen = [m for m in METHODS if needs_bake is None or m.needs_bake == needs_bake]
+    forms = [f"'{m.form}'" for m in chosen]
+    text = ", ".join(forms[:-1]) + f" or {forms[-1]}" if len(forms) > 1 else forms[0]
+    ranges = [f"{m.arg.name} in {m.arg.range_text}" for m in chosen if m.arg is not None]
+    return text + (" with " + ", ".join(ranges) if ranges else "")
+
+
+def _int_alternatives(low: int, high: int) -> str:
+    if 0 <= low <= high <= 9:
+        return f"[{low}-{high}]" if high > low else str(low)
+    return "(?:" + "|".join(str(k) for k in range(low, high + 1)) + ")"
+
+
+def method_pattern() -> str:
+    """A regular expression (JSON Schema ``pattern``) matching exactly the accepted method strings."""
+    alts = [re.escape(m.name) if m.arg is None else f"{re.escape(m.name)}:{_int_alternatives(m.arg.low, m.arg.high)}"
+            for m in METHODS]
+    return "^(" + "|".join(alts) + ")$"
+
+
+def wire_names() -> list[str]:
+    """Every accepted method string, in registry order."""
+    return [s for m in METHODS for s in m.wire_names()]
+
+
+def parse_method(method: object) -> MethodSpec:
+    """Parse a method string as sent on the wire (``reference``, ``ldc``, ``ldc+llf``, ``ldc+ibrt:k``).
+
+    Raises :class:`InvalidInputError` (a ``ValueError``) naming the allowed forms for anything
+    else, including non-canonical spellings (``ldc+ibrt:03``) and a missing ``:k``."""
+    if not isinstance(method, str):
+        raise InvalidInputError(f"method must be a string: {allowed_forms()}; got {method!r}")
+    name, sep, arg = method.partition(":")
+    entry = _BY_NAME.get(name)
+    if entry is None or bool(sep) != (entry.arg is not None):
+        raise InvalidInputError(f"method must be {allowed_forms()}, got {method[:40]!r}")
+    if entry.arg is None:
+        return MethodSpec(entry, None)
+    p = entry.arg
+    if _ARG.fullmatch(arg) is None or not p.low <= int(arg) <= p.high:
+        raise InvalidInputError(f"method {method[:40]!r}: {p.name} must be an integer in {p.range_text} written "
+                                f"in plain decimal (e.g. '{entry.name}:{p.default}'); methods: {allowed_forms()}")
+    return entry.spec(int(arg))
+
+
+def method_needs_bake(method: str) -> bool:
+    """True when ``method`` renders from a scene bake (every method but ``reference``); for a
+    string the request model has validated (an unknown name raises :class:`InvalidInputError`)."""
+    return parse_method(method).needs_bake
