@@ -44,10 +44,10 @@ from pydantic import ValidationError
 from api_schemas.common import FrozenModel
 from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, RenderRequest, Sha256
+from producer.artifacts import read_blob, read_manifest
+from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
-from workers.artifacts import read_blob, read_manifest
-from workers.store import NotFound, ObjectStore
 
 router = APIRouter()
 
