@@ -64,7 +64,6 @@ from producer.store import NotFound, ObjectStore
 __all__ = [
     "BAKE_MAX_PART_BYTES",
     "BAKE_MAX_TOTAL_BYTES",
-    "BakeInUse",
     "PartSpec",
     "bake_key",
     "bake_complete",

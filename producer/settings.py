@@ -29,7 +29,6 @@ __all__ = [
     "Settings",
     "get_settings",
     "load_settings",
-    "open_configured_store",
     "open_settings_store",
     "reset_settings_cache",
     "settings_error_text",

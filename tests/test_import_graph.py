@@ -154,3 +154,18 @@ def test_graph_sees_a_cycle() -> None:
     """The walk itself: a made-up two-module cycle is found and named."""
     graph = {"a.x": {"a.y"}, "a.y": {"a.x", "a.z"}, "a.z": set()}
     assert cycles(graph) == [["a.x", "a.y", "a.x"]]
+
+
+def test_no_private_names_imported_across_modules() -> None:
+    """``from x import _name`` between the modules of producer, workers and service: a private name
+    is its module's own business (a shared helper gets a public name in the module that owns it)."""
+    modules = _modules()
+    bad: list[str] = []
+    for module, path in sorted(modules.items()):
+        if module.split(".")[0] not in ("producer", "workers", "service"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+                bad += [f"{module}: from {node.module} import {a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, "private names imported across modules:\n" + "\n".join(bad)

@@ -1,4 +1,4 @@
-"""Walkthrough jobs (see ``workers/walkthroughs.py`` for the split and the keys).
+"""Walkthrough jobs (see ``producer/walkthroughs.py`` for the split and the keys).
 
 - :func:`walkthrough_bake_job` (``bake`` queue): loads the stored scene, chooses base viewpoints
   and time samples and renders the base range images (``engine.walkthrough.bake``), publishes

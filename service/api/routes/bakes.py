@@ -2,7 +2,7 @@
 
 A bake is content-addressed (scene id + ``BakeParams`` + engine version): requesting one that
 exists answers 200 with ``cached: true`` and no work; otherwise its jobs are queued on the ``bake``
-queue (a plan job, one job per part, a merge job; see ``workers/bakes.py``) and the answer is 202 with
+queue (a plan job, one job per part, a merge job; see ``producer/bakes.py``) and the answer is 202 with
 ``Location`` naming the bake, whose ``GET`` shows every part's state and the aggregated progress.
 """
 

@@ -3,7 +3,7 @@
 ``POST`` validates the request against the scene (a ``view_space`` is required, every eye must lie
 inside it, every time inside the animation: 422 naming ``frames.<i>.camera.eye`` /
 ``frames.<i>.time`` with the allowed range), queues the bake, one render job per chunk of frames
-and the video job (``workers/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
+and the video job (``producer/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
 already rendered answers 200. ``GET /v1/walkthroughs/{key}`` shows the state, the progress
 (frames done) and, once finished, links to ``video.mp4`` and the frame chunks (artifacts).
 ``DELETE /v1/walkthroughs/{key}`` removes the video, the frames and the request (204; 409 while

@@ -1,4 +1,4 @@
-"""workers/embedded.py: the bundled redis-server on a unix socket, its persistence (HARD_CASES 22),
+"""producer/embedded.py: the bundled redis-server on a unix socket, its persistence (HARD_CASES 22),
 reuse of a running server, clear start-up errors."""
 
 from __future__ import annotations
