@@ -96,7 +96,6 @@ LDC_SAMPLE_BYTES_UPPER = 20 + 57 + 16
 engine-free upper bound (the engine's own estimate is exact and checked again by the plan job)."""
 
 
-
 # ------------------------------------------------------------------------------------ keys and parts
 
 
