@@ -121,9 +121,9 @@ def test_settings_fail_at_startup_with_clear_messages(monkeypatch: pytest.Monkey
         create_app()
 
 
-def test_service_never_imports_numba() -> None:
+def test_service_imports_no_numba_and_no_worker_code() -> None:
     """The API imports ``engine`` (its numba-free modules: ``ENGINE_VERSION``), never numba, Embree or the
-    kernels (``engine._numba_setup`` is imported by every module that compiles one)."""
+    kernels (``engine._numba_setup`` is imported by every module that compiles one), and no worker code."""
     code = (
         "import sys\n"
         "import service.main\n"
@@ -131,7 +131,8 @@ def test_service_never_imports_numba() -> None:
         "app = service.main.create_app(Settings(redis_url='redis://127.0.0.1:1/0', store_url='/tmp/ibr-no-numba'))\n"
         "app.openapi()\n"
         "bad = sorted(m for m in sys.modules\n"
-        "             if m == 'numba' or m.startswith(('numba.', 'engine._numba_setup', 'embreex')))\n"
+        "             if m in ('numba', 'workers')\n"
+        "             or m.startswith(('numba.', 'engine._numba_setup', 'embreex', 'workers.')))\n"
         "print(bad)\n"
         "assert not bad, bad\n"
     )
