@@ -74,9 +74,9 @@ def _wait_workers(redis: Any, n: int, timeout: float = 60.0) -> None:
 
 def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: dict[str, str],
              logdir: Path) -> dict[str, Any]:
+    from producer import bakes
     from producer.artifacts import read_manifest
     from producer.queue import fetch_job
-    from workers import bakes
 
     procs = _start_workers(n, env, logdir)
     try:
