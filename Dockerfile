@@ -5,6 +5,7 @@ RUN apt-get update && apt-get install -y --no-install-recommends libgomp1 && rm 
 COPY pyproject.toml README.md ./
 COPY api_schemas api_schemas
 COPY engine engine
+COPY producer producer
 COPY workers workers
 COPY service service
 COPY samples samples

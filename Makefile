@@ -39,7 +39,7 @@ bench: install
 	$(BIN)/python -m bench.mitsuba_crosscheck
 
 lint: install
-	$(BIN)/python -m ruff check api_schemas engine workers service samples tests bench
+	$(BIN)/python -m ruff check api_schemas engine producer workers service samples tests bench
 
 compose-check:
 	docker-compose -f docker-compose.yml config -q

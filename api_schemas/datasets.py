@@ -52,7 +52,7 @@ __all__ = [
     "MAX_DATASET_IMAGES",
     "MAX_DATASET_SAMPLES",
     "MAX_EXPANDED_LIGHTS",
-    "BakeParams",
+    "DatasetBakeParams",
     "BakeRequest",
     "CompositeRequest",
     "DatasetBakePublic",
@@ -380,7 +380,7 @@ class DatasetUploadStatus(FrozenModel):
 # ------------------------------------------------------------------------------ bake
 
 
-class BakeParams(FrozenModel):
+class DatasetBakeParams(FrozenModel):
     """How a dataset is baked for relighting (``engine.relighting.relight.bake_dataset``)."""
 
     layout: Literal["pixel_major", "tiled"] = "pixel_major"
@@ -398,7 +398,7 @@ class BakeParams(FrozenModel):
 class BakeRequest(FrozenModel):
     """Body of ``POST /v1/datasets/{id}/bake`` (may be empty: ``{}``)."""
 
-    params: BakeParams = BakeParams()
+    params: DatasetBakeParams = DatasetBakeParams()
 
 
 class DatasetBakePublic(FrozenModel):
@@ -566,7 +566,7 @@ class RelightRequest(FrozenModel):
 
     dataset_id: Sha256
     lights: Annotated[list[RelightLight], Field(min_length=1, max_length=256)]
-    bake: BakeParams = BakeParams()
+    bake: DatasetBakeParams = DatasetBakeParams()
     """Which bake of the dataset to use (it must exist: ``POST /v1/datasets/{id}/bake``)."""
     min_light_distance: NonNegativeFloat | None = None
     """A point light nearer than this to a surface point contributes 0 there (singular); None = auto."""
@@ -625,7 +625,7 @@ class CompositeRequest(FrozenModel):
     None = the object mask dilated by ``active_margin_px``."""
     active_margin_px: Annotated[int, Field(strict=True, ge=0, le=4096), BeforeValidator(numpy_scalar)] = 16
     lights: Annotated[list[RelightLight], Field(min_length=1, max_length=256)]
-    bake: BakeParams = BakeParams()
+    bake: DatasetBakeParams = DatasetBakeParams()
     eps: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=1)] = 1e-3
     """Near-black guard: both relit images are lifted by eps x the background's mean over the active
     region before the ratio ``I_object / I_background`` is taken."""

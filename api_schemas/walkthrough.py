@@ -3,7 +3,7 @@
 A walkthrough renders every frame of a camera path through a stored scene's view space from
 a walkthrough bake (base range images at chosen viewpoints and times). Checks that need the
 scene (eyes inside ``view_space``, times inside the animation) are made by the API with
-:func:`workers.walkthroughs.check_against_scene`; this module checks the request alone.
+:func:`producer.walkthroughs.check_against_scene`; this module checks the request alone.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Starts an embedded Redis and a local object store in a temporary directory, stores a sample scene,
 then for each worker count: starts that many real ``python -m workers.runner --queue bake`` processes,
-requests the bake (``workers.bakes.enqueue_bake``: plan job -> one job per LDC axis and per LLF chunk
+requests the bake (``producer.bakes.enqueue_bake``: plan job -> one job per LDC axis and per LLF chunk
 -> merge job), waits for the manifest, records the wall time and each part's job time, stops the
 workers and deletes the bake (so the next run redoes exactly the same work). This is the mechanism a
 deployment uses to spread bakes over many machines sharing Redis and S3.
@@ -63,7 +63,7 @@ def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
 def _wait_workers(redis: Any, n: int, timeout: float = 60.0) -> None:
     from rq import Worker
 
-    from workers.queues import get_queue
+    from producer.queue import get_queue
 
     deadline = time.monotonic() + timeout
     while Worker.count(connection=redis, queue=get_queue(redis, "bake")) < n:
@@ -74,9 +74,9 @@ def _wait_workers(redis: Any, n: int, timeout: float = 60.0) -> None:
 
 def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: dict[str, str],
              logdir: Path) -> dict[str, Any]:
-    from workers import bakes
-    from workers.artifacts import read_manifest
-    from workers.queues import fetch_job
+    from producer import bakes
+    from producer.artifacts import read_manifest
+    from producer.queue import fetch_job
 
     procs = _start_workers(n, env, logdir)
     try:
@@ -144,11 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     from api_schemas import load_scene_file
     from api_schemas.scene import MeshFileObject
     from api_schemas.service import BakeParams
+    from producer.artifacts import put_scene
+    from producer.embedded import start_embedded_redis
+    from producer.queue import redis_from_url
+    from producer.store import open_store
     from samples import SAMPLES_DIR, sample_path
-    from workers.artifacts import put_scene
-    from workers.embedded import start_embedded_redis
-    from workers.queues import redis_from_url
-    from workers.store import open_store
 
     scene = load_scene_file(sample_path(args.scene))
     meshes = {o.path: (SAMPLES_DIR / o.path).read_bytes() for o in scene.objects if isinstance(o, MeshFileObject)}

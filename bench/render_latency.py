@@ -170,8 +170,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def _read_back(store_dir: Path, key: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """A stored render's arrays (as the job had them) and metadata, from its artifact's blobs."""
     from engine.imageio import read_image
-    from workers.artifacts import read_blob, read_manifest
-    from workers.store.local import LocalStore
+    from producer.artifacts import read_blob, read_manifest
+    from producer.store.local import LocalStore
 
     src = LocalStore(store_dir)
     manifest = read_manifest(src, key)
@@ -195,9 +195,9 @@ def encode_profile(store_dir: Path, key: str, runs: int) -> dict[str, Any]:
     """Per blob encode cost (alone, one thread) with the job's codec and an alternative, and the job's
     encode + store of every blob vs the lean sets, on one real 512x512 LDC render, same process."""
     from engine.imageio import encode_image
-    from workers.artifacts import write_artifact
+    from producer.artifacts import write_artifact
+    from producer.store.local import LocalStore
     from workers.jobs.render import OUTPUT_BLOBS, STORE_WRITERS, _provenance_png, encode_render_blobs
-    from workers.store.local import LocalStore
 
     out, meta = _read_back(store_dir, key)
     src_of = {"preview.png": "radiance", "radiance.exr": "radiance", "depth.exr": "depth", "normal.exr": "normal",
@@ -247,7 +247,7 @@ def encode_profile(store_dir: Path, key: str, runs: int) -> dict[str, Any]:
 
 
 def _key(params: dict[str, Any]) -> str:
-    from workers.artifacts import artifact_key
+    from producer.artifacts import artifact_key
 
     return artifact_key("bench", {}, params, "bench")
 

@@ -19,21 +19,29 @@ service could not be reached or failed the request, 4 the job failed.
 from __future__ import annotations
 
 import json
+import re
 import sys
+import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, NoReturn, TypeVar, cast, get_args
+from typing import Annotated, Any, Literal, NoReturn, TypeVar, cast, get_args
 
+import httpx
+import pydantic
 import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-if TYPE_CHECKING:
-    from api_schemas.datasets import FileUploadPublic, RelightPublic
-    from api_schemas.scene import Scene
-    from api_schemas.service import ArtifactManifest, JobPublic
-    from api_schemas.walkthrough import WalkthroughPublic
-    from service.client import ApiError, Client
+from api_schemas import format_validation_error, load_scene_file, scene_json_schema
+from api_schemas.datasets import DatasetManifest, FileUploadPublic, RelightPublic
+from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
+from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
+from api_schemas.walkthrough import WalkthroughPublic
+from samples import SAMPLES_DIR, sample_names, sample_path
+from service.client import ApiError, Client, JobFailed, read_dataset_dir, with_sha256s
+from service.up import load_samples, run_forever, start_stack
 
 T = TypeVar("T")
 
@@ -47,12 +55,6 @@ def _fail(msg: str, code: int = 2) -> NoReturn:
 
 def _load(scene_arg: str) -> tuple[Scene, Path]:
     """A scene file path or the name of a sample scene -> (Scene, base directory)."""
-    import pydantic
-
-    from api_schemas import format_validation_error, load_scene_file
-    from api_schemas.scene import SceneFileTooLargeError
-    from samples import SAMPLES_DIR, sample_names, sample_path
-
     path = Path(scene_arg)
     if not path.exists() and scene_arg in sample_names():
         path = sample_path(scene_arg)
@@ -87,8 +89,8 @@ def render_local(
     aovs: Annotated[bool, typer.Option(help="Also write depth/normal/id EXRs beside the image")] = False,
 ) -> None:
     """Render a scene in this process with the reference renderer (no service) and write the image."""
-    from dataclasses import replace
-
+    # deferred on purpose: the engine's renderer imports numba and Embree, which only the local
+    # commands need (the client commands start without them)
     from engine.errors import EngineError
     from engine.imageio import write_image
     from engine.reference import ReferenceParams, ReferenceRenderer
@@ -133,6 +135,7 @@ def render_local(
 @app.command()
 def validate(scene: Annotated[str, typer.Argument(help="Scene JSON file or sample name")]) -> None:
     """Validate a scene file (and its meshes); exit 2 with the failing fields."""
+    # deferred on purpose: the scene loader imports the engine (numba, Embree)
     from engine.errors import EngineError
     from workers.scene_loader import directory_resolver, load_scene
 
@@ -149,8 +152,6 @@ def validate(scene: Annotated[str, typer.Argument(help="Scene JSON file or sampl
 @app.command()
 def schema(output: Annotated[Path | None, typer.Option("-o", "--output")] = None) -> None:
     """Print (or write) the scene JSON Schema."""
-    from api_schemas import scene_json_schema
-
     text = json.dumps(scene_json_schema(), indent=2, sort_keys=True) + "\n"
     if output is None:
         sys.stdout.write(text)
@@ -161,8 +162,6 @@ def schema(output: Annotated[Path | None, typer.Option("-o", "--output")] = None
 @app.command()
 def samples() -> None:
     """List the sample scenes shipped with the service."""
-    from samples import sample_names, sample_path
-
     for n in sample_names():
         typer.echo(f"{n}\t{sample_path(n)}")
 
@@ -184,8 +183,6 @@ def up(
     exit_after_demo: Annotated[bool, typer.Option(help="Stop everything after the demo render")] = False,
 ) -> None:
     """Start Redis (embedded unless IBR_REDIS_URL is set), a bake and a render worker and the API."""
-    from service.up import load_samples, run_forever, start_stack
-
     try:
         stack = start_stack(data_dir, port=port, log=typer.echo)
     except Exception as exc:  # start-up problems are reported, not tracebacks
@@ -216,7 +213,7 @@ def api(
     workers: Annotated[int, typer.Option(help="uvicorn worker processes")] = 1,
 ) -> None:
     """Run the HTTP API (settings from IBR_* environment variables)."""
-    import uvicorn
+    import uvicorn  # deferred on purpose: only ``ibr api`` serves HTTP from this process
 
     uvicorn.run("service.main:create_app", factory=True, host=host, port=port, workers=workers,
                 access_log=False)  # the app logs every request itself (structured)
@@ -231,7 +228,7 @@ def worker(
     """Run one RQ worker on the bake or render queue (settings from IBR_* variables)."""
     if queue not in ("bake", "render"):
         _fail(f"--queue must be bake or render, got {queue!r}")
-    from workers.runner import main as run_worker
+    from workers.runner import main as run_worker  # deferred on purpose: the worker runtime imports numba
 
     argv = ["--queue", queue] + (["--burst"] if burst else []) + (["--name", name] if name else [])
     raise typer.Exit(run_worker(argv))
@@ -253,17 +250,11 @@ def _fail_code(msg: str, code: int) -> int:
 
 
 def _client(api_url: str, api_key: str | None) -> Client:
-    from service.client import Client
-
     return Client(api_url, api_key=api_key)
 
 
 def _call(fn: Callable[[], T]) -> T:
     """Run a client call; map API and connection errors to exit codes 2 / 3."""
-    import httpx
-
-    from service.client import ApiError
-
     try:
         return fn()
     except ApiError as exc:
@@ -274,8 +265,6 @@ def _call(fn: Callable[[], T]) -> T:
 
 def _api_fail(exc: ApiError) -> NoReturn:
     """Exit for an API error: 4 when a job failed or was canceled, 2 for bad input (4xx), else 3."""
-    from service.client import JobFailed
-
     if isinstance(exc, JobFailed):
         _fail(str(exc), code=4)
     _fail(str(exc), code=2 if 400 <= exc.status < 500 and exc.status not in (401, 403, 429) else 3)
@@ -285,8 +274,6 @@ def _scene_doc(scene_arg: str) -> tuple[dict[str, Any], dict[str, Path]]:
     """Scene JSON (validated locally first) and its mesh files, from a path or sample name."""
     sc, base = _load(scene_arg)
     doc = sc.model_dump(mode="json", exclude_defaults=False)
-    from api_schemas.scene import MeshFileObject
-
     meshes = {o.path: base / o.path for o in sc.objects if isinstance(o, MeshFileObject)}
     for rel, p in meshes.items():
         if not p.is_file():
@@ -331,8 +318,6 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                       output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
                       method: str = "reference", bake: dict[str, Any] | None = None,
                       missing_bake: str | None = None) -> None:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
@@ -388,8 +373,6 @@ def render(
     api_key: KeyOpt = None,
 ) -> None:
     """Request a render from the service, follow it with a progress bar and fetch the image."""
-    import re
-
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
                                 "seed": seed}.items() if v is not None}
     bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
@@ -410,8 +393,6 @@ def render(
 
 def _scene_id_of(scene: str, api_url: str, api_key: str | None) -> str:
     """A scene id as given, or the id of a scene file / sample uploaded first."""
-    import re
-
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         return scene
     doc, meshes = _scene_doc(scene)
@@ -433,10 +414,6 @@ def bake(
     api_key: KeyOpt = None,
 ) -> None:
     """Bake a scene's layered depth cube (+ light field when needed) for the LDC render methods; prints the key."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from api_schemas.service import BakePublic
-
     params = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
                                 "llf_f": llf_f, "llf_resolution": llf_resolution,
                                 "llf_chunk": llf_chunk}.items() if v is not None}
@@ -532,8 +509,6 @@ def batch(
     api_key: KeyOpt = None,
 ) -> None:
     """Submit many scenes (and renders of them) in one call; prints the batch id."""
-    import time
-
     docs: list[Mapping[str, Any]] = []
     for s in scenes:
         doc, meshes = _scene_doc(s)
@@ -561,8 +536,6 @@ def batch(
 @contextmanager
 def _bar(label: str) -> Iterator[Callable[[float, str], None]]:
     """A transient progress bar on stderr: ``update(fraction, description)``."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
                   TimeRemainingColumn(), transient=True) as bar:
         task = bar.add_task(label, total=1.0)
@@ -630,12 +603,6 @@ def datasets_upload(
     api_key: KeyOpt = None,
 ) -> None:
     """Upload an illumination dataset (validated locally first); prints the dataset id."""
-    import pydantic
-
-    from api_schemas import format_validation_error
-    from api_schemas.datasets import DatasetManifest
-    from service.client import read_dataset_dir, with_sha256s
-
     try:
         manifest, files = read_dataset_dir(path)
     except ValueError as exc:
@@ -765,8 +732,6 @@ def datasets_bake(
 
 
 def _is_id(value: str) -> bool:
-    import re
-
     return re.fullmatch(r"[0-9a-f]{64}", value) is not None
 
 
@@ -902,10 +867,6 @@ def relight(
     api_key: KeyOpt = None,
 ) -> None:
     """Relight a dataset under new lights (superposed) and fetch the image."""
-    import httpx
-
-    from service.client import ApiError
-
     _check_image_out(output)
     _check_image_out(outside, "--outside")
     bake_params = _dataset_bake_params(layout, half, compress, max_face_radius)

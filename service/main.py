@@ -2,7 +2,7 @@
 
 Run with ``uvicorn --factory service.main:create_app`` (or ``service.main:app``, built on
 first access from the ``IBR_*`` environment). This process never imports numba or the
-engine: jobs are enqueued by import path (``workers.queues``) and run in workers.
+engine's kernels: jobs are enqueued by import path (``producer``) and run in workers.
 """
 
 from __future__ import annotations
@@ -16,15 +16,15 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from redis import Redis
 
+from producer.queue import redis_from_url
+from producer.settings import Settings, load_settings
+from producer.store import ObjectStore, open_configured_store
 from service.api.errors import install_exception_handlers
 from service.api.limits import BodyLimitMiddleware
 from service.api.routes import artifacts, bakes, batches, datasets, health, jobs, preview, renders, scenes, walkthroughs
-from service.core.config import Settings, get_settings
 from service.core.logging import RequestContextMiddleware, configure_logging
 from service.core.metrics import MetricsMiddleware, ServiceMetrics
 from service.core.security import KeyRing, RateLimiter
-from workers.queues import redis_from_url
-from workers.store import ObjectStore, open_configured_store
 
 __all__ = ["create_app"]
 
@@ -50,7 +50,7 @@ def create_app(
 ) -> FastAPI:
     """Build the API. ``settings`` defaults to the environment (exits with a message naming
     the bad variable); ``store`` / ``redis`` override the clients the settings name (tests)."""
-    settings = settings if settings is not None else get_settings()
+    settings = settings if settings is not None else load_settings()
     configure_logging(settings.log_level, settings.log_json)
     try:
         store = store if store is not None else _open_store(settings)

@@ -12,6 +12,7 @@ and starts only the API and the workers.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -21,6 +22,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from producer.embedded import start_embedded_redis
+from samples import SAMPLES_DIR, sample_names, sample_path
 from service.client import ApiError, Client
 
 
@@ -29,7 +32,7 @@ class Stack:
     data_dir: Path
     api_url: str
     env: dict[str, str]
-    redis: object | None = None  # workers.embedded.EmbeddedRedis when embedded
+    redis: object | None = None  # producer.embedded.EmbeddedRedis when embedded
     procs: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
 
     def stop(self, timeout: float = 20.0) -> None:
@@ -59,8 +62,6 @@ def start_stack(data_dir: Path, host: str = "127.0.0.1", port: int = 8000,
     env["IBR_DATA_DIR"] = str(data_dir)
     redis = None
     if not env.get("IBR_REDIS_URL"):
-        from workers.embedded import start_embedded_redis
-
         redis = start_embedded_redis(data_dir)
         env["IBR_REDIS_URL"] = redis.url
         log(f"redis   embedded, {redis.url} (data in {data_dir})")
@@ -108,10 +109,6 @@ def start_stack(data_dir: Path, host: str = "127.0.0.1", port: int = 8000,
 
 def load_samples(api_url: str, api_key: str | None = None, log: Callable[[str], None] = print) -> dict[str, str]:
     """Upload every shipped sample scene with its meshes; returns name -> scene id."""
-    import json
-
-    from samples import SAMPLES_DIR, sample_names, sample_path
-
     ids: dict[str, str] = {}
     with Client(api_url, api_key=api_key) as c:
         for name in sample_names():

@@ -20,7 +20,7 @@ def test_compose_file_is_valid():
 
 def test_dockerfile_copies_every_package():
     text = (ROOT / "Dockerfile").read_text()
-    for pkg in ("api_schemas", "engine", "workers", "service", "samples"):
+    for pkg in ("api_schemas", "engine", "producer", "workers", "service", "samples"):
         assert f"COPY {pkg} {pkg}" in text
 
 

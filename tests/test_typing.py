@@ -1,4 +1,4 @@
-"""mypy --strict on the packages the conventions hold to it (api_schemas, service, workers)."""
+"""mypy --strict on the packages the conventions hold to it (api_schemas, producer, service, workers)."""
 
 import subprocess
 import sys

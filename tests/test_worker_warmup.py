@@ -26,6 +26,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from producer.queue import fetch_job
+from producer.renders import enqueue_render
+from producer.status import job_public
 from tests.fixtures.redis import WorkerProcess
 from workers import warmup
 
@@ -60,19 +63,20 @@ def _grown(before: dict[str, int]) -> dict[str, tuple[int, int]]:
 def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmup.WarmupReport,
                                                                     tmp_path: Path) -> None:
     from api_schemas import load_scene_file
-    from api_schemas.datasets import BakeParams as DatasetBakeParams
+    from api_schemas.datasets import DatasetBakeParams
     from api_schemas.service import BakeParams
     from engine import ENGINE_VERSION
     from engine.reference import ReferenceParams
     from engine.relighting.generate import LightPlacement, generate_dataset
     from engine.relighting.relight import bake_dataset
+    from producer.artifacts import put_scene, write_artifact
+    from producer.datasets import bake_artifact_key
+    from producer.names import DATASET_BAKE_KIND
+    from producer.store.local import LocalStore
     from samples import sample_path
-    from workers.artifacts import put_scene, write_artifact
-    from workers.datasets import BAKE_KIND, bake_artifact_key
+    from workers.jobs.common import load_stored_scene
     from workers.jobs.datasets import NPZ, baked_to_bytes
-    from workers.jobs.render import _load
     from workers.scene_loader import camera_params
-    from workers.store.local import LocalStore
 
     assert report.ok, report.table()
     store = LocalStore(tmp_path / "store")
@@ -86,7 +90,7 @@ def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmu
         no_llf = BakeParams(ldc_resolution=24, max_layers=8, llf="never")
         run._publish_bake(no_llf, with_llf=False)
         # a dataset generated from the sample (not the warm-up's synthetic one), baked into every store kind
-        loaded = _load(store, run.scene_id)
+        loaded = load_stored_scene(store, run.scene_id)
         cam = camera_params(scene.camera.model_copy(update={"width": 20, "height": 18}))
         ds = generate_dataset(loaded.runtime, cam, LightPlacement(region="hemisphere", spacing_deg=30.0),
                               ReferenceParams(spp=1, max_depth=0, area_light_samples=1))
@@ -102,7 +106,8 @@ def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmu
             baked = bake_dataset(ds, layout=bp.layout, half=bp.half, **extra)
             chosen[name] = "lowrank" if baked.lowrank is not None else f"{baked.store.dtype}-{baked.layout}"
             did = hashlib.sha256(f"test-{name}".encode()).hexdigest()
-            write_artifact(store, bake_artifact_key(did, bp), BAKE_KIND, {"dataset": did}, bp.model_dump(mode="json"),
+            write_artifact(store, bake_artifact_key(did, bp), DATASET_BAKE_KIND, {"dataset": did},
+                           bp.model_dump(mode="json"),
                            ENGINE_VERSION, {"baked.npz": (baked_to_bytes(baked), NPZ)}, {"report": {}})
             run.datasets[name] = (did, bp)
         assert chosen == {"f16-pm": "float16-pixel_major", "f16-tiled": "float16-tiled",
@@ -125,12 +130,14 @@ def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmu
         # the composite: object and background datasets with the same bake params
         obj_id, bp = run.datasets["f16-pm"]
         from api_schemas.datasets import CompositeRequest
-        from workers.datasets import CompositeJobPayload, composite_artifact_key
+        from producer.datasets import composite_artifact_key
+        from producer.payloads import CompositeJobPayload
         from workers.jobs.datasets import composite_job
 
         h, w = ds.shape
         bg_id = hashlib.sha256(b"test-background").hexdigest()  # the same bake under the background's id
-        write_artifact(store, bake_artifact_key(bg_id, bp), BAKE_KIND, {"dataset": bg_id}, bp.model_dump(mode="json"),
+        write_artifact(store, bake_artifact_key(bg_id, bp), DATASET_BAKE_KIND, {"dataset": bg_id},
+                       bp.model_dump(mode="json"),
                        ENGINE_VERSION, {"baked.npz": (baked_to_bytes(bake_dataset(ds, layout=bp.layout)), NPZ)},
                        {"report": {}})
         req = CompositeRequest.model_validate({
@@ -182,18 +189,17 @@ def test_runner_survives_a_warm_up_exception(monkeypatch: pytest.MonkeyPatch, ca
 def test_render_worker_warms_up_before_listening_then_serves(report: warmup.WarmupReport, redis_conn: Any,
                                                                worker_store: Any, worker_process: StartWorker) -> None:
     from api_schemas.service import RenderRequest
+    from producer.artifacts import put_scene, read_manifest
     from tests.workers.queue.jobs_for_tests import tiny_scene
-    from workers import queues
-    from workers.artifacts import put_scene, read_manifest
 
     sid = put_scene(worker_store, tiny_scene(), {}, owner=None).id
     req = RenderRequest(scene_id=sid, params={"spp": 1})
-    key, job = queues.enqueue_render(redis_conn, req, None, store=worker_store)
+    key, job = enqueue_render(redis_conn, req, None, store=worker_store)
     assert job is not None
     w = worker_process("render", burst=True, env={"IBR_WORKER_WARMUP": "true"})  # tests/conftest.py turns it off
     assert w.wait(600) == 0, w.log()
     log = w.log()
-    pub = queues.job_public(queues.fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
+    pub = job_public(fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
     assert pub.state == "finished", (pub.error, log)
     assert read_manifest(worker_store, key) is not None
     start, done = log.index("warm-up: starting"), log.index("warm-up: done in")
@@ -207,15 +213,15 @@ def test_render_worker_warms_up_before_listening_then_serves(report: warmup.Warm
 
 def test_no_warmup_flag_and_setting(redis_conn: Any, worker_process: StartWorker,
                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from producer.settings import Settings
     from workers import runner
-    from workers.settings import WorkerSettings
 
     assert runner._parser().parse_args(["--queue", "render", "--no-warmup"]).no_warmup is True
     assert runner._parser().parse_args(["--queue", "render"]).no_warmup is False
     monkeypatch.delenv("IBR_WORKER_WARMUP", raising=False)
-    assert WorkerSettings().worker_warmup is True  # on unless turned off
+    assert Settings().worker_warmup is True  # on unless turned off
     monkeypatch.setenv("IBR_WORKER_WARMUP", "0")
-    assert WorkerSettings().worker_warmup is False
+    assert Settings().worker_warmup is False
     w1 = worker_process("render", "--no-warmup", burst=True, env={"IBR_WORKER_WARMUP": "true"})
     w2 = worker_process("render", burst=True, env={"IBR_WORKER_WARMUP": "false"})
     assert w1.wait(120) == 0 and w2.wait(120) == 0

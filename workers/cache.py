@@ -3,7 +3,7 @@
 A render worker (``rq.SimpleWorker``) runs every job in one long-lived process, so a scene
 loaded for one job -- tessellated, validated, flattened, its Embree BVH built -- serves the
 next job on the same scene for free. The cache is an LRU keyed by scene id and bounded by an
-estimate of the bytes each entry holds (``WorkerSettings.cache_bytes``).
+estimate of the bytes each entry holds (``Settings.cache_bytes``).
 
 Scene ids are content hashes, so an entry can never go stale: equal id, equal content.
 """
@@ -18,9 +18,10 @@ from typing import TYPE_CHECKING, Generic, TypeVar
 
 import numpy as np
 
+from engine.reference import ReferenceRenderer
+
 if TYPE_CHECKING:
     from engine.newviews.renderer import LDCViewRenderer
-    from engine.reference import ReferenceRenderer
     from engine.scene import RuntimeScene
     from workers.scene_loader import LoadedScene
 
@@ -185,8 +186,6 @@ class RendererCache(LRUBytesCache["CachedRenderer | CachedBakeRenderer"]):
         """The warm renderer for ``scene_id``, loading the scene with ``load()`` on a miss."""
 
         def factory() -> tuple[CachedRenderer | CachedBakeRenderer, int]:
-            from engine.reference import ReferenceRenderer
-
             loaded = load()
             entry = CachedRenderer(loaded, ReferenceRenderer(loaded.runtime))
             return entry, runtime_scene_bytes(loaded.runtime)

@@ -85,9 +85,10 @@ from rq.queue import Queue
 from rq.serializers import JSONSerializer
 from rq.worker import BaseWorker, WorkerStatus
 
-from workers.queues import QUEUE_NAMES, QueueName, get_queue, redis_from_url
-from workers.settings import WorkerSettings
-from workers.store import StoreUnavailable
+from engine.memory import keep_freed_memory
+from producer.queue import QUEUE_NAMES, QueueName, get_queue, redis_from_url
+from producer.settings import Settings
+from producer.store import StoreUnavailable
 
 __all__ = [
     "TRANSIENT_ERRORS",
@@ -246,7 +247,7 @@ def warm_up_render_worker() -> bool:
     log.info("warm-up: starting (compiles or loads the render jobs' numba kernels; no jobs are taken meanwhile)")
     t0 = time.perf_counter()
     try:
-        from workers.warmup import warm_up
+        from workers.warmup import warm_up  # deferred on purpose: render workers only (every job module)
 
         report = warm_up(logger=log)
     except Exception:
@@ -286,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        settings = WorkerSettings()
+        settings = Settings()
     except ValidationError as exc:
         print(f"invalid worker settings (IBR_* environment variables):\n{exc}", file=sys.stderr)
         return 2
@@ -297,14 +298,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cannot reach Redis at {settings.effective_redis_url}: {exc}", file=sys.stderr)
         return 3
     # keep image-sized buffers mapped between jobs (engine/memory.py); inherited by forked horses
-    from engine.memory import keep_freed_memory
-
     if keep_freed_memory(settings.malloc_keep_mib << 20):
         log.info("malloc: blocks up to 32 MiB from the heap, up to %d MiB of freed memory kept for the next job",
                  settings.malloc_keep_mib)
     if args.queue == "render":
         # Import the job module (and the engine) now, so a broken install fails at start-up.
-        import workers.jobs.render  # noqa: F401
+        import workers.jobs.render  # noqa: F401  # deferred on purpose: this queue's jobs only
 
         # Compile / load the kernels before registering (module docstring, "Warm-up").
         if settings.worker_warmup and not args.no_warmup:
@@ -315,7 +314,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         # Import only (no kernel runs in the parent, see the module docstring): forked horses
         # inherit the loaded modules instead of importing numba, Embree and the engine per job.
-        from workers.jobs.bake import preload_modules
+        from workers.jobs.bake import preload_modules  # deferred on purpose: this queue's jobs only
 
         preload_modules()
     worker = build_worker(

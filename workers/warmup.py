@@ -42,8 +42,10 @@ dispatchers, split into compiled (numba disk cache misses) and loaded from the d
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import functools
+import hashlib
 import json
 import logging
 import math
@@ -58,6 +60,26 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba.core.dispatcher import Dispatcher
+
+from api_schemas.datasets import CompositeRequest, DatasetBakeParams, RelightRequest
+from api_schemas.scene import Scene
+from api_schemas.service import BakeParams, RenderRequest
+from engine import ENGINE_VERSION
+from engine.imageio import encode_image
+from engine.newviews.effects import analyze
+from engine.relighting.relight import IlluminationDataset, bake_dataset
+from producer.artifacts import put_scene, write_artifact
+from producer.bakes import bake_key, part_key, plan_parts
+from producer.datasets import bake_artifact_key, composite_artifact_key, relight_artifact_key, store_file
+from producer.names import DATASET_BAKE_KIND
+from producer.payloads import CompositeJobPayload, RelightJobPayload, RenderJobPayload
+from producer.renders import render_artifact_key
+from producer.store.local import LocalStore
+from workers.jobs.bake import bake_ldc_axis_job, bake_llf_views_job, bake_plan_doc
+from workers.jobs.common import json_safe, load_stored_scene, set_worker_store
+from workers.jobs.datasets import NPZ, baked_to_bytes, composite_job, relight_job, set_caches
+from workers.jobs.render import render_job, set_renderer_cache
 
 __all__ = [
     "STEPS",
@@ -78,8 +100,6 @@ log = logging.getLogger("workers.warmup")
 def engine_dispatchers() -> dict[str, Any]:
     """Every numba dispatcher of the imported engine modules by ``module.name`` (``_DualKernel``
     objects contribute their ``.par`` and ``.ser`` compilations), each dispatcher once."""
-    from numba.core.dispatcher import Dispatcher
-
     found: dict[str, Any] = {}
     seen: set[int] = set()
     for mod_name, mod in sorted(sys.modules.items()):
@@ -249,8 +269,6 @@ def synthetic_dataset(size: int = 24, n_lights: int = 24) -> Any:
     """A small illumination dataset made in code: a bumpy disc (a height field seen from above),
     Lambertian with an ambient floor (every value > 0, so float16 is chosen when asked for), lit
     by ``n_lights`` point lights on a sphere around it."""
-    from engine.relighting.relight import IlluminationDataset
-
     ys, xs = np.mgrid[0:size, 0:size]
     u = (xs + 0.5) / size * 2.0 - 1.0
     v = (ys + 0.5) / size * 2.0 - 1.0
@@ -277,8 +295,6 @@ def synthetic_dataset(size: int = 24, n_lights: int = 24) -> Any:
 
 
 def _dataset_id(name: str) -> str:
-    import hashlib
-
     return hashlib.sha256(f"ibr-warm-up:{name}".encode()).hexdigest()
 
 
@@ -290,20 +306,16 @@ def _scratch_jobs(store: Any) -> Iterator[None]:
     """Point the render queue's job modules (and the bake part jobs) at ``store`` with fresh
     caches for the duration, then restore what they had. Only for a process that runs no job
     meanwhile (the runner warms up before the worker starts)."""
-    import workers.jobs.bake as bake_jobs
-    import workers.jobs.datasets as dataset_jobs
-    import workers.jobs.render as render_jobs
 
-    saved = (render_jobs._store, render_jobs._cache, dataset_jobs._store, dataset_jobs._baked, dataset_jobs._env)
-    saved_open = vars(bake_jobs)["open_worker_store"]
-    render_jobs._store, render_jobs._cache = store, None
-    dataset_jobs._store, dataset_jobs._baked, dataset_jobs._env = store, None, None
-    setattr(bake_jobs, "open_worker_store", lambda settings=None: store)  # noqa: B010 - not re-exported
+    saved_store = set_worker_store(store)
+    saved_renderers = set_renderer_cache(None)
+    saved_datasets = set_caches(None, None)
     try:
         yield
     finally:
-        render_jobs._store, render_jobs._cache, dataset_jobs._store, dataset_jobs._baked, dataset_jobs._env = saved
-        setattr(bake_jobs, "open_worker_store", saved_open)  # noqa: B010
+        set_worker_store(saved_store)
+        set_renderer_cache(saved_renderers)
+        set_caches(*saved_datasets)
 
 
 def _scratch_dir() -> str | None:
@@ -332,19 +344,12 @@ class _Run:
 
     # --- helpers
     def render(self, **request: Any) -> dict[str, Any]:
-        from api_schemas.service import RenderRequest
-        from workers.jobs.payloads import RenderJobPayload
-        from workers.jobs.render import render_job
-        from workers.queues import render_artifact_key
 
         req = RenderRequest.model_validate({"scene_id": self.scene_id, **request})
         payload = RenderJobPayload(request=req, artifact_key=render_artifact_key(req))
         return render_job(payload.model_dump(mode="json"))
 
     def relight(self, suffix: str, lights: list[dict[str, Any]]) -> dict[str, Any]:
-        from api_schemas.datasets import RelightRequest
-        from workers.datasets import RelightJobPayload, relight_artifact_key
-        from workers.jobs.datasets import relight_job
 
         did, params = self.datasets[suffix]
         req = RelightRequest.model_validate({"dataset_id": did, "lights": lights, "bake": params.model_dump()})
@@ -352,16 +357,12 @@ class _Run:
                            .model_dump(mode="json"))
 
     def image_file(self, name: str, pixels: np.ndarray) -> str:
-        from engine.imageio import encode_image
-        from workers.datasets import store_file
 
         info = store_file(self.store, encode_image(name, pixels), max_pixels=1 << 20)
         return str(info["sha256"])
 
     # --- steps
     def scene(self) -> None:
-        from api_schemas.scene import Scene
-        from workers.artifacts import put_scene
 
         self.scene_id = put_scene(self.store, Scene.model_validate(WARMUP_SCENE), {}, owner=None).id
 
@@ -376,8 +377,6 @@ class _Run:
                     camera={**WARMUP_SCENE["camera"], "width": 40, "height": 32})
 
     def ldc_bake(self) -> None:
-        from api_schemas.service import BakeParams
-
         self.bake_params = BakeParams.model_validate(_BAKE)
         self._publish_bake(self.bake_params, with_llf=True)
         # the same LDC without a light field: ``ldc`` renders then use the no-gather parameters
@@ -387,11 +386,6 @@ class _Run:
     def _publish_bake(self, params: Any, *, with_llf: bool) -> None:
         """Run the bake queue's part jobs into the scratch store and publish the bake manifest the
         merge job would (the plan and merge jobs need Redis; the render job reads only this)."""
-        from engine import ENGINE_VERSION
-        from engine.newviews.effects import analyze
-        from workers.artifacts import write_artifact
-        from workers.bakes import bake_key, part_key, plan_parts
-        from workers.jobs.bake import _load, bake_ldc_axis_job, bake_llf_views_job, bake_plan_doc
 
         bkey = bake_key(self.scene_id, params)
         specs = [{**spec, "key": part_key(self.scene_id, bkey, spec)} for spec in plan_parts(params, with_llf)]
@@ -400,7 +394,7 @@ class _Run:
             payload = {"scene_id": self.scene_id, "bake_key": bkey, "params": params.model_dump(mode="json"),
                        "part": part, "part_key": spec["key"]}
             (bake_ldc_axis_job if spec["kind"] == "ldc_axis" else bake_llf_views_job)(payload)
-        scene = _load(self.store, self.scene_id).runtime
+        scene = load_stored_scene(self.store, self.scene_id).runtime
         plan_doc = bake_plan_doc(scene, params, analyze(scene))
         result = json.loads(json.dumps({"plan": plan_doc, "parts": specs}, default=str))
         write_artifact(self.store, bkey, "bake", {"scene": self.scene_id}, params.model_dump(mode="json"),
@@ -413,13 +407,6 @@ class _Run:
 
     def relight_bake(self) -> None:
         """Bake the synthetic dataset into every store kind and publish each as ``bake_job`` does."""
-        from api_schemas.datasets import BakeParams as DatasetBakeParams
-        from engine import ENGINE_VERSION
-        from engine.relighting.relight import bake_dataset
-        from workers.artifacts import write_artifact
-        from workers.datasets import BAKE_KIND, bake_artifact_key
-        from workers.jobs.datasets import NPZ, baked_to_bytes
-        from workers.jobs.render import _json_safe
 
         ds = synthetic_dataset(self.dataset_size)
         for suffix, kwargs, expected in _RELIGHT_STORES:
@@ -435,9 +422,9 @@ class _Run:
             blob = baked_to_bytes(baked)
             ids = [_dataset_id(suffix)] + ([self.background_id] if suffix == "float16-pixel_major" else [])
             for did in ids:  # the composite's background dataset: the same bake under another id
-                write_artifact(self.store, bake_artifact_key(did, bp), BAKE_KIND, {"dataset": did},
+                write_artifact(self.store, bake_artifact_key(did, bp), DATASET_BAKE_KIND, {"dataset": did},
                                bp.model_dump(mode="json"), ENGINE_VERSION, {"baked.npz": (blob, NPZ)},
-                               _json_safe({"report": baked.report}))
+                               json_safe({"report": baked.report}))
             self.datasets[suffix] = (ids[0], bp)
         env = np.empty((8, 16, 3), np.float32)
         env[:] = np.linspace(0.2, 2.0, 16, dtype=np.float32)[None, :, None]
@@ -458,9 +445,6 @@ class _Run:
         self.relight(suffix, [{"type": "point", "position": exact, "intensity": [1.0, 1.0, 1.0]}])  # exact-hit kernel
 
     def composite(self) -> None:
-        from api_schemas.datasets import CompositeRequest
-        from workers.datasets import CompositeJobPayload, composite_artifact_key
-        from workers.jobs.datasets import composite_job
 
         obj, bp = self.datasets["float16-pixel_major"]
         size = self.dataset_size
@@ -502,8 +486,6 @@ def warm_up(*, logger: logging.Logger | None = None) -> WarmupReport:
     """Run every step (module docstring); a failing step is recorded with its traceback's last
     line (and logged with the traceback) and the others still run (those that need it are
     skipped). Never raises for a step's failure: the caller decides what a failed report means."""
-    from workers.store.local import LocalStore
-
     lg = logger or log
     t_start = time.perf_counter()
     steps: list[WarmupStep] = []
@@ -535,8 +517,6 @@ def warm_up(*, logger: logging.Logger | None = None) -> WarmupReport:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m workers.warmup [--json]``: warm up this process (and numba's disk cache) and
     print the report; exit status 1 when a step failed (e.g. an image build should stop)."""
-    import argparse
-
     p = argparse.ArgumentParser(prog="python -m workers.warmup", description=main.__doc__)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])

@@ -9,7 +9,8 @@ the scene record cannot carry a single owner. Each key that created a scene gets
 marker object ``scene-owners/<scene_id>/<owner>``; a key sees a scene iff its marker
 exists, deleting removes the key's marker and removes the scene only when no marker is
 left. Jobs and artifacts are visible to a key iff their scene is: a shared job or a
-cached artifact never reveals anything about scenes the key did not upload itself.
+cached artifact never reveals anything about scenes the key did not upload itself. The markers
+are ``producer.ownership``'s; they are re-exported here for the routes.
 """
 
 from __future__ import annotations
@@ -20,10 +21,19 @@ from fastapi import Depends, Request, Security
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from redis import Redis
 
-from service.core.config import Settings
+from producer.ownership import (
+    ANON_OWNER,
+    SCENE_OWNERS_PREFIX,
+    add_scene_owner,
+    remove_scene_owner,
+    scene_owners,
+    scene_visible,
+    visible_scene_ids,
+)
+from producer.settings import Settings
+from producer.store import ObjectStore
 from service.core.metrics import ServiceMetrics
 from service.core.security import KeyRing, RateLimiter
-from workers.store import ObjectStore
 
 __all__ = [
     "MetricsDep",
@@ -31,16 +41,14 @@ __all__ = [
     "RedisDep",
     "SettingsDep",
     "StoreDep",
+    "ANON_OWNER",
+    "SCENE_OWNERS_PREFIX",
     "add_scene_owner",
     "remove_scene_owner",
     "scene_owners",
     "scene_visible",
     "visible_scene_ids",
 ]
-
-SCENE_OWNERS_PREFIX = "scene-owners/"
-ANON_OWNER = "_"
-"""Marker name for scenes created while authentication is off."""
 
 _bearer = HTTPBearer(
     auto_error=False,
@@ -88,42 +96,3 @@ StoreDep = Annotated[ObjectStore, Depends(get_store)]
 RedisDep = Annotated[Redis, Depends(get_redis)]
 MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
 OwnerDep = Annotated[str | None, Depends(get_owner)]
-
-
-# ----------------------------------------------------------------------------- ownership
-
-
-def _marker(scene_id: str, owner: str | None) -> str:
-    return f"{SCENE_OWNERS_PREFIX}{scene_id}/{owner or ANON_OWNER}"
-
-
-def add_scene_owner(store: ObjectStore, scene_id: str, owner: str | None) -> None:
-    store.put_bytes(_marker(scene_id, owner), b"", "text/plain")
-
-
-def remove_scene_owner(store: ObjectStore, scene_id: str, owner: str | None) -> None:
-    store.delete(_marker(scene_id, owner))
-
-
-def scene_owners(store: ObjectStore, scene_id: str) -> list[str]:
-    prefix = f"{SCENE_OWNERS_PREFIX}{scene_id}/"
-    return [k[len(prefix):] for k in store.list(prefix)]
-
-
-def scene_visible(store: ObjectStore, scene_id: str, owner: str | None) -> bool:
-    """Can ``owner`` see scene ``scene_id``? With auth off (owner None) every scene is visible."""
-    if owner is None:
-        return True
-    return store.exists(_marker(scene_id, owner))
-
-
-def visible_scene_ids(store: ObjectStore, owner: str | None) -> set[str] | None:
-    """Scene ids ``owner`` may see (one listing); None means all (auth off)."""
-    if owner is None:
-        return None
-    out: set[str] = set()
-    for key in store.list(SCENE_OWNERS_PREFIX):
-        scene_id, _, who = key[len(SCENE_OWNERS_PREFIX):].partition("/")
-        if who == owner:
-            out.add(scene_id)
-    return out

@@ -10,8 +10,8 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 |---|---|
 | RequestValidationError, ValidationProblem | 422 (400 for an unparseable body) |
 | AuthError | 401 + ``WWW-Authenticate: Bearer`` |
-| workers.store.NotFound, queues.UnknownScene / JobNotFound | 404 (same answer for another key's resource) |
-| workers.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
+| producer.store.NotFound, producer.errors.UnknownScene / JobNotFound | 404 (same answer for another key's resource) |
+| producer.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
 | queues.BakeMissing (an LDC render without its bake) | 409, "bake missing", naming the bake to request |
 | BodyTooLarge | 413 |
 | MultipartError | 400 |
@@ -38,10 +38,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas.errors import FieldError, format_error_details
 from api_schemas.service import Problem, ProblemField
+from producer.errors import BakeMissing, JobNotFound, UnknownScene
+from producer.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
 from service.api.limits import BodyTooLarge, MultipartError
 from service.core.security import AuthError, RateLimited
-from workers.queues import BakeMissing, JobNotFound, UnknownScene
-from workers.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
 
 __all__ = [
     "PROBLEM_MEDIA_TYPE",

@@ -21,7 +21,10 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 from redis import Redis
+from rq.job import Job
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from producer.queue import get_queue, queue_depths
 
 __all__ = ["RECENT_JOBS", "MetricsMiddleware", "ServiceMetrics"]
 
@@ -35,10 +38,6 @@ class _QueueCollector(Collector):
         self._redis_getter = redis_getter
 
     def collect(self) -> Iterable[Metric]:
-        from rq.job import Job
-
-        from workers.queues import get_queue, queue_depths
-
         up = GaugeMetricFamily("ibr_redis_up", "1 when Redis answered this scrape")
         depth = GaugeMetricFamily(
             "ibr_queue_jobs", "Jobs per queue and state (RQ queue and registries)", labels=["queue", "state"]

@@ -4,35 +4,31 @@ datasets failing the bake with the engine's message."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from api_schemas.datasets import BakeParams, DatasetManifest, RelightRequest
+from api_schemas.datasets import DatasetBakeParams, DatasetManifest, RelightRequest
+from producer.datasets import bake_artifact_key, commit_dataset, relight_artifact_key, store_file
+from producer.payloads import DatasetBakeJobPayload, InvalidPayload, RelightJobPayload
+from producer.store import ObjectStore, open_store
 from tests.service.api.test_datasets import write_bytes
-from workers.datasets import (
-    BakeJobPayload,
-    RelightJobPayload,
-    bake_artifact_key,
-    commit_dataset,
-    relight_artifact_key,
-    store_file,
-)
 from workers.jobs import datasets as jobs
-from workers.jobs.payloads import InvalidPayload
-from workers.store import ObjectStore, open_store
+from workers.jobs.common import set_worker_store
 
 H, W = 12, 16
 
 
 @pytest.fixture
-def store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> ObjectStore:
+def store(tmp_path: Path) -> Iterator[ObjectStore]:
     s = open_store(str(tmp_path / "store"))
-    monkeypatch.setattr(jobs, "_worker_store", lambda: s)
+    previous = set_worker_store(s)
     jobs.baked_cache().clear()
-    return s
+    yield s
+    set_worker_store(previous)
 
 
 def _lambert_dataset(store: ObjectStore, camera: dict[str, Any], geometry: dict[str, Any], pts: np.ndarray,
@@ -79,11 +75,12 @@ def test_pinhole_depth_dataset_bakes_and_relights(store: ObjectStore) -> None:
                            _grid_lights(), {"depth.exr": write_bytes(depth, ".exr", "float")})
     ds = jobs.load_illumination_dataset(store, did)
     assert np.allclose(ds.points, pts, atol=1e-9) and ds.mask is not None and ds.mask.all()
-    params = BakeParams(half=False)
+    params = DatasetBakeParams(half=False)
     key = bake_artifact_key(did, params)
-    res = jobs.bake_job(BakeJobPayload(dataset_id=did, params=params, artifact_key=key).model_dump(mode="json"))
+    res = jobs.bake_job(DatasetBakeJobPayload(dataset_id=did, params=params, artifact_key=key).model_dump(mode="json"))
     assert res["artifact_key"] == key and res["counts"]["n_lights"] == 51
-    again = jobs.bake_job(BakeJobPayload(dataset_id=did, params=params, artifact_key=key).model_dump(mode="json"))
+    payload = DatasetBakeJobPayload(dataset_id=did, params=params, artifact_key=key).model_dump(mode="json")
+    again = jobs.bake_job(payload)
     assert again["report"] == res["report"]  # the stored result, no second bake
     # a light between dataset lights: close to the analytic Lambertian value
     req = RelightRequest.model_validate({"dataset_id": did, "bake": {"half": False},
@@ -122,8 +119,8 @@ def test_scene_geometry_is_ray_cast(store: ObjectStore) -> None:
     from api_schemas.scene import Scene
     from engine.relighting.generate import surface_aovs
     from engine.relighting.relight import points_from_depth
+    from producer.artifacts import put_scene
     from tests.service.api.conftest import small_scene
-    from workers.artifacts import put_scene
     from workers.scene_loader import camera_params, load_scene
 
     doc = small_scene()
@@ -151,13 +148,14 @@ def test_bad_payloads_and_bad_datasets_fail_clearly(store: ObjectStore) -> None:
     ring = np.array([[20 * np.cos(a), 20 * np.sin(a), 3.0] for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)])
     did = _lambert_dataset(store, cam, {"type": "depth", "file": "d.exr"}, pts, ring,
                            {"d.exr": write_bytes(np.full((H, W), 10.0, np.float32), ".exr", "float")})
-    params = BakeParams()
+    params = DatasetBakeParams()
     with pytest.raises(InvalidPayload, match="does not match"):
-        jobs.bake_job(BakeJobPayload(dataset_id=did, params=params, artifact_key="1" * 64).model_dump(mode="json"))
+        bad_key = DatasetBakeJobPayload(dataset_id=did, params=params, artifact_key="1" * 64)
+        jobs.bake_job(bad_key.model_dump(mode="json"))
     from engine.errors import InvalidInputError
 
     # six lights on one circle: the bake refuses it with the engine's message, nothing is stored
     with pytest.raises(InvalidInputError, match="coplanar"):
-        jobs.bake_job(BakeJobPayload(dataset_id=did, params=params, artifact_key=bake_artifact_key(did, params))
+        jobs.bake_job(DatasetBakeJobPayload(dataset_id=did, params=params, artifact_key=bake_artifact_key(did, params))
                       .model_dump(mode="json"))
     assert not store.list("artifacts/")

@@ -16,9 +16,9 @@ import pytest
 
 from engine.errors import NonFiniteOutputError
 from engine.imageio import read_image, tonemap_srgb
-from workers import artifacts as art
+from producer import artifacts as art
+from producer.store import LocalStore, NotFound, StoreUnavailable
 from workers.jobs.render import EXR, OUTPUT_BLOBS, PNG, PROVENANCE_CODES, encode_render_blobs
-from workers.store import LocalStore, NotFound, StoreUnavailable
 
 
 def _render_like(h: int = 48, w: int = 64, seed: int = 0) -> dict[str, np.ndarray]:

@@ -1,6 +1,6 @@
 """Bake jobs on the ``bake`` queue: plan, parts (LDC axes, LLF direction chunks) and merge.
 
-See ``workers/bakes.py`` for the keys, the job graph and the store layout. Every job validates its
+See ``producer/bakes.py`` for the keys, the job graph and the store layout. Every job validates its
 payload, recomputes the keys it was given (a payload cannot make a worker publish under another
 request's key), reads the store URL from the worker's own settings, reports progress in
 ``job.meta["progress"]`` and honours cancellation between stages.
@@ -11,44 +11,48 @@ Parts are stored as ``npz`` blobs (``np.savez``, no pickle) of the engine's ``to
 
 from __future__ import annotations
 
+import importlib
 import io
 import json
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ValidationError
+from redis import Redis
 from rq import get_current_job
 
+from api_schemas.service import BakeParams
 from engine import ENGINE_VERSION
 from engine.errors import InvalidInputError
-from workers.bakes import (
+from engine.newviews.effects import EffectPlan, analyze
+from engine.newviews.ldc import LDC_ATTR_BYTES, LDCAxis, bake_ldc_axis, ldc_pixel_size, merge_ldc
+from engine.newviews.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
+from engine.newviews.llf import LLFView, bake_llf_views, estimate_llf_bytes, llf_params_dict, merge_llf
+from engine.raycast import make_caster
+from engine.reference import ReferenceParams
+from engine.scene import RuntimeScene
+from producer.artifacts import manifest_key, read_blob, read_manifest, write_artifact
+from producer.bakes import (
     BAKE_MAX_PART_BYTES,
     BAKE_MAX_TOTAL_BYTES,
     bake_complete,
     bake_key,
-    bake_plan_job_id,
     enqueue_parts,
     llf_direction_count,
-    part_job_id,
     part_key,
     part_weight,
     plan_parts,
 )
-from workers.jobs.payloads import BakeJobPayload, BakePartPayload, InvalidPayload, describe_validation_error
-from workers.jobs.render import ProgressReporter, SceneNotFound
-from workers.queues import engine_version, fetch_job, job_public, redis_from_url
-from workers.settings import get_settings, open_worker_store
-
-if TYPE_CHECKING:
-    from redis import Redis
-
-    from api_schemas.service import BakeParams
-    from engine.newviews.effects import EffectPlan
-    from engine.scene import RuntimeScene
-    from workers.scene_loader import LoadedScene
-    from workers.store import ObjectStore
+from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
+from producer.payloads import InvalidPayload, SceneBakeJobPayload, SceneBakePartJobPayload, describe_validation_error
+from producer.queue import fetch_job, redis_from_url
+from producer.settings import get_settings
+from producer.status import job_public
+from producer.store import ChecksumMismatch, NotFound, ObjectStore
+from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
+from workers.scene_loader import LoadedScene
 
 __all__ = [
     "PRELOAD_MODULES",
@@ -79,20 +83,17 @@ class BakeTooLarge(InvalidInputError):
 # ------------------------------------------------------------------------------------ helpers
 
 PRELOAD_MODULES = (
-    "engine.newviews.effects", "engine.newviews.ldc", "engine.newviews.llf", "engine.reference", "engine.raycast",
-    "workers.scene_loader",
-    "workers.artifacts", "trimesh", "trimesh.exchange.ply", "trimesh.resolvers", "scipy.sparse.csgraph",
+    "trimesh", "trimesh.exchange.ply", "trimesh.resolvers", "scipy.sparse.csgraph",
     "embreex.rtcore_scene", "embreex.mesh_construction",
 )
-"""Modules the bake jobs import lazily (mesh loading, Embree): imported once by the bake worker's
-parent so every forked horse has them (~0.7 s per job otherwise)."""
+"""Modules the engine and the scene loader import lazily (mesh loading, Embree), beyond what this
+module imports itself: imported once by the bake worker's parent so every forked horse has them
+(~0.7 s per job otherwise)."""
 
 
 def preload_modules() -> None:
     """Import -- never run -- what the bake jobs need (see ``workers/runner.py``: no numba kernel
     and no Embree device may exist in the parent before it forks)."""
-    import importlib
-
     for name in PRELOAD_MODULES:
         try:
             importlib.import_module(name)
@@ -119,9 +120,7 @@ def _validate(model: type[M], payload: dict[str, Any]) -> M:
         raise InvalidPayload(f"invalid bake job payload: {describe_validation_error(exc)}") from None
 
 
-def _check_bake(p: BakeJobPayload) -> None:
-    if engine_version() != ENGINE_VERSION:
-        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
+def _check_bake(p: SceneBakeJobPayload) -> None:
     expected = bake_key(p.scene_id, p.params)
     if expected != p.bake_key:
         raise InvalidPayload(f"bake_key {p.bake_key} does not match the request (expected {expected})")
@@ -138,18 +137,6 @@ def _owner() -> str | None:
     job = get_current_job()
     owner = job.meta.get("owner") if job is not None else None
     return owner if isinstance(owner, str) else None
-
-
-def _load(store: ObjectStore, scene_id: str) -> LoadedScene:
-    from workers.artifacts import blob_reader, get_scene
-    from workers.scene_loader import load_scene
-    from workers.store import NotFound
-
-    try:
-        scene, mesh_shas, _public = get_scene(store, scene_id)
-    except NotFound as exc:
-        raise SceneNotFound(f"scene {scene_id} is not in the store") from exc
-    return load_scene(scene, blob_reader(store, mesh_shas))
 
 
 def bakes_llf(params: BakeParams, plan: EffectPlan) -> bool:
@@ -172,17 +159,10 @@ def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> 
 
 
 def _ldc_axis_bytes(scene: RuntimeScene, params: BakeParams, words: int) -> list[int]:
-    from engine.newviews.ldc import LDC_ATTR_BYTES, ldc_pixel_size
-    from engine.newviews.ldi import LDI_SAMPLE_BYTES, axis_frame, estimate_ldi_bytes
-
     h = ldc_pixel_size(scene, params.ldc_resolution)
     lo, hi = scene.bounds
     per = LDI_SAMPLE_BYTES + LDC_ATTR_BYTES + 16 * words
     return [estimate_ldi_bytes(axis_frame(lo, hi, a, h).n_pixels, params.max_layers, per) for a in range(3)]
-
-
-def _json_safe(value: Any) -> Any:
-    return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
 # ------------------------------------------------------------------------------------ plan
@@ -193,12 +173,9 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
 
     Returns ``{"plan", "parts": [spec + key + weight], "reused": [names], "enqueued": [names],
     "estimates": {...}}``; the merge job and the API read it."""
-    p = _validate(BakeJobPayload, payload)
+    p = _validate(SceneBakeJobPayload, payload)
     _check_bake(p)
-    from engine.newviews.effects import analyze
-    from workers.artifacts import manifest_key, read_manifest
-
-    store = open_worker_store()
+    store = worker_store()
     progress = ProgressReporter(get_current_job())
     if bake_complete(store, p.bake_key):
         manifest = read_manifest(store, p.bake_key)
@@ -207,7 +184,7 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
         return {"plan": manifest.result.get("plan"), "parts": parts, "reused": [s["name"] for s in parts],
                 "enqueued": [], "estimates": manifest.result.get("estimates", {})}
     progress.report(0.1, "loading scene", force=True)
-    loaded = _load(store, p.scene_id)
+    loaded = load_stored_scene(store, p.scene_id)
     scene = loaded.runtime
     if scene.n_triangles == 0:
         raise InvalidInputError("cannot bake a scene without surfaces")
@@ -224,8 +201,6 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
             f"{BAKE_MAX_PART_BYTES / 2**20:.0f} MiB; lower ldc_resolution or max_layers")
     estimates: dict[str, Any] = {"ldc_axis_bytes_max": axis_bytes, "part_limit_bytes": BAKE_MAX_PART_BYTES}
     if with_llf:
-        from engine.newviews.llf import estimate_llf_bytes
-
         chunk_bytes = estimate_llf_bytes(p.params.llf_f, p.params.llf_resolution, p.params.max_layers,
                                          n_views=min(p.params.llf_chunk, llf_direction_count(p.params.llf_f)))
         estimates["llf_chunk_bytes_max"] = chunk_bytes
@@ -241,7 +216,7 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.report(0.8, f"enqueueing {len(missing)} of {len(specs)} parts", force=True)
     enqueue_parts(_redis(), p.scene_id, p.bake_key, p.params, missing, _owner())
     progress.report(1.0, "planned", force=True, check=False)
-    out: dict[str, Any] = _json_safe({"plan": plan_doc, "parts": specs,
+    out: dict[str, Any] = json_safe({"plan": plan_doc, "parts": specs,
                                       "reused": [s["name"] for s in specs if s not in missing],
                                       "enqueued": [s["name"] for s in missing], "estimates": estimates})
     return out
@@ -250,29 +225,25 @@ def bake_plan_job(payload: dict[str, Any]) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------ parts
 
 
-def _part_prologue(payload: dict[str, Any]) -> tuple[BakePartPayload, ObjectStore, dict[str, Any] | None]:
-    p = _validate(BakePartPayload, payload)
+def _part_prologue(payload: dict[str, Any]) -> tuple[SceneBakePartJobPayload, ObjectStore, dict[str, Any] | None]:
+    p = _validate(SceneBakePartJobPayload, payload)
     _check_bake(p)
     spec = p.part.model_dump(mode="json")
     expected = part_key(p.scene_id, p.bake_key, spec)
     if expected != p.part_key:
         raise InvalidPayload(f"part_key {p.part_key} does not match the part (expected {expected})")
-    from workers.artifacts import read_manifest
-
-    store = open_worker_store()
+    store = worker_store()
     existing = read_manifest(store, p.part_key)
     if existing is not None:  # published already (a retry after the commit, or a duplicate)
         return p, store, {"artifact_key": p.part_key, "part": p.part.name, "reused": True, **existing.result}
     return p, store, None
 
 
-def _publish_part(store: ObjectStore, p: BakePartPayload, blob_name: str, arrays: Mapping[str, np.ndarray],
+def _publish_part(store: ObjectStore, p: SceneBakePartJobPayload, blob_name: str, arrays: Mapping[str, np.ndarray],
                   result: dict[str, Any], progress: ProgressReporter) -> dict[str, Any]:
-    from workers.artifacts import write_artifact
-
     data = npz_bytes(arrays)
     progress.check_canceled()  # last chance before the commit
-    res = _json_safe({**result, "bytes": len(data)})
+    res = json_safe({**result, "bytes": len(data)})
     write_artifact(store, p.part_key, "bake-part", {"scene": p.scene_id, "bake": p.bake_key},
                    p.part.model_dump(mode="json"), ENGINE_VERSION, {blob_name: (data, NPZ)}, res)
     progress.report(1.0, "done", force=True, check=False)
@@ -280,10 +251,7 @@ def _publish_part(store: ObjectStore, p: BakePartPayload, blob_name: str, arrays
 
 
 def _scene_and_caster(store: ObjectStore, scene_id: str) -> tuple[LoadedScene, Any, EffectPlan]:
-    from engine.newviews.effects import analyze
-    from engine.raycast import make_caster
-
-    loaded = _load(store, scene_id)
+    loaded = load_stored_scene(store, scene_id)
     return loaded, make_caster(loaded.runtime, "embree"), analyze(loaded.runtime)
 
 
@@ -293,8 +261,6 @@ def bake_ldc_axis_job(payload: dict[str, Any]) -> dict[str, Any]:
     p, store, done = _part_prologue(payload)
     if done is not None:
         return done
-    from engine.newviews.ldc import bake_ldc_axis
-
     part = p.part
     assert part.kind == "ldc_axis"
     progress = ProgressReporter(get_current_job())
@@ -321,8 +287,6 @@ def bake_ldc_axis_job(payload: dict[str, Any]) -> dict[str, Any]:
 
 
 def _reference_params(params: BakeParams) -> Any:
-    from engine.reference import ReferenceParams
-
     lp = params.llf_params
     return ReferenceParams(spp=lp.spp, max_depth=lp.max_depth, glossy_samples=lp.glossy_samples,
                            area_light_samples=lp.area_light_samples, seed=lp.seed)
@@ -334,8 +298,6 @@ def bake_llf_views_job(payload: dict[str, Any]) -> dict[str, Any]:
     p, store, done = _part_prologue(payload)
     if done is not None:
         return done
-    from engine.newviews.llf import bake_llf_views
-
     part = p.part
     assert part.kind == "llf_views"
     n_dirs = llf_direction_count(p.params.llf_f)
@@ -370,8 +332,6 @@ def bake_llf_views_job(payload: dict[str, Any]) -> dict[str, Any]:
 
 
 def _read_part(store: ObjectStore, pkey: str, name: str) -> dict[str, np.ndarray]:
-    from workers.artifacts import read_blob
-
     return read_npz(read_blob(store, pkey, name))
 
 
@@ -379,17 +339,12 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
                     plan: dict[str, Any], progress: Callable[[float], None] | None = None) -> tuple[Any, Any]:
     """``(LDC, LLF or None)`` from a bake's part artifacts, checked: checksums (``read_blob``),
     array shapes (``from_arrays``) and that the parts fit together (``merge_ldc`` / ``merge_llf``)."""
-    from engine.newviews.effects import analyze
-    from engine.newviews.ldc import LDCAxis, merge_ldc
-
     axes = []
     views: list[Any] = []
     for i, spec in enumerate(parts):
         if spec["kind"] == "ldc_axis":
             axes.append(LDCAxis.from_arrays(_read_part(store, spec["key"], "ldc_axis.npz")))
         else:
-            from engine.newviews.llf import LLFView
-
             d = _read_part(store, spec["key"], "llf_views.npz")
             for idx in d["indices"].tolist():
                 pre = f"v{idx}_"
@@ -399,8 +354,6 @@ def load_bake_parts(store: ObjectStore, scene: RuntimeScene, params: BakeParams,
     ldc = merge_ldc(scene, axes, params.ldc_resolution, analyze(scene))
     llf = None
     if plan.get("bake_llf"):
-        from engine.newviews.llf import llf_params_dict, merge_llf
-
         llf = merge_llf(params.llf_f, params.llf_resolution, views,
                         llf_params_dict(_reference_params(params), params.max_layers))
     return ldc, llf
@@ -410,11 +363,9 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Runs after the plan job and every part job ended: verifies the parts and publishes the bake
     manifest (``plan.json`` + the result: plan, parts with sizes and timings, totals)."""
     t_start = time.perf_counter()
-    p = _validate(BakeJobPayload, payload)
+    p = _validate(SceneBakeJobPayload, payload)
     _check_bake(p)
-    from workers.artifacts import read_manifest, write_artifact
-
-    store = open_worker_store()
+    store = worker_store()
     if bake_complete(store, p.bake_key):
         manifest = read_manifest(store, p.bake_key)
         assert manifest is not None
@@ -422,7 +373,7 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
     redis = _redis()
     progress = ProgressReporter(get_current_job())
     progress.report(0.0, "checking parts", force=True)
-    plan_job = fetch_job(redis, bake_plan_job_id(p.bake_key))
+    plan_job = fetch_job(redis, scene_bake_plan_job_id(p.bake_key))
     if plan_job is None:
         raise BakeFailed(f"the plan of bake {p.bake_key} is no longer in Redis; request the bake again")
     plan_pub = job_public(plan_job)
@@ -437,7 +388,7 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
     if missing:
         why = []
         for s in missing[:4]:
-            pj = fetch_job(redis, part_job_id(s["key"]))
+            pj = fetch_job(redis, scene_bake_part_job_id(s["key"]))
             if pj is None:
                 why.append(f"{s['name']} (no job)")
             else:
@@ -452,7 +403,7 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
                            f"{BAKE_MAX_TOTAL_BYTES / 2**20:.0f} MiB for one bake in memory; lower ldc_resolution, "
                            "max_layers, llf_f or llf_resolution")
     progress.report(0.05, "verifying parts", force=True)
-    loaded = _load(store, p.scene_id)
+    loaded = load_stored_scene(store, p.scene_id)
     t0 = time.perf_counter()
     ldc, llf = load_bake_parts(store, loaded.runtime, p.params, specs, planned["plan"],
                                lambda f: progress.report(0.05 + 0.85 * f, "verifying parts"))
@@ -470,7 +421,7 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
     wall = None
     if plan_job.enqueued_at is not None:
         wall = time.time() - plan_job.enqueued_at.timestamp()
-    result = _json_safe({
+    result = json_safe({
         "plan": planned["plan"], "parts": parts_out, "sizes": sizes, "estimates": planned.get("estimates", {}),
         "timings": {"parts_total": cpu, "verify": t_verify, "merge_total": time.perf_counter() - t_start,
                     "wall_since_request": wall},
@@ -485,10 +436,6 @@ def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:
 def load_bake(store: ObjectStore, scene: RuntimeScene, key: str) -> tuple[Any, Any, dict[str, Any]]:
     """``(LDC, LLF or None, plan)`` of a complete bake (for the render worker). Raises BakeFailed when
     the bake or one of its parts is missing or corrupt (the bake must be requested again)."""
-    from api_schemas.service import BakeParams
-    from workers.artifacts import read_manifest
-    from workers.store import ChecksumMismatch, NotFound
-
     manifest = read_manifest(store, key)
     if manifest is None:
         raise BakeFailed(f"bake {key} is not in the store; request it with POST /v1/scenes/<id>/bakes")

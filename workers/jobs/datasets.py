@@ -28,26 +28,28 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
+import OpenImageIO as oiio
 from pydantic import BaseModel, ValidationError
 from rq import get_current_job
 
+from api_schemas.datasets import DatasetManifest, DepthGeometry, PinholeCamera, SceneGeometry
 from engine import ENGINE_VERSION
-from engine.imageio import write_image
-from workers.cache import LRUBytesCache
-from workers.datasets import (
-    BAKE_KIND,
-    COMPOSITE_KIND,
-    GENERATE_KIND,
-    RELIGHT_KIND,
-    BakeJobPayload,
-    CompositeJobPayload,
-    GenerateJobPayload,
-    RelightJobPayload,
-    add_dataset_owner,
+from engine.camera import camera_rays, pixel_centers
+from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.imageio import srgb_encode, write_image
+from engine.raycast import hit_points, make_caster
+from engine.reference import ReferenceParams
+from engine.relighting.composite import active_region_around, composite
+from engine.relighting.compress import LowRankStore
+from engine.relighting.generate import LightPlacement, generate_dataset, render_ground_truth, surface_aovs
+from engine.relighting.relight import BakedDataset, IlluminationDataset, bake_dataset, points_from_depth, relight
+from producer.artifacts import get_scene, read_blob, read_manifest, write_artifact
+from producer.datasets import (
     bake_artifact_key,
     commit_dataset,
     composite_artifact_key,
@@ -61,14 +63,21 @@ from workers.datasets import (
     relight_inputs,
     store_file,
 )
-from workers.jobs.payloads import InvalidPayload, describe_validation_error
-from workers.jobs.render import JobCanceled, ProgressReporter, _json_safe
-from workers.queues import engine_version, job_owners
-from workers.settings import get_settings, open_worker_store
-
-if TYPE_CHECKING:
-    from engine.relighting.relight import BakedDataset, IlluminationDataset
-    from workers.store import ObjectStore
+from producer.names import COMPOSITE_KIND, DATASET_BAKE_KIND, GENERATE_KIND, RELIGHT_KIND
+from producer.ownership import add_dataset_owner, job_owners
+from producer.payloads import (
+    CompositeJobPayload,
+    DatasetBakeJobPayload,
+    GenerateJobPayload,
+    InvalidPayload,
+    RelightJobPayload,
+    describe_validation_error,
+)
+from producer.settings import get_settings
+from producer.store import NotFound, ObjectStore
+from workers.cache import LRUBytesCache
+from workers.jobs.common import JobCanceled, ProgressReporter, json_safe, load_stored_scene, worker_store
+from workers.scene_loader import camera_params
 
 __all__ = ["JobCanceled", "bake_job", "baked_cache", "composite_job", "generate_job", "load_illumination_dataset",
            "relight_job"]
@@ -78,17 +87,9 @@ PNG = "image/png"
 NPZ = "application/x-npz"
 MAX_FILE_PIXELS = 64_000_000
 
-_store: ObjectStore | None = None
 _baked: LRUBytesCache[BakedDataset] | None = None
 _env: LRUBytesCache[np.ndarray] | None = None
 _lock = threading.Lock()
-
-
-def _worker_store() -> ObjectStore:
-    global _store
-    if _store is None:
-        _store = open_worker_store()
-    return _store
 
 
 def baked_cache() -> LRUBytesCache[BakedDataset]:
@@ -101,16 +102,22 @@ def baked_cache() -> LRUBytesCache[BakedDataset]:
     return _baked
 
 
+def set_caches(baked: LRUBytesCache[BakedDataset] | None, env: LRUBytesCache[np.ndarray] | None
+               ) -> tuple[LRUBytesCache[BakedDataset] | None, LRUBytesCache[np.ndarray] | None]:
+    """Replace this process's baked-dataset and environment-map caches (None: fresh ones on next
+    use); returns the previous pair (the warm-up works on a scratch store with its own caches)."""
+    global _baked, _env
+    with _lock:
+        previous = (_baked, _env)
+        _baked, _env = baked, env
+    return previous
+
+
 def _validate(model: type[BaseModel], payload: dict[str, Any], what: str) -> Any:
     try:
         return model.model_validate(payload)
     except ValidationError as exc:
         raise InvalidPayload(f"invalid {what} job payload: {describe_validation_error(exc)}") from None
-
-
-def _check_engine() -> None:
-    if engine_version() != ENGINE_VERSION:
-        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
 
 
 def _image_bytes(tmp: Path, name: str, pixels: Any, **kw: Any) -> bytes:
@@ -128,10 +135,6 @@ def load_illumination_dataset(store: ObjectStore, dataset_id: str,
     """A stored dataset as an ``engine.relighting.relight.IlluminationDataset``: images linearised with the
     manifest's transfer function, surface points from the depth map (or by ray-casting the stored
     scene), the mask combined with the valid depth pixels."""
-    from api_schemas.datasets import DepthGeometry, PinholeCamera, SceneGeometry
-    from engine.errors import InvalidInputError
-    from engine.relighting.relight import IlluminationDataset, points_from_depth
-    from workers.scene_loader import camera_params
 
     manifest, public = get_dataset(store, dataset_id)
     k, h, w = len(manifest.images), public.height, public.width
@@ -175,11 +178,8 @@ def load_illumination_dataset(store: ObjectStore, dataset_id: str,
 
 
 def _points_from_scene(store: ObjectStore, scene_id: str, camera: Any) -> tuple[np.ndarray, np.ndarray]:
-    from engine.camera import camera_rays, pixel_centers
-    from engine.raycast import hit_points, make_caster
-    from workers.jobs.render import _load
 
-    loaded = _load(store, scene_id)
+    loaded = load_stored_scene(store, scene_id)
     o, d = camera_rays(camera, *pixel_centers(camera))
     hits = make_caster(loaded.runtime).intersect(o, d)
     pts = hit_points(loaded.runtime, hits).reshape(camera.height, camera.width, 3)
@@ -225,16 +225,12 @@ def _json_safe_scalars(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
-    from engine.relighting.relight import BakedDataset
-
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         meta: dict[str, Any] = json.loads(str(z["_meta"]))
         kwargs: dict[str, Any] = {k: np.ascontiguousarray(z[k]) for k in z.files
                                   if k != "_meta" and not k.startswith("lowrank.")}
         lowrank = meta.pop("lowrank", None)
         if lowrank is not None:
-            from engine.relighting.compress import LowRankStore
-
             lr_args: dict[str, Any] = {k.split(".", 1)[1]: np.ascontiguousarray(z[k]) for k in z.files
                                        if k.startswith("lowrank.")}
             kwargs["lowrank"] = LowRankStore(**lr_args, **lowrank)
@@ -243,8 +239,6 @@ def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
 
 
 def _load_baked(store: ObjectStore, bake_key: str) -> tuple[BakedDataset, bool]:
-    from workers.artifacts import read_blob, read_manifest
-    from workers.store import NotFound
 
     def factory() -> tuple[BakedDataset, int]:
         manifest = read_manifest(store, bake_key)
@@ -262,15 +256,12 @@ def _load_baked(store: ObjectStore, bake_key: str) -> tuple[BakedDataset, bool]:
 def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Bake a stored dataset; returns ``{"artifact_key", "dataset_id", "report", "timings"}``."""
     t_start = time.perf_counter()
-    p: BakeJobPayload = _validate(BakeJobPayload, payload, "bake")
-    _check_engine()
+    p: DatasetBakeJobPayload = _validate(DatasetBakeJobPayload, payload, "bake")
     key = bake_artifact_key(p.dataset_id, p.params)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    from engine.relighting.relight import bake_dataset
-    from workers.artifacts import read_manifest, write_artifact
 
-    store = _worker_store()
+    store = worker_store()
     existing = read_manifest(store, key)
     if existing is not None:
         return {"artifact_key": key, **existing.result}
@@ -290,7 +281,7 @@ def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     blob = baked_to_bytes(baked)
     progress.check_canceled()
-    result = _json_safe({
+    result = json_safe({
         "dataset_id": p.dataset_id,
         "report": baked.report,
         "counts": {"n_lights": int(baked.light_positions.shape[0]), "n_pixels": int(baked.pixel_index.size),
@@ -298,7 +289,7 @@ def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
                    "width": baked.shape[1], "height": baked.shape[0]},
         "timings": {"load_dataset": t_load, "bake": t_bake, "serialize": time.perf_counter() - t0},
     })
-    write_artifact(store, key, BAKE_KIND, {"dataset": p.dataset_id}, bp.model_dump(mode="json"), ENGINE_VERSION,
+    write_artifact(store, key, DATASET_BAKE_KIND, {"dataset": p.dataset_id}, bp.model_dump(mode="json"), ENGINE_VERSION,
                    {"baked.npz": (blob, NPZ)}, result)
     result["timings"]["job_total"] = time.perf_counter() - t_start
     progress.report(1.0, "done", force=True, check=False)
@@ -357,8 +348,6 @@ def _srgb_lut() -> np.ndarray:
     """uint8 sRGB code of every linear value i / 65535 (the preview's display transform)."""
     global _SRGB_LUT
     if _SRGB_LUT is None:
-        from engine.imageio import srgb_encode
-
         _SRGB_LUT = np.rint(srgb_encode(np.arange(65536) / 65535.0) * 255.0).astype(np.uint8)
     return _SRGB_LUT
 
@@ -367,8 +356,6 @@ def _oiio_bytes(tmp: Path, name: str, data: np.ndarray, pixel_type: str, attrs: 
     """Encode ``data`` (h, w, c) with OpenImageIO into a scratch file and return its bytes. No fsync:
     the scratch file is thrown away; durability is the object store's job. ``DateTime`` is
     suppressed, so equal pixels give equal bytes."""
-    import OpenImageIO as oiio
-
     path = tmp / name
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], pixel_type)
     spec.attribute("DateTime", "")
@@ -388,11 +375,7 @@ def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: 
     ``clip(x 2^exposure, 0, 1)`` through a 65536-entry table: within one code value of
     ``engine.imageio.tonemap_srgb``) and ``outside.png`` (8-bit, 255 = outside coverage), encoded
     concurrently (OpenImageIO releases the GIL) in a RAM-backed scratch directory when there is one."""
-    from concurrent.futures import ThreadPoolExecutor
-
     if not np.all(np.isfinite(image)):
-        from engine.errors import NonFiniteOutputError
-
         raise NonFiniteOutputError("relit image holds NaN/Inf; nothing was stored")
     attrs: dict[str, Any] = {f"ibr:{k}": str(v) for k, v in meta.items()}
     scaled = np.clip(image * np.float32(2.0**exposure), 0.0, 1.0)
@@ -412,8 +395,6 @@ def _relit_blobs(image: np.ndarray, outside: np.ndarray, exposure: float, meta: 
 
 def _write_concurrently(store: ObjectStore, *args: Any) -> Any:
     """``write_artifact`` with the blob writes (and their fsyncs) overlapping; manifest last."""
-    from workers.artifacts import write_artifact
-
     return write_artifact(store, *args, max_workers=4)
 
 
@@ -422,14 +403,12 @@ def _start_output_job(model: type[BaseModel], payload: dict[str, Any], name: str
     """The common start of the relight and composite jobs: validate the payload, check the key
     matches the request, and return ``(request, key, store, cached result or None)``."""
     p = _validate(model, payload, name)
-    _check_engine()
     req = p.request
     key = key_of(req)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    from workers.artifacts import read_manifest
 
-    store = _worker_store()
+    store = worker_store()
     existing = read_manifest(store, key)
     return req, key, store, None if existing is None else {"artifact_key": key, **existing.result}
 
@@ -452,7 +431,6 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     req, key, store, cached = _start_output_job(RelightJobPayload, payload, "relight", relight_artifact_key)
     if cached is not None:
         return cached
-    from engine.relighting.relight import relight
 
     progress = ProgressReporter(get_current_job())
     bake_key = bake_artifact_key(req.dataset_id, req.bake)
@@ -467,7 +445,7 @@ def relight_job(payload: dict[str, Any]) -> dict[str, Any]:
     t_encode = time.perf_counter() - t0
     progress.check_canceled()
     h, w = baked.shape
-    result = _json_safe({
+    result = json_safe({
         "dataset_id": req.dataset_id,
         "bake_key": bake_key,
         "exact": out.exact,
@@ -490,20 +468,12 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Render a stored scene under placed point lights and store the dataset (upload format)."""
     t_start = time.perf_counter()
     p: GenerateJobPayload = _validate(GenerateJobPayload, payload, "generate")
-    _check_engine()
     req = p.request
     key = generate_artifact_key(req)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    from api_schemas.datasets import DatasetManifest
-    from engine.errors import InvalidInputError
-    from engine.reference import ReferenceParams
-    from engine.relighting.generate import LightPlacement, generate_dataset, surface_aovs
-    from workers.artifacts import read_manifest, write_artifact
-    from workers.jobs.render import _load
-    from workers.scene_loader import camera_params
 
-    store = _worker_store()
+    store = worker_store()
     job = get_current_job()
     owners: set[str | None] = {p.owner} if p.owner else set()
     if job is not None:
@@ -516,7 +486,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
         return {"artifact_key": key, **existing.result}
     progress = ProgressReporter(job)
     progress.report(0.0, "loading scene", force=True)
-    loaded = _load(store, req.scene_id)
+    loaded = load_stored_scene(store, req.scene_id)
     camera = camera_params(req.camera) if req.camera is not None else loaded.camera
     placement = LightPlacement.from_dict(req.placement.model_dump(mode="python"))
     n = placement.light_count()
@@ -568,7 +538,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.check_canceled()
     source = {"kind": "generated", "scene_id": req.scene_id, "generation_key": key,
               "placement": ds.meta.get("resolved_placement"), "n_lights": int(ds.images.shape[0])}
-    public, _ = commit_dataset(store, manifest, None, _json_safe(source), add_owner=False)
+    public, _ = commit_dataset(store, manifest, None, json_safe(source), add_owner=False)
     for who in owners or {None}:
         add_dataset_owner(store, public.id, who)
     t_store = time.perf_counter() - t0
@@ -577,8 +547,6 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     gt_blobs: dict[str, tuple[bytes, str]] = {}
     n_gt = len(req.ground_truth)
     if n_gt:
-        from engine.relighting.generate import render_ground_truth
-
         gt_lights = _engine_lights(store, list(req.ground_truth))
         with tempfile.TemporaryDirectory(prefix="ibr-ground-truth-", dir=_SCRATCH) as tmpdir:
             for i, light in enumerate(gt_lights):
@@ -588,7 +556,7 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
                     _image_bytes(Path(tmpdir), f"ground_truth_{i}.exr", img,
                                  metadata={"scene_id": req.scene_id, "light": req.ground_truth[i].model_dump(
                                      mode="json"), "engine_version": ENGINE_VERSION}), EXR)
-    result = _json_safe({
+    result = json_safe({
         "dataset_id": public.id,
         "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(surface.sum()),
                    "width": camera.width, "height": camera.height, "n_ground_truth": n_gt},
@@ -608,8 +576,6 @@ def _gen_params(req: Any) -> dict[str, Any]:
 
 
 def _scene_camera_doc(store: ObjectStore, scene_id: str) -> dict[str, Any]:
-    from workers.artifacts import get_scene
-
     scene, _, _ = get_scene(store, scene_id)
     doc: dict[str, Any] = scene.camera.model_dump(mode="json")
     return doc
@@ -624,8 +590,6 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
     req, key, store, cached = _start_output_job(CompositeJobPayload, payload, "composite", composite_artifact_key)
     if cached is not None:
         return cached
-    from engine.relighting.composite import active_region_around, composite
-    from engine.relighting.relight import relight
 
     progress = ProgressReporter(get_current_job())
     t0 = time.perf_counter()
@@ -662,7 +626,7 @@ def composite_job(payload: dict[str, Any]) -> dict[str, Any]:
     blobs = _relit_blobs(image, r_obj.outside_mask | r_bg.outside_mask, req.exposure_stops, meta)
     t_encode = time.perf_counter() - t0
     progress.check_canceled()
-    result = _json_safe({
+    result = json_safe({
         "counts": {**stats, "n_outside_object": r_obj.n_outside, "n_outside_background": r_bg.n_outside},
         "timings": {"load": t_load, "relight_object": r_obj.timings.get("total_s"),
                     "relight_background": r_bg.timings.get("total_s"), "composite": t_comp, "encode": t_encode},

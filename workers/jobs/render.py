@@ -39,10 +39,12 @@ import os
 import tempfile
 import time
 from collections.abc import Collection, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
+import OpenImageIO as oiio
 from pydantic import ValidationError
 from rq import get_current_job
 
@@ -50,26 +52,35 @@ from api_schemas.service import RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from engine.errors import NonFiniteOutputError
 from engine.imageio import encode_image
+from engine.newviews.effects import analyze
+from engine.newviews.renderer import LDCViewRenderer
 from engine.reference import ReferenceParams
+from producer.artifacts import read_manifest, write_artifact
+from producer.bakes import bake_complete, bake_key
+from producer.names import scene_bake_job_id
+from producer.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
+from producer.queue import fetch_job
+from producer.renders import render_artifact_key, render_params
+from producer.settings import get_settings
+from producer.status import job_public
+from producer.store import ObjectStore
 from workers.cache import CachedBakeRenderer, RendererCache, runtime_scene_bytes
-from workers.jobs.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
-from workers.queues import cancel_key, engine_version, render_artifact_key, render_params
-from workers.scene_loader import LoadedScene, camera_params, load_scene
-from workers.settings import get_settings, open_worker_store
-
-if TYPE_CHECKING:
-    from rq.job import Job
-
-    from workers.store import ObjectStore
+from workers.jobs.bake import BakeFailed, load_bake
+from workers.jobs.common import (
+    LOAD_END,
+    RENDER_END,
+    ProgressReporter,
+    json_safe,
+    load_stored_scene,
+    worker_store,
+)
+from workers.scene_loader import camera_params
 
 __all__ = [
     "AOV_BLOBS",
     "EXR_COMPRESSION",
-    "JobCanceled",
     "NonFiniteOutputError",
     "OUTPUT_BLOBS",
-    "ProgressReporter",
-    "SceneNotFound",
     "encode_render_blobs",
     "render_job",
     "renderer_cache",
@@ -93,97 +104,23 @@ STORE_WRITERS = 4
 
 _SCRATCH = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK | os.X_OK) else None
 
-# Share of the job's progress bar per stage (loading and writing are short next to rendering).
-_LOAD_END = 0.05
-_RENDER_END = 0.95
-
-
-class JobCanceled(Exception):
-    """Raised from the progress callback when the job's cancellation was requested."""
-
-
-class SceneNotFound(LookupError):
-    """The payload names a scene the store does not hold."""
-
-
 _cache: RendererCache | None = None
-_store: ObjectStore | None = None
 
 
 def renderer_cache() -> RendererCache:
-    """This process's LRU of warm renderers (budget ``WorkerSettings.cache_bytes``)."""
+    """This process's LRU of warm renderers (budget ``Settings.cache_bytes``)."""
     global _cache
     if _cache is None:
         _cache = RendererCache(get_settings().cache_bytes)
     return _cache
 
 
-def _worker_store() -> ObjectStore:
-    global _store
-    if _store is None:
-        _store = open_worker_store()
-    return _store
-
-
-class ProgressReporter:
-    """``progress(fraction, stage)`` for the engine: writes ``job.meta["progress"]`` (fraction,
-    stage, eta_s from the elapsed time) at most every ``min_interval`` seconds and raises
-    :class:`JobCanceled` when the job's cancel flag is set or RQ marked it canceled.
-
-    Without a current RQ job (direct calls, tests) it only keeps the numbers.
-    """
-
-    def __init__(self, job: Job | None, min_interval: float = 0.25):
-        self.job = job
-        self.min_interval = min_interval
-        self.t0 = time.monotonic()
-        self._last_save = -1e9
-        self._last_check = -1e9
-        self.fraction = 0.0
-        self.stage = "starting"
-
-    def __call__(self, fraction: float, stage: str) -> None:
-        self.report(_LOAD_END + (_RENDER_END - _LOAD_END) * fraction, stage)
-
-    def report(self, fraction: float, stage: str, force: bool = False, check: bool = True) -> None:
-        self.fraction = min(1.0, max(0.0, float(fraction)))
-        self.stage = stage
-        now = time.monotonic()
-        if self.job is None:
-            return
-        if check and (force or now - self._last_check >= self.min_interval):
-            self._last_check = now
-            self.check_canceled()
-        if force or now - self._last_save >= self.min_interval:
-            self._last_save = now
-            self._save(now)
-
-    def _save(self, now: float) -> None:
-        assert self.job is not None
-        elapsed = now - self.t0
-        eta = elapsed * (1.0 - self.fraction) / self.fraction if self.fraction > 1e-6 else None
-        self.job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": self.stage,
-                                     "eta_s": None if eta is None else round(eta, 2)}
-        self.job.save_meta()  # type: ignore[no-untyped-call]
-
-    def check_canceled(self) -> None:
-        job = self.job
-        if job is None:
-            return
-        with job.connection.pipeline(transaction=False) as p:
-            p.exists(cancel_key(job.id))
-            p.hget(job.key, "status")
-            flag, status = p.execute()
-        if flag or status in (b"canceled", "canceled"):
-            job.meta["cancel_requested"] = True
-            job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": "canceled", "eta_s": None}
-            job.save_meta()  # type: ignore[no-untyped-call]
-            raise JobCanceled(f"job {job.id} was canceled on request")
-
-
-def _json_safe(value: Any) -> Any:
-    """Plain JSON types only (numpy scalars and tuples come out of engine reports)."""
-    return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+def set_renderer_cache(cache: RendererCache | None) -> RendererCache | None:
+    """Replace this process's renderer cache (None: a fresh one on next use); returns the previous one
+    (the warm-up renders into a scratch store with its own cache, then puts the worker's back)."""
+    global _cache
+    previous, _cache = _cache, cache
+    return previous
 
 
 OUTPUT_BLOBS = {"preview": "preview.png", "radiance": "radiance.exr", "depth": "depth.exr", "normal": "normal.exr",
@@ -204,8 +141,6 @@ def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any],
     float32 values bit for bit, the preview is ``rint(tonemap_srgb(radiance) * 255)`` exactly.
     NaN/Inf raise ``NonFiniteOutputError``.
     """
-    from concurrent.futures import ThreadPoolExecutor
-
     if outputs is not None:
         unknown = sorted(set(outputs) - set(OUTPUT_BLOBS))
         if unknown or not outputs:
@@ -241,17 +176,6 @@ def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any],
         return {name: (f.result(), ctype) for name, (f, ctype) in futures.items()}
 
 
-def _load(store: ObjectStore, scene_id: str) -> LoadedScene:
-    from workers.artifacts import blob_reader, get_scene
-    from workers.store import NotFound
-
-    try:
-        scene, mesh_shas, _public = get_scene(store, scene_id)
-    except NotFound as exc:
-        raise SceneNotFound(f"scene {scene_id} is not in the store") from exc
-    return load_scene(scene, blob_reader(store, mesh_shas))
-
-
 def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Render one view of a stored scene and publish it as an artifact.
 
@@ -262,15 +186,11 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
         p = RenderJobPayload.model_validate(payload)
     except ValidationError as exc:
         raise InvalidPayload(f"invalid render job payload: {describe_validation_error(exc)}") from None
-    if engine_version() != ENGINE_VERSION:
-        raise RuntimeError(f"engine version mismatch: file says {engine_version()}, imported {ENGINE_VERSION}")
     key = render_artifact_key(p.request)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
 
-    from workers.artifacts import read_manifest, write_artifact
-
-    store = _worker_store()
+    store = worker_store()
     existing = read_manifest(store, key)
     if existing is not None:  # already published (retry after commit, or a duplicate run)
         return {"artifact_key": key, **{k: existing.result.get(k) for k in ("timings", "counts", "mesh_reports")}}
@@ -283,16 +203,16 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
 
     req = p.request
     t0 = time.perf_counter()
-    entry, cache_hit = renderer_cache().get_or_load(req.scene_id, lambda: _load(store, req.scene_id))
+    entry, cache_hit = renderer_cache().get_or_load(req.scene_id, lambda: load_stored_scene(store, req.scene_id))
     t_load = time.perf_counter() - t0
     loaded = entry.loaded
     camera = camera_params(req.camera) if req.camera is not None else loaded.camera
     params = ReferenceParams(**req.params.model_dump())
-    progress.report(_LOAD_END, "render", force=True)
+    progress.report(LOAD_END, "render", force=True)
 
     out = entry.renderer.render(camera, params, progress)  # NonFiniteOutputError: nothing is written
 
-    progress.report(_RENDER_END, "writing", force=True)
+    progress.report(RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
     meta: dict[str, Any] = {
         "camera": camera.to_dict(),
@@ -308,7 +228,7 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.check_canceled()  # last chance before the commit
     timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
-    result = _json_safe({"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports})
+    result = json_safe({"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports})
     t0 = time.perf_counter()
     write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,
                    max_workers=STORE_WRITERS)
@@ -328,8 +248,6 @@ class BakeUnavailable(RuntimeError):
 def _provenance_png(codes: Any) -> bytes:
     """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding), encoded in a
     RAM-backed scratch directory when there is one (no fsync: the file is not kept)."""
-    import OpenImageIO as oiio
-
     arr = np.ascontiguousarray(codes, dtype=np.uint8)
     with tempfile.TemporaryDirectory(prefix="ibr-render-", dir=_SCRATCH) as tmpdir:
         path = Path(tmpdir) / PROVENANCE_BLOB
@@ -350,13 +268,10 @@ def _provenance_png(codes: Any) -> bytes:
 
 
 def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
-    from workers.bakes import bake_job_id
-    from workers.queues import fetch_job, job_public
-
     job = get_current_job()
     why = ""
     if job is not None:
-        bake_job = fetch_job(job.connection, bake_job_id(bkey))
+        bake_job = fetch_job(job.connection, scene_bake_job_id(bkey))
         if bake_job is not None:
             pub = job_public(bake_job)
             why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
@@ -365,14 +280,9 @@ def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
 
 
 def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> CachedBakeRenderer:
-    from engine.newviews.effects import analyze
-    from engine.newviews.renderer import LDCViewRenderer
-    from workers.bakes import bake_complete
-    from workers.jobs.bake import BakeFailed, load_bake
-
     if not bake_complete(store, bkey):
         raise BakeUnavailable(_bake_error(store, req, bkey))
-    loaded = _load(store, req.scene_id)
+    loaded = load_stored_scene(store, req.scene_id)
     try:
         ldc, llf, plan = load_bake(store, loaded.runtime, bkey)
     except BakeFailed as exc:
@@ -386,9 +296,6 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                       t_start: float) -> dict[str, Any]:
     """``ldc``, ``ldc+llf``, ``ldc+ibrt:k``: render from the scene's bake (LDC + LLF) with
     ``engine.newviews.renderer.LDCViewRenderer``, cached per bake in this worker."""
-    from workers.artifacts import write_artifact
-    from workers.bakes import bake_key
-
     bkey = bake_key(req.scene_id, req.bake)
     t0 = time.perf_counter()
     entry, cache_hit = renderer_cache().get_or_load_bake(bkey, lambda: _load_bake_renderer(store, req, bkey))
@@ -398,10 +305,10 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     if entry.renderer.llf is None and req.method != "ldc" and entry.renderer.plan.needs_llf:
         raise BakeUnavailable(f"method {req.method} needs the light field, but bake {bkey} has none "
                               f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
-    progress.report(_LOAD_END, "render", force=True)
+    progress.report(LOAD_END, "render", force=True)
     out = entry.renderer.render(camera, req.method, progress=progress)
     renderer_cache().resize(f"bake:{bkey}", runtime_scene_bytes(loaded.runtime) + int(entry.renderer.nbytes))
-    progress.report(_RENDER_END, "writing", force=True)
+    progress.report(RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
     meta: dict[str, Any] = {"camera": camera.to_dict(), "scene_id": req.scene_id, "scene_hash": loaded.scene_hash,
                             "method": req.method, "bake_key": bkey, "engine_version": ENGINE_VERSION,
@@ -415,7 +322,7 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     counts = {**out.counts, "hole_pixels": int(np.count_nonzero(out.hole_mask)),
               "provenance": {PROVENANCE_CODES[i]: int(prov[i]) for i in range(5)},
               "bake_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
-    result = _json_safe({"timings": timings, "counts": counts, "plan": out.plan, "bake_key": bkey,
+    result = json_safe({"timings": timings, "counts": counts, "plan": out.plan, "bake_key": bkey,
                          "mesh_reports": loaded.mesh_reports})
     t0 = time.perf_counter()
     write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,

@@ -1,4 +1,4 @@
-"""Walkthrough jobs (see ``workers/walkthroughs.py`` for the split and the keys).
+"""Walkthrough jobs (see ``producer/walkthroughs.py`` for the split and the keys).
 
 - :func:`walkthrough_bake_job` (``bake`` queue): loads the stored scene, chooses base viewpoints
   and time samples and renders the base range images (``engine.walkthrough.bake``), publishes
@@ -18,35 +18,36 @@ from __future__ import annotations
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Any
 
+import imageio_ffmpeg
 import numpy as np
-from pydantic import Field, ValidationError
+import OpenImageIO as oiio
+from pydantic import ValidationError
 from rq import get_current_job
 
 from api_schemas.common import FrozenModel
 from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
-from api_schemas.service import Sha256
-from api_schemas.walkthrough import WalkthroughSettings
 from engine import ENGINE_VERSION
 from engine.imageio import write_image
-from workers.jobs.payloads import InvalidPayload, describe_validation_error
-from workers.jobs.render import ProgressReporter
-from workers.scene_loader import camera_params, load_animated_scene
-from workers.settings import open_worker_store
-from workers.walkthroughs import (
-    chunk_key,
-    chunks,
-    read_request,
-    walkthrough_bake_key,
-    walkthrough_key,
+from engine.walkthrough.animation import AnimatedScene
+from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
+from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace, ViewSpace
+from producer.artifacts import blob_reader, get_scene, read_blob, read_manifest, write_artifact
+from producer.names import walkthrough_bake_job_id, walkthrough_chunk_job_id
+from producer.payloads import (
+    InvalidPayload,
+    WalkthroughBakeJobPayload,
+    WalkthroughChunkJobPayload,
+    WalkthroughVideoJobPayload,
+    describe_validation_error,
 )
-
-if TYPE_CHECKING:
-    from engine.walkthrough.animation import AnimatedScene
-    from engine.walkthrough.bake import WalkthroughBake
-    from engine.walkthrough.viewspace import ViewSpace
-    from workers.store import ObjectStore
+from producer.queue import fetch_job
+from producer.status import job_public
+from producer.store import ObjectStore
+from producer.walkthroughs import chunk_key, chunks, read_request, walkthrough_bake_key, walkthrough_key
+from workers.jobs.common import ProgressReporter, worker_store
+from workers.scene_loader import camera_params, load_animated_scene
 
 __all__ = ["WalkthroughUnavailable", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
 
@@ -60,39 +61,8 @@ class WalkthroughUnavailable(RuntimeError):
     """A walkthrough's bake or chunk is missing: the message names it and its job's state."""
 
 
-class BakePayload(FrozenModel):
-    v: Literal[1] = 1
-    scene_id: Sha256
-    bake_key: Sha256
-    settings: WalkthroughSettings
-
-
-class ChunkPayload(FrozenModel):
-    v: Literal[1] = 1
-    walkthrough_key: Sha256
-    index: Annotated[int, Field(ge=0)]
-    start: Annotated[int, Field(ge=0)]
-    stop: Annotated[int, Field(ge=1)]
-    chunk_key: Sha256
-    bake_key: Sha256
-
-
-class VideoPayload(FrozenModel):
-    v: Literal[1] = 1
-    walkthrough_key: Sha256
-    bake_key: Sha256
-
-
-_store: ObjectStore | None = None
 _bakes: dict[str, WalkthroughBake] = {}
 _scenes: dict[str, AnimatedScene] = {}
-
-
-def _worker_store() -> ObjectStore:
-    global _store
-    if _store is None:
-        _store = open_worker_store()
-    return _store
 
 
 def _validate(model: type[FrozenModel], payload: dict[str, Any], what: str) -> Any:
@@ -104,8 +74,6 @@ def _validate(model: type[FrozenModel], payload: dict[str, Any], what: str) -> A
 
 def engine_space(scene: Scene) -> ViewSpace:
     """The engine view space of a schema scene (the API checked that it has one)."""
-    from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace
-
     vs = scene.view_space
     if vs is None:
         raise InvalidPayload("the scene has no view_space")
@@ -117,8 +85,6 @@ def engine_space(scene: Scene) -> ViewSpace:
 
 
 def _load_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, AnimatedScene]:
-    from workers.artifacts import blob_reader, get_scene
-
     scene, mesh_shas, _ = get_scene(store, scene_id)
     an = _scenes.get(scene_id)
     if an is None:
@@ -131,14 +97,11 @@ def _load_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, AnimatedScene
 
 def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Decompose the view space and time interval, render the base images, publish ``bake.npz``."""
-    from engine.walkthrough.bake import bake_walkthrough, walkthrough_preset
-    from workers.artifacts import read_manifest, write_artifact
-
     t_start = time.perf_counter()
-    p: BakePayload = _validate(BakePayload, payload, "walkthrough bake")
+    p: WalkthroughBakeJobPayload = _validate(WalkthroughBakeJobPayload, payload, "walkthrough bake")
     if walkthrough_bake_key(p.scene_id, p.settings) != p.bake_key:
         raise InvalidPayload("bake_key does not match scene_id and settings")
-    store = _worker_store()
+    store = worker_store()
     existing = read_manifest(store, p.bake_key)
     if existing is not None:
         return {"artifact_key": p.bake_key, **existing.result}
@@ -163,20 +126,14 @@ def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
 
 
 def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
-    from engine.walkthrough.bake import WalkthroughBake
-    from workers.artifacts import read_blob, read_manifest
-
     b = _bakes.get(bkey)
     if b is not None:
         return b
     if read_manifest(store, bkey) is None:
-        from workers.queues import fetch_job, job_public
-        from workers.walkthroughs import bake_job_id
-
         job = get_current_job()
         why = ""
         if job is not None:
-            bj = fetch_job(job.connection, bake_job_id(bkey))
+            bj = fetch_job(job.connection, walkthrough_bake_job_id(bkey))
             if bj is not None:
                 pub = job_public(bj)
                 why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
@@ -191,8 +148,6 @@ def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
 
 
 def _png_codes(path: Path, codes: np.ndarray) -> bytes:
-    import OpenImageIO as oiio
-
     arr = np.ascontiguousarray(codes, dtype=np.uint8)
     out = oiio.ImageOutput.create(str(path))
     if out is None:
@@ -208,12 +163,9 @@ def _png_codes(path: Path, codes: np.ndarray) -> bytes:
 
 def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Reconstruct frames ``start..stop-1`` of a walkthrough and publish them."""
-    from engine.walkthrough.bake import WalkthroughRenderer
-    from workers.artifacts import read_manifest, write_artifact
-
     t_start = time.perf_counter()
-    p: ChunkPayload = _validate(ChunkPayload, payload, "walkthrough chunk")
-    store = _worker_store()
+    p: WalkthroughChunkJobPayload = _validate(WalkthroughChunkJobPayload, payload, "walkthrough chunk")
+    store = worker_store()
     req = read_request(store, p.walkthrough_key)
     if req is None:
         raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
@@ -263,16 +215,9 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
 
 def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Check every chunk, encode ``video.mp4`` and publish the walkthrough."""
-    import imageio_ffmpeg
-    import OpenImageIO as oiio
-
-    from workers.artifacts import read_blob, read_manifest, write_artifact
-    from workers.queues import fetch_job, job_public
-    from workers.walkthroughs import chunk_job_id
-
     t_start = time.perf_counter()
-    p: VideoPayload = _validate(VideoPayload, payload, "walkthrough video")
-    store = _worker_store()
+    p: WalkthroughVideoJobPayload = _validate(WalkthroughVideoJobPayload, payload, "walkthrough video")
+    store = worker_store()
     req = read_request(store, p.walkthrough_key)
     if req is None:
         raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
@@ -289,7 +234,7 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
             job = get_current_job()
             why = ""
             if job is not None:
-                cj = fetch_job(job.connection, chunk_job_id(ck))
+                cj = fetch_job(job.connection, walkthrough_chunk_job_id(ck))
                 if cj is not None:
                     pub = job_public(cj)
                     why = f" (job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"

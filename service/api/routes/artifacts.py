@@ -8,10 +8,10 @@ from fastapi import APIRouter, Path, Response
 from fastapi.responses import StreamingResponse
 
 from api_schemas.service import ArtifactManifest, Sha256
+from producer.artifacts import read_blob, read_manifest, stream_blob
+from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, StoreDep, scene_visible
 from service.api.errors import problem_responses
-from workers.artifacts import read_blob, read_manifest, stream_blob
-from workers.store import NotFound, ObjectStore
 
 router = APIRouter(prefix="/v1/artifacts", tags=["artifacts"])
 
@@ -34,7 +34,7 @@ def _visible_manifest(store: ObjectStore, key: str, owner: str | None) -> Artifa
     return manifest
 
 
-def _blob_response(store: ObjectStore, key: str, owner: str | None, name: str, media_type: str,
+def blob_response(store: ObjectStore, key: str, owner: str | None, name: str, media_type: str,
                    ext: str) -> Response:
     manifest = _visible_manifest(store, key, owner)
     info = next((b for b in manifest.blobs if b.name == name), None)
@@ -69,7 +69,7 @@ def read_artifact(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Artifac
 )
 def read_image_exr(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Response:
     """The rendered radiance as a float OpenEXR image."""
-    return _blob_response(store, key, owner, "radiance.exr", "image/x-exr", "exr")
+    return blob_response(store, key, owner, "radiance.exr", "image/x-exr", "exr")
 
 
 @router.get(
@@ -80,7 +80,7 @@ def read_image_exr(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Respon
 )
 def read_image_png(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Response:
     """An sRGB preview of the render as PNG (exposure 0)."""
-    return _blob_response(store, key, owner, "preview.png", "image/png", "png")
+    return blob_response(store, key, owner, "preview.png", "image/png", "png")
 
 
 @router.get(
@@ -91,4 +91,4 @@ def read_image_png(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Respon
 )
 def read_provenance_png(key: ArtifactKey, store: StoreDep, owner: OwnerDep) -> Response:
     """Per-pixel provenance of an LDC render (0 background, 1 warped, 2 hole-filled, 3 gathered, 4 traced)."""
-    return _blob_response(store, key, owner, "provenance.png", "image/png", "provenance.png")
+    return blob_response(store, key, owner, "provenance.png", "image/png", "provenance.png")

@@ -2,7 +2,7 @@
 
 A bake is content-addressed (scene id + ``BakeParams`` + engine version): requesting one that
 exists answers 200 with ``cached: true`` and no work; otherwise its jobs are queued on the ``bake``
-queue (a plan job, one job per part, a merge job; see ``workers/bakes.py``) and the answer is 202 with
+queue (a plan job, one job per part, a merge job; see ``producer/bakes.py``) and the answer is 202 with
 ``Location`` naming the bake, whose ``GET`` shows every part's state and the aggregated progress.
 """
 
@@ -15,12 +15,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from api_schemas.errors import FieldError
 from api_schemas.service import BakeList, BakeParams, BakePublic, Sha256
-from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_responses
-from workers.artifacts import get_scene
-from workers.bakes import (
+from producer.artifacts import get_scene
+from producer.bakes import (
     BAKE_MAX_PART_BYTES,
-    BakeInUse,
     bake_key,
     bake_status,
     delete_bake,
@@ -30,7 +27,10 @@ from workers.bakes import (
     llf_direction_count,
     read_bake_record,
 )
-from workers.store import NotFound
+from producer.errors import BakeInUse
+from producer.store import NotFound
+from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
+from service.api.errors import ValidationProblem, problem_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["bakes"])
 

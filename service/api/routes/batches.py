@@ -10,14 +10,14 @@ from redis import Redis
 
 from api_schemas.errors import FieldError
 from api_schemas.service import BatchPublic, BatchRequest, JobId
+from producer.artifacts import mesh_paths, scene_id_for, store_scene
+from producer.batches import batch_owner, batch_status, enqueue_batch
+from producer.settings import Settings
+from producer.store import ObjectStore
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, add_scene_owner, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.routes.renders import BAKE_MISSING_409
-from service.api.routes.scenes import SAMPLE_SCENE, _limit_errors
-from service.core.config import Settings
-from workers.artifacts import mesh_paths, scene_id_for, store_scene
-from workers.queues import batch_owner, batch_status, enqueue_batch
-from workers.store import ObjectStore
+from service.api.routes.scenes import SAMPLE_SCENE, limit_errors
 
 router = APIRouter(prefix="/v1/batches", tags=["batches"])
 
@@ -33,7 +33,7 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, owner: str | 
     errors: list[FieldError] = []
     new_ids: list[str] = []
     for i, sc in enumerate(batch.scenes):
-        errors += _limit_errors(sc.scene, settings, prefix=f"scenes.{i}.scene")
+        errors += limit_errors(sc.scene, settings, prefix=f"scenes.{i}.scene")
         for path in mesh_paths(sc.scene):
             errors.append(FieldError(
                 field=f"scenes.{i}.scene",

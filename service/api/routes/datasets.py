@@ -11,16 +11,13 @@ with the artifact when cached or done within ``wait``, else 202 and the job.
 
 from __future__ import annotations
 
-import asyncio
 import json
-import time
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 from redis import Redis
-from rq import Retry
 from rq.job import Job
 
 from api_schemas.datasets import (
@@ -40,37 +37,19 @@ from api_schemas.datasets import (
 )
 from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, JobPublic, Sha256
-from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_responses
-from service.api.limits import BodyTooLarge, read_multipart
-from workers.artifacts import read_blob, read_manifest
-from workers.datasets import (
-    BAKE_JOB,
-    BAKE_KIND,
-    COMPOSITE_JOB,
-    COMPOSITE_KIND,
-    GENERATE_JOB,
-    GENERATE_KIND,
-    RELIGHT_JOB,
-    RELIGHT_KIND,
-    BakeJobPayload,
-    CompositeJobPayload,
+from producer.artifacts import read_blob, read_manifest
+from producer.datasets import (
     DatasetInvalid,
     FileProblem,
-    GenerateJobPayload,
-    RelightJobPayload,
-    add_dataset_owner,
     bake_artifact_key,
     blob_info,
     commit_dataset,
     composite_artifact_key,
     dataset_id_for,
-    dataset_visible,
     delete_dataset,
     fill_shas,
     generate_artifact_key,
     get_dataset,
-    job_id_for,
     list_datasets,
     manifest_errors,
     missing_files,
@@ -81,26 +60,31 @@ from workers.datasets import (
     sniff_extension,
     store_file,
 )
-from workers.queues import (
-    BAKE_TIMEOUT_S,
-    RENDER_RETRY_INTERVALS_S,
-    RENDER_TIMEOUT_S,
-    QueueName,
-    enqueue_unique,
-    fetch_job,
-    ids_in_active_jobs,
-    job_public,
+from producer.enqueue import enqueue_unique
+from producer.names import (
+    COMPOSITE_JOB,
+    COMPOSITE_KIND,
+    DATASET_BAKE_JOB,
+    DATASET_BAKE_KIND,
+    GENERATE_JOB,
+    GENERATE_KIND,
+    RELIGHT_JOB,
+    RELIGHT_KIND,
+    dataset_job_id,
 )
-from workers.store import NotFound, ObjectStore
+from producer.ownership import add_dataset_owner, dataset_visible
+from producer.payloads import CompositeJobPayload, DatasetBakeJobPayload, GenerateJobPayload, RelightJobPayload
+from producer.queue import BAKE_TIMEOUT_S, RENDER_TIMEOUT_S, QueueName, fetch_job, job_retry
+from producer.status import ids_in_active_jobs, job_public
+from producer.store import NotFound, ObjectStore
+from producer.wait import wait_for_job
+from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
+from service.api.errors import ValidationProblem, problem_responses
+from service.api.limits import BodyTooLarge, read_multipart
 
 router = APIRouter(tags=["datasets"])
 
 MAX_WAIT_S = 60.0
-_POLL_FIRST_S = 0.002
-_POLL_MAX_S = 0.01
-_POLL_FINE_S = 2.0
-_POLL_SLOW_S = 0.25
-_ENDED = {b"finished", b"failed", b"canceled", b"stopped"}
 
 DatasetId = Annotated[Sha256, Path(description="Dataset id (sha256 hex)")]
 FileSha = Annotated[Sha256, Path(description="sha256 of the file's bytes")]
@@ -201,35 +185,9 @@ def _enqueue(redis: Redis, queue: QueueName, func: str, payload: dict[str, Any],
     timeout = BAKE_TIMEOUT_S if queue == "bake" else RENDER_TIMEOUT_S
     meta: dict[str, Any] = {"kind": queue, "job_type": kind, "artifact_key": key, "owner": owner,
                             "progress": {"fraction": 0.0, "stage": "queued", "eta_s": None}}
-    return enqueue_unique(redis, queue, func, payload, job_id_for(kind, key), timeout=timeout, meta=meta,
-                          retry=Retry(max=2, interval=list(RENDER_RETRY_INTERVALS_S)), description=description,
+    return enqueue_unique(redis, queue, func, payload, dataset_job_id(kind, key), timeout=timeout, meta=meta,
+                          retry=job_retry(), description=description,
                           owner=owner, is_cached=lambda: read_manifest(store, key) is not None)
-
-
-async def _wait(redis: Redis, store: ObjectStore, job: Job, key: str, wait: float
-                ) -> tuple[JobPublic | None, ArtifactManifest | None]:
-    """Poll (store manifest first, then the job's status) until the artifact exists, the job ends
-    or ``wait`` passes: every 2..10 ms for the first 2 s (a relight takes tens of milliseconds and
-    a poll is one stat plus one HGET), then every 250 ms."""
-    started = time.monotonic()
-    deadline = started + wait
-    delay = _POLL_FIRST_S
-    mkey = f"artifacts/{key}/manifest.json"
-    while True:
-        if await run_in_threadpool(store.exists, mkey):
-            manifest = await run_in_threadpool(read_manifest, store, key)
-            if manifest is not None:
-                fresh = await run_in_threadpool(fetch_job, redis, job.id)
-                return (await run_in_threadpool(job_public, fresh) if fresh is not None else None), manifest
-        status = await run_in_threadpool(redis.hget, job.key, "status")
-        if status in _ENDED or time.monotonic() >= deadline:
-            fresh = await run_in_threadpool(fetch_job, redis, job.id)
-            public = await run_in_threadpool(job_public, fresh if fresh is not None else job)
-            manifest = await run_in_threadpool(read_manifest, store, key) if public.state == "finished" else None
-            return public, manifest
-        await asyncio.sleep(min(delay, max(0.0, deadline - time.monotonic())))
-        # fine-grained for the first seconds (a relight takes tens of ms), then coarser
-        delay = min(_POLL_MAX_S if time.monotonic() - started < _POLL_FINE_S else _POLL_SLOW_S, delay * 1.25)
 
 
 def _result_links(base: str, key: str, job: JobPublic | None) -> dict[str, str]:
@@ -261,8 +219,8 @@ async def _run(response: Response, redis: Redis, store: ObjectStore, queue: Queu
         if manifest is not None:
             return None, manifest, True
         raise NotFound(key)
-    public, manifest = await _wait(redis, store, job, key, wait)
-    if manifest is None and public is not None and public.state in ("queued", "started"):
+    public, manifest = await wait_for_job(job, wait, store, key)
+    if manifest is None and public.state in ("queued", "started"):
         response.status_code = 202
         response.headers["Location"] = f"/v1/jobs/{public.id}"
     return public, manifest, False
@@ -478,9 +436,9 @@ async def bake(dataset_id: DatasetId, response: Response, store: StoreDep, redis
     await run_in_threadpool(_visible_dataset, store, dataset_id, owner)
     params = (req or BakeRequest()).params
     key = bake_artifact_key(dataset_id, params)
-    payload = BakeJobPayload(dataset_id=dataset_id, params=params, artifact_key=key).model_dump(mode="json")
-    job, manifest, cached = await _run(response, redis, store, "bake", BAKE_JOB, payload, BAKE_KIND, key, owner,
-                                       wait, f"bake dataset {dataset_id[:12]}")
+    payload = DatasetBakeJobPayload(dataset_id=dataset_id, params=params, artifact_key=key).model_dump(mode="json")
+    job, manifest, cached = await _run(response, redis, store, "bake", DATASET_BAKE_JOB, payload, DATASET_BAKE_KIND,
+                                       key, owner, wait, f"bake dataset {dataset_id[:12]}")
     links = {"dataset": f"/v1/datasets/{dataset_id}"}
     if job is not None:
         links["job"] = f"/v1/jobs/{job.id}"
@@ -590,7 +548,7 @@ def _check_relight_inputs(store: ObjectStore, redis: Redis, owner: str | None, d
     if unbaked:
         problems = []
         for field, did in unbaked:
-            job_id = job_id_for(BAKE_KIND, bake_artifact_key(did, req.bake))
+            job_id = dataset_job_id(DATASET_BAKE_KIND, bake_artifact_key(did, req.bake))
             job = fetch_job(redis, job_id)
             pending = job is not None and job_public(job).state in ("queued", "started")
             hint = (f"its bake job /v1/jobs/{job_id} is still {job_public(job).state}: wait for it" if pending and job

@@ -8,9 +8,13 @@ from fastapi import APIRouter, HTTPException, Path, Query
 from redis import Redis
 
 from api_schemas.service import JobId, JobList, JobPublic, JobState
+from producer.cancel import cancel
+from producer.errors import JobNotCancelable, JobNotFound
+from producer.ownership import job_owners
+from producer.queue import fetch_job
+from producer.status import job_public, list_jobs
 from service.api.deps import OwnerDep, RedisDep
 from service.api.errors import problem_responses
-from workers.queues import JobNotCancelable, JobNotFound, cancel, fetch_job, job_owners, job_public, list_jobs
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -43,10 +43,10 @@ from api_schemas.service import ArtifactManifest, Sha256
 from engine.imageio import decode_image, encode_display
 from engine.methods import METHODS, BakePart
 from engine.metrics import error_heatmap_display, fraction_over, lrms, luminance
+from producer.artifacts import read_blob, read_manifest
+from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
-from workers.artifacts import read_blob, read_manifest
-from workers.store import NotFound, ObjectStore
 
 router = APIRouter()
 

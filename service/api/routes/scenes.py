@@ -8,13 +8,19 @@ from pathlib import PurePosixPath
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
 from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
 from api_schemas.service import SceneCreate, SceneList, ScenePublic, Sha256
+from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
+from producer.errors import SceneOutputsInUse
+from producer.scene_outputs import delete_scene_outputs
+from producer.settings import Settings
+from producer.status import ids_in_active_jobs
+from producer.store import NotFound, ObjectStore
 from service.api.deps import (
     OwnerDep,
     RedisDep,
@@ -28,11 +34,6 @@ from service.api.deps import (
 )
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import read_multipart
-from service.core.config import Settings
-from workers.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, store_scene
-from workers.queues import ids_in_active_jobs
-from workers.scene_outputs import SceneOutputsInUse, delete_scene_outputs
-from workers.store import NotFound, ObjectStore
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 
@@ -74,7 +75,7 @@ _MULTIPART_SCHEMA: dict[str, Any] = {
 # ------------------------------------------------------------------------------ helpers
 
 
-def _limit_errors(scene: Scene, settings: Settings, prefix: str = "scene") -> list[FieldError]:
+def limit_errors(scene: Scene, settings: Settings, prefix: str = "scene") -> list[FieldError]:
     errors: list[FieldError] = []
     cam = scene.camera
     if cam.width * cam.height > settings.max_image_pixels:
@@ -128,8 +129,6 @@ def _parse_scene_json(raw: bytes, bare_allowed: bool) -> Scene:
 
 def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: str | None) -> tuple[ScenePublic, bool]:
     """Store the scene; (public view, created for this owner?)."""
-    from workers.artifacts import scene_id_for, sha256_hex
-
     shas = {p: sha256_hex(meshes[p]) for p in mesh_paths(scene)}
     scene_id = scene_id_for(scene, shas)
     had_marker = owner is not None and scene_visible(store, scene_id, owner)
@@ -384,7 +383,7 @@ async def create_scene(
             )])
         scene = await run_in_threadpool(_parse_scene_json, scene_parts[0].data, True)
         needed = mesh_paths(scene)
-        errors = _limit_errors(scene, settings)
+        errors = limit_errors(scene, settings)
         seen: set[str] = set()
         for part in parts:
             if part.name == "scene":
@@ -421,7 +420,7 @@ async def create_scene(
     elif ctype == "application/json" or ctype.endswith("+json") or ctype == "":
         raw = await request.body()
         scene = await run_in_threadpool(_parse_scene_json, raw, False)
-        errors = _limit_errors(scene, settings)
+        errors = limit_errors(scene, settings)
         for path in mesh_paths(scene):
             errors.append(FieldError(
                 field=f"scene.objects.{_first_object_with_path(scene, path)}.path",
@@ -489,8 +488,6 @@ def read_scene_document(scene_id: SceneId, store: StoreDep, owner: OwnerDep) -> 
 def remove_scene(scene_id: SceneId, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> Response:
     """Delete a scene (409 while a queued or running job uses it). The last owner's delete also
     removes the scene's LDC bakes, walkthroughs and walkthrough bakes."""
-    from fastapi import HTTPException
-
     if not scene_visible(store, scene_id, owner) or not store.exists(f"scenes/{scene_id}.json"):
         raise NotFound(scene_id)
     owners = set(scene_owners(store, scene_id))

@@ -3,7 +3,7 @@
 ``POST`` validates the request against the scene (a ``view_space`` is required, every eye must lie
 inside it, every time inside the animation: 422 naming ``frames.<i>.camera.eye`` /
 ``frames.<i>.time`` with the allowed range), queues the bake, one render job per chunk of frames
-and the video job (``workers/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
+and the video job (``producer/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
 already rendered answers 200. ``GET /v1/walkthroughs/{key}`` shows the state, the progress
 (frames done) and, once finished, links to ``video.mp4`` and the frame chunks (artifacts).
 ``DELETE /v1/walkthroughs/{key}`` removes the video, the frames and the request (204; 409 while
@@ -20,13 +20,10 @@ from fastapi.concurrency import run_in_threadpool
 from api_schemas.errors import FieldError
 from api_schemas.service import Sha256
 from api_schemas.walkthrough import WalkthroughPublic, WalkthroughRequest
-from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_responses
-from service.api.routes.artifacts import _blob_response
-from workers.artifacts import get_scene
-from workers.store import NotFound
-from workers.walkthroughs import (
-    WalkthroughInUse,
+from producer.artifacts import get_scene
+from producer.errors import WalkthroughInUse
+from producer.store import NotFound
+from producer.walkthroughs import (
     check_against_scene,
     chunk_key,
     chunks,
@@ -35,6 +32,9 @@ from workers.walkthroughs import (
     read_request,
     walkthrough_status,
 )
+from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
+from service.api.errors import ValidationProblem, problem_responses
+from service.api.routes.artifacts import blob_response
 
 router = APIRouter(prefix="/v1/walkthroughs", tags=["walkthroughs"])
 
@@ -146,7 +146,7 @@ def _frame_blob(store: Any, key: str, owner: str | None, name: str, media_type: 
     req = read_request(store, key)
     if req is None or not scene_visible(store, req.scene_id, owner):
         raise NotFound(key)
-    return _blob_response(store, key, None, name, media_type, name.rsplit(".", 1)[-1])
+    return blob_response(store, key, None, name, media_type, name.rsplit(".", 1)[-1])
 
 
 @router.get(
@@ -172,7 +172,7 @@ def _frame(store: Any, key: str, owner: str | None, index: int, kind: str) -> Re
             ck = chunk_key(key, i, a, b)
             name = f"provenance_{index:05d}.png" if kind == "provenance" else f"frame_{index:05d}.{kind}"
             media = "image/x-exr" if kind == "exr" else "image/png"
-            return _blob_response(store, ck, None, name, media, name.rsplit(".", 1)[-1])
+            return blob_response(store, ck, None, name, media, name.rsplit(".", 1)[-1])
     raise NotFound(key)  # pragma: no cover - chunks cover every index
 
 

@@ -17,7 +17,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from redis import Redis
 
-from service.core.config import Settings
+from producer.settings import Settings
 from service.main import create_app
 
 REPO_ROOT = Path(__file__).resolve().parents[3]

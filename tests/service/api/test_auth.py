@@ -82,15 +82,15 @@ def test_same_content_from_two_keys(auth_client: TestClient) -> None:
 
 
 def test_artifact_of_another_key_is_404(auth_client: TestClient, store_dir: Path) -> None:
-    from workers.artifacts import write_artifact
-    from workers.queues import engine_version
-    from workers.store import open_store
+    from engine import ENGINE_VERSION
+    from producer.artifacts import write_artifact
+    from producer.store import open_store
 
     sid = auth_client.post("/v1/scenes", json={"scene": small_scene()}, headers=A).json()["id"]
-    from workers.artifacts import artifact_key
+    from producer.artifacts import artifact_key
 
-    key = artifact_key("render", {"scene": sid}, {"p": 1}, engine_version())
-    write_artifact(open_store(str(store_dir)), key, "render", {"scene": sid}, {"p": 1}, engine_version(),
+    key = artifact_key("render", {"scene": sid}, {"p": 1}, ENGINE_VERSION)
+    write_artifact(open_store(str(store_dir)), key, "render", {"scene": sid}, {"p": 1}, ENGINE_VERSION,
                    {"preview.png": (b"png-bytes", "image/png")}, {})
     assert auth_client.get(f"/v1/artifacts/{key}", headers=A).status_code == 200
     assert auth_client.get(f"/v1/artifacts/{key}/image.png", headers=A).content == b"png-bytes"

@@ -178,7 +178,7 @@ def test_diligent_ball_held_out_light_through_the_api(client: TestClient, worker
                                                          "lights": [exact]}), render_w.log())
     assert rel0["artifact"]["result"]["exact"] is True
     relit0 = _decode(client.get(rel0["links"]["image.exr"]).content, ".exr")
-    from workers.datasets import decode_image, linearise
+    from producer.datasets import decode_image, linearise
 
     decoded = linearise(decode_image(files[img0["file"]], max_pixels=10**6), "linear")
     assert np.array_equal(relit0[mask], decoded[mask])

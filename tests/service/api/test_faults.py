@@ -13,11 +13,11 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr, ValidationError
 
-from service.core.config import Settings, get_settings
+from producer.settings import Settings, load_settings
+from producer.store import LocalStore, StoreUnavailable
 from service.core.security import hash_key
 from service.main import create_app
 from tests.service.api.conftest import TEAPOT_PLY, small_scene, teapot_scene
-from workers.store import LocalStore, StoreUnavailable
 
 
 def _closed_port() -> int:
@@ -108,11 +108,11 @@ def test_settings_fail_at_startup_with_clear_messages(monkeypatch: pytest.Monkey
 
     monkeypatch.setenv("IBR_API_KEYS", f"{hash_key('a')}, {hash_key('b').upper()}")
     monkeypatch.setenv("IBR_CORS_ORIGINS", '["https://a.example"]')
-    s = get_settings()
+    s = load_settings()
     assert s.api_keys == [hash_key("a"), hash_key("b")] and s.cors_origins == ["https://a.example"]
     monkeypatch.setenv("IBR_API_KEYS", "secret")
     with pytest.raises(SystemExit, match="IBR_API_KEYS"):
-        get_settings()
+        load_settings()
     monkeypatch.setenv("IBR_API_KEYS", "")
     monkeypatch.setenv("IBR_MAX_BODY_BYTES", "lots")
     with pytest.raises(SystemExit, match="IBR_MAX_BODY_BYTES"):

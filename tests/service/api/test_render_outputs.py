@@ -15,9 +15,11 @@ from fastapi.testclient import TestClient
 from redis import Redis
 
 from api_schemas.service import RenderRequest
+from engine import ENGINE_VERSION
+from producer.artifacts import artifact_key
+from producer.cancel import cancel
+from producer.renders import render_artifact_key
 from tests.service.api.conftest import small_scene
-from workers.artifacts import artifact_key
-from workers.queues import cancel, engine_version, render_artifact_key
 
 CAM = {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "width": 12, "height": 8}
 PARAMS = {"spp": 1, "max_depth": 1, "glossy_samples": 1, "area_light_samples": 1, "seed": 3}
@@ -53,7 +55,7 @@ def test_outputs_are_part_of_the_artifact_key_and_the_default_key_is_unchanged(c
     full = RenderRequest.model_validate({"scene_id": sid, "camera": CAM})
     # the key of a request without `outputs` is the key it had before the field existed
     legacy_params = full.model_dump(mode="json", exclude={"scene_id", "missing_bake", "outputs", "bake"})
-    assert render_artifact_key(full) == artifact_key("render", {"scene": sid}, legacy_params, engine_version())
+    assert render_artifact_key(full) == artifact_key("render", {"scene": sid}, legacy_params, ENGINE_VERSION)
     lean = full.model_copy(update={"outputs": ["preview"]})
     assert render_artifact_key(lean) != render_artifact_key(full)
 

@@ -91,7 +91,7 @@ def test_batches(client: TestClient, store_dir: Path) -> None:
 
     # a render may name a scene created in the same batch
     from api_schemas.scene import Scene
-    from workers.artifacts import scene_id_for
+    from producer.artifacts import scene_id_for
 
     sid2 = scene_id_for(Scene.model_validate(small_scene(name="two")), {})
     r = client.post("/v1/batches", json={"scenes": [{"scene": small_scene(name="two")}],

@@ -61,9 +61,9 @@ def quick(payload: dict[str, Any]) -> dict[str, Any]:
 
 def slow_artifact(payload: dict[str, Any]) -> dict[str, Any]:
     """A stand-in bake: ``steps`` x ``dt`` seconds of work, then a deterministic artifact
-    published through workers.artifacts with the worker's own store (blobs, manifest last)."""
-    from workers.artifacts import artifact_key, write_artifact
-    from workers.settings import open_worker_store
+    published through producer.artifacts with the worker's own store (blobs, manifest last)."""
+    from producer.artifacts import artifact_key, write_artifact
+    from producer.settings import open_settings_store
 
     steps, dt = int(payload["steps"]), float(payload["dt"])
     params = {"steps": steps, "label": payload["label"]}
@@ -72,20 +72,20 @@ def slow_artifact(payload: dict[str, Any]) -> dict[str, Any]:
         _step_progress(i, steps)
         time.sleep(dt)
     data = ("".join(f"{payload['label']}:{i}\n" for i in range(1000))).encode()
-    write_artifact(open_worker_store(), key, "test-bake", {"seed": payload["label"]}, params, "test",
+    write_artifact(open_settings_store(), key, "test-bake", {"seed": payload["label"]}, params, "test",
                    {"data.txt": (data, "text/plain")}, {"steps": steps})
     return {"artifact_key": key}
 
 
 def slow_artifact_key(label: str, steps: int) -> str:
-    from workers.artifacts import artifact_key
+    from producer.artifacts import artifact_key
 
     return artifact_key("test-bake", {"seed": label}, {"steps": steps, "label": label}, "test")
 
 
 def flaky(payload: dict[str, Any]) -> dict[str, Any]:
     """Fails with a transient StoreUnavailable on its first ``failures`` attempts, then succeeds."""
-    from workers.store import StoreUnavailable
+    from producer.store import StoreUnavailable
 
     job = get_current_job()
     assert job is not None

@@ -13,11 +13,17 @@ from redis import Redis
 
 from api_schemas.scene import Scene
 from api_schemas.service import BakeParams, BakePublic
+from producer import bakes
+from producer.artifacts import put_scene, read_manifest
+from producer.cancel import cancel
+from producer.errors import BakeInUse
+from producer.names import scene_bake_job_id, scene_bake_plan_job_id
+from producer.queue import fetch_job
+from producer.renders import enqueue_render
+from producer.status import job_public
+from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
 from tests.workers.queue.jobs_for_tests import tiny_scene
-from workers import bakes, queues
-from workers.artifacts import put_scene, read_manifest
-from workers.store import ObjectStore
 
 StartWorker = Callable[..., WorkerProcess]
 SMALL = BakeParams(ldc_resolution=24, max_layers=8, area_light_samples=1)
@@ -49,7 +55,7 @@ def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
 ) -> None:
     pub = put_scene(worker_store, diffuse_scene(), {}, None)
     key, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
-    assert job is not None and job.id == bakes.bake_job_id(key)
+    assert job is not None and job.id == scene_bake_job_id(key)
     first = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
     assert first.state == "queued" and first.progress.fraction == 0.0 and first.parts == []
     w = worker_process("bake")
@@ -70,7 +76,7 @@ def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
     assert manifest.result["plan"] == st.plan and len(manifest.result["parts"]) == 3
     assert manifest.result["sizes"]["ldc_samples"] > 0
     # each part is its own artifact with the LDC axis as npz arrays of its samples
-    from workers.artifacts import read_blob
+    from producer.artifacts import read_blob
     from workers.jobs.bake import read_npz
 
     for part in st.parts:
@@ -85,7 +91,7 @@ def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
 
     # a part lost (crash, removed as corrupt): the bake is no longer complete, and the next request
     # redoes that part alone (the others are not recomputed) and merges again
-    from workers.artifacts import delete_artifact
+    from producer.artifacts import delete_artifact
 
     created = {p.name: read_manifest(worker_store, p.key).created_at for p in st.parts}  # type: ignore[union-attr]
     victim = st.parts[1]
@@ -95,7 +101,7 @@ def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
     assert key2 == key and job3 is not None  # the incomplete bake is not served as cached
     st2 = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w)
     assert st2.state == "finished", w.log()
-    plan_job = queues.fetch_job(redis_conn, bakes.bake_plan_job_id(key))
+    plan_job = fetch_job(redis_conn, scene_bake_plan_job_id(key))
     assert plan_job is not None
     planned: dict[str, Any] = plan_job.return_value()  # type: ignore[assignment]
     assert planned["enqueued"] == [victim.name]
@@ -147,10 +153,10 @@ def test_mirror_scene_bakes_light_field_chunks(
     results = {}
     for method in ("ldc+llf", "ldc+ibrt:2"):
         req = RenderRequest(scene_id=pub.id, method=method, bake=params)
-        rkey, rjob = queues.enqueue_render(redis_conn, req, owner=None, store=worker_store)
+        rkey, rjob = enqueue_render(redis_conn, req, owner=None, store=worker_store)
         assert rjob is not None
         deadline = time.monotonic() + 90
-        while (state := queues.job_public(queues.fetch_job(redis_conn, rjob.id)).state) not in (  # type: ignore[arg-type]
+        while (state := job_public(fetch_job(redis_conn, rjob.id)).state) not in (  # type: ignore[arg-type]
                 "finished", "failed"):
             assert time.monotonic() < deadline, rw.log()
             time.sleep(0.1)
@@ -179,16 +185,16 @@ def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
         time.sleep(0.05)
         st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
     assert len(st.parts) == 9
-    with pytest.raises(bakes.BakeInUse):
+    with pytest.raises(BakeInUse):
         bakes.delete_bake(redis_conn, worker_store, pub.id, key, params)
     from api_schemas.service import RenderRequest
 
     req = RenderRequest(scene_id=pub.id, method="ldc", bake=params, missing_bake="bake")
-    _, render = queues.enqueue_render(redis_conn, req, owner=None, store=worker_store)
-    assert render is not None and queues.job_public(render).progress.stage == "waiting for the bake"
-    queues.cancel(redis_conn, job.id)
-    waiting = queues.fetch_job(redis_conn, render.id)
-    assert waiting is not None and queues.job_public(waiting).state == "canceled"  # could never run now
+    _, render = enqueue_render(redis_conn, req, owner=None, store=worker_store)
+    assert render is not None and job_public(render).progress.stage == "waiting for the bake"
+    cancel(redis_conn, job.id)
+    waiting = fetch_job(redis_conn, render.id)
+    assert waiting is not None and job_public(waiting).state == "canceled"  # could never run now
     deadline = time.monotonic() + 30
     while True:
         st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
@@ -237,12 +243,12 @@ def test_a_canceled_part_cancels_the_bake_and_a_new_request_redoes_it(
         st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
     victim = st.parts[2]
     assert victim.job_id is not None
-    queues.cancel(redis_conn, victim.job_id)
+    cancel(redis_conn, victim.job_id)
     st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 60, w)
     assert st.state == "canceled" and st.error is not None and victim.name in st.error, st
     key2, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
     assert key2 == key and job is not None
     st = wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 60, w)
     assert st.state == "finished", w.log()
-    planned: dict[str, Any] = queues.fetch_job(redis_conn, bakes.bake_plan_job_id(key)).return_value()  # type: ignore[union-attr,assignment]
+    planned: dict[str, Any] = fetch_job(redis_conn, scene_bake_plan_job_id(key)).return_value()  # type: ignore[union-attr,assignment]
     assert planned["enqueued"] == [victim.name]

@@ -14,11 +14,13 @@ import pytest
 from redis import Redis
 from rq import Retry
 
+from producer.artifacts import read_blob, read_manifest
+from producer.cancel import cancel
+from producer.queue import QueueName, fetch_job, get_queue
+from producer.status import job_public
+from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
 from tests.workers.queue.jobs_for_tests import slow_artifact_key
-from workers import queues
-from workers.artifacts import read_blob, read_manifest
-from workers.store import ObjectStore
 
 StartWorker = Callable[..., WorkerProcess]
 SLOW = "tests.workers.queue.jobs_for_tests.slow_artifact"
@@ -35,14 +37,14 @@ def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float
 
 
 def step(redis: Redis, job_id: str) -> int:
-    job = queues.fetch_job(redis, job_id)
+    job = fetch_job(redis, job_id)
     return int(job.meta.get("step", -1)) if job is not None else -1
 
 
 def state(redis: Redis, job_id: str) -> str:
-    job = queues.fetch_job(redis, job_id)
+    job = fetch_job(redis, job_id)
     assert job is not None
-    return queues.job_public(job).state
+    return job_public(job).state
 
 
 def gone(pid: int) -> bool:
@@ -58,7 +60,7 @@ def test_sigkilled_bake_worker_job_is_failed_or_rerun_never_started_forever(
 ) -> None:
     label, steps = f"killed-{retries}", 50  # 5 s of work: an orphaned horse could not finish below
     key = slow_artifact_key(label, steps)
-    q = queues.get_queue(redis_conn, "bake")
+    q = get_queue(redis_conn, "bake")
     job = q.enqueue(SLOW, {"steps": steps, "dt": 0.1, "label": label}, job_id=f"bake-{label}", job_timeout=120,
                     retry=Retry(max=retries) if retries else None)
     w = worker_process("bake")
@@ -85,7 +87,7 @@ def test_sigkilled_bake_worker_job_is_failed_or_rerun_never_started_forever(
         assert read_blob(worker_store, key, "data.txt") == expected  # the rerun's result is the normal one
     else:
         assert final == "failed", w2.log()
-        pub = queues.job_public(queues.fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
+        pub = job_public(fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
         assert pub.error is not None and "stopped responding" in pub.error
         assert read_manifest(worker_store, key) is None
     assert took < 30
@@ -96,12 +98,12 @@ def test_canceling_a_started_bake_job_kills_its_horse(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
     label, steps = "canceled", 100
-    q = queues.get_queue(redis_conn, "bake")
+    q = get_queue(redis_conn, "bake")
     job = q.enqueue(SLOW, {"steps": steps, "dt": 0.1, "label": label}, job_id=f"bake-{label}", job_timeout=120,
                     retry=Retry(max=2))
     w = worker_process("bake")
     wait_for(lambda: step(redis_conn, job.id) >= 2, 30, "the horse to be working")
-    queues.cancel(redis_conn, job.id)
+    cancel(redis_conn, job.id)
     wait_for(lambda: state(redis_conn, job.id) == "canceled", 10, "the stop command")
     assert q.count == 0 and q.scheduled_job_registry.get_job_count(cleanup=False) == 0  # not retried
     assert read_manifest(worker_store, slow_artifact_key(label, steps)) is None
@@ -110,16 +112,16 @@ def test_canceling_a_started_bake_job_kills_its_horse(
 
 @pytest.mark.parametrize("queue", ["bake", "render"])
 def test_timeout_fails_the_job_and_the_worker_takes_the_next(
-    redis_conn: Redis, worker_process: StartWorker, queue: queues.QueueName
+    redis_conn: Redis, worker_process: StartWorker, queue: QueueName
 ) -> None:
     """HARD_CASES 24 on both worker kinds (forked horse / in-process job)."""
-    q = queues.get_queue(redis_conn, queue)
+    q = get_queue(redis_conn, queue)
     slow = q.enqueue("tests.workers.queue.jobs_for_tests.sleepy", {"seconds": 30}, job_id=f"{queue}-slow",
                      job_timeout=1, retry=Retry(max=2))
     after = q.enqueue("tests.workers.queue.jobs_for_tests.quick", {}, job_id=f"{queue}-after")
     w = worker_process(queue)
     wait_for(lambda: state(redis_conn, after.id) == "finished", 30, "the next job")
-    pub = queues.job_public(queues.fetch_job(redis_conn, slow.id))  # type: ignore[arg-type]
+    pub = job_public(fetch_job(redis_conn, slow.id))  # type: ignore[arg-type]
     assert pub.state == "failed"
     assert pub.error == "the job exceeded its time limit of 1 s and was stopped"
     assert q.scheduled_job_registry.get_job_count(cleanup=False) == 0  # a timeout is not retried
@@ -130,18 +132,18 @@ def test_transient_failure_is_retried_after_its_interval_by_the_scheduler(
     redis_conn: Redis, worker_process: StartWorker
 ) -> None:
     """StoreUnavailable keeps the job's retries; the interval needs the worker's scheduler."""
-    q = queues.get_queue(redis_conn, "render")
+    q = get_queue(redis_conn, "render")
     job = q.enqueue("tests.workers.queue.jobs_for_tests.flaky", {"failures": 1}, job_id="render-flaky",
                     retry=Retry(max=2, interval=[1]))
     worker_process("render")
     wait_for(lambda: state(redis_conn, job.id) == "finished", 30, "the retried job")
-    done = queues.fetch_job(redis_conn, job.id)
+    done = fetch_job(redis_conn, job.id)
     assert done is not None and done.return_value() == {"attempts": 2} and done.retries_left == 1
 
 
 @pytest.mark.parametrize("queue", ["bake", "render"])
-def test_sigterm_is_a_warm_shutdown(redis_conn: Redis, worker_process: StartWorker, queue: queues.QueueName) -> None:
-    q = queues.get_queue(redis_conn, queue)
+def test_sigterm_is_a_warm_shutdown(redis_conn: Redis, worker_process: StartWorker, queue: QueueName) -> None:
+    q = get_queue(redis_conn, queue)
     job = q.enqueue("tests.workers.queue.jobs_for_tests.sleepy", {"seconds": 3}, job_id=f"{queue}-warm")
     w = worker_process(queue)
     wait_for(lambda: state(redis_conn, job.id) == "started", 60, "the job to start")

@@ -1,4 +1,4 @@
-"""workers/embedded.py: the bundled redis-server on a unix socket, its persistence (HARD_CASES 22),
+"""producer/embedded.py: the bundled redis-server on a unix socket, its persistence (HARD_CASES 22),
 reuse of a running server, clear start-up errors."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from workers import queues
-from workers.embedded import EmbeddedRedisError, start_embedded_redis
+from producer.embedded import EmbeddedRedisError, start_embedded_redis
+from producer.queue import fetch_job, get_queue, redis_from_url
+from producer.status import job_public
 
 
 @pytest.fixture
@@ -29,7 +30,7 @@ def test_start_reuse_and_stop(data_dir: Path) -> None:
         assert stat.S_ISSOCK(sock.stat().st_mode) and stat.S_IMODE(sock.stat().st_mode) == 0o700
         conf = (data_dir / "redis.conf").read_text()
         assert "port 0" in conf and "appendonly yes" in conf and "daemonize no" in conf
-        r = queues.redis_from_url(server.url)
+        r = redis_from_url(server.url)
         r.set("k", "v")
         again = start_embedded_redis(data_dir)  # already running: reused, not owned
         assert not again.owned and again.url == server.url
@@ -49,37 +50,37 @@ def test_queued_job_survives_a_restart(data_dir: Path) -> None:
     """HARD_CASES 22: with persistence on (append-only file), a queued job is still queued after
     Redis stops and starts again on the same data directory."""
     with start_embedded_redis(data_dir) as server:
-        r = queues.redis_from_url(server.url)
-        q = queues.get_queue(r, "render")
+        r = redis_from_url(server.url)
+        q = get_queue(r, "render")
         job = q.enqueue("tests.workers.queue.jobs_for_tests.quick", {"x": [1, 2.5]}, job_id="render-kept",
                         meta={"owner": "alice", "progress": {"fraction": 0.0, "stage": "queued"}})
         r.close()
     with start_embedded_redis(data_dir) as server:
-        r = queues.redis_from_url(server.url)
-        q = queues.get_queue(r, "render")
+        r = redis_from_url(server.url)
+        q = get_queue(r, "render")
         assert q.get_job_ids() == [job.id]
-        kept = queues.fetch_job(r, job.id)
+        kept = fetch_job(r, job.id)
         assert kept is not None and list(kept.args) == [{"x": [1, 2.5]}] and kept.meta["owner"] == "alice"
-        assert queues.job_public(kept).state == "queued"
+        assert job_public(kept).state == "queued"
         r.close()
 
 
 def test_without_persistence_a_restart_loses_the_queue(data_dir: Path) -> None:
     """The other half of HARD_CASES 22: why the embedded server runs with appendonly."""
     with start_embedded_redis(data_dir, appendonly=False) as server:
-        r = queues.redis_from_url(server.url)
-        queues.get_queue(r, "render").enqueue("tests.workers.queue.jobs_for_tests.quick", {}, job_id="render-x")
+        r = redis_from_url(server.url)
+        get_queue(r, "render").enqueue("tests.workers.queue.jobs_for_tests.quick", {}, job_id="render-x")
         r.close()
     with start_embedded_redis(data_dir, appendonly=False) as server:
-        r = queues.redis_from_url(server.url)
-        assert queues.get_queue(r, "render").count == 0
+        r = redis_from_url(server.url)
+        assert get_queue(r, "render").count == 0
         r.close()
 
 
 def test_stale_socket_is_replaced(data_dir: Path) -> None:
     (data_dir / "redis.sock").write_text("left over by a crash")
     with start_embedded_redis(data_dir) as server:
-        assert server.owned and queues.redis_from_url(server.url).ping()
+        assert server.owned and redis_from_url(server.url).ping()
 
 
 def test_start_up_failures_are_clear(data_dir: Path, tmp_path: Path) -> None:

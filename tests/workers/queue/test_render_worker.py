@@ -17,12 +17,16 @@ from redis import Redis
 from rq import Retry
 
 from api_schemas.service import RenderRequest
+from producer.artifacts import delete_artifact, put_scene, read_blob, read_manifest
+from producer.cancel import cancel
+from producer.errors import JobNotCancelable
+from producer.names import RENDER_JOB
+from producer.queue import fetch_job, get_queue, redis_from_url
+from producer.renders import enqueue_render, render_artifact_key
+from producer.status import job_public
+from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
 from tests.workers.queue.jobs_for_tests import overflow_scene, tiny_scene
-from workers import queues
-from workers.artifacts import delete_artifact, put_scene, read_blob, read_manifest
-from workers.jobs import RENDER_JOB
-from workers.store import ObjectStore
 
 StartWorker = Callable[..., WorkerProcess]
 
@@ -38,15 +42,15 @@ def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float
 
 
 def public(redis: Redis, job_id: str) -> Any:
-    job = queues.fetch_job(redis, job_id)
+    job = fetch_job(redis, job_id)
     assert job is not None, f"job {job_id} vanished"
-    return queues.job_public(job)
+    return job_public(job)
 
 
 def direct_render(scene_id_req: RenderRequest, store: ObjectStore) -> Any:
     """The same render, straight through the engine in this process."""
     from engine.reference import ReferenceParams, ReferenceRenderer
-    from workers.artifacts import blob_reader, get_scene
+    from producer.artifacts import blob_reader, get_scene
     from workers.scene_loader import camera_params, load_scene
 
     scene, shas, _ = get_scene(store, scene_id_req.scene_id)
@@ -71,7 +75,7 @@ def test_render_end_to_end_cache_hit_and_idempotent_rerun(
     req = RenderRequest(scene_id=sid, params={"spp": 2, "seed": 7},
                         camera={"type": "perspective", "eye": [0.5, 1.2, 3.5], "look_at": [0, 0.5, 0],
                                 "width": 40, "height": 30})
-    key, job = queues.enqueue_render(redis_conn, req, "alice", store=worker_store)
+    key, job = enqueue_render(redis_conn, req, "alice", store=worker_store)
     assert job is not None
     w = worker_process("render", burst=True)
     assert w.wait(60) == 0, w.log()
@@ -103,12 +107,12 @@ def test_render_end_to_end_cache_hit_and_idempotent_rerun(
     np.testing.assert_array_equal(oid[..., 0], expected.object_id.astype(np.float32))
 
     # the same request again: served from the store, no job
-    assert queues.enqueue_render(redis_conn, req, "bob", store=worker_store) == (key, None)
+    assert enqueue_render(redis_conn, req, "bob", store=worker_store) == (key, None)
 
     # at-least-once: computing it again writes byte-identical blobs under the same key
     before = {b.name: b.sha256 for b in manifest.blobs}
     delete_artifact(worker_store, key)
-    key2, job2 = queues.enqueue_render(redis_conn, req, "alice", store=worker_store)
+    key2, job2 = enqueue_render(redis_conn, req, "alice", store=worker_store)
     assert key2 == key and job2 is not None and job2.id == job.id
     w2 = worker_process("render", burst=True)
     assert w2.wait(60) == 0, w2.log()
@@ -126,9 +130,9 @@ def test_concurrent_identical_requests_give_one_job_and_one_artifact(
     barrier = threading.Barrier(6)
 
     def go() -> None:
-        conn = queues.redis_from_url(embedded_redis)
+        conn = redis_from_url(embedded_redis)
         barrier.wait()
-        k, j = queues.enqueue_render(conn, req, None, store=worker_store)
+        k, j = enqueue_render(conn, req, None, store=worker_store)
         results.append((k, j.id if j else None))
         conn.close()
 
@@ -157,7 +161,7 @@ def test_progress_is_visible_and_a_started_job_can_be_canceled(
 ) -> None:
     sid = put_scene(worker_store, tiny_scene(width=160, height=120), {}, owner=None).id
     req = RenderRequest(scene_id=sid, params={"spp": 1024})  # ~10+ s: long enough to watch
-    key, job = queues.enqueue_render(redis_conn, req, "alice", store=worker_store)
+    key, job = enqueue_render(redis_conn, req, "alice", store=worker_store)
     assert job is not None
     w = worker_process("render")
 
@@ -170,25 +174,25 @@ def test_progress_is_visible_and_a_started_job_can_be_canceled(
     assert running.progress.eta_s is not None and running.progress.eta_s > 0
     assert running.started_at is not None
 
-    pub = queues.cancel(redis_conn, job.id)
+    pub = cancel(redis_conn, job.id)
     assert pub.state in ("started", "canceled")
     # The engine returns to Python between chunks (>= 8 per image, two in flight), so the job
     # stops within about two chunk times, long before the render would end.
     final = wait_for(lambda: (p := public(redis_conn, job.id)).state != "started" and p, 20, "the cancel")
     assert final.state == "canceled", (final, w.log())
     assert final.error == "canceled on request"
-    stopped_at = queues.fetch_job(redis_conn, job.id).meta["progress"]  # type: ignore[union-attr]
+    stopped_at = fetch_job(redis_conn, job.id).meta["progress"]  # type: ignore[union-attr]
     assert stopped_at["stage"] == "canceled" and stopped_at["fraction"] < 0.8
     assert read_manifest(worker_store, key) is None
     assert worker_store.list(f"artifacts/{key}/") == []
-    with pytest.raises(queues.JobNotCancelable):
-        queues.cancel(redis_conn, job.id)
+    with pytest.raises(JobNotCancelable):
+        cancel(redis_conn, job.id)
     # not retried, and the worker lives on and takes the next job
-    assert queues.get_queue(redis_conn, "render").scheduled_job_registry.get_job_count(cleanup=False) == 0
+    assert get_queue(redis_conn, "render").scheduled_job_registry.get_job_count(cleanup=False) == 0
     assert w.alive()
     quick = RenderRequest(scene_id=sid, params={"spp": 1}, camera={
         "type": "perspective", "eye": [0, 1.5, 4], "look_at": [0, 0.5, 0], "width": 16, "height": 16})
-    _, j2 = queues.enqueue_render(redis_conn, quick, None, store=worker_store)
+    _, j2 = enqueue_render(redis_conn, quick, None, store=worker_store)
     assert j2 is not None
     wait_for(lambda: public(redis_conn, j2.id).state == "finished", 30, "the next job")
 
@@ -198,15 +202,15 @@ def test_bad_payloads_fail_at_once_without_retry(
 ) -> None:
     sid = put_scene(worker_store, tiny_scene(), {}, owner=None).id
     good = RenderRequest(scene_id=sid, params={"spp": 1})
-    key = queues.render_artifact_key(good)
-    q = queues.get_queue(redis_conn, "render")
+    key = render_artifact_key(good)
+    q = get_queue(redis_conn, "render")
     retry = Retry(max=2, interval=[5, 30])
     bad_payloads = {
         "render-bad-field": {"request": {"scene_id": sid, "params": {"spp": 0}}, "artifact_key": key},
         "render-extra": {"request": good.model_dump(mode="json"), "artifact_key": key, "store_url": "file:///etc"},
         "render-wrong-key": {"request": good.model_dump(mode="json"), "artifact_key": "f" * 64},
         "render-no-scene": {"request": {"scene_id": "a" * 64, "params": {"spp": 1}},
-                            "artifact_key": queues.render_artifact_key(RenderRequest(scene_id="a" * 64,
+                            "artifact_key": render_artifact_key(RenderRequest(scene_id="a" * 64,
                                                                                       params={"spp": 1}))},
     }
     for job_id, payload in bad_payloads.items():
@@ -231,7 +235,7 @@ def test_nan_render_fails_with_a_clear_message_and_no_manifest(
 ) -> None:
     """HARD_CASES 13 through the queue."""
     sid = put_scene(worker_store, overflow_scene(), {}, owner=None).id
-    key, job = queues.enqueue_render(redis_conn, RenderRequest(scene_id=sid, params={"spp": 1}), None,
+    key, job = enqueue_render(redis_conn, RenderRequest(scene_id=sid, params={"spp": 1}), None,
                                      store=worker_store)
     assert job is not None
     w = worker_process("render", burst=True)
@@ -239,5 +243,5 @@ def test_nan_render_fails_with_a_clear_message_and_no_manifest(
     pub = public(redis_conn, job.id)
     assert pub.state == "failed"
     assert pub.error is not None and pub.error.startswith("NonFiniteOutputError: ") and "non-finite" in pub.error
-    assert queues.get_queue(redis_conn, "render").scheduled_job_registry.get_job_count(cleanup=False) == 0
+    assert get_queue(redis_conn, "render").scheduled_job_registry.get_job_count(cleanup=False) == 0
     assert read_manifest(worker_store, key) is None and worker_store.list("artifacts/") == []

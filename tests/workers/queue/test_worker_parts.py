@@ -16,12 +16,13 @@ from rq.exceptions import AbandonedJobError
 from rq.timeouts import JobTimeoutException
 
 from engine.errors import NonFiniteOutputError
+from producer.payloads import InvalidPayload
+from producer.renders import render_artifact_key
+from producer.settings import Settings, reset_settings_cache
+from producer.store import StoreUnavailable
 from tests.workers.queue.jobs_for_tests import tiny_scene
 from workers import runner
 from workers.cache import LRUBytesCache, RendererCache, runtime_scene_bytes
-from workers.jobs.payloads import InvalidPayload
-from workers.settings import WorkerSettings, reset_settings_cache
-from workers.store import StoreUnavailable
 
 # ------------------------------------------------------------------------------ settings
 
@@ -32,14 +33,15 @@ def test_settings_defaults_point_at_the_embedded_redis_and_local_store(
     for var in ("IBR_REDIS_URL", "IBR_STORE_URL"):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("IBR_DATA_DIR", str(tmp_path))
-    s = WorkerSettings()
+    s = Settings()
     assert s.effective_redis_url == f"unix://{tmp_path.resolve()}/redis.sock"
     assert s.effective_store_url == f"file://{tmp_path.resolve()}/store"
     monkeypatch.setenv("IBR_REDIS_URL", "redis://cache:6379/1")
     monkeypatch.setenv("IBR_STORE_URL", "s3://bucket/prefix")
+    monkeypatch.setenv("IBR_S3_ACCESS_KEY", "ibr")
     monkeypatch.setenv("IBR_S3_SECRET_KEY", "hunter2")
     monkeypatch.setenv("IBR_CACHE_BYTES", "1000")
-    s = WorkerSettings()
+    s = Settings()
     assert (s.effective_redis_url, s.effective_store_url, s.cache_bytes) == ("redis://cache:6379/1",
                                                                              "s3://bucket/prefix", 1000)
     assert "hunter2" not in repr(s)
@@ -52,7 +54,7 @@ def test_settings_defaults_point_at_the_embedded_redis_and_local_store(
 def test_bad_settings_are_refused(monkeypatch: pytest.MonkeyPatch, var: str, value: str) -> None:
     monkeypatch.setenv(var, value)
     with pytest.raises(ValidationError, match=var.removeprefix("IBR_").lower()):
-        WorkerSettings()
+        Settings()
 
 
 def test_runner_exits_cleanly_on_bad_settings_or_unreachable_redis(
@@ -81,7 +83,7 @@ def test_retry_policy_keeps_retries_only_for_transient_errors(exc: type[BaseExce
 
 
 def test_worker_timings(embedded_redis: str) -> None:
-    from workers.queues import redis_from_url
+    from producer.queue import redis_from_url
 
     r = redis_from_url(embedded_redis)
     w: Any = runner.build_worker("bake", r, maintenance_interval=7, job_monitoring_interval=3, heartbeat_grace=4)
@@ -163,20 +165,20 @@ def test_renderer_cache_keeps_scenes_warm() -> None:
 def test_render_job_in_process(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """Outside a worker (no current RQ job) the job still validates, renders and publishes."""
     from api_schemas.service import RenderRequest
-    from workers import queues
-    from workers.artifacts import put_scene, read_manifest
+    from producer.artifacts import put_scene, read_manifest
+    from producer.payloads import RenderJobPayload
+    from producer.store import open_store
     from workers.jobs import render
-    from workers.jobs.payloads import RenderJobPayload
-    from workers.store import open_store
+    from workers.jobs.common import set_worker_store
 
     monkeypatch.setenv("IBR_STORE_URL", str(tmp_path))
     reset_settings_cache()
-    monkeypatch.setattr(render, "_store", None)
+    previous = set_worker_store(None)  # opened from the settings on first use
     try:
         store = open_store(str(tmp_path))
         sid = put_scene(store, tiny_scene(width=8, height=8), {}, owner=None).id
         req = RenderRequest(scene_id=sid, params={"spp": 1})
-        key = queues.render_artifact_key(req)
+        key = render_artifact_key(req)
         payload = RenderJobPayload(request=req, artifact_key=key).model_dump(mode="json")
         out = render.render_job(payload)
         assert out["artifact_key"] == key and read_manifest(store, key) is not None
@@ -185,4 +187,5 @@ def test_render_job_in_process(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) 
         with pytest.raises(InvalidPayload, match="request.params.spp"):
             render.render_job({"request": {"scene_id": sid, "params": {"spp": -1}}, "artifact_key": key})
     finally:
+        set_worker_store(previous)
         reset_settings_cache()

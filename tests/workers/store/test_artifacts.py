@@ -15,10 +15,10 @@ import pytest
 
 from api_schemas.scene import Material, MeshFileObject, PerspectiveCamera, Scene, SceneObject, SphereObject
 from api_schemas.service import ArtifactManifest
+from producer import artifacts as art
+from producer.store import ChecksumMismatch, LocalStore, NotFound, ObjectStore, StoreUnavailable
+from producer.store.s3 import S3Store
 from samples import SAMPLES_DIR, sample_path
-from workers import artifacts as art
-from workers.store import ChecksumMismatch, LocalStore, NotFound, ObjectStore, StoreUnavailable
-from workers.store.s3 import S3Store
 
 ENGINE = "0.1.0"
 SCENE_ID = "ab" * 32

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from workers.store import (
+from producer.store import (
     LocalStore,
     NotFound,
     ObjectStore,
@@ -26,7 +26,7 @@ from workers.store import (
     validate_key,
     validate_prefix,
 )
-from workers.store.s3 import S3Store
+from producer.store.s3 import S3Store
 
 BAD_KEYS = [
     "",
@@ -282,7 +282,7 @@ def test_local_disk_trouble_is_unavailable(local_store: LocalStore, monkeypatch:
     def denied(*args: Any, **kwargs: Any) -> Any:
         raise PermissionError(errno.EACCES, "Permission denied")
 
-    monkeypatch.setattr("workers.store.local.open", denied, raising=False)
+    monkeypatch.setattr("producer.store.local.open", denied, raising=False)
     with pytest.raises(StoreUnavailable):
         local_store.get_bytes("x")
     with pytest.raises(StoreUnavailable):

@@ -3,7 +3,7 @@
 ``open_store("file:///srv/ibr")`` or ``open_store("/srv/ibr")`` -> :class:`LocalStore`
 (the default; temp file + fsync + rename); ``open_store("s3://bucket/prefix",
 endpoint_url=..., access_key=..., ...)`` -> :class:`S3Store`. What lives under which key
-(blobs, scenes, artifacts) is decided in ``workers.artifacts``, not here.
+(blobs, scenes, artifacts) is decided in ``producer.artifacts``, not here.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import unquote, urlsplit
 
-from workers.store.base import (
+from producer.store.base import (
     DEFAULT_CHUNK,
     MAX_KEY_LENGTH,
     ChecksumMismatch,
@@ -24,10 +24,10 @@ from workers.store.base import (
     validate_key,
     validate_prefix,
 )
-from workers.store.local import LocalStore
+from producer.store.local import LocalStore
 
 if TYPE_CHECKING:
-    from workers.store.s3 import S3Store
+    from producer.store.s3 import S3Store
 
 __all__ = [
     "DEFAULT_CHUNK",
@@ -50,7 +50,7 @@ __all__ = [
 def __getattr__(name: str) -> Any:
     # boto3 takes a noticeable time to import: only pay for it when S3 is used.
     if name == "S3Store":
-        from workers.store.s3 import S3Store
+        from producer.store.s3 import S3Store  # deferred on purpose: boto3 is slow to import
 
         return S3Store
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -83,7 +83,7 @@ def open_store(url: str, **s3_kwargs: Any) -> ObjectStore:
     if scheme == "s3":
         if not parts.netloc:
             raise ValueError(f"S3 URL {url!r} has no bucket (s3://bucket/prefix)")
-        from workers.store.s3 import S3Store
+        from producer.store.s3 import S3Store  # deferred on purpose: boto3 is slow to import
 
         return S3Store(parts.netloc, prefix=unquote(parts.path).strip("/"), **s3_kwargs)
     raise ValueError(f"unsupported store URL scheme {parts.scheme!r} in {url!r} (use file:// or s3://)")
@@ -94,7 +94,7 @@ class _SecretLike(Protocol):
 
 
 class StoreSettings(Protocol):
-    """What the API's ``Settings`` and the workers' ``WorkerSettings`` both carry."""
+    """The store fields of ``producer.settings.Settings`` (a protocol, so the store needs no settings import)."""
 
     @property
     def effective_store_url(self) -> str: ...

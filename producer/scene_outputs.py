@@ -1,6 +1,6 @@
 """What a scene leaves in the store besides its document, and removing it with the scene.
 
-A scene's LDC bakes (``bakes/<scene>/<key>.json`` records, see :mod:`workers.bakes`), its
+A scene's LDC bakes (``bakes/<scene>/<key>.json`` records, see :mod:`producer.bakes`), its
 walkthroughs (``walkthroughs/<key>.json``, indexed per scene under
 ``walkthroughs-by-scene/<scene>/<key>``) and their walkthrough bakes are derived from the scene
 alone: once the scene is gone nobody can request them again, so ``DELETE /v1/scenes/{id}``
@@ -15,37 +15,20 @@ anything is removed.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from redis import Redis
-from rq.job import Job
-from rq.serializers import JSONSerializer
 
-from workers.bakes import delete_bake, list_bakes
-from workers.queues import ids_in_active_jobs
-from workers.walkthroughs import (
-    bake_job_id as walkthrough_bake_job_id,
-)
-from workers.walkthroughs import (
-    delete_walkthrough,
-    read_request,
-    walkthrough_bake_key,
-)
+from api_schemas.service import BakeParams
+from producer.artifacts import delete_artifact
+from producer.bakes import delete_bake, list_bakes
+from producer.errors import SceneOutputsInUse
+from producer.names import walkthrough_bake_job_id
+from producer.queue import fetch_job
+from producer.status import ids_in_active_jobs
+from producer.store import ObjectStore
+from producer.walkthroughs import delete_walkthrough, read_request, walkthrough_bake_key, walkthrough_index_key
 
-if TYPE_CHECKING:
-    from api_schemas.service import BakeParams
-    from workers.store import ObjectStore
-
-__all__ = ["SceneOutputs", "SceneOutputsInUse", "delete_scene_outputs", "scene_outputs", "walkthrough_index_key"]
-
-
-class SceneOutputsInUse(RuntimeError):
-    """A job of the scene, of one of its bakes or of one of its walkthroughs is queued or running (HTTP 409)."""
-
-
-def walkthrough_index_key(scene_id: str, wkey: str) -> str:
-    """Marker object listing walkthrough ``wkey`` under its scene (written when it is requested)."""
-    return f"walkthroughs-by-scene/{scene_id}/{wkey}"
+__all__ = ["SceneOutputs", "delete_scene_outputs", "scene_outputs"]
 
 
 @dataclass
@@ -78,8 +61,6 @@ def delete_scene_outputs(redis: Redis, store: ObjectStore, scene_id: str) -> Sce
 
     Raises :class:`SceneOutputsInUse` (nothing removed) while a job that uses the scene or one of
     those outputs is queued or running."""
-    from workers.artifacts import delete_artifact
-
     outs = scene_outputs(store, scene_id)
     busy = ids_in_active_jobs(redis, ("scene_id", "scene", "walkthrough_key", "bake_key", "artifact_key")) & (
         outs.keys() | {scene_id})
@@ -94,7 +75,7 @@ def delete_scene_outputs(redis: Redis, store: ObjectStore, scene_id: str) -> Sce
         store.delete(walkthrough_index_key(scene_id, wkey))
     for bkey in outs.walkthrough_bakes:
         delete_artifact(store, bkey)
-        job = Job.fetch_many([walkthrough_bake_job_id(bkey)], connection=redis, serializer=JSONSerializer)[0]
+        job = fetch_job(redis, walkthrough_bake_job_id(bkey))
         if job is not None:
             job.delete(remove_from_queue=True)
     for k in store.list(f"walkthroughs-by-scene/{scene_id}/"):  # markers of walkthroughs deleted earlier

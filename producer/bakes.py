@@ -1,6 +1,6 @@
 """Bakes of a scene (layered depth cube + layered light field), split into jobs for the ``bake`` queue.
 
-Imported by the API process: no numba, no engine (the job functions are in ``workers/jobs/bake.py``).
+The job functions are in ``workers/jobs/bake.py``; this module names, enqueues and follows them.
 
 A bake request ``(scene_id, BakeParams)`` has a content-addressed key
 ``artifact_key("bake", {"scene": scene_id}, params, ENGINE_VERSION)``. Its work is split into PARTS,
@@ -36,39 +36,37 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from redis import Redis
-from rq import Retry
 from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
 from api_schemas.service import BakeParams, BakePart, BakePartState, BakePublic, BakeState, JobProgress
-from workers.jobs import BAKE_LDC_JOB, BAKE_LLF_JOB, BAKE_MERGE_JOB, BAKE_PLAN_JOB
-from workers.queues import (
-    BAKE_TIMEOUT_S,
-    RENDER_RETRY_INTERVALS_S,
-    RENDER_RETRY_MAX,
-    UnknownScene,
-    add_job_owner,
-    engine_version,
-    enqueue_unique,
-    fetch_job,
-    job_public,
+from engine import ENGINE_VERSION
+from producer.artifacts import artifact_key, delete_artifact, manifest_key, read_manifest
+from producer.enqueue import enqueue_unique
+from producer.errors import BakeInUse, UnknownScene
+from producer.names import (
+    SCENE_BAKE_LDC_JOB,
+    SCENE_BAKE_LLF_JOB,
+    SCENE_BAKE_MERGE_JOB,
+    SCENE_BAKE_PLAN_JOB,
+    scene_bake_job_id,
+    scene_bake_part_job_id,
+    scene_bake_plan_job_id,
 )
-
-if TYPE_CHECKING:
-    from workers.store import ObjectStore
+from producer.ownership import add_job_owner
+from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, fetch_jobs, job_retry
+from producer.status import job_public
+from producer.store import NotFound, ObjectStore
 
 __all__ = [
     "BAKE_MAX_PART_BYTES",
     "BAKE_MAX_TOTAL_BYTES",
-    "BakeInUse",
     "PartSpec",
-    "bake_job_id",
     "bake_key",
     "bake_complete",
-    "bake_plan_job_id",
     "bake_record_key",
     "bake_status",
     "delete_bake",
@@ -79,7 +77,6 @@ __all__ = [
     "merge_stuck",
     "llf_direction_count",
     "llf_part_specs",
-    "part_job_id",
     "part_key",
     "plan_parts",
     "read_bake_record",
@@ -98,13 +95,6 @@ LDC_SAMPLE_BYTES_UPPER = 20 + 57 + 16
 """Per LDC sample: LDI (20) + attributes (57) + one visibility word per side (16), for the API's
 engine-free upper bound (the engine's own estimate is exact and checked again by the plan job)."""
 
-_ACTIVE = frozenset({JobStatus.CREATED, JobStatus.QUEUED, JobStatus.STARTED, JobStatus.DEFERRED,
-                     JobStatus.SCHEDULED, JobStatus.READY_TO_ENQUEUE, JobStatus.RATE_LIMITED})
-
-
-class BakeInUse(RuntimeError):
-    """A bake cannot be deleted while one of its jobs is queued or running (HTTP 409)."""
-
 
 # ------------------------------------------------------------------------------------ keys and parts
 
@@ -114,22 +104,7 @@ def bake_params_dict(params: BakeParams) -> dict[str, Any]:
 
 
 def bake_key(scene_id: str, params: BakeParams) -> str:
-    from workers.artifacts import artifact_key
-
-    return artifact_key("bake", {"scene": scene_id}, bake_params_dict(params), engine_version())
-
-
-def bake_job_id(key: str) -> str:
-    """The bake's own (merge) job: the one clients follow and renders depend on."""
-    return f"bake-{key}"
-
-
-def bake_plan_job_id(key: str) -> str:
-    return f"bake-plan-{key}"
-
-
-def part_job_id(pkey: str) -> str:
-    return f"bake-part-{pkey}"
+    return artifact_key("bake", {"scene": scene_id}, bake_params_dict(params), ENGINE_VERSION)
 
 
 def bake_record_key(scene_id: str, key: str) -> str:
@@ -164,9 +139,7 @@ def plan_parts(params: BakeParams, bake_llf: bool) -> list[PartSpec]:
 
 
 def part_key(scene_id: str, key: str, spec: PartSpec) -> str:
-    from workers.artifacts import artifact_key
-
-    return artifact_key("bake-part", {"scene": scene_id, "bake": key}, spec, engine_version())
+    return artifact_key("bake-part", {"scene": scene_id, "bake": key}, spec, ENGINE_VERSION)
 
 
 def part_weight(params: BakeParams, spec: PartSpec) -> float:
@@ -195,8 +168,6 @@ def bake_complete(store: ObjectStore, key: str) -> bool:
 
     A manifest whose part has gone (deleted, found corrupt) is withdrawn, so the next request
     re-plans and redoes only the missing parts."""
-    from workers.artifacts import delete_artifact, manifest_key, read_manifest
-
     manifest = read_manifest(store, key)
     if manifest is None:
         return False
@@ -208,8 +179,6 @@ def bake_complete(store: ObjectStore, key: str) -> bool:
 
 
 def read_bake_record(store: ObjectStore, scene_id: str, key: str) -> dict[str, Any] | None:
-    from workers.store import NotFound
-
     try:
         doc = json.loads(store.get_bytes(bake_record_key(scene_id, key)))
     except NotFound:
@@ -257,10 +226,6 @@ def _meta(kind: str, key: str, owner: str | None, **extra: Any) -> dict[str, Any
             "owner": owner, "progress": {"fraction": 0.0, "stage": "queued", "eta_s": None}, **extra}
 
 
-def _retry() -> Retry:
-    return Retry(max=RENDER_RETRY_MAX, interval=list(RENDER_RETRY_INTERVALS_S))
-
-
 def enqueue_bake(
     redis: Redis, store: ObjectStore, scene_id: str, params: BakeParams, owner: str | None
 ) -> tuple[str, Job | None]:
@@ -273,25 +238,25 @@ def enqueue_bake(
     if not store.exists(f"scenes/{scene_id}.json"):
         raise UnknownScene(f"scene {scene_id} does not exist")
     _write_record(store, scene_id, key, params, owner)
-    merge_id = bake_job_id(key)
-    plan_id = bake_plan_job_id(key)
+    merge_id = scene_bake_job_id(key)
+    plan_id = scene_bake_plan_job_id(key)
     with redis.lock(f"ibr:lock:bake:{key}", timeout=30, blocking_timeout=30):
         merge = fetch_job(redis, merge_id)
-        if merge is not None and merge.get_status(refresh=False) in _ACTIVE and not merge_stuck(redis, merge):
+        if merge is not None and merge.get_status(refresh=False) in ACTIVE_STATUSES and not merge_stuck(redis, merge):
             add_job_owner(redis, merge_id, owner, BAKE_TIMEOUT_S)
             return key, merge
         if merge is not None:
             merge.delete(remove_from_queue=True)
         payload = _payload(scene_id, key, params)
         plan_job = enqueue_unique(
-            redis, "bake", BAKE_PLAN_JOB, payload, plan_id, timeout=BAKE_TIMEOUT_S,
-            meta=_meta("plan", key, owner), retry=_retry(), description=f"plan bake of scene {scene_id[:12]}",
+            redis, "bake", SCENE_BAKE_PLAN_JOB, payload, plan_id, timeout=BAKE_TIMEOUT_S,
+            meta=_meta("plan", key, owner), retry=job_retry(), description=f"plan bake of scene {scene_id[:12]}",
             owner=owner,
         )
         assert plan_job is not None
         merge = enqueue_unique(
-            redis, "bake", BAKE_MERGE_JOB, payload, merge_id, timeout=BAKE_TIMEOUT_S,
-            meta=_meta("merge", key, owner), retry=_retry(), description=f"bake scene {scene_id[:12]}",
+            redis, "bake", SCENE_BAKE_MERGE_JOB, payload, merge_id, timeout=BAKE_TIMEOUT_S,
+            meta=_meta("merge", key, owner), retry=job_retry(), description=f"bake scene {scene_id[:12]}",
             owner=owner, depends_on=Dependency(jobs=[plan_id], allow_failure=True),
         )
         assert merge is not None
@@ -305,17 +270,17 @@ def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, spe
     ids: list[str] = []
     for spec in specs:
         pkey = str(spec["key"])
-        func = BAKE_LDC_JOB if spec["kind"] == "ldc_axis" else BAKE_LLF_JOB
+        func = SCENE_BAKE_LDC_JOB if spec["kind"] == "ldc_axis" else SCENE_BAKE_LLF_JOB
         part = {k: v for k, v in spec.items() if k not in ("key", "weight")}
         payload = {**_payload(scene_id, key, params), "part": part, "part_key": pkey}
         job = enqueue_unique(
-            redis, "bake", func, payload, part_job_id(pkey), timeout=BAKE_TIMEOUT_S,
-            meta=_meta("part", key, owner, artifact_key=pkey, part=spec["name"]), retry=_retry(),
+            redis, "bake", func, payload, scene_bake_part_job_id(pkey), timeout=BAKE_TIMEOUT_S,
+            meta=_meta("part", key, owner, artifact_key=pkey, part=spec["name"]), retry=job_retry(),
             description=f"bake {spec['name']} of scene {scene_id[:12]}", owner=owner,
         )
         assert job is not None
         ids.append(job.id)
-    add_part_dependency(redis, bake_job_id(key), ids)
+    add_part_dependency(redis, scene_bake_job_id(key), ids)
     return ids
 
 
@@ -331,9 +296,9 @@ def merge_stuck(redis: Redis, merge: Job) -> bool:
     ids = merge.dependency_ids
     if not ids:
         return False
-    deps = Job.fetch_many(ids, connection=redis, serializer=JSONSerializer)
+    deps = fetch_jobs(redis, ids)
     statuses = [d.get_status(refresh=False) if d is not None else None for d in deps]
-    if any(st in _ACTIVE for st in statuses):
+    if any(st in ACTIVE_STATUSES for st in statuses):
         return False
     return any(st is None or st in _DEAD for st in statuses)
 
@@ -382,12 +347,10 @@ _PART_STATE: dict[str, BakePartState] = {"queued": "queued", "started": "started
 def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, params: BakeParams,
                 *, cached: bool = False) -> BakePublic:
     """The bake's state, plan, parts (each with state and progress) and aggregated progress."""
-    from workers.artifacts import manifest_key, read_manifest
-
-    links = {"self": f"/v1/scenes/{scene_id}/bakes/{key}", "job": f"/v1/jobs/{bake_job_id(key)}"}
+    links = {"self": f"/v1/scenes/{scene_id}/bakes/{key}", "job": f"/v1/jobs/{scene_bake_job_id(key)}"}
     manifest = read_manifest(store, key)
-    merge = fetch_job(redis, bake_job_id(key))
-    plan_job = fetch_job(redis, bake_plan_job_id(key))
+    merge = fetch_job(redis, scene_bake_job_id(key))
+    plan_job = fetch_job(redis, scene_bake_plan_job_id(key))
     merge_pub = job_public(merge) if merge is not None else None
     plan_pub = job_public(plan_job) if plan_job is not None else None
     plan = _plan_from(manifest.result if manifest is not None else None, plan_job)
@@ -396,8 +359,7 @@ def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, param
     total_w = done_w = 0.0
     if plan is not None:
         specs = plan.parts
-        pjobs = Job.fetch_many([part_job_id(str(s["key"])) for s in specs], connection=redis,
-                               serializer=JSONSerializer) if specs else []
+        pjobs = fetch_jobs(redis, [scene_bake_part_job_id(str(s["key"])) for s in specs])
         for spec, pj in zip(specs, pjobs, strict=True):
             pkey = str(spec["key"])
             w = float(spec.get("weight", 1.0))
@@ -417,7 +379,7 @@ def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, param
             done_w += w * frac
             parts.append(BakePart(name=str(spec["name"]), kind=spec["kind"], key=pkey, state=state,
                                   progress=min(1.0, max(0.0, frac)), weight=w,
-                                  job_id=part_job_id(pkey), error=err))
+                                  job_id=scene_bake_part_job_id(pkey), error=err))
 
     state_: BakeState
     error: str | None = None
@@ -463,10 +425,10 @@ def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, param
 
 
 def bake_jobs_active(redis: Redis, key: str, part_keys: list[str]) -> list[str]:
-    ids = [bake_job_id(key), bake_plan_job_id(key)] + [part_job_id(k) for k in part_keys]
+    ids = [scene_bake_job_id(key), scene_bake_plan_job_id(key)] + [scene_bake_part_job_id(k) for k in part_keys]
     out = []
-    for jid, job in zip(ids, Job.fetch_many(ids, connection=redis, serializer=JSONSerializer), strict=True):
-        if job is not None and job.get_status(refresh=False) in _ACTIVE:
+    for jid, job in zip(ids, fetch_jobs(redis, ids), strict=True):
+        if job is not None and job.get_status(refresh=False) in ACTIVE_STATUSES:
             out.append(jid)
     return out
 
@@ -474,18 +436,16 @@ def bake_jobs_active(redis: Redis, key: str, part_keys: list[str]) -> list[str]:
 def delete_bake(redis: Redis, store: ObjectStore, scene_id: str, key: str, params: BakeParams) -> None:
     """Remove a bake: its manifest, every part artifact and its record. Raises :class:`BakeInUse`
     while one of its jobs is queued or running (cancel ``bake-<key>`` first)."""
-    from workers.artifacts import delete_artifact
-
     part_keys = [part_key(scene_id, key, s) for s in plan_parts(params, bake_llf=True)]
     active = bake_jobs_active(redis, key, part_keys)
     if active:
         raise BakeInUse(f"bake {key} has {len(active)} queued or running job(s) ({active[0]}, ...); "
-                        f"cancel {bake_job_id(key)} and its parts or wait")
+                        f"cancel {scene_bake_job_id(key)} and its parts or wait")
     delete_artifact(store, key)
     for pk in part_keys:
         delete_artifact(store, pk)
     store.delete(bake_record_key(scene_id, key))
-    ids = [bake_job_id(key), bake_plan_job_id(key)] + [part_job_id(k) for k in part_keys]
-    for job in Job.fetch_many(ids, connection=redis, serializer=JSONSerializer):
+    ids = [scene_bake_job_id(key), scene_bake_plan_job_id(key)] + [scene_bake_part_job_id(k) for k in part_keys]
+    for job in fetch_jobs(redis, ids):
         if job is not None:
             job.delete(remove_from_queue=True)

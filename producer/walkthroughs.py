@@ -1,7 +1,7 @@
 """Walkthroughs of a stored scene, split into RQ jobs (docs/walkthrough.md, "Service").
 
-Imported by the API process: no numba, no engine (the job functions are in
-``workers/jobs/walkthrough.py``).
+The job functions are in ``workers/jobs/walkthrough.py``; this module names, enqueues and follows
+them.
 
 A request (:class:`api_schemas.walkthrough.WalkthroughRequest`) becomes three kinds of jobs, each
 publishing a content-addressed artifact:
@@ -24,63 +24,53 @@ Keys: ``artifact_key("walkthrough-bake", {"scene"}, settings)``, ``artifact_key(
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 from redis import Redis
-from rq import Retry
-from rq.job import Dependency
+from rq.job import Dependency, JobStatus
 
 from api_schemas.errors import FieldError
 from api_schemas.scene import Scene
 from api_schemas.service import JobPublic
 from api_schemas.walkthrough import WalkthroughPublic, WalkthroughRequest, WalkthroughSettings
-from workers.queues import (
-    BAKE_TIMEOUT_S,
-    RENDER_RETRY_INTERVALS_S,
-    RENDER_RETRY_MAX,
-    RENDER_TIMEOUT_S,
-    UnknownScene,
-    engine_version,
-    enqueue_unique,
-    fetch_job,
-    job_public,
+from engine import ENGINE_VERSION
+from producer.artifacts import artifact_key, delete_artifact, read_manifest
+from producer.cancel import cancel
+from producer.enqueue import enqueue_unique
+from producer.errors import JobNotCancelable, JobNotFound, UnknownScene, WalkthroughInUse
+from producer.names import (
+    WALKTHROUGH_BAKE_JOB,
+    WALKTHROUGH_CHUNK_JOB,
+    WALKTHROUGH_VIDEO_JOB,
+    walkthrough_bake_job_id,
+    walkthrough_chunk_job_id,
+    walkthrough_video_job_id,
 )
-
-if TYPE_CHECKING:
-    from workers.store import ObjectStore
+from producer.queue import BAKE_TIMEOUT_S, RENDER_TIMEOUT_S, fetch_job, fetch_jobs, job_retry
+from producer.status import job_public
+from producer.store import NotFound, ObjectStore
 
 __all__ = [
-    "WALKTHROUGH_BAKE_JOB",
     "WALKTHROUGH_MAX_BAKE_BYTES",
-    "WALKTHROUGH_CHUNK_JOB",
-    "WALKTHROUGH_VIDEO_JOB",
-    "bake_job_id",
-    "chunk_job_id",
     "chunk_key",
     "chunks",
     "check_against_scene",
     "delete_walkthrough",
     "enqueue_walkthrough",
     "read_request",
-    "video_job_id",
     "walkthrough_bake_key",
+    "walkthrough_index_key",
     "walkthrough_key",
     "walkthrough_status",
-    "WalkthroughInUse",
 ]
 
-WALKTHROUGH_BAKE_JOB = "workers.jobs.walkthrough.walkthrough_bake_job"
-WALKTHROUGH_CHUNK_JOB = "workers.jobs.walkthrough.walkthrough_chunk_job"
-WALKTHROUGH_VIDEO_JOB = "workers.jobs.walkthrough.walkthrough_video_job"
 _EYE_TOL = 1e-6  # relative to the view space's size
 WALKTHROUGH_MAX_BAKE_BYTES = 4 << 30
 """Upper bound of one walkthrough bake's base images (a bake worker holds them in memory)."""
 
 
 def _key(kind: str, inputs: dict[str, str], params: dict[str, Any]) -> str:
-    from workers.artifacts import artifact_key
-
-    return artifact_key(kind, inputs, params, engine_version())
+    return artifact_key(kind, inputs, params, ENGINE_VERSION)
 
 
 def walkthrough_bake_key(scene_id: str, settings: WalkthroughSettings) -> str:
@@ -102,28 +92,19 @@ def chunk_key(wkey: str, index: int, start: int, stop: int) -> str:
     return _key("walkthrough-chunk", {"walkthrough": wkey}, {"index": index, "start": start, "stop": stop})
 
 
-def bake_job_id(bkey: str) -> str:
-    return f"wtbake-{bkey}"
+def walkthrough_index_key(scene_id: str, wkey: str) -> str:
+    """Marker object listing walkthrough ``wkey`` under its scene (written when it is requested)."""
+    return f"walkthroughs-by-scene/{scene_id}/{wkey}"
 
 
-def chunk_job_id(ckey: str) -> str:
-    return f"wtchunk-{ckey}"
-
-
-def video_job_id(wkey: str) -> str:
-    return f"walkthrough-{wkey}"
-
-
-def _record_key(wkey: str) -> str:
+def record_key(wkey: str) -> str:
     return f"walkthroughs/{wkey}.json"
 
 
 def read_request(store: ObjectStore, wkey: str) -> WalkthroughRequest | None:
     """The request stored for ``wkey`` (None when unknown)."""
-    from workers.store import NotFound
-
     try:
-        data = store.get_bytes(_record_key(wkey))
+        data = store.get_bytes(record_key(wkey))
     except NotFound:
         return None
     return WalkthroughRequest.model_validate_json(data)
@@ -164,10 +145,6 @@ def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldErro
     return errors
 
 
-class WalkthroughInUse(RuntimeError):
-    """A walkthrough cannot be deleted while one of its jobs is queued or running (HTTP 409)."""
-
-
 def delete_walkthrough(redis: Redis, store: ObjectStore, wkey: str) -> None:
     """Remove walkthrough ``wkey``: its manifest and video, every chunk artifact (frames), its
     request record and its job records. The bake stays (shared by every walkthrough of the scene
@@ -175,19 +152,13 @@ def delete_walkthrough(redis: Redis, store: ObjectStore, wkey: str) -> None:
     jobs runs, or waits in a queue while the walkthrough can still finish (cancel them or wait); the
     jobs left waiting by a failed walkthrough (e.g. the video job behind a canceled chunk) are
     canceled. Idempotent for an unknown key."""
-    from rq.job import Job, JobStatus
-    from rq.serializers import JSONSerializer
-
-    from workers.artifacts import delete_artifact
-    from workers.queues import JobNotCancelable, JobNotFound, cancel
-
     req = read_request(store, wkey)
     if req is None:
         return
     ckeys = [chunk_key(wkey, i, a, b) for i, (a, b) in enumerate(chunks(req))]
-    ids = [chunk_job_id(k) for k in ckeys] + [video_job_id(wkey)]
+    ids = [walkthrough_chunk_job_id(k) for k in ckeys] + [walkthrough_video_job_id(wkey)]
     ended = {JobStatus.FINISHED, JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED}
-    jobs = [j for j in Job.fetch_many(ids, connection=redis, serializer=JSONSerializer) if j is not None]
+    jobs = [j for j in fetch_jobs(redis, ids) if j is not None]
     status = {j.id: j.get_status(refresh=True) for j in jobs}
     running = [jid for jid, st in status.items() if st == JobStatus.STARTED]
     waiting = [jid for jid, st in status.items() if st not in ended and st != JobStatus.STARTED]
@@ -206,38 +177,32 @@ def delete_walkthrough(redis: Redis, store: ObjectStore, wkey: str) -> None:
     delete_artifact(store, wkey)  # the manifest first: from here on the walkthrough is not finished
     for k in ckeys:
         delete_artifact(store, k)
-    store.delete(_record_key(wkey))
+    store.delete(record_key(wkey))
     for job in jobs:
         job.delete(remove_from_queue=True)
-
-
-def _retry() -> Retry:
-    return Retry(max=RENDER_RETRY_MAX, interval=list(RENDER_RETRY_INTERVALS_S))
 
 
 def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughRequest,
                         owner: str | None) -> tuple[str, bool]:
     """Queue the jobs of ``req`` (skipping artifacts already published). Returns ``(key,
     finished)``. Raises :class:`UnknownScene` when the scene is not stored."""
-    from workers.artifacts import read_manifest
-
     if not store.exists(f"scenes/{req.scene_id}.json"):
         raise UnknownScene(f"scene {req.scene_id} does not exist")
     wkey = walkthrough_key(req)
     if read_manifest(store, wkey) is not None:
         return wkey, True
-    store.put_bytes(_record_key(wkey), req.model_dump_json().encode(), "application/json")
-    # listed under its scene, so deleting the scene finds it (workers.scene_outputs)
-    store.put_bytes(f"walkthroughs-by-scene/{req.scene_id}/{wkey}", b"", "application/octet-stream")
+    store.put_bytes(record_key(wkey), req.model_dump_json().encode(), "application/json")
+    # listed under its scene, so deleting the scene finds it (producer.scene_outputs)
+    store.put_bytes(walkthrough_index_key(req.scene_id, wkey), b"", "application/octet-stream")
     bkey = walkthrough_bake_key(req.scene_id, req.bake)
     deps: list[str] = []
     if read_manifest(store, bkey) is None:
         bjob = enqueue_unique(
             redis, "bake", WALKTHROUGH_BAKE_JOB,
             {"scene_id": req.scene_id, "bake_key": bkey, "settings": req.bake.model_dump(mode="json")},
-            bake_job_id(bkey), timeout=BAKE_TIMEOUT_S, meta={"kind": "walkthrough-bake", "artifact_key": bkey,
-                                                             "owner": owner},
-            retry=_retry(), description=f"walkthrough bake of scene {req.scene_id[:12]}", owner=owner,
+            walkthrough_bake_job_id(bkey), timeout=BAKE_TIMEOUT_S,
+            meta={"kind": "walkthrough-bake", "artifact_key": bkey, "owner": owner},
+            retry=job_retry(), description=f"walkthrough bake of scene {req.scene_id[:12]}", owner=owner,
             is_cached=lambda: read_manifest(store, bkey) is not None)
         if bjob is not None:
             deps.append(bjob.id)
@@ -249,18 +214,18 @@ def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughReques
         job = enqueue_unique(
             redis, "render", WALKTHROUGH_CHUNK_JOB,
             {"walkthrough_key": wkey, "index": i, "start": a, "stop": b, "chunk_key": ckey, "bake_key": bkey},
-            chunk_job_id(ckey), timeout=RENDER_TIMEOUT_S,
+            walkthrough_chunk_job_id(ckey), timeout=RENDER_TIMEOUT_S,
             meta={"kind": "walkthrough-chunk", "artifact_key": ckey, "owner": owner},
-            retry=_retry(), description=f"walkthrough frames {a}..{b - 1}", owner=owner,
+            retry=job_retry(), description=f"walkthrough frames {a}..{b - 1}", owner=owner,
             is_cached=lambda k=ckey: read_manifest(store, k) is not None,  # type: ignore[misc]
             depends_on=Dependency(jobs=deps, allow_failure=True) if deps else None)
         if job is not None:
             chunk_ids.append(job.id)
     enqueue_unique(
         redis, "render", WALKTHROUGH_VIDEO_JOB, {"walkthrough_key": wkey, "bake_key": bkey},
-        video_job_id(wkey), timeout=RENDER_TIMEOUT_S,
+        walkthrough_video_job_id(wkey), timeout=RENDER_TIMEOUT_S,
         meta={"kind": "walkthrough", "artifact_key": wkey, "owner": owner},
-        retry=_retry(), description=f"walkthrough video of scene {req.scene_id[:12]}", owner=owner,
+        retry=job_retry(), description=f"walkthrough video of scene {req.scene_id[:12]}", owner=owner,
         is_cached=lambda: read_manifest(store, wkey) is not None,
         depends_on=Dependency(jobs=chunk_ids, allow_failure=True) if chunk_ids else None)
     return wkey, False
@@ -268,8 +233,6 @@ def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughReques
 
 def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> WalkthroughPublic | None:
     """Public state of walkthrough ``wkey`` (None when this store never saw the request)."""
-    from workers.artifacts import read_manifest
-
     req = read_request(store, wkey)
     if req is None:
         return None
@@ -290,7 +253,7 @@ def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> Walkthrou
     error: str | None = None
     bake_done = read_manifest(store, bkey) is not None
     bake_frac = 1.0 if bake_done else 0.0
-    bjob = fetch_job(redis, bake_job_id(bkey))
+    bjob = fetch_job(redis, walkthrough_bake_job_id(bkey))
     if bjob is not None:
         pub = job_public(bjob)
         jobs.append(pub)
@@ -306,14 +269,14 @@ def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> Walkthrou
             done += b - a
             chunk_frac += b - a
             continue
-        job = fetch_job(redis, chunk_job_id(ckey))
+        job = fetch_job(redis, walkthrough_chunk_job_id(ckey))
         if job is not None:
             pub = job_public(job)
             jobs.append(pub)
             chunk_frac += (b - a) * pub.progress.fraction
             if pub.state in ("failed", "canceled") and error is None:
                 error = f"frames {a}..{b - 1}: {pub.error or pub.state}"
-    vjob = fetch_job(redis, video_job_id(wkey))
+    vjob = fetch_job(redis, walkthrough_video_job_id(wkey))
     if vjob is not None:
         pub = job_public(vjob)
         jobs.append(pub)

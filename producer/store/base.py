@@ -47,7 +47,7 @@ class ChecksumMismatch(StoreError):
     """Stored bytes do not match their recorded checksum (or a record is unreadable).
 
     The bytes are never returned; the record that vouched for them is removed so the
-    artifact is recomputed (see ``workers.artifacts``)."""
+    artifact is recomputed (see ``producer.artifacts``)."""
 
 
 def _segments_problem(text: str, what: str) -> str | None:

@@ -1,7 +1,8 @@
 """Illumination datasets in the object store: validated image blobs and dataset documents.
 
-Imported by the API process, so it never imports numba or the engine: images are decoded with
-OpenImageIO directly (the same library ``engine.imageio`` wraps).
+Imported by the API process, so it never imports numba: images are decoded with OpenImageIO
+directly (the same library ``engine.imageio`` wraps). The dataset jobs' artifact keys are here too
+(their names and payloads are in ``producer.names`` and ``producer.payloads``).
 
 Key layout (next to docs/service-design.md's):
 
@@ -12,7 +13,7 @@ Key layout (next to docs/service-design.md's):
 - ``datasets/<id>.json``: ``{"manifest", "files", "width", "height", "created_at", "source"}``,
   written LAST (its presence commits the dataset);
 - ``dataset-owners/<id>/<owner>``: one empty marker per API key that stored the dataset (``_``
-  with auth off).
+  with auth off; ``producer.ownership``).
 
 A dataset id is the sha256 of the canonical JSON of its manifest with every file's sha256 filled
 in (:func:`dataset_id_for`). Nothing half-stored is visible: blobs are content-addressed and
@@ -31,15 +32,14 @@ import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
 
-from api_schemas.common import FrozenModel
 from api_schemas.datasets import (
-    BakeParams,
     CompositeRequest,
+    DatasetBakeParams,
     DatasetFileInfo,
     DatasetManifest,
     DatasetPublic,
@@ -50,42 +50,34 @@ from api_schemas.datasets import (
     RelightRequest,
     parse_transfer,
 )
-from api_schemas.errors import FieldError
-from api_schemas.service import Sha256
-from workers.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
-from workers.store.base import ChecksumMismatch, NotFound, ObjectStore
+from api_schemas.errors import FieldError, format_error_details
+from engine import ENGINE_VERSION
+from producer.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
+from producer.names import COMPOSITE_KIND, DATASET_BAKE_KIND, GENERATE_KIND, RELIGHT_KIND
+from producer.ownership import (
+    add_dataset_owner,
+    dataset_owners,
+    dataset_visible,
+    remove_dataset_owner,
+    visible_dataset_ids,
+)
+from producer.store import ChecksumMismatch, NotFound, ObjectStore
 
 __all__ = [
-    "BAKE_JOB",
-    "BAKE_KIND",
-    "COMPOSITE_JOB",
-    "COMPOSITE_KIND",
-    "GENERATE_JOB",
-    "GENERATE_KIND",
-    "RELIGHT_JOB",
-    "RELIGHT_KIND",
-    "BakeJobPayload",
-    "CompositeJobPayload",
     "DatasetInvalid",
-    "GenerateJobPayload",
-    "RelightJobPayload",
     "bake_artifact_key",
     "composite_artifact_key",
     "composite_inputs",
     "generate_artifact_key",
-    "job_id_for",
     "manifest_errors",
     "relight_artifact_key",
     "relight_inputs",
     "FileProblem",
     "ImageFile",
-    "add_dataset_owner",
     "blob_info",
     "commit_dataset",
     "dataset_id_for",
     "dataset_key",
-    "dataset_owners",
-    "dataset_visible",
     "decode_image",
     "delete_dataset",
     "fill_shas",
@@ -96,7 +88,6 @@ __all__ = [
     "put_pending",
     "read_file_blob",
     "read_pending",
-    "remove_dataset_owner",
     "sniff_extension",
     "store_file",
 ]
@@ -105,7 +96,6 @@ log = logging.getLogger(__name__)
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _INTEGER_TYPES = {"uint8", "int8", "uint16", "int16", "uint", "int", "uint32", "int32"}
-ANON_OWNER = "_"
 
 # magic bytes -> (extension OpenImageIO picks its reader by, format label)
 _MAGIC: tuple[tuple[bytes, str], ...] = (
@@ -154,10 +144,6 @@ def _info_key(sha: str) -> str:
     return f"blob-info/{_require_sha(sha, 'file')}.json"
 
 
-def _owner_marker(dataset_id: str, owner: str | None) -> str:
-    return f"dataset-owners/{_require_sha(dataset_id, 'dataset')}/{owner or ANON_OWNER}"
-
-
 def _now() -> datetime:
     return datetime.now(UTC)
 
@@ -192,7 +178,7 @@ def sniff_extension(data: bytes) -> str | None:
 def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> ImageFile:
     """Decode an image file's bytes with OpenImageIO. The declared resolution is checked against
     ``max_pixels`` before any pixel is read (HARD_CASES 16). Raises :class:`FileProblem`."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # deferred on purpose: only uploads decode images; the API starts without it
 
     if not data:
         raise FileProblem("the file is empty")
@@ -508,13 +494,7 @@ def get_dataset(store: ObjectStore, dataset_id: str) -> tuple[DatasetManifest, D
 
 def list_datasets(store: ObjectStore, owner: str | None) -> list[DatasetPublic]:
     """Datasets ``owner`` may see (all with auth off), oldest first."""
-    visible: set[str] | None = None
-    if owner is not None:
-        visible = set()
-        for key in store.list("dataset-owners/"):
-            did, _, who = key[len("dataset-owners/"):].partition("/")
-            if who == owner:
-                visible.add(did)
+    visible = visible_dataset_ids(store, owner)
     out: list[DatasetPublic] = []
     for key in store.list("datasets/"):
         did = key[len("datasets/"):-len(".json")] if key.endswith(".json") else ""
@@ -530,44 +510,19 @@ def list_datasets(store: ObjectStore, owner: str | None) -> list[DatasetPublic]:
     return out
 
 
-def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.put_bytes(_owner_marker(dataset_id, owner), b"", "text/plain")
-
-
-def remove_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.delete(_owner_marker(dataset_id, owner))
-
-
-def dataset_owners(store: ObjectStore, dataset_id: str) -> list[str]:
-    prefix = f"dataset-owners/{_require_sha(dataset_id, 'dataset')}/"
-    return [k[len(prefix):] for k in store.list(prefix)]
-
-
-def dataset_visible(store: ObjectStore, dataset_id: str, owner: str | None) -> bool:
-    """With auth off (owner None) every dataset is visible."""
-    if _SHA256.fullmatch(dataset_id or "") is None:
-        return False
-    return owner is None or store.exists(_owner_marker(dataset_id, owner))
-
-
 def delete_dataset(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
     """Remove ``owner``'s marker (every marker with auth off); the document goes with the last
     marker. Blobs stay (content-addressed, possibly shared). NotFound when not visible."""
     if not dataset_visible(store, dataset_id, owner) or not store.exists(dataset_key(dataset_id)):
         raise NotFound(f"dataset {dataset_id}")
-    if owner is None:
-        for who in dataset_owners(store, dataset_id):
-            store.delete(f"dataset-owners/{dataset_id}/{who}")
-    else:
-        remove_dataset_owner(store, dataset_id, owner)
+    for who in dataset_owners(store, dataset_id) if owner is None else [owner]:
+        remove_dataset_owner(store, dataset_id, who)
     if not dataset_owners(store, dataset_id):
         store.delete(dataset_key(dataset_id))
 
 
 def manifest_errors(exc: ValidationError, prefix: str = "") -> list[FieldError]:
     """A manifest's validation errors as field errors (``images.2.intensity.0``)."""
-    from api_schemas.errors import format_error_details
-
     out = format_error_details(exc.errors(include_url=False), DatasetManifest)
     if prefix:
         out = [FieldError(field=f"{prefix}.{e['field']}" if e["field"] else prefix, message=e["message"],
@@ -575,61 +530,11 @@ def manifest_errors(exc: ValidationError, prefix: str = "") -> list[FieldError]:
     return out
 
 
-# ------------------------------------------------------------------------------ jobs: names, keys, payloads
-#
-# The job functions live in workers/jobs/datasets.py (they import the engine); the service
-# enqueues them by these import paths with payloads validated by the models below.
-
-BAKE_JOB = "workers.jobs.datasets.bake_job"
-RELIGHT_JOB = "workers.jobs.datasets.relight_job"
-GENERATE_JOB = "workers.jobs.datasets.generate_job"
-COMPOSITE_JOB = "workers.jobs.datasets.composite_job"
-
-BAKE_KIND = "relight-bake"
-RELIGHT_KIND = "relight"
-GENERATE_KIND = "dataset-generation"
-COMPOSITE_KIND = "composite"
+# ------------------------------------------------------------------------------ artifact keys of the dataset jobs
 
 
-class BakeJobPayload(FrozenModel):
-    """Payload of :data:`BAKE_JOB`."""
-
-    v: Literal[1] = 1
-    dataset_id: Sha256
-    params: BakeParams
-    artifact_key: Sha256
-
-
-class RelightJobPayload(FrozenModel):
-    """Payload of :data:`RELIGHT_JOB`."""
-
-    v: Literal[1] = 1
-    request: RelightRequest
-    artifact_key: Sha256
-
-
-class GenerateJobPayload(FrozenModel):
-    """Payload of :data:`GENERATE_JOB`."""
-
-    v: Literal[1] = 1
-    request: GenerateRequest
-    artifact_key: Sha256
-    owner: str | None = None
-    """Who asked (the generated dataset gets this owner's marker, and every other requester's)."""
-
-
-class CompositeJobPayload(FrozenModel):
-    """Payload of :data:`COMPOSITE_JOB`."""
-
-    v: Literal[1] = 1
-    request: CompositeRequest
-    artifact_key: Sha256
-
-
-def bake_artifact_key(dataset_id: str, params: BakeParams) -> str:
-    from workers.queues import engine_version
-
-    return artifact_key(BAKE_KIND, {"dataset": dataset_id}, params.model_dump(mode="json"), engine_version())
+def bake_artifact_key(dataset_id: str, params: DatasetBakeParams) -> str:
+    return artifact_key(DATASET_BAKE_KIND, {"dataset": dataset_id}, params.model_dump(mode="json"), ENGINE_VERSION)
 
 
 def _relight_inputs(req: RelightRequest | CompositeRequest, dataset_ids: Mapping[str, str]) -> dict[str, str]:
@@ -651,17 +556,13 @@ def relight_inputs(req: RelightRequest) -> tuple[dict[str, str], dict[str, Any]]
 
 
 def relight_artifact_key(req: RelightRequest) -> str:
-    from workers.queues import engine_version
-
     inputs, params = relight_inputs(req)
-    return artifact_key(RELIGHT_KIND, inputs, params, engine_version())
+    return artifact_key(RELIGHT_KIND, inputs, params, ENGINE_VERSION)
 
 
 def composite_artifact_key(req: CompositeRequest) -> str:
-    from workers.queues import engine_version
-
     inputs, params = composite_inputs(req)
-    return artifact_key(COMPOSITE_KIND, inputs, params, engine_version())
+    return artifact_key(COMPOSITE_KIND, inputs, params, ENGINE_VERSION)
 
 
 def composite_inputs(req: CompositeRequest) -> tuple[dict[str, str], dict[str, Any]]:
@@ -679,13 +580,6 @@ def composite_inputs(req: CompositeRequest) -> tuple[dict[str, str], dict[str, A
 
 
 def generate_artifact_key(req: GenerateRequest) -> str:
-    from workers.queues import engine_version
-
     params = req.model_dump(mode="json")
     params.pop("scene_id")
-    return artifact_key(GENERATE_KIND, {"scene": req.scene_id}, params, engine_version())
-
-
-def job_id_for(kind: str, key: str) -> str:
-    """``relight-<key>``, ``relight-bake-<key>``, ``dataset-generation-<key>``, ``composite-<key>``."""
-    return f"{kind}-{key}"
+    return artifact_key(GENERATE_KIND, {"scene": req.scene_id}, params, ENGINE_VERSION)

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-from workers.store.base import (
+from producer.store.base import (
     DEFAULT_CHUNK,
     NotFound,
     StoreError,

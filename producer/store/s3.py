@@ -28,7 +28,7 @@ from botocore import UNSIGNED  # type: ignore[import-untyped]
 from botocore.config import Config  # type: ignore[import-untyped]
 from botocore.exceptions import BotoCoreError, ClientError  # type: ignore[import-untyped]
 
-from workers.store.base import (
+from producer.store.base import (
     DEFAULT_CHUNK,
     NotFound,
     StoreError,

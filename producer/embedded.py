@@ -81,7 +81,7 @@ def _config(data_dir: Path, socket_path: Path, appendonly: bool) -> str:
         return '"' + str(p).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
     lines = [
-        "# written by workers/embedded.py; regenerated on every start",
+        "# written by producer/embedded.py; regenerated on every start",
         "port 0",
         f"unixsocket {q(socket_path)}",
         "unixsocketperm 700",

@@ -28,6 +28,7 @@ import json
 import logging
 import re
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime
 from pathlib import PurePosixPath
 from typing import Any
@@ -36,7 +37,7 @@ from pydantic import ValidationError
 
 from api_schemas.scene import MeshFileObject, Scene, canonical_scene_json
 from api_schemas.service import ArtifactManifest, BlobInfo, MeshBlob, ScenePublic
-from workers.store.base import DEFAULT_CHUNK, ChecksumMismatch, NotFound, ObjectStore, StoreError
+from producer.store import DEFAULT_CHUNK, ChecksumMismatch, NotFound, ObjectStore, StoreError
 
 __all__ = [
     "MANIFEST_NAME",
@@ -70,8 +71,8 @@ _SHA256 = re.compile(r"[0-9a-f]{64}")
 _BLOB_NAME = re.compile(r"[A-Za-z0-9._-]{1,255}")
 
 MeshResolver = Callable[[str], tuple[bytes, str]]
-"""Same shape as ``workers.scene_loader.MeshResolver`` (not imported: the service must
-not import the engine)."""
+"""Same shape as ``workers.scene_loader.MeshResolver`` (not imported: the producer never imports
+the worker runtime)."""
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -199,8 +200,6 @@ def write_artifact(
         return existing
     prefix = artifact_prefix(key)
     if max_workers > 1 and len(infos) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(min(max_workers, len(infos)), thread_name_prefix="ibr-artifact") as pool:
             by_name = {info.name: info for info in infos}
             futures = [pool.submit(store.put_bytes, prefix + name, blobs[name][0], by_name[name].content_type)

@@ -1,0 +1,73 @@
+"""Canceling a job; canceling a scene bake's own job cancels its plan and part jobs and the
+renders queued behind it."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from redis import Redis
+from rq.command import send_stop_job_command
+from rq.exceptions import InvalidJobOperation, NoSuchJobError
+from rq.job import JobStatus
+from rq.serializers import JSONSerializer
+
+from api_schemas.service import JobPublic
+from producer.errors import JobNotCancelable, JobNotFound
+from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
+from producer.queue import ACTIVE_STATUSES, FAILURE_TTL_S, WAITING_STATUSES, fetch_job
+from producer.status import cancel_key, job_public
+
+__all__ = ["cancel"]
+
+
+def cancel(redis: Redis, job_id: str) -> JobPublic:
+    """Cancel a job.
+
+    queued (or scheduled / deferred) -> removed from its queue, state 'canceled'.
+    started -> a cancel flag the job polls between chunks (render) plus, on the forking bake
+    workers, ``send_stop_job_command`` which kills the work horse; the answer still says
+    'started' with progress stage 'canceling' until the worker has stopped it.
+    finished / failed / canceled -> :class:`JobNotCancelable` (HTTP 409).
+    Raises :class:`JobNotFound` for an unknown id.
+    """
+    job = fetch_job(redis, job_id)
+    if job is None:
+        raise JobNotFound(f"no job {job_id}")
+    status = job.get_status(refresh=True)
+    if status not in ACTIVE_STATUSES:
+        raise JobNotCancelable(job_public(job))
+    # The flag first: a worker may be dequeuing the job right now.
+    redis.set(cancel_key(job_id), b"1", ex=FAILURE_TTL_S)
+    if status in WAITING_STATUSES:
+        try:
+            job.cancel()
+        except InvalidJobOperation:
+            pass  # canceled concurrently
+    elif job.origin == "bake":
+        try:
+            send_stop_job_command(redis, job_id, serializer=JSONSerializer)
+        except (InvalidJobOperation, NoSuchJobError):
+            pass  # it just ended
+    if job.meta.get("bake_role") == "merge" and isinstance(job.meta.get("bake_key"), str):
+        waiting = [j for j in job.dependent_ids if j.startswith("render-")]  # renders queued behind the bake
+        _cancel_bake_jobs(redis, str(job.meta["bake_key"]), waiting)
+    refreshed = fetch_job(redis, job_id)
+    return job_public(refreshed if refreshed is not None else job)
+
+
+def _cancel_bake_jobs(redis: Redis, bake_key: str, renders: Sequence[str] = ()) -> None:
+    """Canceling a bake's own job (``bake-<key>``) also cancels its plan job and its part jobs
+    (part keys derive from the bake key, so no other bake shares them) and the renders queued to run
+    after it (``missing_bake="bake"``), which could never run now."""
+    ids = [scene_bake_plan_job_id(bake_key), *renders]
+    plan = fetch_job(redis, ids[0])
+    if plan is not None and plan.get_status(refresh=False) == JobStatus.FINISHED:
+        rv = plan.return_value()
+        if isinstance(rv, dict):
+            ids += [scene_bake_part_job_id(str(p["key"])) for p in rv.get("parts", [])
+                    if isinstance(p, dict) and "key" in p]
+    for jid in ids:
+        try:
+            cancel(redis, jid)
+        except (JobNotFound, JobNotCancelable):
+            pass  # never queued, already done

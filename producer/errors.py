@@ -1,0 +1,62 @@
+"""The exceptions of the producer layer that the API turns into HTTP answers.
+
+``service/api/errors.py`` maps each to its status (404, 409, 422); the messages are written for
+the API's user (what is wrong, what to do).
+"""
+
+from __future__ import annotations
+
+from api_schemas.service import JobPublic
+
+__all__ = [
+    "BakeInUse",
+    "BakeMissing",
+    "JobNotCancelable",
+    "JobNotFound",
+    "SceneOutputsInUse",
+    "UnknownScene",
+    "WalkthroughInUse",
+]
+
+
+class JobNotFound(LookupError):
+    """No job with that id (never existed, or expired from Redis): HTTP 404."""
+
+
+class JobNotCancelable(RuntimeError):
+    """The job already ended (finished / failed / canceled): HTTP 409. ``job`` is its state."""
+
+    def __init__(self, job: JobPublic):
+        super().__init__(f"job {job.id} is {job.state}; only queued or started jobs can be canceled")
+        self.job = job
+
+
+class UnknownScene(LookupError):
+    """The request names a scene the store does not hold: HTTP 404 / 422."""
+
+
+class BakeMissing(LookupError):
+    """An LDC render (``missing_bake: "fail"``) of a scene whose bake is not complete: HTTP 409.
+    ``bake_key`` names the bake; ``job_id`` is its running job, if any."""
+
+    def __init__(self, scene_id: str, bake_key: str, job_id: str | None):
+        running = f" (in progress: job {job_id})" if job_id else ""
+        super().__init__(
+            f"scene {scene_id} has no complete bake {bake_key}{running}; request it with POST "
+            f"/v1/scenes/{scene_id}/bakes (same bake params), or send missing_bake: \"bake\" to queue the "
+            "render after the bake")
+        self.scene_id = scene_id
+        self.bake_key = bake_key
+        self.job_id = job_id
+
+
+class BakeInUse(RuntimeError):
+    """A scene bake cannot be deleted while one of its jobs is queued or running (HTTP 409)."""
+
+
+class WalkthroughInUse(RuntimeError):
+    """A walkthrough cannot be deleted while one of its jobs is queued or running (HTTP 409)."""
+
+
+class SceneOutputsInUse(RuntimeError):
+    """A job of the scene, of one of its bakes or of one of its walkthroughs is queued or running (HTTP 409)."""

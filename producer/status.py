@@ -1,0 +1,236 @@
+"""The API's view of jobs: state, progress and a clean error of one job, the job list, and the
+ids that active jobs use.
+
+Progress lives in ``job.meta["progress"]`` (written by the job); cancellation of a started job is
+a flag key ``ibr:cancel:<job_id>`` that the job polls between chunks (a separate key, because the
+running job rewrites ``job.meta`` wholesale on every ``save_meta()``).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from datetime import UTC, datetime
+from typing import Any, cast
+
+from redis import Redis
+from rq import Queue
+from rq.job import Job, JobStatus
+from rq.serializers import JSONSerializer
+
+from api_schemas.service import JobProgress, JobPublic, JobState
+from producer.ownership import job_owners
+from producer.queue import KEY_PREFIX, QUEUE_NAMES, QueueName, get_queue
+
+__all__ = [
+    "cancel_key",
+    "cancel_requested",
+    "clean_error",
+    "ids_in_active_jobs",
+    "job_public",
+    "job_state",
+    "list_jobs",
+]
+
+_STATE_OF: dict[JobStatus, JobState] = {
+    JobStatus.CREATED: "queued",
+    JobStatus.QUEUED: "queued",
+    JobStatus.DEFERRED: "queued",
+    JobStatus.SCHEDULED: "queued",  # e.g. waiting for a retry
+    JobStatus.READY_TO_ENQUEUE: "queued",
+    JobStatus.RATE_LIMITED: "queued",
+    JobStatus.STARTED: "started",
+    JobStatus.FINISHED: "finished",
+    JobStatus.FAILED: "failed",
+    JobStatus.STOPPED: "canceled",  # rq's send_stop_job_command (bake horses)
+    JobStatus.CANCELED: "canceled",
+}
+
+
+def cancel_key(job_id: str) -> str:
+    """Redis key of the cancel flag of a job (set by ``producer.cancel.cancel``, polled by the job)."""
+    return f"{KEY_PREFIX}cancel:{job_id}"
+
+
+def cancel_requested(redis: Redis, job_id: str) -> bool:
+    return bool(redis.exists(cancel_key(job_id)))
+
+
+def job_state(job: Job, status: JobStatus | None = None) -> JobState:
+    """RQ status -> API state. A job that failed because it was asked to stop is 'canceled'."""
+    st = status if status is not None else job.get_status(refresh=False)
+    state = _STATE_OF.get(st, "queued") if st is not None else "queued"
+    if state == "failed" and (job.meta.get("cancel_requested") or cancel_requested(job.connection, job.id)):
+        return "canceled"
+    return state
+
+
+def _progress(job: Job, state: JobState) -> JobProgress:
+    raw = job.meta.get("progress")
+    frac, stage, eta = 0.0, "", None
+    if isinstance(raw, dict):
+        f = raw.get("fraction")
+        if isinstance(f, int | float) and f == f:  # not NaN
+            frac = min(1.0, max(0.0, float(f)))
+        s = raw.get("stage")
+        stage = s if isinstance(s, str) else ""
+        e = raw.get("eta_s")
+        eta = float(e) if isinstance(e, int | float) and e == e and e >= 0 else None
+    if state == "finished":
+        return JobProgress(fraction=1.0, stage="done", eta_s=0.0)
+    if state == "started" and cancel_requested(job.connection, job.id):
+        stage = "canceling"
+    return JobProgress(fraction=frac, stage=stage, eta_s=eta)
+
+
+_CLEAN_ERRORS: tuple[tuple[re.Pattern[str], str], ...] = (
+    (re.compile(r"AbandonedJobError"),
+     "the worker running this job stopped responding (killed or out of memory) and the job was abandoned"),
+    (re.compile(r"Work-horse terminated unexpectedly.*?signal (\d+)"),
+     r"the worker process running this job was killed (signal \1)"),
+    (re.compile(r"Work-horse terminated unexpectedly"), "the worker process running this job died unexpectedly"),
+    (re.compile(r"JobTimeoutException: Task exceeded maximum timeout value \((\d+) seconds\)"),
+     r"the job exceeded its time limit of \1 s and was stopped"),
+    (re.compile(r"Job stopped by user"), "the job was canceled"),
+)
+_EXC_LINE = re.compile(r"^(?:[A-Za-z_][\w]*\.)*([A-Za-z_]\w*(?:Error|Exception|Exit|Canceled|Payload|Mismatch|Found|"
+                       r"Unavailable|Interrupt)):\s*(.*)$")
+
+
+def _error_text(job: Job) -> str | None:
+    result = job.latest_result()
+    exc: str | None = None
+    if result is not None and result.type == result.Type.FAILED:
+        exc = result.exc_string
+    if not exc:
+        exc = cast(str | None, getattr(job, "_exc_info", None))
+    if not exc:
+        return None
+    return clean_error(exc)
+
+
+def clean_error(exc_string: str) -> str:
+    """The last exception of a traceback (or an RQ failure note) as one line a user can act on."""
+    for pat, repl in _CLEAN_ERRORS:
+        m = pat.search(exc_string)
+        if m:
+            return m.expand(repl)
+    lines = [ln for ln in exc_string.strip().splitlines() if ln.strip()]
+    # the final exception block starts after the last stack frame ("  File ...", then its code line)
+    last_frame = max((i for i, ln in enumerate(lines) if ln.startswith("  File ")), default=-1)
+    tail = lines[last_frame + 1:] if last_frame >= 0 else lines
+    while tail and tail[0].startswith("    "):  # source line of the last frame, carets
+        tail = tail[1:]
+    text = tail[0] if tail else (lines[-1] if lines else exc_string)
+    m = _EXC_LINE.match(text.strip())
+    if m:
+        text = f"{m.group(1)}: {m.group(2)}" if m.group(2) else m.group(1)
+    text = text.strip()
+    return text[:500] + ("..." if len(text) > 500 else "")
+
+
+def job_public(job: Job) -> JobPublic:
+    """The API view of an RQ job (state, progress from ``job.meta``, clean error, small result)."""
+    status = job.get_status(refresh=False)
+    state = job_state(job, status)
+    kind = job.meta.get("kind") or job.origin
+    if kind not in ("render", "bake"):
+        kind = "bake" if job.id.startswith("bake-") else "render"
+    result: dict[str, Any] | None = None
+    error: str | None = None
+    if state == "finished":
+        rv = job.return_value()
+        result = rv if isinstance(rv, dict) else None
+    elif state == "failed":
+        error = _error_text(job) or "the job failed"
+    elif state == "canceled":
+        error = "canceled on request"
+    links = {"self": f"/v1/jobs/{job.id}"}
+    key = job.meta.get("artifact_key")
+    if state == "finished" and isinstance(key, str):
+        links["artifact"] = f"/v1/artifacts/{key}"
+    batch_id = job.meta.get("batch_id")
+    return JobPublic(
+        id=job.id,
+        kind="bake" if kind == "bake" else "render",
+        state=state,
+        progress=_progress(job, state),
+        created_at=job.created_at,
+        started_at=job.started_at if state != "queued" else None,
+        ended_at=job.ended_at if state in ("finished", "failed", "canceled") else None,
+        error=error,
+        result=result,
+        batch_id=batch_id if isinstance(batch_id, str) else None,
+        links=links,
+    )
+
+
+def _queue_job_ids(q: Queue) -> list[str]:
+    ids: list[str] = list(q.get_job_ids())
+    for reg in (q.scheduled_job_registry, q.deferred_job_registry, q.started_job_registry,
+                q.finished_job_registry, q.failed_job_registry, q.canceled_job_registry):
+        ids.extend(reg.get_job_ids(cleanup=False))
+    return ids
+
+
+def list_jobs(
+    redis: Redis,
+    owner: str | None = None,
+    states: Iterable[JobState] | None = None,
+    kinds: Iterable[QueueName] = QUEUE_NAMES,
+    limit: int = 100,
+) -> list[JobPublic]:
+    """Jobs still known to Redis, newest first; optionally only ``owner``'s and only ``states``."""
+    wanted = set(states) if states is not None else None
+    seen: dict[str, None] = {}
+    for name in kinds:
+        for jid in _queue_job_ids(get_queue(redis, name)):
+            seen.setdefault(jid, None)
+    jobs = [j for j in Job.fetch_many(list(seen), connection=redis, serializer=JSONSerializer) if j is not None]
+    out: list[JobPublic] = []
+    for job in jobs:
+        if owner is not None and job.meta.get("owner") != owner and owner not in job_owners(redis, job.id):
+            continue
+        pub = job_public(job)
+        if wanted is None or pub.state in wanted:
+            out.append(pub)
+    epoch = datetime.min.replace(tzinfo=UTC)
+    out.sort(key=lambda p: p.created_at or epoch, reverse=True)
+    return out[: max(0, limit)]
+
+
+def ids_in_active_jobs(redis: Redis, keys: Iterable[str]) -> set[str]:
+    """String values stored under any of ``keys`` (at any depth) in the payloads of queued,
+    scheduled, deferred or started jobs of every queue: e.g. the scene or dataset ids that a
+    DELETE must not pull from under a running job."""
+    wanted = frozenset(keys)
+    ids: list[str] = []
+    for name in QUEUE_NAMES:
+        q = get_queue(redis, name)
+        ids += q.get_job_ids()
+        for reg in (q.started_job_registry, q.scheduled_job_registry, q.deferred_job_registry):
+            ids += reg.get_job_ids(cleanup=False)
+    out: set[str] = set()
+    for job in Job.fetch_many(list(dict.fromkeys(ids)), connection=redis, serializer=JSONSerializer):
+        if job is None:
+            continue
+        try:
+            args = job.args
+        except Exception:  # an unreadable payload cannot be attributed to anything
+            continue
+        _collect_ids(args, wanted, out)
+    return out
+
+
+def _collect_ids(value: Any, keys: frozenset[str], out: set[str], depth: int = 0) -> None:
+    if depth > 8:
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if k in keys and isinstance(v, str):
+                out.add(v)
+            else:
+                _collect_ids(v, keys, out, depth + 1)
+    elif isinstance(value, list | tuple):
+        for v in value:
+            _collect_ids(v, keys, out, depth + 1)
