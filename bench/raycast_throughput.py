@@ -7,7 +7,7 @@ Reports, from one run on one machine:
   reflection, indirect) per second of render time, shading included;
 - their ratio, and the fraction of render time spent inside Embree calls.
 
-The foundation issue's target: the renderer spends no more than half its time
+The target: the renderer spends no more than half its time
 outside Embree (ratio >= 0.5). Shadow and secondary rays are less coherent than
 primary rays, so the ratio against *primary* throughput is the stricter of the two
 readings; both are recorded.

@@ -13,7 +13,7 @@ RGBA with *associated* / premultiplied alpha, the EXR convention). Files are eit
   unassociated (straight) and linear, as PNG requires. ``read_image`` undoes the encoding (not the
   exposure or the clipping, which are lossy by design).
 
-Rules (``../shared/design/ALGORITHMS.md`` "Shared conventions", ``HARD_CASES.md`` 9, 13, 16):
+Rules (``docs/algorithms.md`` "Shared conventions", docs/hard-cases.md #9, #13, #16):
 
 - NaN/Inf are never written (:class:`NonFiniteOutputError`) and never returned
   (:class:`ImageFormatError`).

@@ -1,4 +1,5 @@
-"""Error metrics between a test image and a reference, as ``ALGORITHMS.md`` defines them.
+"""Error metrics between a test image and a reference, as ``docs/algorithms.md`` defines them
+("Shared conventions", error metric).
 
 ``LRMS = RMS(Y_test - Y_ref) / mean(Y_ref)`` on Rec.709 luminance
 ``Y = 0.2126 R + 0.7152 G + 0.0722 B``, over the pixels covered in the reference (``mask``), plus

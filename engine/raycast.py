@@ -8,7 +8,7 @@ Conventions
   point should be rebuilt from (prim, u, v) in float64 (``hit_points``), which
   puts it on the triangle's plane, and secondary rays must start from
   ``spawn_origins`` (a scale-aware offset along the geometric normal), because
-  embreex has no per-ray ``tnear`` (HARD_CASES 1).
+  embreex has no per-ray ``tnear`` (docs/hard-cases.md #1).
 - Embree scenes are built lazily, once per process, and never pickled.
 """
 

@@ -4,7 +4,7 @@ The runtime scene is built from engine-owned parameter types (no api_schemas
 import). Geometry is a triangle soup in world space, stored in float64, plus a
 float32 copy *relative to the scene centre* for Embree: Embree intersects in
 float32, and recentring keeps a small scene placed 1e4 away from the origin
-representable (HARD_CASES 1, 6).
+representable (docs/hard-cases.md #1, #6).
 
 Light order is fixed and shared by every technique (visibility bit i belongs to
 light i): point lights, then directional lights, then rectangular lights, each
@@ -34,7 +34,7 @@ class MaterialTable:
     """Per-material arrays, indexed by material id.
 
     kd, ks, kr, kg, emission: (nm, 3) float64; shininess, gloss_exponent: (nm,) float64.
-    BRDF (ALGORITHMS.md): kd/pi + ks (n+2)/(2 pi) cos^n(alpha) for light sources;
+    BRDF (docs/algorithms.md "Shared conventions", materials): kd/pi + ks (n+2)/(2 pi) cos^n(alpha) for light sources;
     kr ideal mirror; kg normalised Phong lobe (exponent gloss_exponent) for the environment.
     """
 

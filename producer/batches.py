@@ -84,7 +84,7 @@ def batch_status(redis: Redis, batch_id: str, *, store: ObjectStore | None = Non
     mean progress (a finished, failed, canceled or cached render counts as done). None if unknown.
 
     A member whose job has expired from Redis counts as finished when ``store`` holds its
-    artifact, else as ``lost`` (e.g. Redis restarted without persistence, HARD_CASES 22).
+    artifact, else as ``lost`` (e.g. Redis restarted without persistence, docs/hard-cases.md #22).
     """
     raw = cast(dict[bytes, bytes], redis.hgetall(batch_key(batch_id)))
     if not raw:

@@ -177,7 +177,7 @@ def sniff_extension(data: bytes) -> str | None:
 
 def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> ImageFile:
     """Decode an image file's bytes with OpenImageIO. The declared resolution is checked against
-    ``max_pixels`` before any pixel is read (HARD_CASES 16). Raises :class:`FileProblem`."""
+    ``max_pixels`` before any pixel is read (docs/hard-cases.md #16). Raises :class:`FileProblem`."""
     import OpenImageIO as oiio  # deferred on purpose: only uploads decode images; the API starts without it
 
     if not data:

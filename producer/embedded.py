@@ -4,7 +4,7 @@
 it: no TCP port (``port 0``), a unix socket ``<data_dir>/redis.sock`` readable by this user
 only (``unixsocketperm 700``), data files in ``data_dir``, persistence by the append-only file
 (``appendonly yes``, ``appendfsync everysec``; RDB snapshots off) so queued jobs survive a
-restart (HARD_CASES 22). It waits until the server answers PING and returns an
+restart (docs/hard-cases.md #22). It waits until the server answers PING and returns an
 :class:`EmbeddedRedis` (``.url`` = ``unix:///.../redis.sock``, ``.stop()``, a context manager,
 and unpackable as ``url, stop = start_embedded_redis(d)`` as docs/service-design.md states).
 

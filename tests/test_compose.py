@@ -31,7 +31,7 @@ def test_compose_has_the_service_stack():
     services = doc["services"]
     for name in ("redis", "minio", "api", "bake-worker", "render-worker"):
         assert name in services, name
-    assert "--appendonly" in services["redis"]["command"]  # persistence on (HARD_CASES 22)
+    assert "--appendonly" in services["redis"]["command"]  # persistence on (docs/hard-cases.md #22)
     assert services["bake-worker"]["command"] == ["worker", "--queue", "bake"]
     assert services["render-worker"]["command"] == ["worker", "--queue", "render"]
     env = doc["x-ibr-env"]

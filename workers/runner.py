@@ -16,7 +16,7 @@ Both run RQ's scheduler (retries with intervals need it) and install RQ's signal
 SIGTERM / SIGINT -> warm shutdown (finish the current job, then exit); a second signal -> cold
 shutdown.
 
-Liveness and abandoned jobs (HARD_CASES 20). RQ marks a running job's execution in the queue's
+Liveness and abandoned jobs (docs/hard-cases.md #20). RQ marks a running job's execution in the queue's
 StartedJobRegistry with an expiry; the busy worker refreshes it every
 ``job_monitoring_interval`` seconds. When a worker dies (SIGKILL, OOM, machine loss) the
 refreshes stop, and the next maintenance pass of ANY worker on that queue (every

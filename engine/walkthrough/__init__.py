@@ -1,4 +1,4 @@
-"""Image-based walkthroughs of animated scenes with global illumination (ALGORITHMS.md part C).
+"""Image-based walkthroughs of animated scenes with global illumination (docs/algorithms.md part C).
 
 See docs/walkthrough.md. Modules: ``range_images`` (cube-map base images), ``viewspace``,
 ``decompose`` (base viewpoints and time samples), ``reconstruct`` (reprojection and fill),

@@ -1,4 +1,4 @@
-"""View-space and temporal decomposition (ALGORITHMS.md part C).
+"""View-space and temporal decomposition (docs/algorithms.md part C).
 
 Both work on cheap *geometry cubes*: cube maps of depth and object id only (one ray per
 pixel, ``probe_res`` pixels per face edge), cached per (position, time).

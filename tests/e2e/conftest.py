@@ -1,4 +1,4 @@
-"""Fixtures of the browser tests (issue 7): one live local stack for the whole session (embedded
+"""Fixtures of the browser tests: one live local stack for the whole session (embedded
 Redis, real bake and render workers, the API via uvicorn, the sample scenes loaded), Debian's
 chromium driven by Playwright, and a page per test module. Screenshots go to test-artifacts/preview/
 (git-ignored).

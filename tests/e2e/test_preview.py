@@ -1,4 +1,4 @@
-"""The browser preview page (issue 7) in a real browser (Debian's chromium driven by Playwright)
+"""The browser preview page in a real browser (Debian's chromium driven by Playwright)
 against a live local stack: embedded Redis, real bake and render workers, uvicorn API."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The preview page with the LDC methods (issue 7 on top of issue 4's bakes): bake a sample scene from
-the page, watch its progress reach done, render it with ``ldc`` and orbit, show the provenance, and
+"""The preview page with the LDC methods (on top of the scene bakes): bake a sample scene from the
+page, watch its progress reach done, render it with ``ldc`` and orbit, show the provenance, and
 compare with the reference renderer (LRMS computed by the API, checked here against engine.metrics)."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""The preview page's Datasets panel (issue 7 on top of issue 5's relighting API): a small dataset
-generated from a sphere-on-floor scene, baked from the page, relit live by dragging the light over
-the sphere widget, a second light added, the coverage mask shown."""
+"""The preview page's Datasets panel (on top of the relighting API): a small dataset generated
+from a sphere-on-floor scene, baked from the page, relit live by dragging the light over the sphere
+widget, a second light added, the coverage mask shown."""
 
 from __future__ import annotations
 

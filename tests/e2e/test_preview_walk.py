@@ -1,6 +1,6 @@
-"""The preview page's Walkthroughs panel (issue 7 on top of issue 6's walkthrough API): request a
-walkthrough of the animated sample scene along its view-space path at a quality level, watch the
-progress reach done, play the frames (mouse and keyboard)."""
+"""The preview page's Walkthroughs panel (on top of the walkthrough API): request a walkthrough of
+the animated sample scene along its view-space path at a quality level, watch the progress reach
+done, play the frames (mouse and keyboard)."""
 
 from __future__ import annotations
 

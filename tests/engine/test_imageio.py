@@ -1,4 +1,4 @@
-"""Tests for engine.imageio: round trips per format, refusals, hostile files (HARD_CASES 9, 13, 16)."""
+"""Tests for engine.imageio: round trips per format, refusals, hostile files (docs/hard-cases.md #9, #13, #16)."""
 
 from __future__ import annotations
 
@@ -453,7 +453,7 @@ def test_write_argument_errors(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# Hostile and broken files (HARD_CASES 16)
+# Hostile and broken files (docs/hard-cases.md #16)
 
 
 def test_truncated_exr_raises_quickly(tmp_path, rng):

@@ -1,4 +1,4 @@
-"""Layered depth images: Embree multi-hit vs brute force, deep layering, large depth (HARD_CASES 5, 6)."""
+"""Layered depth images: Embree multi-hit vs brute force, deep layering, large depth (docs/hard-cases.md #5, #6)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests for engine.metrics against slow, obvious per-pixel loops (ALGORITHMS.md error metric)."""
+"""Tests for engine.metrics against slow, obvious per-pixel loops (docs/algorithms.md "Shared conventions", error metric)."""
 
 from __future__ import annotations
 

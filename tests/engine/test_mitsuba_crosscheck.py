@@ -1,8 +1,8 @@
-"""The reference renderer against Mitsuba 3 at small resolution (foundation issue, "Cross-check
-against Mitsuba 3"): direct lighting within LRMS 1 % of Mitsuba's ``direct`` integrator, and
-with the indirect term on within LRMS 3 % of Mitsuba's ``path``, on the Cornell box (Mitsuba's
-own scene file vs our sample JSON), a sphere + box scene with a point and a rect light
-(converted by ``bench.mitsuba_bridge``), and Mitsuba's stored floating-sphere reference.
+"""The reference renderer against Mitsuba 3 at small resolution (docs/accuracy-reference.md):
+direct lighting within LRMS 1 % of Mitsuba's ``direct`` integrator, and with the indirect term on
+within LRMS 3 % of Mitsuba's ``path``, on the Cornell box (Mitsuba's own scene file vs our sample
+JSON), a sphere + box scene with a point and a rect light (converted by ``bench.mitsuba_bridge``),
+and Mitsuba's stored floating-sphere reference.
 
 Compared pixels: those our centre ray covers (``object_id >= 0``) minus those on or next to an
 emissive surface (the Cornell box luminaire); ``bench.mitsuba_crosscheck.comparison_mask``

@@ -1,4 +1,4 @@
-"""Ray casting: Embree against the brute-force reference, and the numerics of HARD_CASES 1, 2, 5, 6."""
+"""Ray casting: Embree against the brute-force reference, and the numerics of docs/hard-cases.md #1, #2, #5, #6."""
 
 from __future__ import annotations
 
@@ -84,7 +84,7 @@ def test_hit_points_lie_on_triangles():
     np.testing.assert_allclose(p, o[h.hit] + h.t[h.hit, None] * d[h.hit], atol=1e-5 * sc.extent)
 
 
-# ------------------------------------------------------------------ HARD_CASES 1: self-hits
+# ------------------------------------------------------------------ docs/hard-cases.md #1: self-hits
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
@@ -153,7 +153,7 @@ def test_no_false_shadow_on_plane_far_from_origin(scale):
         assert not occ.any(), f"false shadows at elevation {elev}: {occ.sum()}"
 
 
-# ------------------------------------------------------------------ HARD_CASES 2: watertight
+# ------------------------------------------------------------------ docs/hard-cases.md #2: watertight
 
 
 @pytest.mark.parametrize("backend", ["embree", "reference"])
@@ -202,7 +202,7 @@ def _brute_all_t(sc, o, d):
 
 
 def test_all_hits_nested_shells_keeps_every_layer():
-    """HARD_CASES 5: 18 nested spheres -> 36 crossings along a central ray, none lost."""
+    """docs/hard-cases.md #5: 18 nested spheres -> 36 crossings along a central ray, none lost."""
     shells = [(sphere_mesh(radius=1.0 + 0.05 * k, subdivisions=2), mat()) for k in range(18)]
     sc = scene(shells)
     rng = np.random.default_rng(10)
@@ -223,7 +223,7 @@ def test_all_hits_nested_shells_keeps_every_layer():
 
 
 def test_all_hits_close_layers_far_from_origin():
-    """HARD_CASES 6: two surfaces 1e-3 apart at depth 1e4 stay two layers."""
+    """docs/hard-cases.md #6: two surfaces 1e-3 apart at depth 1e4 stay two layers."""
     a = quad((0.0, 0.0, -1e4), 1.0, normal_axis=2)
     b = quad((0.0, 0.0, -1e4 - 1e-3), 1.0, normal_axis=2)
     sc = scene([(a, mat()), (b, mat())])

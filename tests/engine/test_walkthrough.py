@@ -1,5 +1,5 @@
 """Walkthroughs: base range images, decompositions, reprojection and fill modes, temporal
-interpolation, and HARD_CASES 11 for the reprojection. Small resolutions throughout."""
+interpolation, and docs/hard-cases.md #11 for the reprojection. Small resolutions throughout."""
 
 from __future__ import annotations
 

@@ -38,7 +38,7 @@ def test_sample_loads_with_finite_geometry(name):
 
 @pytest.mark.parametrize("name", SAMPLES)
 def test_embree_agrees_with_reference_backend_on_random_rays(name):
-    """Same triangle, distance within 1e-5 relative (the foundation issue's criterion)."""
+    """Same triangle, distance within 1e-5 relative (the acceptance criterion for the Embree backend)."""
     rt = _load(name).runtime
     lo, hi = rt.bounds
     c, r = 0.5 * (lo + hi), np.linalg.norm(hi - lo)
@@ -145,7 +145,7 @@ def test_symlink_out_of_the_scene_directory_is_refused(tmp_path):
 
 
 def test_degenerate_and_duplicate_triangles_are_counted_and_render_clean():
-    """HARD_CASES 3 end to end: zero-area and duplicate triangles are removed with a count in
+    """docs/hard-cases.md #3 end to end: zero-area and duplicate triangles are removed with a count in
     the result (never silently dropped by Embree), and the image has no NaN."""
     from engine.reference import ReferenceParams, render_reference
 

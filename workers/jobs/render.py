@@ -22,7 +22,7 @@ scene cache below stays warm across jobs):
    ``write_artifact(..., max_workers=STORE_WRITERS)``.
 
 A render that produces NaN/Inf raises ``engine.errors.NonFiniteOutputError`` before anything is
-written: the job fails with that message and no manifest exists (HARD_CASES 13). Images are
+written: the job fails with that message and no manifest exists (docs/hard-cases.md #13). Images are
 byte-deterministic (engine.imageio suppresses timestamps, the renderer is deterministic per
 seed), so a re-run writes identical blobs under the same key.
 

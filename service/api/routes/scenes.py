@@ -143,7 +143,7 @@ def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: s
 #
 # The worker's loader (engine.geometry.meshio) is the authority on mesh files; these cheap,
 # engine-free checks only reject at upload time what would certainly fail there: wrong
-# magic, truncation, and face indices outside the vertex range (HARD_CASES 15), with counts.
+# magic, truncation, and face indices outside the vertex range (docs/hard-cases.md #15), with counts.
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",

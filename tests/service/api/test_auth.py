@@ -1,4 +1,4 @@
-"""HARD_CASES 18: API keys (401), owner isolation (another key's resources are 404), rate limits (429),
+"""docs/hard-cases.md #18: API keys (401), owner isolation (another key's resources are 404), rate limits (429),
 and CORS."""
 
 from __future__ import annotations

@@ -367,7 +367,7 @@ def test_bake_is_queued_and_delete_waits_for_it(client: TestClient) -> None:
 
 
 def test_file_names_are_metadata_only(client: TestClient, store_dir: Path) -> None:
-    """HARD_CASES 17: names like ../../x are only labels; files live under their sha256 in the store,
+    """docs/hard-cases.md #17: names like ../../x are only labels; files live under their sha256 in the store,
     and a name with a control character (NUL) is refused."""
     manifest, files = subset(3)
     m = json.loads(json.dumps(manifest))

@@ -110,7 +110,7 @@ def test_render_roundtrip_equals_direct_engine_render(
     assert 'ibr_queue_jobs{queue="render",state="finished"}' in metrics
     assert 'ibr_job_duration_seconds{kind="render",stat="max"}' in metrics
 
-    # HARD_CASES 23: corrupt the stored EXR -> never served, manifest gone, a new request rebakes
+    # docs/hard-cases.md #23: corrupt the stored EXR -> never served, manifest gone, a new request rebakes
     (store_dir / "artifacts" / key / "radiance.exr").write_bytes(b"garbage")
     bad = client.get(f"/v1/artifacts/{key}/image.exr")
     assert bad.status_code == 404 and "corrupt" in bad.json()["title"].lower()
@@ -133,7 +133,7 @@ def _quad_ply_with_bad_index() -> bytes:
 
 @pytest.mark.slow
 def test_bad_mesh_fails_the_job_with_a_clear_message(client: TestClient, worker_process: Any) -> None:
-    """HARD_CASES 15 past the upload pre-check: the job fails, naming the problem; the worker lives."""
+    """docs/hard-cases.md #15 past the upload pre-check: the job fails, naming the problem; the worker lives."""
     worker = worker_process("render")
     scene = small_scene()
     scene["objects"] = [{"type": "mesh_file", "path": "quad.ply", "material": "white"}]

@@ -1,5 +1,5 @@
 """Faults and configuration: store or Redis unreachable -> 503 + Retry-After with nothing
-half-written (HARD_CASES 25), readiness and settings that fail at start-up (that the API process
+half-written (docs/hard-cases.md #25), readiness and settings that fail at start-up (that the API process
 never imports numba: tests/service/test_api_imports_no_numba.py)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""HARD_CASES 14: bodies over the limit get 413, with or without Content-Length, before the
+"""docs/hard-cases.md #14: bodies over the limit get 413, with or without Content-Length, before the
 rest is read, and nothing is written to the store."""
 
 from __future__ import annotations

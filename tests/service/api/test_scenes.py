@@ -1,5 +1,5 @@
 """Scenes over HTTP: JSON and multipart creation, get, list, delete, and bad uploads
-(HARD_CASES 15 at upload time, 16 and 17)."""
+(docs/hard-cases.md #15 at upload time, #16 and #17)."""
 
 from __future__ import annotations
 
@@ -158,7 +158,7 @@ def test_unsupported_mesh_type_and_pixel_limit(make_app: Any) -> None:
         assert "100 pixels" in fields["scene.camera.height"]
 
 
-# ------------------------------------------------------------------ HARD_CASES 15 at upload
+# ------------------------------------------------------------------ docs/hard-cases.md #15 at upload
 
 
 def _binary_ply(vertices: Sequence[tuple[float, float, float]], faces: Sequence[tuple[int, ...]]) -> bytes:
@@ -208,7 +208,7 @@ def test_wrong_file_type_and_truncated_files(client: TestClient, store_dir: Path
     teapot = TEAPOT_PLY.read_bytes()
     cases = {
         "img.ply": (png, "not a PLY file"),  # an image where a mesh is expected
-        "huge.obj": (exr_huge, "binary data"),  # HARD_CASES 16: an EXR declaring 100k x 100k pixels
+        "huge.obj": (exr_huge, "binary data"),  # docs/hard-cases.md #16: an EXR declaring 100k x 100k pixels
         "cut.ply": (teapot[: len(teapot) // 2], "truncated"),
         "cut.stl": (b"\0" * 80 + struct.pack("<I", 1000) + b"\0" * 100, "truncated"),
         "cut.glb": (b"glTF" + struct.pack("<II", 2, 1000) + b"\0" * 20, "truncated"),
@@ -224,7 +224,7 @@ def test_wrong_file_type_and_truncated_files(client: TestClient, store_dir: Path
     assert _all_files(store_dir) == before
 
 
-# ------------------------------------------------------------------ HARD_CASES 17
+# ------------------------------------------------------------------ docs/hard-cases.md #17
 
 
 def test_hostile_upload_names_are_metadata_only(client: TestClient, store_dir: Path, tmp_path: Path) -> None:

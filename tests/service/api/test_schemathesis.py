@@ -1,4 +1,4 @@
-"""HARD_CASES 19: property-based tests of every operation against the app's own OpenAPI
+"""docs/hard-cases.md #19: property-based tests of every operation against the app's own OpenAPI
 document, with valid and invalid (negative) data: no 5xx, and status codes, content types,
 headers and bodies as documented. ``IBR_SCHEMATHESIS_EXAMPLES`` (default 20 per operation
 and mode) and ``IBR_SCHEMATHESIS_RANDOM=1`` (a new random draw, not the fixed one) widen it.

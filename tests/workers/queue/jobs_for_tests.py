@@ -26,7 +26,7 @@ def tiny_scene(width: int = 48, height: int = 32, intensity: float = 3.0, name: 
 
 
 def overflow_scene() -> Scene:
-    """HARD_CASES 13: a point light so strong, so close, that radiance overflows to Inf."""
+    """docs/hard-cases.md #13: a point light so strong, so close, that radiance overflows to Inf."""
     return Scene.model_validate({
         "name": "overflow",
         "camera": {"type": "perspective", "eye": [0, 2, 0.01], "look_at": [0, 0, 0], "width": 16, "height": 16},

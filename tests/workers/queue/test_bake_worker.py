@@ -1,6 +1,6 @@
 """Real forking bake workers (``python -m workers.runner --queue bake``): a SIGKILLed worker's job
-is retried or failed -- never 'started' forever -- and publishes nothing (HARD_CASES 20); stop
-requests kill the work horse; time limits (HARD_CASES 24)."""
+is retried or failed -- never 'started' forever -- and publishes nothing (docs/hard-cases.md #20); stop
+requests kill the work horse; time limits (docs/hard-cases.md #24)."""
 
 from __future__ import annotations
 
@@ -114,7 +114,7 @@ def test_canceling_a_started_bake_job_kills_its_horse(
 def test_timeout_fails_the_job_and_the_worker_takes_the_next(
     redis_conn: Redis, worker_process: StartWorker, queue: QueueName
 ) -> None:
-    """HARD_CASES 24 on both worker kinds (forked horse / in-process job)."""
+    """docs/hard-cases.md #24 on both worker kinds (forked horse / in-process job)."""
     q = get_queue(redis_conn, queue)
     slow = q.enqueue("tests.workers.queue.jobs_for_tests.sleepy", {"seconds": 30}, job_id=f"{queue}-slow",
                      job_timeout=1, retry=Retry(max=2))

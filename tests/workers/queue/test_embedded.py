@@ -1,4 +1,4 @@
-"""producer/embedded.py: the bundled redis-server on a unix socket, its persistence (HARD_CASES 22),
+"""producer/embedded.py: the bundled redis-server on a unix socket, its persistence (docs/hard-cases.md #22),
 reuse of a running server, clear start-up errors."""
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def test_start_reuse_and_stop(data_dir: Path) -> None:
 
 
 def test_queued_job_survives_a_restart(data_dir: Path) -> None:
-    """HARD_CASES 22: with persistence on (append-only file), a queued job is still queued after
+    """docs/hard-cases.md #22: with persistence on (append-only file), a queued job is still queued after
     Redis stops and starts again on the same data directory."""
     with start_embedded_redis(data_dir) as server:
         r = redis_from_url(server.url)
@@ -66,7 +66,7 @@ def test_queued_job_survives_a_restart(data_dir: Path) -> None:
 
 
 def test_without_persistence_a_restart_loses_the_queue(data_dir: Path) -> None:
-    """The other half of HARD_CASES 22: why the embedded server runs with appendonly."""
+    """The other half of docs/hard-cases.md #22: why the embedded server runs with appendonly."""
     with start_embedded_redis(data_dir, appendonly=False) as server:
         r = redis_from_url(server.url)
         get_queue(r, "render").enqueue("tests.workers.queue.jobs_for_tests.quick", {}, job_id="render-x")

@@ -113,7 +113,7 @@ def test_identical_requests_share_one_job(redis_conn: Redis, worker_store: Objec
 
 def test_concurrent_identical_enqueues_make_one_job(redis_conn: Redis, worker_store: ObjectStore,
                                                    scene_id: str, embedded_redis: str) -> None:
-    """HARD_CASES 21: many requests at the same instant, one job (each thread its own client)."""
+    """docs/hard-cases.md #21: many requests at the same instant, one job (each thread its own client)."""
     req = _req(scene_id)
     n = 8
     barrier = threading.Barrier(n)

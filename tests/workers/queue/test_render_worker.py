@@ -123,7 +123,7 @@ def test_render_end_to_end_cache_hit_and_idempotent_rerun(
 def test_concurrent_identical_requests_give_one_job_and_one_artifact(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker, embedded_redis: str
 ) -> None:
-    """HARD_CASES 21, end to end: both requesters get the same finished artifact."""
+    """docs/hard-cases.md #21, end to end: both requesters get the same finished artifact."""
     sid = put_scene(worker_store, tiny_scene(), {}, owner=None).id
     req = RenderRequest(scene_id=sid, params={"spp": 1})
     results: list[tuple[str, str | None]] = []
@@ -233,7 +233,7 @@ def test_bad_payloads_fail_at_once_without_retry(
 def test_nan_render_fails_with_a_clear_message_and_no_manifest(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
-    """HARD_CASES 13 through the queue."""
+    """docs/hard-cases.md #13 through the queue."""
     sid = put_scene(worker_store, overflow_scene(), {}, owner=None).id
     key, job = enqueue_render(redis_conn, RenderRequest(scene_id=sid, params={"spp": 1}), None,
                                      store=worker_store)

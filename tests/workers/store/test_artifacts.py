@@ -1,6 +1,6 @@
 """Artifacts and scenes on top of the object store, on both backends: content-addressed
-keys, blobs-then-manifest commit, checksum verification (HARD_CASES 23), scenes with
-deduplicated mesh blobs, and hostile upload names (HARD_CASES 17)."""
+keys, blobs-then-manifest commit, checksum verification (docs/hard-cases.md #23), scenes with
+deduplicated mesh blobs, and hostile upload names (docs/hard-cases.md #17)."""
 
 from __future__ import annotations
 
@@ -246,7 +246,7 @@ def _flip_one_byte(data: bytes) -> bytes:
 def test_corrupt_blob_is_never_served_and_gets_rebaked(
     any_store: ObjectStore, raw_write: Callable[[str, bytes], None], corruption: str
 ) -> None:
-    """HARD_CASES 23."""
+    """docs/hard-cases.md #23."""
     _write(any_store)
     key = _key()
     bkey = f"artifacts/{key}/radiance.exr"
@@ -463,7 +463,7 @@ _OUR_KEYS = re.compile(r"blobs/[0-9a-f]{64}|scenes/[0-9a-f]{64}\.json")
 
 
 def test_hostile_upload_names_only_become_metadata(any_store: ObjectStore, tmp_path: Path) -> None:
-    """HARD_CASES 17 at the storage level. The schema rejects these paths, so the scene is
+    """docs/hard-cases.md #17 at the storage level. The schema rejects these paths, so the scene is
     built with model_construct: even then the store writes only ``blobs/<sha256>`` and
     ``scenes/<id>.json`` under its root."""
     objects = [MeshFileObject.model_construct(path=p, material="m") for p in HOSTILE_NAMES]

@@ -1,6 +1,6 @@
 """The object-store contract, run on both backends (local directory, S3 via moto's server),
 plus each backend's own failure modes: atomic local writes under injected faults, an
-unreachable or silent S3 endpoint (HARD_CASES 25)."""
+unreachable or silent S3 endpoint (docs/hard-cases.md #25)."""
 
 from __future__ import annotations
 
@@ -405,7 +405,7 @@ def _closed_port() -> int:
 
 
 def test_s3_unreachable_endpoint_fails_fast(tmp_path: Path) -> None:
-    """HARD_CASES 25 with the default timeouts and retries: a clear StoreUnavailable
+    """docs/hard-cases.md #25 with the default timeouts and retries: a clear StoreUnavailable
     within a few seconds for every operation."""
     store = S3Store("bucket", endpoint_url=f"http://127.0.0.1:{_closed_port()}", access_key="a", secret_key="b")
     calls: list[Callable[[], Any]] = [
