@@ -1,5 +1,5 @@
-"""Render latency through the API with a warm render worker (issue 4, "Interactive use": a 512x512 view
-of a baked scene in under 250 ms end to end, p50/p99 over 50 random views in docs/performance.md).
+"""Render latency through the API with a warm render worker (interactive use: a 512x512 view of a baked
+scene in under 250 ms end to end, p50/p99 over 50 random views in docs/performance.md).
 
 Starts the real stack on this machine (embedded Redis, one bake and one render worker, the API via uvicorn;
 ``service.up.start_stack``) in a temporary data directory with a local store and uploads the sample scenes.
@@ -26,7 +26,7 @@ the job's encode of every blob vs only the preview vs preview + radiance, and th
 
     python -m bench.render_latency [--scenes mirror_box,teapot_glossy] [--views 50] [--warmup 3] [--size 512]
                                    [--methods ldc,ldc+llf,ldc+ibrt:1] [--outputs all,preview] [--ldc 256]
-                                   [--label session3]
+                                   [--label latest]
 
 Saves the run under ``--label`` in ``docs/data/render_latency.json`` and rewrites the ``render_latency``
 block of docs/performance.md from every label stored there (``--no-doc``: print only).
@@ -435,7 +435,7 @@ def report_views(label: str, res: dict[str, Any]) -> list[str]:
 
 def report(runs: dict[str, Any]) -> str:
     lines = ["## Render latency through the API (warm render worker)", "",
-             "`python -m bench.render_latency` (issue 4, interactive use: a 512x512 view of a baked scene in "
+             "`python -m bench.render_latency` (interactive use: a 512x512 view of a baked scene in "
              "<= 250 ms end to end). Real stack: embedded Redis, one bake and one render worker, the API "
              "(uvicorn), local store, all on this 2-core machine with the client. Each request is a new camera "
              "(no artifact-cache hits); times in ms. \"request -> preview shown\" is `POST /v1/renders?wait=30` "
@@ -528,19 +528,20 @@ NOTES = [
     "the threads of other endpoints. Column \"job end -> answer\" runs from RQ's end stamp to the client "
     "holding the answer: in a probe on this machine (load ~4) the wait returned 2.5 ms after the stamp "
     "(RQ's own success bookkeeping comes first), the final job state and the manifest were read 3.5 ms later "
-    "(one thread hop), and the answer reached the client 3.5 ms after that. Before: polling, first with a "
-    "1.5x back-off (answers up to 170 ms late), then every 5-20 ms.",
+    "(one thread hop), and the answer reached the client 3.5 ms after that. A blocking read rather than "
+    "polling the status: a poll interval either adds its own delay to every answer or spends the API's "
+    "threads and Redis round trips on idle checks.",
     "- **Outputs** (`RenderRequest.outputs`): an interactive client asks for `[\"preview\"]`; the browser "
     "preview asks for what it shows (preview, radiance for exposure and comparisons, provenance for the LDC "
     "methods: the `preview+radiance` rows are its cost). The job encodes and stores only those. The subset "
-    "is part of the artifact key (a lean artifact is never served for a full request; full-request keys "
-    "are what they were), and a subset request is answered from the full artifact of the same view when "
+    "is part of the artifact key (a lean artifact is never served for a full request; a request without "
+    "`outputs` has no subset in its key), and a subset request is answered from the full artifact of the same view when "
     "that exists.",
     "- **Encoding**: in memory (`engine.imageio.encode_image`, no scratch-file fsync) on 3 threads, the "
     "preview first, PNG zlib level 1 + 'sub' filter. EXRs stay ZIP: uncompressed would be ~2-4x faster per "
-    "EXR but 2-140x larger (table above), and with `outputs` an interactive request no longer encodes any "
-    "EXR. The preview's exact table-driven sRGB transform is one serial `nogil` numba pass doing the same "
-    "float64 operations as the NumPy form it replaced (bit-identical codes, 4x faster: 9.1 -> 2.3 ms at "
+    "EXR but 2-140x larger (table above), and with `outputs` an interactive request encodes no EXR."
+    " The preview's exact table-driven sRGB transform is one serial `nogil` numba pass doing the same "
+    "float64 operations as the plain NumPy form (bit-identical codes, 4x faster: 9.1 -> 2.3 ms at "
     "512x512); what is left of the preview's encode is mostly zlib.",
     "- **Store**: every blob goes to a temp file, is fsynced and renamed, then the manifest the same way "
     "(`write_artifact(max_workers=4)`: blob writes overlap, a failed one publishes nothing). One blob + "
@@ -549,7 +550,7 @@ NOTES = [
     "benchmark syncs after each bake so its own bake does not count.",
     "- **The rest of the p50** (the goal line's \"rest\"): queue wait 4-8 ms (RQ's dequeue), the job's own "
     "bookkeeping 4-10 ms (\"other\": payload check, progress saves, counts), job end -> answer 5-8 ms, the "
-    "PNG download ~5 ms. The p99s are the shared machine's tails (load 3-4 from other sessions' work).",
+    "PNG download ~5 ms. The p99s are the shared machine's tails (load 3-4 from other work).",
 ]
 
 
