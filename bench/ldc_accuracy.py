@@ -1,4 +1,4 @@
-"""LDC + LLF accuracy versus time, bake time and storage (issue 4, "Show").
+"""LDC + LLF accuracy versus time, bake time and storage.
 
 Run from the repository root: ``python -m bench.ldc_accuracy`` (the grid below at 128x128),
 ``--size 256`` for larger images, ``--quick`` for a small iteration run. Writes

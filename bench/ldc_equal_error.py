@@ -1,11 +1,11 @@
-"""Speed of the LDC methods against the reference renderer at equal error (issue 4, "Show").
+"""Speed of the LDC methods against the reference renderer at equal error.
 
 ``python -m bench.ldc_equal_error`` (256x256, 6 views, mirror_box and teapot_glossy; ``--size 512``
 for the interactive size, ``--quick`` for an iteration run). Writes the ``ldc_equal_error`` block
 (``ldc_equal_error_512`` for ``--size 512``) of ``docs/accuracy/ldc.md`` and
 ``docs/data/ldc_equal_error[_512].json``.
 
-The issue's comparison: ground truth = the reference renderer at very high sample counts; raise
+The comparison: ground truth = the reference renderer at very high sample counts; raise
 the reference's samples until it reaches the LRMS of ``ldc+llf`` / ``ldc+ibrt:1`` against that
 ground truth, and compare render times (also ``ldc+ibrt:2`` and a 128 LDC: on mirror_box most of
 ``ldc+ibrt:1``'s error is the light-field gather that ends the first generation on the OTHER mirror,
@@ -72,7 +72,7 @@ OURS = [  # (LDC resolution, LLF f, method, supersample, renderer options)
     (128, 8, "ldc+ibrt:1", 1, {}), (128, 8, "ldc+ibrt:2", 1, {}),  # a coarser LDC, a second mirror generation
     (256, 8, "ldc+llf", 1, {}), (256, 8, "ldc+ibrt:1", 1, {}), (256, 8, "ldc+ibrt:2", 1, {}),
     (512, 8, "ldc+llf", 1, {}), (512, 8, "ldc+ibrt:1", 1, {}),
-    (512, 8, "ldc+ibrt:1", 1, {"silhouette_rays": False, "refine_walk": False}),  # the renderer before session 4
+    (512, 8, "ldc+ibrt:1", 1, {"silhouette_rays": False, "refine_walk": False}),  # silhouette rays and mesh walk off
     (256, 8, "ldc+ibrt:1", 2, {}), (512, 8, "ldc+ibrt:1", 2, {}),
     # a finer light field (LLF_RES is 48 per direction): the glossy floor's gather (teapot_glossy)
     (256, 8, "ldc+ibrt:1", 1, {"llf_res": 128}), (512, 8, "ldc+ibrt:1", 1, {"llf_res": 128})]
@@ -264,8 +264,8 @@ def write_doc(results: dict) -> None:
 
 
 def goal_lines(results: dict) -> list[str]:
-    """The issue's two goals, read off this run's rows (not asserted: a benchmark reports)."""
-    out = ["**Goals (issue 4), this run:**", ""]
+    """The two speed goals, read off this run's rows (not asserted: a benchmark reports)."""
+    out = ["**Goals, this run:**", ""]
     for sc in results["scenes"]:
         if sc["scene"] == "mirror_box":
             rows = sc["models"]["point"]["ours"]

@@ -47,7 +47,7 @@ SCENES = ("cornell_box", "spheres_box", "directional_sphere")
 KINDS = ("direct", "path")
 BOUNCES = 4  # our indirect_bounces; Mitsuba path max_depth = 6, the Cornell box file's default
 
-# the issue's acceptance thresholds (LRMS against Mitsuba)
+# the acceptance thresholds (LRMS against Mitsuba)
 THRESHOLD = {"direct": 0.01, "path": 0.03}
 
 DOC = mb.REPO_ROOT / "docs" / "accuracy-reference.md"
@@ -321,7 +321,7 @@ Mitsuba {mi_mod.__version__} (`{mb.MITSUBA_VARIANT}`), on diffuse scenes both ca
 written by `python -m bench.mitsuba_crosscheck`; the same comparisons run at small resolution
 in `tests/engine/test_mitsuba_crosscheck.py` (part of `make test`).
 
-Acceptance (foundation issue): direct lighting within **LRMS 1 %** of Mitsuba's `direct`
+Acceptance: direct lighting within **LRMS 1 %** of Mitsuba's `direct`
 integrator, and with the indirect term on, within **LRMS 3 %** of Mitsuba's `path`.
 
 ## Results (full size)
@@ -398,7 +398,7 @@ other jobs makes the times longer, never the errors larger).
   exceeds 1 % LRMS at any affordable sample count. Its radiance is the same constant in both
   files. No other pixels are excluded (the directional sphere's far edge, the "horizon", needs
   no special treatment: both renderers box-filter partial pixels identically). Uncovered pixels
-  (centre ray misses all geometry) are outside the mask, as `ALGORITHMS.md` specifies.
+  (centre ray misses all geometry) are outside the mask, as the error metric specifies (`docs/algorithms.md`).
 
 ## What limits the numbers
 

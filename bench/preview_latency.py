@@ -1,4 +1,4 @@
-"""Preview interaction latency (issue 7): orbit a BAKED sample scene in the browser page.
+"""Preview interaction latency: orbit a BAKED sample scene in the browser page.
 
 Starts the real stack on this machine (embedded Redis, one bake and one render worker, the API via
 uvicorn) in a temporary data directory, loads the sample scenes, bakes ``--scene`` through the API
@@ -159,7 +159,7 @@ def report(res: dict[str, Any], argv: str) -> str:
     lines = [
         "## Browser preview: orbit latency",
         "",
-        "`python -m bench.preview_latency` (issue 7; loopback only, bounded).",
+        "`python -m bench.preview_latency` (loopback only, bounded).",
         "",
         f"Measured with `python -m bench.preview_latency {argv}` ({date.today().isoformat()}, "
         f"{os.cpu_count()} cores, {platform.machine()}, 1-minute load average {res['load'][0]:.1f} before and "

@@ -535,8 +535,8 @@ NOTES = [
     "preview asks for what it shows (preview, radiance for exposure and comparisons, provenance for the LDC "
     "methods: the `preview+radiance` rows are its cost). The job encodes and stores only those. The subset "
     "is part of the artifact key (a lean artifact is never served for a full request; a request without "
-    "`outputs` has no subset in its key), and a subset request is answered from the full artifact of the same view when "
-    "that exists.",
+    "`outputs` has no subset in its key), and a subset request is answered from the full artifact of the "
+    "same view when that exists.",
     "- **Encoding**: in memory (`engine.imageio.encode_image`, no scratch-file fsync) on 3 threads, the "
     "preview first, PNG zlib level 1 + 'sub' filter. EXRs stay ZIP: uncompressed would be ~2-4x faster per "
     "EXR but 2-140x larger (table above), and with `outputs` an interactive request encodes no EXR."

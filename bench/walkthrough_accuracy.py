@@ -1,4 +1,4 @@
-"""Walkthrough accuracy versus time (issue 6, "Show").
+"""Walkthrough accuracy versus time.
 
 Run: ``python -m bench.walkthrough_accuracy [--quick]`` from the repository root. Writes
 ``docs/accuracy/walkthrough.md`` (block ``walkthrough_accuracy``), ``docs/data/walkthrough_accuracy.json``
@@ -8,7 +8,7 @@ For two sample scenes (``cornell_animated``: a moving ball, a turning / stretchi
 moving, colour-changing point light plus the ceiling area light, with path-traced indirect light;
 ``static_room``: a 12 x 9 m room with a partition, tables, columns and two ceiling panels, static)
 a camera path with times is reconstructed from low / medium / high quality bakes with every fill
-mode, and each frame is compared (LRMS, ALGORITHMS.md) with a full reference render of the same
+mode, and each frame is compared (LRMS, docs/algorithms.md) with a full reference render of the same
 frame (same renderer, same light model, path-traced indirect light). The time to render the
 walkthrough frame by frame with the reference renderer is reported next to the bake and
 reconstruction times. A speed section measures a 512 x 512 frame from two base images.
