@@ -12,7 +12,7 @@ dead end. This reads every Markdown file under docs/ plus README.md and checks:
   a name in a package's ``__init__.py`` (what follows a module is an attribute and is not checked).
 
 ``ALLOWED`` lists the citations that deliberately name something that does not exist (the old
-module names in an upgrade note, files that benchmarks or tests create at run time).
+module names in an upgrade note); ``RUNTIME`` the directories a process creates when it runs.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PAGES = sorted([*ROOT.glob("docs/**/*.md"), ROOT / "README.md"])
 # the top-level directories a cited path can start with, and the importable packages among them
 TOP = sorted(p.name for p in ROOT.iterdir()
-             if p.is_dir() and (p / "__init__.py").exists() or p.name in {"docs", "samples", ".ci"})
+             if (p / "__init__.py").exists() or p.name in {"docs", "samples", ".ci"})
 PACKAGES = sorted(p.name for p in ROOT.iterdir() if (p / "__init__.py").exists())
 
 # (page relative to the root, cited text): deliberate names of things that are not in the tree.
@@ -42,8 +42,8 @@ RUNTIME = ("engine/__pycache__",)
 
 LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)|!\[[^\]]*\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\n]+)`")
-PATH = re.compile(r"^(?:%s)/[\w./-]*$" % "|".join(map(re.escape, TOP)))
-DOTTED = re.compile(r"^(?:%s)(?:\.\w+)+$" % "|".join(map(re.escape, PACKAGES)))
+PATH = re.compile(rf"^(?:{'|'.join(map(re.escape, TOP))})/[\w./-]*$")
+DOTTED = re.compile(rf"^(?:{'|'.join(map(re.escape, PACKAGES))})(?:\.\w+)+$")
 
 
 def _slug(heading: str) -> str:
@@ -75,7 +75,7 @@ def _anchors(page: Path, text: str | None = None) -> set[str]:
 def _module_exists(dotted: str) -> bool:
     parts = dotted.split(".")
     here = ROOT / parts[0]
-    for i, name in enumerate(parts[1:], start=1):
+    for name in parts[1:]:
         if (here / name).is_dir() and ((here / name / "__init__.py").exists()):
             here = here / name
             continue

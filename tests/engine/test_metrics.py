@@ -1,4 +1,5 @@
-"""Tests for engine.metrics against slow, obvious per-pixel loops (docs/algorithms.md "Shared conventions", error metric)."""
+"""Tests for engine.metrics against slow, obvious per-pixel loops (docs/algorithms.md "Shared
+conventions", error metric)."""
 
 from __future__ import annotations
 
