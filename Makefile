@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 # Parallel test workers (2 cores here).
 PYTEST_WORKERS ?= 2
 
-.PHONY: install run demo render-local test bench lint compose-check clean
+.PHONY: install run demo render-local test test-fast bench lint compose-check clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -33,6 +33,11 @@ render-local: install
 
 test: install
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q tests
+
+# The everyday lane: every test not marked slow (no browser, no live multi-process stacks, no
+# long convergence runs). CI runs everything (make test).
+test-fast: install
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q -m "not slow" tests
 
 bench: install
 	$(BIN)/python -m bench.raycast_throughput

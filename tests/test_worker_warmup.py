@@ -32,6 +32,9 @@ from producer.status import job_public
 from tests.fixtures.redis import WorkerProcess
 from workers import warmup
 
+# Everyday runs skip this file (make test-fast): worker processes that compile and run the warm-up.
+pytestmark = pytest.mark.slow
+
 StartWorker = Callable[..., WorkerProcess]
 
 

@@ -17,6 +17,9 @@ from playwright.sync_api import Browser, Page, expect
 from service.up import Stack, load_samples, start_stack
 from tests.e2e.conftest import SETTLED, element_pixels, free_port, new_page, shot, wait_for_load
 
+# Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
+pytestmark = pytest.mark.slow
+
 SIZE = 128
 SCENE = "mirror_box"
 

@@ -18,6 +18,9 @@ from engine.metrics import lrms as engine_lrms
 from service.api.routes import preview
 from service.up import Stack
 
+# Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
+pytestmark = pytest.mark.slow
+
 RNG = np.random.default_rng(7)
 
 

@@ -19,6 +19,9 @@ from engine.metrics import lrms
 from service.up import Stack
 from tests.e2e.conftest import SETTLED, drag, element_pixels, new_page, shot, wait_for_load
 
+# Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
+pytestmark = pytest.mark.slow
+
 SIZE = 128
 SCENE = "cornell_box"  # diffuse: the bake needs no light field, so it is quick at LDC 64
 

@@ -15,6 +15,9 @@ from playwright.sync_api import Browser, Page, expect
 from service.up import Stack
 from tests.e2e.conftest import RELIT_SETTLED, drag, element_pixels, new_page, shot
 
+# Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
+pytestmark = pytest.mark.slow
+
 BALL: dict[str, Any] = {
     "name": "e2e_ball",
     "camera": {"type": "perspective", "eye": [0, 1.2, 3.2], "look_at": [0, 0.45, 0], "fov_y_deg": 40,

@@ -14,6 +14,9 @@ from playwright.sync_api import Browser, Page, expect
 from service.up import Stack
 from tests.e2e.conftest import element_pixels, new_page, shot
 
+# Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
+pytestmark = pytest.mark.slow
+
 SCENE = "cornell_animated"
 # a tiny bake so the test stays quick: 16 px cube faces, 2 viewpoints, 3 time samples, no indirect light
 URL = "/preview/?walk={scene}&wt_face=16&wt_views=2&wt_times=3&wt_indirect=0"

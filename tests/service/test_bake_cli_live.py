@@ -15,6 +15,9 @@ from service.cli import app
 from service.client import ApiError, Client
 from tests.service.test_client_cli_live import SMALL
 
+# Everyday runs skip this file (make test-fast): the whole service started as processes, driven through the CLI.
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.slow
 def test_bake_and_ldc_render_from_the_command_line(stack: Any, tmp_path: Path) -> None:

@@ -18,6 +18,9 @@ from service.cli import app
 from service.client import ApiError, Client
 from service.up import load_samples, start_stack
 
+# Everyday runs skip this file (make test-fast): the whole service started as processes, driven through the CLI.
+pytestmark = pytest.mark.slow
+
 SMALL = {
     "camera": {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "width": 32, "height": 24},
     "materials": [{"name": "red", "kd": [0.7, 0.1, 0.1]}, {"name": "floor", "kd": [0.5, 0.5, 0.5]}],

@@ -18,6 +18,9 @@ from service.cli import app
 from service.client import ApiError, Client, read_dataset_dir, with_sha256s
 from tests.service.api.test_datasets import diligent_ball, subset
 
+# Everyday runs skip this file (make test-fast): the whole service started as processes, driven through the CLI.
+pytestmark = pytest.mark.slow
+
 
 def _dataset_dir(root: Path, k: int = 12, drop: tuple[int, ...] = ()) -> tuple[Path, dict[str, Any]]:
     manifest, files = subset(k, drop)

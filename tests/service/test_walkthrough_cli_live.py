@@ -17,6 +17,9 @@ from service.cli import app
 from service.client import ApiError, Client
 from tests.service.api.test_walkthroughs import ROOM, _frames
 
+# Everyday runs skip this file (make test-fast): the whole service started as processes, driven through the CLI.
+pytestmark = pytest.mark.slow
+
 TINY = ["--quality", "low", "--face-res", "16", "--indirect", "0", "--max-views", "2", "--max-time-samples", "3"]
 
 
