@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
 from api_schemas.service import SceneCreate, SceneList, ScenePublic, Sha256
+from engine.geometry.meshio import SUPPORTED_MESH_TYPES
 from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.errors import SceneOutputsInUse
 from producer.scene_outputs import delete_scene_outputs
@@ -36,10 +37,6 @@ from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import read_multipart
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
-
-SUPPORTED_MESH_TYPES = ("obj", "ply", "stl", "glb", "gltf")
-"""Mesh file types the workers load (engine.geometry.meshio.SUPPORTED_MESH_TYPES, not imported:
-the service never imports the engine)."""
 
 SceneId = Annotated[Sha256, Path(description="Scene id (sha256 hex)")]
 
