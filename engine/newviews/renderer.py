@@ -1437,11 +1437,11 @@ class LDCViewRenderer:
         """Stage 4, timed as "ibrt": with ``ldc+ibrt:k`` (k >= 1) the view pass's mirror rays,
         traced through the LDC for k generations (``_trace_mirrors``) in 16 x 16 pixel tiles
         (``_tile_order``; the view pass's pixels are row-major)."""
+        trace_mirror = method == "ldc+ibrt" and k > 0
+        rays = vp.rays
         t0 = time.perf_counter()
         fr.counts["traced_rays"] = 0
         fr.counts["ibrt_steps"] = 0
-        trace_mirror = method == "ldc+ibrt" and k > 0
-        rays = vp.rays
         if rays.live.size:
             live = np.flatnonzero(rays.live)
             live = live[_tile_order(vp.pix[live], fr.width, _RAY_TILE)]

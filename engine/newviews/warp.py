@@ -381,9 +381,7 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
     win_side = np.empty((H, W), np.int8)
     bands = max(1, int(nb.get_num_threads()))  # z-buffer stripes and row groups: one per numba thread
     _init_buffers(zb, bands)
-    t0 = time.perf_counter()
-    _splat(ldc, camera, zb, bands, min_cos, max_footprint, footprint_scale)
-    t_splat = time.perf_counter() - t0
+    t_splat = _splat(ldc, camera, zb, bands, min_cos, max_footprint, footprint_scale)
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
     _detect_holes(zb, hole_rel_depth, hole_neighbors, holes, bands)
@@ -433,9 +431,9 @@ def _check_options(fill, caster, min_cos, max_footprint, footprint_scale, hole_r
 
 
 def _splat(ldc: LDC, camera: CameraParams, zb: np.ndarray, bands: int, min_cos: float, max_footprint: float,
-           footprint_scale: float) -> None:
+           footprint_scale: float) -> float:
     """Every sample of the three LDIs projected (``_project``) and written into the z-buffer
-    ``zb`` (``_write``), axis by axis."""
+    ``zb`` (``_write``), axis by axis. Returns the seconds the projection and writing took."""
     W, H = camera.width, camera.height
     right, up, fwd = camera.basis()
     eye = np.asarray(camera.eye, dtype=np.float64)
@@ -445,6 +443,7 @@ def _splat(ldc: LDC, camera: CameraParams, zb: np.ndarray, bands: int, min_cos: 
     n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
     closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
     closed[:len(ldc.closed_objects)] = ldc.closed_objects
+    t0 = time.perf_counter()
     for ax in ldc.axes:
         f = ax.ldi.frame
         n = ax.n_samples
@@ -455,6 +454,7 @@ def _splat(ldc: LDC, camera: CameraParams, zb: np.ndarray, bands: int, min_cos: 
                  ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
                  out_f, out_side, out_box, bands)
         _write(ax.axis, out_f, out_side, out_box, W, H, zb, bands)
+    return time.perf_counter() - t0
 
 
 def _raycast_fill(ldc: LDC, camera: CameraParams, caster: RayCaster, w: WarpResult, area_light_samples: int,
