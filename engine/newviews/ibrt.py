@@ -69,6 +69,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -838,24 +839,37 @@ def sample_records(ax) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return offs_m, rec, orig
 
 
-def trace_args(ldc: LDC) -> tuple:
+class TraceArrays(NamedTuple):
+    """An LDC's frames and per-sample records as the trace kernel reads them (``trace_args``)."""
+
+    perm: np.ndarray  #: (3, 3) int64 per axis the world component of u, v, w
+    origin: np.ndarray  #: (3, 3) float64 per axis the frame's origin
+    h: np.ndarray  #: (3,) float64 per axis the pixel size
+    resolution: np.ndarray  #: (3, 2) int64 per axis nu, nv
+    offsets: tuple  #: per axis (size^2 + 1,) int64 first record of each pixel, by Morton code
+    records: tuple  #: per axis (n, 4) float64 depth and geometric normal per record
+    sample: tuple  #: per axis (n,) int64 the LDI sample index of each record
+
+
+def trace_args(ldc: LDC) -> TraceArrays:
     """The LDC's arrays as the trace kernel takes them (build once per LDC for ``trace_prepared``)."""
     perm, org, hs, res = _frame_arrays(ldc)
     parts = [sample_records(ax) for ax in ldc.axes]
-    return perm, org, hs, res, tuple(p[0] for p in parts), tuple(p[1] for p in parts), tuple(p[2] for p in parts)
+    return TraceArrays(perm, org, hs, res, tuple(p[0] for p in parts), tuple(p[1] for p in parts),
+                       tuple(p[2] for p in parts))
 
 
-def trace_nbytes(args: tuple, accel: IBRTAccel) -> int:
+def trace_nbytes(args: TraceArrays, accel: IBRTAccel) -> int:
     """Memory of the traversal's structures for one LDC: the per-sample records of
     ``trace_args`` and the accel's packed node records once they are built (neither is
     stored; the accel's own arrays are ``accel.nbytes``)."""
-    n = sum(a.nbytes for g in args[4:] for a in g)
+    n = sum(a.nbytes for g in (args.offsets, args.records, args.sample) for a in g)
     if "node_records" in accel.__dict__:  # a cached_property, built on the first trace
         n += accel.node_records.nbytes
     return int(n)
 
 
-def trace_prepared(ldc: LDC, args: tuple, accel: IBRTAccel, o: np.ndarray, d: np.ndarray, *,
+def trace_prepared(ldc: LDC, args: TraceArrays, accel: IBRTAccel, o: np.ndarray, d: np.ndarray, *,
                    origin_normals: np.ndarray | None = None, self_eps: float = DEFAULT_SELF_EPS,
                    t_min: np.ndarray | None = None, t_max: np.ndarray | None = None,
                    use_tree: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
@@ -874,17 +888,16 @@ def trace_prepared(ldc: LDC, args: tuple, accel: IBRTAccel, o: np.ndarray, d: np
     out_t = np.empty(n)
     work = np.zeros(((n + _CHUNK - 1) // _CHUNK, 2), dtype=np.int64)
     if n:
-        perm, org, hs, res, offs_t, samp_t, orig_t = args
         nodei = accel.node_records.reshape(-1)  # flat: 4 node / 4 s index without the strides
-        _trace_kernel(max(1, nb.get_num_threads()), o, d, tlo, thi, selfinfo, perm, org, hs, res, offs_t,
-                      tuple(r.reshape(-1) for r in samp_t), use_tree, accel.layer_root, accel.root_level,
-                      nodei.view(np.float32), nodei, accel.zrange, accel.uvrange, accel.margin, accel.min_cos,
-                      float(self_eps), out_axis, out_sample, out_t, work)
+        _trace_kernel(max(1, nb.get_num_threads()), o, d, tlo, thi, selfinfo, args.perm, args.origin, args.h,
+                      args.resolution, args.offsets, tuple(r.reshape(-1) for r in args.records), use_tree,
+                      accel.layer_root, accel.root_level, nodei.view(np.float32), nodei, accel.zrange, accel.uvrange,
+                      accel.margin, accel.min_cos, float(self_eps), out_axis, out_sample, out_t, work)
         # record index -> LDI sample index (in the kernel this load missed the cache once per ray,
         # 2.7 % of its profile; vectorised here the misses overlap)
         for a in range(3):
             sel = out_axis == a
-            out_sample[sel] = orig_t[a][out_sample[sel]]
+            out_sample[sel] = args.sample[a][out_sample[sel]]
     return out_axis, out_sample, out_t, int(work[:, 0].sum()), int(work[:, 1].sum())
 
 
@@ -951,14 +964,3 @@ def trace_linear(ldc: LDC, accel: IBRTAccel, origins: np.ndarray, dirs: np.ndarr
     parameters and depth ranges)."""
     return _run(ldc, accel, origins, dirs, t_min, t_max, threads, self_eps, origin_normals, False)
 
-
-def surface_t_min(ldc: LDC, dirs: np.ndarray, normals: np.ndarray, pixels: float = 1.5) -> np.ndarray:
-    """A ``t_min`` for rays leaving a surface with normals ``normals`` (n, 3): ``pixels`` LDC
-    pixels measured along the normal (so ``pixels * h / |cos|``, the cosine clamped at 0.2).
-    An alternative to ``origin_normals`` (which measured better: docs/ldc.md) for callers
-    that want a plain distance cut-off."""
-    d = np.asarray(dirs, dtype=np.float64)
-    nr = np.asarray(normals, dtype=np.float64)
-    c = np.abs(np.einsum("ij,ij->i", d, nr)) / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(nr, axis=1),
-                                                          1e-300)
-    return pixels * ldc.h / np.maximum(c, 0.2)

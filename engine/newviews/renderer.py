@@ -49,6 +49,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -61,8 +62,15 @@ from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
 from engine.newviews.llf import LLF
-from engine.newviews.view_pass import gather_params, gather_point, gather_scratch, highlight_params, highlight_point_u
-from engine.newviews.warp import warp_ldc
+from engine.newviews.view_pass import (
+    GatherParams,
+    gather_params,
+    gather_point,
+    gather_scratch,
+    highlight_params,
+    highlight_point_u,
+)
+from engine.newviews.warp import WarpResult, warp_ldc
 from engine.raycast import RayCaster, make_caster
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import next_block
@@ -106,10 +114,160 @@ def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
     return spec.name, spec.ibrt_generations
 
 
+# ----------------------------------------------------------------------------- kernel parameters
+# The fused kernels take their arrays in named bundles (NamedTuples: numba passes a bundle like
+# its fields one by one and reads a field by name). A kernel takes a bundle's fields out ONCE per
+# thread, outside its pixel loop: a field read inside the loop of an inlined helper may cost an
+# atomic reference count per pixel on arrays both threads share.
+
+
+class KernelCamera(NamedTuple):
+    """The camera as the kernels take it (``kernel_camera``): one basis per render, and the
+    numbers ``_pixel_ray`` turns a flat pixel index into its eye ray with."""
+
+    ortho: bool  #: orthographic (else perspective)
+    eye: np.ndarray  #: (3,) float64 eye position
+    right: np.ndarray  #: (3,) float64 image x axis
+    up: np.ndarray  #: (3,) float64 image y axis
+    forward: np.ndarray  #: (3,) float64 viewing direction
+    width: int  #: pixels
+    height: int  #: pixels
+    tan_half_fov: float  #: tan(fov_y / 2) (perspective)
+    aspect: float  #: width / height
+    half_ortho_height: float  #: half the image height in world units (orthographic)
+    pixel_angle: float  #: a pixel's size per unit distance (perspective): 2 tan(fov_y / 2) / height
+    ortho_pixel: float  #: a pixel's size in world units (orthographic)
+
+
+def kernel_camera(camera: CameraParams) -> KernelCamera:
+    """``camera`` as the kernels take it."""
+    right, up, fwd = camera.basis()
+    th = float(np.tan(np.radians(camera.fov_y_deg) * 0.5))
+    px_size = 2.0 * math.tan(math.radians(camera.fov_y_deg) * 0.5) / camera.height
+    return KernelCamera(camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
+                        int(camera.width), int(camera.height), th, camera.width / camera.height,
+                        0.5 * camera.ortho_height, px_size, camera.ortho_height / camera.height)
+
+
+class AxisArrays(NamedTuple):
+    """One LDC axis as the fused kernels read it (``_ldc_axes``): its LDI frame and, per sample,
+    the bake's records."""
+
+    origin: np.ndarray  #: (3,) float64 the frame's origin
+    u: np.ndarray  #: (3,) float64 the frame's pixel axis u
+    v: np.ndarray  #: (3,) float64 the frame's pixel axis v
+    w: np.ndarray  #: (3,) float64 the frame's depth axis
+    h: float  #: pixel size
+    nu: int  #: pixels per row
+    sample_pixel: np.ndarray  #: (n,) int32 LDI pixel of every sample
+    depth: np.ndarray  #: (n,) float64 depth along w
+    geo_normal: np.ndarray  #: (n, 3) float32 geometric normal
+    normal: np.ndarray  #: (n, 3) float32 shading normal
+    material: np.ndarray  #: (n,) int32 material index
+    object: np.ndarray  #: (n,) int32 object index
+    diffuse: np.ndarray  #: (n, 2, 3) float32 view-independent radiance per side
+    visibility: np.ndarray  #: (2 n, W) uint64 light-visibility words, row 2 s + side
+    prim: np.ndarray  #: (n,) int32 triangle the sample lies on
+
+
+class PixelSamples(NamedTuple):
+    """Per flat camera pixel, the LDC sample it shows (the warp's, or a fill ray's hit)."""
+
+    axis: np.ndarray  #: (h w,) int8 LDC axis (-1: none)
+    index: np.ndarray  #: (h w,) int64 sample index on that axis
+    side: np.ndarray  #: (h w,) int8 side of the sample facing the camera (0: along the normal)
+
+
+class SurfaceMesh(NamedTuple):
+    """The triangles a sample's point is refined onto (``_refine_point``)."""
+
+    tri_p: np.ndarray  #: (nt, 3, 3) float64 vertex positions
+    tri_n: np.ndarray  #: (nt, 3, 3) float64 vertex normals
+    tri_ng: np.ndarray  #: (nt, 3) float64 geometric normals
+    neighbours: np.ndarray  #: (nt, 3) int32 edge neighbours for the walk ((0, 3): no walk)
+    ldc_h: float  #: the LDC's pixel size (the move limits are multiples of it)
+
+
+class RaycastRecords(NamedTuple):
+    """The surface records of the pixels the raycast fill shaded (no LDC sample behind them)."""
+
+    row: np.ndarray  #: (h w,) int64 flat pixel -> record row (-1: none); (0,) when there are none
+    p: np.ndarray  #: (n, 3) float64 points
+    ng: np.ndarray  #: (n, 3) float64 geometric normals (facing the camera)
+    ns: np.ndarray  #: (n, 3) float64 shading normals (facing the camera)
+    mat: np.ndarray  #: (n,) int32 materials
+    bits: np.ndarray  #: (n, W) uint64 light-visibility words
+
+
+class ViewPassSwitches(NamedTuple):
+    """What the view pass does, per material and per render."""
+
+    hl_mat: np.ndarray  #: (n_materials,) bool materials with highlights
+    rf_mat: np.ndarray  #: (n_materials,) bool materials with reflections (mirror or glossy)
+    gathered_mat: np.ndarray  #: (n_materials,) bool materials the gather does anything for
+    want_hl: bool  #: the method's highlights run (the plan or ``force`` says so)
+    want_rf: bool  #: the method's reflections run
+    force: bool  #: every pass on every covered pixel (adds exact zeros)
+    mirror: bool  #: the gather includes the mirror cone (not traced)
+    trace: bool  #: write each reflecting pixel's mirror ray (``MirrorRays``)
+    refine: bool  #: refine each sample's point onto its triangle at the pixel ray
+
+
+class ViewPassImage(NamedTuple):
+    """The flat image buffers the view pass adds to (row = flat pixel; ``lookups``: row = position in pix)."""
+
+    radiance: np.ndarray  #: (h w, 3) float64
+    normal: np.ndarray  #: (h w, 3) float32 shading normal used
+    prov: np.ndarray  #: (h w,) uint8 provenance (module docstring)
+    lookups: np.ndarray  #: (n_pix,) int64 LLF lookups per view-pass pixel
+
+
+class MirrorRays(NamedTuple):
+    """Mirror rays leaving surface points (row = the ray's slot; rows with ``live`` False are unused)."""
+
+    o: np.ndarray  #: (n, 3) float64 origins
+    d: np.ndarray  #: (n, 3) float64 unit directions
+    ng: np.ndarray  #: (n, 3) float64 geometric normals at the origins
+    thr: np.ndarray  #: (n, 3) float64 throughput (product of the kr met)
+    live: np.ndarray  #: (n,) bool the slot holds a ray
+
+
+def mirror_rays(n: int) -> MirrorRays:
+    """n empty ray slots (none live)."""
+    return MirrorRays(np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, np.bool_))
+
+
+class RayHits(NamedTuple):
+    """Where image-based rays hit the LDC (``engine.newviews.ibrt.trace_prepared``)."""
+
+    axis: np.ndarray  #: (n,) int8 LDC axis of the hit sample (-1: a miss)
+    sample: np.ndarray  #: (n,) int64 the sample on that axis
+    t: np.ndarray  #: (n,) float64 distance along the ray
+
+
+class TracedRays(NamedTuple):
+    """One generation of mirror rays, each adding to the pixel of its ``owner``."""
+
+    o: np.ndarray  #: (n, 3) float64 origins
+    d: np.ndarray  #: (n, 3) float64 unit directions
+    owner: np.ndarray  #: (n,) int64 row of the accumulator the ray adds to (distinct within a generation)
+    thr: np.ndarray  #: (n, 3) float64 throughput
+
+
+class Generation(NamedTuple):
+    """What one generation of ``_shade_hits`` does at its hits."""
+
+    last: bool  #: the last generation: its gather includes the mirror cone, no ray continues
+    has_llf: bool  #: there is a light field to gather from
+    gather_mat: np.ndarray  #: (n_materials,) bool the gather does anything (glossy; mirrors on the last)
+    force: bool  #: every term at every hit (adds exact zeros)
+    background: np.ndarray  #: (3,) float64 radiance of a miss
+
+
 # ----------------------------------------------------------------------------- fused per-pixel kernels
-# One launch per LDC axis with that axis' arrays passed one by one: numba indexes a tuple of
-# arrays with a run-time index, and unpacks tuples of arrays in calls, at the price of
-# reference counting per access (measured: several times the work itself).
+# The three LDC axes travel as three bundles (``ax0``, ``ax1``, ``ax2``) and each part of a launch
+# is a call with one of them, not a tuple of axes indexed by the axis at run time: numba does that
+# only at the price of reference counting per access (measured: several times the work itself).
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -156,15 +314,15 @@ def _interp_normal(t, bw, bu, bv, tri_n, tri_ng, g0, g1, g2):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _refine_point(ox, oy, oz, dx, dy, dz, t, tri_p, tri_n, tri_ng, nbr, max_move, px, py, pz, g0, g1, g2, n0, n1,
-                  n2):
-    """The pixel ray o + t d meets the surface of the sample's triangle t: move p there (when
-    within max_move) and interpolate the shading normal, flipped like g. With the mesh's edge
-    neighbours ``nbr`` ((nt, 3), ``engine.geometry.adjacency``; (0, 3): none) the walk first
+def _refine_point(ox, oy, oz, dx, dy, dz, t, mesh, max_move, px, py, pz, g0, g1, g2, n0, n1, n2):
+    """The pixel ray o + t d meets the surface of the sample's triangle t of ``mesh`` (a
+    ``SurfaceMesh``): move p there (when within max_move) and interpolate the shading normal,
+    flipped like g. With the mesh's edge neighbours (``engine.geometry.adjacency``; (0, 3): none) the walk first
     crosses edges to the triangle the ray crosses (up to 8 steps); where it ends inside a
     triangle that triangle's barycentrics are used, otherwise (a border, a silhouette, too many
     steps) triangle t's, clamped to [-0.25, 1.25] (mild extrapolation across its edges).
     Returns (p, ns), unchanged when the ray misses the plane or the crossing is too far."""
+    tri_p, tri_n, tri_ng, nbr = mesh.tri_p, mesh.tri_n, mesh.tri_ng, mesh.neighbours
     if nbr.shape[0] > 0:
         ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, t, tri_p, tri_ng, nbr, 8)
         if ok and min(bw, min(bu, bv)) >= -1e-6:
@@ -230,29 +388,49 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw, h, nu, spix, depth, geo, nrm,
-                     mat_a, vis2, prim, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
-                     tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
-                     radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live):
+def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays):
     """One parallel group of ``_view_pass_kernel``: the whole view-dependent pass of the camera
-    pixels ``pix`` whose sample is on LDC axis ``axis`` (-1: the raycast fill's records
-    ``rc_*``), in one pass: surface record, ``refine`` onto the sample's triangle, direction to
-    the eye, highlights and the light-field gather, added to ``radiance`` (flat (h*w, 3));
-    ``normal`` gets the shading normal used. With ``trace``: the pixel's mirror ray into
-    ``ray_*`` (row = position in pix). The threads take blocks of 64 pixels from ``counter``
-    (``engine.sched``: mirror and glossy pixels cluster in the image, and a core may be busy)."""
-    ortho, eye, right, up, fwd, W, H, th, aspect, hh, px_size, ortho_px = cam
-    # unpacked once per thread (see ``gather_point``)
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
-        c_idx, c_xyz = gp
-    ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
-        extent = hp
-    cand, best_c, pt = gather_scratch(dirs.shape[0])
-    bits = vis2 if axis >= 0 else rc_bits
-    org_t = (org[0], org[1], org[2])
-    fu_t = (fu[0], fu[1], fu[2])
-    fv_t = (fv[0], fv[1], fv[2])
-    fw_t = (fw[0], fw[1], fw[2])
+    pixels ``pix`` whose sample is on LDC axis ``axis`` (-1: the raycast fill's records), in one
+    pass: surface record, refinement onto the sample's triangle, direction to the eye,
+    highlights and the light-field gather, added to the image. The threads take blocks of 64
+    pixels from ``counter`` (``engine.sched``: mirror and glossy pixels cluster in the image,
+    and a core may be busy).
+
+    counter: (1,) int64 this part's block counter, shared by the threads.
+    axis: the LDC axis whose pixels this call shades (0, 1, 2), or -1 for the raycast fill's.
+    ax: that axis' ``AxisArrays`` (axis -1: any axis', unused).
+    pix: (n_pix,) int64 the view pass's flat pixels (row-major).
+    samples: ``PixelSamples``, the sample each pixel shows.
+    rc: ``RaycastRecords`` of the raycast fill's pixels.
+    cam: ``KernelCamera``.
+    mesh: ``SurfaceMesh`` for the refinement.
+    sw: ``ViewPassSwitches``.
+    hp, gp: ``HighlightParams``, ``GatherParams`` (``engine.newviews.view_pass``).
+    out: ``ViewPassImage``, added to.
+    rays: ``MirrorRays`` written with ``sw.trace`` (row = position in pix).
+    """
+    # Everything a pixel reads is taken out of the bundles here, once per thread: inlined helpers
+    # given a bundle would unpack it per pixel (``highlight_point_u``).
+    ortho, eye, fwd, px_size, ortho_px = cam.ortho, cam.eye, cam.forward, cam.pixel_angle, cam.ortho_pixel
+    s_axis, s_idx, s_side = samples.axis, samples.index, samples.side
+    spix, depth, geo, nrm, mat_a, prim = ax.sample_pixel, ax.depth, ax.geo_normal, ax.normal, ax.material, ax.prim
+    h, nu = ax.h, ax.nu
+    hl_mat, rf_mat, gathered_mat = sw.hl_mat, sw.rf_mat, sw.gathered_mat
+    want_hl, want_rf, force, mirror, trace, refine = sw.want_hl, sw.want_rf, sw.force, sw.mirror, sw.trace, sw.refine
+    rc_row, rc_p, rc_ng, rc_ns, rc_mat = rc.row, rc.p, rc.ng, rc.ns, rc.mat
+    radiance, normal, prov, lookups = out.radiance, out.normal, out.prov, out.lookups
+    ray_o, ray_d, ray_ng, ray_thr, ray_live = rays.o, rays.d, rays.ng, rays.thr, rays.live
+    ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+    pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
+    rc_, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
+    rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
+    kr = gp.kr
+    cand, best_c, pt = gather_scratch(gp.directions.shape[0])
+    bits = ax.visibility if axis >= 0 else rc.bits
+    org_t = (ax.origin[0], ax.origin[1], ax.origin[2])
+    fu_t = (ax.u[0], ax.u[1], ax.u[2])
+    fv_t = (ax.v[0], ax.v[1], ax.v[2])
+    fw_t = (ax.w[0], ax.w[1], ax.w[2])
     n = pix.shape[0]
     nblk = (n + 63) // 64
     while True:
@@ -272,15 +450,15 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                 m = mat_a[s]
                 brow = 2 * s + sd
                 if refine:
-                    ox, oy, oz, dx, dy, dz = _pixel_ray(r, ortho, eye, right, up, fwd, W, H, th, aspect, hh)
+                    ox, oy, oz, dx, dy, dz = _pixel_ray(r, cam)
                     if ortho:
                         reach = ortho_px
                     else:
                         ex, ey, ez = px - ox, py - oy, pz - oz
                         reach = px_size * math.sqrt(ex * ex + ey * ey + ez * ez)
-                    lim = 2.0 * (ldc_h + reach)
-                    px, py, pz, n0, n1, n2 = _refine_point(ox, oy, oz, dx, dy, dz, prim[s], tri_p, tri_n, tri_ng,
-                                                           nbr, lim, px, py, pz, g0, g1, g2, n0, n1, n2)
+                    lim = 2.0 * (mesh.ldc_h + reach)
+                    px, py, pz, n0, n1, n2 = _refine_point(ox, oy, oz, dx, dy, dz, prim[s], mesh, lim, px, py, pz,
+                                                           g0, g1, g2, n0, n1, n2)
             else:  # a pixel of the raycast fill
                 j = rc_row[r]
                 px, py, pz = rc_p[j, 0], rc_p[j, 1], rc_p[j, 2]
@@ -303,7 +481,7 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
             pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
             if want_hl and (force or hl_mat[m]):
                 h0, h1, h2 = highlight_point_u(r, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos, pt_int, dir_dir,
-                                               dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent)
+                                               dir_irr, rc_, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent)
                 radiance[r, 0] += h0
                 radiance[r, 1] += h1
                 radiance[r, 2] += h2
@@ -312,9 +490,7 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
                 # is zero); the call passes ~20 arrays on the stack, so it is skipped where it would
                 # return zeros (see _shade_group)
                 if force or gathered_mat[m]:
-                    f0, f1, f2, u = gather_point(pt, m, mirror, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs,
-                                                 f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h,
-                                                 res, bg_, c_off, c_idx, c_xyz)
+                    f0, f1, f2, u = gather_point(pt, m, mirror, True, force, cand, best_c, gp)
                     radiance[r, 0] += f0
                     radiance[r, 1] += f1
                     radiance[r, 2] += f2
@@ -339,40 +515,26 @@ def _view_pass_group(counter, axis, pix, s_axis, s_idx, s_side, org, fu, fv, fw,
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _view_pass_kernel(groups, with_rc, pix, s_axis, s_idx, s_side, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam,
-                      refine, nbr, ldc_h, tri_p, tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force,
-                      mirror, trace, hp, gp, radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live,
-                      org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0, nrm0, mat0, vis0, prim0,
-                      org1, fu1, fv1, fw1, h1, nu1, spix1, dep1, geo1, nrm1, mat1, vis1, prim1,
-                      org2, fu2, fv2, fw2, h2, nu2, spix2, dep2, geo2, nrm2, mat2, vis2, prim2):
+def _view_pass_kernel(groups, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, ax0, ax1, ax2):
     """The view-dependent pass of every pixel in ``pix`` in ONE parallel launch: the pixels whose
-    sample is on LDC axis 0, 1, 2 (their arrays ``*0``, ``*1``, ``*2``) and, ``with_rc``, those of
-    the raycast fill (axis -1, records ``rc_*``). Each part has its own block counter and a thread
+    sample is on LDC axis 0, 1, 2 (``AxisArrays`` ``ax0``, ``ax1``, ``ax2``) and, when ``rc`` has
+    records, those of the raycast fill (axis -1). Each part has its own block counter and a thread
     done with one goes on to the next (the parts are disjoint pixels), so there is one launch and
-    one tail instead of one per axis (a numba workqueue launch costs 0.1-0.3 ms here)."""
+    one tail instead of one per axis (a numba workqueue launch costs 0.1-0.3 ms here).
+    ``groups``: parallel groups (one per numba thread); the other parameters are
+    ``_view_pass_group``'s."""
     counters = np.zeros(4, np.int64)
     c_0 = counters[0:1]
     c_1 = counters[1:2]
     c_2 = counters[2:3]
     c_r = counters[3:4]
+    with_rc = rc.row.shape[0] > 0
     for _ in nb.prange(groups):
-        _view_pass_group(c_0, 0, pix, s_axis, s_idx, s_side, org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0, nrm0,
-                         mat0, vis0, prim0, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
-                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
-                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
-        _view_pass_group(c_1, 1, pix, s_axis, s_idx, s_side, org1, fu1, fv1, fw1, h1, nu1, spix1, dep1, geo1, nrm1,
-                         mat1, vis1, prim1, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
-                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
-                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
-        _view_pass_group(c_2, 2, pix, s_axis, s_idx, s_side, org2, fu2, fv2, fw2, h2, nu2, spix2, dep2, geo2, nrm2,
-                         mat2, vis2, prim2, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr, ldc_h, tri_p,
-                         tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror, trace, hp, gp,
-                         radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+        _view_pass_group(c_0, 0, ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_1, 1, ax1, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_2, 2, ax2, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
         if with_rc:  # the raycast fill's pixels (no LDC sample; axis 0's arrays are placeholders)
-            _view_pass_group(c_r, -1, pix, s_axis, s_idx, s_side, org0, fu0, fv0, fw0, h0, nu0, spix0, dep0, geo0,
-                             nrm0, mat0, vis0, prim0, rc_row, rc_p, rc_ng, rc_ns, rc_mat, rc_bits, cam, refine, nbr,
-                             ldc_h, tri_p, tri_n, tri_ng, hl_mat, rf_mat, gathered_mat, want_hl, want_rf, force, mirror,
-                             trace, hp, gp, radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live)
+            _view_pass_group(c_r, -1, ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -411,11 +573,11 @@ def _to_f32_count_nonfinite(radiance, depth, out):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _pixel_ray(r, ortho, eye, right, up, fwd, W, H, th, aspect, hh):
-    """The eye ray (o, d) through the centre of flat pixel r (``engine.camera.camera_rays``'
-    arithmetic, operation for operation: the same float64 rays), from the items of
-    ``LDCViewRenderer._camera_tuple`` (unpacked by the caller outside its loop: unpacking a tuple
-    of arrays increfs and decrefs each of them)."""
+def _pixel_ray(r, cam):
+    """The eye ray (o, d) through the centre of flat pixel r of ``cam`` (a ``KernelCamera``;
+    ``engine.camera.camera_rays``' arithmetic, operation for operation: the same float64 rays)."""
+    ortho, eye, right, up, fwd = cam.ortho, cam.eye, cam.right, cam.up, cam.forward
+    W, H, th, aspect, hh = cam.width, cam.height, cam.tan_half_fov, cam.aspect, cam.half_ortho_height
     sx = 2.0 * (r % W + 0.5) / W - 1.0
     sy = 1.0 - 2.0 * (r // W + 0.5) / H
     if ortho:
@@ -435,13 +597,11 @@ def _pixel_ray(r, ortho, eye, right, up, fwd, W, H, th, aspect, hh):
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _pixel_rays(pix, cam):
     """(o, d), each (n, 3) float64: the eye rays of the flat pixels ``pix`` (``_pixel_ray``)."""
-    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
     n = pix.shape[0]
     o = np.empty((n, 3))
     d = np.empty((n, 3))
     for i in nb.prange(n):
-        o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2] = _pixel_ray(pix[i], ortho, eye, right, up, fwd, W, H,
-                                                                          th, aspect, hh)
+        o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2] = _pixel_ray(pix[i], cam)
     return o, d
 
 
@@ -449,11 +609,10 @@ def _pixel_rays(pix, cam):
 def _rays_meet_box(pix, cam, lo, hi):
     """(n,) bool: the eye ray of flat pixel ``pix[i]`` meets the box [lo, hi] at t >= 0 (slab
     test; an axis the ray is parallel to is skipped, like the NaN-ignoring numpy version)."""
-    ortho, eye, right, up, fwd, W, H, th, aspect, hh, _, _ = cam
     n = pix.shape[0]
     keep = np.empty(n, np.bool_)
     for i in nb.prange(n):
-        ox, oy, oz, dx, dy, dz = _pixel_ray(pix[i], ortho, eye, right, up, fwd, W, H, th, aspect, hh)
+        ox, oy, oz, dx, dy, dz = _pixel_ray(pix[i], cam)
         tn = -np.inf
         tf = np.inf
         for a in range(3):
@@ -693,18 +852,37 @@ def _fill_from_hits(axis, holes, hit_axis, hit_sample, hit_t, d, geo, nrm, mat_a
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo, nrm, mat_a, diff, vis2, bg,
-                 last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, prim, tri_p,
-                 tri_n, tri_ng, nbr, ldc_h):
+def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt):
     """One parallel group of ``_shade_hits``, one axis: the rays that hit LDC axis ``axis`` (or, with
-    axis -1, missed everything). With edge neighbours ``nbr`` (non-empty) each hit is refined
-    like a camera pixel: onto the triangle the ray crosses, with its interpolated normal."""
-    # unpacked once per thread (see ``gather_point``)
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res, bg_, c_off, \
-        c_idx, c_xyz = gp
-    ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
-        extent = hp
-    cand, best_c, pt = gather_scratch(dirs.shape[0])
+    axis -1, missed everything). With edge neighbours in ``mesh`` each hit is refined like a
+    camera pixel: onto the triangle the ray crosses, with its interpolated normal.
+
+    counter: (1,) int64 this part's block counter, shared by the threads.
+    axis: the LDC axis whose hits this call shades (0, 1, 2), or -1 for the misses.
+    ax: that axis' ``AxisArrays`` (axis -1: any axis', unused).
+    hits: ``RayHits`` of ``rays``.
+    rays: ``TracedRays``, this generation's.
+    gen: ``Generation``.
+    hp, gp: ``HighlightParams``, ``GatherParams`` (``engine.newviews.view_pass``).
+    mesh: ``SurfaceMesh`` for the refinement.
+    acc: (n_owners, 3) float64 radiance accumulated per owner.
+    lookups: (n,) int64 LLF lookups per ray.
+    nxt: ``MirrorRays``, the next generation's rays (row = this ray's; ``live``: it continues).
+    """
+    # taken out of the bundles once per thread (see ``_view_pass_group``)
+    hit_axis, hit_sample, hit_t = hits.axis, hits.sample, hits.t
+    o, d, owner, thr = rays.o, rays.d, rays.owner, rays.thr
+    geo, nrm, mat_a, diff, vis2, prim = ax.geo_normal, ax.normal, ax.material, ax.diffuse, ax.visibility, ax.prim
+    last, has_llf, gather_mat, force, bg = gen.last, gen.has_llf, gen.gather_mat, gen.force, gen.background
+    cont, n_o, n_d, n_ng, n_thr = nxt.live, nxt.o, nxt.d, nxt.ng, nxt.thr
+    refine = mesh.neighbours.shape[0] > 0
+    max_move = 3.0 * mesh.ldc_h
+    ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+    pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
+    rc, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
+    rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
+    kr = gp.kr
+    cand, best_c, pt = gather_scratch(gp.directions.shape[0])
     n = o.shape[0]
     nblk = (n + 63) // 64
     while True:
@@ -726,9 +904,9 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
             sd = 1 if geo[s, 0] * d0 + geo[s, 1] * d1 + geo[s, 2] * d2 > 0.0 else 0
             g0, g1, g2, n0, n1, n2 = _sample_normals(geo[s, 0], geo[s, 1], geo[s, 2], nrm[s, 0], nrm[s, 1], nrm[s, 2],
                                                      sd)
-            if nbr.shape[0] > 0:
-                px, py, pz, n0, n1, n2 = _refine_point(o[i, 0], o[i, 1], o[i, 2], d0, d1, d2, prim[s], tri_p, tri_n,
-                                                       tri_ng, nbr, 3.0 * ldc_h, px, py, pz, g0, g1, g2, n0, n1, n2)
+            if refine:
+                px, py, pz, n0, n1, n2 = _refine_point(o[i, 0], o[i, 1], o[i, 2], d0, d1, d2, prim[s], mesh, max_move,
+                                                       px, py, pz, g0, g1, g2, n0, n1, n2)
             m = mat_a[s]
             wo0, wo1, wo2 = -d0, -d1, -d2
             pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
@@ -743,9 +921,7 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
             # on the last, the cone's, generation): the call is not inlined and passes ~20 arrays on the
             # stack (~160 pushes), 57 % of this kernel's samples on mirror_box when it ran for every hit
             if has_llf and (force or gather_mat[m]):
-                f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f,
-                                             table, dirs, pk_off, pk_depth, pk_rad, l_org, l_u, l_v, l_w, l_h, res,
-                                             bg_, c_off, c_idx, c_xyz)
+                f0, f1, f2, u = gather_point(pt, m, last, True, force, cand, best_c, gp)
                 l0 += f0
                 l1 += f1
                 l2 += f2
@@ -772,68 +948,116 @@ def _shade_group(counter, axis, hit_axis, hit_sample, hit_t, o, d, owner, thr, g
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _shade_hits(groups, hit_axis, hit_sample, hit_t, o, d, owner, thr, bg, last, has_llf, gather_mat, force, hp, gp,
-                    acc, lookups, cont, n_o, n_d, n_ng, n_thr, tri_p, tri_n, tri_ng, nbr, ldc_h, geo0, nrm0, mat0,
-                    diff0, vis0, prim0, geo1, nrm1, mat1, diff1, vis1, prim1, geo2, nrm2, mat2, diff2, vis2, prim2):
-    """One generation of traced mirror rays (module docstring of ``_shade_group``): at each hit
-    the sample's diffuse radiance + its highlights toward the ray + its glossy gather (+ the
-    mirror cone on the ``last`` generation) times the ray's throughput into ``acc[owner]``
-    (owners are distinct within a generation); a miss adds the background. Hits on mirrors
-    continue (``cont``, ``n_*``: the next generation's rays). The misses (axis -1) and the hits
-    on each LDC axis (its arrays ``*0``, ``*1``, ``*2``) in ONE call: a kernel call with these
-    tuples of arrays costs ~150 us of argument typing in numba's dispatcher, and one call per
-    axis was ~1 % of a render. Each axis has its own block counter; a thread done with one axis
-    goes on to the next (the axes' rays are disjoint). ``gather_mat``: per material, whether the
-    gather does anything in this generation (glossy, and mirrors on the last one)."""
+def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, ax1, ax2):
+    """One generation of traced mirror rays (``_shade_group``'s parameters): at each hit the
+    sample's diffuse radiance + its highlights toward the ray + its glossy gather (+ the mirror
+    cone on the ``last`` generation) times the ray's throughput into ``acc[owner]``; a miss adds
+    the background. Hits on mirrors continue (``nxt``: the next generation's rays). The misses
+    (axis -1) and the hits on each LDC axis (``AxisArrays`` ``ax0``, ``ax1``, ``ax2``) in ONE
+    call: each Python -> numba call pays ~150 us of argument typing for bundles this size, and
+    one call per axis was ~1 % of a render. Each axis has its own block counter; a thread done
+    with one axis goes on to the next (the axes' rays are disjoint). ``groups``: parallel groups
+    (one per numba thread)."""
     counters = np.zeros(4, np.int64)
     c_m = counters[0:1]
     c_0 = counters[1:2]
     c_1 = counters[2:3]
     c_2 = counters[3:4]
     for _ in nb.prange(groups):
-        _shade_group(c_m, -1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
-                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
-                     prim0, tri_p, tri_n,
-                     tri_ng, nbr, ldc_h)
-        _shade_group(c_0, 0, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo0, nrm0, mat0, diff0, vis0, bg,
-                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
-                     prim0, tri_p, tri_n,
-                     tri_ng, nbr, ldc_h)
-        _shade_group(c_1, 1, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo1, nrm1, mat1, diff1, vis1, bg,
-                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
-                     prim1, tri_p, tri_n,
-                     tri_ng, nbr, ldc_h)
-        _shade_group(c_2, 2, hit_axis, hit_sample, hit_t, o, d, owner, thr, geo2, nrm2, mat2, diff2, vis2, bg,
-                     last, has_llf, gather_mat, force, hp, gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr,
-                     prim2, tri_p, tri_n,
-                     tri_ng, nbr, ldc_h)
+        _shade_group(c_m, -1, ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_0, 0, ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_1, 1, ax1, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_2, 2, ax2, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
 
 
-def _ldc_axes(ldc: LDC) -> list[tuple]:
-    """Per LDC axis the arrays the fused kernels take: frame (origin, u, v, w, h, nu), the LDI
-    pixel of every sample (int32), depth, geometric and shading normal, material, object, diffuse, visibility as (2 n,
-    W) (row 2 s + side) and triangle id."""
+def _ldc_axes(ldc: LDC) -> tuple[AxisArrays, AxisArrays, AxisArrays]:
+    """Per LDC axis the arrays the fused kernels take (``AxisArrays``)."""
     out = []
     c = np.ascontiguousarray
     for ax in ldc.axes:
         f = ax.ldi.frame
         vis = c(ax.visibility, dtype=np.uint64)
-        out.append((c(f.origin, np.float64), c(f.u, np.float64), c(f.v, np.float64), c(f.w, np.float64), float(f.h),
-                    int(f.nu), ax.ldi.sample_pixels().astype(np.int32), c(ax.ldi.depth, np.float64),
-                    c(ax.geo_normal, np.float32), c(ax.normal, np.float32), c(ax.material, np.int32),
-                    c(ax.object, np.int32),
-                    c(ax.diffuse, np.float32), vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32)))
-    return out
+        out.append(AxisArrays(c(f.origin, np.float64), c(f.u, np.float64), c(f.v, np.float64), c(f.w, np.float64),
+                              float(f.h), int(f.nu), ax.ldi.sample_pixels().astype(np.int32),
+                              c(ax.ldi.depth, np.float64), c(ax.geo_normal, np.float32), c(ax.normal, np.float32),
+                              c(ax.material, np.int32), c(ax.object, np.int32), c(ax.diffuse, np.float32),
+                              vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32)))
+    return out[0], out[1], out[2]
 
 
-def _no_gather_params(scene: RuntimeScene) -> tuple:
+def _no_gather_params(scene: RuntimeScene) -> GatherParams:
     """``gather_params`` of an empty light field (typed like a real one; never gathered from)."""
     mt = scene.materials
     z3 = np.zeros((0, 3))
-    return (mt.kr, mt.kg, mt.gloss_exponent, 1.0, 3, 1, np.full((3, 3, 2), -1, np.int64), z3, np.zeros(1, np.int64),
-            np.zeros(0), np.zeros((0, 3), np.float32), z3, z3, z3, z3, np.zeros(0), 1,
-            np.asarray(scene.background, np.float64).reshape(3), np.zeros(10, np.int64), np.zeros(0, np.int64),
-            np.zeros((3, 0)))
+    return GatherParams(mt.kr, mt.kg, mt.gloss_exponent, n_c=1.0, cone_directions=3, f=1,
+                        table=np.full((3, 3, 2), -1, np.int64), directions=z3, pk_offsets=np.zeros(1, np.int64),
+                        pk_depth=np.zeros(0), pk_radiance=np.zeros((0, 3), np.float32), pk_origin=z3, pk_u=z3,
+                        pk_v=z3, pk_w=z3, pk_h=np.zeros(0), resolution=1,
+                        background=np.asarray(scene.background, np.float64).reshape(3),
+                        cone_offsets=np.zeros(10, np.int64), cone_index=np.zeros(0, np.int64),
+                        cone_xyz=np.zeros((3, 0)))
+
+
+def _no_raycast_records(visibility_words: int) -> RaycastRecords:
+    """``RaycastRecords`` of no pixels (typed like real ones)."""
+    z3 = np.zeros((0, 3))
+    return RaycastRecords(np.zeros(0, np.int64), z3, z3, z3, np.zeros(0, np.int32),
+                          np.zeros((0, visibility_words), np.uint64))
+
+
+@dataclass
+class _Frame:
+    """One render in progress: the camera, the warp's images as flat views (this render's own,
+    updated in place by the later stages: row = flat pixel y * w + x) and the bookkeeping the
+    result reports."""
+
+    camera: CameraParams
+    cam: KernelCamera  #: the camera as the kernels take it (one basis per render)
+    warp: WarpResult
+    radiance: np.ndarray  #: (h w, 3) float64
+    depth: np.ndarray  #: (h w,) float32
+    normal: np.ndarray  #: (h w, 3) float32
+    obj_id: np.ndarray  #: (h w,) int32
+    mat_id: np.ndarray  #: (h w,) int32
+    prov: np.ndarray  #: (h w,) uint8
+    samples: PixelSamples
+    progress: Callable[[float, str], None] | None
+    timings: dict[str, float] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    passes: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    def report(self, frac: float, stage: str) -> None:
+        if self.progress is not None:
+            self.progress(frac, stage)
+
+
+@dataclass
+class _FillRays:
+    """The pixels that take their own eye ray: ``pix`` = the hole pixels (the first ``n_holes``)
+    then the silhouette pixels, whose warped objects were ``sil_obj``."""
+
+    pix: np.ndarray
+    n_holes: int
+    n_silhouette: int
+    sil_obj: np.ndarray
+
+
+@dataclass
+class _ViewPassOut:
+    """What the view pass leaves for the mirror stage: its pixels, how many reflect, and their
+    mirror rays (``rays.live`` rows; none unless mirrors are traced)."""
+
+    pix: np.ndarray
+    n_reflect: int
+    rays: MirrorRays
 
 
 class LDCViewRenderer:
@@ -889,8 +1113,7 @@ class LDCViewRenderer:
         self._lock = threading.Lock()
         # kernel tables built once per renderer (the LDC, LLF and scene are immutable)
         self._axes = _ldc_axes(ldc)
-        # per axis (geo, nrm, material, diffuse, visibility, triangle) for _shade_hits
-        self._shade_axes = tuple(x for ax in self._axes for x in (ax[8], ax[9], ax[10], ax[12], ax[13], ax[14]))
+        self._mesh = SurfaceMesh(scene.tri_p, scene.tri_n, scene.tri_ng, self._nbr_refine, float(ldc.h))
         self._bounds = scene.bounds
         self._hp = highlight_params(scene, self.area_light_samples, self.seed)
         self._gp = gather_params(scene, llf) if llf is not None else _no_gather_params(scene)
@@ -926,7 +1149,7 @@ class LDCViewRenderer:
         return int(n)
 
     # ------------------------------------------------------------------ helpers
-    def _hole_rays(self, cam: tuple, w) -> np.ndarray:
+    def _hole_rays(self, cam: KernelCamera, w: WarpResult) -> np.ndarray:
         """The hole pixels worth a ray: covered pixels flagged as holes (a far surface seen
         through a crack), and uncovered pixels within ``hole_search_px`` of a covered one whose
         ray meets the scene's bounds. An uncovered pixel farther from every splat is background:
@@ -985,215 +1208,140 @@ class LDCViewRenderer:
                                    timings=r.timings, counts=r.counts, plan=r.plan)
 
     def _render(self, camera, method, k, progress, force, fill) -> LDCRenderResult:
+        """One render (``render``'s arguments, checked): the stages of the module docstring in
+        order, each timed under its name in ``timings``."""
         t_start = time.perf_counter()
-        sc, ldc = self.scene, self.ldc
-        timings: dict[str, float] = {}
-        counts: dict[str, int] = {}
-        passes: dict[str, dict] = {}
+        fr = self._warp(camera, progress)
+        rc = self._fill(fr, fill)
+        vp = self._view_pass(fr, method, k, force, rc)
+        self._mirrors(fr, vp, method, k, force)
+        return self._result(fr, method, k, fill, force, t_start)
 
-        def report(frac: float, stage: str) -> None:
-            if progress is not None:
-                progress(frac, stage)
+    def _warp(self, camera: CameraParams, progress) -> _Frame:
+        """Stage 1, timed as "warp" and "holes": every LDC sample splatted into the camera with a
+        depth test, holes flagged (``warp_ldc``). Returns the render's frame: the warp's images,
+        which the later stages update in place."""
+        w = warp_ldc(self.ldc, camera, fill="none", radiance_dtype=np.float64, **self.warp_options)
+        fr = _Frame(camera=camera, cam=kernel_camera(camera), warp=w, radiance=w.radiance.reshape(-1, 3),
+                    depth=w.depth.reshape(-1), normal=w.normal.reshape(-1, 3), obj_id=w.object_id.reshape(-1),
+                    mat_id=w.material_id.reshape(-1), prov=w.provenance.reshape(-1),
+                    samples=PixelSamples(w.sample_axis.reshape(-1), w.sample_index.reshape(-1),
+                                         w.sample_side.reshape(-1)), progress=progress)
+        fr.timings["warp"] = w.timings["splat"] + w.timings["resolve"]
+        fr.timings["holes"] = w.timings["holes"]
+        fr.passes["warp"] = {"ran": True, "why": "always: the LDC's view-independent radiance"}
+        fr.counts["warped_pixels"] = int((fr.prov == PROV_WARPED).sum())
+        fr.counts["hole_pixels"] = w.n_holes
+        fr.report(0.3, "warp")
+        return fr
 
-        cam = self._camera_tuple(camera)  # the camera as the kernels take it (one basis per render)
-        # ---- 1. warp
-        w = warp_ldc(ldc, camera, fill="none", radiance_dtype=np.float64, **self.warp_options)
-        timings["warp"] = w.timings["splat"] + w.timings["resolve"]
-        timings["holes"] = w.timings["holes"]
-        H, W = camera.height, camera.width
-        radiance = w.radiance.reshape(-1, 3)  # float64, this render's own
-        # the warp's images are this render's own: updated in place (flat views)
-        depth = w.depth.reshape(-1)
-        normal = w.normal.reshape(-1, 3)
-        obj_id = w.object_id.reshape(-1)
-        mat_id = w.material_id.reshape(-1)
-        prov = w.provenance.reshape(-1)
-        s_axis = w.sample_axis.reshape(-1)
-        s_idx = w.sample_index.reshape(-1)
-        s_side = w.sample_side.reshape(-1)
-        passes["warp"] = {"ran": True, "why": "always: the LDC's view-independent radiance"}
-        counts["warped_pixels"] = int((prov == PROV_WARPED).sum())
-        counts["hole_pixels"] = w.n_holes
-        report(0.3, "warp")
-
-        # ---- 2. holes
+    def _fill(self, fr: _Frame, fill: str) -> RaycastRecords | None:
+        """Stage 2, timed as "fill": the hole pixels worth a ray and the silhouette pixels take
+        their own eye ray (``_fill_rays``), through the LDC (``fill="ibrt"``: ``_ibrt_fill``) or
+        against the triangles (``"raycast"``: ``_raycast_fill``). Returns the raycast fill's
+        surface records (those pixels have no LDC sample), None without them."""
         t0 = time.perf_counter()
-        holes = self._hole_rays(cam, w)
-        counts["hole_rays"] = int(holes.size)
-        n_holes = int(holes.size)
-        sil = np.zeros(0, np.int64)
-        if self.silhouette_rays and fill != "none":
-            # pixels at visibility edges are resolved by their own eye ray too (module docstring)
-            is_hole = np.zeros(H * W, np.bool_)
-            is_hole[holes] = True
-            sil = _silhouette_pixels(obj_id, depth, s_side, is_hole, H, W, self.silhouette_rel_depth)
-            sil_obj = obj_id[sil].copy()
-            holes = np.concatenate([holes, sil])
-        counts["silhouette_rays"] = int(sil.size)
+        fr_rays = self._fill_rays(fr, fill)
+        holes, n_holes = fr_rays.pix, fr_rays.n_holes
         filled = 0
-        rc_pix = np.zeros(0, np.int64)  # pixels filled by the raycast fill (no LDC sample)
-        rc_surf = None
+        rc = None
         if fill != "none" and holes.size:
-            o, d = _pixel_rays(holes, cam)
+            o, d = _pixel_rays(holes, fr.cam)
             if fill == "ibrt":
-                counts["silhouette_mesh_hits"] = 0
-                if sil.size and self.silhouette_mesh_test:
-                    # Silhouette pixels: the mesh test decides first, from the triangles of the warp's
-                    # 3x3 winners the pixel ray crosses (docs/ldc.md); only the pixels where the ray
-                    # crosses none of them take an image-based ray (whose answer is within a cell of
-                    # the silhouette anyway). Hole pixels always take one.
-                    h_axis = np.full(holes.size, -1, np.int8)
-                    h_sample = np.full(holes.size, -1, np.int64)
-                    h_t = np.full(holes.size, np.inf)
-                    sl = slice(n_holes, None)
-                    counts["silhouette_mesh_hits"] = int(_silhouette_mesh_test(
-                        sil, o[sl], d[sl], h_axis[sl], h_sample[sl], h_t[sl], s_axis, s_idx, W, H, self._axes[0][14],
-                        self._axes[1][14], self._axes[2][14], sc.tri_p, sc.tri_ng, self._tri_obj, self._nbr,
-                        2.0 * float(ldc.h)))
-                    ray = np.concatenate([np.arange(n_holes), n_holes + np.flatnonzero(h_axis[sl] < 0)])
-                    r_axis, r_sample, r_t, n_steps, _ = self._trace(o[ray], d[ray])
-                    h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
-                    counts["fill_ibrt_rays"] = int(ray.size)
-                else:
-                    h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
-                    counts["fill_ibrt_rays"] = int(holes.size)
-                counts["fill_ibrt_steps"] = n_steps
-                # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
-                _clear_pixels(holes, np.asarray(ldc.background, np.float64), radiance, depth, normal, obj_id, mat_id,
-                              prov, s_axis, s_idx)
-                for a, (_, _, _, _, _, _, _, _, geo, nrm, mat_a, obj_a, diff, _, _) in enumerate(self._axes):
-                    _fill_from_hits(a, holes, h_axis, h_sample, h_t, d, geo, nrm, mat_a, obj_a, diff, radiance, depth,
-                                    normal, obj_id, mat_id, prov, s_axis, s_idx, s_side)
-                filled = int(np.count_nonzero(h_axis[:n_holes] >= 0))
+                filled = self._ibrt_fill(fr, fr_rays, o, d)
             else:
                 # the warp's (covered) value is replaced by the ray's answer
-                _clear_pixels(holes, np.asarray(ldc.background, np.float64), radiance, depth, normal, obj_id, mat_id,
-                              prov, s_axis, s_idx)
-                rc_pix, rc_surf = self._raycast_fill(o, d, holes, radiance, depth, normal, obj_id, mat_id, prov)
-                filled = int(np.count_nonzero(prov[holes[:n_holes]] == PROV_FILLED))
-        timings["fill"] = time.perf_counter() - t0
+                self._clear(fr, holes)
+                rc = self._raycast_fill(fr, o, d, holes)
+                filled = int(np.count_nonzero(fr.prov[holes[:n_holes]] == PROV_FILLED))
+        fr.timings["fill"] = time.perf_counter() - t0
+        counts = fr.counts
         counts["filled_pixels"] = filled
         # hole rays that met nothing: background the warp could not tell from a hole (most of
         # ``hole_pixels`` is uncovered background next to silhouettes; Embree agrees, docs/ldc.md)
         counts["hole_ray_misses"] = int(n_holes - filled) if fill != "none" else 0
         # silhouette pixels whose own ray showed another object (or nothing) than the splats did
-        counts["silhouette_changed"] = int(np.count_nonzero(obj_id[sil] != sil_obj)) if sil.size else 0
-        passes["fill"] = {"ran": bool(fill != "none" and holes.size), "how": fill,
-                          "why": (f"{n_holes} hole pixels, {sil.size} silhouette pixels" if holes.size
-                                  else "no holes, no silhouettes")}
-        report(0.5, "fill")
+        sil = holes[n_holes:]
+        counts["silhouette_changed"] = int(np.count_nonzero(fr.obj_id[sil] != fr_rays.sil_obj)) if sil.size else 0
+        fr.passes["fill"] = {"ran": bool(fill != "none" and holes.size), "how": fill,
+                             "why": (f"{n_holes} hole pixels, {sil.size} silhouette pixels" if holes.size
+                                     else "no holes, no silhouettes")}
+        fr.report(0.5, "fill")
+        return rc
 
-        # ---- 3. view-dependent pass: one fused kernel over the selected pixels
-        t0 = time.perf_counter()
-        nondiffuse = self._has_ks | self._has_kr | self._has_kg
-        want_vp = force or self.plan.needs_view_pass
-        reflect = method != "ldc"
-        refl_mat = self._has_kr | self._has_kg
-        want_rf = want_vp and reflect
-        if want_rf and self.llf is None:
-            covered = obj_id >= 0
-            if force or np.any(covered & refl_mat[np.where(covered, mat_id, 0)]):
-                if force and not self.plan.needs_llf:
-                    want_rf = False
-                    passes["gather_note"] = {"why": "forced, but there is no LLF to gather from"}
-                else:
-                    raise InvalidInputError(f"method {method!r} needs the bake's LLF (the scene has glossy or mirror "
-                                            "materials) but this bake has none; use method 'ldc' or rebake with an "
-                                            "LLF")
-        vp_pix, n_hl, n_rf = _select_view_pass(obj_id, mat_id, self._has_ks, refl_mat, bool(want_vp), bool(want_rf),
-                                               force)
-        counts["view_pass_pixels"] = int(vp_pix.size)
-        counts["highlight_pixels"] = int(n_hl)
-        counts["reflection_pixels"] = int(n_rf)
-        why_vp = ("forced on every covered pixel" if force else
-                  ("the plan has non-diffuse materials" if self.plan.needs_view_pass
-                   else "skipped: every material is diffuse"))
-        trace_mirror = method == "ldc+ibrt" and k > 0
-        nv = vp_pix.size
-        lookups = np.zeros(nv, np.int64)
-        nr = nv if (trace_mirror and n_rf) else 0
-        ray_o, ray_d, ray_ng, ray_thr = (np.empty((nr, 3)) for _ in range(4))
-        ray_live = np.zeros(nr, np.bool_)
-        gathered_mat = self._has_kg if trace_mirror else refl_mat
-        if nv:
-            if rc_surf is not None:
-                rc_row = np.full(H * W, -1, np.int64)
-                rc_row[rc_pix] = np.arange(rc_pix.size)
-                rc_p, rc_ng, rc_ns, rc_mat, rc_bits = rc_surf
-                if rc_bits.shape[1] != ldc.visibility_words:
-                    rc_bits = np.zeros((rc_pix.size, ldc.visibility_words), np.uint64)
-            else:
-                rc_row = np.zeros(0, np.int64)
-                rc_p = rc_ng = rc_ns = np.zeros((0, 3))
-                rc_mat = np.zeros(0, np.int32)
-                rc_bits = np.zeros((0, ldc.visibility_words), np.uint64)
-            vp_axes = []
-            for org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, _, _, vis2, prim in self._axes:
-                vp_axes += [org, fu, fv, fw, h, nu, spix, dep, geo, nrm, mat_a, vis2, prim]
-            _view_pass_kernel(_groups(), rc_surf is not None, vp_pix, s_axis, s_idx, s_side, rc_row,
-                              np.ascontiguousarray(rc_p, np.float64), np.ascontiguousarray(rc_ng, np.float64),
-                              np.ascontiguousarray(rc_ns, np.float64), np.ascontiguousarray(rc_mat, np.int32),
-                              np.ascontiguousarray(rc_bits, np.uint64), cam, self.refine_surface, self._nbr_refine,
-                              float(ldc.h), sc.tri_p, sc.tri_n, sc.tri_ng, self._has_ks, refl_mat, gathered_mat,
-                              bool(want_vp), bool(want_rf), force, not trace_mirror, nr > 0, self._hp, self._gp,
-                              radiance, normal, prov, lookups, ray_o, ray_d, ray_ng, ray_thr, ray_live, *vp_axes)
-        # the fused kernel does surface records, refinement, highlights and the gather: all in "surfaces"
-        timings["surfaces"] = time.perf_counter() - t0
-        timings["highlights"] = 0.0
-        timings["gather"] = 0.0
-        passes["highlights"] = {"ran": bool(n_hl), "why": why_vp, "pixels": int(n_hl)}
-        report(0.6, "highlights")
-        counts["gather_lookups"] = int(lookups.sum())
-        # provenance is at most PROV_FILLED before this pass: the gathered ones were set by the kernel
-        counts["gather_pixels"] = int(np.count_nonzero(prov[vp_pix] == PROV_GATHERED)) if n_rf else 0
-        passes["gather"] = {"ran": bool(n_rf),
-                            "what": ("glossy lobe" if trace_mirror else "mirror cone + glossy lobe"),
-                            "why": ("method 'ldc' has no reflections" if not reflect else why_vp)}
-        report(0.75, "gather")
+    def _fill_rays(self, fr: _Frame, fill: str) -> _FillRays:
+        """The pixels that take an eye ray in the fill: the hole pixels worth one (``_hole_rays``)
+        and, with ``silhouette_rays`` (and a fill), the covered pixels at visibility edges of
+        the warped image (module docstring)."""
+        holes = self._hole_rays(fr.cam, fr.warp)
+        fr.counts["hole_rays"] = int(holes.size)
+        n_holes = int(holes.size)
+        sil = np.zeros(0, np.int64)
+        sil_obj = np.zeros(0, np.int32)
+        if self.silhouette_rays and fill != "none":
+            is_hole = np.zeros(fr.height * fr.width, np.bool_)
+            is_hole[holes] = True
+            sil = _silhouette_pixels(fr.obj_id, fr.depth, fr.samples.side, is_hole, fr.height, fr.width,
+                                     self.silhouette_rel_depth)
+            sil_obj = fr.obj_id[sil].copy()
+            holes = np.concatenate([holes, sil])
+        fr.counts["silhouette_rays"] = int(sil.size)
+        return _FillRays(holes, n_holes, int(sil.size), sil_obj)
 
-        t0 = time.perf_counter()
-        counts["traced_rays"] = 0
-        counts["ibrt_steps"] = 0
-        if nr:
-            # the mirror rays in 16 x 16 pixel tiles (``_tile_order``), the view pass's pixels row-major
-            live = np.flatnonzero(ray_live)
-            live = live[_tile_order(vp_pix[live], W, _RAY_TILE)]
-            traced = vp_pix[live]
-            self._trace_mirrors(traced, ray_o[live], ray_d[live], ray_ng[live], ray_thr[live], k, radiance, counts,
-                                force)
-            prov[traced[self._has_kr[mat_id[traced]]]] = PROV_TRACED
-        timings["ibrt"] = time.perf_counter() - t0
-        passes["ibrt"] = {"ran": bool(trace_mirror and n_rf), "generations": k,
-                          "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
-        report(0.95, "ibrt")
+    def _ibrt_fill(self, fr: _Frame, rays: _FillRays, o: np.ndarray, d: np.ndarray) -> int:
+        """The image-based fill of ``rays.pix`` (eye rays o, d): the silhouette pixels' mesh test
+        first, then one image-based ray per hole pixel and per silhouette pixel the test left
+        open; every such pixel then shows the ray's hit sample, or the background. Returns how
+        many hole pixels a ray filled."""
+        holes, n_holes = rays.pix, rays.n_holes
+        counts = fr.counts
+        counts["silhouette_mesh_hits"] = 0
+        if rays.n_silhouette and self.silhouette_mesh_test:
+            # Silhouette pixels: the mesh test decides first, from the triangles of the warp's
+            # 3x3 winners the pixel ray crosses (docs/ldc.md); only the pixels where the ray
+            # crosses none of them take an image-based ray (whose answer is within a cell of
+            # the silhouette anyway). Hole pixels always take one.
+            h_axis = np.full(holes.size, -1, np.int8)
+            h_sample = np.full(holes.size, -1, np.int64)
+            h_t = np.full(holes.size, np.inf)
+            sl = slice(n_holes, None)
+            ax0, ax1, ax2 = self._axes
+            counts["silhouette_mesh_hits"] = int(_silhouette_mesh_test(
+                holes[sl], o[sl], d[sl], h_axis[sl], h_sample[sl], h_t[sl], fr.samples.axis, fr.samples.index,
+                fr.width, fr.height, ax0.prim, ax1.prim, ax2.prim, self.scene.tri_p, self.scene.tri_ng,
+                self._tri_obj, self._nbr, 2.0 * float(self.ldc.h)))
+            ray = np.concatenate([np.arange(n_holes), n_holes + np.flatnonzero(h_axis[sl] < 0)])
+            r_axis, r_sample, r_t, n_steps, _ = self._trace(o[ray], d[ray])
+            h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
+            counts["fill_ibrt_rays"] = int(ray.size)
+        else:
+            h_axis, h_sample, h_t, n_steps, _ = self._trace(o, d)
+            counts["fill_ibrt_rays"] = int(holes.size)
+        counts["fill_ibrt_steps"] = n_steps
+        # the warp's (covered) value is replaced by the ray's answer: a sample, or the background
+        self._clear(fr, holes)
+        s = fr.samples
+        for a, ax in enumerate(self._axes):
+            _fill_from_hits(a, holes, h_axis, h_sample, h_t, d, ax.geo_normal, ax.normal, ax.material, ax.object,
+                            ax.diffuse, fr.radiance, fr.depth, fr.normal, fr.obj_id, fr.mat_id, fr.prov, s.axis,
+                            s.index, s.side)
+        return int(np.count_nonzero(h_axis[:n_holes] >= 0))
 
-        out = np.empty((H, W, 3), np.float32)
-        if _to_f32_count_nonfinite(radiance, depth, out.reshape(-1, 3)):
-            raise NonFiniteOutputError("LDC render produced non-finite values")
-        timings["total"] = time.perf_counter() - t_start
-        plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,
-                "refine_surface": self.refine_surface, "refine_walk": self.refine_surface and self.refine_walk,
-                "silhouette_rays": self.silhouette_rays and fill != "none",
-                "silhouette_mesh_test": self.silhouette_mesh_test and self.silhouette_rays and fill == "ibrt",
-                "force_all_passes": force, "passes": passes, "effects": self.plan.to_dict(),
-                "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
-        report(1.0, "done")
-        return LDCRenderResult(radiance=out, depth=depth.reshape(H, W).astype(np.float32, copy=False),
-                               normal=normal.reshape(H, W, 3).astype(np.float32, copy=False),
-                               object_id=obj_id.reshape(H, W).astype(np.int32, copy=False),
-                               material_id=mat_id.reshape(H, W).astype(np.int32, copy=False),
-                               provenance=prov.reshape(H, W).astype(np.uint8, copy=False), hole_mask=w.hole_mask,
-                               timings=timings, counts=counts, plan=plan)
+    def _clear(self, fr: _Frame, pix: np.ndarray) -> None:
+        """Pixels ``pix`` show the background and no sample (before a ray's answer replaces them)."""
+        _clear_pixels(pix, np.asarray(self.ldc.background, np.float64), fr.radiance, fr.depth, fr.normal, fr.obj_id,
+                      fr.mat_id, fr.prov, fr.samples.axis, fr.samples.index)
 
-    def _raycast_fill(self, o, d, holes, radiance, depth, normal, obj_id, mat_id, prov):
-        """Interim fill: Embree rays against the triangles, shaded with the bake's diffuse model."""
+    def _raycast_fill(self, fr: _Frame, o, d, holes) -> RaycastRecords | None:
+        """Interim fill: Embree rays against the triangles, shaded with the bake's diffuse model.
+        Returns the surface records of the pixels it shaded (None: it shaded none)."""
         sc, ldc = self.scene, self.ldc
         caster = self.caster
         hit = caster.intersect(o, d)
         ok = hit.prim >= 0
         pix = holes[ok]
         if not pix.size:
-            return pix, None
+            return None
         p, ng, ns = surface_attributes(sc, hit.prim[ok], hit.u[ok], hit.v[ok])
         mat = sc.tri_material[hit.prim[ok]].astype(np.int32)
         occl = np.asarray(ldc.plan.get("occludable_lights", [True] * sc.lights.count), dtype=np.bool_)
@@ -1206,22 +1354,124 @@ class LDCViewRenderer:
         g = ng * sg
         n = ns * sg
         n = np.where((np.einsum("ij,ij->i", n, g) > 0)[:, None], n, g)
-        radiance[pix] = rad[r, side]
-        depth[pix] = hit.t[ok]
-        normal[pix] = n
-        obj_id[pix] = sc.tri_object[hit.prim[ok]]
-        mat_id[pix] = mat
-        prov[pix] = PROV_FILLED
+        fr.radiance[pix] = rad[r, side]
+        fr.depth[pix] = hit.t[ok]
+        fr.normal[pix] = n
+        fr.obj_id[pix] = sc.tri_object[hit.prim[ok]]
+        fr.mat_id[pix] = mat
+        fr.prov[pix] = PROV_FILLED
         bits = vis[r, side] if store else np.zeros((pix.size, 0), np.uint64)
-        return pix, (p, g, n, mat, bits)
+        if bits.shape[1] != ldc.visibility_words:
+            bits = np.zeros((pix.size, ldc.visibility_words), np.uint64)
+        row = np.full(fr.height * fr.width, -1, np.int64)
+        row[pix] = np.arange(pix.size)
+        c = np.ascontiguousarray
+        return RaycastRecords(row, c(p, np.float64), c(g, np.float64), c(n, np.float64), c(mat, np.int32),
+                              c(bits, np.uint64))
 
-    def _camera_tuple(self, camera: CameraParams) -> tuple:
-        right, up, fwd = camera.basis()
-        th = float(np.tan(np.radians(camera.fov_y_deg) * 0.5))
-        px_size = 2.0 * math.tan(math.radians(camera.fov_y_deg) * 0.5) / camera.height
-        return (camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd, int(camera.width),
-                int(camera.height), th, camera.width / camera.height, 0.5 * camera.ortho_height, px_size,
-                camera.ortho_height / camera.height)
+    def _view_pass(self, fr: _Frame, method: str, k: int, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
+        """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
+        them): on the covered pixels whose material needs it (the effect plan, or every one
+        with ``force``), the surface record, its refinement, the highlights and the light-field
+        gather (``_view_pass_kernel``); with ``ldc+ibrt:k`` (k >= 1) the mirror rays instead of
+        the mirror cone."""
+        t0 = time.perf_counter()
+        counts, passes = fr.counts, fr.passes
+        want_vp = force or self.plan.needs_view_pass
+        reflect = method != "ldc"
+        refl_mat = self._has_kr | self._has_kg
+        want_rf = want_vp and reflect
+        if want_rf and self.llf is None:
+            covered = fr.obj_id >= 0
+            if force or np.any(covered & refl_mat[np.where(covered, fr.mat_id, 0)]):
+                if force and not self.plan.needs_llf:
+                    want_rf = False
+                    passes["gather_note"] = {"why": "forced, but there is no LLF to gather from"}
+                else:
+                    raise InvalidInputError(f"method {method!r} needs the bake's LLF (the scene has glossy or mirror "
+                                            "materials) but this bake has none; use method 'ldc' or rebake with an "
+                                            "LLF")
+        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
+                                               bool(want_rf), force)
+        counts["view_pass_pixels"] = int(vp_pix.size)
+        counts["highlight_pixels"] = int(n_hl)
+        counts["reflection_pixels"] = int(n_rf)
+        why_vp = self._why_view_pass(force)
+        trace_mirror = method == "ldc+ibrt" and k > 0
+        nv = vp_pix.size
+        lookups = np.zeros(nv, np.int64)
+        rays = mirror_rays(nv if (trace_mirror and n_rf) else 0)
+        if nv:
+            sw = ViewPassSwitches(hl_mat=self._has_ks, rf_mat=refl_mat,
+                                  gathered_mat=self._has_kg if trace_mirror else refl_mat, want_hl=bool(want_vp),
+                                  want_rf=bool(want_rf), force=force, mirror=not trace_mirror,
+                                  trace=rays.live.size > 0, refine=self.refine_surface)
+            _view_pass_kernel(_groups(), vp_pix, fr.samples,
+                              rc if rc is not None else _no_raycast_records(self.ldc.visibility_words), fr.cam,
+                              self._mesh, sw, self._hp, self._gp,
+                              ViewPassImage(fr.radiance, fr.normal, fr.prov, lookups), rays, *self._axes)
+        fr.timings["surfaces"] = time.perf_counter() - t0
+        fr.timings["highlights"] = 0.0
+        fr.timings["gather"] = 0.0
+        passes["highlights"] = {"ran": bool(n_hl), "why": why_vp, "pixels": int(n_hl)}
+        fr.report(0.6, "highlights")
+        counts["gather_lookups"] = int(lookups.sum())
+        # provenance is at most PROV_FILLED before this pass: the gathered ones were set by the kernel
+        counts["gather_pixels"] = int(np.count_nonzero(fr.prov[vp_pix] == PROV_GATHERED)) if n_rf else 0
+        passes["gather"] = {"ran": bool(n_rf),
+                            "what": ("glossy lobe" if trace_mirror else "mirror cone + glossy lobe"),
+                            "why": ("method 'ldc' has no reflections" if not reflect else why_vp)}
+        fr.report(0.75, "gather")
+        return _ViewPassOut(vp_pix, int(n_rf), rays)
+
+    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, method: str, k: int, force: bool) -> None:
+        """Stage 4, timed as "ibrt": with ``ldc+ibrt:k`` (k >= 1) the view pass's mirror rays,
+        traced through the LDC for k generations (``_trace_mirrors``) in 16 x 16 pixel tiles
+        (``_tile_order``; the view pass's pixels are row-major)."""
+        trace_mirror = method == "ldc+ibrt" and k > 0
+        rays = vp.rays
+        t0 = time.perf_counter()
+        fr.counts["traced_rays"] = 0
+        fr.counts["ibrt_steps"] = 0
+        if rays.live.size:
+            live = np.flatnonzero(rays.live)
+            live = live[_tile_order(vp.pix[live], fr.width, _RAY_TILE)]
+            traced = vp.pix[live]
+            self._trace_mirrors(traced, rays.o[live], rays.d[live], rays.ng[live], rays.thr[live], k, fr.radiance,
+                                fr.counts, force)
+            fr.prov[traced[self._has_kr[fr.mat_id[traced]]]] = PROV_TRACED
+        fr.timings["ibrt"] = time.perf_counter() - t0
+        why_vp = self._why_view_pass(force)
+        fr.passes["ibrt"] = {"ran": bool(trace_mirror and vp.n_reflect), "generations": k,
+                             "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
+        fr.report(0.95, "ibrt")
+
+    def _why_view_pass(self, force: bool) -> str:
+        return ("forced on every covered pixel" if force else
+                ("the plan has non-diffuse materials" if self.plan.needs_view_pass
+                 else "skipped: every material is diffuse"))
+
+    def _result(self, fr: _Frame, method: str, k: int, fill: str, force: bool, t_start: float) -> LDCRenderResult:
+        """The frame as an ``LDCRenderResult`` (float32 radiance, checked finite) with the plan that ran."""
+        H, W = fr.height, fr.width
+        out = np.empty((H, W, 3), np.float32)
+        if _to_f32_count_nonfinite(fr.radiance, fr.depth, out.reshape(-1, 3)):
+            raise NonFiniteOutputError("LDC render produced non-finite values")
+        fr.timings["total"] = time.perf_counter() - t_start
+        nondiffuse = self._has_ks | self._has_kr | self._has_kg
+        plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,
+                "refine_surface": self.refine_surface, "refine_walk": self.refine_surface and self.refine_walk,
+                "silhouette_rays": self.silhouette_rays and fill != "none",
+                "silhouette_mesh_test": self.silhouette_mesh_test and self.silhouette_rays and fill == "ibrt",
+                "force_all_passes": force, "passes": fr.passes, "effects": self.plan.to_dict(),
+                "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
+        fr.report(1.0, "done")
+        return LDCRenderResult(radiance=out, depth=fr.depth.reshape(H, W).astype(np.float32, copy=False),
+                               normal=fr.normal.reshape(H, W, 3).astype(np.float32, copy=False),
+                               object_id=fr.obj_id.reshape(H, W).astype(np.int32, copy=False),
+                               material_id=fr.mat_id.reshape(H, W).astype(np.int32, copy=False),
+                               provenance=fr.prov.reshape(H, W).astype(np.uint8, copy=False),
+                               hole_mask=fr.warp.hole_mask, timings=fr.timings, counts=fr.counts, plan=plan)
 
     def _trace(self, o: np.ndarray, d: np.ndarray, origin_normals: np.ndarray | None = None):
         """(axis, sample, t, n_steps, n_tests) of rays o + t d (d unit) through the LDC."""
@@ -1236,8 +1486,7 @@ class LDCViewRenderer:
         """k generations of image-based mirror rays (origins o, unit directions d, surface
         normals ng_o at the origins, throughput thr = kr) ending in the cone gather (module
         docstring); adds the traced radiance to ``radiance[pix]``."""
-        ldc = self.ldc
-        bg = np.asarray(ldc.background, np.float64)
+        bg = np.asarray(self.ldc.background, np.float64)
         owner = np.arange(pix.size)
         acc = np.zeros((pix.size, 3))
         for gen in range(1, k + 1):
@@ -1249,20 +1498,19 @@ class LDCViewRenderer:
             counts["ibrt_steps"] += n_steps
             last = gen == k
             lookups = np.zeros(n, np.int64)
-            cont = np.zeros(n, np.bool_)
-            m = 0 if last else n
-            n_o, n_d, n_ng, n_thr = (np.empty((m, 3)) for _ in range(4))
-            sc = self.scene
+            m = 0 if last else n  # the last generation writes no next rays (only ``live``, all False)
+            nxt = MirrorRays(np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)),
+                             np.zeros(n, np.bool_))
             gather_mat = (self._has_kg | self._has_kr) if last else self._has_kg
-            _shade_hits(_groups(), h_axis, h_sample, h_t, o, d, owner, thr, bg, last, self.llf is not None,
-                        gather_mat, force, self._hp, self._gp, acc, lookups, cont, n_o, n_d, n_ng, n_thr, sc.tri_p,
-                        sc.tri_n, sc.tri_ng, self._nbr_refine, float(ldc.h), *self._shade_axes)
+            _shade_hits(_groups(), RayHits(h_axis, h_sample, h_t), TracedRays(o, d, owner, thr),
+                        Generation(last, self.llf is not None, gather_mat, force, bg), self._hp, self._gp, self._mesh,
+                        acc, lookups, nxt, *self._axes)
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break
-            nxt = np.flatnonzero(cont)
-            owner = owner[nxt]
-            o, d, ng_o, thr = n_o[nxt], n_d[nxt], n_ng[nxt], n_thr[nxt]
+            go = np.flatnonzero(nxt.live)
+            owner = owner[go]
+            o, d, ng_o, thr = nxt.o[go], nxt.d[go], nxt.ng[go], nxt.thr[go]
         radiance[pix] += acc
 
 

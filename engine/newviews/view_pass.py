@@ -48,6 +48,7 @@ outside the view) gives the background.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -75,6 +76,32 @@ def mirror_cone_exponent(llf: LLF) -> float:
 # ----------------------------------------------------------------------------- highlights
 
 
+class HighlightParams(NamedTuple):
+    """What ``highlight_point_u`` needs besides the point: the scene's specular material table
+    and light table (``engine.scene``'s, with the derived columns the light samplers want), the
+    rect-light jitter and the ray-offset scale. Built by ``highlight_params``; the kernels take it
+    whole and unpack it once per thread (see ``highlight_point_u``)."""
+
+    ks: np.ndarray  #: (n_materials, 3) float64 Phong specular colour
+    shininess: np.ndarray  #: (n_materials,) float64 Phong exponent s (0: no highlight)
+    spec_cut: np.ndarray  #: (n_materials,) float64 cos(wl, wr) below which cos^s < e^-40 is skipped (-1: none)
+    point_position: np.ndarray  #: (n_point, 3) float64 point lights' positions
+    point_intensity: np.ndarray  #: (n_point, 3) float64 their intensities
+    dir_direction: np.ndarray  #: (n_dir, 3) float64 directional lights' directions (of travel)
+    dir_irradiance: np.ndarray  #: (n_dir, 3) float64 their irradiances
+    rect_corner: np.ndarray  #: (n_rect, 3) float64 rect lights' corners
+    rect_edge_u: np.ndarray  #: (n_rect, 3) float64 their first edges
+    rect_edge_v: np.ndarray  #: (n_rect, 3) float64 their second edges
+    rect_normal: np.ndarray  #: (n_rect, 3) float64 unit normals (edge_u x edge_v)
+    rect_area: np.ndarray  #: (n_rect,) float64 areas
+    rect_radiance: np.ndarray  #: (n_rect, 3) float64 emitted radiances
+    rect_two_sided: np.ndarray  #: (n_rect,) bool emit from both faces
+    rect_grid: int  #: g: a rect light is sampled on a g x g jittered grid (g^2 ~ area_light_samples)
+    stream: int  #: counter-based RNG stream of the rect-light jitter (``engine.rng``)
+    center: np.ndarray  #: (3,) float64 the scene's centre, for the shadow-ray offset
+    extent: float  #: the scene's extent, for the shadow-ray offset
+
+
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _phong_pow(c, s):
     if c <= 0.0:
@@ -87,13 +114,25 @@ def _phong_pow(c, s):
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv,
                       r_n, r_area, rL, r2s, r_g, stream, center, extent):
-    """Phong highlights (r, g, b) at one point (module docstring): ``pt`` holds p, g, n, wo (12
-    floats, as ``gather_point`` takes them), ``bits[brow]`` the point's (W,) uint64 visibility
-    words, ``key`` the point's counter for rect-light jitter; then the ``highlight_params``
-    tuple's items. Inlined into the callers' loops: unpack the tuple ONCE outside a loop (each
-    unpacking increfs and decrefs every array, atomically, on counters both threads share:
-    ~6 % of an LDC render's CPU time when it was done per pixel); numba inlines at most 30
-    arguments, hence the scratch ``pt``."""
+    """Phong highlights (r, g, b) at one point (module docstring). Inlined into the callers'
+    loops, so its parameters are flat: an inlined function's tuple would be unpacked per point,
+    and each unpacking increfs and decrefs every array, atomically, on counters both threads
+    share (~6 % of an LDC render's CPU time when it was done per pixel); the callers unpack
+    their ``HighlightParams`` ONCE per thread, by name. numba inlines at most 30 arguments,
+    hence the scratch ``pt``.
+
+    key: the point's counter for the rect-light jitter (its row, pixel or ray index).
+    pt: (12,) float64 scratch holding the point: p, ng, ns, wo (3 floats each), as
+        ``gather_point`` takes it.
+    m: the point's material index.
+    bits, brow: ``bits[brow]`` are the point's (W,) uint64 light-visibility words (W = 0: every
+        light in front of the surface counts as visible).
+    force: evaluate every light even where the material has no highlight.
+    ks ... extent: the fields of ``HighlightParams``, in its order (ks, shininess, spec_cut,
+        point_position, point_intensity, dir_direction, dir_irradiance, rect_corner,
+        rect_edge_u, rect_edge_v, rect_normal, rect_area, rect_radiance, rect_two_sided,
+        rect_grid, stream, center, extent).
+    """
     px, py, pz, g0, g1, g2 = pt[0], pt[1], pt[2], pt[3], pt[4], pt[5]
     n0, n1, n2, wo0, wo1, wo2 = pt[6], pt[7], pt[8], pt[9], pt[10], pt[11]
     if not force and (not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0):
@@ -167,10 +206,13 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
+    """``highlights``' kernel: ``highlight_point_u`` for every point, in blocks of 64."""
     n = p.shape[0]
     for b in nb.prange((n + _BLOCK - 1) // _BLOCK):
-        ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, \
-            extent = hp
+        ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+        pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
+        rc, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
+        rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
         pt = np.empty(12)
         for i in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
             for c in range(3):
@@ -180,18 +222,18 @@ def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
                                                                 r_area, rL, r2s, r_g, stream, center, extent)
 
 
-def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: int = 0) -> tuple:
-    """The scene's material and light tables as a tuple (``highlight_point_u`` takes its items)."""
+def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: int = 0) -> HighlightParams:
+    """The scene's material and light tables as ``highlight_point_u`` takes them."""
     mt, lt = scene.materials, scene.lights
     a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
     r_area = np.linalg.norm(a, axis=1)
     r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
     spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
-    return (mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction,
-            lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area, lt.rect_radiance,
-            lt.rect_two_sided, r_g, stream_key(seed, 11), np.asarray(scene.center, np.float64),
-            float(scene.extent))
+    return HighlightParams(mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction,
+                           lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
+                           lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11),
+                           np.asarray(scene.center, np.float64), float(scene.extent))
 
 
 def _check_points(p, ng, ns, wo, mat):
@@ -225,6 +267,53 @@ def highlights(scene: RuntimeScene, p, ng, ns, wo, mat, bits=None, *, area_light
 
 
 # ----------------------------------------------------------------------------- gather
+
+
+class LLFArrays(NamedTuple):
+    """An LLF as the gather kernels read it (``llf_arrays``): the direction lattice and every
+    view's samples packed pixel by pixel (``engine.newviews.llf.LLF``'s ``pk_*``)."""
+
+    f: int  #: lattice frequency (4 f^2 + 2 directions)
+    table: np.ndarray  #: (2 f + 1, 2 f + 1, 2) int64 lattice cell -> direction indices
+    directions: np.ndarray  #: (n_dir, 3) float64 unit directions
+    pk_offsets: np.ndarray  #: (n_dir res^2 + 1,) int64 first sample of each (view, pixel)
+    pk_depth: np.ndarray  #: (n_samples,) float64 sample depth along the view
+    pk_radiance: np.ndarray  #: (n_samples, 3) float32 sample radiance toward the view
+    pk_origin: np.ndarray  #: (n_dir, 3) float64 each view's reference-plane origin
+    pk_u: np.ndarray  #: (n_dir, 3) float64 each view's image axis u
+    pk_v: np.ndarray  #: (n_dir, 3) float64 each view's image axis v
+    pk_w: np.ndarray  #: (n_dir, 3) float64 each view's direction (depth axis)
+    pk_h: np.ndarray  #: (n_dir,) float64 each view's pixel size
+    resolution: int  #: pixels per view side
+
+
+class GatherParams(NamedTuple):
+    """What ``gather_point`` needs besides the point: the scene's reflection material table, the
+    mirror cone's parameters, the LLF's arrays (the fields of ``LLFArrays``, in its order), the
+    background and the cone's per-lattice-cell candidate tables (``_cone_tables``). Built by
+    ``gather_params``."""
+
+    kr: np.ndarray  #: (n_materials, 3) float64 ideal-mirror reflectance
+    kg: np.ndarray  #: (n_materials, 3) float64 glossy reflectance
+    gloss_exponent: np.ndarray  #: (n_materials,) float64 glossy lobe exponent g
+    n_c: float  #: mirror-cone exponent (``mirror_cone_exponent``)
+    cone_directions: int  #: directions in the mirror cone (1..MAX_CONE_DIRECTIONS)
+    f: int  #: ``LLFArrays.f``
+    table: np.ndarray  #: ``LLFArrays.table``
+    directions: np.ndarray  #: ``LLFArrays.directions``
+    pk_offsets: np.ndarray  #: ``LLFArrays.pk_offsets``
+    pk_depth: np.ndarray  #: ``LLFArrays.pk_depth``
+    pk_radiance: np.ndarray  #: ``LLFArrays.pk_radiance``
+    pk_origin: np.ndarray  #: ``LLFArrays.pk_origin``
+    pk_u: np.ndarray  #: ``LLFArrays.pk_u``
+    pk_v: np.ndarray  #: ``LLFArrays.pk_v``
+    pk_w: np.ndarray  #: ``LLFArrays.pk_w``
+    pk_h: np.ndarray  #: ``LLFArrays.pk_h``
+    resolution: int  #: ``LLFArrays.resolution``
+    background: np.ndarray  #: (3,) float64 radiance where a lookup finds no sample
+    cone_offsets: np.ndarray  #: (cells + 1,) int64 per lattice cell: first candidate
+    cone_index: np.ndarray  #: (total,) int64 candidate direction indices
+    cone_xyz: np.ndarray  #: (3, total) float64 their coordinates
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -438,14 +527,25 @@ def _lobe(px, py, pz, g0, g1, g2, s0, s1, s2, d0, d1, d2, g_eff, mode, f, table,
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off,
-                 pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, c_idx, c_xyz):
+def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, gp):
     """Reflected radiance (r, g, b) toward wo at one point by light-field gather and the number
-    of lookups (module docstring). ``pt`` (12,) float64: p, ng, ns, wo; ``cand``, ``best_c`` the
-    scratch arrays of ``gather_scratch``; then the tables of ``gather_params`` (pass them one by
-    one, unpacked once per thread: unpacking a tuple of arrays per point costs reference counts
-    on arrays every thread shares, which serialises the threads). Shared by
-    ``gather_reflections`` and the fused renderer kernels."""
+    of lookups (module docstring). Shared by ``gather_reflections`` and the fused renderer
+    kernels.
+
+    pt: (12,) float64 scratch holding the point: p, ng, ns, wo (3 floats each).
+    m: the point's material index.
+    do_mirror: gather the ideal mirror term (kr) with the mirror cone.
+    do_glossy: gather the glossy term (kg) over its lobe.
+    force: gather even where the material's kr / kg are 0 (adds exact zeros there).
+    cand, best_c: per-thread scratch arrays of ``gather_scratch``.
+    gp: the ``GatherParams`` (material table, LLF arrays, cone tables). A non-inlined call: its
+    arrays travel on the stack either way, one tuple or one by one.
+    """
+    kr, kg, gexp, n_c, k_dirs = gp.kr, gp.kg, gp.gloss_exponent, gp.n_c, gp.cone_directions
+    f, table, dirs, res, bg = gp.f, gp.table, gp.directions, gp.resolution, gp.background
+    pk_off, pk_depth, pk_rad = gp.pk_offsets, gp.pk_depth, gp.pk_radiance
+    origin, fu, fv, fw, fh = gp.pk_origin, gp.pk_u, gp.pk_v, gp.pk_w, gp.pk_h
+    c_off, c_idx, c_xyz = gp.cone_offsets, gp.cone_index, gp.cone_xyz
     px, py, pz, g0, g1, g2 = pt[0], pt[1], pt[2], pt[3], pt[4], pt[5]
     s0, s1, s2, wo0, wo1, wo2 = pt[6], pt[7], pt[8], pt[9], pt[10], pt[11]
     r0 = r1 = r2 = 0.0
@@ -486,35 +586,40 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp,
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
-    kr, kg, gexp, n_c, k_dirs, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, \
-        c_idx, c_xyz = gp
+    """``gather_reflections``' kernel: ``gather_point`` for every point, in blocks of 64."""
     n = p.shape[0]
-    nd = dirs.shape[0]
+    nd = gp.directions.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
     for blk in nb.prange(nblk):
         cand, best_c, pt = gather_scratch(nd)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             for c in range(3):
                 pt[c], pt[3 + c], pt[6 + c], pt[9 + c] = p[i, c], ng[i, c], ns[i, c], wo[i, c]
-            out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(
-                pt, mat[i], do_mirror, do_glossy, force, cand, best_c, kr, kg, gexp, n_c, k_dirs, f, table, dirs,
-                pk_off, pk_depth, pk_rad, origin, fu, fv, fw, fh, res, bg, c_off, c_idx, c_xyz)
+            out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(pt, mat[i], do_mirror, do_glossy, force, cand,
+                                                                       best_c, gp)
 
 
-def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIRECTIONS, background=None) -> tuple:
-    """The scene's reflection tables and the LLF's packed arrays as the tuple ``gather_point`` takes."""
+def gather_params(scene: RuntimeScene, llf: LLF, cone_directions: int = CONE_DIRECTIONS,
+                  background=None) -> GatherParams:
+    """The scene's reflection tables and the LLF's packed arrays as ``gather_point`` takes them."""
+    bg = scene.background if background is None else background
+    mt = scene.materials
+    return _gather_params(mt.kr, mt.kg, mt.gloss_exponent, llf, cone_directions, bg)
+
+
+def _gather_params(kr, kg, gloss_exponent, llf: LLF, cone_directions: int, background) -> GatherParams:
     if not (1 <= cone_directions <= MAX_CONE_DIRECTIONS):
         raise InvalidInputError("cone_directions must be in [1, 16]")
-    bg = np.asarray(scene.background if background is None else background, dtype=np.float64).reshape(3)
-    mt = scene.materials
+    bg = np.asarray(background, dtype=np.float64).reshape(3)
     c_off, c_idx, c_xyz = _cone_tables(llf.f, llf.table, llf.directions, 3)
-    return (mt.kr, mt.kg, mt.gloss_exponent, mirror_cone_exponent(llf), int(cone_directions), *_llf_args(llf), bg,
-            c_off, c_idx, c_xyz)
+    return GatherParams(kr, kg, gloss_exponent, mirror_cone_exponent(llf), int(cone_directions), *llf_arrays(llf), bg,
+                        c_off, c_idx, c_xyz)
 
 
-def _llf_args(llf: LLF):
-    return (llf.f, llf.table, llf.directions, llf.pk_offsets, llf.pk_depth, llf.pk_radiance, llf.pk_origin,
-            llf.pk_u, llf.pk_v, llf.pk_w, llf.pk_h, llf.resolution)
+def llf_arrays(llf: LLF) -> LLFArrays:
+    """The LLF's lattice and packed views as the gather kernels read them."""
+    return LLFArrays(llf.f, llf.table, llf.directions, llf.pk_offsets, llf.pk_depth, llf.pk_radiance, llf.pk_origin,
+                     llf.pk_u, llf.pk_v, llf.pk_w, llf.pk_h, llf.resolution)
 
 
 def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mirror: bool = True,
@@ -537,9 +642,14 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _incoming(p, ng, d, exponent, k_dirs, n_c, f, table, dirs, pk_off, pk_depth, pk_rad, origin, fu, fv, fw,
-              fh, res, bg, c_off, c_idx, c_xyz, out):
+def _incoming(p, ng, d, exponent, gp, out):
+    """``gather_incoming``'s kernel: per point, the lobe (``exponent`` > 0) or the mirror cone
+    around d, from the LLF of ``gp`` (a ``GatherParams``; its material tables are not read)."""
     n = p.shape[0]
+    f, table, dirs, res, bg = gp.f, gp.table, gp.directions, gp.resolution, gp.background
+    pk_off, pk_depth, pk_rad = gp.pk_offsets, gp.pk_depth, gp.pk_radiance
+    origin, fu, fv, fw, fh = gp.pk_origin, gp.pk_u, gp.pk_v, gp.pk_w, gp.pk_h
+    c_off, c_idx, c_xyz, n_c, k_dirs = gp.cone_offsets, gp.cone_index, gp.cone_xyz, gp.n_c, gp.cone_directions
     nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
     for blk in nb.prange(nblk):
@@ -566,10 +676,10 @@ def lookup_direction(llf: LLF, j: int, p, ng, background=(0.0, 0.0, 0.0)) -> np.
     if not (0 <= j < llf.n_directions):
         raise InvalidInputError(f"LLF direction index must be in [0, {llf.n_directions - 1}]")
     out = np.empty((p.shape[0], 3))
-    f, table, dirs, off, dep, rad, o, u, v, w, h, res = _llf_args(llf)
+    la = llf_arrays(llf)
     for i in range(p.shape[0]):
-        out[i] = _lookup(j, p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2], off, dep, rad, o, u, v, w, h,
-                         res, bg)
+        out[i] = _lookup(j, p[i, 0], p[i, 1], p[i, 2], ng[i, 0], ng[i, 1], ng[i, 2], la.pk_offsets, la.pk_depth,
+                         la.pk_radiance, la.pk_origin, la.pk_u, la.pk_v, la.pk_w, la.pk_h, la.resolution, bg)
     return out
 
 
@@ -586,8 +696,8 @@ def gather_incoming(llf: LLF, p, ng, d, *, exponent: float = 0.0, cone_direction
     if not (np.isfinite(exponent) and exponent >= 0):
         raise InvalidInputError("gather_incoming: exponent must be finite and >= 0")
     out = np.zeros(p.shape)
-    bg = np.asarray(background, dtype=np.float64).reshape(3)
-    _incoming(p, ng, d, float(exponent), int(cone_directions), mirror_cone_exponent(llf), *_llf_args(llf), bg,
-              *_cone_tables(llf.f, llf.table, llf.directions, 3), out)
+    no_mat = np.zeros((0, 3))
+    gp = _gather_params(no_mat, no_mat, np.zeros(0), llf, int(cone_directions), background)
+    _incoming(p, ng, d, float(exponent), gp, out)
     return out
 

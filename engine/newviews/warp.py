@@ -370,45 +370,18 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
              seed: int = 0, radiance_dtype=np.float32) -> WarpResult:
     """Warp every LDC sample into ``camera`` with a depth test; detect (and optionally fill) holes.
     ``radiance_dtype`` float64 gives the renderer its working precision directly (the values
-    are the same: the LDC's float32 radiance)."""
-    if fill not in ("none", "raycast"):
-        raise InvalidInputError(f"fill must be 'none' or 'raycast', got {fill!r}")
-    if fill == "raycast" and caster is None:
-        raise InvalidInputError("fill='raycast' needs the scene's caster")
-    if not (0.0 <= min_cos < 1.0 / math.sqrt(3.0)):
-        raise InvalidInputError("min_cos must be in [0, 1/sqrt(3)) so every surface keeps one LDI")
-    if not (0.0 < max_footprint <= 64.0) or not (0.0 < footprint_scale <= 4.0):
-        raise InvalidInputError("max_footprint must be in (0, 64] and footprint_scale in (0, 4]")
-    if not (0.0 < hole_rel_depth < 1.0) or not (1 <= hole_neighbors <= 8):
-        raise InvalidInputError("hole_rel_depth must be in (0, 1) and hole_neighbors in [1, 8]")
+    are the same: the LDC's float32 radiance). Timed stages: "splat" (``_splat``), "holes",
+    "resolve" (each pixel's winner's records), "fill" (``_raycast_fill``)."""
+    _check_options(fill, caster, min_cos, max_footprint, footprint_scale, hole_rel_depth, hole_neighbors)
     t_start = time.perf_counter()
     W, H = camera.width, camera.height
-    right, up, fwd = camera.basis()
-    eye = np.asarray(camera.eye, dtype=np.float64)
-    ortho = camera.kind == "orthographic"
-    th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
-    hh = 0.5 * camera.ortho_height
     zb = np.empty((H, W, 3))  # distance, offset, winner code per pixel (_write_rows)
     win_axis = np.empty((H, W), np.int8)
     win_idx = np.empty((H, W), np.int64)
     win_side = np.empty((H, W), np.int8)
     bands = max(1, int(nb.get_num_threads()))  # z-buffer stripes and row groups: one per numba thread
     _init_buffers(zb, bands)
-    n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
-    closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
-    closed[:len(ldc.closed_objects)] = ldc.closed_objects
-    t0 = time.perf_counter()
-    for ax in ldc.axes:
-        f = ax.ldi.frame
-        n = ax.n_samples
-        out_f = np.empty((n, 4))
-        out_side = np.empty(n, np.int8)
-        out_box = np.empty((n, 4), np.int32)
-        _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
-                 ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
-                 out_f, out_side, out_box, bands)
-        _write(ax.axis, out_f, out_side, out_box, W, H, zb, bands)
-    t_splat = time.perf_counter() - t0
+    t_splat = _splat(ldc, camera, zb, bands, min_cos, max_footprint, footprint_scale)
     t0 = time.perf_counter()
     holes = np.zeros((H, W), np.bool_)
     _detect_holes(zb, hole_rel_depth, hole_neighbors, holes, bands)
@@ -429,48 +402,99 @@ def warp_ldc(ldc: LDC, camera: CameraParams, *, fill: str = "none", caster: RayC
                      a0.material, a0.object, a1.diffuse, a1.normal, a1.material, a1.object, a2.diffuse, a2.normal,
                      a2.material, a2.object, radiance, depth, normal, mat_id, obj_id, prov, bands)
     t_resolve = time.perf_counter() - t0
-    n_holes = int(holes.sum())
-    n_filled = 0
+    out = WarpResult(radiance=radiance, depth=depth, normal=normal, material_id=mat_id, object_id=obj_id,
+                     sample_axis=win_axis, sample_index=win_idx, sample_side=win_side, hole_mask=holes,
+                     provenance=prov, n_holes=int(holes.sum()))
     t_fill = 0.0
-    if fill == "raycast" and n_holes:
+    if fill == "raycast" and out.n_holes:
         t0 = time.perf_counter()
-        ys, xs = np.nonzero(holes)
-        o, d = camera_rays(camera, xs + 0.5, ys + 0.5)
-        hit = caster.intersect(o, d)
-        ok = hit.prim >= 0
-        # misses: background, no sample
-        miss = ~ok
-        radiance[ys[miss], xs[miss]] = ldc.background.astype(radiance_dtype)
-        depth[ys[miss], xs[miss]] = 0.0
-        normal[ys[miss], xs[miss]] = 0.0
-        mat_id[ys[miss], xs[miss]] = -1
-        obj_id[ys[miss], xs[miss]] = -1
-        prov[ys[miss], xs[miss]] = PROV_NONE
-        win_axis[ys[miss], xs[miss]] = -1
-        win_idx[ys[miss], xs[miss]] = -1
-        if ok.any():
-            sc = caster.scene
-            yh, xh = ys[ok], xs[ok]
-            p, ng, ns = surface_attributes(sc, hit.prim[ok], hit.u[ok], hit.v[ok])
-            mat = sc.tri_material[hit.prim[ok]].astype(np.int32)
-            occl = np.asarray(ldc.plan.get("occludable_lights", [True] * sc.lights.count), dtype=np.bool_)
-            rad, _, _ = shade_samples(sc, caster, p, ng, ns, mat, occl, store_bits=False,
-                                      area_light_samples=area_light_samples, seed=seed, stream_id=3)
-            side = (np.einsum("ij,ij->i", ng, d[ok]) >= 0).astype(np.int64)
-            radiance[yh, xh] = rad[np.arange(side.shape[0]), side]
-            depth[yh, xh] = hit.t[ok].astype(np.float32)
-            normal[yh, xh] = (ns * np.where(side == 0, 1.0, -1.0)[:, None]).astype(np.float32)
-            mat_id[yh, xh] = mat
-            obj_id[yh, xh] = sc.tri_object[hit.prim[ok]]
-            prov[yh, xh] = PROV_FILLED
-            win_axis[yh, xh] = -1
-            win_idx[yh, xh] = -1
-            n_filled = int(ok.sum())
+        out.n_filled = _raycast_fill(ldc, camera, caster, out, area_light_samples, seed)
         t_fill = time.perf_counter() - t0
-    if n_bad or (n_filled and (not np.all(np.isfinite(radiance)) or not np.all(np.isfinite(depth)))):
+    if n_bad or (out.n_filled and (not np.all(np.isfinite(radiance)) or not np.all(np.isfinite(depth)))):
         raise NonFiniteOutputError("LDC warp produced non-finite values")
-    return WarpResult(radiance=radiance, depth=depth, normal=normal, material_id=mat_id, object_id=obj_id,
-                      sample_axis=win_axis, sample_index=win_idx, sample_side=win_side, hole_mask=holes,
-                      provenance=prov, n_holes=n_holes, n_filled=n_filled,
-                      timings={"splat": t_splat, "holes": t_holes, "resolve": t_resolve, "fill": t_fill,
-                               "total": time.perf_counter() - t_start})
+    out.timings = {"splat": t_splat, "holes": t_holes, "resolve": t_resolve, "fill": t_fill,
+                   "total": time.perf_counter() - t_start}
+    return out
+
+
+def _check_options(fill, caster, min_cos, max_footprint, footprint_scale, hole_rel_depth, hole_neighbors) -> None:
+    if fill not in ("none", "raycast"):
+        raise InvalidInputError(f"fill must be 'none' or 'raycast', got {fill!r}")
+    if fill == "raycast" and caster is None:
+        raise InvalidInputError("fill='raycast' needs the scene's caster")
+    if not (0.0 <= min_cos < 1.0 / math.sqrt(3.0)):
+        raise InvalidInputError("min_cos must be in [0, 1/sqrt(3)) so every surface keeps one LDI")
+    if not (0.0 < max_footprint <= 64.0) or not (0.0 < footprint_scale <= 4.0):
+        raise InvalidInputError("max_footprint must be in (0, 64] and footprint_scale in (0, 4]")
+    if not (0.0 < hole_rel_depth < 1.0) or not (1 <= hole_neighbors <= 8):
+        raise InvalidInputError("hole_rel_depth must be in (0, 1) and hole_neighbors in [1, 8]")
+
+
+def _splat(ldc: LDC, camera: CameraParams, zb: np.ndarray, bands: int, min_cos: float, max_footprint: float,
+           footprint_scale: float) -> float:
+    """Every sample of the three LDIs projected (``_project``) and written into the z-buffer
+    ``zb`` (``_write``), axis by axis. Returns the seconds the projection and writing took."""
+    W, H = camera.width, camera.height
+    right, up, fwd = camera.basis()
+    eye = np.asarray(camera.eye, dtype=np.float64)
+    ortho = camera.kind == "orthographic"
+    th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
+    hh = 0.5 * camera.ortho_height
+    n_obj = max([len(ldc.closed_objects)] + [int(a.object.max(initial=-1)) + 1 for a in ldc.axes])
+    closed = np.zeros(max(n_obj, 1), dtype=np.bool_)
+    closed[:len(ldc.closed_objects)] = ldc.closed_objects
+    t0 = time.perf_counter()
+    for ax in ldc.axes:
+        f = ax.ldi.frame
+        n = ax.n_samples
+        out_f = np.empty((n, 4))
+        out_side = np.empty(n, np.int8)
+        out_box = np.empty((n, 4), np.int32)
+        _project(f.origin, f.u, f.v, f.w, f.h, f.nu, ax.ldi.offsets, ax.ldi.depth, ax.geo_normal, ax.object, closed,
+                 ortho, eye, right, up, fwd, W, H, th, hh, min_cos, max_footprint, footprint_scale,
+                 out_f, out_side, out_box, bands)
+        _write(ax.axis, out_f, out_side, out_box, W, H, zb, bands)
+    return time.perf_counter() - t0
+
+
+def _raycast_fill(ldc: LDC, camera: CameraParams, caster: RayCaster, w: WarpResult, area_light_samples: int,
+                  seed: int) -> int:
+    """``fill="raycast"``: an Embree ray from the eye per hole pixel of ``w`` (updated in place);
+    a hit is shaded with the bake's diffuse model, a miss shows the background. Returns the
+    number of pixels filled."""
+    radiance, depth, normal, mat_id, obj_id, prov = (w.radiance, w.depth, w.normal, w.material_id, w.object_id,
+                                                     w.provenance)
+    win_axis, win_idx = w.sample_axis, w.sample_index
+    ys, xs = np.nonzero(w.hole_mask)
+    o, d = camera_rays(camera, xs + 0.5, ys + 0.5)
+    hit = caster.intersect(o, d)
+    ok = hit.prim >= 0
+    # misses: background, no sample
+    miss = ~ok
+    radiance[ys[miss], xs[miss]] = ldc.background.astype(radiance.dtype)
+    depth[ys[miss], xs[miss]] = 0.0
+    normal[ys[miss], xs[miss]] = 0.0
+    mat_id[ys[miss], xs[miss]] = -1
+    obj_id[ys[miss], xs[miss]] = -1
+    prov[ys[miss], xs[miss]] = PROV_NONE
+    win_axis[ys[miss], xs[miss]] = -1
+    win_idx[ys[miss], xs[miss]] = -1
+    if not ok.any():
+        return 0
+    sc = caster.scene
+    yh, xh = ys[ok], xs[ok]
+    p, ng, ns = surface_attributes(sc, hit.prim[ok], hit.u[ok], hit.v[ok])
+    mat = sc.tri_material[hit.prim[ok]].astype(np.int32)
+    occl = np.asarray(ldc.plan.get("occludable_lights", [True] * sc.lights.count), dtype=np.bool_)
+    rad, _, _ = shade_samples(sc, caster, p, ng, ns, mat, occl, store_bits=False,
+                              area_light_samples=area_light_samples, seed=seed, stream_id=3)
+    side = (np.einsum("ij,ij->i", ng, d[ok]) >= 0).astype(np.int64)
+    radiance[yh, xh] = rad[np.arange(side.shape[0]), side]
+    depth[yh, xh] = hit.t[ok].astype(np.float32)
+    normal[yh, xh] = (ns * np.where(side == 0, 1.0, -1.0)[:, None]).astype(np.float32)
+    mat_id[yh, xh] = mat
+    obj_id[yh, xh] = sc.tri_object[hit.prim[ok]]
+    prov[yh, xh] = PROV_FILLED
+    win_axis[yh, xh] = -1
+    win_idx[yh, xh] = -1
+    return int(ok.sum())

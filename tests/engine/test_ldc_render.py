@@ -429,15 +429,12 @@ def test_pixel_rays_are_camera_rays_bit_for_bit(kind):
     """The renderer's numba eye rays (fill and hole search) are engine.camera.camera_rays' rays,
     and its slab test keeps exactly the pixels the numpy slab test keeps."""
     from engine.camera import camera_rays
-    from engine.newviews.renderer import _pixel_rays, _rays_meet_box
+    from engine.newviews.renderer import _pixel_rays, _rays_meet_box, kernel_camera
 
     cam = CameraParams(kind=kind, eye=(0.3, 1.1, 3.2), look_at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), width=97,
                        height=61, fov_y_deg=47.0, ortho_height=2.5)
-    sc = _diffuse_scene()
-    ldc = bake_ldc(sc, EmbreeCaster(sc), 16, plan=analyze(sc))
-    r = LDCViewRenderer(sc, ldc, None, analyze(sc))
     pix = np.arange(cam.width * cam.height, dtype=np.int64)
-    o, d = _pixel_rays(pix, r._camera_tuple(cam))
+    o, d = _pixel_rays(pix, kernel_camera(cam))
     o_ref, d_ref = camera_rays(cam, pix % cam.width + 0.5, pix // cam.width + 0.5)
     assert np.array_equal(o, o_ref) and np.array_equal(d, d_ref)
     lo, hi = np.array([-0.4, -0.3, -0.2]), np.array([0.5, 0.2, 0.6])
@@ -447,7 +444,7 @@ def test_pixel_rays_are_camera_rays_bit_for_bit(kind):
     tn = np.nanmax(np.minimum(t0, t1), axis=1)
     tf = np.nanmin(np.maximum(t0, t1), axis=1)
     want = tf >= np.maximum(tn, 0.0)
-    got = _rays_meet_box(pix, r._camera_tuple(cam), lo, hi)
+    got = _rays_meet_box(pix, kernel_camera(cam), lo, hi)
     assert want.any() and not want.all()
     assert np.array_equal(got, want)
 
