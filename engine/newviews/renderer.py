@@ -57,7 +57,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.geometry.adjacency import locate_on_mesh, triangle_neighbours
-from engine.methods import IBRT_GENERATIONS, LDC_IBRT, allowed_forms
+from engine.methods import IBRT_GENERATIONS, LDC_IBRT, MethodSpec, allowed_forms
 from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
@@ -104,13 +104,20 @@ class LDCRenderResult:
     plan: dict = field(default_factory=dict)
 
 
-def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
-    """("ldc" | "ldc+llf" | "ldc+ibrt", k) of an LDC method of the registry ``engine.methods``: a wire
-    string ("ldc+ibrt:k" carries k) or "ldc+ibrt" with ``ibrt_generations`` (checked for every method)."""
+def method_spec(method: str, ibrt_generations: int = 0) -> MethodSpec:
+    """The registry's (``engine.methods``) spec of an LDC method: a wire string ("ldc+ibrt:k"
+    carries k) or "ldc+ibrt" with ``ibrt_generations`` (checked for every method). The renderer
+    reads what a method does from the spec (``gathers``, ``ibrt_generations``), never from the string."""
     k = IBRT_GENERATIONS.check(ibrt_generations, "ibrt_generations")
     spec = LDC_IBRT.spec(k) if method == LDC_IBRT.name else parse_wire_method(method)
     if not spec.needs_bake:
         raise InvalidInputError(f"the LDC renderer renders {allowed_forms(needs_bake=True)}, got {method!r}")
+    return spec
+
+
+def parse_method(method: str, ibrt_generations: int = 0) -> tuple[str, int]:
+    """("ldc" | "ldc+llf" | "ldc+ibrt", k) of an LDC method (``method_spec``)."""
+    spec = method_spec(method, ibrt_generations)
     return spec.name, spec.ibrt_generations
 
 
@@ -1180,7 +1187,7 @@ class LDCViewRenderer:
         work); depth, normal, ids and provenance are those of the sample nearest the pixel
         centre, counts are summed. Raises InvalidInputError for a bad method / fill /
         supersample or when the method needs an LLF the bake doesn't have."""
-        method, k = parse_method(method, ibrt_generations)
+        spec = method_spec(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
         if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or \
@@ -1188,10 +1195,10 @@ class LDCViewRenderer:
             raise InvalidInputError(f"supersample must be an integer in [1, 4], got {supersample!r}")
         with self._lock:
             if supersample == 1:
-                return self._render(camera, method, k, progress, bool(force_all_passes), fill)
+                return self._render(camera, spec, progress, bool(force_all_passes), fill)
             s = int(supersample)
             big = replace(camera, width=camera.width * s, height=camera.height * s)
-            r = self._render(big, method, k, progress, bool(force_all_passes), fill)
+            r = self._render(big, spec, progress, bool(force_all_passes), fill)
             H, W = camera.height, camera.width
             rad = r.radiance.astype(np.float64).reshape(H, s, W, s, 3).mean(axis=(1, 3)).astype(np.float32)
             c = s // 2
@@ -1207,15 +1214,15 @@ class LDCViewRenderer:
                                    hole_mask=r.hole_mask.reshape(H, s, W, s).any(axis=(1, 3)),
                                    timings=r.timings, counts=r.counts, plan=r.plan)
 
-    def _render(self, camera, method, k, progress, force, fill) -> LDCRenderResult:
+    def _render(self, camera, spec: MethodSpec, progress, force, fill) -> LDCRenderResult:
         """One render (``render``'s arguments, checked): the stages of the module docstring in
         order, each timed under its name in ``timings``."""
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
         rc = self._fill(fr, fill)
-        vp = self._view_pass(fr, method, k, force, rc)
-        self._mirrors(fr, vp, method, k, force)
-        return self._result(fr, method, k, fill, force, t_start)
+        vp = self._view_pass(fr, spec, force, rc)
+        self._mirrors(fr, vp, spec, force)
+        return self._result(fr, spec, fill, force, t_start)
 
     def _warp(self, camera: CameraParams, progress) -> _Frame:
         """Stage 1, timed as "warp" and "holes": every LDC sample splatted into the camera with a
@@ -1369,7 +1376,7 @@ class LDCViewRenderer:
         return RaycastRecords(row, c(p, np.float64), c(g, np.float64), c(n, np.float64), c(mat, np.int32),
                               c(bits, np.uint64))
 
-    def _view_pass(self, fr: _Frame, method: str, k: int, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
+    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
         """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
         them): on the covered pixels whose material needs it (the effect plan, or every one
         with ``force``), the surface record, its refinement, the highlights and the light-field
@@ -1378,7 +1385,7 @@ class LDCViewRenderer:
         t0 = time.perf_counter()
         counts, passes = fr.counts, fr.passes
         want_vp = force or self.plan.needs_view_pass
-        reflect = method != "ldc"
+        reflect = spec.gathers
         refl_mat = self._has_kr | self._has_kg
         want_rf = want_vp and reflect
         if want_rf and self.llf is None:
@@ -1388,16 +1395,16 @@ class LDCViewRenderer:
                     want_rf = False
                     passes["gather_note"] = {"why": "forced, but there is no LLF to gather from"}
                 else:
-                    raise InvalidInputError(f"method {method!r} needs the bake's LLF (the scene has glossy or mirror "
-                                            "materials) but this bake has none; use method 'ldc' or rebake with an "
-                                            "LLF")
+                    raise InvalidInputError(f"method {spec.wire!r} needs the bake's LLF (the scene has glossy or "
+                                            "mirror materials) but this bake has none; use method 'ldc' or rebake "
+                                            "with an LLF")
         vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
                                                bool(want_rf), force)
         counts["view_pass_pixels"] = int(vp_pix.size)
         counts["highlight_pixels"] = int(n_hl)
         counts["reflection_pixels"] = int(n_rf)
         why_vp = self._why_view_pass(force)
-        trace_mirror = method == "ldc+ibrt" and k > 0
+        trace_mirror = spec.ibrt_generations > 0
         nv = vp_pix.size
         lookups = np.zeros(nv, np.int64)
         rays = mirror_rays(nv if (trace_mirror and n_rf) else 0)
@@ -1424,11 +1431,12 @@ class LDCViewRenderer:
         fr.report(0.75, "gather")
         return _ViewPassOut(vp_pix, int(n_rf), rays)
 
-    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, method: str, k: int, force: bool) -> None:
+    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, spec: MethodSpec, force: bool) -> None:
         """Stage 4, timed as "ibrt": with ``ldc+ibrt:k`` (k >= 1) the view pass's mirror rays,
         traced through the LDC for k generations (``_trace_mirrors``) in 16 x 16 pixel tiles
         (``_tile_order``; the view pass's pixels are row-major)."""
-        trace_mirror = method == "ldc+ibrt" and k > 0
+        k = spec.ibrt_generations
+        trace_mirror = k > 0
         rays = vp.rays
         t0 = time.perf_counter()
         fr.counts["traced_rays"] = 0
@@ -1451,7 +1459,7 @@ class LDCViewRenderer:
                 ("the plan has non-diffuse materials" if self.plan.needs_view_pass
                  else "skipped: every material is diffuse"))
 
-    def _result(self, fr: _Frame, method: str, k: int, fill: str, force: bool, t_start: float) -> LDCRenderResult:
+    def _result(self, fr: _Frame, spec: MethodSpec, fill: str, force: bool, t_start: float) -> LDCRenderResult:
         """The frame as an ``LDCRenderResult`` (float32 radiance, checked finite) with the plan that ran."""
         H, W = fr.height, fr.width
         out = np.empty((H, W, 3), np.float32)
@@ -1459,7 +1467,7 @@ class LDCViewRenderer:
             raise NonFiniteOutputError("LDC render produced non-finite values")
         fr.timings["total"] = time.perf_counter() - t_start
         nondiffuse = self._has_ks | self._has_kr | self._has_kg
-        plan = {"method": method if method != "ldc+ibrt" else f"ldc+ibrt:{k}", "ibrt_generations": k, "fill": fill,
+        plan = {"method": spec.wire, "ibrt_generations": spec.ibrt_generations, "fill": fill,
                 "refine_surface": self.refine_surface, "refine_walk": self.refine_surface and self.refine_walk,
                 "silhouette_rays": self.silhouette_rays and fill != "none",
                 "silhouette_mesh_test": self.silhouette_mesh_test and self.silhouette_rays and fill == "ibrt",
@@ -1520,4 +1528,4 @@ def _groups() -> int:
 
 
 __all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
-           "PROV_GATHERED", "PROV_NONE", "PROV_TRACED", "PROV_WARPED", "parse_method"]
+           "PROV_GATHERED", "PROV_NONE", "PROV_TRACED", "PROV_WARPED", "method_spec", "parse_method"]

@@ -52,6 +52,7 @@ from api_schemas.service import RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from engine.errors import NonFiniteOutputError
 from engine.imageio import encode_image
+from engine.methods import parse_method
 from engine.newviews.effects import analyze
 from engine.newviews.renderer import LDCViewRenderer
 from engine.reference import ReferenceParams
@@ -302,7 +303,7 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     t_load = time.perf_counter() - t0
     loaded = entry.loaded
     camera = camera_params(req.camera) if req.camera is not None else loaded.camera
-    if entry.renderer.llf is None and req.method != "ldc" and entry.renderer.plan.needs_llf:
+    if entry.renderer.llf is None and parse_method(req.method).gathers and entry.renderer.plan.needs_llf:
         raise BakeUnavailable(f"method {req.method} needs the light field, but bake {bkey} has none "
                               f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
     progress.report(LOAD_END, "render", force=True)
