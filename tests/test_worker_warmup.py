@@ -64,8 +64,8 @@ def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmu
     from api_schemas.service import BakeParams
     from engine import ENGINE_VERSION
     from engine.reference import ReferenceParams
+    from engine.relighting.bake import bake_dataset
     from engine.relighting.generate import LightPlacement, generate_dataset
-    from engine.relighting.relight import bake_dataset
     from samples import sample_path
     from workers.artifacts import put_scene, write_artifact
     from workers.datasets import BAKE_KIND, bake_artifact_key

@@ -22,7 +22,7 @@ settings):
   ``bake_llf_views_job``) at an LDC resolution of 8 and an LLF of 6 directions at 4 px, published
   as the bake jobs publish them and read back by the render job's ``load_bake`` (npz round trip);
 - ``workers.jobs.datasets.relight_job`` on a synthetic illumination dataset baked
-  (``engine.relighting.relight.bake_dataset``, stored as ``bake_job`` stores it) into every store the
+  (``engine.relighting.bake.bake_dataset``, stored as ``bake_job`` stores it) into every store the
   service can produce -- float16 / float32 x pixel-major / tiled, and low-rank -- each under a
   point, a directional, a rect and an environment light (interpolating kernel) and under a
   light exactly at a dataset light (the exact-hit kernel);
@@ -249,7 +249,7 @@ def synthetic_dataset(size: int = 24, n_lights: int = 24) -> Any:
     """A small illumination dataset made in code: a bumpy disc (a height field seen from above),
     Lambertian with an ambient floor (every value > 0, so float16 is chosen when asked for), lit
     by ``n_lights`` point lights on a sphere around it."""
-    from engine.relighting.relight import IlluminationDataset
+    from engine.relighting.dataset import IlluminationDataset
 
     ys, xs = np.mgrid[0:size, 0:size]
     u = (xs + 0.5) / size * 2.0 - 1.0
@@ -415,7 +415,7 @@ class _Run:
         """Bake the synthetic dataset into every store kind and publish each as ``bake_job`` does."""
         from api_schemas.datasets import BakeParams as DatasetBakeParams
         from engine import ENGINE_VERSION
-        from engine.relighting.relight import bake_dataset
+        from engine.relighting.bake import bake_dataset
         from workers.artifacts import write_artifact
         from workers.datasets import BAKE_KIND, bake_artifact_key
         from workers.jobs.datasets import NPZ, baked_to_bytes

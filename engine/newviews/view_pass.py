@@ -59,6 +59,7 @@ from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
 from engine.rng import stream_key, uniform
 from engine.scene import RuntimeScene
+from engine.shading import phong_pow as _phong_pow
 
 INV_PI = 1.0 / math.pi
 GLOSSY_LOG_CUT = 10.0  # skip directions whose lobe weight is below e^-10 of the best one
@@ -73,15 +74,6 @@ def mirror_cone_exponent(llf: LLF) -> float:
 
 
 # ----------------------------------------------------------------------------- highlights
-
-
-@nb.njit(cache=True, inline="always", error_model="numpy")
-def _phong_pow(c, s):
-    if c <= 0.0:
-        return 0.0
-    if c >= 1.0:
-        return 1.0
-    return math.exp(s * math.log(c))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")

@@ -5,7 +5,7 @@
   store the result as a dataset in exactly the upload format (float EXR images, a float EXR
   distance map, a PNG mask, the manifest), plus a small artifact mapping the request to the
   dataset id (so the same request is a cache hit).
-- :func:`bake_job`: ``engine.relighting.relight.bake_dataset`` on a stored dataset; the baked stack and the
+- :func:`bake_job`: ``engine.relighting.bake.bake_dataset`` on a stored dataset; the baked stack and the
   lookup structures become one content-addressed artifact (``baked.npz``).
 - :func:`relight_job`: the baked dataset (kept warm in this process's LRU, :func:`baked_cache`)
   under new lights -> ``radiance.exr`` (linear float), ``preview.png`` (sRGB), ``outside.png``
@@ -67,7 +67,8 @@ from workers.queues import engine_version, job_owners
 from workers.settings import get_settings, open_worker_store
 
 if TYPE_CHECKING:
-    from engine.relighting.relight import BakedDataset, IlluminationDataset
+    from engine.relighting.bake import BakedDataset
+    from engine.relighting.dataset import IlluminationDataset
     from workers.store import ObjectStore
 
 __all__ = ["JobCanceled", "bake_job", "baked_cache", "composite_job", "generate_job", "load_illumination_dataset",
@@ -125,12 +126,12 @@ def _image_bytes(tmp: Path, name: str, pixels: Any, **kw: Any) -> bytes:
 def load_illumination_dataset(store: ObjectStore, dataset_id: str,
                               progress: ProgressReporter | None = None, frac: tuple[float, float] = (0.0, 1.0)
                               ) -> IlluminationDataset:
-    """A stored dataset as an ``engine.relighting.relight.IlluminationDataset``: images linearised with the
+    """A stored dataset as an ``engine.relighting.dataset.IlluminationDataset``: images linearised with the
     manifest's transfer function, surface points from the depth map (or by ray-casting the stored
     scene), the mask combined with the valid depth pixels."""
     from api_schemas.datasets import DepthGeometry, PinholeCamera, SceneGeometry
     from engine.errors import InvalidInputError
-    from engine.relighting.relight import IlluminationDataset, points_from_depth
+    from engine.relighting.dataset import IlluminationDataset, points_from_depth
     from workers.scene_loader import camera_params
 
     manifest, public = get_dataset(store, dataset_id)
@@ -225,7 +226,7 @@ def _json_safe_scalars(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def baked_from_bytes(data: bytes, report: dict[str, Any]) -> BakedDataset:
-    from engine.relighting.relight import BakedDataset
+    from engine.relighting.bake import BakedDataset
 
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         meta: dict[str, Any] = json.loads(str(z["_meta"]))
@@ -267,7 +268,7 @@ def bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     key = bake_artifact_key(p.dataset_id, p.params)
     if key != p.artifact_key:
         raise InvalidPayload(f"artifact_key {p.artifact_key} does not match the request (expected {key})")
-    from engine.relighting.relight import bake_dataset
+    from engine.relighting.bake import bake_dataset
     from workers.artifacts import read_manifest, write_artifact
 
     store = _worker_store()
@@ -327,7 +328,7 @@ def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
         RelightPointLight,
         RelightRectLight,
     )
-    from engine.relighting.relight import DirectionalLight, EnvironmentLight, PointLight, RectLight
+    from engine.relighting.lights import DirectionalLight, EnvironmentLight, PointLight, RectLight
 
     out: list[Any] = []
     for light in lights:
