@@ -322,29 +322,12 @@ def _env_image(store: ObjectStore, sha: str, transfer: str) -> np.ndarray:
 
 
 def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
-    from api_schemas.datasets import (
-        RelightDirectionalLight,
-        RelightEnvironmentLight,
-        RelightPointLight,
-        RelightRectLight,
-    )
-    from engine.relighting.lights import DirectionalLight, EnvironmentLight, PointLight, RectLight
+    """A request's schema lights as the relighting's light specs (environment maps read from the store)."""
+    from engine.relighting.lights import light_from_dict
+    from workers.scene_loader import light_rows
 
-    out: list[Any] = []
-    for light in lights:
-        if isinstance(light, RelightPointLight):
-            out.append(PointLight(tuple(light.position), tuple(light.intensity)))
-        elif isinstance(light, RelightDirectionalLight):
-            out.append(DirectionalLight(tuple(light.direction), tuple(light.irradiance)))
-        elif isinstance(light, RelightRectLight):
-            out.append(RectLight(tuple(light.corner), tuple(light.edge_u), tuple(light.edge_v), tuple(light.radiance),
-                                 light.two_sided, light.samples, light.seed))
-        elif isinstance(light, RelightEnvironmentLight):
-            out.append(EnvironmentLight(_env_image(store, light.image_sha256, light.transfer), light.n_lights,
-                                        light.method, light.seed, light.scale))
-        else:  # pragma: no cover - the payload model admits nothing else
-            raise InvalidPayload(f"unsupported light {type(light).__name__}")
-    return out
+    rows = light_rows(lights, lambda env: _env_image(store, env.image_sha256, env.transfer))
+    return [light_from_dict(row) for row in rows]
 
 
 _SRGB_LUT: np.ndarray | None = None
