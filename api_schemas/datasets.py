@@ -24,7 +24,6 @@ Models are strict (unknown fields are errors, numbers are numbers) like every sc
 
 from __future__ import annotations
 
-import math
 import re
 from datetime import datetime
 from typing import Annotated, Any, Literal, Self
@@ -45,7 +44,14 @@ from api_schemas.common import (
     raise_errors,
     unit_vector,
 )
-from api_schemas.scene import OrthographicCamera, PerspectiveCamera, Resolution
+from api_schemas.scene import (
+    DirectionalLightFields,
+    OrthographicCamera,
+    PerspectiveCamera,
+    PointLightFields,
+    RectLightFields,
+    Resolution,
+)
 from api_schemas.service import ArtifactManifest, JobPublic, ReferenceRenderParams, Sha256
 
 __all__ = [
@@ -480,56 +486,27 @@ class GenerationPublic(FrozenModel):
 # ------------------------------------------------------------------------------ relight
 
 
-class RelightPointLight(FrozenModel):
-    """Isotropic point light (near or far, inside or outside the light sphere)."""
+class RelightPointLight(PointLightFields):
+    """Isotropic point light (near or far, inside or outside the light sphere); the scene's point light
+    without a name, intensity 1 by default."""
 
-    type: Literal["point"] = "point"
-    position: Vec3
     intensity: RGB = (1.0, 1.0, 1.0)
     """W/sr per channel."""
 
 
-class RelightDirectionalLight(FrozenModel):
-    type: Literal["directional"] = "directional"
-    direction: Vec3
-    """Direction the light TRAVELS (as in the scene format); nonzero."""
+class RelightDirectionalLight(DirectionalLightFields):
+    """The scene's directional light without a name, irradiance 1 by default."""
+
     irradiance: RGB = (1.0, 1.0, 1.0)
 
-    @field_validator("direction")
-    @classmethod
-    def _nonzero(cls, value: Vec3) -> Vec3:
-        if unit_vector(value) is None:
-            raise PydanticCustomError("zero_vector", "direction must be a nonzero vector")
-        return value
 
+class RelightRectLight(RectLightFields):
+    """Rectangular area light ``corner + a edge_u + b edge_v``, sampled with ``samples`` points: the scene's
+    rect light without a name, radiance 1 by default."""
 
-class RelightRectLight(FrozenModel):
-    """Rectangular area light ``corner + a edge_u + b edge_v``, sampled with ``samples`` points."""
-
-    type: Literal["rect"] = "rect"
-    corner: Vec3
-    edge_u: Vec3
-    edge_v: Vec3
     radiance: RGB = (1.0, 1.0, 1.0)
-    two_sided: StrictBool = False
     samples: Annotated[int, Field(strict=True, ge=1, le=4096), BeforeValidator(numpy_scalar)] = 16
     seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1), BeforeValidator(numpy_scalar)] = 0
-
-    @model_validator(mode="after")
-    def _edges(self) -> Self:
-        errors: list[InitErrorDetails] = []
-        u, v = unit_vector(self.edge_u), unit_vector(self.edge_v)
-        if u is None:
-            errors.append(error_at(("edge_u",), "zero_vector", "edge_u must be a nonzero vector", self.edge_u))
-        if v is None:
-            errors.append(error_at(("edge_v",), "zero_vector", "edge_v must be a nonzero vector", self.edge_v))
-        if u is not None and v is not None:
-            c = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
-            if math.hypot(*c) < 1e-9:
-                errors.append(error_at(("edge_v",), "parallel_edges", "edge_v must not be parallel to edge_u",
-                                       self.edge_v))
-        raise_errors("RelightRectLight", errors)
-        return self
 
 
 class RelightEnvironmentLight(FrozenModel):

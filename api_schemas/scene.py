@@ -63,6 +63,7 @@ __all__ = [
     "Camera",
     "CylinderObject",
     "DirectionalLight",
+    "DirectionalLightFields",
     "DiskObject",
     "InlineMeshObject",
     "Light",
@@ -74,8 +75,10 @@ __all__ = [
     "PlaneObject",
     "PathViewSpace",
     "PointLight",
+    "PointLightFields",
     "PolygonViewSpace",
     "RectLight",
+    "RectLightFields",
     "Scene",
     "SceneFileTooLargeError",
     "SceneObject",
@@ -650,9 +653,14 @@ SceneObject = Annotated[
 
 
 # --------------------------------------------------------------------------- lights
+#
+# One light model: the ``*LightFields`` bases hold each kind's fields and checks; the scene's lights
+# add a ``name`` (animation tracks refer to it), a relight request's lights (``api_schemas.datasets``)
+# add defaults and, for a rect light, its sampling. ``workers.scene_loader.light_rows`` is the one
+# conversion of either to the engine's lights.
 
 
-class PointLight(FrozenModel):
+class PointLightFields(FrozenModel):
     """Isotropic point light: irradiance I cos(theta) / d^2."""
 
     type: Literal["point"] = "point"
@@ -660,11 +668,9 @@ class PointLight(FrozenModel):
     """Position, world space."""
     intensity: RGB
     """Radiant intensity per channel, W/sr."""
-    name: Name | None = None
-    """Optional name, unique among the scene's lights; animation tracks refer to it."""
 
 
-class DirectionalLight(FrozenModel):
+class DirectionalLightFields(FrozenModel):
     """Light from infinitely far away, arriving along ``direction``."""
 
     type: Literal["directional"] = "directional"
@@ -672,8 +678,6 @@ class DirectionalLight(FrozenModel):
     """Direction the light travels (from the light toward the scene); nonzero, normalised on use."""
     irradiance: RGB
     """Irradiance on a surface perpendicular to the direction, W/m^2 per channel."""
-    name: Name | None = None
-    """Optional name, unique among the scene's lights; animation tracks refer to it."""
 
     @field_validator("direction")
     @classmethod
@@ -683,7 +687,7 @@ class DirectionalLight(FrozenModel):
         return value
 
 
-class RectLight(FrozenModel):
+class RectLightFields(FrozenModel):
     """Parallelogram area light with corners corner, corner + edge_u, corner + edge_v,
     corner + edge_u + edge_v; emits toward cross(edge_u, edge_v) (both sides if two_sided)."""
 
@@ -698,8 +702,6 @@ class RectLight(FrozenModel):
     """Emitted radiance per channel, W/(m^2 sr)."""
     two_sided: StrictBool = False
     """Emit from both faces."""
-    name: Name | None = None
-    """Optional name, unique among the scene's lights; animation tracks refer to it."""
 
     @model_validator(mode="after")
     def _check_edges(self) -> Self:
@@ -718,8 +720,30 @@ class RectLight(FrozenModel):
             errors.append(
                 error_at(("edge_v",), "parallel_edges", "edge_v must not be parallel to edge_u", self.edge_v)
             )
-        raise_errors("RectLight", errors)
+        raise_errors(type(self).__name__, errors)
         return self
+
+
+class PointLight(PointLightFields):
+    """Isotropic point light: irradiance I cos(theta) / d^2."""
+
+    name: Name | None = None
+    """Optional name, unique among the scene's lights; animation tracks refer to it."""
+
+
+class DirectionalLight(DirectionalLightFields):
+    """Light from infinitely far away, arriving along ``direction``."""
+
+    name: Name | None = None
+    """Optional name, unique among the scene's lights; animation tracks refer to it."""
+
+
+class RectLight(RectLightFields):
+    """Parallelogram area light with corners corner, corner + edge_u, corner + edge_v,
+    corner + edge_u + edge_v; emits toward cross(edge_u, edge_v) (both sides if two_sided)."""
+
+    name: Name | None = None
+    """Optional name, unique among the scene's lights; animation tracks refer to it."""
 
 
 Light = Annotated[PointLight | DirectionalLight | RectLight, Field(discriminator="type")]

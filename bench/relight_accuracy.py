@@ -32,8 +32,11 @@ from bench.docs_writer import replace_block
 from engine.imageio import read_image, tonemap_srgb, write_image
 from engine.metrics import error_heatmap, lrms
 from engine.reference import ReferenceParams
+from engine.relighting.bake import bake_dataset
+from engine.relighting.dataset import IlluminationDataset
 from engine.relighting.generate import LightPlacement, generate_dataset, render_ground_truth, surface_aovs
-from engine.relighting.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
+from engine.relighting.lights import DirectionalLight, PointLight
+from engine.relighting.relight import relight
 from samples import SAMPLES_DIR, sample_path
 from workers.scene_loader import directory_resolver, load_scene
 

@@ -6,18 +6,22 @@ lights, on a random sample of store rows: the largest and the mean absolute diff
 kernel's image and the float64 reference (eq. 1 per pixel, linear search, ``np.linalg.solve``), relative
 to the image maximum and in 8-bit grey levels of the image scaled to its maximum, and the largest
 relative difference over pixels above 1 % of the maximum; with ``--rev``, the same for
-``engine/relighting/relight.py`` at that git revision (e.g. the float64 kernel before the float32 points).
+the relight kernel at that git revision
+(``bench.relight_speed.old_relight_module``; e.g. the float64 kernel before the float32 points).
 Prints a table; nothing is written.
 """
 
 from __future__ import annotations
 
 import argparse
+import types
 
 import numpy as np
 
 from bench.relight_speed import _dataset, old_relight_module
-from engine.relighting import relight as new
+from engine.relighting.bake import BakedDataset, bake_dataset
+from engine.relighting.lights import DirectionalLight, PointLight
+from engine.relighting.relight import relight
 from engine.scene import CameraParams
 from tests.engine.relight_naive import naive_relight
 
@@ -32,7 +36,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cam = CameraParams("perspective", (0, 2.2, 2.2), (0, 0.3, 0), (0, 1, 0), args.res, args.res, fov_y_deg=40)
     ds, _ = _dataset(cam, args.spacing, args.dataset_cache)
-    baked = new.bake_dataset(ds)
+    baked = bake_dataset(ds)
     del ds
     c = baked.sphere_center
     point = [(tuple(c + [1.0, 2.5, 1.2]), (20.0, 20.0, 20.0))]
@@ -40,6 +44,8 @@ def main(argv=None) -> int:
               ((0.1, 0.95, -0.3), (0.5, 0.5, 0.6)), ((0.7, 0.3, 0.65), (0.3, 0.3, 0.3))]
     rows = np.sort(np.random.default_rng(0).choice(baked.pixel_index.size, args.rows, replace=False))
     sel = baked.pixel_index[rows]
+    new = types.SimpleNamespace(relight=relight, BakedDataset=BakedDataset, PointLight=PointLight,
+                                DirectionalLight=DirectionalLight)
     mods = {"working tree": (new, baked)}
     if args.rev:
         old = old_relight_module(args.rev)

@@ -19,11 +19,13 @@ the best round's p50 is reported (the machine is shared; every number is also in
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import platform
 import sys
 import time
+import types
 from pathlib import Path
 
 import numba as nb
@@ -33,8 +35,11 @@ from bench.ab_module import module_at
 from bench.docs_writer import replace_block
 from engine.geometry.mesh import TriMesh
 from engine.reference import ReferenceParams
+from engine.relighting.bake import BakedDataset, bake_dataset
+from engine.relighting.dataset import IlluminationDataset
 from engine.relighting.generate import LightPlacement, generate_dataset
-from engine.relighting.relight import EnvironmentLight, IlluminationDataset, PointLight, bake_dataset, relight
+from engine.relighting.lights import DirectionalLight, EnvironmentLight, PointLight, RectLight
+from engine.relighting.relight import relight
 from engine.scene import CameraParams, LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,10 +120,13 @@ def main(argv=None) -> int:
                     help="keep the generated dataset in DIR (one .npy per array, keyed by resolution and spacing) "
                          "and reuse it when present: generation takes minutes at 1 MP")
     ap.add_argument("--ab", metavar="REV", default=None,
-                    help="also time engine/relighting/relight.py as of git revision REV against the working "
-                    "tree's, same "
-                         "baked dataset, interleaved rounds, and compare the images (bit-identical or the largest "
-                         "difference) and masks")
+                    help="also time the relight kernel as of git revision REV against the working tree's (the old "
+                         "engine/relighting/kernel.py, or before the relighting was split into modules the old "
+                         "relight.py), same tiled baked dataset, interleaved rounds, one point, directional, rect "
+                         "and environment light each, and compare the images (bit-identical or the largest "
+                         "difference), masks and lights_used")
+    ap.add_argument("--ab-only", action="store_true",
+                    help="with --ab: only the A/B (tiled bake, no speed table); prints its table, writes nothing")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     if args.doc_only:
@@ -137,7 +145,9 @@ def main(argv=None) -> int:
     k = ds.light_positions.shape[0]
     log(f"dataset: {k} lights, {args.res}x{args.res}, {n_px} surface pixels, generated in {t_gen:.0f} s")
     bakes = {}
-    for name, kw in (("tiled", {}), ("pixel_major", {"layout": "pixel_major"}), ("lowrank 1%", {"compress": 0.01})):
+    variants = (("tiled", {}),) if args.ab_only else (
+        ("tiled", {}), ("pixel_major", {"layout": "pixel_major"}), ("lowrank 1%", {"compress": 0.01}))
+    for name, kw in variants:
         t0 = time.perf_counter()
         b = bake_dataset(ds, **kw)
         bakes[name] = dict(baked=b, bake_s=time.perf_counter() - t0, layout=b.layout,
@@ -151,6 +161,15 @@ def main(argv=None) -> int:
     env_img[16:] = 0.0  # sky only: every direction inside the hemisphere's coverage
     env = EnvironmentLight(env_img, n_lights=64)
     exact = PointLight(tuple(ds.light_positions[k // 2]), tuple(ds.intensities[k // 2]))
+    if args.ab:
+        rect = RectLight(tuple(c + [-0.5, 2.0, -0.5]), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (5.0, 5.0, 5.0), samples=16)
+        sun = DirectionalLight((-0.3, -0.8, -0.5), (0.7, 0.6, 0.5))
+        ab_cases = {"1 point light": point, "1 directional light": sun, "rect light (16 samples)": rect,
+                    "64-light environment map": env}
+        if args.ab_only:
+            ab = ab_old_kernel(args.ab, bakes["tiled"]["baked"], ab_cases, args.runs, args.rounds, log)
+            print("\n".join(ab_table(ab)))
+            return 0
     cases = {"1 point light": (point, args.runs), "64-light environment map": (env, max(5, args.runs // 4)),
              "1 light at a dataset light (exact path)": (exact, args.runs)}
     # the bandwidth is read from a buffer far larger than the caches: the store, or 256 MiB
@@ -184,8 +203,7 @@ def main(argv=None) -> int:
                bandwidth_bytes_per_s=bw, strict_bound_s=strict, best_p50_s=best, rounds=rounds,
                run_s=time.perf_counter() - t_start)
     if args.ab:
-        res["ab"] = ab_old_kernel(args.ab, bakes["tiled"]["baked"], {"1 point light": point, "64-light environment "
-                                  "map": env}, args.runs, args.rounds, log)
+        res["ab"] = ab_old_kernel(args.ab, bakes["tiled"]["baked"], ab_cases, args.runs, args.rounds, log)
     DATA.parent.mkdir(parents=True, exist_ok=True)
     saved = _load_all()
     saved[f"{args.res}x{args.res}"] = res
@@ -235,30 +253,44 @@ def _load_all() -> dict:
     return saved
 
 
-def old_relight_module(rev: str):
-    """engine/relighting/relight.py as of git revision ``rev``, imported as a separate module."""
-    return module_at(rev, "engine/relighting/relight.py", "relight_ab_old")[0]
+def old_relight_module(rev: str) -> types.SimpleNamespace:
+    """The relighting as of git revision ``rev``, imported next to the current one: its ``relight``,
+    ``BakedDataset`` and light classes (``PointLight``, ``DirectionalLight``, ``RectLight``,
+    ``EnvironmentLight``).
+
+    Where ``rev`` has the relighting split into modules (``engine/relighting/kernel.py``), the old kernel
+    module and the old ``relight.py`` (importing that old kernel) are loaded; the dataset model, the bake
+    and the light classes are the current ones (an A/B of the kernel). Before the split (e.g. 3017976)
+    the single old ``relight.py`` (at its path of the time) provides everything."""
+    try:
+        module_at(rev, "engine/relighting/kernel.py", "relight_kernel_ab_old")
+    except FileNotFoundError:
+        mod = module_at(rev, "engine/relighting/relight.py", "relight_ab_old")[0]
+        return types.SimpleNamespace(relight=mod.relight, BakedDataset=mod.BakedDataset, PointLight=mod.PointLight,
+                                     DirectionalLight=mod.DirectionalLight, RectLight=mod.RectLight,
+                                     EnvironmentLight=mod.EnvironmentLight)
+    mod = module_at(rev, "engine/relighting/relight.py", "relight_ab_old",
+                    imports={"engine.relighting.kernel": "relight_kernel_ab_old"})[0]
+    return types.SimpleNamespace(relight=mod.relight, BakedDataset=BakedDataset, PointLight=PointLight,
+                                 DirectionalLight=DirectionalLight, RectLight=RectLight,
+                                 EnvironmentLight=EnvironmentLight)
 
 
 def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> dict:
-    """p50 of ``relight(...).timings["kernel_s"]`` with the old and the current module, same baked data,
+    """p50 of ``relight(...).timings["kernel_s"]`` with the old and the current relighting, same baked data,
     1 and 2 threads, best of ``rounds`` interleaved rounds; images, masks and lights_used compared."""
-    import engine.relighting.relight as new
-
     old = old_relight_module(rev)
     fields = set(old.BakedDataset.__dataclass_fields__)
     baked_old = old.BakedDataset(**{f: getattr(baked, f) for f in baked.__dataclass_fields__ if f in fields})
 
     def as_old(light):
-        if isinstance(light, new.PointLight):
-            return old.PointLight(light.position, light.intensity)
-        return old.EnvironmentLight(light.image, n_lights=light.n_lights, method=light.method, seed=light.seed,
-                                    scale=light.scale)
+        cls = getattr(old, type(light).__name__)
+        return cls(**{f.name: getattr(light, f.name) for f in dataclasses.fields(light)})
 
     out: dict = {"rev": rev, "identical": {}, "masks_identical": {}, "max_abs_diff_rel_to_max": {},
                  "best_p50_s": {}}
     for cname, light in cases.items():
-        a, b = old.relight(baked_old, as_old(light)), new.relight(baked, light)
+        a, b = old.relight(baked_old, as_old(light)), relight(baked, light)
         masks = bool(np.array_equal(a.outside_mask, b.outside_mask) and np.array_equal(a.singular_mask, b.singular_mask)
                      and np.array_equal(a.lights_used, b.lights_used))
         out["identical"][cname] = bool(np.array_equal(a.image.view(np.uint32), b.image.view(np.uint32)) and masks)
@@ -271,10 +303,11 @@ def ab_old_kernel(rev: str, baked, cases: dict, runs: int, rounds: int, log) -> 
     for _ in range(rounds):
         for thr in (1, 2):
             for cname, light in cases.items():
-                n = runs if cname == "1 point light" else max(5, runs // 4)
-                for which, mod, bk, lt in (("old", old, baked_old, as_old(light)), ("new", new, baked, light)):
-                    mod.relight(bk, lt, threads=thr)
-                    p50 = float(np.median([mod.relight(bk, lt, threads=thr).timings["kernel_s"] for _ in range(n)]))
+                n = max(5, runs // 4) if cname.startswith("64") else runs
+                pairs = (("old", old.relight, baked_old, as_old(light)), ("new", relight, baked, light))
+                for which, fn, bk, lt in pairs:
+                    fn(bk, lt, threads=thr)
+                    p50 = float(np.median([fn(bk, lt, threads=thr).timings["kernel_s"] for _ in range(n)]))
                     key = f"{thr}|{cname}|{which}"
                     best[key] = min(best.get(key, math.inf), p50)
     out["best_p50_s"] = best
@@ -321,24 +354,29 @@ def report(res: dict) -> str:
              "sessions load the machine, 2 threads can be slower than 1. Raw numbers, every round: "
              "`docs/data/relight_speed.json`.")
     if "ab" in res:
-        ab, b = res["ab"], res["ab"]["best_p50_s"]
+        ab = res["ab"]
         L.append("")
-        L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: "
-                 "`engine/relighting/relight.py` at that revision against "
+        L.append(f"Kernel A/B in the same run (`--ab {ab['rev']}`: the relight kernel at that revision against "
                  f"this one, same tiled store, `timings[\"kernel_s\"]`, best of the rounds' p50):")
         L.append("")
-        L.append("| case | threads | old ms | new ms | speed-up | bit-identical | max abs difference / image max "
-                 "| masks, lights_used identical |")
-        L.append("|---|---|---|---|---|---|---|---|")
-        for cname, same in ab["identical"].items():
-            d = ab.get("max_abs_diff_rel_to_max", {}).get(cname)
-            masks = ab.get("masks_identical", {}).get(cname, same)
-            for thr in (1, 2):
-                o, n = b[f"{thr}|{cname}|old"], b[f"{thr}|{cname}|new"]
-                L.append(f"| {cname} | {thr} | {1e3 * o:.1f} | {1e3 * n:.1f} | {o / n:.2f}x | "
-                         f"{'yes' if same else 'no'} | {'-' if d is None else f'{d:.2g}'} | "
-                         f"{'yes' if masks else 'NO'} |")
+        L += ab_table(ab)
     return "\n".join(L)
+
+
+def ab_table(ab: dict) -> list[str]:
+    """The A/B's table: per case and thread count, old and new kernel p50, speed-up, whether identical."""
+    b = ab["best_p50_s"]
+    L = ["| case | threads | old ms | new ms | speed-up | bit-identical | max abs difference / image max "
+         "| masks, lights_used identical |", "|---|---|---|---|---|---|---|---|"]
+    for cname, same in ab["identical"].items():
+        d = ab.get("max_abs_diff_rel_to_max", {}).get(cname)
+        masks = ab.get("masks_identical", {}).get(cname, same)
+        for thr in (1, 2):
+            o, n = b[f"{thr}|{cname}|old"], b[f"{thr}|{cname}|new"]
+            L.append(f"| {cname} | {thr} | {1e3 * o:.1f} | {1e3 * n:.1f} | {o / n:.2f}x | "
+                     f"{'yes' if same else 'no'} | {'-' if d is None else f'{d:.2g}'} | "
+                     f"{'yes' if masks else 'NO'} |")
+    return L
 
 
 if __name__ == "__main__":

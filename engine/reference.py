@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 import threading
 import time
-import types
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -45,6 +44,7 @@ from engine.lights import light_sample
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
 from engine.rng import stream_key, uniform
 from engine.scene import CameraParams, RuntimeScene
+from engine.shading import DualKernel, phong_pow
 
 INV_PI = 1.0 / math.pi
 
@@ -136,29 +136,6 @@ class _Timer:
 # ============================================================================ kernels
 
 
-class _DualKernel:
-    """One kernel source, compiled twice: ``par`` (parallel over prange, for a single
-    pipeline) and ``ser`` (serial, nogil, for several pipelines in threads). Both release
-    the GIL, so one pipeline's shading runs while another holds the GIL inside Embree."""
-
-    def __init__(self, fn):
-        self.par = nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")(fn)
-        ser = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
-                                 fn.__closure__)
-        ser.__qualname__ = fn.__qualname__ + "_serial"  # its own on-disk cache entry
-        ser.__module__ = fn.__module__
-        ser.__doc__ = fn.__doc__
-        self.ser = nb.njit(cache=True, nogil=True, error_model="numpy")(ser)
-
-    def pick(self, serial: bool):
-        return self.ser if serial else self.par
-
-
-def _dual(fn) -> _DualKernel:
-    return _DualKernel(fn)
-
-
-
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
@@ -168,16 +145,6 @@ def _dot(a0, a1, a2, b0, b1, b2):
 def _offset_mag(px, py, pz, center, extent):
     m = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
     return OFFSET_REL * (m + OFFSET_EXTENT * extent)
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _phong_pow(c, s):
-    # cos^s without 0/0 or overflow for huge s (HARD_CASES 8)
-    if c <= 0.0:
-        return 0.0
-    if c >= 1.0:
-        return 1.0
-    return math.exp(s * math.log(c))
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -219,7 +186,7 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
 
-@_dual
+@DualKernel
 def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
                 pt_pos, pt_int, dir_dir, dir_irr,
                 rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, row0,
@@ -269,7 +236,7 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
             if has_spec:
                 ca = _dot(wr0, wr1, wr2, lx, ly, lz)
                 if ca > spec_cut[m]:  # below it cos^s < e^-40: skip the exp/log
-                    fs = spec_norm * _phong_pow(ca, shin[m])
+                    fs = spec_norm * phong_pow(ca, shin[m])
             c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
             c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
             c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
@@ -302,7 +269,7 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
     return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
 
 
-@_dual
+@DualKernel
 def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
           n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
@@ -336,7 +303,7 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
         count[i] = nm + ngl + nin + npath
 
 
-@_dual
+@DualKernel
 def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
            count, stream, kd, kr, kg, gexp, center, extent,
            o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
@@ -420,7 +387,7 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
-@_dual
+@DualKernel
 def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n, tri_ng, tri_mat,
                  p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
     """Compact the rays that hit something and compute their surface frames."""
@@ -477,7 +444,7 @@ def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
             acc[q, 2] += contrib[row, 2]
 
 
-@_dual
+@DualKernel
 def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
                   o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out):
     for j in nb.prange(idx.shape[0]):
@@ -493,7 +460,7 @@ def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
         pix_out[j] = pix[i]
 
 
-@_dual
+@DualKernel
 def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, stream, center,
                   o_out, d_out, d32_out, pix_out, jitter=True):
     """spp jittered camera rays per pixel on a gx x gy stratified grid (box filter); ``jitter``
@@ -535,7 +502,7 @@ def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, s
             pix_out[r] = q
 
 
-@_dual
+@DualKernel
 def _compact_shadow(live, so, sd, tmax, so_out, sd_out, tm_out):
     for j in nb.prange(live.shape[0]):
         i = live[j]

@@ -71,7 +71,16 @@ class MaterialTable:
 
 @dataclass(frozen=True)
 class LightTable:
-    """All lights as arrays. Directions are unit vectors (the way light travels)."""
+    """All lights of a scene as arrays, for the renderers' shading kernels (``engine.lights.light_sample``).
+    Directions are unit vectors (the way light travels).
+
+    Built from rows (:meth:`from_rows`): dicts with the scene format's light fields
+    (``api_schemas.scene``'s point, directional and rect lights; ``workers.scene_loader`` converts a
+    schema scene). The relighting describes lights as specs instead (``engine.relighting.lights``: the
+    same three kinds plus environment maps, expanded into samples for the relight kernel);
+    ``engine.relighting.lights.light_table`` builds a LightTable from such specs, so a dataset's
+    ground truth is rendered under exactly the lights a relight uses.
+    """
 
     point_position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     point_intensity: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))

@@ -70,8 +70,8 @@ def test_other_scene_and_dataset_compile_nothing_after_the_warm_up(report: warmu
     from api_schemas.service import BakeParams
     from engine import ENGINE_VERSION
     from engine.reference import ReferenceParams
+    from engine.relighting.bake import bake_dataset
     from engine.relighting.generate import LightPlacement, generate_dataset
-    from engine.relighting.relight import bake_dataset
     from producer.artifacts import put_scene, write_artifact
     from producer.datasets import bake_artifact_key
     from producer.names import DATASET_BAKE_KIND

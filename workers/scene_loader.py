@@ -3,26 +3,32 @@
 This is the one place where schema types meet engine types: primitives are
 tessellated, mesh files loaded and validated (with their reports kept for the
 job result), transforms applied, and materials / lights flattened to arrays.
+:func:`light_rows` converts schema lights, a scene's or a relight request's, to the
+engine's light rows.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
 
+from api_schemas.datasets import RelightEnvironmentLight
 from api_schemas.scene import (
     BoxObject,
     Camera,
     CylinderObject,
+    DirectionalLightFields,
     DiskObject,
     InlineMeshObject,
     MeshFileObject,
     OrthographicCamera,
     PlaneObject,
+    PointLightFields,
+    RectLightFields,
     Scene,
     SceneObject,
     SphereObject,
@@ -40,6 +46,10 @@ from engine.scene import (
     build_runtime_scene,
 )
 from engine.walkthrough.animation import AnimatedScene, LightTrack, TransformTrack
+
+# The uploaded image of an environment light, linear RGB (H, W, 3).
+EnvironmentImage = Callable[[RelightEnvironmentLight], np.ndarray]
+SchemaLight = PointLightFields | DirectionalLightFields | RectLightFields | RelightEnvironmentLight
 
 # Resolves a mesh_file path to (bytes, file type); lets the service serve uploads
 # from the object store while the CLI reads from a directory.
@@ -67,6 +77,26 @@ def camera_params(cam: Camera) -> CameraParams:
                             cam.width, cam.height, ortho_height=cam.ortho_height)
     return CameraParams("perspective", _v3(cam.eye), _v3(cam.look_at), _v3(cam.up),
                         cam.width, cam.height, fov_y_deg=cam.fov_y_deg)
+
+
+def light_rows(lights: Sequence[SchemaLight], environment_image: EnvironmentImage | None = None
+               ) -> list[dict[str, Any]]:
+    """Schema lights -> the engine's light rows, in order: one dict per light with its ``type`` and its
+    fields under the schema's names, which are the engine's (``engine.scene.LightTable.from_rows`` reads a
+    scene's rows, ``engine.relighting.lights.light_from_dict`` a relight request's). A scene light keeps
+    its ``name``; a relight rect light its ``samples`` and ``seed``; an environment light's uploaded map
+    becomes ``image``, read by ``environment_image`` (required when there is one)."""
+    rows: list[dict[str, Any]] = []
+    for light in lights:
+        if isinstance(light, RelightEnvironmentLight):
+            if environment_image is None:
+                raise InvalidInputError("an environment light needs its uploaded image")
+            row = light.model_dump(exclude={"image_sha256", "transfer"})
+            row["image"] = environment_image(light)
+            rows.append(row)
+        else:
+            rows.append(light.model_dump())
+    return rows
 
 
 def directory_resolver(base_dir: str | Path) -> MeshResolver:
@@ -134,7 +164,7 @@ def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScen
             raise type(exc)(f"objects.{i}: {exc}") from exc
         mesh = mesh.transformed(obj.transform.to_matrix())
         parts.append(SceneObjectPart(obj.name or f"object{i}", mesh, mat_index[obj.material]))
-    lights = LightTable.from_rows([lt.model_dump() for lt in scene.lights])
+    lights = LightTable.from_rows(light_rows(scene.lights))
     runtime = build_runtime_scene(parts, materials, lights, ambient=_v3(scene.ambient),
                                   background=_v3(scene.background))
     return LoadedScene(runtime, camera_params(scene.camera), scene_hash(scene), reports)
@@ -147,10 +177,10 @@ def load_animated_scene(scene: Scene, resolver: MeshResolver | None = None) -> A
     rt = loaded.runtime
     parts = [SceneObjectPart(name, _part_mesh(rt, i), int(_part_material(rt, i)))
              for i, name in enumerate(rt.object_names)]
-    light_rows = [lt.model_dump() for lt in scene.lights]
+    rows = light_rows(scene.lights)
     anim = scene.animation
     if anim is None:
-        return AnimatedScene(parts, rt.materials, light_rows, ambient=_v3(scene.ambient),
+        return AnimatedScene(parts, rt.materials, rows, ambient=_v3(scene.ambient),
                              background=_v3(scene.background))
     index_of = {o.name: i for i, o in enumerate(scene.objects) if o.name is not None}
     tracks: list[TransformTrack] = []
@@ -174,7 +204,7 @@ def load_animated_scene(scene: Scene, resolver: MeshResolver | None = None) -> A
             np.array([p for _, p in pos], dtype=np.float64).reshape(-1, 3),
             np.array([t for t, _ in inten], dtype=np.float64),
             np.array([p for _, p in inten], dtype=np.float64).reshape(-1, 3)))
-    return AnimatedScene(parts, rt.materials, light_rows, ambient=_v3(scene.ambient),
+    return AnimatedScene(parts, rt.materials, rows, ambient=_v3(scene.ambient),
                          background=_v3(scene.background), start=anim.start, end=anim.end,
                          object_tracks=tracks, local_meshes=local, light_tracks=light_tracks)
 

@@ -22,7 +22,7 @@ settings):
   ``bake_llf_views_job``) at an LDC resolution of 8 and an LLF of 6 directions at 4 px, published
   as the bake jobs publish them and read back by the render job's ``load_bake`` (npz round trip);
 - ``workers.jobs.datasets.relight_job`` on a synthetic illumination dataset baked
-  (``engine.relighting.relight.bake_dataset``, stored as ``bake_job`` stores it) into every store the
+  (``engine.relighting.bake.bake_dataset``, stored as ``bake_job`` stores it) into every store the
   service can produce -- float16 / float32 x pixel-major / tiled, and low-rank -- each under a
   point, a directional, a rect and an environment light (interpolating kernel) and under a
   light exactly at a dataset light (the exact-hit kernel);
@@ -68,7 +68,8 @@ from api_schemas.service import BakeParams, RenderRequest
 from engine import ENGINE_VERSION
 from engine.imageio import encode_image
 from engine.newviews.effects import analyze
-from engine.relighting.relight import IlluminationDataset, bake_dataset
+from engine.relighting.bake import bake_dataset
+from engine.relighting.dataset import IlluminationDataset
 from producer.artifacts import put_scene, write_artifact
 from producer.bakes import bake_key, part_key, plan_parts
 from producer.datasets import bake_artifact_key, composite_artifact_key, relight_artifact_key, store_file

@@ -60,6 +60,7 @@ from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
 from engine.rng import stream_key, uniform
 from engine.scene import RuntimeScene
+from engine.shading import phong_pow as _phong_pow
 
 INV_PI = 1.0 / math.pi
 GLOSSY_LOG_CUT = 10.0  # skip directions whose lobe weight is below e^-10 of the best one
@@ -100,15 +101,6 @@ class HighlightParams(NamedTuple):
     stream: int  #: counter-based RNG stream of the rect-light jitter (``engine.rng``)
     center: np.ndarray  #: (3,) float64 the scene's centre, for the shadow-ray offset
     extent: float  #: the scene's extent, for the shadow-ray offset
-
-
-@nb.njit(cache=True, inline="always", error_model="numpy")
-def _phong_pow(c, s):
-    if c <= 0.0:
-        return 0.0
-    if c >= 1.0:
-        return 1.0
-    return math.exp(s * math.log(c))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")

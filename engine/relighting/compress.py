@@ -5,7 +5,7 @@ channel) by K columns (lights). It is replaced by a rank-``r_t`` factorisation
 ``M_t ~ U_t B_t^T``: ``U_t`` (3 TILE, r_t) per-pixel coefficients, ``B_t`` (K, r_t) per-light
 basis weights, both float32. A value is the dot product of a ``U`` row and a ``B`` row, so
 relighting reads ``U`` once per pixel and channel and three ``B`` rows per light sample,
-without decompressing (``engine.relighting.relight``'s kernel does exactly that).
+without decompressing (``engine.relighting.kernel`` does exactly that).
 
 Error control. The requested error ``tol`` is a relative RMS error of the whole stack:
 ``||M - M~||_F <= tol ||M||_F``. Every tile gets the same share: its RMS error must be <=
@@ -33,7 +33,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 
 BLOCK = 16  # image block side for the pixel order of a compressed store
-TILE = 256  # stored pixels per compressed tile (equal to engine.relighting.relight.TILE)
+TILE = 256  # stored pixels per compressed tile (equal to engine.relighting.bake.TILE)
 
 
 def block_order(mask: np.ndarray, block: int = BLOCK) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 The scene is rendered by the reference renderer (``engine.reference``) once per point light,
 the lights placed over a chosen part of a sphere around the visible surface. The result is an
-:class:`engine.relighting.relight.IlluminationDataset` in exactly the upload format (K images, one light
+:class:`engine.relighting.dataset.IlluminationDataset` in exactly the upload format (K images, one light
 position and intensity each, the surface points from the renderer's depth AOV, the mask of
 pixels that hit geometry), plus ground-truth renders under any other lights for testing.
 
@@ -33,17 +33,9 @@ from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError
 from engine.raycast import RayCaster, make_caster
 from engine.reference import ReferenceParams, ReferenceRenderer
-from engine.relighting.relight import (
-    DirectionalLight,
-    EnvironmentLight,
-    IlluminationDataset,
-    PointLight,
-    RectLight,
-    _env_to_directional,
-    light_from_dict,
-    points_from_depth,
-)
-from engine.scene import CameraParams, LightTable, RuntimeScene
+from engine.relighting.dataset import IlluminationDataset, points_from_depth
+from engine.relighting.lights import PointLight, light_table
+from engine.scene import CameraParams, RuntimeScene
 
 REGIONS = ("sphere", "hemisphere", "upper_front_quarter")
 LAYOUTS = ("grid", "geodesic")
@@ -280,37 +272,10 @@ def _zero_emission(scene: RuntimeScene):
     return dataclasses.replace(scene.materials, emission=np.zeros_like(scene.materials.emission))
 
 
-def _light_rows(lights) -> list[dict]:
-    """Relighting light specs -> scene light-table rows (environment maps become the same
-    directional lights the relighting uses)."""
-    if isinstance(lights, (PointLight, DirectionalLight, RectLight, EnvironmentLight, dict)):
-        lights = [lights]
-    rows: list[dict] = []
-    for i, spec in enumerate(lights):
-        if isinstance(spec, dict):
-            spec = light_from_dict(spec)
-        if isinstance(spec, PointLight):
-            rows.append(dict(type="point", position=_vec(f"lights[{i}].position", spec.position),
-                             intensity=np.broadcast_to(np.asarray(spec.intensity, np.float64), (3,))))
-        elif isinstance(spec, DirectionalLight):
-            rows.append(dict(type="directional", direction=_vec(f"lights[{i}].direction", spec.direction),
-                             irradiance=np.broadcast_to(np.asarray(spec.irradiance, np.float64), (3,))))
-        elif isinstance(spec, RectLight):
-            rows.append(dict(type="rect", corner=spec.corner, edge_u=spec.edge_u, edge_v=spec.edge_v,
-                             radiance=np.broadcast_to(np.asarray(spec.radiance, np.float64), (3,)),
-                             two_sided=bool(spec.two_sided)))
-        elif isinstance(spec, EnvironmentLight):
-            d, e = _env_to_directional(spec)
-            rows += [dict(type="directional", direction=-d[j], irradiance=e[j]) for j in range(d.shape[0])]
-        else:
-            raise InvalidInputError(f"lights[{i}]: unsupported light spec {type(spec).__name__}")
-    return rows
-
-
 def scene_with_lights(scene: RuntimeScene, lights) -> RuntimeScene:
     """The scene lit only by ``lights`` (relighting light specs or their dicts): its own lights,
     ambient, background and emission removed (see the module docstring)."""
-    return dataclasses.replace(scene, lights=LightTable.from_rows(_light_rows(lights)),
+    return dataclasses.replace(scene, lights=light_table(lights),
                                ambient=np.zeros(3), background=np.zeros(3), materials=_zero_emission(scene))
 
 
@@ -372,7 +337,7 @@ def generate_dataset(scene: RuntimeScene, camera: CameraParams, placement: Light
 
     Image k is the reference render (``params``) of the scene lit only by point light k (see the
     module docstring for what is replaced). Surface points: the depth AOV of the pixel-centre rays
-    through :func:`engine.relighting.relight.points_from_depth` (``depth_kind="distance"``); mask: pixels
+    through :func:`engine.relighting.dataset.points_from_depth` (``depth_kind="distance"``); mask: pixels
     whose centre ray hits geometry. ``progress(fraction, stage)`` is called after every image; an
     exception raised by it (cancellation) stops the generation. The dataset's ``sphere_center`` is
     the placement centre (the bake's default) and ``meta`` records the resolved placement, the

@@ -200,7 +200,7 @@ def test_models_are_frozen_and_forbid_extra() -> None:
         for obj in vars(scene_module).values()
         if isinstance(obj, type) and issubclass(obj, BaseModel) and obj.__module__ == scene_module.__name__
     ]
-    assert len(models) == 21  # + the three view-space models (walkthroughs)
+    assert len(models) == 24  # + the three view-space models (walkthroughs), the three light bases
     for model in models:
         assert model.model_config.get("extra") == "forbid", model
         assert model.model_config.get("frozen") is True, model

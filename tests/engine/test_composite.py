@@ -8,6 +8,7 @@ import pytest
 
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
+from engine.relighting.bake import bake_dataset
 from engine.relighting.composite import active_region_around, composite, composite_ratio
 from engine.relighting.generate import (
     LightPlacement,
@@ -16,7 +17,8 @@ from engine.relighting.generate import (
     render_ground_truth,
     scene_without_objects,
 )
-from engine.relighting.relight import PointLight, bake_dataset, relight
+from engine.relighting.lights import PointLight
+from engine.relighting.relight import relight
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 

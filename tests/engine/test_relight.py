@@ -6,18 +6,11 @@ import numpy as np
 import pytest
 
 from engine.errors import InvalidInputError
-from engine.relighting.relight import (
-    DirectionalLight,
-    EnvironmentLight,
-    IlluminationDataset,
-    PointLight,
-    RectLight,
-    bake_dataset,
-    light_from_dict,
-    locate_directions,
-    points_from_depth,
-    relight,
-)
+from engine.relighting.bake import bake_dataset
+from engine.relighting.dataset import IlluminationDataset, points_from_depth
+from engine.relighting.grid import locate_directions
+from engine.relighting.lights import DirectionalLight, EnvironmentLight, PointLight, RectLight, light_from_dict
+from engine.relighting.relight import relight
 from engine.scene import CameraParams
 from tests.engine.relight_naive import (
     ALBEDO,
@@ -275,22 +268,22 @@ def test_float16_bit_decode_matches_numpy():
     float32 conversion bit for bit, for both implementations."""
     import numba as nb
 
-    from engine.relighting.relight import _HOST_F16C, _half_bits, _half_hw
+    from engine.relighting.kernel import HOST_F16C, half_f16c, half_int
 
     @nb.njit
     def decode_bits(bits, out):
         for i in range(bits.size):
-            out[i] = _half_bits(bits[i])
+            out[i] = half_int(bits[i])
 
     @nb.njit
     def decode_hw(bits, out):
         for i in range(bits.size):
-            out[i] = _half_hw(bits[i])
+            out[i] = half_f16c(bits[i])
 
     bits = np.arange(65536, dtype=np.uint16)
     ref = bits.view(np.float16).astype(np.float32)
     finite = np.isfinite(ref)
-    for decode in (decode_bits, decode_hw) if _HOST_F16C else (decode_bits,):
+    for decode in (decode_bits, decode_hw) if HOST_F16C else (decode_bits,):
         out = np.empty(bits.size, np.float32)
         decode(bits, out)
         assert np.array_equal(out[finite].view(np.uint32), ref[finite].view(np.uint32))

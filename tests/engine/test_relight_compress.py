@@ -8,9 +8,12 @@ import pytest
 
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
+from engine.relighting.bake import bake_dataset
 from engine.relighting.compress import block_order
+from engine.relighting.dataset import IlluminationDataset
 from engine.relighting.generate import LightPlacement, generate_dataset
-from engine.relighting.relight import DirectionalLight, IlluminationDataset, PointLight, bake_dataset, relight
+from engine.relighting.lights import DirectionalLight, PointLight
+from engine.relighting.relight import relight
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 

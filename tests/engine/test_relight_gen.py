@@ -9,6 +9,8 @@ from scipy.spatial import cKDTree
 
 from engine.errors import InvalidInputError
 from engine.reference import ReferenceParams
+from engine.relighting.bake import bake_dataset
+from engine.relighting.dataset import points_from_depth
 from engine.relighting.generate import (
     LightPlacement,
     generate_dataset,
@@ -18,14 +20,9 @@ from engine.relighting.generate import (
     scene_without_objects,
     surface_aovs,
 )
-from engine.relighting.relight import (
-    DirectionalLight,
-    PointLight,
-    bake_dataset,
-    locate_directions,
-    points_from_depth,
-    relight,
-)
+from engine.relighting.grid import locate_directions
+from engine.relighting.lights import DirectionalLight, PointLight
+from engine.relighting.relight import relight
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 
@@ -92,7 +89,7 @@ def test_geodesic_sphere_is_a_subdivided_icosahedron():
 def test_partial_regions_are_covered_to_their_edge(region, layout):
     """Directions inside the region (even close to its boundary) are covered by the baked
     triangulation; directions clearly outside are not (no extrapolation)."""
-    from engine.relighting.relight import IlluminationDataset
+    from engine.relighting.dataset import IlluminationDataset
 
     p = LightPlacement(region=region, layout=layout, spacing_deg=10.0, front=(0, 0, 1))
     lights = place_lights(p, (0, 0, 0), 5.0)

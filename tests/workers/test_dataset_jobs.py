@@ -92,7 +92,9 @@ def test_pinhole_depth_dataset_bakes_and_relights(store: ObjectStore) -> None:
 
 
 def test_baked_bytes_round_trip_relights_identically(store: ObjectStore) -> None:
-    from engine.relighting.relight import PointLight, bake_dataset, relight
+    from engine.relighting.bake import bake_dataset
+    from engine.relighting.lights import PointLight
+    from engine.relighting.relight import relight
 
     cam = {"type": "orthographic", "eye": [0, 0, 10], "look_at": [0, 0, 0], "ortho_height": float(H),
            "width": W, "height": H}
@@ -117,8 +119,8 @@ def test_baked_bytes_round_trip_relights_identically(store: ObjectStore) -> None
 
 def test_scene_geometry_is_ray_cast(store: ObjectStore) -> None:
     from api_schemas.scene import Scene
+    from engine.relighting.dataset import points_from_depth
     from engine.relighting.generate import surface_aovs
-    from engine.relighting.relight import points_from_depth
     from producer.artifacts import put_scene
     from tests.service.api.conftest import small_scene
     from workers.scene_loader import camera_params, load_scene

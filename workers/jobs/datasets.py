@@ -5,7 +5,7 @@
   store the result as a dataset in exactly the upload format (float EXR images, a float EXR
   distance map, a PNG mask, the manifest), plus a small artifact mapping the request to the
   dataset id (so the same request is a cache hit).
-- :func:`bake_job`: ``engine.relighting.relight.bake_dataset`` on a stored dataset; the baked stack and the
+- :func:`bake_job`: ``engine.relighting.bake.bake_dataset`` on a stored dataset; the baked stack and the
   lookup structures become one content-addressed artifact (``baked.npz``).
 - :func:`relight_job`: the baked dataset (kept warm in this process's LRU, :func:`baked_cache`)
   under new lights -> ``radiance.exr`` (linear float), ``preview.png`` (sRGB), ``outside.png``
@@ -44,10 +44,12 @@ from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.imageio import srgb_encode, write_image
 from engine.raycast import hit_points, make_caster
 from engine.reference import ReferenceParams
+from engine.relighting.bake import BakedDataset, bake_dataset
 from engine.relighting.composite import active_region_around, composite
 from engine.relighting.compress import LowRankStore
+from engine.relighting.dataset import IlluminationDataset, points_from_depth
 from engine.relighting.generate import LightPlacement, generate_dataset, render_ground_truth, surface_aovs
-from engine.relighting.relight import BakedDataset, IlluminationDataset, bake_dataset, points_from_depth, relight
+from engine.relighting.relight import relight
 from producer.artifacts import get_scene, read_blob, read_manifest, write_artifact
 from producer.datasets import (
     bake_artifact_key,
@@ -132,7 +134,7 @@ def _image_bytes(tmp: Path, name: str, pixels: Any, **kw: Any) -> bytes:
 def load_illumination_dataset(store: ObjectStore, dataset_id: str,
                               progress: ProgressReporter | None = None, frac: tuple[float, float] = (0.0, 1.0)
                               ) -> IlluminationDataset:
-    """A stored dataset as an ``engine.relighting.relight.IlluminationDataset``: images linearised with the
+    """A stored dataset as an ``engine.relighting.dataset.IlluminationDataset``: images linearised with the
     manifest's transfer function, surface points from the depth map (or by ray-casting the stored
     scene), the mask combined with the valid depth pixels."""
 
@@ -312,29 +314,12 @@ def _env_image(store: ObjectStore, sha: str, transfer: str) -> np.ndarray:
 
 
 def _engine_lights(store: ObjectStore, lights: list[Any]) -> list[Any]:
-    from api_schemas.datasets import (
-        RelightDirectionalLight,
-        RelightEnvironmentLight,
-        RelightPointLight,
-        RelightRectLight,
-    )
-    from engine.relighting.relight import DirectionalLight, EnvironmentLight, PointLight, RectLight
+    """A request's schema lights as the relighting's light specs (environment maps read from the store)."""
+    from engine.relighting.lights import light_from_dict
+    from workers.scene_loader import light_rows
 
-    out: list[Any] = []
-    for light in lights:
-        if isinstance(light, RelightPointLight):
-            out.append(PointLight(tuple(light.position), tuple(light.intensity)))
-        elif isinstance(light, RelightDirectionalLight):
-            out.append(DirectionalLight(tuple(light.direction), tuple(light.irradiance)))
-        elif isinstance(light, RelightRectLight):
-            out.append(RectLight(tuple(light.corner), tuple(light.edge_u), tuple(light.edge_v), tuple(light.radiance),
-                                 light.two_sided, light.samples, light.seed))
-        elif isinstance(light, RelightEnvironmentLight):
-            out.append(EnvironmentLight(_env_image(store, light.image_sha256, light.transfer), light.n_lights,
-                                        light.method, light.seed, light.scale))
-        else:  # pragma: no cover - the payload model admits nothing else
-            raise InvalidPayload(f"unsupported light {type(light).__name__}")
-    return out
+    rows = light_rows(lights, lambda env: _env_image(store, env.image_sha256, env.transfer))
+    return [light_from_dict(row) for row in rows]
 
 
 _SRGB_LUT: np.ndarray | None = None

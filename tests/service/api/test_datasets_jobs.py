@@ -121,7 +121,9 @@ def test_generate_bake_relight_round_trip(client: TestClient, worker_process: An
     dark = _decode(client.get(out["links"]["image.exr"]).content, ".exr")
     assert not np.any(dark[outside])
     # ... exactly as the engine computes it directly from the stored dataset
-    from engine.relighting.relight import PointLight, bake_dataset, relight
+    from engine.relighting.bake import bake_dataset
+    from engine.relighting.lights import PointLight
+    from engine.relighting.relight import relight
     from workers.jobs.datasets import load_illumination_dataset
 
     direct = relight(bake_dataset(load_illumination_dataset(worker_store, did), half=False),
