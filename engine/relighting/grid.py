@@ -14,7 +14,7 @@ Owns the bake's direction work and the lookup the kernel does with it:
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numba as nb
 import numpy as np
@@ -23,8 +23,16 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.errors import InvalidInputError
 from engine.relighting.dataset import checked_array
 
-if TYPE_CHECKING:
-    from engine.relighting.bake import BakedDataset
+
+class LocatedGrid(Protocol):
+    """What point location reads of a baked dataset (``engine.relighting.bake.BakedDataset`` has
+    these fields): the triangles' inverse cone matrices and the cube-map grid over them."""
+
+    tri_inverse: np.ndarray
+    grid_n: int
+    grid_start: np.ndarray
+    grid_items: np.ndarray
+
 
 CONE_EPS = 1e-12
 """A direction is inside a triangle when every cone coordinate is >= -CONE_EPS x their sum."""
@@ -227,7 +235,7 @@ def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
 
 
 
-def locate_directions(baked: BakedDataset, dirs) -> tuple[np.ndarray, np.ndarray]:
+def locate_directions(baked: LocatedGrid, dirs) -> tuple[np.ndarray, np.ndarray]:
     """Triangle index (n,) int64 (-1 = outside coverage) and barycentric weights (n, 3)
     float64 for directions (n, 3) from the sphere centre (need not be unit)."""
     d = checked_array("dirs", dirs, np.float64, 2)
