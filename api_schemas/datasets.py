@@ -1,6 +1,6 @@
 """Illumination datasets and relighting: request / response models of the HTTP API.
 
-An illumination dataset (docs/relighting.md, issue 5) is K images of one fixed view, image k
+An illumination dataset (docs/relighting.md) is K images of one fixed view, image k
 lit only by light k, plus the camera and the surface geometry registered to the pixels. The
 *manifest* (:class:`DatasetManifest`) describes it; the image, depth and mask files travel as
 separate uploads and are referenced by name (and sha256). A dataset id is the sha256 of the
@@ -387,7 +387,7 @@ class DatasetUploadStatus(FrozenModel):
 
 
 class DatasetBakeParams(FrozenModel):
-    """How a dataset is baked for relighting (``engine.relighting.relight.bake_dataset``)."""
+    """How a dataset is baked for relighting (``engine.relighting.bake.bake_dataset``)."""
 
     layout: Literal["pixel_major", "tiled"] = "pixel_major"
     half: StrictBool = True

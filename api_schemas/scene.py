@@ -228,7 +228,7 @@ Exponent = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1e7
 
 
 class Material(FrozenModel):
-    """Phong-family material (ALGORITHMS.md, material model).
+    """Phong-family material (docs/algorithms.md, "Shared conventions").
 
     Per channel ``kd + ks + kr + kg <= 1`` so that no material creates energy.
     """

@@ -1,4 +1,4 @@
-"""Relighting accuracy versus light spacing, time and storage (issue 5, "Show").
+"""Relighting accuracy versus light spacing, time and storage.
 
 Run: ``python -m bench.relight_accuracy [--quick]`` from the repository root. Writes
 ``docs/accuracy/relight.md`` (block ``relight_accuracy``), ``docs/data/relight_accuracy.json``

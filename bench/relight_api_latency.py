@@ -1,4 +1,4 @@
-"""Relighting through the API with a warm render worker (issue 5, "Speed": a 512x512 relit frame
+"""Relighting through the API with a warm render worker (a 512x512 relit frame
 through the API in under 100 ms end to end).
 
 Starts the real stack on this machine (embedded Redis, one bake and one render worker, the API via
@@ -156,7 +156,7 @@ def report(res: dict[str, Any], argv: str) -> str:
         "",
         f"Measured with `python -m bench.relight_api_latency {argv}` ({date.today().isoformat()}, "
         f"{os.cpu_count()} cores, {platform.machine()}, 1-minute load average {res['load_before']:.1f} before and "
-        f"{res['load_after']:.1f} after: other sessions shared the cores; uvicorn, Redis, both workers and the "
+        f"{res['load_after']:.1f} after: other work shared the cores; uvicorn, Redis, both workers and the "
         "client run on the same machine).",
         "",
         f"Dataset: 512x512 crop of the DiLiGenT ball ({res['n_lights']} photographs, distant lights), baked in "

@@ -1,7 +1,7 @@
-"""Relighting speed versus the memory-bandwidth bound (issue 5, "Show": speed).
+"""Relighting speed versus the memory-bandwidth bound.
 
 Run: ``python -m bench.relight_speed [--res 1024] [--spacing 10] [--runs 20] [--no-doc]`` from the
-repository root. Writes the ``relight_speed`` block (1024 x 1024, the issue's 1-megapixel frame) or
+repository root. Writes the ``relight_speed`` block (1024 x 1024, a 1-megapixel frame) or
 the ``relight_speed_<res>`` block (any other resolution) of ``docs/relighting.md``, and that
 resolution's entry (``"<res>x<res>"``) of ``docs/data/relight_speed.json``.
 
@@ -319,7 +319,7 @@ def report(res: dict) -> str:
     cfg = res["config"]
     bw, strict, best = res["bandwidth_bytes_per_s"], res["strict_bound_s"], res["best_p50_s"]
     L = [f"Measured by `python -m bench.relight_speed` on {cfg['date']} ({cfg['machine']}; the 2 cores are shared "
-         f"with other sessions, so absolute times vary by up to 2-3x between runs; ratios are within one run). "
+         f"with other work, so absolute times vary by up to 2-3x between runs; ratios are within one run). "
          f"Dataset: generated ball on a floor filling the frame, {cfg['res']}x{cfg['res']} "
          f"({cfg['n_pixels']} surface pixels), {cfg['n_lights']} point lights on the upper hemisphere every "
          f"{cfg['spacing_deg']:g} deg (generated in {res['generate_s']:.0f} s). Time = `relight(...).timings"
@@ -347,7 +347,7 @@ def report(res: dict) -> str:
     k1, k2 = "1|tiled|1 point light", "2|tiled|1 point light"
     L.append("")
     L.append(f"One point light, tiled store, 2 threads: {1e3 * best[k2]:.2f} ms = {best[k2] / strict[2]:.1f}x the "
-             f"2-thread bound (1 thread: {best[k1] / strict[1]:.1f}x); goal (issue 5): within 4x.")
+             f"2-thread bound (1 thread: {best[k1] / strict[1]:.1f}x); goal: within 4x.")
     L.append("")
     L.append("The ratio is the better of 1 and 2 threads, each against the bandwidth measured with that "
              "many threads; for the environment map the bound is 64 x the one-light bound. When other "

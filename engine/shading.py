@@ -39,7 +39,7 @@ class DualKernel:
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def phong_pow(c, s):
     """``c^s`` for a cosine c and a Phong exponent s >= 0: 0 for c <= 0, 1 for c >= 1 (no 0/0 at
-    c = 0, s = 0 and no overflow for huge s; HARD_CASES 8), else ``exp(s log c)``."""
+    c = 0, s = 0 and no overflow for huge s; docs/hard-cases.md #8), else ``exp(s log c)``."""
     if c <= 0.0:
         return 0.0
     if c >= 1.0:

@@ -99,7 +99,7 @@ log = logging.getLogger("workers.warmup")
 
 
 def engine_dispatchers() -> dict[str, Any]:
-    """Every numba dispatcher of the imported engine modules by ``module.name`` (``_DualKernel``
+    """Every numba dispatcher of the imported engine modules by ``module.name`` (``engine.shading.DualKernel``
     objects contribute their ``.par`` and ``.ser`` compilations), each dispatcher once."""
     found: dict[str, Any] = {}
     seen: set[int] = set()

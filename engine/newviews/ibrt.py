@@ -34,7 +34,7 @@ passes in front of everything from this layer down), handed to its cross-link wh
 ``z_in > hi`` (the ray passes behind this layer: only deeper layers can be hit), else its
 live children are visited in the order the ray meets them; a level-1 node tests the patches
 of its pixels' samples from its layer down. Node bounds are float32, rounded outwards; the
-patch tests are float64 (HARD_CASES 6). The LDIs are traced in the order of decreasing
+patch tests are float64 (docs/hard-cases.md #6). The LDIs are traced in the order of decreasing
 ``|d . w|`` (shortest projection first) sharing the best ``t`` found so far, so the second
 and third LDIs only search in front of the first one's hit.
 

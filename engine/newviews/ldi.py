@@ -6,7 +6,7 @@ along ``w = u x v``. Pixel index ``k = j * nu + i``.
 
 Storage: ``offsets`` (nu*nv + 1,) int64, pixel k owns samples ``offsets[k]:offsets[k+1]``
 sorted front to back. ``depth`` is float64, the distance along ``w`` from the reference
-plane (HARD_CASES 6: we keep float64 instead of a float32 offset from a per-LDI reference,
+plane (docs/hard-cases.md #6: we keep float64 instead of a float32 offset from a per-LDI reference,
 8 bytes per sample buys exact layer separation at any placement, e.g. 1e-3 apart at 1e4).
 ``prim`` int32 triangle id, ``u``, ``v`` float32 barycentrics (Embree computes them in
 float32; the sample point is rebuilt in float64 from the frame and the depth).

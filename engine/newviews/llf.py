@@ -1,4 +1,4 @@
-"""Layered light field (LLF): the view-dependent half of the first paper (ALGORITHMS.md part A).
+"""Layered light field (LLF): the view-dependent half of the first paper (docs/algorithms.md part A).
 
 **Directions.** ``octahedron_directions(f)`` gives the ``4 f^2 + 2`` vertices of an octahedron
 whose faces are subdivided with frequency ``f`` (66, 258, 1026 for f = 4, 8, 16): the integer

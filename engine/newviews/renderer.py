@@ -1,4 +1,4 @@
-"""Render a new view from a baked LDC (+ LLF): the first paper's rendering (ALGORITHMS.md part A).
+"""Render a new view from a baked LDC (+ LLF): the first paper's rendering (docs/algorithms.md part A).
 
 ``LDCViewRenderer(scene, ldc, llf, plan).render(camera, method, ibrt_generations=k)``:
 

@@ -1,4 +1,4 @@
-"""View-dependent pass of the LDC method (ALGORITHMS.md part A, rendering step 2).
+"""View-dependent pass of the LDC method (docs/algorithms.md part A, "Rendering a view" step 2).
 
 Runs only on the visible non-diffuse pixels the effect plan asks for; every function takes
 flat per-surface-point arrays, so the same kernels shade camera pixels and the hits of
@@ -31,7 +31,7 @@ outside the view) gives the background.
   wr))`` - the reference's estimator with its lobe samples replaced by the LLF directions
   (equal-area directions, so no area weights). Weights are formed as ``exp(g (ln cos_j -
   ln cos_max))`` (the best direction has weight 1): finite and normalised for any g
-  (HARD_CASES 8). A lobe narrower than the LLF can resolve (g above the cone exponent n_c
+  (docs/hard-cases.md #8). A lobe narrower than the LLF can resolve (g above the cone exponent n_c
   below) would be sampled by one or two directions, and the cos_i of those (up to a
   direction spacing off wr) biases the result; there the estimate factorises instead:
   ``kg max(0, ns . wr) L_cone`` with L_cone the mirror cone's radiance below (for a lobe

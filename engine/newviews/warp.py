@@ -1,7 +1,7 @@
 """3D warp of a layered depth cube into a camera (the first rendering stage of the LDC method).
 
 Every sample of the three LDIs is rebuilt in float64 (frame origin + pixel centre + depth
-along w; HARD_CASES 6), projected into the camera (``engine/camera.py`` conventions) and
+along w; docs/hard-cases.md #6), projected into the camera (``engine/camera.py`` conventions) and
 splatted with a z-buffer (distance along the pixel ray, like the reference's depth):
 
 - **Footprint.** A sample stands for an ``h x h`` cell of its LDI's reference plane. Its
@@ -28,9 +28,9 @@ splatted with a z-buffer (distance along the pixel ray, like the reference's dep
   Uncovered background pixels are holes too: the warp cannot tell "nothing there" from "not
   sampled"; ``fill="raycast"`` resolves them.
 - **Filling.** ``fill="none"``: holes keep the background and are flagged. ``fill="raycast"``
-  is an INTERIM fill: Embree rays from the eye for the hole pixels, shaded with the same
-  diffuse model as the bake. It is NOT the paper's image-based ray tracing through the LDC
-  (later work, issue 4), and it needs the caster.
+  casts Embree rays from the eye for the hole pixels, shaded with the same diffuse model as
+  the bake: a check against the scene's triangles, not the paper's image-based ray tracing
+  through the LDC (``fill="ibrt"``, the renderer's default), and it needs the caster.
 """
 
 from __future__ import annotations

@@ -307,7 +307,7 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     max_face_radius_deg: coverage rule (docs/relighting.md); None = min(85, 3 x median).
     half: store float16 when every value fits (else float32; the choice is in ``report``);
         ``half_rel_floor``: values below this fraction of their light's max may lose precision
-        (default 0: every non-zero value keeps float16's 2^-11 relative precision, HARD_CASES 9).
+        (default 0: every non-zero value keeps float16's 2^-11 relative precision, docs/hard-cases.md #9).
     compress: None, or the requested relative RMS error (0 < compress < 1) of a low-rank store
         (``engine.relighting.compress``: rank per 256-pixel tile). It is used only when its measured
         error meets the request and it is smaller than the uncompressed store; otherwise the

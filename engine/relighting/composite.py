@@ -1,5 +1,5 @@
-"""Compositing a relit object into a background plate (issue 5, Build 5; the paper's section 3.3,
-ALGORITHMS.md part B).
+"""Compositing a relit object into a background plate (the relighting paper's section 3.3;
+docs/algorithms.md part B).
 
 Inputs, all registered to the same fixed camera: the object dataset relit under the new lights
 (``I_obj``: the object *and* its surroundings, e.g. the floor it stands on, with its shadows and

@@ -1,4 +1,4 @@
-"""Low-rank compression of a baked illumination-dataset store (issue 5, Build 3 and 6).
+"""Low-rank compression of a baked illumination-dataset store (docs/relighting.md).
 
 The stack of one tile of ``TILE`` stored pixels is a matrix ``M_t`` of (3 TILE) rows (pixel x
 channel) by K columns (lights). It is replaced by a rank-``r_t`` factorisation

@@ -1,4 +1,4 @@
-"""Illumination datasets generated from a scene (issue 5, Build 2).
+"""Illumination datasets generated from a scene (docs/relighting.md).
 
 The scene is rendered by the reference renderer (``engine.reference``) once per point light,
 the lights placed over a chosen part of a sphere around the visible surface. The result is an

@@ -1,4 +1,4 @@
-"""Compositing a relit object into a plate (issue 5, Build 5): rules against a per-pixel reference,
+"""Compositing a relit object into a plate: rules against a per-pixel reference,
 the near-black guard, and a generated object + background pair against ground truth."""
 
 from __future__ import annotations

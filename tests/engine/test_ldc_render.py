@@ -1,5 +1,5 @@
 """LDC view renderer: primary visibility vs the reference, the effect plan's skipped work,
-reflections by gather and by image-based ray tracing, HARD_CASES 4, 5, 6, 7, 8, 11."""
+reflections by gather and by image-based ray tracing, docs/hard-cases.md #4-#8, #11."""
 
 from __future__ import annotations
 

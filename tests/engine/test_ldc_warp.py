@@ -1,4 +1,4 @@
-"""LDC bake and 3D warp: reference agreement, HARD_CASES 4 and 11, holes on mirror_box, many-light bits."""
+"""LDC bake and 3D warp: reference agreement, docs/hard-cases.md #4 and #11, holes on mirror_box, many-light bits."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Relighting engine (issue 5 core): exactness, limits, linearity, HARD_CASES 10 (and 9), naive cross-check."""
+"""Relighting engine : exactness, limits, linearity, docs/hard-cases.md #10 (and #9), naive cross-check."""
 
 from __future__ import annotations
 
@@ -186,7 +186,7 @@ def test_simd_kernel_matches_naive_on_a_multi_chunk_half_store(layout):
 @pytest.mark.parametrize("half", [False, True])
 def test_float32_geometry_border_rows_get_the_float64_answer(half):
     """The tiled store's point lights take the float32 sphere direction and cone test; a row whose float32
-    cone coordinates are within their error bound of 0 is re-tested in float64 (HARD_CASES 10). A light ON
+    cone coordinates are within their error bound of 0 is re-tested in float64 (docs/hard-cases.md #10). A light ON
     the sphere sends every row's direction to the light itself: at an edge midpoint of the coverage
     boundary (latitude 0 of a hemisphere: the triangle on one side, nothing on the other), at an interior
     edge midpoint and at a vertex (the exact path off), every row lies on an edge or a vertex up to
@@ -510,7 +510,7 @@ def test_validation_names_the_field():
         light_from_dict({"type": "spot"})
 
 
-# ---------------------------------------------------------------- storage (HARD_CASES 9)
+# ---------------------------------------------------------------- storage (docs/hard-cases.md #9)
 
 
 def test_float16_only_where_safe():

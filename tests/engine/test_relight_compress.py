@@ -1,4 +1,4 @@
-"""Low-rank compression of the baked store (issue 5, Build 3 and 6): the reported error is the
+"""Low-rank compression of the baked store: the reported error is the
 measured one, the kernel reads the factors correctly, compression is used only when it pays."""
 
 from __future__ import annotations

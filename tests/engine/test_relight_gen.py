@@ -1,4 +1,4 @@
-"""Dataset generation from a scene (issue 5, Build 2): light placement, replacement of the scene's
+"""Dataset generation from a scene: light placement, replacement of the scene's
 lights, ground truth, and a generated dataset relit against its ground truth."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """View-dependent pass: highlights gated by the LDC bits vs the reference's direct light,
-light-field gather vs a naive lookup, constant environments, huge exponents (HARD_CASES 8)."""
+light-field gather vs a naive lookup, constant environments, huge exponents (docs/hard-cases.md #8)."""
 
 from __future__ import annotations
 
