@@ -43,7 +43,6 @@ from engine.rng import mix64, stream_key
 _U0 = np.uint64(0)
 _U1 = np.uint64(1)
 _M32 = np.uint64(0xFFFFFFFF)
-_TOP = np.uint64(0x80000000)
 _S1 = np.uint64(1)
 _S2 = np.uint64(2)
 _S4 = np.uint64(4)
@@ -95,22 +94,24 @@ def _owen(x, seed):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _sobol1(i):
-    """Second coordinate of the 2-D Sobol sequence at 32-bit index i (direction numbers
-    v_0 = 2^31, v_k = v_(k-1) xor v_(k-1) >> 1); the first is ``_reverse32(i)``."""
-    x = _U0
-    v = _TOP
-    while i != _U0:
-        if i & _U1:
-            x ^= v
-        i >>= _S1
-        v ^= v >> _S1
-    return x
+def _sobol1_reversed(i):
+    """Second coordinate of the 2-D Sobol sequence at 32-bit index i, bits reversed (bit r is
+    digit r + 1 of the binary fraction); the first coordinate reversed is i itself.
+
+    Its generator matrix is Pascal's triangle mod 2 (direction numbers v_0 = 2^31,
+    v_k = v_(k-1) xor v_(k-1) >> 1): digit r is the xor of index bits k with C(k, r) odd, i.e.
+    (Lucas) with k a superset of r's bits; a superset-xor transform over the 5 bits of the bit
+    position, one shift-and-mask per bit instead of a loop over the index's 32 bits."""
+    i ^= (i >> _S1) & _B1
+    i ^= (i >> _S2) & _B2
+    i ^= (i >> _S4) & _B4
+    i ^= (i >> _S8) & _B8
+    return i ^ ((i >> _S16) & _B16)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def _to_unit(x, h):
-    """A float64 in [0, 1) whose first 32 binary digits are x, the next 21 from the hash h."""
+    """A float64 in [0, 1) whose first 32 binary digits are x, the next 21 the top bits of h."""
     return np.float64((x << _S21) | (h >> _S43)) * _INV53
 
 
@@ -121,10 +122,13 @@ def sample_2d(key, pixel, index):
     idx = np.uint64(index)
     s = mix64(key ^ mix64(np.uint64(pixel) * _PIX + (idx >> _S32) * _GOLDEN))
     s2 = mix64(s ^ _GOLDEN)
+    h = (s2 ^ (idx * _PIX)) * _GOLDEN  # the digits past the 32nd (need no strong hash)
     i = _owen(idx & _M32, s & _M32)  # shuffled index: an aligned block of 2^m stays one
-    x = _lk_permute(i, (s >> _S32) & _M32)  # = _owen(_reverse32(i)) reversed: Sobol's 1st coordinate
-    y = _owen(_sobol1(i), s2 & _M32)
-    return _to_unit(_reverse32(x), mix64(s2 ^ idx)), _to_unit(y, mix64(s ^ idx))
+    # Owen scrambling of a coordinate c is _reverse32(_lk_permute(_reverse32(c), seed)), and
+    # _reverse32(c) is what the Sobol functions give
+    x = _reverse32(_lk_permute(i, s >> _S32))
+    y = _reverse32(_lk_permute(_sobol1_reversed(i), s2 & _M32))
+    return _to_unit(x, h), _to_unit(y, h << _S21)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -132,17 +136,16 @@ def sample_1d(key, pixel, index):
     """The first coordinate of ``sample_2d(key, pixel, index)`` (a stratified 1-D sample)."""
     idx = np.uint64(index)
     s = mix64(key ^ mix64(np.uint64(pixel) * _PIX + (idx >> _S32) * _GOLDEN))
-    s2 = mix64(s ^ _GOLDEN)
+    h = (mix64(s ^ _GOLDEN) ^ (idx * _PIX)) * _GOLDEN
     i = _owen(idx & _M32, s & _M32)
-    x = _lk_permute(i, (s >> _S32) & _M32)
-    return _to_unit(_reverse32(x), mix64(s2 ^ idx))
+    return _to_unit(_reverse32(_lk_permute(i, s >> _S32)), h)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
 def derive_key(key, a, b):
     """The key of a sub-dimension of ``key`` named by two integers (e.g. a path vertex and a
     purpose): keys derived from different (a, b) give independent sequences."""
-    return mix64(key ^ mix64(np.uint64(a) * _GOLDEN + np.uint64(b) + _U1))
+    return mix64(key ^ (np.uint64(a) * _GOLDEN + (np.uint64(b) + _U1) * _PIX))
 
 
 def sample_key(seed: int, *parts: int) -> np.uint64:

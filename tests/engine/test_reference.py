@@ -81,10 +81,12 @@ EDGE_SPP = [*range(1, 65), 128, 512]
 def _half_plane(axis: str, h: float):
     """A floor of radiance exactly 1 (kd 1, irradiance pi from straight above) over x < -2 + h
     (axis "x": the left fraction h of column 0) or z < -2 + h (axis "z": the top fraction h of
-    row 0), nothing elsewhere: a pixel's value is the fraction of its samples on the floor."""
+    row 0), nothing elsewhere: a pixel's value is the fraction of its samples on the floor.
+    The floor reaches just past the image, so the scene's centre (the origin of Embree's float32
+    frame) is near the edge and a sample is told from it to ~1e-7 of a pixel."""
     e = -2.0 + h
-    xe, ze = (e, 50.0) if axis == "x" else (50.0, e)
-    v = np.array([[-50.0, 0.0, -50.0], [xe, 0.0, -50.0], [xe, 0.0, ze], [-50.0, 0.0, ze]])
+    xe, ze = (e, 2.5) if axis == "x" else (2.5, e)
+    v = np.array([[-2.5, 0.0, -2.5], [xe, 0.0, -2.5], [xe, 0.0, ze], [-2.5, 0.0, ze]])
     mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.tile([0.0, 1.0, 0.0], (4, 1)))
     return scene([(mesh, mat(kd=(1, 1, 1)))],
                  [dict(type="directional", direction=(0.0, -1.0, 0.0), irradiance=(math.pi,) * 3)])

@@ -10,7 +10,7 @@ from scipy import stats
 
 from engine.camera import camera_rays, pixel_centers
 from engine.reference import ReferenceParams, ReferenceRenderer, render_reference
-from engine.sampler import points, sample_key
+from engine.sampler import _reverse32, _sobol1_reversed, points, sample_key
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
 
@@ -28,6 +28,20 @@ def _is_net(p: np.ndarray) -> bool:
         if np.unique(cells).size != n:
             return False
     return True
+
+
+def test_unscrambled_sequence_is_sobol():
+    """The generator of the second coordinate (a superset-xor transform of the index bits)
+    equals Sobol's direction numbers v_0 = 2^31, v_k = v_(k-1) xor v_(k-1) >> 1."""
+    rng = np.random.default_rng(0)
+    for i in [*range(4096), *rng.integers(0, 1 << 32, 2000).tolist()]:
+        want, v, k = 0, 1 << 31, i
+        while k:
+            if k & 1:
+                want ^= v
+            k >>= 1
+            v ^= v >> 1
+        assert int(_reverse32(_sobol1_reversed(np.uint64(i)))) == want, i
 
 
 @pytest.mark.parametrize("seed,pixel", [(0, 0), (1, 7), (12345, 1 << 20), (7, 4095)])
