@@ -406,7 +406,9 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
                 ckey = key
                 cidx = sidx[i]
                 tot = ad + ar + ag
-                u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix[i], cidx) * tot
+                u = 0.0  # one lobe (e.g. diffuse only): u = 0 picks it, as any u would
+                if (ad > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
+                    u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix[i], cidx) * tot
                 if u < ad:
                     lb, scale = 2, tot / ad
                 elif u < ad + ar:
