@@ -124,6 +124,26 @@ def test_edge_pixel_mean_over_seeds_is_its_coverage(spp, axis):
     assert abs(vals.mean() - h) <= 4.0 * se + 1e-5, (vals.mean(), se)
 
 
+def test_unjittered_cells_tile_the_pixel_for_every_spp():
+    """pixel_jitter=False: spp equal-area cells in rows; their centres average to the pixel
+    centre for every spp (the g x g grid's centres for squares)."""
+    from engine.reference import _cell_centre
+
+    for spp in range(1, 700):
+        gx = math.ceil(math.sqrt(spp))
+        c = np.array([_cell_centre(j, spp, gx) for j in range(spp)])
+        np.testing.assert_allclose(c.mean(axis=0), 0.5, atol=1e-12)
+        assert c.min() > 0 and c.max() < 1 and np.unique(c, axis=0).shape[0] == spp
+        rows, counts = np.unique(c[:, 1], return_counts=True)
+        assert counts.max() - counts.min() <= 1 and counts.max() <= gx
+        # each row is as tall as its share of the cells: every cell has area 1 / spp
+        edges = np.concatenate([[0.0], np.cumsum(counts) / spp])
+        np.testing.assert_allclose(rows, 0.5 * (edges[:-1] + edges[1:]), atol=1e-12)
+        if gx * gx == spp:
+            g = (np.arange(gx) + 0.5) / gx
+            np.testing.assert_allclose(np.sort(c[:, 0]), np.sort(np.tile(g, gx)), atol=1e-12)
+
+
 def _corner_factor(a, b, c):
     """Form factor from a point to an a x b rectangle above one corner at height c (parallel)."""
     A, B = a / math.hypot(a, c), b / math.hypot(b, c)
