@@ -18,4 +18,6 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # 0.2.0: LDC renders (silhouette rays, the refinement's mesh walk) and relights (float32 kernel).
 # 0.2.1: LDC renders (silhouette pixels: the mesh test before the image-based ray) and relights
 # (float32 point-light geometry with a float64 re-test of borderline rows).
-ENGINE_VERSION = "0.2.1"
+# 0.3.0: reference renders, LLF bakes and datasets (the reference's samples come from the
+# Owen-scrambled Sobol sampler, engine/sampler.py; camera samples unbiased at every spp).
+ENGINE_VERSION = "0.3.0"

@@ -20,9 +20,13 @@ n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
 - indirect: K diffuse paths per pixel (spread over the antialiasing samples), each
             with ``indirect_bounces`` bounces and next-event estimation at every vertex.
 
-Randomness: every random number is a counter-based hash (engine/rng.py) of
-(seed, chunk, bounce, stage, ray index), so a render is bit-for-bit deterministic for
-a given seed, whatever the number of threads or pipelines.
+Sampling: every sample value comes from engine/sampler.py (Owen-scrambled Sobol), keyed by
+(seed, pixel, the sample's index among the pixel's samples, the dimension it serves): the pixel
+position, each rect light's position at each vertex, the lobe choice and the BSDF direction at
+each vertex. A ray carries its pixel, its sample index and its dimension key; a branch into B
+rays numbers its children parent * B + b, so a pixel's samples of one dimension are one
+stratified sequence. A render is bit-for-bit deterministic for a given seed, whatever the
+number of threads, pipelines or chunks.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import light_sample
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
-from engine.rng import stream_key, uniform
+from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.shading import DualKernel, phong_pow
 
@@ -52,21 +56,33 @@ INV_PI = 1.0 / math.pi
 KIND_CHAIN = 0  # camera ray or a mirror / glossy continuation of one
 KIND_PATH = 1  # an indirect (diffuse path) ray
 
+# sample dimensions at a path vertex: derive_key(ray key, vertex, purpose)
+DIM_PIXEL = 1  # (vertex 0) position in the pixel
+DIM_LIGHT = 2  # rect-light positions (then derive_key(., light, stratum))
+DIM_LOBE = 3  # lobe choice at a path vertex
+DIM_DIR = 4  # BSDF direction
+# a chain hit's children: their key is derive_key(key, vertex, BRANCH_*)
+BRANCH_MIRROR = 10
+BRANCH_GLOSSY = 11
+BRANCH_DIFFUSE = 12
+
 
 @dataclass(frozen=True)
 class ReferenceParams:
     """Reference renderer settings.
 
-    spp: antialiasing samples per pixel (N), stratified, box filter.
-    pixel_jitter: jitter each sample inside its stratum (True: the box-filtered image); False
-        puts it at the stratum centre (spp=1: the pixel centre, the image model of one
-        point sample per pixel that the image-based methods render; used as their ground
-        truth in bench/ldc_equal_error.py).
+    spp: antialiasing samples per pixel (N), box filter: the first N points of the pixel's
+        scrambled Sobol sequence (engine/sampler.py).
+    pixel_jitter: True: those random, stratified positions (the box-filtered image); False: the
+        centres of N equal-area cells (rows of ceil(sqrt(N)) or fewer cells; spp=1: the pixel
+        centre, the image model of one point sample per pixel that the image-based methods
+        render; used as their ground truth in bench/ldc_equal_error.py).
     max_depth: mirror / glossy recursion depth (0 = no reflections).
     glossy_samples: M lobe samples per glossy hit (only the first glossy bounce
         of a chain branches; deeper glossy bounces take one sample).
     area_light_samples: samples per rectangular light per shading point, on a g x g
-        jittered grid with g = round(sqrt(value)).
+        jittered grid with g = round(sqrt(value)); the jitter in each cell is stratified over the
+        pixel's samples.
     indirect_samples: K indirect paths per pixel (0 = direct lighting only).
     indirect_bounces: diffuse bounces per indirect path (>= 1).
     seed: random seed; equal seeds give identical images.
@@ -189,13 +205,15 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
 @DualKernel
 def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
                 pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, row0,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, pix, sidx, skey, vertex,
                 center, extent, o_out, d_out, tmax_out, c_out, alive):
     """One shadow ray per (hit, light sample) with its unshadowed contribution.
 
     Row layout per hit: point lights, directional lights, then rect lights x g*g samples.
-    Area-light jitter comes from the counter-based stream (index = row0 + row). Origins are written
-    in float32 relative to ``center`` (Embree's frame); ``alive`` marks rows worth casting.
+    The jitter of rect light l's cell s at a hit is sample ``sidx`` of pixel ``pix`` in the
+    dimension derive_key(derive_key(skey, vertex, DIM_LIGHT), l, s): each cell's jitter is
+    stratified over the pixel's samples. Origins are written in float32 relative to ``center``
+    (Embree's frame); ``alive`` marks rows worth casting.
     """
     n = p.shape[0]
     npt = pt_pos.shape[0]
@@ -216,14 +234,15 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
         spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
         has_spec = ks[m, 0] > 0 or ks[m, 1] > 0 or ks[m, 2] > 0
         base = i * per
+        lkey = derive_key(skey[i], vertex, DIM_LIGHT)
         for j in range(per):
             row = base + j
             alive[row] = False
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
             su = sv = 0.0
-            if j >= npt + ndir:  # rect-light jitter from the counter-based stream
-                su = uniform(stream, row0 + row, 0)
-                sv = uniform(stream, row0 + row, 1)
+            if j >= npt + ndir:  # rect light l, cell s
+                js = j - npt - ndir
+                su, sv = sample_2d(derive_key(lkey, js // gg, js % gg), pix[i], sidx[i])
             ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
                                                             dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
             if not ok:
@@ -304,13 +323,16 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
 
 
 @DualKernel
-def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror, n_glossy, n_ind,
-           count, stream, kd, kr, kg, gexp, center, extent,
-           o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, alive):
+def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy, n_ind,
+           count, vertex, kd, kr, kg, gexp, center, extent,
+           o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out, alive):
     """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
     mirror direction, weight kg (g+2)/(g+1) cos_i / M), diffuse (cosine-weighted, weight kd / K').
     Path vertices pick one lobe with probability proportional to its mean albedo.
-    Random numbers: uniform(stream, row, 0..2). Origins are written float32 relative to ``center``."""
+    Samples: a chain hit's B glossy (diffuse) children are samples parent * B + b of the key
+    derive_key(key, vertex, BRANCH_GLOSSY (DIFFUSE)); a path vertex keeps its index and key and
+    draws its lobe choice from dimension DIM_LOBE; directions come from the child's DIM_DIR.
+    Origins are written float32 relative to ``center``."""
     for i in nb.prange(p.shape[0]):
         if count[i] == 0:
             continue
@@ -331,18 +353,29 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
         ad = (kd[m, 0] + kd[m, 1] + kd[m, 2]) / 3.0
         ar = (kr[m, 0] + kr[m, 1] + kr[m, 2]) / 3.0
         ag = (kg[m, 0] + kg[m, 1] + kg[m, 2]) / 3.0
+        key = skey[i]
         for r in range(first[i], first[i] + count[i]):
             local = r - first[i]
             if kind[i] == KIND_CHAIN:
                 if local < n_mirror[i]:
                     lb, scale = 0, 1.0
+                    ckey = derive_key(key, vertex, BRANCH_MIRROR)
+                    cidx = sidx[i]
                 elif local < n_mirror[i] + n_glossy[i]:
                     lb, scale = 1, 1.0 / n_glossy[i]
+                    ckey = derive_key(key, vertex, BRANCH_GLOSSY)
+                    cidx = sidx[i] * n_glossy[i] + (local - n_mirror[i])
                 else:
                     lb, scale = 2, 1.0 / n_ind[i]
+                    ckey = derive_key(key, vertex, BRANCH_DIFFUSE)
+                    cidx = sidx[i] * n_ind[i] + (local - n_mirror[i] - n_glossy[i])
             else:
+                ckey = key
+                cidx = sidx[i]
                 tot = ad + ar + ag
-                u = uniform(stream, r, 2) * tot
+                u = 0.0  # one lobe (e.g. diffuse only): u = 0 picks it, as any u would
+                if (ad > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
+                    u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix[i], cidx) * tot
                 if u < ad:
                     lb, scale = 2, tot / ad
                 elif u < ad + ar:
@@ -355,15 +388,17 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
                 f0, f1, f2 = kr[m, 0], kr[m, 1], kr[m, 2]
             elif lb == 1:
                 ge = gexp[m]
-                cos_a = math.exp(math.log(max(uniform(stream, r, 0), 1e-300)) / (ge + 1.0))
-                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * uniform(stream, r, 1))
+                u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix[i], cidx)
+                cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
+                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * u1)
                 cos_i = _dot(n0, n1, n2, x0, x1, x2)
                 if cos_i > 0.0:
                     k = (ge + 2.0) / (ge + 1.0) * cos_i
                     f0, f1, f2 = kg[m, 0] * k, kg[m, 1] * k, kg[m, 2] * k
             else:
-                cos_t = math.sqrt(uniform(stream, r, 0))
-                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * uniform(stream, r, 1))
+                u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix[i], cidx)
+                cos_t = math.sqrt(u0)
+                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * u1)
                 f0, f1, f2 = kd[m, 0], kd[m, 1], kd[m, 2]
             if _dot(g0, g1, g2, x0, x1, x2) <= 0.0:  # below the geometric surface
                 f0 = f1 = f2 = 0.0
@@ -378,6 +413,8 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
             w_out[r, 0], w_out[r, 1], w_out[r, 2] = w0, w1, w2
             alive[r] = w0 > 0.0 or w1 > 0.0 or w2 > 0.0
             pix_out[r] = pix[i]
+            sidx_out[r] = cidx
+            skey_out[r] = ckey
             # every diffuse bounce and every continuation of a path uses up one bounce
             if kind[i] == KIND_PATH or lb == 2:
                 bounces_out[r] = bounces[i] - 1
@@ -388,8 +425,9 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, first, n_mirror
 
 
 @DualKernel
-def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n, tri_ng, tri_mat,
-                 p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out):
+def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng, tri_mat,
+                 p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out,
+                 sidx_out, skey_out):
     """Compact the rays that hit something and compute their surface frames."""
     for j in nb.prange(idx.shape[0]):
         i = idx[j]
@@ -409,6 +447,8 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, tri_p, tri_n,
         depth_out[j] = depth[i]
         bounces_out[j] = bounces[i]
         pix_out[j] = pix[i]
+        sidx_out[j] = sidx[i]
+        skey_out[j] = skey[i]
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -445,8 +485,8 @@ def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
 
 
 @DualKernel
-def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
-                  o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out):
+def _compact_rays(idx, o, d, w, kind, depth, bounces, pix, sidx, skey,
+                  o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out):
     for j in nb.prange(idx.shape[0]):
         i = idx[j]
         for k in range(3):
@@ -458,26 +498,50 @@ def _compact_rays(idx, o, d, w, kind, depth, bounces, pix,
         depth_out[j] = depth[i]
         bounces_out[j] = bounces[i]
         pix_out[j] = pix[i]
+        sidx_out[j] = sidx[i]
+        skey_out[j] = skey[i]
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _cell_centre(j, spp, gx):
+    """Centre of cell j of spp equal-area cells tiling the unit square: gy = ceil(spp / gx) rows,
+    the first spp % gy rows with one cell more than the others, each row as tall as its share
+    of the cells (spp = g * g: the g x g grid). Their mean is the square's centre for every spp."""
+    gy = -(-spp // gx)
+    base = spp // gy
+    big = (spp % gy) * (base + 1)
+    if j < big:
+        c = base + 1
+        k = j % c
+        before = j - k
+    else:
+        c = base
+        k = (j - big) % c
+        before = j - k
+    return (k + 0.5) / c, (before + 0.5 * c) / spp
 
 
 @DualKernel
-def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, stream, center,
-                  o_out, d_out, d32_out, pix_out, jitter=True):
-    """spp jittered camera rays per pixel on a gx x gy stratified grid (box filter); ``jitter``
-    False: at the stratum centres.
-    The jitter of sample j of pixel q is uniform(stream, q * spp + j, 0..1): independent of chunking.
+def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key, center,
+                  o_out, d_out, d32_out, pix_out, sidx_out, skey_out, jitter=True):
+    """spp camera rays per pixel (box filter): sample j of pixel q is at sample j of q in the
+    dimension derive_key(key, 0, DIM_PIXEL) (stratified: engine/sampler.py), independent of
+    chunking; ``jitter`` False: at the centre of cell j of ``_cell_centre``'s tiling.
+    The rays start paths with sample index j and key ``key``.
     Perspective: sx_scale = tan(fov/2) * aspect, sy_scale = tan(fov/2); orthographic: half extents."""
+    pkey = derive_key(key, 0, DIM_PIXEL)
     for a in nb.prange(ids.shape[0]):
         q = ids[a]
         qx = q % width
         qy = q // width
         for j in range(spp):
             r = a * spp + j
-            k = q * spp + j
-            jx = uniform(stream, k, 0) if jitter else 0.5
-            jy = uniform(stream, k, 1) if jitter else 0.5
-            fx = (qx + ((j % gx) + jx) / gx) / width
-            fy = (qy + ((j // gx) + jy) / gy) / height
+            if jitter:
+                jx, jy = sample_2d(pkey, q, j)
+            else:
+                jx, jy = _cell_centre(j, spp, gx)
+            fx = (qx + jx) / width
+            fy = (qy + jy) / height
             sx = (2.0 * fx - 1.0) * sx_scale
             sy = (1.0 - 2.0 * fy) * sy_scale
             if ortho:
@@ -500,6 +564,8 @@ def _camera_batch(ids, spp, gx, gy, width, height, ortho, eye, right, up, fwd, s
             d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
             d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
             pix_out[r] = q
+            sidx_out[r] = j
+            skey_out[r] = key
 
 
 @DualKernel
@@ -613,7 +679,8 @@ class ReferenceRenderer:
         light with shadow rays (diffuse + Phong highlights), mirror / glossy recursion up to
         ``max_depth`` and indirect paths when ``indirect_samples`` > 0 (``spp`` is ignored: one
         chain per hit). Surfaces are two-sided: the side the ray arrives on is shaded.
-        Deterministic for a given (seed, stream_id); hits are processed ``chunk`` at a time."""
+        Deterministic for a given (seed, stream_id): hit i's samples are those of pixel i of a
+        sampler keyed by both, whatever ``chunk`` (hits are processed ``chunk`` at a time)."""
         params = replace(params or ReferenceParams(), spp=1)
         prim = np.ascontiguousarray(prim, dtype=np.int32).reshape(-1)
         n = prim.shape[0]
@@ -631,16 +698,17 @@ class ReferenceRenderer:
         counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
         chunk = max(1, int(chunk))
         n_chunks = -(-n // chunk)
+        root = sample_key(params.seed, 1, int(stream_id))  # apart from the renderer's own (0)
         for ci in range(n_chunks):
             sl = slice(ci * chunk, min(n, (ci + 1) * chunk))
             k = sl.stop - sl.start
             d = np.ascontiguousarray(d_all[sl])
             o32 = np.zeros((k, 3), np.float32)  # never cast: the first hit is given
             pix = np.arange(sl.start, sl.stop, dtype=np.int64)
-            # chunk ids far from the renderer's own keep the random streams apart
-            self._trace(params, (1 << 40) + (int(stream_id) << 20) + ci, o32, d, d.astype(np.float32),
+            self._trace(params, o32, d, d.astype(np.float32),
                         np.ones((k, 3)), np.zeros(k, np.int8), np.zeros(k, np.int32),
-                        np.full(k, params.indirect_bounces, np.int32), pix, acc, timer, counts, serial=False,
+                        np.full(k, params.indirect_bounces, np.int32), pix, np.zeros(k, np.int64),
+                        np.full(k, root, np.uint64), acc, timer, counts, serial=False,
                         first_hits=(prim[sl], u[sl], v[sl]))
             if progress is not None:
                 progress((ci + 1) / n_chunks)
@@ -684,6 +752,8 @@ class ReferenceRenderer:
         d = np.empty((n, 3))
         d32 = np.empty((n, 3), np.float32)
         pix = np.empty(n, np.int64)
+        sidx = np.empty(n, np.int64)
+        skey = np.empty(n, np.uint64)
         right, up, fwd = camera.basis()
         if camera.kind == "perspective":
             th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
@@ -691,10 +761,9 @@ class ReferenceRenderer:
         else:
             sxs, sys_ = 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
         gx = int(math.ceil(math.sqrt(params.spp)))
-        gy = -(-params.spp // gx)
-        _camera_batch.pick(serial)(ids, params.spp, gx, gy, camera.width, camera.height,
+        _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
                                    camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
-                                   sxs, sys_, stream_key(params.seed, 0), sc.center, o32, d, d32, pix,
+                                   sxs, sys_, sample_key(params.seed, 0), sc.center, o32, d, d32, pix, sidx, skey,
                                    bool(params.pixel_jitter))
         weight = np.ones((n, 3))
         kind = np.zeros(n, np.int8)
@@ -702,11 +771,12 @@ class ReferenceRenderer:
         bounces = np.full(n, params.indirect_bounces, np.int32)
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
-        self._trace(params, ci, o32, d, d32, weight, kind, depth, bounces, pix, acc, timer, counts, serial)
+        self._trace(params, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc, timer, counts, serial)
 
-    def _trace(self, params: ReferenceParams, ci, o32, d, d32, weight, kind, depth, bounces, pix, acc, timer,
-               counts, serial: bool, first_hits=None) -> None:
-        """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix].
+    def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
+               timer, counts, serial: bool, first_hits=None) -> None:
+        """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix]; ``sidx``
+        (int64) and ``skey`` (uint64) are each ray's sample index and dimension key (engine/sampler.py).
         ``first_hits`` = (prim int32, u, v float32): the first intersection of every ray is given
         (no Embree query for it), e.g. a sample of a layered depth image."""
         sc = self.scene
@@ -741,9 +811,11 @@ class ReferenceRenderer:
             depth_h = np.empty(m, np.int32)
             bnc_h = np.empty(m, np.int32)
             pix_h = np.empty(m, np.int64)
-            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix,
-                                      sc.tri_p, sc.tri_n, sc.tri_ng,
-                         sc.tri_material, p, ng, ns, mat, d_h, w_h, kind_h, depth_h, bnc_h, pix_h)
+            sidx_h = np.empty(m, np.int64)
+            skey_h = np.empty(m, np.uint64)
+            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sidx, skey,
+                                      sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h,
+                                      kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix, sc.background, idx, mat, kind_h, w_h, pix_h,
                                             mt.emission, mt.kd, sc.ambient)
             timer.add("shading", time.perf_counter() - t0)
@@ -752,7 +824,8 @@ class ReferenceRenderer:
 
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
-                self._direct(params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts, serial)
+                self._direct(it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts,
+                             serial)
 
             # ---- secondary rays
             t0 = time.perf_counter()
@@ -769,7 +842,6 @@ class ReferenceRenderer:
             if tot == 0:
                 timer.add("shading", time.perf_counter() - t0)
                 break
-            stream = stream_key(params.seed, ci, it, 2)
             o2 = np.empty((tot, 3), np.float32)
             d2 = np.empty((tot, 3))
             w2 = np.empty((tot, 3))
@@ -777,16 +849,19 @@ class ReferenceRenderer:
             depth2 = np.empty(tot, np.int32)
             bnc2 = np.empty(tot, np.int32)
             pix2 = np.empty(tot, np.int64)
+            sidx2 = np.empty(tot, np.int64)
+            skey2 = np.empty(tot, np.uint64)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, first,
-                                n_mirror, n_glossy, n_ind,
-                   count, stream, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent,
-                   o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, alive)
+            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h, first,
+                                n_mirror, n_glossy, n_ind, count, it, mt.kd, mt.kr, mt.kg, mt.gloss_exponent,
+                                sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, sidx2, skey2,
+                                alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
                 # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy
                 o32, d, d32, weight, kind, depth, bounces, pix = o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2
+                sidx, skey = sidx2, skey2
                 n = tot
             else:
                 live = np.flatnonzero(alive)
@@ -799,14 +874,16 @@ class ReferenceRenderer:
                 depth = np.empty(n, np.int32)
                 bounces = np.empty(n, np.int32)
                 pix = np.empty(n, np.int64)
-                _compact_rays.pick(serial)(live, o2, d2, w2, kind2, depth2, bnc2, pix2,
-                              o32, d, d32, weight, kind, depth, bounces, pix)
+                sidx = np.empty(n, np.int64)
+                skey = np.empty(n, np.uint64)
+                _compact_rays.pick(serial)(live, o2, d2, w2, kind2, depth2, bnc2, pix2, sidx2, skey2,
+                                           o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path
             timer.add("shading", time.perf_counter() - t0)
 
-    def _direct(self, params, ci, it, p, ng, ns, d_h, mat, w_h, pix_h, r_g, acc, timer, counts, serial):
+    def _direct(self, it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts, serial):
         sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
         gg = r_g * r_g
         per = lt.n_point + lt.n_directional + lt.n_rect * gg
@@ -827,7 +904,7 @@ class ReferenceRenderer:
                         self._spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
                         lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
                         lt.rect_radiance, lt.rect_two_sided,
-                        r_g, stream_key(params.seed, ci, it, 1), s * per, sc.center, sc.extent, so, sd, tmax,
+                        r_g, pix_h[sl], sidx_h[sl], skey_h[sl], it, sc.center, sc.extent, so, sd, tmax,
                         contrib, alive)
             live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)

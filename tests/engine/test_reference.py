@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.geometry.mesh import TriMesh
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
@@ -69,6 +70,78 @@ def test_unjittered_samples_are_stratum_centres():
     assert not np.allclose(jittered.radiance, one.radiance, rtol=1e-5)
     with pytest.raises(InvalidInputError, match="pixel_jitter"):
         ReferenceParams(pixel_jitter="no")
+
+
+# 4 x 4 pixels of 1 x 1 world units looking down -y: pixel (row r, column c) covers
+# x in [c - 2, c - 1], z in [r - 2, r - 1]; a pixel's top is its smallest z, its left its smallest x.
+EDGE_CAM = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 4, 4, ortho_height=4.0)
+EDGE_SPP = [*range(1, 65), 128, 512]
+
+
+def _half_plane(axis: str, h: float):
+    """A floor of radiance exactly 1 (kd 1, irradiance pi from straight above) over x < -2 + h
+    (axis "x": the left fraction h of column 0) or z < -2 + h (axis "z": the top fraction h of
+    row 0), nothing elsewhere: a pixel's value is the fraction of its samples on the floor.
+    The floor reaches just past the image, so the scene's centre (the origin of Embree's float32
+    frame) is near the edge and a sample is told from it to ~1e-7 of a pixel."""
+    e = -2.0 + h
+    xe, ze = (e, 2.5) if axis == "x" else (2.5, e)
+    v = np.array([[-2.5, 0.0, -2.5], [xe, 0.0, -2.5], [xe, 0.0, ze], [-2.5, 0.0, ze]])
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.tile([0.0, 1.0, 0.0], (4, 1)))
+    return scene([(mesh, mat(kd=(1, 1, 1)))],
+                 [dict(type="directional", direction=(0.0, -1.0, 0.0), irradiance=(math.pi,) * 3)])
+
+
+def _edge_pixels(img: np.ndarray, axis: str) -> np.ndarray:
+    return img[:, 0, 0] if axis == "x" else img[0, :, 0]
+
+
+@pytest.mark.parametrize("axis", ["z", "x"])
+def test_every_spp_covers_each_pixel_evenly(axis):
+    """Whatever spp, half of every pixel's samples fall in its top (left) half: exactly for even
+    spp, within one sample for odd spp (a stratified pattern, not one that leaves part of a row
+    of its grid empty)."""
+    sc = _half_plane(axis, 0.5)
+    for spp in EDGE_SPP:
+        img = render_reference(sc, EDGE_CAM, ReferenceParams(spp=spp, seed=spp)).radiance
+        frac = _edge_pixels(img, axis)
+        tol = (0.5 if spp % 2 else 0.0) / spp + 1e-6
+        assert np.all(np.abs(frac - 0.5) <= tol), (spp, frac)
+        rest = img[:, 1:, 0] if axis == "x" else img[1:, :, 0]
+        assert rest.max() == 0.0
+
+
+@pytest.mark.parametrize("spp", [2, 3, 8, 32, 128])
+@pytest.mark.parametrize("axis", ["z", "x"])
+def test_edge_pixel_mean_over_seeds_is_its_coverage(spp, axis):
+    """A pixel crossed by an edge at 0.3 of its height (width) averages to coverage 0.3 over
+    seeds: the samples are uniform over the pixel (their mean position is its centre)."""
+    h = 0.3
+    sc = _half_plane(axis, h)
+    vals = np.array([_edge_pixels(render_reference(sc, EDGE_CAM, ReferenceParams(spp=spp, seed=s)).radiance,
+                                  axis) for s in range(64)], np.float64)
+    se = vals.std(ddof=1) / math.sqrt(vals.size)
+    assert abs(vals.mean() - h) <= 4.0 * se + 1e-5, (vals.mean(), se)
+
+
+def test_unjittered_cells_tile_the_pixel_for_every_spp():
+    """pixel_jitter=False: spp equal-area cells in rows; their centres average to the pixel
+    centre for every spp (the g x g grid's centres for squares)."""
+    from engine.reference import _cell_centre
+
+    for spp in range(1, 700):
+        gx = math.ceil(math.sqrt(spp))
+        c = np.array([_cell_centre(j, spp, gx) for j in range(spp)])
+        np.testing.assert_allclose(c.mean(axis=0), 0.5, atol=1e-12)
+        assert c.min() > 0 and c.max() < 1 and np.unique(c, axis=0).shape[0] == spp
+        rows, counts = np.unique(c[:, 1], return_counts=True)
+        assert counts.max() - counts.min() <= 1 and counts.max() <= gx
+        # each row is as tall as its share of the cells: every cell has area 1 / spp
+        edges = np.concatenate([[0.0], np.cumsum(counts) / spp])
+        np.testing.assert_allclose(rows, 0.5 * (edges[:-1] + edges[1:]), atol=1e-12)
+        if gx * gx == spp:
+            g = (np.arange(gx) + 0.5) / gx
+            np.testing.assert_allclose(np.sort(c[:, 0]), np.sort(np.tile(g, gx)), atol=1e-12)
 
 
 def _corner_factor(a, b, c):

@@ -197,9 +197,12 @@ def test_fill_modes_on_a_disocclusion(one_base, crafted) -> None:
     _, tr = _disocclusion(one_base, crafted, "trace")
     traced = tr.provenance == PROV_TRACED
     assert traced.sum() == (fg.provenance == PROV_HOLE).sum()
-    # the truth is antialiased (a jittered sample per pixel), the trace uses the pixel centre
-    rel = np.abs(tr.radiance[traced] - truth.radiance[traced]).max(axis=1) / truth.radiance[traced].max(axis=1)
-    assert np.median(rel) < 0.01 and np.mean(rel < 0.03) > 0.9
+    # the trace shades the pixel centre as the reference does with one unjittered sample (the
+    # point light leaves nothing random). Against the antialiased truth (one jittered sample) the
+    # share of traced pixels within 3 % is a matter of the draw: 0.85-0.98 over 20 seeds.
+    centre = ReferenceRenderer(crafted.scene_at(0.0)).render(cam, ReferenceParams(spp=1, area_light_samples=1,
+                                                                                     pixel_jitter=False))
+    np.testing.assert_allclose(tr.radiance[traced], centre.radiance[traced], rtol=1e-5, atol=1e-7)
     assert np.mean(tr.object_id[traced] == truth.object_id[traced]) > 0.9
     # every mode is close to the truth away from the disocclusion; filled ones also inside it
     for frame in (fg, both, tr):
