@@ -28,6 +28,7 @@ from producer.bakes import (
     read_bake_record,
 )
 from producer.errors import BakeInUse
+from producer.ownership import add_bake_owner, bake_owners, remove_bake_owner
 from producer.store import NotFound
 from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
@@ -81,6 +82,8 @@ def _request(redis: Any, store: Any, scene_id: str, params: BakeParams, owner: s
     n_lights = _visible_scene(store, scene_id, owner)
     _check_size(params, n_lights)
     key, job = enqueue_bake(redis, store, scene_id, params, owner)
+    if owner is not None:
+        add_bake_owner(store, key, owner, _recorded_owner(store, scene_id, key))
     return bake_status(redis, store, scene_id, key, params, cached=job is None)
 
 
@@ -113,10 +116,23 @@ async def request_bake(
 
 @router.get("/{scene_id}/bakes", response_model=BakeList, responses=problem_responses(401, 404, 422, 429, 503))
 def list_scene_bakes(scene_id: SceneIdPath, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> BakeList:
-    """Every bake requested for this scene (and not deleted), oldest first, with its state."""
+    """Every bake of this scene this API key requested (and did not delete), oldest first, with its state."""
     _visible_scene(store, scene_id, owner)
     return BakeList(items=[bake_status(redis, store, scene_id, key, params)
-                           for key, params in list_bakes(store, scene_id)])
+                           for key, params in list_bakes(store, scene_id) if _held(store, scene_id, key, owner)])
+
+
+def _recorded_owner(store: Any, scene_id: str, key: str) -> str | None:
+    """The owner the bake's record names (the key that first asked for it), if any."""
+    doc = read_bake_record(store, scene_id, key)
+    who = doc.get("owner") if doc is not None else None
+    return who if isinstance(who, str) else None
+
+
+def _held(store: Any, scene_id: str, key: str, owner: str | None) -> bool:
+    """Does ``owner`` hold the bake (requested it, directly or through a render)? With auth off,
+    yes. A key that shares the scene but never asked for this bake neither sees nor deletes it."""
+    return owner is None or owner in bake_owners(store, key, _recorded_owner(store, scene_id, key))
 
 
 def _params_of(store: Any, scene_id: str, key: str) -> BakeParams:
@@ -135,6 +151,8 @@ def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, red
               owner: OwnerDep) -> BakePublic:
     """A bake: state, plan, every part (LDC axis, LLF chunk) with its state, and the aggregated progress."""
     _visible_scene(store, scene_id, owner)
+    if not _held(store, scene_id, bake_key, owner):
+        raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     return bake_status(redis, store, scene_id, bake_key, _params_of(store, scene_id, bake_key))
 
 
@@ -142,13 +160,21 @@ def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, red
                responses=problem_responses(401, 404, 409, 422, 429, 503))
 def remove_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, redis: RedisDep,
                 owner: OwnerDep) -> Response:
-    """Delete a bake: its manifest and every part (409 while one of its jobs is queued or running)."""
+    """Delete a bake: its manifest and every part (409 while one of its jobs is queued or running).
+    A bake several API keys requested is shared: deleting it lets go of this key's hold (the bake
+    is no longer listed for it) and the bake itself goes with the last holder."""
     _visible_scene(store, scene_id, owner)
+    if not _held(store, scene_id, bake_key, owner):
+        raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     params = _params_of(store, scene_id, bake_key)
+    if owner is not None and bake_owners(store, bake_key, _recorded_owner(store, scene_id, bake_key)) - {owner}:
+        remove_bake_owner(store, bake_key, owner)  # others still hold it
+        return Response(status_code=204)
     try:
         delete_bake(redis, store, scene_id, bake_key, params)
     except BakeInUse as exc:
         raise HTTPException(409, str(exc)) from None
+    remove_bake_owner(store, bake_key, None)
     return Response(status_code=204)
 
 
