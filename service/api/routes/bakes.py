@@ -28,7 +28,9 @@ from producer.bakes import (
     read_bake_record,
 )
 from producer.errors import BakeInUse
-from producer.ownership import add_bake_owner, bake_owners, remove_bake_owner
+from producer.names import scene_bake_job_id
+from producer.ownership import add_bake_owner, bake_owners, detach_job_owner, remove_bake_owner
+from producer.queue import fetch_job
 from producer.store import NotFound
 from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
@@ -169,6 +171,10 @@ def remove_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, r
     params = _params_of(store, scene_id, bake_key)
     if owner is not None and bake_owners(store, bake_key, _recorded_owner(store, scene_id, bake_key)) - {owner}:
         remove_bake_owner(store, bake_key, owner)  # others still hold it
+        job = fetch_job(redis, scene_bake_job_id(bake_key))
+        if job is not None:  # and no longer waits for its jobs: a cancel by the others is theirs alone
+            first = job.meta.get("owner")
+            detach_job_owner(redis, job.id, owner, first if isinstance(first, str) else None)
         return Response(status_code=204)
     try:
         delete_bake(redis, store, scene_id, bake_key, params)
