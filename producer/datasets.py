@@ -1,7 +1,10 @@
 """Illumination datasets in the object store: validated image blobs and dataset documents.
 
 Imported by the API process, so it never imports numba: images are decoded with OpenImageIO
-directly (the same library ``engine.imageio`` wraps). The dataset jobs' artifact keys are here too
+directly (the same library ``engine.imageio`` wraps). An upload is checked from its header (pixels,
+channels, decoded size as float32 against a budget) before any pixel is decoded, and its statistics
+are gathered a band of rows at a time (:func:`scan_image`), so a small compressed file declaring
+gigabytes of pixels costs the API nothing. The dataset jobs' artifact keys are here too
 (their names and payloads are in ``producer.names`` and ``producer.payloads``).
 
 Key layout (next to docs/service-design.md's):
@@ -9,6 +12,8 @@ Key layout (next to docs/service-design.md's):
 - ``blobs/<sha256>``: an uploaded file (image, depth map, mask, environment map, plate), by content;
 - ``blob-info/<sha256>.json``: its header facts and pixel statistics, written after the blob once
   it decoded as an image (its presence means "received and readable");
+- ``blob-owners/<sha256>/<owner>``: an API key that sent those bytes itself; only such a key sees
+  the file or may name it (``producer.ownership``; knowing a hash grants nothing);
 - ``dataset-pending/<id>.json``: a manifest whose files are being uploaded separately;
 - ``datasets/<id>.json``: ``{"manifest", "files", "width", "height", "created_at", "source"}``,
   written LAST (its presence commits the dataset);
