@@ -164,3 +164,37 @@ def test_the_first_owner_of_a_job_is_one_owner_among_others(c: TestClient) -> No
     assert c.post(f"/v1/jobs/{job}/cancel", headers=A).json()["state"] == "queued"
     assert c.get(f"/v1/jobs/{job}", headers=B).json()["state"] == "queued"
     assert c.post(f"/v1/jobs/{job}/cancel", headers=B).json()["state"] == "canceled"
+
+
+def test_an_environment_map_needs_its_bytes_too(c: TestClient) -> None:
+    """Bob stores the same dataset (he sent every file, so he joins it) but names Alice's
+    environment map by its hash only: refused as not uploaded, as for a hash nobody sent."""
+    manifest, files, did = _alice_dataset(c)
+    r = c.post("/v1/datasets", files=multipart(manifest, files), headers=B)
+    assert r.status_code == 200 and r.json()["id"] == did, r.text  # stored already: Bob joins it
+    relight = {"dataset_id": did, "lights": [{"type": "environment", "image_sha256": "a" * 64}]}
+    r = c.post("/v1/relights", json=relight, headers=B)
+    assert r.status_code == 422 and "not uploaded" in r.text, r.text
+    more, more_files = subset(4)
+    alice_env = more_files[more["images"][3]["file"]]  # a file of Alice's that Bob never sent
+    assert c.put(f"/v1/datasets/uploads/{sha(alice_env)}", content=alice_env, headers=A).status_code == 201
+    relight["lights"] = [{"type": "environment", "image_sha256": sha(alice_env)}]
+    r = c.post("/v1/relights", json=relight, headers=B)
+    assert r.status_code == 422 and "not uploaded" in r.text, r.text
+    r = c.post("/v1/relights", json=relight, headers=A)
+    assert r.status_code == 409 and "not baked" in r.text, r.text  # past the file check: the bake is next
+
+
+def test_the_last_scene_owner_clears_the_bake_holders(c: TestClient, store_dir: Any) -> None:
+    sid = _shared_scene(c)
+    key = c.post(f"/v1/scenes/{sid}/bakes", json=BAKE, headers=A).json()["key"]
+    assert c.post(f"/v1/scenes/{sid}/bakes", json=BAKE, headers=B).json()["key"] == key
+    for who in (A, B):
+        c.post(f"/v1/jobs/bake-{key}/cancel", headers=who)
+    assert c.get(f"/v1/jobs/bake-{key}", headers=A).json()["state"] == "canceled"
+    markers = store_dir / "bake-owners" / key
+    assert len(list(markers.iterdir())) == 2
+    assert c.delete(f"/v1/scenes/{sid}", headers=B).status_code == 204
+    assert c.get(f"/v1/scenes/{sid}/bakes/{key}", headers=A).status_code == 200  # Alice still has both
+    assert c.delete(f"/v1/scenes/{sid}", headers=A).status_code == 204
+    assert not markers.exists() or not list(markers.iterdir())
