@@ -29,7 +29,13 @@ from producer.bakes import (
 )
 from producer.errors import BakeInUse
 from producer.names import scene_bake_job_id
-from producer.ownership import add_bake_owner, bake_owners, detach_job_owner, remove_bake_owner
+from producer.ownership import (
+    add_bake_owner,
+    attached_job_owners,
+    bake_owners,
+    detach_job_owner,
+    remove_bake_owner,
+)
 from producer.queue import fetch_job
 from producer.store import NotFound
 from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
@@ -121,7 +127,7 @@ def list_scene_bakes(scene_id: SceneIdPath, store: StoreDep, redis: RedisDep, ow
     """Every bake of this scene this API key requested (and did not delete), oldest first, with its state."""
     _visible_scene(store, scene_id, owner)
     return BakeList(items=[bake_status(redis, store, scene_id, key, params)
-                           for key, params in list_bakes(store, scene_id) if _held(store, scene_id, key, owner)])
+                           for key, params in list_bakes(store, scene_id) if _held(store, redis, scene_id, key, owner)])
 
 
 def _recorded_owner(store: Any, scene_id: str, key: str) -> str | None:
@@ -131,10 +137,24 @@ def _recorded_owner(store: Any, scene_id: str, key: str) -> str | None:
     return who if isinstance(who, str) else None
 
 
-def _held(store: Any, scene_id: str, key: str, owner: str | None) -> bool:
-    """Does ``owner`` hold the bake (requested it, directly or through a render)? With auth off,
-    yes. A key that shares the scene but never asked for this bake neither sees nor deletes it."""
-    return owner is None or owner in bake_owners(store, key, _recorded_owner(store, scene_id, key))
+def _held(store: Any, redis: Any, scene_id: str, key: str, owner: str | None) -> bool:
+    """Does ``owner`` hold the bake? With auth off, yes; otherwise if it requested the bake
+    (``POST .../bakes``), or is still waiting for the bake's job (a render with
+    ``missing_bake="bake"`` queued it): that hold is then recorded like a request's. A key that
+    shares the scene but never asked for this bake neither sees nor deletes it."""
+    if owner is None:
+        return True
+    recorded = _recorded_owner(store, scene_id, key)
+    if owner in bake_owners(store, key, recorded):
+        return True
+    job = fetch_job(redis, scene_bake_job_id(key))
+    if job is None:
+        return False
+    first = job.meta.get("owner")
+    if owner not in attached_job_owners(redis, job.id, first if isinstance(first, str) else None):
+        return False
+    add_bake_owner(store, key, owner, recorded)
+    return True
 
 
 def _params_of(store: Any, scene_id: str, key: str) -> BakeParams:
@@ -153,7 +173,7 @@ def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, red
               owner: OwnerDep) -> BakePublic:
     """A bake: state, plan, every part (LDC axis, LLF chunk) with its state, and the aggregated progress."""
     _visible_scene(store, scene_id, owner)
-    if not _held(store, scene_id, bake_key, owner):
+    if not _held(store, redis, scene_id, bake_key, owner):
         raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     return bake_status(redis, store, scene_id, bake_key, _params_of(store, scene_id, bake_key))
 
@@ -166,7 +186,7 @@ def remove_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, r
     A bake several API keys requested is shared: deleting it lets go of this key's hold (the bake
     is no longer listed for it) and the bake itself goes with the last holder."""
     _visible_scene(store, scene_id, owner)
-    if not _held(store, scene_id, bake_key, owner):
+    if not _held(store, redis, scene_id, bake_key, owner):
         raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     params = _params_of(store, scene_id, bake_key)
     if owner is not None and bake_owners(store, bake_key, _recorded_owner(store, scene_id, bake_key)) - {owner}:

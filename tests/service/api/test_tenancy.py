@@ -198,3 +198,21 @@ def test_the_last_scene_owner_clears_the_bake_holders(c: TestClient, store_dir: 
     assert c.get(f"/v1/scenes/{sid}/bakes/{key}", headers=A).status_code == 200  # Alice still has both
     assert c.delete(f"/v1/scenes/{sid}", headers=A).status_code == 204
     assert not markers.exists() or not list(markers.iterdir())
+
+
+def test_a_bake_queued_by_a_render_is_held_by_the_keys_waiting_for_it(c: TestClient) -> None:
+    sid = _shared_scene(c)
+    req = {"scene_id": sid, "method": "ldc", "bake": BAKE, "missing_bake": "bake"}
+    ra = c.post("/v1/renders", json=req, headers=A)
+    assert ra.status_code == 202 and ra.json()["bake"] is not None, ra.text
+    key = ra.json()["bake"]["key"]
+    url = f"/v1/scenes/{sid}/bakes/{key}"
+    assert c.get(url, headers=A).status_code == 200
+    assert c.get(url, headers=B).status_code == 404  # Bob has not asked for anything yet
+    rb = c.post("/v1/renders", json=req, headers=B)
+    assert rb.status_code == 202 and rb.json()["bake"]["key"] == key, rb.text
+    assert c.get(url, headers=B).status_code == 200  # his render waits for it: he follows it
+    assert [b["key"] for b in c.get(f"/v1/scenes/{sid}/bakes", headers=B).json()["items"]] == [key]
+    assert c.delete(url, headers=B).status_code == 204  # lets go of the bake (and of its job) only
+    assert c.get(url, headers=B).status_code == 404 and c.get(url, headers=A).status_code == 200
+    assert c.get(f"/v1/jobs/bake-{key}", headers=A).json()["state"] == "queued"  # still Alice's
