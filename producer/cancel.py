@@ -20,7 +20,14 @@ from api_schemas.service import JobPublic
 from producer.errors import JobNotCancelable, JobNotFound
 from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
 from producer.ownership import detach_job_owner
-from producer.queue import ACTIVE_STATUSES, FAILURE_TTL_S, WAITING_STATUSES, fetch_job
+from producer.queue import (
+    ACTIVE_STATUSES,
+    ENQUEUE_LOCK_TIMEOUT_S,
+    FAILURE_TTL_S,
+    KEY_PREFIX,
+    WAITING_STATUSES,
+    fetch_job,
+)
 from producer.status import cancel_key, job_public
 
 __all__ = ["cancel", "cancel_for"]
@@ -39,9 +46,12 @@ def cancel_for(redis: Redis, job_id: str, owner: str | None) -> JobPublic:
     if job.get_status(refresh=True) not in ACTIVE_STATUSES:
         raise JobNotCancelable(job_public(job))
     first = job.meta.get("owner")
-    if detach_job_owner(redis, job_id, owner, first if isinstance(first, str) else None):
-        return job_public(job)  # others still wait for it
-    return cancel(redis, job_id)
+    # under enqueue_unique's lock: a key joining the job right now is either seen here or gets a new job
+    with redis.lock(f"{KEY_PREFIX}lock:enqueue:{job_id}", timeout=ENQUEUE_LOCK_TIMEOUT_S,
+                    blocking_timeout=ENQUEUE_LOCK_TIMEOUT_S):
+        if detach_job_owner(redis, job_id, owner, first if isinstance(first, str) else None):
+            return job_public(job)  # others still wait for it
+        return cancel(redis, job_id)
 
 
 def cancel(redis: Redis, job_id: str) -> JobPublic:
