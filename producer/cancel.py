@@ -1,5 +1,10 @@
 """Canceling a job; canceling a scene bake's own job cancels its plan and part jobs and the
-renders queued behind it."""
+renders queued behind it.
+
+Identical requests share one job, so a job can have several owners (``producer.ownership``).
+:func:`cancel_for` cancels on behalf of one owner: it detaches that owner, and the job itself is
+canceled only when no owner remains attached; until then the answer shows the job as it is (still
+queued or running for the others). One key can never cancel work another key is waiting for."""
 
 from __future__ import annotations
 
@@ -14,10 +19,39 @@ from rq.serializers import JSONSerializer
 from api_schemas.service import JobPublic
 from producer.errors import JobNotCancelable, JobNotFound
 from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
-from producer.queue import ACTIVE_STATUSES, FAILURE_TTL_S, WAITING_STATUSES, fetch_job
+from producer.ownership import detach_job_owner
+from producer.queue import (
+    ACTIVE_STATUSES,
+    ENQUEUE_LOCK_TIMEOUT_S,
+    FAILURE_TTL_S,
+    KEY_PREFIX,
+    WAITING_STATUSES,
+    fetch_job,
+)
 from producer.status import cancel_key, job_public
 
-__all__ = ["cancel"]
+__all__ = ["cancel", "cancel_for"]
+
+
+def cancel_for(redis: Redis, job_id: str, owner: str | None) -> JobPublic:
+    """Cancel ``job_id`` for ``owner`` (None: auth off, cancel it outright). The owner is detached;
+    the job is canceled (:func:`cancel`) when nobody who asked for it is still attached. Raises
+    :class:`JobNotFound` / :class:`JobNotCancelable` as :func:`cancel` does (an ended job is not
+    cancelable for anybody)."""
+    if owner is None:
+        return cancel(redis, job_id)
+    job = fetch_job(redis, job_id)
+    if job is None:
+        raise JobNotFound(f"no job {job_id}")
+    if job.get_status(refresh=True) not in ACTIVE_STATUSES:
+        raise JobNotCancelable(job_public(job))
+    first = job.meta.get("owner")
+    # under enqueue_unique's lock: a key joining the job right now is either seen here or gets a new job
+    with redis.lock(f"{KEY_PREFIX}lock:enqueue:{job_id}", timeout=ENQUEUE_LOCK_TIMEOUT_S,
+                    blocking_timeout=ENQUEUE_LOCK_TIMEOUT_S):
+        if detach_job_owner(redis, job_id, owner, first if isinstance(first, str) else None):
+            return job_public(job)  # others still wait for it
+        return cancel(redis, job_id)
 
 
 def cancel(redis: Redis, job_id: str) -> JobPublic:

@@ -1,7 +1,10 @@
 """Illumination datasets in the object store: validated image blobs and dataset documents.
 
 Imported by the API process, so it never imports numba: images are decoded with OpenImageIO
-directly (the same library ``engine.imageio`` wraps). The dataset jobs' artifact keys are here too
+directly (the same library ``engine.imageio`` wraps). An upload is checked from its header (pixels,
+channels, decoded size as float32 against a budget) before any pixel is decoded, and its statistics
+are gathered a band of rows at a time (:func:`scan_image`), so a small compressed file declaring
+gigabytes of pixels costs the API nothing. The dataset jobs' artifact keys are here too
 (their names and payloads are in ``producer.names`` and ``producer.payloads``).
 
 Key layout (next to docs/service-design.md's):
@@ -9,6 +12,8 @@ Key layout (next to docs/service-design.md's):
 - ``blobs/<sha256>``: an uploaded file (image, depth map, mask, environment map, plate), by content;
 - ``blob-info/<sha256>.json``: its header facts and pixel statistics, written after the blob once
   it decoded as an image (its presence means "received and readable");
+- ``blob-owners/<sha256>/<owner>``: an API key that sent those bytes itself; only such a key sees
+  the file or may name it (``producer.ownership``; knowing a hash grants nothing);
 - ``dataset-pending/<id>.json``: a manifest whose files are being uploaded separately;
 - ``datasets/<id>.json``: ``{"manifest", "files", "width", "height", "created_at", "source"}``,
   written LAST (its presence commits the dataset);
@@ -29,7 +34,9 @@ import logging
 import os
 import re
 import tempfile
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
@@ -55,7 +62,9 @@ from engine import ENGINE_VERSION
 from producer.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
 from producer.names import COMPOSITE_KIND, DATASET_BAKE_KIND, GENERATE_KIND, RELIGHT_KIND
 from producer.ownership import (
+    add_blob_owner,
     add_dataset_owner,
+    blob_visible,
     dataset_owners,
     dataset_visible,
     remove_dataset_owner,
@@ -78,7 +87,12 @@ __all__ = [
     "commit_dataset",
     "dataset_id_for",
     "dataset_key",
+    "ImageTooLarge",
     "decode_image",
+    "decode_slots",
+    "decoded_size",
+    "owned_blob_info",
+    "scan_image",
     "delete_dataset",
     "fill_shas",
     "get_dataset",
@@ -95,6 +109,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+_MIB = 1 << 20
 _INTEGER_TYPES = {"uint8", "int8", "uint16", "int16", "uint", "int", "uint32", "int32"}
 
 # magic bytes -> (extension OpenImageIO picks its reader by, format label)
@@ -175,9 +190,32 @@ def sniff_extension(data: bytes) -> str | None:
     return None
 
 
-def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> ImageFile:
-    """Decode an image file's bytes with OpenImageIO. The declared resolution is checked against
-    ``max_pixels`` before any pixel is read (docs/hard-cases.md #16). Raises :class:`FileProblem`."""
+class ImageTooLarge(FileProblem):
+    """The header declares an image whose decoded size is over the configured budget."""
+
+
+_SCAN_CHUNK_BYTES = 8 << 20
+"""Decoded bytes (float32) per band of rows :func:`scan_image` reads at a time."""
+_DECODE_SLOTS: dict[int, threading.BoundedSemaphore] = {}
+_DECODE_SLOTS_LOCK = threading.Lock()
+
+
+def decode_slots(n: int) -> threading.BoundedSemaphore:
+    """The process-wide semaphore bounding concurrent image validations to ``n`` (one per ``n``)."""
+    with _DECODE_SLOTS_LOCK:
+        return _DECODE_SLOTS.setdefault(n, threading.BoundedSemaphore(n))
+
+
+def decoded_size(width: int, height: int, channels: int, bytes_per_channel: int = 4) -> int:
+    """Bytes an image takes decoded: at least float32 per channel (wider native types count as such)."""
+    return width * height * channels * max(4, bytes_per_channel)
+
+
+@contextmanager
+def _open_image(data: bytes, max_pixels: int, max_decoded_bytes: int | None) -> Iterator[tuple[Any, ImageFile]]:
+    """Open an image file's bytes with OpenImageIO and check its header: (ImageInput, header facts
+    with empty pixels). Nothing past the header is decoded here. Raises :class:`FileProblem`
+    (:class:`ImageTooLarge` over ``max_pixels`` or ``max_decoded_bytes``)."""
     import OpenImageIO as oiio  # deferred on purpose: only uploads decode images; the API starts without it
 
     if not data:
@@ -200,19 +238,21 @@ def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> 
             if int(spec.depth) != 1 or spec.deep:
                 raise FileProblem("volume and deep images are not supported")
             if w * h > max_pixels:
-                raise FileProblem(f"the header declares {w}x{h} = {w * h} pixels, more than this server's limit "
-                                  f"of {max_pixels}")
+                raise ImageTooLarge(f"the header declares {w}x{h} = {w * h} pixels, more than this server's limit "
+                                    f"of {max_pixels}")
             if c > 16:
                 raise FileProblem(f"the header declares {c} channels; at most 16 are supported")
-            pixel_type = str(spec.format)
-            fmt = str(inp.format_name())
-            if header_only:
-                return ImageFile(np.zeros((0, 0, 0), np.float32), w, h, c, fmt, pixel_type)
-            raw = inp.read_image(0, 0, 0, c, oiio.FLOAT)
-            if raw is None or inp.has_error:
+            size = decoded_size(w, h, c, int(spec.format.size()))
+            if max_decoded_bytes is not None and size > max_decoded_bytes:
+                raise ImageTooLarge(
+                    f"the header declares {w}x{h} pixels x {c} channels: {size} bytes ({size / _MIB:.1f} MiB) "
+                    f"decoded as float32, over this server's limit of {max_decoded_bytes} bytes "
+                    f"({max_decoded_bytes / _MIB:.1f} MiB) per file")
+            header = ImageFile(np.zeros((0, 0, 0), np.float32), w, h, c, str(inp.format_name()), str(spec.format))
+            yield inp, header
+            if inp.has_error:
                 raise FileProblem(f"cannot read the pixels (truncated or corrupt?): "
                                   f"{_oiio_error(inp.geterror(), path)}")
-            pixels = np.array(raw, dtype=np.float32).reshape(h, w, c)
         finally:
             inp.close()
     finally:
@@ -220,12 +260,65 @@ def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False) -> 
             os.unlink(path)
         except OSError:
             pass
-    return ImageFile(pixels, w, h, c, fmt, pixel_type)
+
+
+def decode_image(data: bytes, *, max_pixels: int, header_only: bool = False,
+                 max_decoded_bytes: int | None = None) -> ImageFile:
+    """Decode an image file's bytes with OpenImageIO. The declared resolution is checked against
+    ``max_pixels`` (and the decoded size against ``max_decoded_bytes``) before any pixel is read
+    (docs/hard-cases.md #16). Raises :class:`FileProblem`."""
+    import OpenImageIO as oiio
+
+    with _open_image(data, max_pixels, max_decoded_bytes) as (inp, header):
+        if header_only:
+            return header
+        w, h, c = header.width, header.height, header.channels
+        raw = inp.read_image(0, 0, 0, c, oiio.FLOAT)
+        if raw is None or inp.has_error:
+            raise FileProblem(f"cannot read the pixels (truncated or corrupt?): {_oiio_error(inp.geterror(), '')}")
+        pixels = np.array(raw, dtype=np.float32).reshape(h, w, c)
+    return ImageFile(pixels, w, h, c, header.format, header.pixel_type)
+
+
+def scan_image(data: bytes, *, max_pixels: int, max_decoded_bytes: int | None = None
+               ) -> tuple[ImageFile, dict[str, int]]:
+    """Header facts (empty pixels) and pixel statistics (``n_nonfinite``, ``n_negative``) of an
+    image file, decoded a band of rows (or of tiles) at a time: beyond the file and whatever its
+    reader buffers, at most ``_SCAN_CHUNK_BYTES`` of float pixels are held at once. Raises
+    :class:`FileProblem`."""
+    import OpenImageIO as oiio
+
+    with _open_image(data, max_pixels, max_decoded_bytes) as (inp, header):
+        spec = inp.spec()
+        w, h, c = header.width, header.height, header.channels
+        tile_h = int(spec.tile_height) if int(spec.tile_width) > 0 else 0
+        rows = max(1, _SCAN_CHUNK_BYTES // (w * c * 4))
+        if tile_h:
+            rows = max(tile_h, rows // tile_h * tile_h)
+        x0, y_first, z0 = int(spec.x), int(spec.y), int(spec.z)
+        n_nonfinite = n_negative = 0
+        for y0 in range(y_first, y_first + h, rows):
+            y1 = min(y0 + rows, y_first + h)
+            if tile_h:
+                raw = inp.read_tiles(0, 0, x0, x0 + w, y0, y1, z0, z0 + 1, 0, c, oiio.FLOAT)
+            else:
+                raw = inp.read_scanlines(0, 0, y0, y1, z0, 0, c, oiio.FLOAT)
+            if raw is None or inp.has_error:
+                raise FileProblem(f"cannot read the pixels (truncated or corrupt?): "
+                                  f"{_oiio_error(inp.geterror(), '')}")
+            band = np.asarray(raw, dtype=np.float32)
+            finite = np.isfinite(band)
+            n_nonfinite += int(band.size - np.count_nonzero(finite))
+            n_negative += int(np.count_nonzero(np.where(finite, band, 0.0) < 0))
+            del raw, band, finite
+    return header, {"n_nonfinite": n_nonfinite, "n_negative": n_negative}
 
 
 def _oiio_error(msg: str, path: str) -> str:
     text = (msg or "unknown error").strip().splitlines()[0] if (msg or "").strip() else "unknown error"
-    return text.replace(path, "<file>")[:300]
+    if path:
+        text = text.replace(path, "<file>")
+    return re.sub(r"/\S*ibr-upload-\S*", "<file>", text)[:300]
 
 
 def linearise(img: ImageFile, transfer: str) -> np.ndarray:
@@ -243,13 +336,6 @@ def linearise(img: ImageFile, transfer: str) -> np.ndarray:
     elif kind == "gamma":
         v = np.power(v, g)
     return v.astype(np.float32)
-
-
-def _pixel_stats(img: ImageFile) -> dict[str, int]:
-    px = img.pixels
-    finite = np.isfinite(px)
-    return {"n_nonfinite": int(px.size - np.count_nonzero(finite)),
-            "n_negative": int(np.count_nonzero(np.where(finite, px, 0.0) < 0))}
 
 
 # ------------------------------------------------------------------------------ file blobs
@@ -274,23 +360,36 @@ def blob_info(store: ObjectStore, sha: str) -> dict[str, Any] | None:
     return info
 
 
-def store_file(store: ObjectStore, data: bytes, *, max_pixels: int, expected_sha: str | None = None
-               ) -> dict[str, Any]:
+def owned_blob_info(store: ObjectStore, sha: str, owner: str | None) -> dict[str, Any] | None:
+    """:func:`blob_info` of a file ``owner`` uploaded itself (any file with auth off); None otherwise,
+    exactly as for a file nobody uploaded: knowing a hash grants nothing."""
+    if not blob_visible(store, sha, owner):
+        return None
+    return blob_info(store, sha)
+
+
+def store_file(store: ObjectStore, data: bytes, *, max_pixels: int, expected_sha: str | None = None,
+               owner: str | None = None, max_decoded_bytes: int | None = None) -> dict[str, Any]:
     """Validate ``data`` as an image and store it under its sha256 (blob first, then its info
-    record). Returns the info record. Raises :class:`FileProblem`; nothing is stored then."""
+    record), recording ``owner`` as one who sent it. Returns the info record. The header is
+    checked against ``max_pixels`` and ``max_decoded_bytes`` before any pixel is decoded, and the
+    statistics are gathered a band of rows at a time (:func:`scan_image`). Raises
+    :class:`FileProblem`; nothing is stored then."""
     sha = sha256_hex(data)
     if expected_sha is not None and sha != expected_sha:
         raise FileProblem(f"the content's sha256 is {sha}, not {expected_sha} as the URL / manifest says")
     existing = blob_info(store, sha)
     if existing is not None:
+        add_blob_owner(store, sha, owner)  # the bytes were sent: proof of possession
         return existing
-    img = decode_image(data, max_pixels=max_pixels)
+    img, stats = scan_image(data, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes)
     info: dict[str, Any] = {"sha256": sha, "size": len(data), "width": img.width, "height": img.height,
                             "channels": img.channels, "format": img.format, "pixel_type": img.pixel_type,
-                            **_pixel_stats(img)}
+                            **stats}
     if not store.exists(blob_key(sha)):
         store.put_bytes(blob_key(sha), data)
     store.put_bytes(_info_key(sha), canonical_json(info).encode(), "application/json")
+    add_blob_owner(store, sha, owner)
     return info
 
 
@@ -330,8 +429,10 @@ def dataset_id_for(manifest: DatasetManifest) -> str:
     return hashlib.sha256(canonical_json(manifest.model_dump(mode="json")).encode("utf-8")).hexdigest()
 
 
-def missing_files(store: ObjectStore, manifest: DatasetManifest, dataset_id: str) -> tuple[list[MissingFile], int]:
-    """Files of the manifest not received yet (one entry per distinct sha256), and the count received."""
+def missing_files(store: ObjectStore, manifest: DatasetManifest, dataset_id: str, owner: str | None = None
+                  ) -> tuple[list[MissingFile], int]:
+    """Files of the manifest ``owner`` has not sent yet (one entry per distinct sha256; a file
+    another key sent counts as missing), and the count received."""
     missing: list[MissingFile] = []
     seen: set[str] = set()
     received = 0
@@ -340,7 +441,7 @@ def missing_files(store: ObjectStore, manifest: DatasetManifest, dataset_id: str
         if sha in seen:
             continue
         seen.add(sha)
-        if blob_info(store, sha) is None:
+        if owned_blob_info(store, sha, owner) is None:
             missing.append(MissingFile(field=field, name=name, sha256=sha,
                                        upload_url=f"/v1/datasets/uploads/{sha}"))
         else:
@@ -373,8 +474,10 @@ def read_pending(store: ObjectStore, dataset_id: str) -> DatasetManifest | None:
 # ------------------------------------------------------------------------------ commit
 
 
-def _check_files(store: ObjectStore, manifest: DatasetManifest) -> tuple[list[DatasetFileInfo], int, int]:
-    """Cross-file checks; DatasetInvalid naming every bad file. Returns (files, width, height)."""
+def _check_files(store: ObjectStore, manifest: DatasetManifest, owner: str | None
+                 ) -> tuple[list[DatasetFileInfo], int, int]:
+    """Cross-file checks; DatasetInvalid naming every bad file (409 for a file ``owner`` has not
+    uploaded itself). Returns (files, width, height)."""
     errors: list[FieldError] = []
     cam = manifest.camera
     width, height = cam.width, cam.height
@@ -382,7 +485,7 @@ def _check_files(store: ObjectStore, manifest: DatasetManifest) -> tuple[list[Da
     missing: list[FieldError] = []
     for field, name, sha, role in manifest.file_refs():
         assert sha is not None
-        info = blob_info(store, sha)
+        info = owned_blob_info(store, sha, owner)
         if info is None:
             missing.append(FieldError(field=f"{field}.file",
                                       message=f"file {name!r} (sha256 {sha}) has not been uploaded",
@@ -437,12 +540,15 @@ def _public(dataset_id: str, doc: Mapping[str, Any]) -> DatasetPublic:
 def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | None,
                    source: Mapping[str, Any] | None = None, *, scene_exists: bool | None = None,
                    add_owner: bool = True) -> tuple[DatasetPublic, bool]:
-    """Check every file of the manifest (received, same size as the camera, finite, >= 0, depth a
-    float image) and write the dataset document LAST; add ``owner``'s marker. Returns (public view,
-    new document?). DatasetInvalid (status 409 when files are missing, 422 otherwise)."""
+    """Check every file of the manifest (received from ``owner``, same size as the camera, finite,
+    >= 0, depth a float image) and write the dataset document LAST; add ``owner``'s marker. A key
+    joins a dataset stored already only by sending its files too. Returns (public view, new
+    document?). DatasetInvalid (status 409 when files are missing, 422 otherwise)."""
     dataset_id = dataset_id_for(manifest)
     existing = _read_doc(store, dataset_id)
     if existing is not None:
+        if add_owner and not dataset_visible(store, dataset_id, owner):
+            _check_files(store, manifest, owner)  # 409 naming the files this key has not sent
         if add_owner:
             add_dataset_owner(store, dataset_id, owner)
         store.delete(_pending_key(dataset_id))
@@ -453,7 +559,7 @@ def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | N
         if not present:
             raise DatasetInvalid([FieldError(field="geometry.scene_id", message=f"no stored scene "
                                              f"{manifest.geometry.scene_id}", type="unknown_scene")])
-    files, width, height = _check_files(store, manifest)
+    files, width, height = _check_files(store, manifest, owner)
     doc = {"manifest": manifest.model_dump(mode="json"), "files": [f.model_dump(mode="json") for f in files],
            "width": width, "height": height, "created_at": _now().isoformat(),
            "source": dict(source or {"kind": "upload"})}

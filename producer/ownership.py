@@ -1,13 +1,22 @@
-"""Who may see what: the owners of scenes, datasets and jobs.
+"""Who may see what: the owners of scenes, datasets, uploaded files, bakes and jobs.
 
 An owner is the id of an API key (``service.core.security``); with authentication off every
-caller is ``None`` and sees everything. Scenes and datasets are content-addressed, so two keys
-that upload the same scene share it: each gets its own empty marker object. Jobs are shared by
-identical requests: their owners are a Redis set.
+caller is ``None`` and sees everything. Content is stored once however many keys send it (scenes,
+datasets and uploaded files are content-addressed, bakes are keyed by their inputs, identical
+requests share one job), but what a key may see is recorded per key: each gets its own empty
+marker object, or its member of a Redis set. A key that knows a hash but never sent the content
+gets 404, exactly as for content that does not exist; an upload proves possession by sending the
+bytes.
 
-- ``scene-owners/<scene_id>/<owner>`` and ``dataset-owners/<dataset_id>/<owner>``: markers in the
+- ``scene-owners/<scene_id>/<owner>``, ``dataset-owners/<dataset_id>/<owner>``: markers in the
   object store (``_`` for an object stored with auth off);
-- ``ibr:job-owners:<job_id>``: the Redis set of everybody who asked for the job.
+- ``blob-owners/<sha256>/<owner>``: a key that uploaded the file ``blobs/<sha256>`` itself;
+- ``bake-owners/<bake_key>/<owner>``: a key that requested the scene bake. A bake recorded before
+  these markers existed (none present) is held by the owner its record names. Deleting a bake
+  removes the caller's marker; the bake itself goes with the last one;
+- ``ibr:job-owners:<job_id>``: the Redis set of everybody who asked for the job;
+  ``ibr:job-detached:<job_id>``: those of them who canceled it. Canceling detaches the caller; the
+  job is canceled when no owner remains attached (``producer.cancel.cancel_for``).
 """
 
 from __future__ import annotations
@@ -23,6 +32,13 @@ from producer.store import NotFound, ObjectStore
 __all__ = [
     "ANON_OWNER",
     "SCENE_OWNERS_PREFIX",
+    "add_bake_owner",
+    "add_blob_owner",
+    "attached_job_owners",
+    "bake_owners",
+    "blob_visible",
+    "detach_job_owner",
+    "remove_bake_owner",
     "add_dataset_owner",
     "add_job_owner",
     "add_scene_owner",
@@ -42,6 +58,8 @@ ANON_OWNER = "_"
 """Marker name for scenes and datasets stored while authentication is off."""
 SCENE_OWNERS_PREFIX = "scene-owners/"
 DATASET_OWNERS_PREFIX = "dataset-owners/"
+BLOB_OWNERS_PREFIX = "blob-owners/"
+BAKE_OWNERS_PREFIX = "bake-owners/"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 # ------------------------------------------------------------------------------------ scenes
@@ -124,6 +142,62 @@ def visible_dataset_ids(store: ObjectStore, owner: str | None) -> set[str] | Non
     return out
 
 
+# ------------------------------------------------------------------------------------ uploaded files
+
+
+def _blob_marker(sha: str, owner: str | None) -> str:
+    if not isinstance(sha, str) or _SHA256.fullmatch(sha) is None:
+        raise NotFound(f"file {sha!r}")
+    return f"{BLOB_OWNERS_PREFIX}{sha}/{owner or ANON_OWNER}"
+
+
+def add_blob_owner(store: ObjectStore, sha: str, owner: str | None) -> None:
+    """Record that ``owner`` sent the bytes of file ``sha`` (nothing to record with auth off)."""
+    if owner is not None:
+        store.put_bytes(_blob_marker(sha, owner), b"", "text/plain")
+
+
+def blob_visible(store: ObjectStore, sha: str, owner: str | None) -> bool:
+    """Did ``owner`` upload file ``sha`` itself? With auth off (owner None) every file counts."""
+    if _SHA256.fullmatch(sha or "") is None:
+        return False
+    return owner is None or store.exists(_blob_marker(sha, owner))
+
+
+# ------------------------------------------------------------------------------------ scene bakes
+
+
+def _bake_marker(bake_key: str, owner: str | None) -> str:
+    if not isinstance(bake_key, str) or _SHA256.fullmatch(bake_key) is None:
+        raise NotFound(f"bake {bake_key!r}")
+    return f"{BAKE_OWNERS_PREFIX}{bake_key}/{owner or ANON_OWNER}"
+
+
+def bake_owners(store: ObjectStore, bake_key: str, recorded_owner: str | None = None) -> set[str]:
+    """Who holds a bake: its markers, or the owner its record names when it has none."""
+    prefix = _bake_marker(bake_key, None)[: -len(ANON_OWNER)]
+    markers = {k[len(prefix):] for k in store.list(prefix)}
+    if not markers and recorded_owner:
+        return {recorded_owner}
+    return markers
+
+
+def add_bake_owner(store: ObjectStore, bake_key: str, owner: str | None, recorded_owner: str | None = None
+                   ) -> None:
+    """``owner`` holds the bake now. The first marker of a bake recorded without markers also
+    records the owner its record names, who held it implicitly until now."""
+    if recorded_owner and recorded_owner != owner and not bake_owners(store, bake_key) - {recorded_owner}:
+        store.put_bytes(_bake_marker(bake_key, recorded_owner), b"", "text/plain")
+    store.put_bytes(_bake_marker(bake_key, owner), b"", "text/plain")
+
+
+def remove_bake_owner(store: ObjectStore, bake_key: str, owner: str | None) -> None:
+    """Let go of a bake (everybody lets go with owner None: auth off, or the bake is deleted)."""
+    prefix = _bake_marker(bake_key, None)[: -len(ANON_OWNER)]
+    for key in store.list(prefix) if owner is None else [_bake_marker(bake_key, owner)]:
+        store.delete(key)
+
+
 # ------------------------------------------------------------------------------------ jobs
 
 
@@ -131,18 +205,47 @@ def job_owners_key(job_id: str) -> str:
     return f"{KEY_PREFIX}job-owners:{job_id}"
 
 
+def job_detached_key(job_id: str) -> str:
+    return f"{KEY_PREFIX}job-detached:{job_id}"
+
+
 def add_job_owner(redis: Redis, job_id: str, owner: str | None, timeout: int) -> None:
     """Record ``owner`` as one of the keys that asked for ``job_id`` (so they may see it); the set
-    lives as long as the job can (its timeout plus the failure TTL)."""
+    lives as long as the job can (its timeout plus the failure TTL). Asking again after canceling
+    attaches the owner again."""
     if owner:
         key = job_owners_key(job_id)
         with redis.pipeline() as p:
             p.sadd(key, owner)
             p.expire(key, timeout + FAILURE_TTL_S)
+            p.srem(job_detached_key(job_id), owner)
             p.execute()
+
+
+def _members(raw: Any) -> set[str]:
+    return {m.decode() if isinstance(m, bytes) else str(m) for m in cast(set[Any], raw)}
+
+
+def attached_job_owners(redis: Redis, job_id: str, first_owner: str | None) -> set[str]:
+    """The owners still waiting for a job: everybody who asked for it (``first_owner``, the one
+    its meta names, included) but has not canceled it."""
+    asked = job_owners(redis, job_id) | ({first_owner} if first_owner else set())
+    return asked - _members(redis.smembers(job_detached_key(job_id)))
+
+
+def detach_job_owner(redis: Redis, job_id: str, owner: str, first_owner: str | None) -> set[str]:
+    """``owner`` cancels its interest in a job; returns the owners still attached (empty: cancel
+    the job itself). Atomic against a concurrent ``add_job_owner`` of the same job id."""
+    detached = job_detached_key(job_id)
+    with redis.pipeline() as p:
+        p.sadd(detached, owner)
+        p.expire(detached, FAILURE_TTL_S * 2)
+        p.smembers(job_owners_key(job_id))
+        p.smembers(detached)
+        _, _, asked, gone = p.execute()
+    return (_members(asked) | ({first_owner} if first_owner else set())) - _members(gone)
 
 
 def job_owners(redis: Redis, job_id: str) -> set[str]:
     """Everybody who asked for this job (identical requests share one job)."""
-    return {m.decode() if isinstance(m, bytes) else str(m)
-            for m in cast(set[Any], redis.smembers(job_owners_key(job_id)))}
+    return _members(redis.smembers(job_owners_key(job_id)))

@@ -84,6 +84,13 @@ class Settings(BaseSettings):
     """Most file parts in one multipart request."""
     max_image_pixels: Annotated[int, Field(ge=1)] = 64_000_000
     """Largest width * height accepted in a render request."""
+    max_decoded_image_bytes: Annotated[int, Field(ge=1024)] = 256 * _MIB
+    """Largest uploaded image the API decodes, as width * height * channels * 4 bytes (float32),
+    read from the header before any pixel is decoded (422 beyond it): a few KiB of compressed PNG
+    or EXR can declare gigabytes of pixels."""
+    max_concurrent_decodes: Annotated[int, Field(ge=1, le=64)] = 2
+    """Uploaded images the API process validates at once (each holds up to
+    ``max_decoded_image_bytes``); further uploads wait for a slot, 503 after 30 s."""
     rate_limit_per_minute: Annotated[int, Field(ge=0)] = 0
     """Requests per minute per API key (per client address when auth is off); 0 = no limit."""
     rate_limit_burst: Annotated[int, Field(ge=0)] = 0

@@ -28,6 +28,15 @@ from producer.bakes import (
     read_bake_record,
 )
 from producer.errors import BakeInUse
+from producer.names import scene_bake_job_id
+from producer.ownership import (
+    add_bake_owner,
+    attached_job_owners,
+    bake_owners,
+    detach_job_owner,
+    remove_bake_owner,
+)
+from producer.queue import fetch_job
 from producer.store import NotFound
 from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
@@ -81,6 +90,8 @@ def _request(redis: Any, store: Any, scene_id: str, params: BakeParams, owner: s
     n_lights = _visible_scene(store, scene_id, owner)
     _check_size(params, n_lights)
     key, job = enqueue_bake(redis, store, scene_id, params, owner)
+    if owner is not None:
+        add_bake_owner(store, key, owner, _recorded_owner(store, scene_id, key))
     return bake_status(redis, store, scene_id, key, params, cached=job is None)
 
 
@@ -113,10 +124,37 @@ async def request_bake(
 
 @router.get("/{scene_id}/bakes", response_model=BakeList, responses=problem_responses(401, 404, 422, 429, 503))
 def list_scene_bakes(scene_id: SceneIdPath, store: StoreDep, redis: RedisDep, owner: OwnerDep) -> BakeList:
-    """Every bake requested for this scene (and not deleted), oldest first, with its state."""
+    """Every bake of this scene this API key requested (and did not delete), oldest first, with its state."""
     _visible_scene(store, scene_id, owner)
     return BakeList(items=[bake_status(redis, store, scene_id, key, params)
-                           for key, params in list_bakes(store, scene_id)])
+                           for key, params in list_bakes(store, scene_id) if _held(store, redis, scene_id, key, owner)])
+
+
+def _recorded_owner(store: Any, scene_id: str, key: str) -> str | None:
+    """The owner the bake's record names (the key that first asked for it), if any."""
+    doc = read_bake_record(store, scene_id, key)
+    who = doc.get("owner") if doc is not None else None
+    return who if isinstance(who, str) else None
+
+
+def _held(store: Any, redis: Any, scene_id: str, key: str, owner: str | None) -> bool:
+    """Does ``owner`` hold the bake? With auth off, yes; otherwise if it requested the bake
+    (``POST .../bakes``), or is still waiting for the bake's job (a render with
+    ``missing_bake="bake"`` queued it): that hold is then recorded like a request's. A key that
+    shares the scene but never asked for this bake neither sees nor deletes it."""
+    if owner is None:
+        return True
+    recorded = _recorded_owner(store, scene_id, key)
+    if owner in bake_owners(store, key, recorded):
+        return True
+    job = fetch_job(redis, scene_bake_job_id(key))
+    if job is None:
+        return False
+    first = job.meta.get("owner")
+    if owner not in attached_job_owners(redis, job.id, first if isinstance(first, str) else None):
+        return False
+    add_bake_owner(store, key, owner, recorded)
+    return True
 
 
 def _params_of(store: Any, scene_id: str, key: str) -> BakeParams:
@@ -135,6 +173,8 @@ def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, red
               owner: OwnerDep) -> BakePublic:
     """A bake: state, plan, every part (LDC axis, LLF chunk) with its state, and the aggregated progress."""
     _visible_scene(store, scene_id, owner)
+    if not _held(store, redis, scene_id, bake_key, owner):
+        raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     return bake_status(redis, store, scene_id, bake_key, _params_of(store, scene_id, bake_key))
 
 
@@ -142,13 +182,25 @@ def read_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, red
                responses=problem_responses(401, 404, 409, 422, 429, 503))
 def remove_bake(scene_id: SceneIdPath, bake_key: BakeKeyPath, store: StoreDep, redis: RedisDep,
                 owner: OwnerDep) -> Response:
-    """Delete a bake: its manifest and every part (409 while one of its jobs is queued or running)."""
+    """Delete a bake: its manifest and every part (409 while one of its jobs is queued or running).
+    A bake several API keys requested is shared: deleting it lets go of this key's hold (the bake
+    is no longer listed for it) and the bake itself goes with the last holder."""
     _visible_scene(store, scene_id, owner)
+    if not _held(store, redis, scene_id, bake_key, owner):
+        raise HTTPException(404, f"scene {scene_id} has no bake {bake_key}")
     params = _params_of(store, scene_id, bake_key)
+    if owner is not None and bake_owners(store, bake_key, _recorded_owner(store, scene_id, bake_key)) - {owner}:
+        remove_bake_owner(store, bake_key, owner)  # others still hold it
+        job = fetch_job(redis, scene_bake_job_id(bake_key))
+        if job is not None:  # and no longer waits for its jobs: a cancel by the others is theirs alone
+            first = job.meta.get("owner")
+            detach_job_owner(redis, job.id, owner, first if isinstance(first, str) else None)
+        return Response(status_code=204)
     try:
         delete_bake(redis, store, scene_id, bake_key, params)
     except BakeInUse as exc:
         raise HTTPException(409, str(exc)) from None
+    remove_bake_owner(store, bake_key, None)
     return Response(status_code=204)
 
 

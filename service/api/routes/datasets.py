@@ -41,11 +41,12 @@ from producer.artifacts import read_blob, read_manifest
 from producer.datasets import (
     DatasetInvalid,
     FileProblem,
+    ImageTooLarge,
     bake_artifact_key,
-    blob_info,
     commit_dataset,
     composite_artifact_key,
     dataset_id_for,
+    decode_slots,
     delete_dataset,
     fill_shas,
     generate_artifact_key,
@@ -53,6 +54,7 @@ from producer.datasets import (
     list_datasets,
     manifest_errors,
     missing_files,
+    owned_blob_info,
     put_pending,
     read_file_blob,
     read_pending,
@@ -75,6 +77,7 @@ from producer.names import (
 from producer.ownership import add_dataset_owner, dataset_visible
 from producer.payloads import CompositeJobPayload, DatasetBakeJobPayload, GenerateJobPayload, RelightJobPayload
 from producer.queue import BAKE_TIMEOUT_S, RENDER_TIMEOUT_S, QueueName, fetch_job, job_retry
+from producer.settings import Settings
 from producer.status import ids_in_active_jobs, job_public
 from producer.store import NotFound, ObjectStore
 from producer.wait import wait_for_job
@@ -132,7 +135,31 @@ def _visible_dataset(store: ObjectStore, dataset_id: str, owner: str | None) -> 
     return get_dataset(store, dataset_id)[1]
 
 
-def _store_multipart(store: ObjectStore, manifest: DatasetManifest, files: dict[str, bytes], max_pixels: int,
+_DECODE_WAIT_S = 30.0
+
+
+def _store_file(store: ObjectStore, data: bytes, settings: Settings, owner: str | None, expected_sha: str | None
+                ) -> dict[str, Any]:
+    """``store_file`` in one of the process's ``max_concurrent_decodes`` slots (503 when none frees
+    up within 30 s), with the decoded-size budget: no upload can make the API hold more than
+    slots x ``max_decoded_image_bytes`` of pixels."""
+    slots = decode_slots(settings.max_concurrent_decodes)
+    if not slots.acquire(timeout=_DECODE_WAIT_S):
+        raise HTTPException(503, "too many images are being validated at once; retry shortly",
+                            headers={"Retry-After": "5"})
+    try:
+        return store_file(store, data, max_pixels=settings.max_image_pixels, expected_sha=expected_sha, owner=owner,
+                          max_decoded_bytes=settings.max_decoded_image_bytes)
+    finally:
+        slots.release()
+
+
+def _file_error(field: str, label: str, exc: FileProblem) -> FieldError:
+    return FieldError(field=field, message=f"{label}: {exc}",
+                      type="image_too_large" if isinstance(exc, ImageTooLarge) else "invalid_image")
+
+
+def _store_multipart(store: ObjectStore, manifest: DatasetManifest, files: dict[str, bytes], settings: Settings,
                      owner: str | None) -> tuple[DatasetPublic, bool]:
     """Validate and store every part, fill in the sha256s, commit."""
     errors: list[FieldError] = []
@@ -141,17 +168,17 @@ def _store_multipart(store: ObjectStore, manifest: DatasetManifest, files: dict[
     for field, name, sha, _ in refs:
         data = files.get(name)
         if data is None:
-            if sha is not None and blob_info(store, sha) is not None:
-                shas[name] = sha  # received earlier (resumed upload): no need to send it again
+            if sha is not None and owned_blob_info(store, sha, owner) is not None:
+                shas[name] = sha  # this key sent it earlier (resumed upload): no need to send it again
                 continue
             errors.append(FieldError(field=f"manifest.{field}.file",
                                      message=f"no file part named {name!r}: send the file as a part with that name",
                                      type="missing_file"))
             continue
         try:
-            info = store_file(store, data, max_pixels=max_pixels, expected_sha=sha)
+            info = _store_file(store, data, settings, owner, sha)
         except FileProblem as exc:
-            errors.append(FieldError(field=f"files.{name}", message=f"{name}: {exc}", type="invalid_image"))
+            errors.append(_file_error(f"files.{name}", name, exc))
             continue
         shas[name] = str(info["sha256"])
     if errors:
@@ -175,7 +202,7 @@ def _upload_status(store: ObjectStore, manifest: DatasetManifest, owner: str | N
         raise ValidationProblem([FieldError(field="geometry.scene_id", message=f"no stored scene "
                                             f"{manifest.geometry.scene_id}", type="unknown_scene")])
     put_pending(store, manifest, dataset_id)
-    missing, received = missing_files(store, manifest, dataset_id)
+    missing, received = missing_files(store, manifest, dataset_id, owner)
     return DatasetUploadStatus(dataset_id=dataset_id, state="pending", missing=missing, received=received,
                                links=links)
 
@@ -275,8 +302,7 @@ async def create_dataset(request: Request, response: Response, store: StoreDep, 
                                      + ", ".join(repr(e) for e in extra[:20]), type="unexpected_part"))
         if errors:
             raise ValidationProblem(errors)
-        public, created = await run_in_threadpool(_store_multipart, store, manifest, files, settings.max_image_pixels,
-                                                  owner)
+        public, created = await run_in_threadpool(_store_multipart, store, manifest, files, settings, owner)
         if created:
             response.status_code = 201
             response.headers["Location"] = f"/v1/datasets/{public.id}"
@@ -304,8 +330,10 @@ async def create_dataset(request: Request, response: Response, store: StoreDep, 
 )
 async def upload_file(sha256: FileSha, request: Request, response: Response, store: StoreDep, owner: OwnerDep,
                       settings: SettingsDep) -> FileUploadPublic:
-    """Upload one file (image, depth map, mask, environment map, plate) by its sha256."""
-    known = await run_in_threadpool(blob_info, store, sha256)
+    """Upload one file (image, depth map, mask, environment map, plate) by its sha256. 200 when this
+    API key sent it before; a file stored already for another key is stored once, but each key
+    proves it holds the bytes by sending them (the answer is then 201 for it)."""
+    known = await run_in_threadpool(owned_blob_info, store, sha256, owner)
     if known is not None:
         response.status_code = 200
         return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
@@ -316,19 +344,17 @@ async def upload_file(sha256: FileSha, request: Request, response: Response, sto
         if len(buf) > limit:
             raise BodyTooLarge(f"file exceeds the {limit}-byte limit per file", field=f"files.{sha256}")
     try:
-        info = await run_in_threadpool(store_file, store, bytes(buf), max_pixels=settings.max_image_pixels,
-                                       expected_sha=sha256)
+        info = await run_in_threadpool(_store_file, store, bytes(buf), settings, owner, sha256)
     except FileProblem as exc:
-        raise ValidationProblem([FieldError(field=f"files.{sha256}", message=str(exc), type="invalid_image")]
-                                ) from None
+        raise ValidationProblem([_file_error(f"files.{sha256}", f"file {sha256}", exc)]) from None
     return FileUploadPublic.model_validate({k: info[k] for k in FileUploadPublic.model_fields})
 
 
 @router.get("/v1/datasets/uploads/{sha256}", response_model=FileUploadPublic,
             responses=problem_responses(401, 404, 422, 429, 503))
 def read_upload(sha256: FileSha, store: StoreDep, owner: OwnerDep) -> FileUploadPublic:
-    """Whether a file was received (200 with its facts) or not (404)."""
-    info = blob_info(store, sha256)
+    """Whether this API key sent a file (200 with its facts) or not (404, also when only another key did)."""
+    info = owned_blob_info(store, sha256, owner)
     if info is None:
         raise NotFound(sha256)
     return FileUploadPublic.model_validate({k: info[k] for k in FileUploadPublic.model_fields})
@@ -465,7 +491,8 @@ async def generate(req: GenerateRequest, response: Response, store: StoreDep, re
         missing = [FieldError(field=f"ground_truth.{i}.image_sha256", message="environment map not uploaded: PUT it "
                               f"to /v1/datasets/uploads/{light.image_sha256}", type="missing_file")
                    for i, light in enumerate(req.ground_truth)
-                   if isinstance(light, RelightEnvironmentLight) and blob_info(store, light.image_sha256) is None]
+                   if isinstance(light, RelightEnvironmentLight)
+                   and owned_blob_info(store, light.image_sha256, owner) is None]
         if missing:
             raise ValidationProblem(missing)
 
@@ -533,12 +560,12 @@ def _check_relight_inputs(store: ObjectStore, redis: Redis, owner: str | None, d
     if errors:
         raise NotFound(errors[0]["message"])
     for i, light in enumerate(req.lights):
-        if isinstance(light, RelightEnvironmentLight) and blob_info(store, light.image_sha256) is None:
+        if isinstance(light, RelightEnvironmentLight) and owned_blob_info(store, light.image_sha256, owner) is None:
             errors.append(FieldError(field=f"lights.{i}.image_sha256", message="environment map not uploaded: PUT it "
                                      f"to /v1/datasets/uploads/{light.image_sha256}", type="missing_file"))
     for field in ("plate_sha256", "object_mask_sha256", "active_region_sha256"):
         sha = getattr(req, field, None)
-        if sha is not None and blob_info(store, sha) is None:
+        if sha is not None and owned_blob_info(store, sha, owner) is None:
             errors.append(FieldError(field=field, message=f"file not uploaded: PUT it to /v1/datasets/uploads/{sha}",
                                      type="missing_file"))
     if errors:

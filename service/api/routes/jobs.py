@@ -8,7 +8,7 @@ from fastapi import APIRouter, HTTPException, Path, Query
 from redis import Redis
 
 from api_schemas.service import JobId, JobList, JobPublic, JobState
-from producer.cancel import cancel
+from producer.cancel import cancel_for
 from producer.errors import JobNotCancelable, JobNotFound
 from producer.ownership import job_owners
 from producer.queue import fetch_job
@@ -51,10 +51,12 @@ def read_job(job_id: JobIdPath, redis: RedisDep, owner: OwnerDep) -> JobPublic:
     "/{job_id}/cancel", response_model=JobPublic, responses=problem_responses(401, 404, 409, 422, 429, 503)
 )
 def cancel_job(job_id: JobIdPath, redis: RedisDep, owner: OwnerDep) -> JobPublic:
-    """Cancel a queued or running job (409 when it already ended)."""
+    """Cancel a queued or running job (409 when it already ended). A job shared by identical
+    requests of several API keys is canceled once every one of them has canceled it; until then the
+    answer shows it still queued or running (for the others)."""
     _visible_job_or_404(redis, job_id, owner)
     try:
-        return cancel(redis, job_id)
+        return cancel_for(redis, job_id, owner)
     except JobNotFound:
         raise HTTPException(404, f"no job {job_id}") from None
     except JobNotCancelable as exc:

@@ -18,6 +18,7 @@ from api_schemas.service import SceneCreate, SceneList, ScenePublic, Sha256
 from engine.geometry.meshio import SUPPORTED_MESH_TYPES
 from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.errors import SceneOutputsInUse
+from producer.ownership import remove_bake_owner
 from producer.scene_outputs import delete_scene_outputs
 from producer.settings import Settings
 from producer.status import ids_in_active_jobs
@@ -491,9 +492,11 @@ def remove_scene(scene_id: SceneId, store: StoreDep, redis: RedisDep, owner: Own
     last = owner is None or owners <= {owner}
     if last:  # checks every job of the scene and its outputs first; nothing changes on 409
         try:
-            delete_scene_outputs(redis, store, scene_id)
+            outs = delete_scene_outputs(redis, store, scene_id)
         except SceneOutputsInUse as exc:
             raise HTTPException(409, str(exc)) from None
+        for bake_key, _params in outs.ldc_bakes:  # who held those bakes
+            remove_bake_owner(store, bake_key, None)
     elif scene_id in ids_in_active_jobs(redis, ("scene_id", "scene")):
         raise HTTPException(409, f"scene {scene_id} is used by a queued or running job; cancel it or wait")
     if owner is None:
