@@ -17,7 +17,7 @@ from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
 from producer.wait import wait_for_job
 from service.api.deps import MetricsDep, OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_responses
+from service.api.errors import MissingResource, ValidationProblem, problem_responses
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
 
@@ -70,8 +70,11 @@ def _answer(key: str, job: JobPublic | None, manifest: ArtifactManifest | None, 
 
 def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int) -> None:
     if not scene_visible(store, req.scene_id, owner):
-        raise NotFound(req.scene_id)
-    scene, _, _ = get_scene(store, req.scene_id)  # NotFound -> 404
+        raise MissingResource("scene_id", req.scene_id)
+    try:
+        scene, _, _ = get_scene(store, req.scene_id)
+    except NotFound:
+        raise MissingResource("scene_id", req.scene_id) from None
     cam = req.camera if req.camera is not None else scene.camera
     if cam.width * cam.height > max_pixels:
         where = "camera.height" if req.camera is not None else "scene_id"
