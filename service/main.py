@@ -8,6 +8,7 @@ engine's kernels: jobs are enqueued by import path (``producer``) and run in wor
 from __future__ import annotations
 
 import importlib.resources
+import importlib.util
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -50,24 +51,34 @@ DOCS_ASSETS_URL = "/docs-assets"
 nothing from another host, so they work offline)."""
 
 
-def _docs_assets_dir() -> str:
+def _docs_assets_dir() -> str | None:
     """The Swagger UI and ReDoc builds shipped by the ``fastapi-offline`` package (a dependency;
-    its licence file names the Apache-2.0 / MIT licences of those builds)."""
+    its licence file names the Apache-2.0 / MIT licences of those builds); None when an install
+    predates that dependency."""
+    if importlib.util.find_spec("fastapi_offline") is None:
+        return None
     return str(importlib.resources.files("fastapi_offline") / "static")
 
 
 def _install_docs(app: FastAPI) -> None:
     """``/docs`` (Swagger UI) and ``/redoc`` (ReDoc) on assets served by the app itself."""
-    app.mount(DOCS_ASSETS_URL, StaticFiles(directory=_docs_assets_dir()), name="docs-assets")
+    assets = _docs_assets_dir()
     openapi_url = app.openapi_url or "/openapi.json"
     oauth2_redirect_url = app.swagger_ui_oauth2_redirect_url or "/docs/oauth2-redirect"
+    if assets is None:
+        log.warning("fastapi-offline is not installed (reinstall the package): /docs and /redoc load their "
+                    "scripts from a CDN and stay blank offline")
+    else:
+        app.mount(DOCS_ASSETS_URL, StaticFiles(directory=assets), name="docs-assets")
 
     @app.get("/docs", include_in_schema=False)
     async def swagger_ui(request: Request) -> HTMLResponse:
         root = request.scope.get("root_path", "")
+        url, title, redirect = f"{root}{openapi_url}", f"{app.title} - Swagger UI", f"{root}{oauth2_redirect_url}"
+        if assets is None:
+            return get_swagger_ui_html(openapi_url=url, title=title, oauth2_redirect_url=redirect)
         return get_swagger_ui_html(
-            openapi_url=f"{root}{openapi_url}", title=f"{app.title} - Swagger UI",
-            oauth2_redirect_url=f"{root}{oauth2_redirect_url}",
+            openapi_url=url, title=title, oauth2_redirect_url=redirect,
             swagger_js_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
             swagger_css_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui.css",
             swagger_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
@@ -80,9 +91,11 @@ def _install_docs(app: FastAPI) -> None:
     @app.get("/redoc", include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:
         root = request.scope.get("root_path", "")
+        url, title = f"{root}{openapi_url}", f"{app.title} - ReDoc"
+        if assets is None:
+            return get_redoc_html(openapi_url=url, title=title)
         return get_redoc_html(
-            openapi_url=f"{root}{openapi_url}", title=f"{app.title} - ReDoc",
-            redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
+            openapi_url=url, title=title, redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
             redoc_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False,
         )
 
