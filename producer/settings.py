@@ -91,6 +91,11 @@ class Settings(BaseSettings):
     max_concurrent_decodes: Annotated[int, Field(ge=1, le=64)] = 2
     """Uploaded images the API process validates at once (each holds up to
     ``max_decoded_image_bytes``); further uploads wait for a slot, 503 after 30 s."""
+    max_render_bytes: Annotated[int, Field(ge=_MIB)] = 6 << 30
+    """Largest estimated peak memory of one render job (``producer.render_memory``, from the image
+    size, the method and the samples per pixel): a request over it is refused with 422 naming the
+    estimate and the limit before it is queued. 6 GiB: a reference render of about 4300 x 4300 at
+    the default samples, an LDC render of about 5300 x 5300."""
     rate_limit_per_minute: Annotated[int, Field(ge=0)] = 0
     """Requests per minute per API key (per client address when auth is off); 0 = no limit."""
     rate_limit_burst: Annotated[int, Field(ge=0)] = 0

@@ -23,7 +23,13 @@ from producer.ownership import job_owners
 from producer.queue import KEY_PREFIX, QUEUE_NAMES, QueueName, get_queue
 
 __all__ = [
+    "JOB_SECONDS_BUCKETS",
+    "JOB_SECONDS_KEY",
     "cancel_key",
+    "failed_and_canceled",
+    "job_duration_histograms",
+    "job_method",
+    "record_job_duration",
     "cancel_requested",
     "clean_error",
     "ids_in_active_jobs",
@@ -45,6 +51,17 @@ _STATE_OF: dict[JobStatus, JobState] = {
     JobStatus.STOPPED: "canceled",  # rq's send_stop_job_command (bake horses)
     JobStatus.CANCELED: "canceled",
 }
+
+
+JOB_SECONDS_KEY = f"{KEY_PREFIX}metrics:job_seconds"
+"""Redis hash of the job-duration histograms: cumulative bucket counts, sum and count per
+(queue, method, outcome), incremented by the worker that ran the job (``record_job_duration``)."""
+
+JOB_SECONDS_BUCKETS: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0,
+                                          1800.0, 3600.0)
+"""Upper bounds (seconds) of the duration buckets; +Inf is implied."""
+
+_SEP = "\t"
 
 
 def cancel_key(job_id: str) -> str:
@@ -234,3 +251,76 @@ def _collect_ids(value: Any, keys: frozenset[str], out: set[str], depth: int = 0
     elif isinstance(value, list | tuple):
         for v in value:
             _collect_ids(v, keys, out, depth + 1)
+
+
+def job_method(job: Job) -> str:
+    """A job's method label: a render's ``RenderRequest.method`` (``reference``, ``ldc+llf``,
+    ...), a bake's role (``bake-plan`` / ``bake-part`` / ``bake-merge``), else its kind
+    (``walkthrough-chunk``, ``dataset-bake``, ...) or, last, its function's name."""
+    meta = job.meta
+    if meta.get("kind") == "render":
+        try:
+            payload = job.args[0] if job.args else None
+        except Exception:  # an unreadable payload still gets a label
+            payload = None
+        req = payload.get("request") if isinstance(payload, dict) else None
+        method = req.get("method", "reference") if isinstance(req, dict) else None
+        return method if isinstance(method, str) and method else "reference"
+    role = meta.get("bake_role")
+    if isinstance(role, str) and role:
+        return f"bake-{role}"
+    kind = meta.get("kind")
+    if isinstance(kind, str) and kind:
+        return kind
+    try:
+        return str(job.func_name).rsplit(".", 1)[-1]
+    except Exception:
+        return "unknown"
+
+
+def record_job_duration(redis: Redis, queue: str, method: str, outcome: JobState, seconds: float) -> None:
+    """Observe one job's run time in the Redis-backed histogram (``JOB_SECONDS_KEY``): called by the
+    worker where the job ran, so every worker process (and every forked horse) adds to the same
+    monotonic counters, which ``GET /metrics`` exposes as a Prometheus histogram."""
+    prefix = _SEP.join((queue, method, outcome))
+    with redis.pipeline(transaction=True) as p:
+        for le in JOB_SECONDS_BUCKETS:
+            if seconds <= le:
+                p.hincrby(JOB_SECONDS_KEY, f"{prefix}{_SEP}{le:g}", 1)
+        p.hincrby(JOB_SECONDS_KEY, f"{prefix}{_SEP}+Inf", 1)
+        p.hincrbyfloat(JOB_SECONDS_KEY, f"{prefix}{_SEP}sum", max(0.0, seconds))
+        p.execute()
+
+
+def job_duration_histograms(redis: Redis) -> dict[tuple[str, str, str], tuple[list[tuple[str, float]], float]]:
+    """The histograms ``record_job_duration`` keeps: (queue, method, outcome) -> (cumulative
+    ``[(le, count), ..., ("+Inf", count)]``, sum of seconds)."""
+    raw = redis.hgetall(JOB_SECONDS_KEY)
+    series: dict[tuple[str, str, str], dict[str, float]] = {}
+    for field, value in raw.items():
+        parts = (field.decode() if isinstance(field, bytes) else field).split(_SEP)
+        if len(parts) != 4:
+            continue
+        series.setdefault((parts[0], parts[1], parts[2]), {})[parts[3]] = float(value)
+    out: dict[tuple[str, str, str], tuple[list[tuple[str, float]], float]] = {}
+    for labels, fields in series.items():
+        buckets = [(f"{le:g}", fields.get(f"{le:g}", 0.0)) for le in JOB_SECONDS_BUCKETS]
+        buckets.append(("+Inf", fields.get("+Inf", 0.0)))
+        out[labels] = (buckets, fields.get("sum", 0.0))
+    return out
+
+
+def failed_and_canceled(redis: Redis, queue: QueueName) -> tuple[int, int]:
+    """How many jobs of ``queue``'s failed registry failed, and how many were canceled on request
+    (a started job that stops on its cancel flag, a bake horse stopped by the cancel, land in RQ's
+    failed registry): the same split as ``job_state`` gives ``/v1/jobs``."""
+    q = get_queue(redis, queue)
+    ids = q.failed_job_registry.get_job_ids(cleanup=False)
+    jobs = [j for j in Job.fetch_many(ids, connection=redis, serializer=JSONSerializer) if j is not None]
+    with redis.pipeline(transaction=False) as p:
+        for job in jobs:
+            p.exists(cancel_key(job.id))
+        flags = p.execute()
+    canceled = sum(1 for job, flag in zip(jobs, flags, strict=True)
+                   if job.get_status(refresh=False) == JobStatus.STOPPED or job.meta.get("cancel_requested") or flag)
+    return len(ids) - canceled, canceled

@@ -32,6 +32,7 @@ from typing import Annotated, Any, Literal, NoReturn, TypeVar, cast, get_args
 import httpx
 import pydantic
 import typer
+from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from api_schemas import format_validation_error, load_scene_file, scene_json_schema
@@ -40,12 +41,17 @@ from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
 from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
 from api_schemas.walkthrough import WalkthroughPublic
 from samples import SAMPLES_DIR, sample_names, sample_path
-from service.client import ApiError, Client, JobFailed, read_dataset_dir, with_sha256s
+from service.client import ApiError, Client, InvalidId, JobFailed, read_dataset_dir, with_sha256s
 from service.up import load_samples, run_forever, start_stack
 
 T = TypeVar("T")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="ibr-service: image-based rendering")
+
+
+def _say(msg: str) -> None:
+    """A message for the user: stderr (stdout carries only results, so ``X=$(ibr ...)`` captures them)."""
+    typer.echo(msg, err=True)
 
 
 def _fail(msg: str, code: int = 2) -> NoReturn:
@@ -184,13 +190,13 @@ def up(
 ) -> None:
     """Start Redis (embedded unless IBR_REDIS_URL is set), a bake and a render worker and the API."""
     try:
-        stack = start_stack(data_dir, port=port, log=typer.echo)
+        stack = start_stack(data_dir, port=port, log=_say)
     except Exception as exc:  # start-up problems are reported, not tracebacks
         _fail(str(exc), code=3)
     ids: dict[str, str] = {}
     try:
         if samples_ or demo:
-            ids = load_samples(stack.api_url, stack.env.get("IBR_API_KEY"), log=typer.echo)
+            ids = load_samples(stack.api_url, stack.env.get("IBR_API_KEY"), log=_say)
         if demo:
             if demo not in ids:
                 raise typer.Exit(_fail_code(f"--demo {demo}: not a sample scene ({', '.join(sorted(ids))})", 2))
@@ -202,8 +208,8 @@ def up(
     if exit_after_demo:
         stack.stop()
         return
-    typer.echo(f"ready: {stack.api_url}  (Ctrl-C to stop)")
-    raise typer.Exit(run_forever(stack, log=typer.echo))
+    _say(f"ready: {stack.api_url}  (Ctrl-C to stop)")
+    raise typer.Exit(run_forever(stack, log=_say))
 
 
 @app.command()
@@ -259,6 +265,10 @@ def _call(fn: Callable[[], T]) -> T:
         return fn()
     except ApiError as exc:
         _api_fail(exc)
+    except InvalidId as exc:
+        _fail(str(exc))
+    except httpx.InvalidURL as exc:
+        _fail(f"invalid URL: {exc}")
     except httpx.HTTPError as exc:
         _fail(f"cannot reach the API: {exc}", code=3)
 
@@ -331,13 +341,8 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                 typer.echo(r.job.id)
             return
         if r.artifact is None:
-            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                          TimeRemainingColumn(), transient=True) as bar:
-                task = bar.add_task("render", total=1.0)
-
-                def show(j: JobPublic) -> None:
-                    bar.update(task, completed=j.progress.fraction, description=j.progress.stage or j.state)
-
+            with _bar("render") as update:
+                show = _job_progress(update)
                 manifest = _call(lambda: c.wait_render(r, on_progress=show))  # a failed job: JobFailed, exit 4
         else:
             manifest = r.artifact
@@ -422,12 +427,9 @@ def bake(
         b = _call(lambda: c.bake(scene_id, params))
         typer.echo(f"bake {b.key} ({'cached' if b.cached else b.state})", err=True)
         if wait and b.state != "finished":
-            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                          TimeRemainingColumn(), transient=True) as bar:
-                task = bar.add_task("bake", total=1.0)
-
+            with _bar("bake") as update:
                 def show(p: BakePublic) -> None:
-                    bar.update(task, completed=p.progress.fraction, description=p.progress.stage or p.state)
+                    update(p.progress.fraction, p.progress.stage or p.state)
 
                 b = _call(lambda: c.wait_bake(b, on_progress=show))  # a failed bake: JobFailed, exit 4
         if b.plan is not None:
@@ -535,9 +537,9 @@ def batch(
 
 @contextmanager
 def _bar(label: str) -> Iterator[Callable[[float, str], None]]:
-    """A transient progress bar on stderr: ``update(fraction, description)``."""
+    """A transient progress bar on stderr (stdout carries only results): ``update(fraction, description)``."""
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                  TimeRemainingColumn(), transient=True) as bar:
+                  TimeRemainingColumn(), transient=True, console=Console(stderr=True)) as bar:
         task = bar.add_task(label, total=1.0)
 
         def update(fraction: float, description: str) -> None:

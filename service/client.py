@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -70,6 +71,21 @@ class ApiError(Exception):
         lines = [f"{status} {title}" + (f": {detail}" if detail else "")]
         lines += [f"  {e.get('field') or '(body)'}: {e.get('message')}" for e in self.errors]
         super().__init__("\n".join(lines))
+
+
+class InvalidId(ValueError):
+    """An id or key given to the client is not one (e.g. it holds whitespace or a '/'): raised
+    before any request, so a stray newline from a shell capture never reaches the URL."""
+
+
+_ID = re.compile(r"[A-Za-z0-9._:~-]{1,256}")
+
+
+def _id(value: str, what: str) -> str:
+    """``value`` as one URL path segment, or InvalidId naming ``what`` and the value."""
+    if not isinstance(value, str) or not _ID.fullmatch(value) or value in (".", ".."):
+        raise InvalidId(f"invalid {what} {value!r}: expected letters, digits, '.', '_', ':', '~' or '-' only")
+    return value
 
 
 class JobFailed(ApiError):
@@ -124,18 +140,18 @@ class Client:
         return ScenePublic.model_validate(r.json())
 
     def get_scene(self, scene_id: str) -> ScenePublic:
-        return ScenePublic.model_validate(self._request("GET", f"/v1/scenes/{scene_id}").json())
+        return ScenePublic.model_validate(self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}").json())
 
     def get_scene_document(self, scene_id: str) -> dict[str, Any]:
         """The stored scene JSON (``GET /v1/scenes/{id}/document``)."""
-        doc: dict[str, Any] = self._request("GET", f"/v1/scenes/{scene_id}/document").json()
+        doc: dict[str, Any] = self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/document").json()
         return doc
 
     def list_scenes(self) -> SceneList:
         return SceneList.model_validate(self._request("GET", "/v1/scenes").json())
 
     def delete_scene(self, scene_id: str) -> None:
-        self._request("DELETE", f"/v1/scenes/{scene_id}")
+        self._request("DELETE", f"/v1/scenes/{_id(scene_id, 'scene id')}")
 
     # ------------------------------------------------------------------ renders and jobs
     def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str = "reference",
@@ -159,13 +175,13 @@ class Client:
         return RenderPublic.model_validate(r.json())
 
     def job(self, job_id: str) -> JobPublic:
-        return JobPublic.model_validate(self._request("GET", f"/v1/jobs/{job_id}").json())
+        return JobPublic.model_validate(self._request("GET", f"/v1/jobs/{_id(job_id, 'job id')}").json())
 
     def jobs(self) -> JobList:
         return JobList.model_validate(self._request("GET", "/v1/jobs").json())
 
     def cancel(self, job_id: str) -> JobPublic:
-        return JobPublic.model_validate(self._request("POST", f"/v1/jobs/{job_id}/cancel").json())
+        return JobPublic.model_validate(self._request("POST", f"/v1/jobs/{_id(job_id, 'job id')}/cancel").json())
 
     def wait_job(self, job_id: str, timeout: float = 600.0, poll: float = 0.2,
                  on_progress: Callable[[JobPublic], None] | None = None) -> JobPublic:
@@ -198,17 +214,18 @@ class Client:
     # ------------------------------------------------------------------ bakes
     def bake(self, scene_id: str, params: Mapping[str, Any] | None = None) -> BakePublic:
         """Request a bake of a scene (``BakeParams`` fields); ``cached`` when it exists already."""
-        r = self._request("POST", f"/v1/scenes/{scene_id}/bakes", json=dict(params or {}))
+        r = self._request("POST", f"/v1/scenes/{_id(scene_id, 'scene id')}/bakes", json=dict(params or {}))
         return BakePublic.model_validate(r.json())
 
     def get_bake(self, scene_id: str, key: str) -> BakePublic:
-        return BakePublic.model_validate(self._request("GET", f"/v1/scenes/{scene_id}/bakes/{key}").json())
+        url = f"/v1/scenes/{_id(scene_id, 'scene id')}/bakes/{_id(key, 'bake key')}"
+        return BakePublic.model_validate(self._request("GET", url).json())
 
     def list_bakes(self, scene_id: str) -> BakeList:
-        return BakeList.model_validate(self._request("GET", f"/v1/scenes/{scene_id}/bakes").json())
+        return BakeList.model_validate(self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/bakes").json())
 
     def delete_bake(self, scene_id: str, key: str) -> None:
-        self._request("DELETE", f"/v1/scenes/{scene_id}/bakes/{key}")
+        self._request("DELETE", f"/v1/scenes/{_id(scene_id, 'scene id')}/bakes/{_id(key, 'bake key')}")
 
     def wait_bake(self, b: BakePublic, timeout: float = 3600.0, poll: float = 0.3,
                   on_progress: Callable[[BakePublic], None] | None = None) -> BakePublic:
@@ -230,10 +247,10 @@ class Client:
 
     # ------------------------------------------------------------------ artifacts
     def artifact(self, key: str) -> ArtifactManifest:
-        return ArtifactManifest.model_validate(self._request("GET", f"/v1/artifacts/{key}").json())
+        return ArtifactManifest.model_validate(self._request("GET", f"/v1/artifacts/{_id(key, 'artifact key')}").json())
 
     def download(self, key: str, fmt: Literal["exr", "png"] = "png") -> bytes:
-        return self._request("GET", f"/v1/artifacts/{key}/image.{fmt}").content
+        return self._request("GET", f"/v1/artifacts/{_id(key, 'artifact key')}/image.{fmt}").content
 
     # ------------------------------------------------------------------ batches
     def batch(self, scenes: list[Mapping[str, Any]] | None = None,
@@ -242,7 +259,7 @@ class Client:
         return BatchPublic.model_validate(self._request("POST", "/v1/batches", json=body).json())
 
     def get_batch(self, batch_id: str) -> BatchPublic:
-        return BatchPublic.model_validate(self._request("GET", f"/v1/batches/{batch_id}").json())
+        return BatchPublic.model_validate(self._request("GET", f"/v1/batches/{_id(batch_id, 'batch id')}").json())
 
     # ------------------------------------------------------------------ datasets: upload
     def upload_dataset(self, manifest: Mapping[str, Any], files: Mapping[str, FileData]) -> DatasetPublic:
@@ -262,12 +279,13 @@ class Client:
         """PUT one file (dataset image, depth, mask, environment map, plate) by its sha256."""
         blob = _bytes(data)
         sha = sha256 or hashlib.sha256(blob).hexdigest()
-        r = self._request("PUT", f"/v1/datasets/uploads/{sha}", content=blob,
+        r = self._request("PUT", f"/v1/datasets/uploads/{_id(sha, 'sha256')}", content=blob,
                           headers={"Content-Type": "application/octet-stream"})
         return FileUploadPublic.model_validate(r.json())
 
     def commit_dataset(self, dataset_id: str) -> DatasetPublic:
-        return DatasetPublic.model_validate(self._request("POST", f"/v1/datasets/{dataset_id}/commit").json())
+        url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}/commit"
+        return DatasetPublic.model_validate(self._request("POST", url).json())
 
     def upload_dataset_resumable(self, manifest: Mapping[str, Any], files: Mapping[str, FileData],
                                  on_progress: Callable[[int, int, str], None] | None = None) -> DatasetPublic:
@@ -282,8 +300,11 @@ class Client:
         for i, item in enumerate(status.missing):
             if item.name not in files:
                 raise ValueError(f"{item.field}: no file {item.name!r} given")
-            self._request("PUT", item.upload_url, content=_bytes(files[item.name]),
-                          headers={"Content-Type": "application/octet-stream"})
+            try:
+                self._request("PUT", item.upload_url, content=_bytes(files[item.name]),
+                              headers={"Content-Type": "application/octet-stream"})
+            except ApiError as exc:
+                raise _named_upload_error(exc, item.name, item.upload_url) from None
             if on_progress is not None:
                 on_progress(i + 1, total, item.name)
         return self.commit_dataset(status.dataset_id)
@@ -293,13 +314,15 @@ class Client:
         return DatasetList.model_validate(self._request("GET", "/v1/datasets", params={"limit": 1000}).json())
 
     def get_dataset(self, dataset_id: str) -> DatasetPublic:
-        return DatasetPublic.model_validate(self._request("GET", f"/v1/datasets/{dataset_id}").json())
+        url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}"
+        return DatasetPublic.model_validate(self._request("GET", url).json())
 
     def delete_dataset(self, dataset_id: str) -> None:
-        self._request("DELETE", f"/v1/datasets/{dataset_id}")
+        self._request("DELETE", f"/v1/datasets/{_id(dataset_id, 'dataset id')}")
 
     def download_dataset_file(self, dataset_id: str, sha256: str) -> bytes:
-        return self._request("GET", f"/v1/datasets/{dataset_id}/files/{sha256}").content
+        url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}/files/{_id(sha256, 'sha256')}"
+        return self._request("GET", url).content
 
     def generate_dataset(self, scene_id: str, placement: Mapping[str, Any] | None = None,
                          params: Mapping[str, Any] | None = None, camera: Mapping[str, Any] | None = None,
@@ -319,7 +342,8 @@ class Client:
         return GenerationPublic.model_validate(r.json())
 
     def get_generation(self, key: str) -> ArtifactManifest:
-        return ArtifactManifest.model_validate(self._request("GET", f"/v1/datasets/generations/{key}").json())
+        url = f"/v1/datasets/generations/{_id(key, 'generation key')}"
+        return ArtifactManifest.model_validate(self._request("GET", url).json())
 
     def wait_generation(self, g: GenerationPublic, timeout: float = 3600.0,
                         on_progress: Callable[[JobPublic], None] | None = None) -> str:
@@ -332,7 +356,8 @@ class Client:
     def bake_dataset(self, dataset_id: str, params: Mapping[str, Any] | None = None,
                      wait: float = 0.0) -> DatasetBakePublic:
         """Bake a dataset for relighting (``BakeParams`` fields); ``cached`` when it exists already."""
-        r = self._request("POST", f"/v1/datasets/{dataset_id}/bake", json={"params": dict(params or {})},
+        url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}/bake"
+        r = self._request("POST", url, json={"params": dict(params or {})},
                           params={"wait": wait} if wait else None)
         return DatasetBakePublic.model_validate(r.json())
 
@@ -372,7 +397,7 @@ class Client:
         return RelightPublic.model_validate(r.json())
 
     def get_relight(self, key: str, kind: Literal["relight", "composite"] = "relight") -> ArtifactManifest:
-        return ArtifactManifest.model_validate(self._request("GET", f"/v1/{kind}s/{key}").json())
+        return ArtifactManifest.model_validate(self._request("GET", f"/v1/{kind}s/{_id(key, kind + ' key')}").json())
 
     def wait_relight(self, r: RelightPublic, timeout: float = 600.0,
                      on_progress: Callable[[JobPublic], None] | None = None,
@@ -388,7 +413,7 @@ class Client:
         """The relit (or composite) image: ``exr`` linear float, ``png`` sRGB preview, ``outside`` the
         coverage mask (white where a light direction fell outside the dataset)."""
         name = "outside.png" if which == "outside" else f"image.{which}"
-        return self._request("GET", f"/v1/{kind}s/{key}/{name}").content
+        return self._request("GET", f"/v1/{kind}s/{_id(key, kind + ' key')}/{name}").content
 
     # ------------------------------------------------------------------ walkthroughs
     def walkthrough(self, request: Mapping[str, Any]) -> WalkthroughPublic:
@@ -396,11 +421,12 @@ class Client:
         return WalkthroughPublic.model_validate(self._request("POST", "/v1/walkthroughs", json=dict(request)).json())
 
     def get_walkthrough(self, key: str) -> WalkthroughPublic:
-        return WalkthroughPublic.model_validate(self._request("GET", f"/v1/walkthroughs/{key}").json())
+        url = f"/v1/walkthroughs/{_id(key, 'walkthrough key')}"
+        return WalkthroughPublic.model_validate(self._request("GET", url).json())
 
     def delete_walkthrough(self, key: str) -> None:
         """Delete a walkthrough's video, frames and request (409 ApiError while its jobs run)."""
-        self._request("DELETE", f"/v1/walkthroughs/{key}")
+        self._request("DELETE", f"/v1/walkthroughs/{_id(key, 'walkthrough key')}")
 
     def wait_walkthrough(self, w: WalkthroughPublic, timeout: float = 3600.0, poll: float = 0.3,
                          on_progress: Callable[[WalkthroughPublic], None] | None = None) -> WalkthroughPublic:
@@ -422,12 +448,12 @@ class Client:
 
     def download_walkthrough_video(self, key: str) -> bytes:
         """The finished walkthrough's MP4 (H.264) preview."""
-        return self._request("GET", f"/v1/walkthroughs/{key}/video.mp4").content
+        return self._request("GET", f"/v1/walkthroughs/{_id(key, 'walkthrough key')}/video.mp4").content
 
     def download_walkthrough_frame(self, key: str, index: int,
                                    kind: Literal["png", "exr", "provenance"] = "png") -> bytes:
         """Frame ``index``: ``png`` sRGB, ``exr`` linear radiance, ``provenance`` 8-bit codes (PNG)."""
-        return self._request("GET", f"/v1/walkthroughs/{key}/frames/{index}.{kind}").content
+        return self._request("GET", f"/v1/walkthroughs/{_id(key, 'walkthrough key')}/frames/{index}.{kind}").content
 
     # ------------------------------------------------------------------ helpers
     def _wait_ok(self, job: JobPublic | None, what: str, timeout: float,
@@ -487,6 +513,19 @@ def read_dataset_dir(path: str | Path) -> tuple[dict[str, Any], dict[str, Path]]
             raise ValueError(f"{field}.file: {name!r} not found next to the manifest ({f})")
         files[str(name)] = f
     return manifest, files
+
+
+def _named_upload_error(exc: ApiError, name: str, upload_url: str) -> ApiError:
+    """``exc`` from the PUT of one file, naming the file as the manifest does (``files.002.png``)
+    instead of by the sha256 in its upload URL (``files.580bc0e7...``), as a multipart upload does."""
+    sha = upload_url.rstrip("/").rsplit("/", 1)[-1]
+    errors = [{**e, "field": f"files.{name}" if e.get("field") == f"files.{sha}" else e.get("field"),
+               "message": str(e.get("message", "")).replace(sha, name)} for e in exc.errors]
+    detail = exc.detail.replace(sha, name)
+    if name not in detail:
+        detail = f"{name}: {detail}" if detail else name
+    cls = type(exc)
+    return cls(exc.status, exc.title, detail, errors)
 
 
 def _error(r: httpx.Response) -> ApiError:

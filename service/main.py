@@ -7,13 +7,18 @@ engine's kernels: jobs are enqueued by import path (``producer``) and run in wor
 
 from __future__ import annotations
 
+import importlib.resources
+import importlib.util
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
 from redis import Redis
 
 from producer.queue import redis_from_url
@@ -39,6 +44,60 @@ TAGS = [
     {"name": "batches", "description": "Many scenes and renders in one request."},
     {"name": "health", "description": "Liveness, readiness and Prometheus metrics."},
 ]
+
+
+DOCS_ASSETS_URL = "/docs-assets"
+"""Where the app serves Swagger UI's and ReDoc's JavaScript and CSS (``/docs`` and ``/redoc`` load
+nothing from another host, so they work offline)."""
+
+
+def _docs_assets_dir() -> str | None:
+    """The Swagger UI and ReDoc builds shipped by the ``fastapi-offline`` package (a dependency;
+    its licence file names the Apache-2.0 / MIT licences of those builds); None when an install
+    predates that dependency."""
+    if importlib.util.find_spec("fastapi_offline") is None:
+        return None
+    return str(importlib.resources.files("fastapi_offline") / "static")
+
+
+def _install_docs(app: FastAPI) -> None:
+    """``/docs`` (Swagger UI) and ``/redoc`` (ReDoc) on assets served by the app itself."""
+    assets = _docs_assets_dir()
+    openapi_url = app.openapi_url or "/openapi.json"
+    oauth2_redirect_url = app.swagger_ui_oauth2_redirect_url or "/docs/oauth2-redirect"
+    if assets is None:
+        log.warning("fastapi-offline is not installed (reinstall the package): /docs and /redoc load their "
+                    "scripts from a CDN and stay blank offline")
+    else:
+        app.mount(DOCS_ASSETS_URL, StaticFiles(directory=assets), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        url, title, redirect = f"{root}{openapi_url}", f"{app.title} - Swagger UI", f"{root}{oauth2_redirect_url}"
+        if assets is None:
+            return get_swagger_ui_html(openapi_url=url, title=title, oauth2_redirect_url=redirect)
+        return get_swagger_ui_html(
+            openapi_url=url, title=title, oauth2_redirect_url=redirect,
+            swagger_js_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui.css",
+            swagger_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png",
+        )
+
+    @app.get(oauth2_redirect_url, include_in_schema=False)
+    async def swagger_ui_redirect() -> HTMLResponse:
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        url, title = f"{root}{openapi_url}", f"{app.title} - ReDoc"
+        if assets is None:
+            return get_redoc_html(openapi_url=url, title=title)
+        return get_redoc_html(
+            openapi_url=url, title=title, redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
+            redoc_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False,
+        )
 
 
 def _open_store(settings: Settings) -> ObjectStore:
@@ -76,6 +135,8 @@ def create_app(
                     "invalid field. See docs/api.md.",
         openapi_tags=TAGS,
         lifespan=lifespan,
+        docs_url=None,  # served by _install_docs, on local assets
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.store = store
@@ -86,6 +147,7 @@ def create_app(
     app.state.metrics = metrics
 
     install_exception_handlers(app)
+    _install_docs(app)
     for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes, walkthroughs):
         app.include_router(module.router)
 

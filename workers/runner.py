@@ -70,8 +70,9 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from datetime import UTC, datetime
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import ValidationError
 from redis import Redis
@@ -81,6 +82,7 @@ from redis.exceptions import TimeoutError as RedisTimeoutError
 from rq import SimpleWorker, Worker
 from rq.exceptions import AbandonedJobError
 from rq.job import Job
+from rq.job_lifecycle import call_exception_handlers
 from rq.queue import Queue
 from rq.serializers import JSONSerializer
 from rq.worker import BaseWorker, WorkerStatus
@@ -88,7 +90,9 @@ from rq.worker import BaseWorker, WorkerStatus
 from engine.memory import keep_freed_memory
 from producer.queue import QUEUE_NAMES, QueueName, get_queue, redis_from_url
 from producer.settings import Settings
+from producer.status import cancel_requested, job_method, record_job_duration
 from producer.store import StoreUnavailable
+from workers.jobs.common import JobCanceled
 
 __all__ = [
     "TRANSIENT_ERRORS",
@@ -126,13 +130,68 @@ def retry_policy(job: Job, exc_type: type[BaseException] | None, exc_value: Base
     return True
 
 
+class _DemoteToInfo(logging.Filter):
+    """Logs records whose message template contains ``text`` at INFO (RQ logs a deliberate stop at
+    WARNING; here a stop is a cancel on request, not a problem)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.text = text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.text in str(record.msg) and record.levelno > logging.INFO:
+            record.levelno, record.levelname = logging.INFO, "INFO"
+        return True
+
+
+def _was_canceled(job: Job, exc_type: type[BaseException] | None) -> bool:
+    if exc_type is not None and issubclass(exc_type, JobCanceled):
+        return True
+    try:
+        return bool(job.meta.get("cancel_requested")) or cancel_requested(job.connection, job.id)
+    except RedisError:
+        return False
+
+
+def _observe(job: Job, queue: str, outcome: Literal["finished", "failed", "canceled"], seconds: float) -> None:
+    """The job's run time into the shared duration histogram; a metrics write never fails a job."""
+    try:
+        record_job_duration(job.connection, queue, job_method(job), outcome, seconds)
+    except RedisError as exc:
+        log.warning("job %s: duration not recorded: %s", job.id, exc)
+
+
 class _TunedWorkerMixin:
-    """Shorter liveness timings (module docstring); shared by both worker classes."""
+    """Shorter liveness timings (module docstring), cancels logged at INFO, job durations observed
+    where the job runs; shared by both worker classes."""
 
     heartbeat_grace: int = 20
     maintenance_interval: int
     worker_ttl: int
     job_monitoring_interval: int
+    log: logging.Logger
+    name: str
+    _exc_handlers: list[Any]
+
+    def perform_job(self, job: Job, queue: Queue, execution: Any) -> bool:
+        # Runs where the job runs (the render worker itself, a bake worker's forked horse).
+        t0 = time.monotonic()
+        ok: bool = super().perform_job(job, queue, execution)  # type: ignore[misc]
+        outcome: Literal["finished", "failed", "canceled"] = "finished"
+        if not ok:
+            outcome = "canceled" if _was_canceled(job, None) else "failed"
+        _observe(job, queue.name, outcome, time.monotonic() - t0)
+        return ok
+
+    def handle_exception(self, job: Job, *exc_info: Any) -> None:
+        # RQ logs every exception at ERROR with its traceback; a job that stops because it was
+        # canceled on request is not an error: one INFO line, then the usual handlers.
+        if not _was_canceled(job, exc_info[0] if exc_info else None):
+            super().handle_exception(job, *exc_info)  # type: ignore[misc]
+            return
+        self.log.info("Worker %s: job %s canceled on request", self.name, job.id,
+                      extra={"queue": job.origin, "job_id": job.id})
+        call_exception_handlers(self._exc_handlers, job, *exc_info)
 
     @property
     def dequeue_timeout(self) -> int:
@@ -171,6 +230,19 @@ def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
 
 class BakeWorker(_TunedWorkerMixin, Worker):
     """Forking worker (isolation per job) with the liveness timings above."""
+
+    def _handle_stopped_job(self, job: Job, queue: Queue, execution: Any) -> None:
+        # The horse was killed by the cancel's stop command (it never returns to perform_job):
+        # observe its run time here, and log the stop at INFO instead of RQ's WARNING.
+        started = job.started_at
+        demote = _DemoteToInfo("stopped by user")
+        self.log.addFilter(demote)
+        try:
+            super()._handle_stopped_job(job, queue, execution)
+        finally:
+            self.log.removeFilter(demote)
+        if started is not None:
+            _observe(job, queue.name, "canceled", max(0.0, (datetime.now(UTC) - started).total_seconds()))
 
     def main_work_horse(self, job: Job, queue: Queue) -> None:
         parent = os.getppid()

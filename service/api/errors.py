@@ -10,7 +10,7 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 |---|---|
 | RequestValidationError, ValidationProblem | 422 (400 for an unparseable body) |
 | AuthError | 401 + ``WWW-Authenticate: Bearer`` |
-| producer.store.NotFound, producer.errors.UnknownScene / JobNotFound | 404 (same answer for another key's resource) |
+| MissingResource, store NotFound, UnknownScene, JobNotFound | 404 ``<field> '<value>' not found`` (*) |
 | producer.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
 | queues.BakeMissing (an LDC render without its bake) | 409, "bake missing", naming the bake to request |
 | BodyTooLarge | 413 |
@@ -20,11 +20,15 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 | StoreUnavailable, redis ConnectionError / TimeoutError | 503 + ``Retry-After`` |
 | HTTPException | its status |
 | anything else | 500, logged with the request id |
+
+(*) naming the body field or path parameter that names the missing thing, the same answer for
+another key's resource; a 404 nothing in the request names stays ``no such resource: <path>``.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from http import HTTPStatus
 from typing import Any
@@ -45,6 +49,7 @@ from service.core.security import AuthError, RateLimited
 
 __all__ = [
     "PROBLEM_MEDIA_TYPE",
+    "MissingResource",
     "RETRY_AFTER_S",
     "ValidationProblem",
     "install_exception_handlers",
@@ -79,6 +84,50 @@ class ValidationProblem(Exception):
             formatted = [FieldError(field=f"{pre}.{f['field']}" if f["field"] else pre, message=f["message"],
                                     type=f["type"]) for f in formatted]
         return cls(formatted)
+
+
+class MissingResource(NotFound):
+    """A request field names something that does not exist (or that the caller may not see): 404
+    ``<field> '<value>' not found``, with the field in ``errors[]``. ``field`` is located like a
+    validation error's: a body field bare (``scene_id``), a path parameter as ``path.job_id``."""
+
+    def __init__(self, field: str, value: str) -> None:
+        super().__init__(f"{field} {value!r} not found")
+        self.field = field
+        self.value = value
+
+
+_UNKNOWN_SCENE = re.compile(r"scene '?([^'\s]+)'? does not exist")
+
+
+def _missing_field(request: Request, exc: Exception) -> tuple[str, str] | None:
+    """(field, value) of the request that names the missing thing of ``exc``: the path parameter
+    whose value the exception carries (the last one in the path when several do), or the scene id of
+    an UnknownScene sent in the body. None when nothing the request sent matches (the exception's
+    own text may hold storage keys, so it is never echoed)."""
+    if isinstance(exc, StarletteHTTPException):
+        text = str(exc.detail)
+    else:
+        text = str(exc.args[0]) if exc.args else ""
+    params = [(k, v) for k, v in request.path_params.items() if isinstance(v, str) and v]
+    for k, v in params:
+        if text == v:
+            return f"path.{k}", v
+    for k, v in reversed(params):
+        if v in text:
+            return f"path.{k}", v
+    if isinstance(exc, UnknownScene):
+        m = _UNKNOWN_SCENE.search(text)
+        if m:
+            return "scene_id", m.group(1)
+    return None
+
+
+def _missing_response(field: str, value: str) -> JSONResponse:
+    name = field.removeprefix("path.")
+    shown = value if len(value) <= 80 else value[:77] + "..."
+    message = f"{name} {shown!r} not found"
+    return problem_response(404, message, errors=[FieldError(field=field, message=message, type="not_found")])
 
 
 def problem_response(
@@ -182,9 +231,16 @@ def install_exception_handlers(app: FastAPI) -> None:
     async def _rate(request: Request, exc: RateLimited) -> JSONResponse:
         return problem_response(429, str(exc), headers={"Retry-After": str(int(exc.retry_after_s))})
 
+    @app.exception_handler(MissingResource)
+    async def _missing(request: Request, exc: MissingResource) -> JSONResponse:
+        return _missing_response(exc.field, exc.value)
+
     async def _not_found(request: Request, exc: Exception) -> JSONResponse:
-        # The message stays generic: it must read the same for "absent" and "another key's".
-        return problem_response(404, f"no such resource: {request.url.path}")
+        # Names only what the request sent, so it reads the same for "absent" and "another key's".
+        named = _missing_field(request, exc)
+        if named is None:
+            return problem_response(404, f"no such resource: {request.url.path}")
+        return _missing_response(*named)
 
     for cls in (NotFound, UnknownScene, JobNotFound):
         app.add_exception_handler(cls, _not_found)
@@ -246,6 +302,10 @@ def install_exception_handlers(app: FastAPI) -> None:
         errors: list[FieldError] = []
         if isinstance(exc, BodyTooLarge) and exc.field:
             errors.append(FieldError(field=exc.field, message=str(exc.detail), type="too_large"))
+        if exc.status_code == 404 and not errors:
+            named = _missing_field(request, exc)
+            if named is not None:
+                return _missing_response(*named)
         title = "Request body too large" if exc.status_code == 413 else None
         return problem_response(exc.status_code, str(exc.detail), title=title, errors=errors, headers=exc.headers)
 

@@ -1,34 +1,31 @@
 """Prometheus metrics of the API process (``GET /metrics``).
 
 Counted in the service: HTTP requests by route template and status, request latency,
-render cache hits and misses. Computed on each scrape from the RQ registries in Redis
-(so they are right whichever process ran the jobs): jobs per queue and state, and
-durations of the recently finished jobs per kind (the jobs RQ still keeps in its
-finished registry, at most ``RECENT_JOBS`` per queue) as gauges: ``max``, ``mean`` and
-``p50``/``p90`` over that window. Durations are window statistics, not a monotonic
-histogram: an honest view of "how long do jobs take now" without a metrics pipeline
-from the workers.
+render cache hits and misses. Read from Redis on each scrape (so they are right whichever
+process ran the jobs): jobs per queue and state (RQ's queue and registries, with the jobs
+that were canceled on request counted as ``canceled``, not ``failed``, as ``/v1/jobs`` shows
+them), and the job-duration histograms ``ibr_job_duration_seconds{queue,method,outcome}``
+that the workers observe where each job runs (``producer.status.record_job_duration``):
+monotonic counters, so rates and quantiles come from ``histogram_quantile`` as usual.
 """
 
 from __future__ import annotations
 
 import logging
-import statistics
 import time
 from collections.abc import Callable, Iterable
+from typing import cast
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
-from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.registry import Collector
 from redis import Redis
-from rq.job import Job
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from producer.queue import get_queue, queue_depths
+from producer.queue import QueueName, queue_depths
+from producer.status import failed_and_canceled, job_duration_histograms
 
-__all__ = ["RECENT_JOBS", "MetricsMiddleware", "ServiceMetrics"]
-
-RECENT_JOBS = 200
+__all__ = ["MetricsMiddleware", "ServiceMetrics"]
 
 log = logging.getLogger("ibr.metrics")
 
@@ -43,10 +40,10 @@ class _QueueCollector(Collector):
             "ibr_queue_jobs", "Jobs per queue and state (RQ queue and registries)", labels=["queue", "state"]
         )
         workers = GaugeMetricFamily("ibr_queue_workers", "Workers listening on each queue", labels=["queue"])
-        dur = GaugeMetricFamily(
+        dur = HistogramMetricFamily(
             "ibr_job_duration_seconds",
-            f"Duration of the most recent finished jobs (up to {RECENT_JOBS} per queue): count, mean, p50, p90, max",
-            labels=["kind", "stat"],
+            "Run time of jobs, observed by the worker that ran each one (outcome: finished, failed or canceled)",
+            labels=["queue", "method", "outcome"],
         )
         conn = self._redis_getter()
         if conn is None:
@@ -54,24 +51,16 @@ class _QueueCollector(Collector):
             return [up]
         try:
             for name, counts in queue_depths(conn).items():
+                if counts.get("failed"):
+                    failed, canceled = failed_and_canceled(conn, cast(QueueName, name))
+                    counts = {**counts, "failed": failed, "canceled": counts.get("canceled", 0) + canceled}
                 for state, n in counts.items():
                     if state == "workers":
                         workers.add_metric([name], float(n))
                     else:
                         depth.add_metric([name, state], float(n))
-                q = get_queue(conn, name)  # type: ignore[arg-type]
-                ids = q.finished_job_registry.get_job_ids(0, RECENT_JOBS - 1, desc=True, cleanup=False)
-                seconds = sorted(
-                    (job.ended_at - job.started_at).total_seconds()
-                    for job in Job.fetch_many(ids, connection=conn, serializer=q.serializer)
-                    if job is not None and job.started_at is not None and job.ended_at is not None
-                )
-                if seconds:
-                    dur.add_metric([name, "count"], float(len(seconds)))
-                    dur.add_metric([name, "mean"], statistics.fmean(seconds))
-                    dur.add_metric([name, "p50"], seconds[len(seconds) // 2])
-                    dur.add_metric([name, "p90"], seconds[min(len(seconds) - 1, int(0.9 * len(seconds)))])
-                    dur.add_metric([name, "max"], seconds[-1])
+            for labels, (buckets, total) in sorted(job_duration_histograms(conn).items()):
+                dur.add_metric(list(labels), buckets, total)
         except Exception as exc:  # a scrape must not fail because Redis is down
             log.warning("metrics: redis unavailable: %s", exc)
             up.add_metric([], 0.0)

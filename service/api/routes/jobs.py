@@ -14,7 +14,7 @@ from producer.ownership import job_owners
 from producer.queue import fetch_job
 from producer.status import job_public, list_jobs
 from service.api.deps import OwnerDep, RedisDep
-from service.api.errors import problem_responses
+from service.api.errors import MissingResource, problem_responses
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -24,9 +24,9 @@ JobIdPath = Annotated[JobId, Path(description="Job id, e.g. render-<artifact key
 def _visible_job_or_404(redis: Redis, job_id: str, owner: str | None) -> JobPublic:
     job = fetch_job(redis, job_id)
     if job is None:
-        raise HTTPException(404, f"no job {job_id}")
+        raise MissingResource("path.job_id", job_id)
     if owner is not None and job.meta.get("owner") != owner and owner not in job_owners(redis, job_id):
-        raise HTTPException(404, f"no job {job_id}")  # another key's job: do not reveal it exists
+        raise MissingResource("path.job_id", job_id)  # another key's job: do not reveal it exists
     return job_public(job)
 
 
@@ -58,6 +58,6 @@ def cancel_job(job_id: JobIdPath, redis: RedisDep, owner: OwnerDep) -> JobPublic
     try:
         return cancel_for(redis, job_id, owner)
     except JobNotFound:
-        raise HTTPException(404, f"no job {job_id}") from None
+        raise MissingResource("path.job_id", job_id) from None
     except JobNotCancelable as exc:
         raise HTTPException(409, str(exc)) from None

@@ -13,11 +13,12 @@ from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, BakePublic, JobPublic, RenderPublic, RenderRequest, method_needs_bake
 from producer.artifacts import get_scene, read_manifest
 from producer.bakes import bake_key, bake_status
+from producer.render_memory import estimate_render_bytes
 from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
 from producer.wait import wait_for_job
 from service.api.deps import MetricsDep, OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_responses
+from service.api.errors import MissingResource, ValidationProblem, problem_responses
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
 
@@ -68,10 +69,13 @@ def _answer(key: str, job: JobPublic | None, manifest: ArtifactManifest | None, 
     return RenderPublic(artifact_key=key, status=_STATUS[job.state], job=job, links=links)
 
 
-def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int) -> None:
+def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int, max_bytes: int) -> None:
     if not scene_visible(store, req.scene_id, owner):
-        raise NotFound(req.scene_id)
-    scene, _, _ = get_scene(store, req.scene_id)  # NotFound -> 404
+        raise MissingResource("scene_id", req.scene_id)
+    try:
+        scene, _, _ = get_scene(store, req.scene_id)
+    except NotFound:
+        raise MissingResource("scene_id", req.scene_id) from None
     cam = req.camera if req.camera is not None else scene.camera
     if cam.width * cam.height > max_pixels:
         where = "camera.height" if req.camera is not None else "scene_id"
@@ -81,6 +85,21 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels
                     f"server's limit of {max_pixels}",
             type="image_too_large",
         )])
+    need = estimate_render_bytes(req, cam.width, cam.height)
+    if need > max_bytes:
+        where = "camera.height" if req.camera is not None else "scene_id"
+        raise ValidationProblem([FieldError(
+            field=where,
+            message=f"a {req.method} render of {cam.width} x {cam.height} pixels"
+                    f"{f' at {req.params.spp} spp' if not method_needs_bake(req.method) else ''} needs an estimated "
+                    f"{_gib(need)} of memory, over this server's limit of {_gib(max_bytes)} "
+                    f"(IBR_MAX_RENDER_BYTES = {max_bytes}); render a smaller image",
+            type="render_too_large",
+        )])
+
+
+def _gib(n: int) -> str:
+    return f"{n / (1 << 30):.2f} GiB" if n >= 1 << 30 else f"{n / (1 << 20):.0f} MiB"
 
 
 @router.post(
@@ -106,7 +125,8 @@ async def request_render(
     wait: Annotated[float, Query(ge=0, le=MAX_WAIT_S, description="Seconds to wait for the result (0..60)")] = 0,
 ) -> RenderPublic:
     """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job."""
-    await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels)
+    await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels,
+                            settings.max_render_bytes)
     if req.outputs is not None:  # a subset of the images: the full artifact, when it exists, holds them
         full_key = render_artifact_key(req.model_copy(update={"outputs": None}))
         manifest = await run_in_threadpool(read_manifest, store, full_key)

@@ -108,7 +108,7 @@ def test_render_roundtrip_equals_direct_engine_render(
 
     metrics = client.get("/metrics").text
     assert 'ibr_queue_jobs{queue="render",state="finished"}' in metrics
-    assert 'ibr_job_duration_seconds{kind="render",stat="max"}' in metrics
+    assert 'ibr_job_duration_seconds_count{method="reference",outcome="finished",queue="render"}' in metrics
 
     # docs/hard-cases.md #23: corrupt the stored EXR -> never served, manifest gone, a new request rebakes
     (store_dir / "artifacts" / key / "radiance.exr").write_bytes(b"garbage")

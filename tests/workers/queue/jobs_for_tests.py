@@ -93,3 +93,21 @@ def flaky(payload: dict[str, Any]) -> dict[str, Any]:
     if attempt <= int(payload.get("failures", 1)):
         raise StoreUnavailable(f"store unreachable (attempt {attempt})")
     return {"attempts": attempt}
+
+
+def canceled_while_running(payload: dict[str, Any]) -> dict[str, Any]:
+    """Cancels itself through the API's cancel (the job is started: the cancel sets its flag), then
+    polls the flag the way the render jobs do, which stops it."""
+    from producer.cancel import cancel
+    from workers.jobs.common import ProgressReporter
+
+    job = get_current_job()
+    assert job is not None
+    time.sleep(float(payload.get("seconds", 0.0)))
+    cancel(job.connection, job.id)
+    ProgressReporter(job).check_canceled()
+    raise AssertionError("check_canceled did not stop the job")
+
+
+def broken(payload: dict[str, Any]) -> dict[str, Any]:
+    raise ValueError(f"broken on purpose: {payload}")

@@ -17,7 +17,7 @@ from rq import Retry
 from producer.artifacts import read_blob, read_manifest
 from producer.cancel import cancel
 from producer.queue import QueueName, fetch_job, get_queue
-from producer.status import job_public
+from producer.status import job_duration_histograms, job_public
 from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
 from tests.workers.queue.jobs_for_tests import slow_artifact_key
@@ -108,6 +108,15 @@ def test_canceling_a_started_bake_job_kills_its_horse(
     assert q.count == 0 and q.scheduled_job_registry.get_job_count(cleanup=False) == 0  # not retried
     assert read_manifest(worker_store, slow_artifact_key(label, steps)) is None
     assert w.alive()
+    # a cancel, not a failure: its run time observed as canceled, the stop logged at INFO
+    wait_for(lambda: ("bake", "slow_artifact", "canceled") in job_duration_histograms(redis_conn), 10,
+             "the stopped job's duration")
+    buckets, seconds = job_duration_histograms(redis_conn)[("bake", "slow_artifact", "canceled")]
+    assert buckets[-1] == ("+Inf", 1.0) and seconds >= 0.2
+    lines = [ln for ln in w.log().splitlines() if job.id in ln]
+    stop = [ln for ln in lines if "stopped by user" in ln]
+    assert stop and all(" INFO " in ln for ln in stop), lines
+    assert not any(" WARNING " in ln or " ERROR " in ln or "Traceback" in ln for ln in lines), lines
 
 
 @pytest.mark.parametrize("queue", ["bake", "render"])
