@@ -11,11 +11,13 @@ import json
 import time
 from typing import Any
 
+from rq import get_current_job
 from rq.job import Job
 
 from producer.artifacts import blob_reader, get_scene
+from producer.queue import fetch_job
 from producer.settings import open_settings_store
-from producer.status import cancel_key
+from producer.status import cancel_key, job_public
 from producer.store import NotFound, ObjectStore
 from workers.scene_loader import LoadedScene, load_scene
 
@@ -25,6 +27,7 @@ __all__ = [
     "JobCanceled",
     "ProgressReporter",
     "SceneNotFound",
+    "dependency_note",
     "json_safe",
     "load_stored_scene",
     "set_worker_store",
@@ -44,6 +47,19 @@ class JobCanceled(Exception):
 
 class SceneNotFound(LookupError):
     """The payload names a scene the store does not hold."""
+
+
+def dependency_note(job_id: str, label: str = "its job") -> str:
+    """`` (<label> <id> is <state>[: <error>])`` for the job a missing input was expected from, read
+    through the running job's connection; ``""`` outside a job or when that job is not known."""
+    job = get_current_job()
+    if job is None:
+        return ""
+    dep = fetch_job(job.connection, job_id)
+    if dep is None:
+        return ""
+    pub = job_public(dep)
+    return f" ({label} {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
 
 
 def worker_store() -> ObjectStore:

@@ -60,10 +60,8 @@ from producer.artifacts import read_manifest, write_artifact
 from producer.bakes import bake_complete, bake_key
 from producer.names import scene_bake_job_id
 from producer.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
-from producer.queue import fetch_job
 from producer.renders import render_artifact_key, render_params
 from producer.settings import get_settings
-from producer.status import job_public
 from producer.store import ObjectStore
 from workers.cache import CachedBakeRenderer, RendererCache, runtime_scene_bytes
 from workers.jobs.bake import BakeFailed, load_bake
@@ -71,6 +69,7 @@ from workers.jobs.common import (
     LOAD_END,
     RENDER_END,
     ProgressReporter,
+    dependency_note,
     json_safe,
     load_stored_scene,
     worker_store,
@@ -269,13 +268,7 @@ def _provenance_png(codes: Any) -> bytes:
 
 
 def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
-    job = get_current_job()
-    why = ""
-    if job is not None:
-        bake_job = fetch_job(job.connection, scene_bake_job_id(bkey))
-        if bake_job is not None:
-            pub = job_public(bake_job)
-            why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+    why = dependency_note(scene_bake_job_id(bkey))
     return (f"bake {bkey} of scene {req.scene_id} is not available{why}; request it with POST "
             f"/v1/scenes/{req.scene_id}/bakes and render again")
 

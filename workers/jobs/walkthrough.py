@@ -42,11 +42,9 @@ from producer.payloads import (
     WalkthroughVideoJobPayload,
     describe_validation_error,
 )
-from producer.queue import fetch_job
-from producer.status import job_public
 from producer.store import ObjectStore
 from producer.walkthroughs import chunk_key, chunks, read_request, walkthrough_bake_key, walkthrough_key
-from workers.jobs.common import ProgressReporter, worker_store
+from workers.jobs.common import ProgressReporter, dependency_note, worker_store
 from workers.scene_loader import camera_params, load_animated_scene
 
 __all__ = ["WalkthroughUnavailable", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
@@ -130,13 +128,7 @@ def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
     if b is not None:
         return b
     if read_manifest(store, bkey) is None:
-        job = get_current_job()
-        why = ""
-        if job is not None:
-            bj = fetch_job(job.connection, walkthrough_bake_job_id(bkey))
-            if bj is not None:
-                pub = job_public(bj)
-                why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+        why = dependency_note(walkthrough_bake_job_id(bkey))
         raise WalkthroughUnavailable(f"walkthrough bake {bkey} is not available{why}")
     _bakes.clear()  # one bake per worker process (they can be GBs): drop the old one first
     with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
@@ -231,13 +223,7 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     for i, (a, b) in enumerate(chunks(req)):
         ck = chunk_key(p.walkthrough_key, i, a, b)
         if read_manifest(store, ck) is None:
-            job = get_current_job()
-            why = ""
-            if job is not None:
-                cj = fetch_job(job.connection, walkthrough_chunk_job_id(ck))
-                if cj is not None:
-                    pub = job_public(cj)
-                    why = f" (job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+            why = dependency_note(walkthrough_chunk_job_id(ck), "job")
             raise WalkthroughUnavailable(f"frames {a}..{b - 1} are missing{why}")
         keys.append(ck)
     w, h = req.frames[0].camera.width, req.frames[0].camera.height
