@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import io
 import os
-import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,19 +23,13 @@ import pytest
 from PIL import Image
 from playwright.sync_api import Browser, Page, sync_playwright
 
-from service.up import Stack, load_samples, start_stack
+from service.up import Stack, free_port, load_samples, start_stack
 
 CHROMIUM = "/usr/bin/chromium"
 LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "preview"
 ENV_KEYS = ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="session")

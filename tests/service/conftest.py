@@ -4,7 +4,6 @@ test module, for the CLI tests that talk to a live service."""
 from __future__ import annotations
 
 import os
-import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,13 +11,7 @@ from typing import Any
 
 import pytest
 
-from service.up import start_stack
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from service.up import free_port, start_stack
 
 
 @pytest.fixture(scope="module")
