@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+import OpenImageIO as oiio
 from rq import get_current_job
 from rq.job import Job
 
@@ -27,6 +31,7 @@ __all__ = [
     "JobCanceled",
     "ProgressReporter",
     "SceneNotFound",
+    "codes_png",
     "dependency_note",
     "json_safe",
     "load_stored_scene",
@@ -60,6 +65,24 @@ def dependency_note(job_id: str, label: str = "its job") -> str:
         return ""
     pub = job_public(dep)
     return f" ({label} {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+
+
+def codes_png(path: Path, codes: Any, attributes: Mapping[str, str | int] | None = None) -> bytes:
+    """Exact integer codes in an 8-bit single-channel PNG written to ``path`` (OpenImageIO, no sRGB
+    encoding), with ``attributes`` set on its spec in order; returns the file's bytes."""
+    arr = np.ascontiguousarray(codes, dtype=np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
+    for name, value in (attributes or {}).items():
+        spec.attribute(name, value)
+    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
+        err = out.geterror()
+        out.close()
+        raise RuntimeError(f"writing {path.name} failed: {err}")
+    out.close()
+    return path.read_bytes()
 
 
 def worker_store() -> ObjectStore:

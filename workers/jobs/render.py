@@ -44,7 +44,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 from pydantic import ValidationError
 from rq import get_current_job
 
@@ -69,6 +68,7 @@ from workers.jobs.common import (
     LOAD_END,
     RENDER_END,
     ProgressReporter,
+    codes_png,
     dependency_note,
     json_safe,
     load_stored_scene,
@@ -248,23 +248,10 @@ class BakeUnavailable(RuntimeError):
 def _provenance_png(codes: Any) -> bytes:
     """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding), encoded in a
     RAM-backed scratch directory when there is one (no fsync: the file is not kept)."""
-    arr = np.ascontiguousarray(codes, dtype=np.uint8)
     with tempfile.TemporaryDirectory(prefix="ibr-render-", dir=_SCRATCH) as tmpdir:
-        path = Path(tmpdir) / PROVENANCE_BLOB
-        out = oiio.ImageOutput.create(str(path))
-        if out is None:
-            raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
-        spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
-        spec.attribute("DateTime", "")
-        spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
-        spec.attribute("png:compressionLevel", 1)
-        spec.attribute("png:filter", 16)
-        if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
-            err = out.geterror()
-            out.close()
-            raise RuntimeError(f"writing {PROVENANCE_BLOB} failed: {err}")
-        out.close()
-        return path.read_bytes()
+        return codes_png(Path(tmpdir) / PROVENANCE_BLOB, codes,
+                         {"DateTime": "", "ibr:provenance_codes": json.dumps(PROVENANCE_CODES),
+                          "png:compressionLevel": 1, "png:filter": 16})
 
 
 def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
