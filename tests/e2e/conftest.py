@@ -11,8 +11,6 @@ Each xdist worker that gets a module here starts its own stack."""
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,26 +21,19 @@ import pytest
 from PIL import Image
 from playwright.sync_api import Browser, Page, sync_playwright
 
-from service.up import Stack, free_port, load_samples, start_stack
+from service.up import Stack
+from tests.fixtures.stack import own_stack
 
 CHROMIUM = "/usr/bin/chromium"
 LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "preview"
-ENV_KEYS = ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS")
 
 
 @pytest.fixture(scope="session")
 def stack() -> Iterator[Stack]:
-    saved = {k: os.environ.pop(k) for k in ENV_KEYS if k in os.environ}
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:  # short path for the unix socket
-        st = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
-        try:
-            load_samples(st.api_url, log=lambda s: None)
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
+    with own_stack(samples=True) as st:
+        yield st
 
 
 @pytest.fixture(scope="session")
