@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -59,13 +60,18 @@ def browser() -> Iterator[Browser]:
             b.close()
 
 
-def new_page(browser: Browser, url: str) -> tuple[Any, Page]:
+@contextmanager
+def new_page(browser: Browser, url: str) -> Iterator[Page]:
+    """A page at ``url`` in a browser context of its own, closed on exit."""
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     ctx = browser.new_context(viewport={"width": 1400, "height": 900})
-    pg = ctx.new_page()
-    pg.set_default_timeout(30_000)
-    pg.goto(url)
-    return ctx, pg
+    try:
+        pg = ctx.new_page()
+        pg.set_default_timeout(30_000)
+        pg.goto(url)
+        yield pg
+    finally:
+        ctx.close()
 
 
 def shot(page: Page, name: str) -> None:

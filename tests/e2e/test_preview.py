@@ -24,11 +24,8 @@ SCENE = "mirror_box"
 
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser) -> Iterator[Page]:
-    ctx, pg = new_page(browser, f"{stack.api_url}/?size={SIZE}&spp=1")
-    try:
+    with new_page(browser, f"{stack.api_url}/?size={SIZE}&spp=1") as pg:
         yield pg
-    finally:
-        ctx.close()
 
 
 def image_pixels(page: Page) -> np.ndarray:
