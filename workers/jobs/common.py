@@ -1,5 +1,6 @@
 """What every job body shares: progress and cancellation, loading a stored scene, JSON-safe results,
-the worker's object store.
+the worker's object store, the state of the job a missing input was expected from, integer codes
+as PNG.
 
 Job bodies (``render``, ``bake``, ``datasets``, ``walkthrough``) import from here, never from each
 other's helpers.
