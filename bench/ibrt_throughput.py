@@ -74,7 +74,8 @@ def _embree_once(caster: EmbreeCaster, o32: np.ndarray, d32: np.ndarray, pool: T
     return time.perf_counter() - t0, time.process_time() - c0
 
 
-def _objects(ldc, hits) -> np.ndarray:
+def ldc_objects(ldc, hits) -> np.ndarray:
+    """Object id of each image-based hit (-1: miss)."""
     out = np.full(hits.hit.shape[0], -1, dtype=np.int64)
     for a in range(3):
         s = hits.axis == a
@@ -82,7 +83,8 @@ def _objects(ldc, hits) -> np.ndarray:
     return out
 
 
-def _embree_objects(sc, e) -> np.ndarray:
+def embree_objects(sc, e) -> np.ndarray:
+    """Object id of each Embree hit (-1: miss)."""
     return np.where(e.prim >= 0, sc.tri_object[np.maximum(e.prim, 0)], -1)
 
 
@@ -99,11 +101,21 @@ def _stable(sc, caster, o, d, h, eobj, et):
     for off in (2 * h * a, -2 * h * a, 2 * h * b, -2 * h * b):
         e2 = caster.intersect(mid + off, d)
         with np.errstate(invalid="ignore"):
-            ok &= (_embree_objects(sc, e2) == eobj) & ((e2.prim < 0) | (np.abs(e2.t + s - et) < 8 * h))
+            ok &= (embree_objects(sc, e2) == eobj) & ((e2.prim < 0) | (np.abs(e2.t + s - et) < 8 * h))
     return ok
 
 
-def ray_sets(ls, caster, size: int, seed: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+def random_rays(lo, hi, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` rays from uniform points of the box ``lo``..``hi`` in uniform directions."""
+    rng = np.random.default_rng(seed)
+    o = lo + rng.random((n, 3)) * (hi - lo)
+    d = rng.normal(size=(n, 3))
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def camera_and_reflection_rays(ls, caster, size: int) -> tuple[np.ndarray, ...]:
+    """The scene camera's primary rays at ``size`` x ``size`` (o, d) and, where they hit, mirror
+    rays from the hit points with no offset (p, r) and the faces' normals there (ng)."""
     sc = ls.runtime
     cam = replace(ls.camera, width=size, height=size)
     px, py = pixel_centers(cam)
@@ -114,12 +126,12 @@ def ray_sets(ls, caster, size: int, seed: int = 1) -> dict[str, tuple[np.ndarray
     p = hit_points(sc, e)[ok]
     ng = sc.tri_ng[e.prim[ok]]
     r = d[ok] - 2 * np.einsum("ij,ij->i", d[ok], ng)[:, None] * ng
-    rng = np.random.default_rng(seed)
-    lo, hi = sc.bounds
-    n = size * size
-    ro = lo + rng.random((n, 3)) * (hi - lo)
-    rd = rng.normal(size=(n, 3))
-    rd /= np.linalg.norm(rd, axis=1, keepdims=True)
+    return o, d, p, r, ng
+
+
+def ray_sets(ls, caster, size: int, seed: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    o, d, p, r, ng = camera_and_reflection_rays(ls, caster, size)
+    ro, rd = random_rays(*ls.runtime.bounds, size * size, seed)
     return {"primary": (o, d, None), "reflection": (p, r, ng), "random": (ro, rd, None)}
 
 
@@ -171,8 +183,8 @@ def measure(name: str, res: int, size: int, repeat: int) -> dict:
         if nrm is not None:
             eo = o + 1e-5 * sc.extent * np.sign(np.einsum("ij,ij->i", nrm, d))[:, None] * nrm
         e = caster.intersect(eo, d)
-        eobj = _embree_objects(sc, e)
-        obj = _objects(ldc, hits)
+        eobj = embree_objects(sc, e)
+        obj = ldc_objects(ldc, hits)
         stable = _stable(sc, caster, eo, d, ldc.h, eobj, e.t)
         hit_st = stable & (e.prim >= 0)
         rec.update(same_object_all=float((obj == eobj).mean()),

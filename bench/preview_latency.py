@@ -36,7 +36,7 @@ import httpx
 from playwright.sync_api import Browser, sync_playwright
 
 from bench.docs_writer import replace_block
-from service.up import load_samples, start_stack
+from service.up import free_port, load_samples, start_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "performance.md"
@@ -48,14 +48,6 @@ LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking
 def pct(xs: list[float], q: float) -> float:
     s = sorted(xs)
     return s[min(len(s) - 1, int(round(q * (len(s) - 1))))]
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def bake(api: str, scene_id: str, ldc: int) -> dict[str, Any]:
@@ -123,7 +115,7 @@ def measure(scene: str, size: int, steps: int, spp: int, dx: float, ldc: int, me
         os.environ.pop(k, None)
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+        stack = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
         try:
             ids = load_samples(stack.api_url, log=lambda s: None)
             scene_id = ids[scene] if scene in ids else next(

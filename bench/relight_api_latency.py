@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import platform
-import socket
 import statistics
 import tempfile
 import time
@@ -34,18 +33,12 @@ import httpx
 import numpy as np
 
 from bench.docs_writer import replace_block
-from service.up import start_stack
+from service.up import free_port, start_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "performance.md"
 DILIGENT = ROOT.parent / "shared" / "data" / "diligent-ball"
 ROWS, COLS = (0, 512), (50, 562)  # 512 x 512 of the 612 x 512 photographs, the ball inside
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def pct(xs: list[float], q: float) -> float:
@@ -102,7 +95,7 @@ def measure(n: int, warmup: int, fmt: str) -> dict[str, Any]:
     manifest, files = dataset()
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+        stack = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
         try:
             with httpx.Client(base_url=stack.api_url, timeout=120) as c:
                 status = c.post("/v1/datasets", json=manifest).json()

@@ -39,7 +39,6 @@ import json
 import math
 import os
 import platform
-import socket
 import statistics
 import tempfile
 import time
@@ -51,7 +50,7 @@ import httpx
 import numpy as np
 
 from bench.docs_writer import replace_block
-from service.up import load_samples, start_stack
+from service.up import free_port, load_samples, start_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "performance.md"
@@ -61,12 +60,6 @@ GOAL_MS = 250.0
 VARIANTS: dict[str, list[str] | None] = {"all": None, "preview": ["preview"],
                                          "preview+radiance": ["preview", "radiance"]}
 """``--outputs`` variant -> the request's ``outputs`` (None: the field left out, every image)."""
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def pct(xs: list[float], q: float) -> float:
@@ -298,7 +291,7 @@ def measure(scenes: list[str], size: int, views: int, warmup: int, ldc: int, met
     per_scene: dict[str, Any] = {}
     enc = None
     with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        stack = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
+        stack = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
         try:
             ids = load_samples(stack.api_url, log=lambda s: None)
             with httpx.Client(base_url=stack.api_url, timeout=120) as c:

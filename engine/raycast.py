@@ -84,7 +84,8 @@ class RayCaster(Protocol):
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray: ...
 
 
-def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous float64 copies of (n, 3) finite ``origins`` and ``directions``; InvalidInputError otherwise."""
     o = np.ascontiguousarray(origins, dtype=np.float64)
     d = np.ascontiguousarray(directions, dtype=np.float64)
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
@@ -217,7 +218,7 @@ class EmbreeCaster:
                 np.ascontiguousarray(d.astype(np.float32)))
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        o, d = _check_rays(origins, directions)
+        o, d = check_rays(origins, directions)
         n = o.shape[0]
         es = self._get()
         if es is None or n == 0:
@@ -235,7 +236,7 @@ class EmbreeCaster:
         return Hits(t, prim, u, v)
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray:
-        o, d = _check_rays(origins, directions)
+        o, d = check_rays(origins, directions)
         n = o.shape[0]
         es = self._get()
         if es is None or n == 0:
@@ -261,7 +262,7 @@ class ReferenceCaster:
         self.chunk = chunk
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        o, d = _check_rays(origins, directions)
+        o, d = check_rays(origins, directions)
         n = o.shape[0]
         t_best = np.full(n, np.inf)
         prim = np.full(n, -1, np.int32)
@@ -333,7 +334,7 @@ def all_hits(caster: RayCaster, origins: np.ndarray, directions: np.ndarray,
     of a concave fold) is not recorded twice. Rays with more than ``max_hits``
     crossings are cut off and flagged in ``truncated`` (bounded memory).
     """
-    o0, d = _check_rays(origins, directions)
+    o0, d = check_rays(origins, directions)
     if max_hits < 1:
         raise InvalidInputError("max_hits must be >= 1")
     scene = caster.scene

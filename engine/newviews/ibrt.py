@@ -80,6 +80,7 @@ from numba.extending import intrinsic
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
 from engine.newviews.ldc import LDC
+from engine.raycast import check_rays
 from engine.sched import next_block
 
 DEFAULT_MARGIN = 0.05
@@ -766,12 +767,7 @@ def _trace_kernel(groups, o, d, tmin, tmax, selfinfo, perm, org, hs, res, offs_t
 
 
 def _rays(origins, dirs, t_min, t_max) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    o = np.ascontiguousarray(origins, dtype=np.float64)
-    d = np.ascontiguousarray(dirs, dtype=np.float64)
-    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
-        raise InvalidInputError(f"origins and dirs must both be (n, 3), got {o.shape} and {d.shape}")
-    if not (np.all(np.isfinite(o)) and np.all(np.isfinite(d))):
-        raise InvalidInputError("origins and dirs must be finite")
+    o, d = check_rays(origins, dirs)
     ln = np.linalg.norm(d, axis=1)
     if np.any(ln == 0.0):
         raise InvalidInputError("dirs must be non-zero vectors")

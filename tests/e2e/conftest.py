@@ -11,10 +11,8 @@ Each xdist worker that gets a module here starts its own stack."""
 from __future__ import annotations
 
 import io
-import os
-import socket
-import tempfile
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -24,32 +22,19 @@ import pytest
 from PIL import Image
 from playwright.sync_api import Browser, Page, sync_playwright
 
-from service.up import Stack, load_samples, start_stack
+from service.up import Stack
+from tests.fixtures.stack import own_stack
 
 CHROMIUM = "/usr/bin/chromium"
 LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "preview"
-ENV_KEYS = ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="session")
 def stack() -> Iterator[Stack]:
-    saved = {k: os.environ.pop(k) for k in ENV_KEYS if k in os.environ}
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:  # short path for the unix socket
-        st = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
-        try:
-            load_samples(st.api_url, log=lambda s: None)
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
+    with own_stack(samples=True) as st:
+        yield st
 
 
 @pytest.fixture(scope="session")
@@ -75,13 +60,18 @@ def browser() -> Iterator[Browser]:
             b.close()
 
 
-def new_page(browser: Browser, url: str) -> tuple[Any, Page]:
+@contextmanager
+def new_page(browser: Browser, url: str) -> Iterator[Page]:
+    """A page at ``url`` in a browser context of its own, closed on exit."""
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     ctx = browser.new_context(viewport={"width": 1400, "height": 900})
-    pg = ctx.new_page()
-    pg.set_default_timeout(30_000)
-    pg.goto(url)
-    return ctx, pg
+    try:
+        pg = ctx.new_page()
+        pg.set_default_timeout(30_000)
+        pg.goto(url)
+        yield pg
+    finally:
+        ctx.close()
 
 
 def shot(page: Page, name: str) -> None:

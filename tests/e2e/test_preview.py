@@ -4,18 +4,16 @@ against a live local stack: embedded Redis, real bake and render workers, uvicor
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
-from service.up import Stack, load_samples, start_stack
-from tests.e2e.conftest import SETTLED, element_pixels, free_port, new_page, shot, wait_for_load
+from service.up import Stack
+from tests.e2e.conftest import SETTLED, element_pixels, new_page, shot, wait_for_load
+from tests.fixtures.stack import own_stack
 
 # Everyday runs skip this file (make test-fast): browser end-to-end: a live stack driven through chromium.
 pytestmark = pytest.mark.slow
@@ -26,11 +24,8 @@ SCENE = "mirror_box"
 
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser) -> Iterator[Page]:
-    ctx, pg = new_page(browser, f"{stack.api_url}/?size={SIZE}&spp=1")
-    try:
+    with new_page(browser, f"{stack.api_url}/?size={SIZE}&spp=1") as pg:
         yield pg
-    finally:
-        ctx.close()
 
 
 def image_pixels(page: Page) -> np.ndarray:
@@ -159,19 +154,9 @@ AUTH_KEY = "preview-test-key"
 @pytest.fixture(scope="module")
 def auth_stack() -> Iterator[Stack]:
     """A second stack with API keys on: the page must say what is wrong, then work with the key."""
-    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL", "IBR_API_KEYS") if k in os.environ}
-    os.environ["IBR_API_KEYS"] = hashlib.sha256(AUTH_KEY.encode()).hexdigest()
-    try:
-        with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-            st = start_stack(Path(tmp), port=free_port(), log=lambda s: None)
-            try:
-                load_samples(st.api_url, api_key=AUTH_KEY, log=lambda s: None)
-                yield st
-            finally:
-                st.stop()
-    finally:
-        os.environ.pop("IBR_API_KEYS", None)
-        os.environ.update(saved)
+    with own_stack({"IBR_API_KEYS": hashlib.sha256(AUTH_KEY.encode()).hexdigest()}, samples=True,
+                   api_key=AUTH_KEY) as st:
+        yield st
 
 
 def test_missing_or_wrong_api_key_is_a_readable_message(auth_stack: Stack, browser: Browser) -> None:

@@ -29,11 +29,8 @@ SCENE = "cornell_box"  # diffuse: the bake needs no light field, so it is quick 
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser, capabilities: dict[str, Any]) -> Iterator[Page]:
     assert capabilities["bakes"], capabilities  # the service routes bakes: never a silent skip
-    ctx, pg = new_page(browser, f"{stack.api_url}/preview/?size={SIZE}&spp=1&ldc=64&scene={SCENE}")
-    try:
+    with new_page(browser, f"{stack.api_url}/preview/?size={SIZE}&spp=1&ldc=64&scene={SCENE}") as pg:
         yield pg
-    finally:
-        ctx.close()
 
 
 def _exr(api: str, key: str) -> np.ndarray:

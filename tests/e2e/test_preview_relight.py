@@ -55,11 +55,8 @@ def dataset(stack: Stack, capabilities: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser, dataset: dict[str, Any]) -> Iterator[Page]:
-    ctx, pg = new_page(browser, f"{stack.api_url}/preview/")
-    try:
+    with new_page(browser, f"{stack.api_url}/preview/") as pg:
         yield pg
-    finally:
-        ctx.close()
 
 
 def test_open_dataset_bakes_and_relights(page: Page, dataset: dict[str, Any]) -> None:

@@ -25,11 +25,8 @@ URL = "/preview/?walk={scene}&wt_face=16&wt_views=2&wt_times=3&wt_indirect=0"
 @pytest.fixture(scope="module")
 def page(stack: Stack, browser: Browser, capabilities: dict[str, Any]) -> Iterator[Page]:
     assert capabilities["walkthroughs"], capabilities  # the service routes walkthroughs: never a silent skip
-    ctx, pg = new_page(browser, stack.api_url + URL.format(scene=SCENE))
-    try:
+    with new_page(browser, stack.api_url + URL.format(scene=SCENE)) as pg:
         yield pg
-    finally:
-        ctx.close()
 
 
 def test_walkthrough_renders_with_progress_and_plays(page: Page, capabilities: dict[str, Any]) -> None:

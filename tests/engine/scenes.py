@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 from engine.geometry.mesh import TriMesh
-from engine.scene import LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
+from engine.scene import CameraParams, LightTable, MaterialTable, SceneObjectPart, build_runtime_scene
 
 
 def mat(name="m", kd=(0.5, 0.5, 0.5), ks=(0, 0, 0), shininess=0.0, kr=(0, 0, 0), kg=(0, 0, 0),
@@ -70,3 +70,20 @@ def sphere_mesh(center=(0, 0, 0), radius=1.0, subdivisions=4, jitter=0.0, seed=0
         m.vertices = m.vertices * (1.0 + jitter * rng.uniform(-1, 1, (len(m.vertices), 1)))
     m.apply_translation(center)
     return from_trimesh(m)
+
+
+def degenerate_cameras(frame_origin, width: int, height: int) -> list[CameraParams]:
+    """The degenerate cameras of docs/hard-cases.md #11 for a test scene whose LDC z-axis frame
+    starts at ``frame_origin``: an eye inside the scene's box, one on the frame's near plane, a view
+    along -x, a top-down orthographic one, fields of view of 1e-4 and 179.99 degrees (all
+    ``width`` x ``height``), and a 16 x 16 one on the frame's corner."""
+    o = tuple(float(x) for x in frame_origin)
+    return [
+        CameraParams("perspective", (0.6, -0.1, -0.2), (0.6, -0.1, -2.0), (0, 1, 0), width, height, 60.0),
+        CameraParams("perspective", (0.0, 0.2, o[2]), (0.0, 0.0, 0.5), (0, 1, 0), width, height, 60.0),
+        CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), width, height, 45.0),
+        CameraParams("orthographic", (0.0, 6.0, 0.0), (0.0, 0.0, 0.0), (0, 0, -1), width, height, ortho_height=3.0),
+        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), width, height, 1e-4),
+        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), width, height, 179.99),
+        CameraParams("perspective", o, (0.0, 0.0, 0.0), (0, 1, 0), 16, 16, 90.0),
+    ]

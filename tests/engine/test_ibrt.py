@@ -14,14 +14,12 @@ Measured at LDC resolution 128 (this file's settings; docs/ldc.md has 256):
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 import trimesh
 
 from api_schemas import load_scene_file
-from engine.camera import camera_rays, pixel_centers
+from bench.ibrt_throughput import camera_and_reflection_rays, embree_objects, ldc_objects, random_rays
 from engine.errors import InvalidInputError
 from engine.newviews.ibrt import (
     DEFAULT_MARGIN,
@@ -35,7 +33,7 @@ from engine.newviews.ibrt import (
     trace_linear,
 )
 from engine.newviews.ldc import bake_ldc
-from engine.raycast import EmbreeCaster, hit_points
+from engine.raycast import EmbreeCaster
 from samples import SAMPLES_DIR, sample_path
 from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
 from workers.scene_loader import directory_resolver, load_scene
@@ -56,30 +54,11 @@ def baked(request):
     return request.param, ls, caster, ldc, build_accel(ldc)
 
 
-def _random_rays(lo, hi, n, seed):
-    rng = np.random.default_rng(seed)
-    o = lo + rng.random((n, 3)) * (hi - lo)
-    d = rng.normal(size=(n, 3))
-    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def _objects(ldc, hits):
-    out = np.full(hits.hit.shape[0], -1, dtype=np.int64)
-    for a in range(3):
-        s = hits.axis == a
-        out[s] = ldc.axes[a].object[hits.sample[s]]
-    return out
-
-
-def _embree_objects(sc, e):
-    return np.where(e.prim >= 0, sc.tri_object[np.maximum(e.prim, 0)], -1)
-
-
 def _stable(sc, caster, o, d, h):
     """Rays away from silhouettes: four parallel rays 2 h to the sides see the same object
     (or all miss) within 8 h."""
     e = caster.intersect(o, d)
-    obj = _embree_objects(sc, e)
+    obj = embree_objects(sc, e)
     a = np.cross(d, [0.577, 0.577, 0.577])
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b = np.cross(d, a)
@@ -87,7 +66,7 @@ def _stable(sc, caster, o, d, h):
     for off in (2 * h * a, -2 * h * a, 2 * h * b, -2 * h * b):
         e2 = caster.intersect(o + off, d)
         with np.errstate(invalid="ignore"):
-            ok &= (_embree_objects(sc, e2) == obj) & ((e2.prim < 0) | (np.abs(e2.t - e.t) < 8 * h))
+            ok &= (embree_objects(sc, e2) == obj) & ((e2.prim < 0) | (np.abs(e2.t - e.t) < 8 * h))
     return e, obj, ok
 
 
@@ -151,10 +130,10 @@ def reference_trace(ldc, o, d, *, t_min=0.0, origin_normals=None, margin=DEFAULT
 def test_same_first_hit_as_embree(baked):
     name, ls, caster, ldc, acc = baked
     sc = ls.runtime
-    o, d = _random_rays(*sc.bounds, 6000, 1)
+    o, d = random_rays(*sc.bounds, 6000, 1)
     ib = trace(ldc, acc, o, d)
     e, eobj, stable = _stable(sc, caster, o, d, ldc.h)
-    obj = _objects(ldc, ib)
+    obj = ldc_objects(ldc, ib)
     hit = stable & (e.prim >= 0)
     assert hit.sum() > 1000
     same = (obj == eobj)[hit].mean()
@@ -180,7 +159,7 @@ def test_same_first_hit_as_embree(baked):
 
 def test_quadtree_gives_the_same_hits_as_linear_march_and_brute_force(baked):
     name, ls, caster, ldc, acc = baked
-    o, d = _random_rays(*ls.runtime.bounds, 3000, 2)
+    o, d = random_rays(*ls.runtime.bounds, 3000, 2)
     a = trace(ldc, acc, o, d)
     b = trace_linear(ldc, acc, o, d)
     assert np.array_equal(a.hit, b.hit)
@@ -196,7 +175,7 @@ def test_quadtree_gives_the_same_hits_as_linear_march_and_brute_force(baked):
 
 def test_threads_do_not_change_results(baked):
     name, ls, caster, ldc, acc = baked
-    o, d = _random_rays(*ls.runtime.bounds, 2000, 4)
+    o, d = random_rays(*ls.runtime.bounds, 2000, 4)
     a = trace(ldc, acc, o, d, threads=1)
     b = trace(ldc, acc, o, d, threads=2)
     assert np.array_equal(a.sample, b.sample) and np.array_equal(a.t, b.t) and a.n_steps == b.n_steps
@@ -206,18 +185,10 @@ def test_reflection_rays_leave_their_surface(baked):
     """Rays from surface points with no offset: the origin's own patches are never hit."""
     name, ls, caster, ldc, acc = baked
     sc = ls.runtime
-    cam = replace(ls.camera, width=96, height=96)
-    px, py = pixel_centers(cam)
-    o, d = camera_rays(cam, px, py)
-    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    e = caster.intersect(o, d)
-    ok = e.prim >= 0
-    p = hit_points(sc, e)[ok]
-    ng = sc.tri_ng[e.prim[ok]]
-    r = d[ok] - 2 * np.einsum("ij,ij->i", d[ok], ng)[:, None] * ng
+    _, _, p, r, ng = camera_and_reflection_rays(ls, caster, 96)
     ib = trace(ldc, acc, p, r, origin_normals=ng)
     er = caster.intersect(p + 1e-5 * sc.extent * np.sign(np.einsum("ij,ij->i", ng, r))[:, None] * ng, r)
-    same = (_objects(ldc, ib) == _embree_objects(sc, er)).mean()
+    same = (ldc_objects(ldc, ib) == embree_objects(sc, er)).mean()
     print(f"{name}: reflection rays, same object {same:.4f}")
     assert same >= (0.995 if name == "mirror_box" else 0.98), same
     # the same rays through the brute-force reference (a subset)
@@ -231,7 +202,7 @@ def test_accel_roundtrip_and_mismatch(baked):
     name, ls, caster, ldc, acc = baked
     acc2 = IBRTAccel.from_arrays(acc.to_arrays())
     assert acc2.nbytes == acc.nbytes and acc.nbytes < ldc.nbytes / 4
-    o, d = _random_rays(*ls.runtime.bounds, 200, 3)
+    o, d = random_rays(*ls.runtime.bounds, 200, 3)
     h1 = trace(ldc, acc, o, d)
     h2 = trace(ldc, acc2, o, d)
     assert np.array_equal(h1.sample, h2.sample)
@@ -275,7 +246,7 @@ def test_packed_layouts_reproduce_the_separate_arrays(baked):
 
 def test_bad_input(baked):
     name, ls, caster, ldc, acc = baked
-    o, d = _random_rays(*ls.runtime.bounds, 4, 3)
+    o, d = random_rays(*ls.runtime.bounds, 4, 3)
     for kw in (dict(origins=o[:, :2], dirs=d[:, :2]), dict(origins=o, dirs=d[:3]),
                dict(origins=o, dirs=np.zeros_like(d)), dict(origins=o * np.nan, dirs=d),
                dict(origins=o, dirs=d, t_min=-1.0), dict(origins=o, dirs=d, t_max=np.nan),
@@ -320,7 +291,7 @@ def test_thin_wall_and_axis_parallel_faces_hard_case_4():
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         ib = trace(ldc, acc, o, d)
         assert ib.hit.all()
-        obj = _objects(ldc, ib)
+        obj = ldc_objects(ldc, ib)
         assert (obj == 1).all(), np.unique(obj, return_counts=True)  # never through the wall
         face = o[:, 2] - ib.t * d[:, 2]  # distance of the hit from the wall's mid plane
         assert np.allclose(ib.point[:, 2], side_z * wall_t / 2, atol=1e-9 + 1e-12), face
@@ -328,12 +299,12 @@ def test_thin_wall_and_axis_parallel_faces_hard_case_4():
         e = caster.intersect(o, d)
         assert np.allclose(ib.t, e.t, atol=1e-5)
     # grazing rays along the wall, just off its faces, compared with Embree
-    o, d = _random_rays(np.array([-1.4, -1.4, -0.9]), np.array([1.4, 1.4, 1.4]), 4000, 5)
+    o, d = random_rays(np.array([-1.4, -1.4, -0.9]), np.array([1.4, 1.4, 1.4]), 4000, 5)
     d[:, 2] *= 0.02
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     e, eobj, stable = _stable(sc, caster, o, d, ldc.h)
     ib = trace(ldc, acc, o, d)
-    assert (_objects(ldc, ib) == eobj)[stable].mean() >= 0.99
+    assert (ldc_objects(ldc, ib) == eobj)[stable].mean() >= 0.99
 
 
 def test_nested_shells_hard_case_5():
@@ -350,14 +321,14 @@ def test_nested_shells_hard_case_5():
     d = rng.normal(size=(2000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ib = trace(ldc, acc, np.zeros_like(d), d)
-    assert (_objects(ldc, ib) == 0).all()
+    assert (ldc_objects(ldc, ib) == 0).all()
     ib = trace(ldc, acc, -2.0 * d, d)
-    assert (_objects(ldc, ib) == len(radii) - 1).all()
+    assert (ldc_objects(ldc, ib) == len(radii) - 1).all()
     # from anywhere in between, in any direction: the shell Embree finds
-    o, d = _random_rays(np.full(3, -0.7), np.full(3, 0.7), 4000, 2)
+    o, d = random_rays(np.full(3, -0.7), np.full(3, 0.7), 4000, 2)
     e, eobj, stable = _stable(sc, caster, o, d, ldc.h)
     ib = trace(ldc, acc, o, d)
-    assert (_objects(ldc, ib) == eobj)[stable].mean() >= 0.995
+    assert (ldc_objects(ldc, ib) == eobj)[stable].mean() >= 0.995
     sh = stable & (e.prim >= 0)
     assert (np.abs(ib.t[sh] - e.t[sh]) <= 2 * ldc.h).mean() >= 0.995
     lin = trace_linear(ldc, acc, o, d)
@@ -381,15 +352,15 @@ def test_close_layers_far_away_hard_case_6(offset):
         d = target - o
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         ib = trace(ldc, acc, o, d)
-        assert ib.hit.all() and (_objects(ldc, ib) == first).all()
+        assert ib.hit.all() and (ldc_objects(ldc, ib) == first).all()
         t_true = (c[2] + sgn * 0.5 * gap - o[:, 2]) / d[:, 2]
         assert np.allclose(ib.t, t_true, rtol=0, atol=1e-9 * max(1.0, offset))
     # a ray starting between the layers (self_eps=0: free space next to a surface) resolves them
     o = target.copy()
     up = np.tile([0.3, 0.1, 1.0], (n, 1))
     up /= np.linalg.norm(up, axis=1, keepdims=True)
-    assert (_objects(ldc, trace(ldc, acc, o, up, self_eps=0.0)) == 0).all()
-    assert (_objects(ldc, trace(ldc, acc, o, -up, self_eps=0.0)) == 1).all()
+    assert (ldc_objects(ldc, trace(ldc, acc, o, up, self_eps=0.0)) == 0).all()
+    assert (ldc_objects(ldc, trace(ldc, acc, o, -up, self_eps=0.0)) == 1).all()
 
 
 def test_degenerate_rays_hard_case_11():
@@ -405,7 +376,7 @@ def test_degenerate_rays_hard_case_11():
         e, eobj, stable = _stable(sc, caster, o, d, ldc.h)
         ib = trace(ldc, acc, o, d)
         assert stable.sum() >= 100
-        frac = (_objects(ldc, ib) == eobj)[stable].mean()
+        frac = (ldc_objects(ldc, ib) == eobj)[stable].mean()
         assert frac >= need, frac
         return ib
 
@@ -414,7 +385,7 @@ def test_degenerate_rays_hard_case_11():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = np.tile([-0.6, 0.0, 0.3], (1000, 1)) + 0.2 * d[::-1]
     ib = agree(o, d)
-    assert (_objects(ldc, ib) == 2).all() and (ib.side == 1).all()
+    assert (ldc_objects(ldc, ib) == 2).all() and (ib.side == 1).all()
     # origins exactly on each LDI's reference plane
     for ax in ldc.axes:
         f = ax.ldi.frame

@@ -17,7 +17,7 @@ from engine.newviews.renderer import PROV_FILLED, PROV_GATHERED, PROV_TRACED, LD
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
-from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
+from tests.engine.scenes import degenerate_cameras, from_trimesh, mat, quad, scene, sphere_mesh
 
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
           dict(type="point", position=(-2.0, 1.5, 1.0), intensity=(1.0, 2.0, 3.0)),
@@ -305,16 +305,7 @@ def test_huge_exponents_and_degenerate_cameras_hard_cases_8_11(shiny):
         res = LDCViewRenderer(sc, ldc, llf, plan).render(
             CameraParams("perspective", (1.0, 1.5, 2.5), (0, -0.3, 0), (0, 1, 0), 32, 32, 45.0), "ldc+ibrt:1")
         assert np.all(np.isfinite(res.radiance)) and res.radiance.min() >= 0
-    fz = ldc0.axes[2].ldi.frame
-    cams = [
-        CameraParams("perspective", (0.6, -0.1, -0.2), (0.6, -0.1, -2.0), (0, 1, 0), 24, 16, 60.0),  # inside box
-        CameraParams("perspective", (0.0, 0.2, float(fz.origin[2])), (0.0, 0.0, 0.5), (0, 1, 0), 24, 16, 60.0),
-        CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), 24, 16, 45.0),  # along -x
-        CameraParams("orthographic", (0.0, 6.0, 0.0), (0.0, 0.0, 0.0), (0, 0, -1), 24, 16, ortho_height=3.0),
-        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 24, 16, 1e-4),
-        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 24, 16, 179.99),
-        CameraParams("perspective", tuple(float(x) for x in fz.origin), (0.0, 0.0, 0.0), (0, 1, 0), 16, 16, 90.0),
-    ]
+    cams = degenerate_cameras(ldc0.axes[2].ldi.frame.origin, 24, 16)
     r = LDCViewRenderer(sc0, ldc0, llf0, plan0)
     for cam in cams:
         for method in ("ldc", "ldc+llf", "ldc+ibrt:3"):

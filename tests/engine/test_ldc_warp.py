@@ -16,7 +16,7 @@ from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, EmbreeCast
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
 from samples import SAMPLES_DIR, sample_path
-from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
+from tests.engine.scenes import degenerate_cameras, from_trimesh, mat, quad, scene, sphere_mesh
 from workers.scene_loader import directory_resolver, load_scene
 
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
@@ -118,17 +118,7 @@ def test_degenerate_cameras_hard_case_11():
     sc = _diffuse_scene()
     caster = EmbreeCaster(sc)
     ldc = bake_ldc(sc, caster, 48)
-    fz = ldc.axes[2].ldi.frame
-    cams = [
-        CameraParams("perspective", (0.6, -0.1, -0.2), (0.6, -0.1, -2.0), (0, 1, 0), 40, 30, 60.0),  # inside box
-        CameraParams("perspective", (0.0, 0.2, float(fz.origin[2])), (0.0, 0.0, 0.5), (0, 1, 0), 40, 30, 60.0),
-        CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 45.0),  # along -x
-        CameraParams("orthographic", (0.0, 6.0, 0.0), (0.0, 0.0, 0.0), (0, 0, -1), 40, 30, ortho_height=3.0),
-        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 1e-4),
-        CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), 40, 30, 179.99),
-        CameraParams("perspective", (float(fz.origin[0]), float(fz.origin[1]), float(fz.origin[2])),
-                     (0.0, 0.0, 0.0), (0, 1, 0), 16, 16, 90.0),  # on the frame corner
-    ]
+    cams = degenerate_cameras(ldc.axes[2].ldi.frame.origin, 40, 30)
     for cam in cams:
         for fill in ("none", "raycast"):
             w = warp_ldc(ldc, cam, fill=fill, caster=caster)

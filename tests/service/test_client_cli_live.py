@@ -4,10 +4,6 @@
 from __future__ import annotations
 
 import json
-import os
-import socket
-import tempfile
-from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -16,7 +12,7 @@ from engine.imageio import read_image
 from samples import SAMPLES_DIR
 from service.cli import app
 from service.client import ApiError, Client
-from service.up import load_samples, start_stack
+from service.up import free_port, load_samples
 
 # Everyday runs skip this file (make test-fast): the whole service started as processes, driven through the CLI.
 pytestmark = pytest.mark.slow
@@ -28,25 +24,6 @@ SMALL = {
                 {"type": "plane", "material": "floor", "size": [6, 6]}],
     "lights": [{"type": "point", "position": [2, 3, 2], "intensity": [8, 8, 8]}],
 }
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def stack():
-    saved = {k: os.environ.pop(k) for k in ("IBR_REDIS_URL", "IBR_STORE_URL") if k in os.environ}
-    # short path: unix socket paths are limited to ~100 bytes
-    with tempfile.TemporaryDirectory(prefix="ibr-", dir="/tmp") as tmp:
-        st = start_stack(Path(tmp), port=_free_port(), log=lambda s: None)
-        try:
-            yield st
-        finally:
-            st.stop()
-            os.environ.update(saved)
 
 
 def test_client_round_trip(stack):
@@ -113,5 +90,5 @@ def test_cli_client_commands(stack, tmp_path):
 
 
 def test_unreachable_api_exits_3(tmp_path):
-    r = CliRunner().invoke(app, ["jobs", "list"], env={"IBR_API_URL": f"http://127.0.0.1:{_free_port()}"})
+    r = CliRunner().invoke(app, ["jobs", "list"], env={"IBR_API_URL": f"http://127.0.0.1:{free_port()}"})
     assert r.exit_code == 3 and "cannot reach" in r.output

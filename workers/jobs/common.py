@@ -1,5 +1,6 @@
 """What every job body shares: progress and cancellation, loading a stored scene, JSON-safe results,
-the worker's object store.
+the worker's object store, the state of the job a missing input was expected from, integer codes
+as PNG.
 
 Job bodies (``render``, ``bake``, ``datasets``, ``walkthrough``) import from here, never from each
 other's helpers.
@@ -9,13 +10,19 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+import OpenImageIO as oiio
+from rq import get_current_job
 from rq.job import Job
 
 from producer.artifacts import blob_reader, get_scene
+from producer.queue import fetch_job
 from producer.settings import open_settings_store
-from producer.status import cancel_key
+from producer.status import cancel_key, job_public
 from producer.store import NotFound, ObjectStore
 from workers.scene_loader import LoadedScene, load_scene
 
@@ -25,6 +32,8 @@ __all__ = [
     "JobCanceled",
     "ProgressReporter",
     "SceneNotFound",
+    "codes_png",
+    "dependency_note",
     "json_safe",
     "load_stored_scene",
     "set_worker_store",
@@ -44,6 +53,37 @@ class JobCanceled(Exception):
 
 class SceneNotFound(LookupError):
     """The payload names a scene the store does not hold."""
+
+
+def dependency_note(job_id: str, label: str = "its job") -> str:
+    """`` (<label> <id> is <state>[: <error>])`` for the job a missing input was expected from, read
+    through the running job's connection; ``""`` outside a job or when that job is not known."""
+    job = get_current_job()
+    if job is None:
+        return ""
+    dep = fetch_job(job.connection, job_id)
+    if dep is None:
+        return ""
+    pub = job_public(dep)
+    return f" ({label} {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+
+
+def codes_png(path: Path, codes: Any, attributes: Mapping[str, str | int] | None = None) -> bytes:
+    """Exact integer codes in an 8-bit single-channel PNG written to ``path`` (OpenImageIO, no sRGB
+    encoding), with ``attributes`` set on its spec in order; returns the file's bytes."""
+    arr = np.ascontiguousarray(codes, dtype=np.uint8)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
+    for name, value in (attributes or {}).items():
+        spec.attribute(name, value)
+    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
+        err = out.geterror()
+        out.close()
+        raise RuntimeError(f"writing {path.name} failed: {err}")
+    out.close()
+    return path.read_bytes()
 
 
 def worker_store() -> ObjectStore:

@@ -44,7 +44,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 from pydantic import ValidationError
 from rq import get_current_job
 
@@ -60,10 +59,8 @@ from producer.artifacts import read_manifest, write_artifact
 from producer.bakes import bake_complete, bake_key
 from producer.names import scene_bake_job_id
 from producer.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
-from producer.queue import fetch_job
 from producer.renders import render_artifact_key, render_params
 from producer.settings import get_settings
-from producer.status import job_public
 from producer.store import ObjectStore
 from workers.cache import CachedBakeRenderer, RendererCache, runtime_scene_bytes
 from workers.jobs.bake import BakeFailed, load_bake
@@ -71,6 +68,8 @@ from workers.jobs.common import (
     LOAD_END,
     RENDER_END,
     ProgressReporter,
+    codes_png,
+    dependency_note,
     json_safe,
     load_stored_scene,
     worker_store,
@@ -249,33 +248,14 @@ class BakeUnavailable(RuntimeError):
 def _provenance_png(codes: Any) -> bytes:
     """Exact codes in an 8-bit single-channel PNG (OpenImageIO, no sRGB encoding), encoded in a
     RAM-backed scratch directory when there is one (no fsync: the file is not kept)."""
-    arr = np.ascontiguousarray(codes, dtype=np.uint8)
     with tempfile.TemporaryDirectory(prefix="ibr-render-", dir=_SCRATCH) as tmpdir:
-        path = Path(tmpdir) / PROVENANCE_BLOB
-        out = oiio.ImageOutput.create(str(path))
-        if out is None:
-            raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
-        spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
-        spec.attribute("DateTime", "")
-        spec.attribute("ibr:provenance_codes", json.dumps(PROVENANCE_CODES))
-        spec.attribute("png:compressionLevel", 1)
-        spec.attribute("png:filter", 16)
-        if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
-            err = out.geterror()
-            out.close()
-            raise RuntimeError(f"writing {PROVENANCE_BLOB} failed: {err}")
-        out.close()
-        return path.read_bytes()
+        return codes_png(Path(tmpdir) / PROVENANCE_BLOB, codes,
+                         {"DateTime": "", "ibr:provenance_codes": json.dumps(PROVENANCE_CODES),
+                          "png:compressionLevel": 1, "png:filter": 16})
 
 
 def _bake_error(store: ObjectStore, req: RenderRequest, bkey: str) -> str:
-    job = get_current_job()
-    why = ""
-    if job is not None:
-        bake_job = fetch_job(job.connection, scene_bake_job_id(bkey))
-        if bake_job is not None:
-            pub = job_public(bake_job)
-            why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+    why = dependency_note(scene_bake_job_id(bkey))
     return (f"bake {bkey} of scene {req.scene_id} is not available{why}; request it with POST "
             f"/v1/scenes/{req.scene_id}/bakes and render again")
 

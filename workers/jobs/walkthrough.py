@@ -28,6 +28,7 @@ from rq import get_current_job
 
 from api_schemas.common import FrozenModel
 from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
+from api_schemas.walkthrough import WalkthroughRequest
 from engine import ENGINE_VERSION
 from engine.imageio import write_image
 from engine.walkthrough.animation import AnimatedScene
@@ -42,11 +43,9 @@ from producer.payloads import (
     WalkthroughVideoJobPayload,
     describe_validation_error,
 )
-from producer.queue import fetch_job
-from producer.status import job_public
 from producer.store import ObjectStore
 from producer.walkthroughs import chunk_key, chunks, read_request, walkthrough_bake_key, walkthrough_key
-from workers.jobs.common import ProgressReporter, worker_store
+from workers.jobs.common import ProgressReporter, codes_png, dependency_note, worker_store
 from workers.scene_loader import camera_params, load_animated_scene
 
 __all__ = ["WalkthroughUnavailable", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
@@ -125,18 +124,21 @@ def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
     return {"artifact_key": p.bake_key, **result}
 
 
+def _stored_request(wkey: str) -> tuple[ObjectStore, WalkthroughRequest]:
+    """The worker's store and the request stored for walkthrough ``wkey`` (InvalidPayload when none)."""
+    store = worker_store()
+    req = read_request(store, wkey)
+    if req is None:
+        raise InvalidPayload(f"walkthrough {wkey} has no stored request")
+    return store, req
+
+
 def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
     b = _bakes.get(bkey)
     if b is not None:
         return b
     if read_manifest(store, bkey) is None:
-        job = get_current_job()
-        why = ""
-        if job is not None:
-            bj = fetch_job(job.connection, walkthrough_bake_job_id(bkey))
-            if bj is not None:
-                pub = job_public(bj)
-                why = f" (its job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+        why = dependency_note(walkthrough_bake_job_id(bkey))
         raise WalkthroughUnavailable(f"walkthrough bake {bkey} is not available{why}")
     _bakes.clear()  # one bake per worker process (they can be GBs): drop the old one first
     with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
@@ -147,28 +149,11 @@ def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
     return b
 
 
-def _png_codes(path: Path, codes: np.ndarray) -> bytes:
-    arr = np.ascontiguousarray(codes, dtype=np.uint8)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise RuntimeError(f"OpenImageIO cannot write PNG: {oiio.geterror()}")
-    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 1, "uint8")
-    if not out.open(str(path), spec) or not out.write_image(arr[:, :, None]):
-        err = out.geterror()
-        out.close()
-        raise RuntimeError(f"writing {path.name} failed: {err}")
-    out.close()
-    return path.read_bytes()
-
-
 def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Reconstruct frames ``start..stop-1`` of a walkthrough and publish them."""
     t_start = time.perf_counter()
     p: WalkthroughChunkJobPayload = _validate(WalkthroughChunkJobPayload, payload, "walkthrough chunk")
-    store = worker_store()
-    req = read_request(store, p.walkthrough_key)
-    if req is None:
-        raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
+    store, req = _stored_request(p.walkthrough_key)
     if (chunk_key(p.walkthrough_key, p.index, p.start, p.stop) != p.chunk_key
             or walkthrough_key(req) != p.walkthrough_key or (p.start, p.stop) not in chunks(req)
             or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key):
@@ -201,7 +186,7 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
                 path = tmp / name
                 write_image(path, pixels, metadata=meta)
                 blobs[name] = (path.read_bytes(), ctype)
-            blobs[f"provenance_{i:05d}.png"] = (_png_codes(tmp / f"provenance_{i:05d}.png", fr.provenance), PNG)
+            blobs[f"provenance_{i:05d}.png"] = (codes_png(tmp / f"provenance_{i:05d}.png", fr.provenance), PNG)
             progress.report(0.05 + 0.9 * (j + 1) / n, f"frame {i}")
     progress.check_canceled()
     result = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
@@ -217,10 +202,7 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Check every chunk, encode ``video.mp4`` and publish the walkthrough."""
     t_start = time.perf_counter()
     p: WalkthroughVideoJobPayload = _validate(WalkthroughVideoJobPayload, payload, "walkthrough video")
-    store = worker_store()
-    req = read_request(store, p.walkthrough_key)
-    if req is None:
-        raise InvalidPayload(f"walkthrough {p.walkthrough_key} has no stored request")
+    store, req = _stored_request(p.walkthrough_key)
     if walkthrough_key(req) != p.walkthrough_key or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key:
         raise InvalidPayload("video payload does not match its walkthrough request")
     existing = read_manifest(store, p.walkthrough_key)
@@ -231,13 +213,7 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     for i, (a, b) in enumerate(chunks(req)):
         ck = chunk_key(p.walkthrough_key, i, a, b)
         if read_manifest(store, ck) is None:
-            job = get_current_job()
-            why = ""
-            if job is not None:
-                cj = fetch_job(job.connection, walkthrough_chunk_job_id(ck))
-                if cj is not None:
-                    pub = job_public(cj)
-                    why = f" (job {pub.id} is {pub.state}{': ' + pub.error if pub.error else ''})"
+            why = dependency_note(walkthrough_chunk_job_id(ck), "job")
             raise WalkthroughUnavailable(f"frames {a}..{b - 1} are missing{why}")
         keys.append(ck)
     w, h = req.frames[0].camera.width, req.frames[0].camera.height

@@ -19,6 +19,7 @@ import uvicorn
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
+from service.up import free_port
 from tests.service.api.conftest import TEAPOT_PLY, small_scene, teapot_scene
 
 
@@ -102,16 +103,9 @@ def test_multipart_over_limit_and_per_file_limit(small_app: FastAPI, store_dir: 
     assert _store_files(store_dir) == set()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 def test_real_server_answers_413_before_the_chunked_body_ends(small_app: FastAPI, store_dir: Path) -> None:
     """Through uvicorn and a raw socket: the 413 arrives while the client is still sending."""
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(uvicorn.Config(small_app, host="127.0.0.1", port=port, log_level="warning",
                                            lifespan="off"))
     thread = threading.Thread(target=server.run, daemon=True)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import signal
 import time
 from collections.abc import Callable
-from typing import Any
 
 import psutil
 import pytest
@@ -19,21 +18,11 @@ from producer.cancel import cancel
 from producer.queue import QueueName, fetch_job, get_queue
 from producer.status import job_duration_histograms, job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import WorkerProcess, wait_for
 from tests.workers.queue.jobs_for_tests import slow_artifact_key
 
 StartWorker = Callable[..., WorkerProcess]
 SLOW = "tests.workers.queue.jobs_for_tests.slow_artifact"
-
-
-def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 0.05) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def step(redis: Redis, job_id: str) -> int:

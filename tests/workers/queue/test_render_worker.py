@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import tempfile
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,20 +24,10 @@ from producer.queue import fetch_job, get_queue, redis_from_url
 from producer.renders import enqueue_render, render_artifact_key
 from producer.status import job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import WorkerProcess, wait_for
 from tests.workers.queue.jobs_for_tests import overflow_scene, tiny_scene
 
 StartWorker = Callable[..., WorkerProcess]
-
-
-def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 0.05) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def public(redis: Redis, job_id: str) -> Any:
