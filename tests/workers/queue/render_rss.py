@@ -1,6 +1,8 @@
 """``python -m tests.workers.queue.render_rss METHOD WIDTH HEIGHT SPP [PARAMS_JSON]``: run the real render job (render,
 encode, publish) of the tiny scene at that size in this process, after a warm-up render at 16 x 16,
-and print as JSON how much the process's peak RSS grew during the big one.
+and print as JSON how much the process's peak RSS grew during the big one. The peak is the kernel's
+VmHWM, reset after the warm-up (``/proc/self/clear_refs``): on a cold numba cache the warm-up compiles
+every kernel, and the compiler's own peak would otherwise hide the render's.
 
 For reference renders only the scene is needed; for the LDC methods a tiny bake is published first
 with the render worker's warm-up machinery (``workers.warmup``)."""
@@ -9,16 +11,21 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import sys
 import tempfile
+from pathlib import Path
 from typing import Any
 
-import psutil
+
+def _status_kib(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise RuntimeError(f"/proc/self/status has no {field}")
 
 
-def _peak() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def _reset_peak() -> None:
+    Path("/proc/self/clear_refs").write_text("5")  # 5: reset the peak RSS (VmHWM) to the current RSS
 
 
 def main() -> None:
@@ -40,9 +47,10 @@ def main() -> None:
             run.ldc_bake()
             extra = {"method": method, "bake": run.bake_params.model_dump(mode="json")}
         run.render(camera={**cam, "width": 16, "height": 16}, **extra)
-        before = max(psutil.Process().memory_info().rss, _peak())
+        _reset_peak()
+        before = _status_kib("VmRSS") * 1024
         run.render(camera={**cam, "width": w, "height": h}, **extra)
-        print(json.dumps({"grew_bytes": _peak() - before, "base_bytes": before}))
+        print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before}))
 
 
 if __name__ == "__main__":
