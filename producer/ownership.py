@@ -62,6 +62,26 @@ BLOB_OWNERS_PREFIX = "blob-owners/"
 BAKE_OWNERS_PREFIX = "bake-owners/"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
+
+def _checked_marker(prefix: str, what: str, ident: str, owner: str | None) -> str:
+    """``<prefix><ident>/<owner>``; an ident that is not a sha256 is a 404 naming ``what``."""
+    if not isinstance(ident, str) or _SHA256.fullmatch(ident) is None:
+        raise NotFound(f"{what} {ident!r}")
+    return f"{prefix}{ident}/{owner or ANON_OWNER}"
+
+
+def _ids_visible_to(store: ObjectStore, prefix: str, owner: str | None) -> set[str] | None:
+    """The ids under ``prefix`` with a marker of ``owner`` (one listing); None means all (auth off)."""
+    if owner is None:
+        return None
+    out: set[str] = set()
+    for key in store.list(prefix):
+        ident, _, who = key[len(prefix):].partition("/")
+        if who == owner:
+            out.add(ident)
+    return out
+
+
 # ------------------------------------------------------------------------------------ scenes
 
 
@@ -91,23 +111,14 @@ def scene_visible(store: ObjectStore, scene_id: str, owner: str | None) -> bool:
 
 def visible_scene_ids(store: ObjectStore, owner: str | None) -> set[str] | None:
     """Scene ids ``owner`` may see (one listing); None means all (auth off)."""
-    if owner is None:
-        return None
-    out: set[str] = set()
-    for key in store.list(SCENE_OWNERS_PREFIX):
-        scene_id, _, who = key[len(SCENE_OWNERS_PREFIX):].partition("/")
-        if who == owner:
-            out.add(scene_id)
-    return out
+    return _ids_visible_to(store, SCENE_OWNERS_PREFIX, owner)
 
 
 # ------------------------------------------------------------------------------------ datasets
 
 
 def _dataset_marker(dataset_id: str, owner: str | None) -> str:
-    if not isinstance(dataset_id, str) or _SHA256.fullmatch(dataset_id) is None:
-        raise NotFound(f"dataset {dataset_id!r}")
-    return f"{DATASET_OWNERS_PREFIX}{dataset_id}/{owner or ANON_OWNER}"
+    return _checked_marker(DATASET_OWNERS_PREFIX, "dataset", dataset_id, owner)
 
 
 def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
@@ -132,23 +143,14 @@ def dataset_visible(store: ObjectStore, dataset_id: str, owner: str | None) -> b
 
 def visible_dataset_ids(store: ObjectStore, owner: str | None) -> set[str] | None:
     """Dataset ids ``owner`` may see (one listing); None means all (auth off)."""
-    if owner is None:
-        return None
-    out: set[str] = set()
-    for key in store.list(DATASET_OWNERS_PREFIX):
-        did, _, who = key[len(DATASET_OWNERS_PREFIX):].partition("/")
-        if who == owner:
-            out.add(did)
-    return out
+    return _ids_visible_to(store, DATASET_OWNERS_PREFIX, owner)
 
 
 # ------------------------------------------------------------------------------------ uploaded files
 
 
 def _blob_marker(sha: str, owner: str | None) -> str:
-    if not isinstance(sha, str) or _SHA256.fullmatch(sha) is None:
-        raise NotFound(f"file {sha!r}")
-    return f"{BLOB_OWNERS_PREFIX}{sha}/{owner or ANON_OWNER}"
+    return _checked_marker(BLOB_OWNERS_PREFIX, "file", sha, owner)
 
 
 def add_blob_owner(store: ObjectStore, sha: str, owner: str | None) -> None:
@@ -168,9 +170,7 @@ def blob_visible(store: ObjectStore, sha: str, owner: str | None) -> bool:
 
 
 def _bake_marker(bake_key: str, owner: str | None) -> str:
-    if not isinstance(bake_key, str) or _SHA256.fullmatch(bake_key) is None:
-        raise NotFound(f"bake {bake_key!r}")
-    return f"{BAKE_OWNERS_PREFIX}{bake_key}/{owner or ANON_OWNER}"
+    return _checked_marker(BAKE_OWNERS_PREFIX, "bake", bake_key, owner)
 
 
 def bake_owners(store: ObjectStore, bake_key: str, recorded_owner: str | None = None) -> set[str]:
