@@ -11,6 +11,7 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 | RequestValidationError, ValidationProblem | 422 (400 for an unparseable body) |
 | AuthError | 401 + ``WWW-Authenticate: Bearer`` |
 | MissingResource, store NotFound, UnknownScene, JobNotFound | 404 ``<field> '<value>' not found`` (*) |
+| LacksPart | 404 with its own message (the caller can see the resource; it lacks the part asked for) |
 | producer.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
 | queues.BakeMissing (an LDC render without its bake) | 409, "bake missing", naming the bake to request |
 | BodyTooLarge | 413 |
@@ -84,6 +85,12 @@ class ValidationProblem(Exception):
             formatted = [FieldError(field=f"{pre}.{f['field']}" if f["field"] else pre, message=f["message"],
                                     type=f["type"]) for f in formatted]
         return cls(formatted)
+
+
+class LacksPart(NotFound):
+    """The resource the request names exists and the caller may see it, but it has no such part
+    (e.g. a reference render's provenance image): 404 with this message as it is, since it names
+    only what the caller sent and may see."""
 
 
 class MissingResource(NotFound):
@@ -230,6 +237,10 @@ def install_exception_handlers(app: FastAPI) -> None:
     @app.exception_handler(RateLimited)
     async def _rate(request: Request, exc: RateLimited) -> JSONResponse:
         return problem_response(429, str(exc), headers={"Retry-After": str(int(exc.retry_after_s))})
+
+    @app.exception_handler(LacksPart)
+    async def _lacks(request: Request, exc: LacksPart) -> JSONResponse:
+        return problem_response(404, str(exc))
 
     @app.exception_handler(MissingResource)
     async def _missing(request: Request, exc: MissingResource) -> JSONResponse:

@@ -46,7 +46,7 @@ from engine.metrics import error_heatmap_display, fraction_over, lrms, luminance
 from producer.artifacts import read_blob, read_manifest
 from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, StoreDep, scene_visible
-from service.api.errors import ValidationProblem, problem_response, problem_responses
+from service.api.errors import LacksPart, ValidationProblem, problem_responses
 
 router = APIRouter()
 
@@ -419,16 +419,13 @@ async def provenance_image(
 ) -> Response:
     """The LDC render's provenance in colour (``/v1/preview/capabilities`` lists the colours); 404 for a
     render without provenance (the reference renderer)."""
-    def run() -> bytes | str:
+    def run() -> bytes:
         manifest = visible_render(store, key, owner, "path.key")
         if not any(b.name == "provenance.png" for b in manifest.blobs):
-            # the caller sees this render: say what it lacks (a plain NotFound would read "key ... not found")
-            return f"artifact {key} has no provenance (method {manifest.params.get('method', '?')})"
+            raise LacksPart(f"artifact {key} has no provenance (method {manifest.params.get('method', '?')})")
         # linear: the 8-bit values are codes, not colours (read back as code / 255)
         codes = decode_image("provenance.png", read_blob(store, key, "provenance.png"), transfer="linear")[0]
         return png_bytes(provenance_rgb(np.rint(codes[..., 0] * 255.0).astype(np.int64)))
 
-    out = await run_in_threadpool(run)
-    if isinstance(out, str):
-        return problem_response(404, out)
-    return Response(out, media_type="image/png", headers={"Cache-Control": "private, max-age=31536000, immutable"})
+    return Response(await run_in_threadpool(run), media_type="image/png",
+                    headers={"Cache-Control": "private, max-age=31536000, immutable"})
