@@ -424,6 +424,34 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
+
+@DualKernel
+def _diffuse_starts(p, ng, ns, mat, pix, sidx, key, kd, center, extent, o_out, d_out, d32_out, w_out, alive):
+    """One cosine-distributed diffuse ray per row leaving point ``p`` on the side ``ng`` points to
+    (``ns`` is that side's shading normal): its weight is kd (BRDF kd/pi times cos over the pdf
+    cos/pi), zero when the direction dips below the geometric surface. Its direction is sample
+    ``sidx`` of pixel ``pix`` in dimension derive_key(key, 0, DIM_DIR), so the rows of one pixel
+    are one stratified sequence. Origins are written float32 relative to ``center``."""
+    dkey = derive_key(key, 0, DIM_DIR)
+    for i in nb.prange(p.shape[0]):
+        m = mat[i]
+        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        u0, u1 = sample_2d(dkey, pix[i], sidx[i])
+        x0, x1, x2 = _lobe_dir(n0, n1, n2, math.sqrt(u0), 2.0 * math.pi * u1)
+        ln = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        x0, x1, x2 = x0 / ln, x1 / ln, x2 / ln
+        ok = _dot(g0, g1, g2, x0, x1, x2) > 0.0
+        mag = _offset_mag(p[i, 0], p[i, 1], p[i, 2], center, extent)
+        o_out[i, 0] = p[i, 0] + mag * g0 - center[0]
+        o_out[i, 1] = p[i, 1] + mag * g1 - center[1]
+        o_out[i, 2] = p[i, 2] + mag * g2 - center[2]
+        d_out[i, 0], d_out[i, 1], d_out[i, 2] = x0, x1, x2
+        d32_out[i, 0], d32_out[i, 1], d32_out[i, 2] = x0, x1, x2
+        for k in range(3):
+            w_out[i, k] = kd[m, k] if ok else 0.0
+        alive[i] = ok and (kd[m, 0] > 0.0 or kd[m, 1] > 0.0 or kd[m, 2] > 0.0)
+
 @DualKernel
 def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng, tri_mat,
                  p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out,
@@ -716,6 +744,59 @@ class ReferenceRenderer:
             raise NonFiniteOutputError("shade_hits produced non-finite radiance")
         return acc
 
+    def trace_diffuse_paths(self, p: np.ndarray, ng: np.ndarray, ns: np.ndarray, mat: np.ndarray,
+                            pix: np.ndarray, sidx: np.ndarray, key: np.uint64, bounces: int, acc: np.ndarray, *,
+                            pix_base: int = 0, params: ReferenceParams | None = None,
+                            timings: dict[str, float] | None = None, counts: dict[str, int] | None = None) -> None:
+        """Indirect diffuse light leaving surface points, one path per row, added to ``acc``.
+
+        Row i starts a diffuse path at point ``p[i]`` on the side its geometric normal ``ng[i]``
+        points to (``ns[i]``: that side's shading normal; both unit float64), exactly as the
+        renderer's camera hits start their indirect paths: a cosine-distributed first direction,
+        ``bounces`` diffuse vertices with next-event estimation at each (``bounces`` >= 1) and the
+        mirror / glossy lobes where paths meet them. The path's estimate of kd/pi times the light
+        it brings back (weight kd) is added to ``acc[pix[i] - pix_base]``. Sample values are sample
+        ``sidx[i]`` (int64) of pixel ``pix[i]`` (int64) under ``key``: give the rows of one point
+        one pixel and consecutive indices and its paths are one stratified sequence, whatever the
+        batching. ``params`` supplies the light sampling and lobe settings (area_light_samples,
+        max_depth); ``timings`` / ``counts`` collect the stage times and ray counts."""
+        params = params or ReferenceParams()
+        if not isinstance(bounces, (int, np.integer)) or not 1 <= bounces <= 64:
+            raise InvalidInputError(f"bounces must be an integer in [1, 64], got {bounces!r}")
+        n = p.shape[0]
+        if not (ng.shape == ns.shape == p.shape == (n, 3) and mat.shape == pix.shape == sidx.shape == (n,)):
+            raise InvalidInputError("trace_diffuse_paths: p, ng, ns (n, 3) and mat, pix, sidx (n,) must agree")
+        if n == 0:
+            return
+        sc = self.scene
+        timer = _Timer()
+        c = dict.fromkeys(("camera", "shadow", "reflection", "indirect"), 0)
+        t0 = time.perf_counter()
+        o32 = np.empty((n, 3), np.float32)
+        d = np.empty((n, 3))
+        d32 = np.empty((n, 3), np.float32)
+        w = np.empty((n, 3))
+        alive = np.empty(n, np.bool_)
+        pix = np.ascontiguousarray(pix, dtype=np.int64)
+        sidx = np.ascontiguousarray(sidx, dtype=np.int64)
+        _diffuse_starts.par(np.ascontiguousarray(p, np.float64), np.ascontiguousarray(ng, np.float64),
+                            np.ascontiguousarray(ns, np.float64), np.ascontiguousarray(mat, np.int32), pix, sidx,
+                            np.uint64(key), sc.materials.kd, sc.center, sc.extent, o32, d, d32, w, alive)
+        live = np.flatnonzero(alive)
+        k = live.size
+        timer.add("shading", time.perf_counter() - t0)
+        c["indirect"] += k
+        if k:
+            self._trace(params, o32[live], d[live], d32[live], w[live], np.full(k, KIND_PATH, np.int8),
+                        np.zeros(k, np.int32), np.full(k, int(bounces) - 1, np.int32), pix[live], sidx[live],
+                        np.full(k, np.uint64(key), np.uint64), acc, timer, c, serial=False, pix_base=pix_base)
+        if timings is not None:
+            for name, dt in timer.t.items():
+                timings[name] = timings.get(name, 0.0) + dt
+        if counts is not None:
+            for name, v in c.items():
+                counts[name] = counts.get(name, 0) + v
+
     # ------------------------------------------------------------------ stages
     def _aovs(self, camera: CameraParams, timer: _Timer):
         sc = self.scene
@@ -774,11 +855,11 @@ class ReferenceRenderer:
         self._trace(params, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc, timer, counts, serial)
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
-               timer, counts, serial: bool, first_hits=None) -> None:
-        """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix]; ``sidx``
-        (int64) and ``skey`` (uint64) are each ray's sample index and dimension key (engine/sampler.py).
-        ``first_hits`` = (prim int32, u, v float32): the first intersection of every ray is given
-        (no Embree query for it), e.g. a sample of a layered depth image."""
+               timer, counts, serial: bool, first_hits=None, pix_base: int = 0) -> None:
+        """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix - pix_base];
+        ``sidx`` (int64) and ``skey`` (uint64) are each ray's sample index and dimension key
+        (engine/sampler.py). ``first_hits`` = (prim int32, u, v float32): the first intersection of
+        every ray is given (no Embree query for it), e.g. a sample of a layered depth image."""
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
@@ -816,7 +897,8 @@ class ReferenceRenderer:
             _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sidx, skey,
                                       sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h,
                                       kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
-            _accumulate_misses_and_emission(acc, prim, weight, pix, sc.background, idx, mat, kind_h, w_h, pix_h,
+            _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
+                                            idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
                                             mt.emission, mt.kd, sc.ambient)
             timer.add("shading", time.perf_counter() - t0)
             if m == 0:
@@ -825,7 +907,7 @@ class ReferenceRenderer:
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
                 self._direct(it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts,
-                             serial)
+                             serial, pix_base)
 
             # ---- secondary rays
             t0 = time.perf_counter()
@@ -883,7 +965,8 @@ class ReferenceRenderer:
             counts["reflection"] += n - n_path
             timer.add("shading", time.perf_counter() - t0)
 
-    def _direct(self, it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts, serial):
+    def _direct(self, it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts, serial,
+                pix_base: int = 0):
         sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
         gg = r_g * r_g
         per = lt.n_point + lt.n_directional + lt.n_rect * gg
@@ -921,7 +1004,7 @@ class ReferenceRenderer:
             timer.add("shadow", time.perf_counter() - t0)
             counts["shadow"] += int(live.size)
             t0 = time.perf_counter()
-            _accumulate_shadow(acc, live, occ, contrib, pix_h[sl], per)
+            _accumulate_shadow(acc, live, occ, contrib, pix_h[sl] - pix_base if pix_base else pix_h[sl], per)
             timer.add("shading", time.perf_counter() - t0)
 
 

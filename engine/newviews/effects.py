@@ -45,6 +45,8 @@ class EffectPlan:
     has_emission: bool
     has_ambient: bool
     animated: bool = False
+    indirect_skip: str = ""
+    """Why indirect light cannot reach any diffuse surface (the bake skips its pass), or "" when it can."""
 
     @property
     def any_occludable(self) -> bool:
@@ -55,7 +57,7 @@ class EffectPlan:
                 "needs_llf": self.needs_llf, "occludable_lights": list(self.occludable_lights),
                 "any_occludable": self.any_occludable, "closed_objects": list(self.closed_objects),
                 "convex_single_object": self.convex_single_object, "has_emission": self.has_emission,
-                "has_ambient": self.has_ambient, "animated": self.animated}
+                "has_ambient": self.has_ambient, "animated": self.animated, "indirect_skip": self.indirect_skip}
 
 
 def plan_from_dict(d: dict) -> EffectPlan:
@@ -66,7 +68,8 @@ def plan_from_dict(d: dict) -> EffectPlan:
                           occludable_lights=tuple(bool(x) for x in d["occludable_lights"]),
                           closed_objects=tuple(bool(x) for x in d["closed_objects"]),
                           convex_single_object=bool(d["convex_single_object"]), has_emission=bool(d["has_emission"]),
-                          has_ambient=bool(d["has_ambient"]), animated=bool(d.get("animated", False)))
+                          has_ambient=bool(d["has_ambient"]), animated=bool(d.get("animated", False)),
+                          indirect_skip=str(d.get("indirect_skip", "")))
     except (KeyError, TypeError) as e:
         from engine.errors import InvalidInputError
 
@@ -81,6 +84,22 @@ def material_kind(kd, ks, shininess, kr, kg) -> str:
     if np.any(np.asarray(ks) > 0) and shininess > 0:
         return "highlight"
     return "diffuse"
+
+
+def _indirect_skip(scene: RuntimeScene, used_mats: list[int], convex: bool, occludable: list[bool]) -> str:
+    """Why no diffuse surface can receive indirect light, or "" when one can. Light reaches a
+    surface indirectly only from a light or the background (emission and ambient light nothing),
+    via another surface or the background itself."""
+    mt = scene.materials
+    black_background = not np.any(np.asarray(scene.background) > 0)
+    if not used_mats or not np.any(mt.kd[used_mats] > 0):
+        return "no surface is diffuse (kd = 0 everywhere): nothing receives indirect diffuse light"
+    if scene.lights.count == 0 and black_background:
+        return "no lights and a black background: nothing lights the scene"
+    if convex and black_background and not any(occludable):
+        return ("one convex closed object lit from outside under a black background: every path leaving its "
+                "outer side escapes to black, and its inner side is dark")
+    return ""
 
 
 def _closed_oriented(tri_p: np.ndarray) -> bool:
@@ -153,6 +172,7 @@ def analyze(scene: RuntimeScene) -> EffectPlan:
         occ.append(not (convex and _outside(corners, scene.tri_p, scene.tri_ng, tol)))
     used_mats = sorted(used)
     return EffectPlan(
+        indirect_skip=_indirect_skip(scene, used_mats, convex, occ),
         material_kinds=kinds,
         needs_view_pass=any(k != "diffuse" for k in used_kinds),
         needs_llf=any(k in ("glossy", "mirror") for k in used_kinds),

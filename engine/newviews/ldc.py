@@ -16,8 +16,14 @@ rect lights on a g x g jittered grid from a fixed seeded counter-based pattern, 
 round(sqrt(area_light_samples))) + ``kd * ambient`` + ``emission``. Light conventions
 (offset origins, shadow shortening, shading-normal fallback) copy ``engine/reference.py``.
 
-Baking is split per axis (``bake_ldc_axis``) so a job can run the axes separately;
-``merge_ldc`` puts three axes together.
+With ``indirect`` settings, ``diffuse`` also holds the indirect diffuse light (interreflections
+up to a bounce limit, path-traced per sample side to a requested noise level:
+``engine/newviews/indirect.py``), unless the effect plan finds that no indirect light can reach a
+diffuse surface (``EffectPlan.indirect_skip``).
+
+Baking is split per axis (``bake_ldc_axis``) so a job can run the axes separately, and the
+indirect pass of an axis can be split further into runs of samples (``indirect_chunk``, then
+``with_indirect``); ``merge_ldc`` puts three axes together.
 """
 
 from __future__ import annotations
@@ -35,8 +41,16 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.errors import InvalidInputError
 from engine.lights import light_sample
 from engine.newviews.effects import EffectPlan, analyze
+from engine.newviews.indirect import (
+    IndirectParams,
+    IndirectResult,
+    axis_brightness,
+    merge_summaries,
+    trace_indirect,
+)
 from engine.newviews.ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
+from engine.reference import ReferenceRenderer
 from engine.rng import stream_key, uniform
 from engine.scene import RuntimeScene
 
@@ -336,6 +350,9 @@ def shade_samples(scene: RuntimeScene, caster: RayCaster, p: np.ndarray, ng: np.
 _CAST_SHARE = 0.15
 """Share of an axis bake given to multi-hit casting in progress reports (measured 5-12 % on the
 samples at LDC 256; the rest is shading + shadow rays)."""
+_INDIRECT_SHARE = 0.9
+"""Share of an axis bake given to the indirect pass in progress reports when it runs (it traces
+tens to hundreds of paths per sample side where direct light casts a few shadow rays)."""
 
 
 def ldc_pixel_size(scene: RuntimeScene, resolution: int) -> float:
@@ -377,12 +394,16 @@ def _resolve_visibility(plan: EffectPlan, n_lights: int, lights_visibility) -> t
 def bake_ldc_axis(scene: RuntimeScene, caster: RayCaster, axis: int, resolution: int, *,
                   lights_visibility=True, plan: EffectPlan | None = None, area_light_samples: int = 16,
                   seed: int = 0, max_layers: int = 32, max_bytes: int = DEFAULT_MAX_BYTES,
+                  indirect: IndirectParams | None = None,
                   progress: Callable[[float, str], None] | None = None) -> LDCAxis:
     """Bake one of the three LDIs of the LDC (axis 0, 1, 2 = +x, +y, +z) with its attributes.
 
-    ``progress(fraction, stage)`` after the multi-hit casting (stage ``"cast"``) and after every
-    shading slice (``"shade"``); the fraction weighs the two by their measured share of the time
-    (casting ~``_CAST_SHARE``); the callback may raise to cancel.
+    ``indirect``: also path-trace the indirect diffuse light of every sample side into ``diffuse``
+    (skipped, at no cost, when the effect plan says none can arrive); None: direct light only.
+
+    ``progress(fraction, stage)`` after the multi-hit casting (stage ``"cast"``), after every
+    shading slice (``"shade"``) and every indirect round (``"indirect"``); the fraction weighs the
+    stages by their usual share of the time; the callback may raise to cancel.
 
     ``lights_visibility``: True (store bits when the effect plan finds an occludable light),
     False (no bits; shadow rays still cast for occludable lights), 'force' (shadow rays and
@@ -411,17 +432,71 @@ def bake_ldc_axis(scene: RuntimeScene, caster: RayCaster, axis: int, resolution:
         progress(_CAST_SHARE, "cast")
     p, ng, ns = surface_attributes(scene, ldi.prim, ldi.u, ldi.v)
     mat = scene.tri_material[ldi.prim].astype(np.int32)
+    run_indirect = indirect is not None and not plan.indirect_skip
+    direct_end = 1.0 - _INDIRECT_SHARE if run_indirect else 1.0
     diffuse, vis, st = shade_samples(scene, caster, p, ng, ns, mat, occl, store_bits=store, force_all=force,
                                      area_light_samples=area_light_samples, seed=seed, stream_id=axis,
                                      progress=None if progress is None else
-                                     (lambda f: progress(_CAST_SHARE + (1.0 - _CAST_SHARE) * f, "shade")))
+                                     (lambda f: progress(_CAST_SHARE * direct_end
+                                                         + (1.0 - _CAST_SHARE) * direct_end * f, "shade")))
     facing = np.where(ng @ frame.w < 0.0, 1, -1).astype(np.int8)
-    return LDCAxis(axis=axis, ldi=ldi, normal=ns.astype(np.float32), geo_normal=ng.astype(np.float32),
-                   facing=facing, material=mat, object=scene.tri_object[ldi.prim].astype(np.int32),
-                   diffuse=diffuse, visibility=vis,
-                   timings={"ldi": t_ldi, "shade": st["shade"], "shadow": st["shadow"],
-                            "total": time.perf_counter() - t0, "shadow_rays": st["shadow_rays"],
-                            "truncated_pixels": ldi.n_truncated})
+    out = LDCAxis(axis=axis, ldi=ldi, normal=ns.astype(np.float32), geo_normal=ng.astype(np.float32),
+                  facing=facing, material=mat, object=scene.tri_object[ldi.prim].astype(np.int32),
+                  diffuse=diffuse, visibility=vis,
+                  timings={"ldi": t_ldi, "shade": st["shade"], "shadow": st["shadow"],
+                           "total": time.perf_counter() - t0, "shadow_rays": st["shadow_rays"],
+                           "truncated_pixels": ldi.n_truncated})
+    if run_indirect:
+        assert indirect is not None
+        chunk = indirect_chunk(scene, caster, out, 0, out.n_samples, indirect,
+                               progress=None if progress is None else
+                               (lambda f: progress(direct_end + _INDIRECT_SHARE * f, "indirect")))
+        out = with_indirect(out, [chunk], indirect)
+        out.timings["total"] = time.perf_counter() - t0
+    return out
+
+
+def indirect_chunk(scene: RuntimeScene, caster: RayCaster, axis: LDCAxis, start: int, stop: int,
+                   params: IndirectParams, *, renderer: ReferenceRenderer | None = None,
+                   progress: Callable[[float], None] | None = None) -> IndirectResult:
+    """Indirect diffuse light of samples ``start .. stop - 1`` of a direct-lit LDC axis (one job's
+    share of an axis; ``with_indirect`` adds the chunks to the axis). The result does not depend
+    on how the axis is split: each sample side draws its own sample sequence, and the noise floor
+    comes from the whole axis."""
+    n = axis.n_samples
+    if not (isinstance(start, (int, np.integer)) and isinstance(stop, (int, np.integer)) and 0 <= start <= stop <= n):
+        raise InvalidInputError(f"indirect chunk [{start}, {stop}) is outside the axis's {n} samples")
+    ldi = axis.ldi
+    sl = slice(int(start), int(stop))
+    p, ng, ns = surface_attributes(scene, ldi.prim[sl], ldi.u[sl], ldi.v[sl])
+    receives = np.any(scene.materials.kd[axis.material] > 0.0, axis=1)
+    brightness = axis_brightness(axis.diffuse, receives)
+    renderer = renderer if renderer is not None else ReferenceRenderer(scene, caster)
+    return trace_indirect(renderer, p, ng, ns, axis.material[sl], axis.diffuse[sl], params, stream_id=axis.axis,
+                          first=int(start), brightness=brightness, progress=progress)
+
+
+def with_indirect(axis: LDCAxis, chunks: list[IndirectResult], params: IndirectParams) -> LDCAxis:
+    """The axis with the indirect light of ``chunks`` (which must tile its samples exactly, in any
+    order) added to ``diffuse``; ``timings["indirect"]`` summarises the achieved noise level."""
+    n = axis.n_samples
+    order = sorted(chunks, key=lambda c: c.first)
+    at = 0
+    for c in order:
+        if c.first != at:
+            raise InvalidInputError(f"indirect chunks of axis {axis.axis} leave samples [{at}, {c.first}) out "
+                                    "or overlap")
+        at += c.radiance.shape[0]
+    if at != n:
+        raise InvalidInputError(f"indirect chunks of axis {axis.axis} cover {at} samples, the axis has {n}")
+    radiance = np.concatenate([c.radiance for c in order]) if order else np.zeros((0, 2, 3), np.float32)
+    diffuse = (axis.diffuse.astype(np.float64) + radiance).astype(np.float32)
+    timings = dict(axis.timings)
+    timings["indirect"] = merge_summaries([c.stats for c in order], params)
+    timings["total"] = float(timings.get("total", 0.0)) + timings["indirect"]["time"]
+    return LDCAxis(axis=axis.axis, ldi=axis.ldi, normal=axis.normal, geo_normal=axis.geo_normal, facing=axis.facing,
+                   material=axis.material, object=axis.object, diffuse=diffuse, visibility=axis.visibility,
+                   timings=timings)
 
 
 def merge_ldc(scene: RuntimeScene, parts: list[LDCAxis], resolution: int, plan: EffectPlan | None = None) -> LDC:
@@ -439,13 +514,25 @@ def merge_ldc(scene: RuntimeScene, parts: list[LDCAxis], resolution: int, plan: 
     plan = plan if plan is not None else analyze(scene)
     return LDC(axes=(by_axis[0], by_axis[1], by_axis[2]), h=h, resolution=int(resolution),
                n_lights=scene.lights.count, background=np.asarray(scene.background, dtype=np.float64),
-               closed_objects=plan.closed_objects, plan=plan.to_dict())
+               closed_objects=plan.closed_objects, plan=plan.to_dict() | {"indirect": indirect_state(parts, plan)})
+
+
+def indirect_state(parts: list[LDCAxis], plan: EffectPlan) -> dict:
+    """What the LDC holds of indirect light, for the plan: ``baked`` (with the achieved noise level
+    per axis), ``skipped`` (the effect plan's reason: none can arrive) or ``off`` (not requested)."""
+    summaries = [p.timings.get("indirect") for p in sorted(parts, key=lambda p: p.axis)]
+    if all(isinstance(s, dict) for s in summaries):
+        return {"state": "baked", "axes": summaries}
+    if plan.indirect_skip:
+        return {"state": "skipped", "reason": plan.indirect_skip}
+    return {"state": "off", "reason": "the bake was not asked for indirect light"}
 
 
 def bake_ldc(scene: RuntimeScene, caster: RayCaster, resolution: int, *, lights_visibility=True,
              plan: EffectPlan | None = None, area_light_samples: int = 16, seed: int = 0, max_layers: int = 32,
-             max_bytes: int = DEFAULT_MAX_BYTES) -> LDC:
-    """Bake the whole LDC (three axes, then merge). ``max_bytes`` bounds the worst case of all three."""
+             max_bytes: int = DEFAULT_MAX_BYTES, indirect: IndirectParams | None = None) -> LDC:
+    """Bake the whole LDC (three axes, then merge). ``max_bytes`` bounds the worst case of all three;
+    ``indirect``: add indirect diffuse light (see ``bake_ldc_axis``)."""
     est = estimate_ldc_bytes(scene, resolution, max_layers)
     if est > max_bytes:
         raise InvalidInputError(f"LDC at resolution {resolution} x {max_layers} layers needs up to "
@@ -454,5 +541,5 @@ def bake_ldc(scene: RuntimeScene, caster: RayCaster, resolution: int, *, lights_
     plan = plan if plan is not None else analyze(scene)
     parts = [bake_ldc_axis(scene, caster, a, resolution, lights_visibility=lights_visibility, plan=plan,
                            area_light_samples=area_light_samples, seed=seed, max_layers=max_layers,
-                           max_bytes=max_bytes) for a in range(3)]
+                           max_bytes=max_bytes, indirect=indirect) for a in range(3)]
     return merge_ldc(scene, parts, resolution, plan)
