@@ -20,9 +20,12 @@ Sampling and stopping (adaptive, per sample side, deterministic):
 - paths come in rounds of ``round_paths``; path j of a sample side is sample j of its own
   pixel of an Owen-scrambled Sobol sequence (``engine/sampler.py``), so every round, and every
   union of rounds, is a stratified set of directions;
-- after ``min_paths`` paths, a side stops as soon as the standard error of its mean luminance,
-  estimated from the spread of its round means (batch means; conservative, because the
-  stratification makes the union of rounds better than independent rounds), is at most
+- after ``min_paths`` paths (8 rounds by default: with fewer, the spread of the round means is
+  itself so noisy that stopping on it picks the sides whose error it underestimates; measured on
+  a two-wall room, two seeds differ by more than 3 estimated standard errors on 5.2 % of the sides
+  with 2 rounds of 16 paths and on none with 8 rounds of 8), a side stops as soon as the
+  standard error of its mean luminance, estimated from the spread of its round means (batch
+  means; conservative, because the stratification makes the union of rounds better than independent rounds), is at most
   ``noise`` times its brightness (direct + indirect, never less than ``floor`` times the axis's
   mean direct brightness, so that dark samples do not take ``max_paths`` for light nobody
   sees); or at ``max_paths``;
@@ -76,10 +79,10 @@ class IndirectParams:
     """
 
     noise: float = 0.02
-    min_paths: int = 32
-    max_paths: int = 512
+    min_paths: int = 64
+    max_paths: int = 1024
     bounces: int = 3
-    round_paths: int = 16
+    round_paths: int = 8
     floor: float = 0.25
     seed: int = 0
     area_light_samples: int = 4

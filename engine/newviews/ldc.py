@@ -519,7 +519,8 @@ def merge_ldc(scene: RuntimeScene, parts: list[LDCAxis], resolution: int, plan: 
 
 def indirect_state(parts: list[LDCAxis], plan: EffectPlan) -> dict:
     """What the LDC holds of indirect light, for the plan: ``baked`` (with the achieved noise level
-    per axis), ``skipped`` (the effect plan's reason: none can arrive) or ``off`` (not requested)."""
+    per axis), ``skipped`` (none can arrive, with the effect plan's reason; whether it was asked for
+    or not) or ``off`` (it could arrive, and the bake was not asked for it)."""
     summaries = [p.timings.get("indirect") for p in sorted(parts, key=lambda p: p.axis)]
     if all(isinstance(s, dict) for s in summaries):
         return {"state": "baked", "axes": summaries}
