@@ -19,6 +19,31 @@ n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
             sampled with M directions from the cos^g lobe around wr;
 - indirect: K diffuse paths per pixel (spread over the antialiasing samples), each
             with ``indirect_bounces`` bounces and next-event estimation at every vertex.
+- rect lights seen: a camera ray, or a ray whose last lobe was mirror or glossy (at a camera
+            chain hit or a path vertex), that meets a rect light's emitting side (either side if
+            two-sided) before any surface ends there with weight x the light's radiance. So light
+            reaches a diffuse surface through mirrors and glossy lobes (caustic paths: diffuse ->
+            mirror -> light), the lights show in mirrors and glossy surfaces, and camera rays see
+            them directly, as Mitsuba's area emitters are seen. A surface hides a light only when
+            it is nearer by more than the shadow rays' margin (SHADOW_SHORTEN), so an emissive
+            luminaire modelled at the light's place shows the light once. Diffuse path rays and
+            shadow rays pass through lights (and so does every ray through a one-sided light's
+            back): the diffuse lobe's light is next-event estimation's. A path vertex with no
+            bounce left still sends its mirror / glossy ray when the scene has rect lights,
+            counting only the light it meets, so every vertex gets the light of all its lobes and
+            ``indirect_bounces`` B stays Mitsuba's ``path`` with ``max_depth`` B + 2.
+            Point and directional lights cannot be met by a ray: they reach surfaces through kd
+            and ks only, never through a mirror or a glossy lobe.
+
+No multiple importance sampling is needed: next-event estimation evaluates only the kd and ks
+lobes, and rays that meet lights leave only from the kr and kg lobes (or the camera), so each
+(lobe, light) term of the rendering equation is estimated by exactly one strategy and the image
+is their plain sum; neither strategy estimates a term the other one does too, so nothing is
+counted twice or weighted. The price is variance where one strategy is poor: a glossy lobe much
+wider than the light it reflects finds it rarely (the ks lobe is the low-variance way to show a
+light's highlight). tests/engine/test_reference_caustics.py checks the sum numerically: the same
+Phong lobe as ks (light sampling) and as kg (BSDF sampling) gives the same radiance, and half of
+each gives it again, all equal to an independent quadrature.
 
 Sampling: every sample value comes from engine/sampler.py (Owen-scrambled Sobol), keyed by
 (seed, pixel, the sample's index among the pixel's samples, the dimension it serves): the pixel
