@@ -384,10 +384,8 @@ def _git_rev() -> str:
     return f"{rev} (with uncommitted changes)" if dirty else rev
 
 
-def write_doc(results: list[Result], extras: list[str], budget: Budget, total_seconds: float,
-              rev: str) -> None:
-    import mitsuba as mi_mod
-
+def table_rows(results: list[Result]) -> tuple[list[str], list[str]]:
+    """The results table's rows and the sample-count table's rows (markdown)."""
     rows = []
     for r in results:
         rep = r.report
@@ -398,9 +396,15 @@ def write_doc(results: list[Result], extras: list[str], budget: Budget, total_se
             f"{100 * rep.fraction_over_5pct:.2f} % | {rep.n_pixels} ({r.excluded} excl.) | "
             f"{_fmt_time(r.ours_seconds)} | {_fmt_time(r.mi_seconds)} | {100 * r.mean_bias:+.3f} % | "
             f"{100 * r.lrms_covered:.2f} % |")
-    settings = []
-    for r in results:
-        settings.append(f"| {r.scene} | {r.kind} | {r.ours_settings} | {r.mi_settings} |")
+    settings = [f"| {r.scene} | {r.kind} | {r.ours_settings} | {r.mi_settings} |" for r in results]
+    return rows, settings
+
+
+def write_doc(results: list[Result], extras: list[str], budget: Budget, total_seconds: float,
+              rev: str) -> None:
+    import mitsuba as mi_mod
+
+    rows, settings = table_rows(results)
     imgs = "\n".join(f"![{r.scene} {r.kind}](img/crosscheck/{r.scene}_{r.kind}.png)\n\n"
                      f"*{r.scene}, {r.kind}: ours | Mitsuba | |error| (yellow = 5 % of mean luminance)*\n"
                      for r in results)
@@ -606,7 +610,11 @@ def main(argv: list[str] | None = None) -> int:
                 extras.append(line)
                 print(line, flush=True)
     total = time.perf_counter() - t_start
-    if not args.no_doc:
+    if args.no_doc:
+        rows, settings = table_rows(results)
+        print("\n".join(rows + [""] + settings))
+        print(f"commit {rev}, total {total / 60:.1f} min, load average {_load()}", flush=True)
+    else:
         write_doc(results, extras, budget, total, rev)
         print(f"wrote {DOC.relative_to(mb.REPO_ROOT)} and {IMG_DIR.relative_to(mb.REPO_ROOT)}/", flush=True)
     failed = [r for r in results if not r.passed]
