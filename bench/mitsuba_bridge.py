@@ -4,10 +4,13 @@ Two ways to get a Mitsuba scene:
 
 - :func:`runtime_to_mitsuba` converts one of our runtime scenes (after ``load_scene``) plus a
   camera into a Mitsuba scene: every object becomes a PLY mesh holding exactly our world-space
-  triangles and per-corner shading normals, every material a ``diffuse`` BSDF, point /
-  directional lights the Mitsuba emitters of the same name, a rect light a ``rectangle`` shape
-  with a one-sided ``area`` emitter and a black BSDF, the camera a ``perspective`` sensor with
-  ``fov_axis="y"`` (our fov is vertical) and a box pixel filter.
+  triangles and per-corner shading normals, every material a BSDF with the same reflectance
+  (:func:`bsdf_dict`: ``diffuse``; a pure mirror (only ``kr``) a ``conductor`` with ``material =
+  "none"`` and ``specular_reflectance = kr``; ``kd`` + ``kg`` the ``ibr_phong`` plugin registered
+  here, our ``kd / pi + kg (g + 2) / (2 pi) cos^g`` exactly), point / directional lights the
+  Mitsuba emitters of the same name, a rect light a ``rectangle`` shape with a one-sided
+  ``area`` emitter and a black BSDF, the camera a ``perspective`` sensor with ``fov_axis="y"``
+  (our fov is vertical) and a box pixel filter.
 - :func:`load_cornell_box` / :func:`load_directional_sphere` load Mitsuba's own scene files
   from ``../shared/data`` (the Cornell box ``cbox-rgb.xml`` and the ``floating_sphere`` test
   scene), so our JSON translation of them is checked too, not only the renderer.
@@ -15,15 +18,23 @@ Two ways to get a Mitsuba scene:
 Only what both renderers express identically is converted; anything else raises
 ``ValueError`` rather than producing a scene that differs silently:
 
-- non-diffuse materials (``ks``/``kr``/``kg``): the Phong lobes have no exact Mitsuba twin;
+- Phong highlights (``ks``): ours reflects the lights only (next-event estimation), a Mitsuba BSDF
+  reflects everything; mirrors mixed with other lobes (``kr`` with ``kd``/``kg``);
 - emissive materials: our ``emission`` is only *seen* (camera and specular rays) and lights
   nothing, while a Mitsuba area emitter also lights the scene;
 - ``ambient`` and ``background``: ours are not an environment light (NEE never samples them);
 - two-sided rect lights and orthographic cameras.
 
-A rect light is invisible geometry for us but a real (black, one-sided) rectangle for Mitsuba:
-keep it out of the camera's view and out of the way of other lights' shadow rays when you
-build a scene for a cross-check.
+A rect light is a real (black, one-sided) rectangle for Mitsuba. For us its emitting side is
+seen by camera, mirror and glossy rays as well (they end there), but diffuse path rays and
+shadow rays pass through it: give it a black "housing" just behind it (as
+``samples/scenes/cornell_mirror_glossy.json`` does) so that diffuse rays find nothing behind
+the light in both renderers, and keep it out of the way of other lights' shadow rays.
+
+``ibr_phong`` is a Python plugin, so scenes with glossy materials want a JIT variant
+(``llvm_ad_rgb``: the plugin is traced into the kernel once); in ``scalar_rgb`` it runs but every
+BSDF call goes through Python. :func:`mitsuba` points Dr.Jit at an LLVM library
+(``$DRJIT_LIBLLVM_PATH``, else Debian's ``libLLVM.so.19.1``) before selecting an LLVM variant.
 
 Integrators: ``direct`` is Mitsuba's ``direct`` (emitter + BSDF sampling with MIS); ``path``
 with ``bounces`` B is Mitsuba's ``path`` with ``max_depth = B + 2`` (depth 1 is the emitter
@@ -39,6 +50,8 @@ asymmetric scene (the mirrored image must be far worse than the unmirrored one).
 
 from __future__ import annotations
 
+import glob
+import math
 import os
 import re
 import time
@@ -72,13 +85,101 @@ def require_shared(rel: Path) -> Path:
     return root / rel
 
 
+LLVM_VARIANT = "llvm_ad_rgb"
+# Dr.Jit's LLVM backend needs a recent libLLVM; Debian 12's libllvm19 package puts it here
+LIBLLVM_CANDIDATES = ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/llvm-19/lib/libLLVM.so.1")
+_registered: set[str] = set()
+
+
 def mitsuba(variant: str = MITSUBA_VARIANT):
-    """The ``mitsuba`` module with ``variant`` selected (scalar_rgb needs no LLVM)."""
+    """The ``mitsuba`` module with ``variant`` selected (scalar_rgb needs no LLVM) and the
+    ``ibr_phong`` BSDF registered in it."""
+    if variant.startswith("llvm") and not os.environ.get("DRJIT_LIBLLVM_PATH"):
+        found = [p for p in LIBLLVM_CANDIDATES if os.path.isfile(p)]
+        found += sorted(glob.glob("/usr/lib/llvm-1[6-9]/lib/libLLVM*.so*"))
+        if not found:
+            raise RuntimeError(f"variant {variant} needs libLLVM (apt-get install libllvm19, or set "
+                               "DRJIT_LIBLLVM_PATH)")
+        os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
     import mitsuba as mi
 
     if mi.variant() != variant:
         mi.set_variant(variant)
+    if variant not in _registered:
+        _register_phong(mi)
+        _registered.add(variant)
     return mi
+
+
+def _register_phong(mi) -> None:
+    """Register ``ibr_phong``: our ``kd / pi + kg (g + 2) / (2 pi) max(0, cos a)^g`` with a the
+    angle between the outgoing direction and the mirror direction of the incoming one (both in
+    the shading frame), zero below the horizon on either side; properties ``kd_r`` ... ``kg_b``
+    and ``g``. Sampled by picking the diffuse (cosine) or the glossy (``cos^g`` around the mirror
+    direction) lobe with probability proportional to its mean albedo; ``pdf`` is the mixture."""
+    import drjit as dr
+
+    class IbrPhong(mi.BSDF):
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.kd = [float(props["kd_" + c]) for c in "rgb"]
+            self.kg = [float(props["kg_" + c]) for c in "rgb"]
+            self.g = float(props["g"])
+            ad, ag = sum(self.kd) / 3.0, sum(self.kg) / 3.0
+            self.pg = ag / (ad + ag) if ad + ag > 0 else 0.0
+            diffuse = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+            glossy = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+            self.m_components = [diffuse, glossy]
+            self.m_flags = diffuse | glossy
+
+        def _value_pdf(self, si, wo, active):
+            ci = mi.Frame3f.cos_theta(si.wi)
+            co = mi.Frame3f.cos_theta(wo)
+            ok = active & (ci > 0) & (co > 0)
+            ca = dr.dot(wo, mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z))
+            lobe = dr.select(ca > 0, dr.power(dr.maximum(ca, 1e-30), self.g), 0.0)
+            f = (mi.Color3f(self.kd) * dr.inv_pi
+                 + mi.Color3f(self.kg) * ((self.g + 2.0) * 0.5 * dr.inv_pi * lobe))
+            pdf = (1.0 - self.pg) * co * dr.inv_pi + self.pg * (self.g + 1.0) * 0.5 * dr.inv_pi * lobe
+            return dr.select(ok, f * co, 0.0), dr.select(ok, pdf, 0.0)
+
+        def eval(self, ctx, si, wo, active=True):
+            return self._value_pdf(si, wo, active)[0]
+
+        def pdf(self, ctx, si, wo, active=True):
+            return self._value_pdf(si, wo, active)[1]
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self._value_pdf(si, wo, active)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            glossy = sample1 < self.pg
+            ca = dr.power(dr.maximum(sample2.x, 1e-30), 1.0 / (self.g + 1.0))
+            sa = dr.safe_sqrt(1.0 - ca * ca)
+            phi = 2.0 * dr.pi * sample2.y
+            around = mi.Frame3f(mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z))
+            wo_g = around.to_world(mi.Vector3f(sa * dr.cos(phi), sa * dr.sin(phi), ca))
+            wo = dr.select(glossy, wo_g, mi.warp.square_to_cosine_hemisphere(sample2))
+            value, pdf = self._value_pdf(si, wo, active)
+            bs = mi.BSDFSample3f()
+            bs.wo = wo
+            bs.pdf = pdf
+            bs.eta = 1.0
+            bs.sampled_type = dr.select(glossy, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+                                        mi.UInt32(+mi.BSDFFlags.DiffuseReflection))
+            bs.sampled_component = dr.select(glossy, mi.UInt32(1), mi.UInt32(0))
+            return bs, dr.select(active & (pdf > 0), value / dr.maximum(pdf, 1e-30), 0.0)
+
+        def traverse(self, callback):
+            pass
+
+        def parameters_changed(self, keys):
+            pass
+
+        def to_string(self):
+            return f"IbrPhong[kd={self.kd}, kg={self.kg}, g={self.g}]"
+
+    mi.register_bsdf("ibr_phong", lambda props: IbrPhong(props))
 
 
 # ============================================================================ conversion
@@ -96,9 +197,10 @@ def integrator_dict(kind: str, bounces: int = 0) -> dict:
     raise ValueError(f"unknown integrator kind {kind!r}")
 
 
-def sensor_dict(camera: CameraParams, spp: int = 16, sampler: str = "independent") -> dict:
+def sensor_dict(camera: CameraParams, spp: int = 16, sampler: str = "independent",
+                variant: str = MITSUBA_VARIANT) -> dict:
     """Perspective sensor with our camera's eye, target, up and *vertical* fov, box filter."""
-    mi = mitsuba()
+    mi = mitsuba(variant)
     if camera.kind != "perspective":
         raise ValueError("only perspective cameras are converted")
     return {
@@ -150,12 +252,35 @@ def _rgb(v) -> dict:
     return {"type": "rgb", "value": [float(x) for x in v]}
 
 
+def bsdf_dict(kd, ks, kr, kg, gloss_exponent: float) -> dict:
+    """The Mitsuba BSDF of one of our materials; ValueError when there is none that is identical."""
+    kd, ks, kr, kg = (np.asarray(x, dtype=np.float64) for x in (kd, ks, kr, kg))
+    if np.any(ks > 0):
+        raise ValueError("is not diffuse, mirror or glossy: its Phong highlight (ks) reflects the lights only, "
+                         "no Mitsuba BSDF does that")
+    if np.any(kr > 0):
+        if np.any(kd > 0) or np.any(kg > 0):
+            raise ValueError("is not diffuse, mirror or glossy: a mirror (kr) mixed with kd / kg")
+        return {"type": "conductor", "material": "none", "specular_reflectance": _rgb(kr)}
+    if np.any(kg > 0):
+        if not math.isfinite(gloss_exponent) or gloss_exponent < 1:
+            raise ValueError("glossy exponent must be >= 1")
+        d = {"type": "ibr_phong", "g": float(gloss_exponent)}
+        for k, c in enumerate("rgb"):
+            d["kd_" + c] = float(kd[k])
+            d["kg_" + c] = float(kg[k])
+        return d
+    return {"type": "diffuse", "reflectance": _rgb(kd)}
+
+
 def check_convertible(scene: RuntimeScene, camera: CameraParams) -> None:
     """Raise ValueError naming the first feature with no identical Mitsuba equivalent."""
     mt = scene.materials
     for i, name in enumerate(mt.names):
-        if np.any(mt.ks[i] > 0) or np.any(mt.kr[i] > 0) or np.any(mt.kg[i] > 0):
-            raise ValueError(f"material {name!r} is not diffuse (ks/kr/kg > 0)")
+        try:
+            bsdf_dict(mt.kd[i], mt.ks[i], mt.kr[i], mt.kg[i], float(mt.gloss_exponent[i]))
+        except ValueError as e:
+            raise ValueError(f"material {name!r} {e}") from None
         used = np.any(scene.tri_material == i)
         if used and np.any(mt.emission[i] > 0):
             raise ValueError(f"material {name!r} is emissive: Mitsuba's area emitter would also light "
@@ -171,18 +296,19 @@ def check_convertible(scene: RuntimeScene, camera: CameraParams) -> None:
 
 
 def runtime_to_mitsuba_dict(scene: RuntimeScene, camera: CameraParams, workdir: str | Path,
-                            spp: int = 16, sampler: str = "independent") -> dict:
+                            spp: int = 16, sampler: str = "independent", variant: str = MITSUBA_VARIANT) -> dict:
     """Mitsuba scene dict for ``scene`` seen by ``camera``; meshes are written to ``workdir``
     (which must outlive the ``mi.load_dict`` call)."""
-    mi = mitsuba()
+    mi = mitsuba(variant)
     check_convertible(scene, camera)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     d: dict = {"type": "scene", "integrator": integrator_dict("direct"),
-               "sensor": sensor_dict(camera, spp, sampler)}
+               "sensor": sensor_dict(camera, spp, sampler, variant)}
     mt = scene.materials
     for i in range(mt.count):
-        d[f"bsdf_{i}"] = {"type": "diffuse", "id": f"bsdf_{i}", "reflectance": _rgb(mt.kd[i])}
+        d[f"bsdf_{i}"] = {**bsdf_dict(mt.kd[i], mt.ks[i], mt.kr[i], mt.kg[i], float(mt.gloss_exponent[i])),
+                          "id": f"bsdf_{i}"}
     for oid in range(len(scene.object_names)):
         sel = scene.tri_object == oid
         if not np.any(sel):
@@ -220,9 +346,10 @@ def runtime_to_mitsuba_dict(scene: RuntimeScene, camera: CameraParams, workdir: 
 
 
 def runtime_to_mitsuba(scene: RuntimeScene, camera: CameraParams, workdir: str | Path, spp: int = 16,
-                       sampler: str = "independent"):
-    """``mi.Scene`` for ``scene`` seen by ``camera`` (see :func:`runtime_to_mitsuba_dict`)."""
-    return mitsuba().load_dict(runtime_to_mitsuba_dict(scene, camera, workdir, spp, sampler))
+                       sampler: str = "independent", variant: str = MITSUBA_VARIANT):
+    """``mi.Scene`` for ``scene`` seen by ``camera`` (see :func:`runtime_to_mitsuba_dict`), loaded
+    in ``variant``."""
+    return mitsuba(variant).load_dict(runtime_to_mitsuba_dict(scene, camera, workdir, spp, sampler, variant))
 
 
 def resampled_sensor(scene, sampler: str = "multijitter", spp: int = 16):
@@ -305,10 +432,11 @@ class MitsubaRender:
     integrator: dict
 
 
-def render(scene, kind: str, bounces: int = 0, spp: int = 256, seed: int = 0, sensor=None) -> MitsubaRender:
-    """Render a Mitsuba scene with the integrator matching ``kind`` / ``bounces`` (optionally
-    from another ``sensor``, e.g. :func:`resampled_sensor`)."""
-    mi = mitsuba()
+def render(scene, kind: str, bounces: int = 0, spp: int = 256, seed: int = 0, sensor=None,
+           variant: str = MITSUBA_VARIANT) -> MitsubaRender:
+    """Render a Mitsuba scene (loaded in ``variant``) with the integrator matching ``kind`` /
+    ``bounces`` (optionally from another ``sensor``, e.g. :func:`resampled_sensor`)."""
+    mi = mitsuba(variant)
     integ = integrator_dict(kind, bounces)
     t0 = time.perf_counter()
     img = mi.render(scene, sensor=0 if sensor is None else sensor, integrator=mi.load_dict(integ),

@@ -20,4 +20,6 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # (float32 point-light geometry with a float64 re-test of borderline rows).
 # 0.3.0: reference renders, LLF bakes and datasets (the reference's samples come from the
 # Owen-scrambled Sobol sampler, engine/sampler.py; camera samples unbiased at every spp).
-ENGINE_VERSION = "0.3.0"
+# 0.4.0: reference renders and everything baked from them (rect lights are seen by camera rays and
+# by mirror / glossy rays at chain hits and path vertices: caustic paths, visible lights).
+ENGINE_VERSION = "0.4.0"

@@ -19,6 +19,31 @@ n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
             sampled with M directions from the cos^g lobe around wr;
 - indirect: K diffuse paths per pixel (spread over the antialiasing samples), each
             with ``indirect_bounces`` bounces and next-event estimation at every vertex.
+- rect lights seen: a camera ray, or a ray whose last lobe was mirror or glossy (at a camera
+            chain hit or a path vertex), that meets a rect light's emitting side (either side if
+            two-sided) before any surface ends there with weight x the light's radiance. So light
+            reaches a diffuse surface through mirrors and glossy lobes (caustic paths: diffuse ->
+            mirror -> light), the lights show in mirrors and glossy surfaces, and camera rays see
+            them directly, as Mitsuba's area emitters are seen. A surface hides a light only when
+            it is nearer by more than the shadow rays' margin (SHADOW_SHORTEN), so an emissive
+            luminaire modelled at the light's place shows the light once. Diffuse path rays and
+            shadow rays pass through lights (and so does every ray through a one-sided light's
+            back): the diffuse lobe's light is next-event estimation's. A path vertex with no
+            bounce left still sends its mirror / glossy ray when the scene has rect lights,
+            counting only the light it meets, so every vertex gets the light of all its lobes and
+            ``indirect_bounces`` B stays Mitsuba's ``path`` with ``max_depth`` B + 2.
+            Point and directional lights cannot be met by a ray: they reach surfaces through kd
+            and ks only, never through a mirror or a glossy lobe.
+
+No multiple importance sampling is needed: next-event estimation evaluates only the kd and ks
+lobes, and rays that meet lights leave only from the kr and kg lobes (or the camera), so each
+(lobe, light) term of the rendering equation is estimated by exactly one strategy and the image
+is their plain sum; neither strategy estimates a term the other one does too, so nothing is
+counted twice or weighted. The price is variance where one strategy is poor: a glossy lobe much
+wider than the light it reflects finds it rarely (the ks lobe is the low-variance way to show a
+light's highlight). tests/engine/test_reference_caustics.py checks the sum numerically: the same
+Phong lobe as ks (light sampling) and as kg (BSDF sampling) gives the same radiance, and half of
+each gives it again, all equal to an independent quadrature.
 
 Sampling: every sample value comes from engine/sampler.py (Owen-scrambled Sobol), keyed by
 (seed, pixel, the sample's index among the pixel's samples, the dimension it serves): the pixel
@@ -45,16 +70,19 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import light_sample
-from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster, make_caster
+from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.shading import DualKernel, phong_pow
 
 INV_PI = 1.0 / math.pi
+_NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
+_NO_LIT_C = np.zeros((0, 3))
 
 # ray kinds in a wavefront batch
 KIND_CHAIN = 0  # camera ray or a mirror / glossy continuation of one
-KIND_PATH = 1  # an indirect (diffuse path) ray
+KIND_PATH = 1  # an indirect path ray whose last lobe was diffuse
+KIND_SPEC = 2  # an indirect path ray whose last lobe was mirror or glossy (it sees rect lights)
 
 # sample dimensions at a path vertex: derive_key(ray key, vertex, purpose)
 DIM_PIXEL = 1  # (vertex 0) position in the pixel
@@ -289,10 +317,14 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
 
 
 @DualKernel
-def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
+def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit, rect_lights,
           n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
-    glossy rays and K' indirect rays; path hits continue with one ray while bounces remain."""
+    glossy rays and K' indirect rays; path hits continue with one ray while bounces remain.
+    A path's last vertex (no bounce left) with a mirror or glossy lobe still sends one ray of
+    that lobe when the scene has rect lights (``rect_lights``): the light it meets completes the
+    vertex's direct light, as next-event estimation does for its kd / ks lobes; whatever else it
+    meets is dropped (its bounces are -1)."""
     for i in nb.prange(mat.shape[0]):
         m = mat[i]
         has_kr = kr[m, 0] > 0 or kr[m, 1] > 0 or kr[m, 2] > 0
@@ -315,6 +347,8 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
             if has_kd:
                 nin = k_per_hit
         elif bounces[i] > 0 and (has_kd or has_kr or has_kg):
+            npath = 1
+        elif bounces[i] == 0 and rect_lights and (has_kr or has_kg):
             npath = 1
         n_mirror[i] = nm
         n_glossy[i] = ngl
@@ -372,13 +406,15 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
             else:
                 ckey = key
                 cidx = sidx[i]
-                tot = ad + ar + ag
+                # a last vertex (no bounce left) looks for lights through its mirror / glossy lobes only
+                ad_v = ad if bounces[i] > 0 else 0.0
+                tot = ad_v + ar + ag
                 u = 0.0  # one lobe (e.g. diffuse only): u = 0 picks it, as any u would
-                if (ad > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
+                if (ad_v > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
                     u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix[i], cidx) * tot
-                if u < ad:
-                    lb, scale = 2, tot / ad
-                elif u < ad + ar:
+                if u < ad_v:
+                    lb, scale = 2, tot / ad_v
+                elif u < ad_v + ar:
                     lb, scale = 0, tot / ar
                 else:
                     lb, scale = 1, tot / ag
@@ -416,11 +452,16 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
             sidx_out[r] = cidx
             skey_out[r] = ckey
             # every diffuse bounce and every continuation of a path uses up one bounce
-            if kind[i] == KIND_PATH or lb == 2:
+            if kind[i] != KIND_CHAIN or lb == 2:
                 bounces_out[r] = bounces[i] - 1
             else:
                 bounces_out[r] = bounces[i]
-            kind_out[r] = KIND_PATH if lb == 2 else kind[i]
+            if lb == 2:
+                kind_out[r] = KIND_PATH
+            elif kind[i] == KIND_CHAIN:
+                kind_out[r] = KIND_CHAIN
+            else:
+                kind_out[r] = KIND_SPEC
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
@@ -479,14 +520,82 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, t
         skey_out[j] = skey[i]
 
 
+@DualKernel
+def _rect_hits(o32, d, prim, u, v, kind, weight, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s, lit, c_out):
+    """Rect lights seen by the rays that see lights: camera rays and mirror / glossy continuations
+    (``kind`` KIND_CHAIN or KIND_SPEC; diffuse path rays never do, next-event estimation covers
+    them). A ray that meets a rect light's emitting side (either side if two-sided) before its
+    first triangle ends there: ``lit`` True and ``c_out`` = weight x the light's radiance. A
+    triangle hides the light only when it is nearer than the light by more than the shadow rays'
+    margin (SHADOW_SHORTEN), so an emissive object modelled at the light never counts twice and a
+    light seen by a mirror ray is visible exactly where a shadow ray would reach it. A light's
+    back side (one-sided lights) is not there: the ray goes on, as every other ray does.
+    Origins are float32 relative to ``center``; the triangle's distance is rebuilt in float64
+    from its barycentrics."""
+    nrect = rc.shape[0]
+    for i in nb.prange(prim.shape[0]):
+        lit[i] = False
+        if kind[i] == KIND_PATH:
+            continue
+        ox = np.float64(o32[i, 0]) + center[0]
+        oy = np.float64(o32[i, 1]) + center[1]
+        oz = np.float64(o32[i, 2]) + center[2]
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        t_tri = np.inf
+        t = prim[i]
+        if t >= 0:
+            uu = np.float64(u[i])
+            vv = np.float64(v[i])
+            w0 = 1.0 - uu - vv
+            hx = w0 * tri_p[t, 0, 0] + uu * tri_p[t, 1, 0] + vv * tri_p[t, 2, 0]
+            hy = w0 * tri_p[t, 0, 1] + uu * tri_p[t, 1, 1] + vv * tri_p[t, 2, 1]
+            hz = w0 * tri_p[t, 0, 2] + uu * tri_p[t, 1, 2] + vv * tri_p[t, 2, 2]
+            t_tri = _dot(hx - ox, hy - oy, hz - oz, dx, dy, dz)
+        best = np.inf
+        hit = -1
+        for q in range(nrect):
+            if r_area[q] <= 0.0:
+                continue
+            n0, n1, n2 = r_n[q, 0], r_n[q, 1], r_n[q, 2]
+            den = _dot(dx, dy, dz, n0, n1, n2)
+            if not (den < 0.0 or (r2s[q] and den > 0.0)):
+                continue  # parallel, or the back of a one-sided light
+            wx, wy, wz = rc[q, 0] - ox, rc[q, 1] - oy, rc[q, 2] - oz
+            tq = _dot(wx, wy, wz, n0, n1, n2) / den
+            if not (tq > 0.0 and tq < best):
+                continue
+            # the hit point's coordinates along the edges: x - corner = a edge_u + b edge_v
+            px, py, pz = tq * dx - wx, tq * dy - wy, tq * dz - wz
+            ux, uy, uz = ru[q, 0], ru[q, 1], ru[q, 2]
+            vx, vy, vz = rv[q, 0], rv[q, 1], rv[q, 2]
+            a = _dot(py * vz - pz * vy, pz * vx - px * vz, px * vy - py * vx, n0, n1, n2) / r_area[q]
+            b = _dot(uy * pz - uz * py, uz * px - ux * pz, ux * py - uy * px, n0, n1, n2) / r_area[q]
+            if 0.0 <= a <= 1.0 and 0.0 <= b <= 1.0:
+                best = tq
+                hit = q
+        if hit >= 0 and not (t_tri < best * (1.0 - SHADOW_SHORTEN)):
+            lit[i] = True
+            c_out[i, 0] = weight[i, 0] * rL[hit, 0]
+            c_out[i, 1] = weight[i, 1] * rL[hit, 1]
+            c_out[i, 2] = weight[i, 2] * rL[hit, 2]
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_misses_and_emission(acc, prim, w, pix, background, idx_hit, mat_h, kind_h, w_h, pix_h,
-                                    emission, kd, ambient):
-    """Background where rays escape; emission + kd * ambient where camera/specular chains land.
-    Serial on purpose: many rays share a pixel."""
+                                    emission, kd, ambient, lit, lit_c):
+    """Rect lights where rays end on one (``lit``, contribution ``lit_c``; empty arrays: none),
+    background where rays escape, emission + kd * ambient where camera/specular chains land.
+    Serial on purpose: many rays share a pixel (and the order of the sums is the rays' order)."""
+    has_lit = lit.shape[0] > 0
+    if has_lit:
+        for i in range(prim.shape[0]):
+            if lit[i]:
+                q = pix[i]
+                for k in range(3):
+                    acc[q, k] += lit_c[i, k]
     if background[0] > 0 or background[1] > 0 or background[2] > 0:
         for i in range(prim.shape[0]):
-            if prim[i] < 0:
+            if prim[i] < 0 and not (has_lit and lit[i]):
                 q = pix[i]
                 for k in range(3):
                     acc[q, k] += w[i, k] * background[k]
@@ -880,7 +989,20 @@ class ReferenceRenderer:
                 prim, u, v = caster.intersect_local(o32, d32)
             timer.add("intersect", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            idx = np.flatnonzero(prim >= 0)
+            # rect lights seen by camera / mirror / glossy rays (a given first hit has no ray to test)
+            lit = _NO_LIT
+            lit_c = _NO_LIT_C
+            if lt.n_rect and not (it == 1 and first_hits is not None) and np.any(kind != KIND_PATH):
+                lit = np.empty(n, np.bool_)
+                lit_c = np.empty((n, 3))
+                _rect_hits.pick(serial)(o32, d, prim, u, v, kind, weight, sc.tri_p, sc.center, lt.rect_corner,
+                                        lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
+                                        lt.rect_radiance, lt.rect_two_sided, lit, lit_c)
+                # a ray that ends on a light hits nothing; a last vertex's light-seeking ray (bounces
+                # -1, see _plan) only counts the light it meets
+                idx = np.flatnonzero((prim >= 0) & ~lit & (bounces >= 0))
+            else:
+                idx = np.flatnonzero(prim >= 0)
             m = idx.size
             p = np.empty((m, 3))
             ng = np.empty((m, 3))
@@ -899,7 +1021,7 @@ class ReferenceRenderer:
                                       kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
                                             idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
-                                            mt.emission, mt.kd, sc.ambient)
+                                            mt.emission, mt.kd, sc.ambient, lit, lit_c)
             timer.add("shading", time.perf_counter() - t0)
             if m == 0:
                 break
@@ -916,8 +1038,7 @@ class ReferenceRenderer:
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
             _plan.pick(serial)(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth,
-                               params.glossy_samples,
-                  k_per_hit, n_mirror, n_glossy, n_ind, count)
+                               params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
             tot = int(first[-1] + count[-1])

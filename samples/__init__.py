@@ -5,6 +5,9 @@
 - ``teapot_glossy``: the Utah teapot on a glossy reflective floor.
 - ``teapot_spheres``: the teapot with several spheres; depth complexity >= 10 along x.
 - ``cornell_box``: the Cornell box with its measured dimensions as Mitsuba ships it (diffuse).
+- ``cornell_mirror_glossy``: the same box with a mirror sphere in place of the short box and a
+  glossy (kd + kg) tall box; the ceiling light is a rect light seen directly, with a black housing
+  behind it (the caustic cross-check against Mitsuba, docs/accuracy-reference.md).
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 direct lighting within LRMS 1 % of Mitsuba's ``direct`` integrator, and with the indirect term on
 within LRMS 3 % of Mitsuba's ``path``, on the Cornell box (Mitsuba's own scene file vs our sample
 JSON), a sphere + box scene with a point and a rect light (converted by ``bench.mitsuba_bridge``),
-and Mitsuba's stored floating-sphere reference.
+and Mitsuba's stored floating-sphere reference; within LRMS 1.5 % of ``path`` on the Cornell box
+with a mirror sphere and a glossy box (light reaching the walls through the mirror and the glossy
+lobe), whose glossy material Mitsuba renders with the bridge's ``ibr_phong`` plugin.
 
 Compared pixels: those our centre ray covers (``object_id >= 0``) minus those on or next to an
 emissive surface (the Cornell box luminaire); ``bench.mitsuba_crosscheck.comparison_mask``
@@ -11,7 +13,9 @@ explains why that exclusion makes the check stricter, not looser. The full-size 
 
 Sample counts are chosen so that Monte Carlo noise (which LRMS, a per-pixel RMS, does not average
 away) stays well below the thresholds: measured about 0.5 % (direct) and 1.5 % (path) on the
-Cornell box at this size. The whole file takes about a minute on 2 cores.
+Cornell box at this size. The caustics of the mirror scene are rare, bright path events in both
+renderers, so that scene runs at 12 x 12 with 65536 paths per pixel (measured 1.29 % and 1.30 %
+for two seeds; ours ~90 s, Mitsuba ~30 s on 2 busy cores).
 """
 
 from __future__ import annotations
@@ -41,24 +45,43 @@ pytestmark = pytest.mark.skipif(
 
 SMALL = mc.Budget(res=40, ours_spp=256, ours_area=16, ours_path_spp=256, ours_path_area=4, ours_paths=2048,
                   mi_direct_spp=4096, mi_path_spp=4096)
+SMALL_OF = {"cornell_mirror_glossy": replace(mc.SCENE_BUDGET["cornell_mirror_glossy"], res=12, ours_paths=65536,
+                                             mi_path_spp=131072)}
+CHECKS = [(name, kind) for name in mc.SCENES for kind in mc.KINDS_OF.get(name, mc.KINDS)]
+
+
+def _llvm_available() -> bool:
+    try:
+        mb.mitsuba(mb.LLVM_VARIANT)
+    except (RuntimeError, ImportError):
+        return False
+    finally:
+        mb.mitsuba(mb.MITSUBA_VARIANT)
+    return True
+
+
+needs_llvm = pytest.mark.skipif(not _llvm_available(), reason="Mitsuba's llvm_ad_rgb needs libLLVM (libllvm19)")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", mc.KINDS)
-@pytest.mark.parametrize("name", mc.SCENES)
+@pytest.mark.parametrize(("name", "kind"), CHECKS)
 def test_reference_renderer_agrees_with_mitsuba(name, kind, tmp_path):
-    prep = mc.prepare(name, SMALL.res, tmp_path)
-    r = mc.run(prep, kind, SMALL)
+    if name == "cornell_mirror_glossy" and not _llvm_available():
+        pytest.skip("Mitsuba's llvm_ad_rgb needs libLLVM (libllvm19)")
+    budget = SMALL_OF.get(name, SMALL)
+    prep = mc.prepare(name, budget.res, tmp_path)
+    r = mc.run(prep, kind, budget)
     rep = r.report
+    limit = mc.threshold(name, kind)
     assert rep.n_pixels > 0.4 * r.mask.size or name == "directional_sphere"
-    assert rep.lrms < mc.THRESHOLD[kind], (
-        f"{name} {kind}: LRMS {100 * rep.lrms:.3f} % >= {100 * mc.THRESHOLD[kind]:.0f} % "
+    assert rep.lrms < limit, (
+        f"{name} {kind}: LRMS {100 * rep.lrms:.3f} % >= {100 * limit:.1f} % "
         f"(fraction over 5 %: {100 * rep.fraction_over_5pct:.2f} %, PSNR {rep.psnr:.1f} dB, "
         f"ours {r.ours_settings}, Mitsuba {r.mi_settings})")
     # not a silent wash-out: the mean luminance agrees to well under the LRMS limit
     y_o = (r.ours[r.mask] @ np.array([0.2126, 0.7152, 0.0722])).mean()
     y_m = (r.ref[r.mask] @ np.array([0.2126, 0.7152, 0.0722])).mean()
-    assert abs(y_o / y_m - 1.0) < 0.3 * mc.THRESHOLD[kind]
+    assert abs(y_o / y_m - 1.0) < 0.3 * limit
 
 
 def test_image_orientation_matches_on_an_asymmetric_scene(tmp_path):
@@ -111,6 +134,7 @@ def test_bridge_refuses_what_mitsuba_would_render_differently(tmp_path):
     base = json.loads(json.dumps(mc.SPHERES_BOX))
     cases = {
         "not diffuse": lambda s: s["materials"][2].update(ks=[0.2, 0.2, 0.2], shininess=20.0),
+        "mirror mixed with kd": lambda s: s["materials"][2].update(kd=[0.3, 0.1, 0.1], kr=[0.5, 0.5, 0.5]),
         "emissive": lambda s: s["materials"][3].update(emission=[1.0, 1.0, 1.0]),
         "ambient": lambda s: s.update(ambient=[0.1, 0.1, 0.1]),
         "background": lambda s: s.update(background=[0.1, 0.1, 0.1]),
@@ -126,6 +150,48 @@ def test_bridge_refuses_what_mitsuba_would_render_differently(tmp_path):
     d = mb.runtime_to_mitsuba_dict(ls.runtime, ls.camera, tmp_path)
     assert d["sensor"]["fov_axis"] == "y" and d["sensor"]["film"]["rfilter"]["type"] == "box"
     assert mb.integrator_dict("path", 4)["max_depth"] == 6
+    # mirrors and kd + kg glossy materials have exact twins
+    doc = json.loads(json.dumps(base))
+    doc["materials"][2].update(kd=[0, 0, 0], kr=[0.9, 0.8, 0.7])
+    doc["materials"][3].update(kd=[0.1, 0.2, 0.3], kg=[0.4, 0.4, 0.4], gloss_exponent=50.0)
+    ls = load_scene(load_scene_json(json.dumps(doc)))
+    d = mb.runtime_to_mitsuba_dict(ls.runtime, ls.camera, tmp_path)
+    assert d["bsdf_2"]["type"] == "conductor" and d["bsdf_2"]["material"] == "none"
+    assert d["bsdf_2"]["specular_reflectance"]["value"] == pytest.approx([0.9, 0.8, 0.7])
+    assert d["bsdf_3"]["type"] == "ibr_phong" and d["bsdf_3"]["g"] == 50.0 and d["bsdf_3"]["kg_b"] == 0.4
+
+
+@needs_llvm
+@pytest.mark.parametrize("g", [1.0, 60.0])
+def test_bridge_glossy_plugin_matches_the_phong_lobe_integral(g):
+    """Mitsuba with the bridge's ibr_phong BSDF (kd + kg) on a floor under a rect light, seen from
+    straight above: kd/pi E + kg (g+2)/(2 pi) integral cos^(g+1) cos' / d^2 L dA, by quadrature,
+    independent of both renderers (tests/engine/test_reference_caustics.py checks ours the same
+    way)."""
+    from tests.engine.test_reference_caustics import _corner_factor, _glossy_quadrature
+
+    mi = mb.mitsuba(mb.LLVM_VARIANT)
+    try:
+        Le, size, h, kd, kg = 2.0, 2.0, 1.0, 0.3, 0.5
+        T = mi.ScalarTransform4f
+        floor = mb.bsdf_dict((kd,) * 3, (0,) * 3, (0,) * 3, (kg,) * 3, g)
+        scene = mi.load_dict({
+            "type": "scene",
+            "sensor": {"type": "orthographic",
+                       "to_world": T().look_at(origin=[0, 0.5, 0], target=[0, 0, 0], up=[0, 0, -1])
+                       @ T().scale([0.005, 0.005, 1]),
+                       "sampler": {"type": "multijitter", "sample_count": 16},
+                       "film": {"type": "hdrfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}}},
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90) @ T().scale(20), "bsdf": floor},
+            "light": {"type": "rectangle",
+                      "to_world": T().translate([0, h, 0]) @ T().rotate([1, 0, 0], 90) @ T().scale(size / 2),
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": Le}}},
+        })
+        img = mb.render(scene, "path", 1, spp=16384, variant=mb.LLVM_VARIANT).radiance
+        want = kd * Le * 4 * _corner_factor(size / 2, size / 2, h) + kg * _glossy_quadrature(g, size, h, Le)
+        assert float(img[..., 1].mean()) == pytest.approx(want, rel=0.01)
+    finally:
+        mb.mitsuba(mb.MITSUBA_VARIANT)
 
 
 def test_directional_sphere_partially_covered_pixels_agree_too(tmp_path):

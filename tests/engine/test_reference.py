@@ -153,7 +153,8 @@ def _corner_factor(a, b, c):
 @pytest.mark.parametrize("two_sided", [False, True])
 def test_rect_light_matches_form_factor(two_sided):
     Le, a, b, h = 3.0, 1.0, 0.6, 0.5
-    cam = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 8, 8, ortho_height=0.01)
+    # the camera looks down from under the light (camera rays that meet a light's emitting side show it)
+    cam = CameraParams("orthographic", (0, 0.25, 0), (0, 0, 0), (0, 0, -1), 8, 8, ortho_height=0.01)
     # edges chosen so cross(edge_u, edge_v) points down (-y): the light faces the floor
     light = dict(type="rect", corner=(-a / 2, h, -b / 2), edge_u=(a, 0.0, 0.0), edge_v=(0.0, 0.0, b),
                  radiance=(Le, Le, Le), two_sided=two_sided)
