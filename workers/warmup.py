@@ -253,6 +253,7 @@ WARMUP_SCENE: dict[str, Any] = {
 sphere, lit by a point, a directional and a rect light (every light kind of the scene format)."""
 
 _BAKE = {"ldc_resolution": 8, "max_layers": 4, "area_light_samples": 4, "llf": "always", "llf_f": 1,
+         "indirect": {"mode": "off"},
          "llf_resolution": 4, "llf_chunk": 6, "llf_params": {"glossy_samples": 2, "area_light_samples": 1}}
 """A tiny bake of the warm-up scene: LDC 8 px per axis, LLF of 6 directions at 4 px, one chunk."""
 

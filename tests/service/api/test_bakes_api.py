@@ -17,7 +17,9 @@ from redis import Redis
 
 from tests.service.api.conftest import small_scene
 
-BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1}
+BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1, "indirect": {"mode": "off"}}
+"""Direct light only where a test is not about indirect light (the default indirect pass adds 12
+chunk jobs per bake)."""
 
 
 def _diffuse_scene() -> dict[str, Any]:
