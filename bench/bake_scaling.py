@@ -110,30 +110,36 @@ def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: di
         time.sleep(1.0)  # the workers' start-up Redis traffic is not the bake's
         cpu0 = [_cpu_s(p.pid) for p in procs]
         bytes0 = _store_bytes(store_root) if store_root is not None else 0
+        stats0 = redis.info("commandstats")
         cmds0 = int(redis.info("stats")["total_commands_processed"])
         t0 = time.perf_counter()
         key, job = bakes.enqueue_bake(redis, store, scene_id, params, owner=None)
         assert job is not None, "the bake was cached: delete it first"
+        # follow the merge job with ONE command per poll (its status field), so the bake's own
+        # Redis traffic is the total minus the polls
         polls = 0
         while True:
-            st = bakes.bake_status(redis, store, scene_id, key, params)
+            status = redis.hget(job.key, "status")
             polls += 1
-            if st.state == "finished":
+            if status in (b"finished", b"failed", b"canceled", b"stopped"):
                 break
-            if st.state in ("failed", "canceled", "missing"):
-                raise RuntimeError(f"bake {st.state}: {st.error}")
             time.sleep(0.25)
         wall = time.perf_counter() - t0
         cmds1 = int(redis.info("stats")["total_commands_processed"])
-        # this script's own commands: one status poll's cost, measured now, times the polls
-        c0 = int(redis.info("stats")["total_commands_processed"])
-        bakes.bake_status(redis, store, scene_id, key, params)
-        per_poll = int(redis.info("stats")["total_commands_processed"]) - c0 - 1
+        stats1 = redis.info("commandstats")
+        per_poll = 1
+        st = bakes.bake_status(redis, store, scene_id, key, params)
+        if st.state != "finished":
+            raise RuntimeError(f"bake {st.state}: {st.error}")
         cpu = sum(_cpu_s(p.pid) - c for p, c in zip(procs, cpu0, strict=True))
         written = (_store_bytes(store_root) - bytes0) if store_root is not None else 0
     finally:
         _stop(procs)
     redis_ops = cmds1 - cmds0 - polls * per_poll - 2
+    by_cmd = {k.removeprefix("cmdstat_"): int(v["calls"]) - int(stats0.get(k, {}).get("calls", 0))
+              for k, v in stats1.items()}
+    by_cmd["hget"] = by_cmd.get("hget", 0) - polls
+    by_cmd = dict(sorted(((k, v) for k, v in by_cmd.items() if v > 0), key=lambda kv: -kv[1])[:12])
     manifest = read_manifest(store, key)
     assert manifest is not None
     jobs: dict[str, float] = {}
@@ -159,7 +165,8 @@ def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: di
     ind = manifest.result["plan"].get("indirect", {})
     summary = ind.get("summary", {})
     ind_time = sum(float(a.get("time", 0.0)) for a in ind.get("axes", []))
-    result = {"workers": n, "wall_s": wall, "cpu_s": cpu, "redis_ops": redis_ops, "redis_ops_per_poll": per_poll,
+    result = {"workers": n, "wall_s": wall, "cpu_s": cpu, "redis_ops": redis_ops, "redis_ops_by_command": by_cmd,
+              "jobs": len(st.parts) + 2,
               "store_bytes_written": written, "indirect": {
                   "state": ind.get("state"), "paths_total": summary.get("paths_total", 0),
                   "paths_mean": summary.get("paths_mean", 0.0), "sides": summary.get("sides", 0),
