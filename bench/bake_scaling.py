@@ -334,7 +334,11 @@ def write_gi_docs(report: dict[str, Any]) -> None:
         f"Indirect pass: {ind['paths_total'] / 1e6:.1f} M paths over {ind['sides']} sample sides "
         f"({ind['paths_mean']:.0f} per side; noise p95 {100 * (ind['rel_stderr_p95_of_chunks'] or 0):.2f} %, "
         f"{100 * (ind['met_target'] or 0):.0f} % of the sides met the target) in {ind['time_s']:.1f} s of chunk "
-        f"time: {pps / 1e3:.0f} k paths/s per core. The plan estimated {est.get('indirect_cpu_s', 0.0):.1f} s "
+        f"time: {pps / 1e3:.0f} k paths/s per second of job time, "
+        f"{ind['paths_total'] / max(one['cpu_s'], 1e-9) / 1e3:.0f} k per CPU second of the whole bake. "
+        f"Redis commands per bake with 1 worker, by command: "
+        f"{', '.join(f'{k} {v}' for k, v in one.get('redis_ops_by_command', {}).items())}. "
+        f"The plan estimated {est.get('indirect_cpu_s', 0.0):.1f} s "
         f"of indirect CPU ({est.get('indirect_paths_expected', 0) / 1e6:.1f} M paths at "
         f"{est.get('paths_per_s', 0.0) / 1e3:.0f} k paths/s). Raw data: `docs/data/bake_scaling_gi.json`.",
     ]
