@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import pytest
 from redis import Redis
 
 from api_schemas.scene import Scene
@@ -74,6 +75,7 @@ def created(store: ObjectStore, st: BakePublic) -> dict[str, Any]:
     return {p.name: read_manifest(store, p.key).created_at for p in st.parts}  # type: ignore[union-attr]
 
 
+@pytest.mark.slow  # four bakes (17-25 s on the shared 2 cores)
 def test_indirect_chunks_merge_bit_identical_and_a_lost_or_failed_chunk_is_redone_alone(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
