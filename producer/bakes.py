@@ -303,11 +303,25 @@ def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, spe
     """Enqueue a job per part (``specs`` carry their ``key``) and make the merge job wait for them.
     An identical part job already queued or running is shared. An indirect chunk whose axis is
     among ``specs`` waits for that axis's job; one whose axis is in the store already runs at once.
-    Returns the part job ids."""
+    Returns the part job ids.
+
+    ``specs`` lists every axis before its chunks (``plan_parts``' order). When an axis job is
+    created anew here (its previous job was canceled, failed or is gone), a chunk job still
+    deferred behind that previous job is replaced: RQ dropped its link when the old axis job was
+    deleted, so it would wait forever."""
     ids: list[str] = []
     axis_jobs = {int(s["axis"]): scene_bake_part_job_id(str(s["key"])) for s in specs if s["kind"] == "ldc_axis"}
+    renewed: set[int] = set()
     for spec in specs:
         pkey = str(spec["key"])
+        pid = scene_bake_part_job_id(pkey)
+        previous = fetch_job(redis, pid)
+        prev_status = previous.get_status(refresh=False) if previous is not None else None
+        if spec["kind"] == "ldc_axis" and prev_status not in ACTIVE_STATUSES:
+            renewed.add(int(spec["axis"]))
+        if (spec["kind"] == "ldc_indirect" and int(spec["axis"]) in renewed and previous is not None
+                and prev_status == JobStatus.DEFERRED):
+            previous.delete(remove_from_queue=True)
         func = {"ldc_axis": SCENE_BAKE_LDC_JOB, "ldc_indirect": SCENE_BAKE_INDIRECT_JOB}.get(
             spec["kind"], SCENE_BAKE_LLF_JOB)
         part = {k: v for k, v in spec.items() if k not in ("key", "weight")}
@@ -318,7 +332,7 @@ def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, spe
             # at once naming it (instead of waiting forever), and the merge job reports both
             depends = Dependency(jobs=[axis_jobs[int(spec["axis"])]], allow_failure=True)
         job = enqueue_unique(
-            redis, "bake", func, payload, scene_bake_part_job_id(pkey), timeout=BAKE_TIMEOUT_S,
+            redis, "bake", func, payload, pid, timeout=BAKE_TIMEOUT_S,
             meta=_meta("part", key, owner, artifact_key=pkey, part=spec["name"]),
             retry=chunk_retry() if spec["kind"] == "ldc_indirect" else job_retry(),
             description=f"bake {spec['name']} of scene {scene_id[:12]}", owner=owner, depends_on=depends,

@@ -202,3 +202,36 @@ def test_the_plan_refuses_a_bake_over_the_cpu_limit_with_its_estimate(
     assert "planning the bake failed" in st.error and "estimated CPU time" in st.error
     assert "M indirect paths" in st.error and "limit of 60 s" in st.error and "indirect.mode=off" in st.error
     assert st.parts == [] and worker_store.list("artifacts/") == []
+
+
+def test_a_canceled_axis_cancels_its_waiting_chunks_and_a_new_request_redoes_them(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
+) -> None:
+    """RQ never releases the jobs waiting for a canceled job: the axis's chunks would wait forever,
+    and the bake with them. The bake reads as canceled instead, and the next request redoes the
+    axis and its chunks (fresh chunk jobs: the waiting ones lost their link to the axis job)."""
+    from producer.cancel import cancel
+
+    params = BakeParams.model_validate({**PARAMS.model_dump(), "indirect": {**CHEAP, "chunks": 2}})
+    pub = put_scene(worker_store, tiny_scene(), {}, None)
+    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
+    w = worker_process("bake")
+    deadline = time.monotonic() + 60
+    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+    while not st.parts:
+        assert time.monotonic() < deadline, w.log()
+        time.sleep(0.02)
+        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+    victim = st.parts[2]  # ldc-axis-2: queued behind the other two on the one worker
+    assert victim.name == "ldc-axis-2" and victim.job_id is not None
+    cancel(redis_conn, victim.job_id)
+    st = wait_bake(redis_conn, worker_store, pub.id, key, params, 60, w)
+    assert st.state == "canceled" and st.error is not None and victim.name in st.error, st
+    assert {p.name: p.state for p in st.parts}["ldc-indirect-2-0"] == "queued"  # still waiting, never released
+    key2, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
+    assert key2 == key and job is not None
+    st = wait_bake(redis_conn, worker_store, pub.id, key, params, 60, w)
+    assert st.state == "finished", (st.error, w.log())
+    planned: dict[str, Any] = fetch_job(redis_conn, scene_bake_plan_job_id(key)).return_value()  # type: ignore[union-attr,assignment]
+    assert planned["enqueued"] == ["ldc-axis-2", "ldc-indirect-2-0", "ldc-indirect-2-1"]
+    assert st.plan is not None and st.plan["indirect"]["state"] == "baked"
