@@ -14,7 +14,15 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, Field, StringConstraints, ValidationInfo, WithJsonSchema, field_validator
+from pydantic import (
+    AfterValidator,
+    Field,
+    StringConstraints,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from api_schemas.common import FrozenModel
@@ -142,6 +150,79 @@ class LLFRenderParams(FrozenModel):
 
 LLFMode = Literal["auto", "always", "never"]
 
+IndirectMode = Literal["auto", "off"]
+
+INDIRECT_RANGES: dict[str, tuple[float, float]] = {
+    "noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
+    "round_paths": (1, 256)}
+"""Allowed ranges of the indirect settings: those of ``engine.newviews.indirect.IndirectParams.RANGES``
+(the API process imports no numba, so they are repeated here; tests/workers/test_indirect_parts.py
+checks that they agree, and the worker re-validates with the engine's own class)."""
+
+MAX_INDIRECT_CHUNKS = 256
+"""Most indirect chunk jobs per LDC axis."""
+
+
+def _in_range(name: str) -> AfterValidator:
+    """The field's range as an ``[lo, hi]`` check whose message names the whole range."""
+    lo, hi = INDIRECT_RANGES[name]
+
+    def check(value: Any) -> Any:
+        if not lo <= value <= hi:
+            raise PydanticCustomError("indirect_range", "indirect {name} must be in [{lo}, {hi}], got {value}",
+                                      {"name": name, "lo": lo, "hi": hi, "value": value})
+        return value
+
+    return AfterValidator(check)
+
+
+def _range_doc(name: str, doc: str) -> Any:
+    lo, hi = INDIRECT_RANGES[name]
+    return Field(description=doc, json_schema_extra={"minimum": lo, "maximum": hi})
+
+
+class IndirectBakeParams(FrozenModel):
+    """Indirect diffuse light (interreflection, colour bleeding) of the LDC samples, path traced at
+    bake time to a noise target per sample side (``engine/newviews/indirect.py``), and in the light
+    field's radiance when the bake has one.
+
+    The pass runs as ``chunks`` jobs per LDC axis (each a contiguous run of the axis's samples,
+    after that axis's direct-lit part); the result does not depend on the split."""
+
+    mode: IndirectMode = "auto"
+    """``auto``: bake indirect light when the effect analysis says it can arrive (the plan says why
+    not otherwise, and nothing is paid); ``off``: direct light only."""
+    noise: Annotated[float, _in_range("noise"), _range_doc("noise", "relative standard error per side")] = 0.02
+    """Target relative standard error of each sample side's radiance (luminance): 0.02 = 2 % of its
+    brightness; a side stops tracing paths when its estimate reaches it (or at ``max_paths``)."""
+    min_paths: Annotated[int, _in_range("min_paths"), _range_doc("min_paths", "paths before the test")] = 32
+    """Paths every sample side traces before the noise test (a multiple of ``round_paths``, at
+    least two rounds: the error is estimated from the spread of the round means)."""
+    max_paths: Annotated[int, _in_range("max_paths"), _range_doc("max_paths", "most paths per side")] = 512
+    """Most paths one sample side traces (the cost bound, >= ``min_paths``)."""
+    bounces: Annotated[int, _in_range("bounces"), _range_doc("bounces", "diffuse bounces per path")] = 3
+    """Diffuse vertices per path (1: one bounce, the colour bleeding; more: higher interreflection)."""
+    round_paths: Annotated[int, _in_range("round_paths"), _range_doc("round_paths", "paths per round")] = 16
+    """Paths per side per round, a power of two (a stratified block of the side's sample sequence)."""
+    chunks: Annotated[int, Field(ge=1, le=MAX_INDIRECT_CHUNKS)] = 4
+    """Jobs per LDC axis for the indirect pass (the unit of parallelism across bake workers)."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> IndirectBakeParams:
+        r = self.round_paths
+        if r & (r - 1):
+            raise PydanticCustomError("indirect_round_paths", "indirect round_paths must be a power of two "
+                                      "(1, 2, 4, ..., 256), got {value}", {"value": r})
+        if self.min_paths % r or self.min_paths < 2 * r:
+            raise PydanticCustomError(
+                "indirect_min_paths", "indirect min_paths must be a multiple of round_paths ({round}) and at "
+                "least {low}, got {value}", {"round": r, "low": 2 * r, "value": self.min_paths})
+        if self.max_paths < self.min_paths:
+            raise PydanticCustomError(
+                "indirect_max_paths", "indirect max_paths ({max}) must be at least min_paths ({min})",
+                {"max": self.max_paths, "min": self.min_paths})
+        return self
+
 
 class BakeParams(FrozenModel):
     """What a bake computes: the layered depth cube (LDC) and, when the scene has glossy or mirror
@@ -167,6 +248,9 @@ class BakeParams(FrozenModel):
     llf_chunk: Annotated[int, Field(ge=1, le=1026)] = 16
     """LLF directions per bake job (the unit of parallelism across bake workers)."""
     llf_params: LLFRenderParams = LLFRenderParams()
+    indirect: IndirectBakeParams = IndirectBakeParams()
+    """Indirect light (on by default: without it a closed room misses a large share of its light,
+    ~40 % in a Cornell box); ``{"mode": "off"}`` bakes direct light only."""
 
 
 MissingBake = Literal["fail", "bake"]
@@ -252,11 +336,12 @@ BakePartState = Literal["queued", "started", "finished", "failed", "canceled", "
 
 
 class BakePart(FrozenModel):
-    """One unit of a bake: an LDC axis or a chunk of LLF directions, its own artifact and job."""
+    """One unit of a bake: an LDC axis, a chunk of an axis's indirect pass or a chunk of LLF
+    directions, its own artifact and job."""
 
     name: str
-    """``ldc-axis-0`` .. ``ldc-axis-2``, ``llf-views-<first>-<last>``."""
-    kind: Literal["ldc_axis", "llf_views"]
+    """``ldc-axis-0`` .. ``ldc-axis-2``, ``ldc-indirect-<axis>-<i>``, ``llf-views-<first>-<last>``."""
+    kind: Literal["ldc_axis", "ldc_indirect", "llf_views"]
     key: Sha256
     """Artifact key of the part (content-addressed: the bake's key + the part's name)."""
     state: BakePartState

@@ -13,8 +13,19 @@ the cores actually free (the report prints the machine's load average).
 
     python -m bench.bake_scaling [--scene teapot_glossy] [--ldc-resolution 192] [--llf-f 4]
                                  [--llf-resolution 24] [--llf-chunk 11] [--threads 1]
+    python -m bench.bake_scaling --gi [--scene cornell_box] [--ldc-resolution 160] [--chunks 6]
+                                 [--noise 0.02] [--max-paths 512] [--bounces 3]
 
-Writes the ``bake_scaling`` block of docs/performance.md and docs/data/bake_scaling.json.
+Without ``--gi`` the bake has no indirect light (``indirect.mode=off``) and the run writes the
+``bake_scaling`` block of docs/performance.md and docs/data/bake_scaling.json. With ``--gi`` the
+bake path-traces indirect light (``indirect.mode=auto``, ``--chunks`` jobs per LDC axis) and the
+run writes the ``bake_scaling_gi`` block of docs/scaling.md and docs/data/bake_scaling_gi.json.
+
+Besides wall time, each run reports the CPU time of the worker processes (their own and their
+reaped job horses', from /proc), the Redis commands the bake cost (INFO's
+``total_commands_processed``, minus this script's own polling), the bytes written to the object
+store, and the indirect paths traced (the paths per second per core that ``IBR_BAKE_PATHS_PER_S``
+should be set to).
 """
 
 from __future__ import annotations
@@ -35,6 +46,19 @@ from bench.docs_writer import replace_block
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "performance.md"
 DATA = ROOT / "docs" / "data" / "bake_scaling.json"
+GI_DOC = ROOT / "docs" / "scaling.md"
+GI_DATA = ROOT / "docs" / "data" / "bake_scaling_gi.json"
+_TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds of a process and its reaped children (utime + stime + cutime + cstime)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return sum(int(x) for x in fields[11:15]) / _TICK
+
+
+def _store_bytes(root: Path) -> int:
+    return sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
 
 
 def _start_workers(n: int, env: dict[str, str], logdir: Path) -> list[subprocess.Popen[bytes]]:
@@ -76,31 +100,53 @@ def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: di
              logdir: Path) -> dict[str, Any]:
     from producer import bakes
     from producer.artifacts import read_manifest
+    from producer.names import scene_bake_job_id, scene_bake_part_job_id, scene_bake_plan_job_id
     from producer.queue import fetch_job
 
     procs = _start_workers(n, env, logdir)
+    store_root = Path(str(store.root)) if hasattr(store, "root") else None
     try:
         _wait_workers(redis, n)
+        time.sleep(1.0)  # the workers' start-up Redis traffic is not the bake's
+        cpu0 = [_cpu_s(p.pid) for p in procs]
+        bytes0 = _store_bytes(store_root) if store_root is not None else 0
+        stats0 = redis.info("commandstats")
+        cmds0 = int(redis.info("stats")["total_commands_processed"])
         t0 = time.perf_counter()
         key, job = bakes.enqueue_bake(redis, store, scene_id, params, owner=None)
         assert job is not None, "the bake was cached: delete it first"
+        # follow the merge job with ONE command per poll (its status field), so the bake's own
+        # Redis traffic is the total minus the polls
+        polls = 0
         while True:
-            st = bakes.bake_status(redis, store, scene_id, key, params)
-            if st.state == "finished":
+            status = redis.hget(job.key, "status")
+            polls += 1
+            if status in (b"finished", b"failed", b"canceled", b"stopped"):
                 break
-            if st.state in ("failed", "canceled", "missing"):
-                raise RuntimeError(f"bake {st.state}: {st.error}")
-            time.sleep(0.05)
+            time.sleep(0.25)
         wall = time.perf_counter() - t0
+        cmds1 = int(redis.info("stats")["total_commands_processed"])
+        stats1 = redis.info("commandstats")
+        per_poll = 1
+        st = bakes.bake_status(redis, store, scene_id, key, params)
+        if st.state != "finished":
+            raise RuntimeError(f"bake {st.state}: {st.error}")
+        cpu = sum(_cpu_s(p.pid) - c for p, c in zip(procs, cpu0, strict=True))
+        written = (_store_bytes(store_root) - bytes0) if store_root is not None else 0
     finally:
         _stop(procs)
+    redis_ops = cmds1 - cmds0 - polls * per_poll - 2
+    by_cmd = {k.removeprefix("cmdstat_"): int(v["calls"]) - int(stats0.get(k, {}).get("calls", 0))
+              for k, v in stats1.items()}
+    by_cmd["hget"] = by_cmd.get("hget", 0) - polls
+    by_cmd = dict(sorted(((k, v) for k, v in by_cmd.items() if v > 0), key=lambda kv: -kv[1])[:12])
     manifest = read_manifest(store, key)
     assert manifest is not None
     jobs: dict[str, float] = {}
     workers_used: dict[str, str] = {}
     overhead = {"fork_import_s": 0.0, "load_scene_s": 0.0, "compute_s": 0.0}
     for part in st.parts:
-        pj = fetch_job(redis, bakes.part_job_id(part.key))
+        pj = fetch_job(redis, scene_bake_part_job_id(part.key))
         pm = read_manifest(store, part.key)
         if pj is not None and pj.started_at and pj.ended_at and pm is not None:
             dur = (pj.ended_at - pj.started_at).total_seconds()
@@ -108,14 +154,28 @@ def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: di
             workers_used[part.name] = str(pj.worker_name)
             t = pm.result.get("timings", {})
             overhead["fork_import_s"] += max(0.0, dur - float(t.get("job_total", 0.0)))
-            overhead["load_scene_s"] += float(t.get("load_scene", 0.0))
-            overhead["compute_s"] += float(t.get("job_total", 0.0)) - float(t.get("load_scene", 0.0))
+            load = float(t.get("load_scene", t.get("load", 0.0)))
+            overhead["load_scene_s"] += load
+            overhead["compute_s"] += float(t.get("job_total", 0.0)) - load
     serial: dict[str, float] = {}
-    for name, jid in (("plan", bakes.bake_plan_job_id(key)), ("merge", bakes.bake_job_id(key))):
+    for name, jid in (("plan", scene_bake_plan_job_id(key)), ("merge", scene_bake_job_id(key))):
         j = fetch_job(redis, jid)
         if j is not None and j.started_at and j.ended_at:
             serial[name] = (j.ended_at - j.started_at).total_seconds()
-    result = {"workers": n, "wall_s": wall, "parts": len(st.parts), "part_job_s": jobs,
+    ind = manifest.result["plan"].get("indirect", {})
+    summary = ind.get("summary", {})
+    ind_time = sum(float(a.get("time", 0.0)) for a in ind.get("axes", []))
+    result = {"workers": n, "wall_s": wall, "cpu_s": cpu, "redis_ops": redis_ops, "redis_ops_by_command": by_cmd,
+              "jobs": len(st.parts) + 2,
+              "store_bytes_written": written, "indirect": {
+                  "state": ind.get("state"), "paths_total": summary.get("paths_total", 0),
+                  "paths_mean": summary.get("paths_mean", 0.0), "sides": summary.get("sides", 0),
+                  "rel_stderr_p95_of_chunks": summary.get("rel_stderr_p95_of_chunks"),
+                  "met_target": summary.get("met_target"), "time_s": ind_time,
+                  "paths_per_s": summary.get("paths_total", 0) / ind_time if ind_time else None},
+              "estimates": manifest.result.get("estimates", {}),
+              "n_chunks": sum(p.kind == "ldc_indirect" for p in st.parts),
+              "parts": len(st.parts), "part_job_s": jobs,
               "part_time_split_s": overhead, "serial_job_s": serial,
               "part_job_sum_s": sum(jobs.values()), "workers_used": sorted(set(workers_used.values())),
               "plan": {k: manifest.result["plan"][k] for k in ("bake_llf", "llf_directions", "needs_llf")},
@@ -134,11 +194,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--llf-resolution", type=int, default=24)
     ap.add_argument("--llf-chunk", type=int, default=11)
     ap.add_argument("--threads", type=int, default=1, help="numba threads per worker process")
+    ap.add_argument("--gi", action="store_true", help="bake indirect light (docs/scaling.md block)")
+    ap.add_argument("--chunks", type=int, default=6, help="--gi: indirect jobs per LDC axis")
+    ap.add_argument("--noise", type=float, default=0.02, help="--gi: noise target")
+    ap.add_argument("--max-paths", type=int, default=512, help="--gi: most paths per sample side")
+    ap.add_argument("--bounces", type=int, default=3, help="--gi: diffuse bounces per path")
     ap.add_argument("--no-docs", action="store_true", help="print only, do not write docs/")
     ap.add_argument("--docs-only", action="store_true", help="re-render the docs block from the saved JSON")
     args = ap.parse_args(argv)
     if args.docs_only:
-        write_docs(json.loads(DATA.read_text()))
+        if args.gi:
+            write_gi_docs(json.loads(GI_DATA.read_text()))
+        else:
+            write_docs(json.loads(DATA.read_text()))
         return 0
 
     from api_schemas import load_scene_file
@@ -152,8 +220,11 @@ def main(argv: list[str] | None = None) -> int:
 
     scene = load_scene_file(sample_path(args.scene))
     meshes = {o.path: (SAMPLES_DIR / o.path).read_bytes() for o in scene.objects if isinstance(o, MeshFileObject)}
-    params = BakeParams(ldc_resolution=args.ldc_resolution, max_layers=args.max_layers, llf_f=args.llf_f,
-                        llf_resolution=args.llf_resolution, llf_chunk=args.llf_chunk)
+    indirect = ({"mode": "auto", "chunks": args.chunks, "noise": args.noise, "max_paths": args.max_paths,
+                 "bounces": args.bounces} if args.gi else {"mode": "off"})
+    params = BakeParams.model_validate({
+        "ldc_resolution": args.ldc_resolution, "max_layers": args.max_layers, "llf_f": args.llf_f,
+        "llf_resolution": args.llf_resolution, "llf_chunk": args.llf_chunk, "indirect": indirect})
     with tempfile.TemporaryDirectory(prefix="ibr-bench-", dir="/tmp") as tmp:
         tmpd = Path(tmp)
         server = start_embedded_redis(tmpd / "redis")
@@ -177,14 +248,18 @@ def main(argv: list[str] | None = None) -> int:
               "command": "python -m bench.bake_scaling " + " ".join(argv if argv is not None else sys.argv[1:])}
     print(json.dumps({k: v for k, v in report.items() if k != "runs"}, indent=2))
     for r in runs:
-        print(f"{r['workers']} worker(s): {r['wall_s']:.1f} s wall, {r['parts']} parts, sum of part jobs "
-              f"{r['part_job_sum_s']:.1f} s, workers used {r['workers_used']}")
+        print(f"{r['workers']} worker(s): {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, {r['parts']} parts, "
+              f"sum of part jobs {r['part_job_sum_s']:.1f} s, workers used {r['workers_used']}, "
+              f"{r['redis_ops']} Redis commands {r['redis_ops_by_command']}, "
+              f"{r['store_bytes_written'] / 2**20:.1f} MiB written; "
+              f"indirect {r['indirect']}")
     print(f"speed-up 1 -> 2 workers: {speedup:.2f}x")
     if args.no_docs:
         return 0
-    DATA.parent.mkdir(parents=True, exist_ok=True)
-    DATA.write_text(json.dumps(report, indent=2) + "\n")
-    write_docs(report)
+    data = GI_DATA if args.gi else DATA
+    data.parent.mkdir(parents=True, exist_ok=True)
+    data.write_text(json.dumps(report, indent=2) + "\n")
+    (write_gi_docs if args.gi else write_docs)(report)
     return 0
 
 
@@ -223,6 +298,55 @@ def write_docs(report: dict[str, Any]) -> None:
               "the plan and merge jobs are serial. The same mechanism spreads a bake over machines sharing "
               "Redis and the object store. Raw data: `docs/data/bake_scaling.json`."]
     replace_block(DOC, "bake_scaling", "\n".join(lines), title="Performance")
+
+
+def write_gi_docs(report: dict[str, Any]) -> None:
+    """The ``bake_scaling_gi`` block of docs/scaling.md (``--gi --docs-only`` re-renders it from
+    docs/data/bake_scaling_gi.json)."""
+    one, two = report["runs"]
+    p = report["params"]
+    ip = p["indirect"]
+    lb, la = report["loadavg_before"][0], report["loadavg_after"][0]
+    ind = one["indirect"]
+    lines = [
+        "### Measured: a bake with indirect light on 1 and 2 bake workers",
+        "",
+        f"`flock /tmp/bench.lock {report['command'].strip()}` — scene `{report['scene']}`, LDC "
+        f"{p['ldc_resolution']} px x {p['max_layers']} layers, indirect light to a noise target of "
+        f"{ip['noise'] * 100:g} % ({ip['min_paths']}..{ip['max_paths']} paths per sample side, {ip['bounces']} "
+        f"bounces) in {ip['chunks']} chunks per axis: {one['parts']} parts ({one['n_chunks']} indirect chunks) + "
+        f"plan + merge jobs. {report['threads_per_worker']} numba thread per worker, {report['cpu_count']} cores "
+        f"(1-minute load average {lb:.1f} before, {la:.1f} after: the cores are shared with other work).",
+        "",
+        "| bake workers | wall time | CPU time (workers + their job horses) | sum of part job times "
+        + ("| Redis commands " if "redis_ops_by_command" in one else
+           "| Redis commands (a run that polled the bake's full status every 0.25 s: over-counted) ")
+        + "| bytes written to the store |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in report["runs"]:
+        lines.append(f"| {r['workers']} | {r['wall_s']:.1f} s | {r['cpu_s']:.1f} s | {r['part_job_sum_s']:.1f} s | "
+                     f"{r['redis_ops']} | {r['store_bytes_written'] / 2**20:.2f} MiB |")
+    est = one.get("estimates", {})
+    pps = ind.get("paths_per_s") or 0.0
+    lines += [
+        "",
+        f"**Speed-up with 2 workers: {report['speedup']:.2f}x** wall (CPU time {one['cpu_s']:.1f} s vs "
+        f"{two['cpu_s']:.1f} s: the work is the same; what is lost is the serial plan / axis / merge stages and the "
+        "last chunk's tail). "
+        f"Indirect pass: {ind['paths_total'] / 1e6:.1f} M paths over {ind['sides']} sample sides "
+        f"({ind['paths_mean']:.0f} per side; noise p95 {100 * (ind['rel_stderr_p95_of_chunks'] or 0):.2f} %, "
+        f"{100 * (ind['met_target'] or 0):.0f} % of the sides met the target) in {ind['time_s']:.1f} s of chunk "
+        f"time: {pps / 1e3:.0f} k paths/s per second of job time, "
+        f"{ind['paths_total'] / max(one['cpu_s'], 1e-9) / 1e3:.0f} k per CPU second of the whole bake. "
+        + (f"Redis commands per bake with 1 worker, by command: "
+           f"{', '.join(f'{k} {v}' for k, v in one['redis_ops_by_command'].items())}. "
+           if one.get("redis_ops_by_command") else "")
+        + f"The plan estimated {est.get('indirect_cpu_s', 0.0):.1f} s "
+        f"of indirect CPU ({est.get('indirect_paths_expected', 0) / 1e6:.1f} M paths at "
+        f"{est.get('paths_per_s', 0.0) / 1e3:.0f} k paths/s). Raw data: `docs/data/bake_scaling_gi.json`.",
+    ]
+    replace_block(GI_DOC, "bake_scaling_gi", "\n".join(lines), title="Scaling bakes over workers")
 
 
 if __name__ == "__main__":

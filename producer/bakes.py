@@ -6,18 +6,27 @@ A bake request ``(scene_id, BakeParams)`` has a content-addressed key
 ``artifact_key("bake", {"scene": scene_id}, params, ENGINE_VERSION)``. Its work is split into PARTS,
 each its own RQ job on the ``bake`` queue and its own artifact in the store:
 
-- ``ldc-axis-0`` .. ``ldc-axis-2``: one LDI of the LDC each (``engine.newviews.ldc.bake_ldc_axis``);
+- ``ldc-axis-0`` .. ``ldc-axis-2``: one LDI of the LDC each, direct light only
+  (``engine.newviews.ldc.bake_ldc_axis``);
+- ``ldc-indirect-<axis>-<i>`` (i < ``indirect.chunks``): the indirect light of chunk i of that axis's
+  n samples, ``[i n // chunks, (i + 1) n // chunks)`` (``engine.newviews.ldc.indirect_chunk``), only
+  when ``indirect.mode`` is ``auto`` and the effect plan says indirect light can arrive. Each waits
+  for its axis's job (an RQ dependency: it needs the direct-lit axis, and n is known only then);
+  the axis and its chunks are combined by ``with_indirect`` wherever the bake is loaded (merge job,
+  render worker), bit for bit what a one-process ``bake_ldc(..., indirect=...)`` computes;
 - ``llf-views-<first>-<last>``: a chunk of ``llf_chunk`` light-field directions
   (``engine.newviews.llf.bake_llf_views``), only when the effect analysis says the scene needs a light field
   (``llf: "auto"``) or the request forces it (``llf: "always"``).
 
 Part key = ``artifact_key("bake-part", {"scene": scene_id, "bake": bake_key}, spec, ENGINE_VERSION)``
-where ``spec`` names the part (``{"name", "kind", "axis"}`` or ``{"name", "kind", "start", "stop"}``).
+where ``spec`` names the part (``{"name", "kind", "axis"}``, ``{"name", "kind", "axis", "chunk", "chunks"}``
+or ``{"name", "kind", "start", "stop"}``).
 
 Jobs (ids are deterministic, so identical requests share them):
 
-- ``bake-plan-<key>`` loads the scene, runs the effect analysis, checks the memory estimate
-  against the limit, and enqueues one job per part whose artifact is NOT in the store yet (a re-run
+- ``bake-plan-<key>`` loads the scene, runs the effect analysis, estimates the bake's memory and
+  CPU time and refuses it over the configured limits (``IBR_MAX_BAKE_PART_BYTES``,
+  ``IBR_MAX_BAKE_CPU_S``), and enqueues one job per part whose artifact is NOT in the store yet (a re-run
   after a crash or a deleted part redoes only the missing parts);
 - ``bake-part-<part key>`` computes one part and publishes it;
 - ``bake-<key>`` (the bake's own job, the one a client follows) depends on the plan job and on
@@ -39,6 +48,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from redis import Redis
+from rq import Retry
 from rq.job import Dependency, Job, JobStatus
 from rq.serializers import JSONSerializer
 
@@ -48,6 +58,7 @@ from producer.artifacts import artifact_key, delete_artifact, manifest_key, read
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeInUse, UnknownScene
 from producer.names import (
+    SCENE_BAKE_INDIRECT_JOB,
     SCENE_BAKE_LDC_JOB,
     SCENE_BAKE_LLF_JOB,
     SCENE_BAKE_MERGE_JOB,
@@ -72,6 +83,7 @@ __all__ = [
     "delete_bake",
     "enqueue_bake",
     "enqueue_parts",
+    "indirect_part_specs",
     "ldc_part_specs",
     "list_bakes",
     "merge_stuck",
@@ -90,6 +102,13 @@ BAKE_MAX_TOTAL_BYTES = 8 << 30
 """Bytes of a whole bake in memory (its parts' actual sizes, known once they are baked): the merge
 job and a render worker load all of it, so a bigger bake is failed by the merge job before loading,
 with its size and what to lower."""
+
+def chunk_retry() -> Retry:
+    """Retries of an indirect chunk: one, for transient failures only (store or Redis trouble, a
+    worker that died; see workers/runner.py), so a chunk that fails twice fails the bake, which
+    names it; a re-request then redoes only the missing chunks."""
+    return Retry(max=1, interval=[5])
+
 
 LDC_SAMPLE_BYTES_UPPER = 20 + 57 + 16
 """Per LDC sample: LDI (20) + attributes (57) + one visibility word per side (16), for the API's
@@ -133,9 +152,19 @@ def llf_part_specs(params: BakeParams) -> list[PartSpec]:
     return out
 
 
-def plan_parts(params: BakeParams, bake_llf: bool) -> list[PartSpec]:
-    """The parts of a bake: three LDC axes, plus the LLF chunks when the light field is baked."""
-    return ldc_part_specs() + (llf_part_specs(params) if bake_llf else [])
+def indirect_part_specs(params: BakeParams) -> list[PartSpec]:
+    """``indirect.chunks`` chunks of each axis's indirect pass (their sample ranges are fixed at run
+    time from the axis's sample count)."""
+    k = params.indirect.chunks
+    return [{"name": f"ldc-indirect-{a}-{i}", "kind": "ldc_indirect", "axis": a, "chunk": i, "chunks": k}
+            for a in range(3) for i in range(k)]
+
+
+def plan_parts(params: BakeParams, bake_llf: bool, bake_indirect: bool = False) -> list[PartSpec]:
+    """The parts of a bake: three LDC axes, the chunks of their indirect pass when it runs, and the
+    LLF chunks when the light field is baked."""
+    return (ldc_part_specs() + (indirect_part_specs(params) if bake_indirect else [])
+            + (llf_part_specs(params) if bake_llf else []))
 
 
 def part_key(scene_id: str, key: str, spec: PartSpec) -> str:
@@ -146,6 +175,12 @@ def part_weight(params: BakeParams, spec: PartSpec) -> float:
     """Rough relative cost of a part (rays cast), for the aggregated progress."""
     if spec["kind"] == "ldc_axis":
         return float(params.ldc_resolution ** 2) * 2.0
+    if spec["kind"] == "ldc_indirect":
+        # ~2 samples per pixel, 2 sides, ~ (min_paths + a share of the rest) paths of ~(bounces + 1)
+        # segments and as many shadow rays each, split over the axis's chunks
+        ip = params.indirect
+        paths = ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)
+        return float(params.ldc_resolution ** 2) * 4.0 * paths * 2.0 * (ip.bounces + 1) / ip.chunks
     n = int(spec["stop"]) - int(spec["start"])
     lp = params.llf_params
     per_sample = lp.spp * (1.0 + min(lp.max_depth, 1) * lp.glossy_samples * 0.25)
@@ -266,17 +301,41 @@ def enqueue_bake(
 def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, specs: list[PartSpec],
                   owner: str | None) -> list[str]:
     """Enqueue a job per part (``specs`` carry their ``key``) and make the merge job wait for them.
-    An identical part job already queued or running is shared. Returns the part job ids."""
+    An identical part job already queued or running is shared. An indirect chunk whose axis is
+    among ``specs`` waits for that axis's job; one whose axis is in the store already runs at once.
+    Returns the part job ids.
+
+    ``specs`` lists every axis before its chunks (``plan_parts``' order). When an axis job is
+    created anew here (its previous job was canceled, failed or is gone), a chunk job still
+    deferred behind that previous job is replaced: RQ dropped its link when the old axis job was
+    deleted, so it would wait forever."""
     ids: list[str] = []
+    axis_jobs = {int(s["axis"]): scene_bake_part_job_id(str(s["key"])) for s in specs if s["kind"] == "ldc_axis"}
+    renewed: set[int] = set()
     for spec in specs:
         pkey = str(spec["key"])
-        func = SCENE_BAKE_LDC_JOB if spec["kind"] == "ldc_axis" else SCENE_BAKE_LLF_JOB
+        pid = scene_bake_part_job_id(pkey)
+        previous = fetch_job(redis, pid)
+        prev_status = previous.get_status(refresh=False) if previous is not None else None
+        if spec["kind"] == "ldc_axis" and prev_status not in ACTIVE_STATUSES:
+            renewed.add(int(spec["axis"]))
+        if (spec["kind"] == "ldc_indirect" and int(spec["axis"]) in renewed and previous is not None
+                and prev_status == JobStatus.DEFERRED):
+            previous.delete(remove_from_queue=True)
+        func = {"ldc_axis": SCENE_BAKE_LDC_JOB, "ldc_indirect": SCENE_BAKE_INDIRECT_JOB}.get(
+            spec["kind"], SCENE_BAKE_LLF_JOB)
         part = {k: v for k, v in spec.items() if k not in ("key", "weight")}
         payload = {**_payload(scene_id, key, params), "part": part, "part_key": pkey}
+        depends = None
+        if spec["kind"] == "ldc_indirect" and int(spec["axis"]) in axis_jobs:
+            # the chunk needs its direct-lit axis; allow_failure: a failed axis makes the chunk fail
+            # at once naming it (instead of waiting forever), and the merge job reports both
+            depends = Dependency(jobs=[axis_jobs[int(spec["axis"])]], allow_failure=True)
         job = enqueue_unique(
-            redis, "bake", func, payload, scene_bake_part_job_id(pkey), timeout=BAKE_TIMEOUT_S,
-            meta=_meta("part", key, owner, artifact_key=pkey, part=spec["name"]), retry=job_retry(),
-            description=f"bake {spec['name']} of scene {scene_id[:12]}", owner=owner,
+            redis, "bake", func, payload, pid, timeout=BAKE_TIMEOUT_S,
+            meta=_meta("part", key, owner, artifact_key=pkey, part=spec["name"]),
+            retry=chunk_retry() if spec["kind"] == "ldc_indirect" else job_retry(),
+            description=f"bake {spec['name']} of scene {scene_id[:12]}", owner=owner, depends_on=depends,
         )
         assert job is not None
         ids.append(job.id)
@@ -287,9 +346,10 @@ def enqueue_parts(redis: Redis, scene_id: str, key: str, params: BakeParams, spe
 _DEAD = frozenset({JobStatus.CANCELED, JobStatus.STOPPED})
 
 
-def merge_stuck(redis: Redis, merge: Job) -> bool:
+def merge_stuck(redis: Redis, merge: Job, _depth: int = 0) -> bool:
     """A deferred merge job that can never run: one of the jobs it waits for was canceled or
-    stopped (RQ does not release dependents of those) or has vanished, and none is still active.
+    stopped (RQ does not release dependents of those) or has vanished, or is itself a deferred job
+    that can never run (an indirect chunk behind a canceled axis), and none is still active.
     The bake then counts as canceled, and a new request re-plans it (redoing the missing parts)."""
     if merge.get_status(refresh=False) != JobStatus.DEFERRED:
         return False
@@ -297,7 +357,12 @@ def merge_stuck(redis: Redis, merge: Job) -> bool:
     if not ids:
         return False
     deps = fetch_jobs(redis, ids)
-    statuses = [d.get_status(refresh=False) if d is not None else None for d in deps]
+    statuses: list[JobStatus | None] = []
+    for d in deps:
+        st = d.get_status(refresh=False) if d is not None else None
+        if d is not None and st == JobStatus.DEFERRED and _depth < 2 and merge_stuck(redis, d, _depth + 1):
+            st = JobStatus.CANCELED  # an indirect chunk waiting for a canceled axis: as dead as that
+        statuses.append(st)
     if any(st in ACTIVE_STATUSES for st in statuses):
         return False
     return any(st is None or st in _DEAD for st in statuses)
@@ -436,7 +501,8 @@ def bake_jobs_active(redis: Redis, key: str, part_keys: list[str]) -> list[str]:
 def delete_bake(redis: Redis, store: ObjectStore, scene_id: str, key: str, params: BakeParams) -> None:
     """Remove a bake: its manifest, every part artifact and its record. Raises :class:`BakeInUse`
     while one of its jobs is queued or running (cancel ``bake-<key>`` first)."""
-    part_keys = [part_key(scene_id, key, s) for s in plan_parts(params, bake_llf=True)]
+    part_keys = [part_key(scene_id, key, s) for s in plan_parts(params, bake_llf=True,
+                                                                bake_indirect=params.indirect.mode != "off")]
     active = bake_jobs_active(redis, key, part_keys)
     if active:
         raise BakeInUse(f"bake {key} has {len(active)} queued or running job(s) ({active[0]}, ...); "

@@ -20,6 +20,7 @@ __all__ = [
     "RELIGHT_KIND",
     "RENDER_JOB",
     "SCENE_BAKE_LDC_JOB",
+    "SCENE_BAKE_INDIRECT_JOB",
     "SCENE_BAKE_LLF_JOB",
     "SCENE_BAKE_MERGE_JOB",
     "SCENE_BAKE_PLAN_JOB",
@@ -45,6 +46,8 @@ SCENE_BAKE_PLAN_JOB = "workers.jobs.bake.bake_plan_job"
 """Plans a scene bake (effect analysis, memory check) and enqueues its missing parts."""
 SCENE_BAKE_LDC_JOB = "workers.jobs.bake.bake_ldc_axis_job"
 """Bakes one LDC axis (a scene bake part)."""
+SCENE_BAKE_INDIRECT_JOB = "workers.jobs.bake.bake_ldc_indirect_job"
+"""Path-traces the indirect light of one chunk of an LDC axis's samples (a scene bake part)."""
 SCENE_BAKE_LLF_JOB = "workers.jobs.bake.bake_llf_views_job"
 """Bakes one chunk of LLF directions (a scene bake part)."""
 SCENE_BAKE_MERGE_JOB = "workers.jobs.bake.bake_merge_job"

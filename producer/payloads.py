@@ -24,6 +24,7 @@ __all__ = [
     "GenerateJobPayload",
     "InvalidPayload",
     "LDCAxisPart",
+    "LDCIndirectPart",
     "LLFViewsPart",
     "RelightJobPayload",
     "RenderJobPayload",
@@ -66,6 +67,24 @@ class LDCAxisPart(FrozenModel):
     axis: Annotated[int, Field(ge=0, le=2)]
 
 
+class LDCIndirectPart(FrozenModel):
+    """Chunk ``chunk`` of ``chunks`` of an LDC axis's indirect pass: samples
+    ``[chunk * n // chunks, (chunk + 1) * n // chunks)`` of the axis's n samples (n is known once the
+    axis is baked, so the job computes its range at run time)."""
+
+    name: str
+    kind: Literal["ldc_indirect"]
+    axis: Annotated[int, Field(ge=0, le=2)]
+    chunk: Annotated[int, Field(ge=0)]
+    chunks: Annotated[int, Field(ge=1)]
+
+    @model_validator(mode="after")
+    def _range(self) -> LDCIndirectPart:
+        if self.chunk >= self.chunks:
+            raise ValueError("chunk must be < chunks")
+        return self
+
+
 class LLFViewsPart(FrozenModel):
     name: str
     kind: Literal["llf_views"]
@@ -82,7 +101,7 @@ class LLFViewsPart(FrozenModel):
 class SceneBakePartJobPayload(SceneBakeJobPayload):
     """Payload of a scene bake part job: the bake's payload plus the part and its artifact key."""
 
-    part: LDCAxisPart | LLFViewsPart = Field(discriminator="kind")
+    part: LDCAxisPart | LDCIndirectPart | LLFViewsPart = Field(discriminator="kind")
     part_key: Sha256
 
 

@@ -414,14 +414,23 @@ def bake(
     llf_f: Annotated[int | None, typer.Option(help="LLF directions: 4 f^2 + 2")] = None,
     llf_resolution: Annotated[int | None, typer.Option(help="LLF view resolution")] = None,
     llf_chunk: Annotated[int | None, typer.Option(help="LLF directions per bake job")] = None,
+    indirect: Annotated[str | None, typer.Option(help="Indirect light: auto (when it can arrive) or off")] = None,
+    noise: Annotated[float | None, typer.Option(help="Indirect light: relative noise target per sample")] = None,
+    max_paths: Annotated[int | None, typer.Option(help="Indirect light: most paths per sample side")] = None,
+    bounces: Annotated[int | None, typer.Option(help="Indirect light: diffuse bounces per path")] = None,
+    indirect_chunks: Annotated[int | None, typer.Option(help="Indirect light: jobs per LDC axis")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the bake's parts with a progress bar")] = False,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
 ) -> None:
     """Bake a scene's layered depth cube (+ light field when needed) for the LDC render methods; prints the key."""
-    params = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
+    params: dict[str, Any] = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
                                 "llf_f": llf_f, "llf_resolution": llf_resolution,
                                 "llf_chunk": llf_chunk}.items() if v is not None}
+    ind = {k: v for k, v in {"mode": indirect, "noise": noise, "max_paths": max_paths, "bounces": bounces,
+                             "chunks": indirect_chunks}.items() if v is not None}
+    if ind:
+        params["indirect"] = ind
     scene_id = _scene_id_of(scene, api_url, api_key)
     with _client(api_url, api_key) as c:
         b = _call(lambda: c.bake(scene_id, params))
@@ -435,6 +444,12 @@ def bake(
         if b.plan is not None:
             typer.echo(f"plan: light field {'yes' if b.plan.get('bake_llf') else 'no'} ({b.plan.get('reason')}); "
                        f"parts: {', '.join(p.name for p in b.parts)}", err=True)
+            gi = b.plan.get("indirect") or {}
+            summary = gi.get("summary") or {}
+            noise_txt = (f", noise p95 {summary['rel_stderr_p95_of_chunks'] * 100:.2f} % (target "
+                         f"{summary['noise_target'] * 100:.2f} %), {summary['paths_mean']:.0f} paths per side"
+                         if "rel_stderr_p95_of_chunks" in summary else "")
+            typer.echo(f"indirect light: {gi.get('state')} ({gi.get('reason')}){noise_txt}", err=True)
         if b.artifact is not None and b.artifact.result.get("sizes"):
             typer.echo(f"sizes: {b.artifact.result['sizes']}", err=True)
     typer.echo(b.key)

@@ -77,7 +77,7 @@ from producer.names import DATASET_BAKE_KIND
 from producer.payloads import CompositeJobPayload, RelightJobPayload, RenderJobPayload
 from producer.renders import render_artifact_key
 from producer.store.local import LocalStore
-from workers.jobs.bake import bake_ldc_axis_job, bake_llf_views_job, bake_plan_doc
+from workers.jobs.bake import bake_ldc_axis_job, bake_ldc_indirect_job, bake_llf_views_job, bake_plan_doc
 from workers.jobs.common import json_safe, load_stored_scene, set_worker_store
 from workers.jobs.datasets import NPZ, baked_to_bytes, composite_job, relight_job, set_caches
 from workers.jobs.render import render_job, set_renderer_cache
@@ -253,6 +253,7 @@ WARMUP_SCENE: dict[str, Any] = {
 sphere, lit by a point, a directional and a rect light (every light kind of the scene format)."""
 
 _BAKE = {"ldc_resolution": 8, "max_layers": 4, "area_light_samples": 4, "llf": "always", "llf_f": 1,
+         "indirect": {"mode": "off"},
          "llf_resolution": 4, "llf_chunk": 6, "llf_params": {"glossy_samples": 2, "area_light_samples": 1}}
 """A tiny bake of the warm-up scene: LDC 8 px per axis, LLF of 6 directions at 4 px, one chunk."""
 
@@ -389,14 +390,19 @@ class _Run:
         merge job would (the plan and merge jobs need Redis; the render job reads only this)."""
 
         bkey = bake_key(self.scene_id, params)
-        specs = [{**spec, "key": part_key(self.scene_id, bkey, spec)} for spec in plan_parts(params, with_llf)]
-        for spec in specs:
+        scene = load_stored_scene(self.store, self.scene_id).runtime
+        plan_doc = bake_plan_doc(scene, params, analyze(scene))
+        with_indirect = plan_doc["indirect"]["state"] == "planned"
+        specs = [{**spec, "key": part_key(self.scene_id, bkey, spec)}
+                 for spec in plan_parts(params, with_llf, with_indirect)]
+        jobs = {"ldc_axis": bake_ldc_axis_job, "ldc_indirect": bake_ldc_indirect_job, "llf_views": bake_llf_views_job}
+        for spec in specs:  # in plan order: an axis before its indirect chunks
             part = {k: v for k, v in spec.items() if k != "key"}
             payload = {"scene_id": self.scene_id, "bake_key": bkey, "params": params.model_dump(mode="json"),
                        "part": part, "part_key": spec["key"]}
-            (bake_ldc_axis_job if spec["kind"] == "ldc_axis" else bake_llf_views_job)(payload)
-        scene = load_stored_scene(self.store, self.scene_id).runtime
-        plan_doc = bake_plan_doc(scene, params, analyze(scene))
+            jobs[spec["kind"]](payload)
+        if with_indirect:
+            plan_doc["indirect"]["state"] = "baked"
         result = json.loads(json.dumps({"plan": plan_doc, "parts": specs}, default=str))
         write_artifact(self.store, bkey, "bake", {"scene": self.scene_id}, params.model_dump(mode="json"),
                        ENGINE_VERSION, {"plan.json": (json.dumps(plan_doc, sort_keys=True).encode(),

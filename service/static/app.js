@@ -324,7 +324,8 @@ function sizeViewport() {
 
 function bakeParams() {
   if (bake.params) return bake.params;
-  return { ldc_resolution: Number($("bake-res").value), llf: $("bake-llf").value };
+  return { ldc_resolution: Number($("bake-res").value), llf: $("bake-llf").value,
+           indirect: { mode: $("bake-indirect").value } };
 }
 
 function requestBody(method = currentMethod()) {
@@ -546,7 +547,8 @@ async function runCompare(me) {
 const bake = { params: null, controller: null, key: null };
 
 function bakeLabel(p) {
-  return `LDC ${p.ldc_resolution}, llf ${p.llf}${p.llf !== "never" ? ` f${p.llf_f}` : ""}`;
+  const gi = p.indirect && p.indirect.mode === "off" ? ", no GI" : "";
+  return `LDC ${p.ldc_resolution}, llf ${p.llf}${p.llf !== "never" ? ` f${p.llf_f}` : ""}${gi}`;
 }
 
 async function loadBakes() {
@@ -581,6 +583,7 @@ function useBake(b) {
   bake.key = b.key;
   $("bake-res").value = String(b.params.ldc_resolution);
   $("bake-llf").value = b.params.llf;
+  $("bake-indirect").value = b.params.indirect ? b.params.indirect.mode : "auto";
   for (const btn of $("bake-list").querySelectorAll("button")) btn.setAttribute("aria-pressed", String(btn.dataset.key === b.key));
   if (b.state !== "finished") followBake(b);
   if (currentMethod().needsBake) changed();
@@ -593,8 +596,12 @@ function showBake(b) {
   $("bake-progress").hidden = false;
   $("bake-bar").value = b.state === "finished" ? 1 : b.progress.fraction;
   const pct = `${Math.round($("bake-bar").value * 100)}%`;
-  $("bake-stage").textContent = b.state === "finished" ? `done (${pct})${b.cached ? ", already baked" : ""}`
-    : `${b.state} · ${b.progress.stage} ${pct}${b.error ? ` — ${b.error}` : ""}`;
+  const ind = b.plan && b.plan.indirect;
+  const gi = !ind ? "" : ind.state === "baked" && ind.summary
+    ? ` · indirect light: ${(ind.summary.rel_stderr_p95_of_chunks * 100).toFixed(1)} % noise (p95)`
+    : ` · indirect light: ${ind.state}${ind.state === "skipped" ? ` (${ind.reason})` : ""}`;
+  $("bake-stage").textContent = b.state === "finished" ? `done (${pct})${b.cached ? ", already baked" : ""}${gi}`
+    : `${b.state} · ${b.progress.stage} ${pct}${gi}${b.error ? ` — ${b.error}` : ""}`;
   $("bake-stage").dataset.state = b.state;
   $("bake-parts").replaceChildren(...b.parts.map((p) => {
     const li = document.createElement("li");
@@ -1463,7 +1470,7 @@ function bindControls() {
   });
   $("provenance").addEventListener("change", () => updateProvenanceView());
   $("bake").addEventListener("click", () => startBake());
-  for (const id of ["bake-res", "bake-llf"]) {
+  for (const id of ["bake-res", "bake-llf", "bake-indirect"]) {
     $(id).addEventListener("change", () => {
       bake.params = null; bake.key = null;
       for (const b of $("bake-list").querySelectorAll("button")) b.setAttribute("aria-pressed", "false");

@@ -71,6 +71,9 @@ def test_ldc_without_bake_says_what_to_do(page: Page) -> None:
 
 def test_bake_progress_reaches_done_then_ldc_view(page: Page) -> None:
     loads = page.evaluate("window.__preview.loads")
+    # direct light only: this test is about the preview's bake flow, not indirect light (which would
+    # add 12 chunk jobs and ~10 s of path tracing at LDC 64)
+    page.select_option("#bake-indirect", "off")
     page.click("#bake")
     expect(page.locator("#bake-progress")).to_be_visible()
     fractions: list[float] = []
@@ -84,6 +87,7 @@ def test_bake_progress_reaches_done_then_ldc_view(page: Page) -> None:
     expect(page.locator("#bake-stage")).to_contain_text("done")
     assert fractions == sorted(fractions)  # progress only moves forward
     expect(page.locator("#bake-parts li[data-state=finished]")).to_have_count(3)  # the three LDC axes
+    expect(page.locator("#bake-stage")).to_contain_text("indirect light: off")
     shot(page, "11-bake-done")
     # the page renders the LDC view it was waiting for
     last = wait_for_load(page, loads, timeout=120_000)

@@ -13,6 +13,7 @@ PATHS = {
     "RENDER_JOB": "workers.jobs.render.render_job",
     "SCENE_BAKE_PLAN_JOB": "workers.jobs.bake.bake_plan_job",
     "SCENE_BAKE_LDC_JOB": "workers.jobs.bake.bake_ldc_axis_job",
+    "SCENE_BAKE_INDIRECT_JOB": "workers.jobs.bake.bake_ldc_indirect_job",
     "SCENE_BAKE_LLF_JOB": "workers.jobs.bake.bake_llf_views_job",
     "SCENE_BAKE_MERGE_JOB": "workers.jobs.bake.bake_merge_job",
     "DATASET_BAKE_JOB": "workers.jobs.datasets.bake_job",

@@ -17,7 +17,9 @@ from redis import Redis
 
 from tests.service.api.conftest import small_scene
 
-BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1}
+BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1, "indirect": {"mode": "off"}}
+"""Direct light only where a test is not about indirect light (the default indirect pass adds 12
+chunk jobs per bake)."""
 
 
 def _diffuse_scene() -> dict[str, Any]:
@@ -45,6 +47,26 @@ def _poll(c: TestClient, url: str, done: tuple[str, ...], timeout: float = 120.0
 
 def _fields(r: Any) -> set[str]:
     return {e["field"] for e in r.json()["errors"]}
+
+
+def test_indirect_settings_out_of_range_are_422_with_the_allowed_range(client: TestClient) -> None:
+    sid = _scene(client)
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"indirect": {"noise": 0.0001, "bounces": 40, "mode": "always",
+                                                                  "chunks": 0}})
+    assert r.status_code == 422, r.text
+    msgs = {e["field"]: e["message"] for e in r.json()["errors"]}
+    assert set(msgs) == {"indirect.noise", "indirect.bounces", "indirect.mode", "indirect.chunks"}, msgs
+    assert "[0.001, 0.5]" in msgs["indirect.noise"] and "[1, 16]" in msgs["indirect.bounces"]
+    assert "auto" in msgs["indirect.mode"] and "off" in msgs["indirect.mode"] and "1" in msgs["indirect.chunks"]
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"indirect": {"min_paths": 64, "max_paths": 40000000}})
+    assert r.status_code == 422 and "[2, 65536]" in r.json()["errors"][0]["message"], r.text
+    r = client.post(f"/v1/scenes/{sid}/bakes", json={"indirect": {"min_paths": 40}})  # not a multiple of 16
+    assert r.status_code == 422 and "multiple of round_paths (16)" in r.text, r.text
+    r = client.post("/v1/renders", json={"scene_id": sid, "method": "ldc", "bake": {"indirect": {"max_paths": 1}}})
+    assert r.status_code == 422 and "[2, 65536]" in r.text  # the render's bake is the same model
+    # the schema says the ranges too
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["IndirectBakeParams"]["properties"]
+    assert (schema["noise"]["minimum"], schema["noise"]["maximum"]) == (0.001, 0.5)
 
 
 def test_bad_bake_and_render_params_are_422_naming_the_field(client: TestClient) -> None:

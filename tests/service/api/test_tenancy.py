@@ -19,7 +19,7 @@ from tests.service.api.test_datasets import multipart, sha, subset, with_shas
 
 A = {"Authorization": "Bearer alice"}
 B = {"Authorization": "Bearer bob"}
-BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1}
+BAKE = {"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1, "indirect": {"mode": "off"}}
 
 
 @pytest.fixture

@@ -26,7 +26,10 @@ from tests.fixtures.redis import WorkerProcess
 from tests.workers.queue.jobs_for_tests import tiny_scene
 
 StartWorker = Callable[..., WorkerProcess]
-SMALL = BakeParams(ldc_resolution=24, max_layers=8, area_light_samples=1)
+SMALL = BakeParams.model_validate({"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1,
+                                    "indirect": {"mode": "off"}})
+"""Direct light only: these tests are about the part / job mechanism (test_indirect_parts.py bakes
+indirect light); the default indirect pass would add 12 chunk jobs (~10 s) to each."""
 
 
 def diffuse_scene() -> Scene:
@@ -215,7 +218,7 @@ def test_a_failed_plan_fails_the_bake_with_its_reason(
     """Past the API (whose bound is checked first), the plan job refuses a bake over the part limit
     with the engine's estimate; the merge job then fails the bake with that reason instead of
     waiting forever, and nothing is baked."""
-    params = BakeParams(ldc_resolution=4096, max_layers=256)
+    params = BakeParams.model_validate({"ldc_resolution": 4096, "max_layers": 256, "indirect": {"mode": "off"}})
     pub = put_scene(worker_store, diffuse_scene(), {}, None)
     key, job = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
     assert job is not None
