@@ -195,14 +195,14 @@ class IndirectBakeParams(FrozenModel):
     noise: Annotated[float, _in_range("noise"), _range_doc("noise", "relative standard error per side")] = 0.02
     """Target relative standard error of each sample side's radiance (luminance): 0.02 = 2 % of its
     brightness; a side stops tracing paths when its estimate reaches it (or at ``max_paths``)."""
-    min_paths: Annotated[int, _in_range("min_paths"), _range_doc("min_paths", "paths before the test")] = 32
+    min_paths: Annotated[int, _in_range("min_paths"), _range_doc("min_paths", "paths before the test")] = 64
     """Paths every sample side traces before the noise test (a multiple of ``round_paths``, at
     least two rounds: the error is estimated from the spread of the round means)."""
-    max_paths: Annotated[int, _in_range("max_paths"), _range_doc("max_paths", "most paths per side")] = 512
+    max_paths: Annotated[int, _in_range("max_paths"), _range_doc("max_paths", "most paths per side")] = 1024
     """Most paths one sample side traces (the cost bound, >= ``min_paths``)."""
     bounces: Annotated[int, _in_range("bounces"), _range_doc("bounces", "diffuse bounces per path")] = 3
     """Diffuse vertices per path (1: one bounce, the colour bleeding; more: higher interreflection)."""
-    round_paths: Annotated[int, _in_range("round_paths"), _range_doc("round_paths", "paths per round")] = 16
+    round_paths: Annotated[int, _in_range("round_paths"), _range_doc("round_paths", "paths per round")] = 8
     """Paths per side per round, a power of two (a stratified block of the side's sample sequence)."""
     chunks: Annotated[int, Field(ge=1, le=MAX_INDIRECT_CHUNKS)] = 4
     """Jobs per LDC axis for the indirect pass (the unit of parallelism across bake workers)."""
