@@ -82,6 +82,8 @@ PROV_GATHERED = 3
 PROV_TRACED = 4
 
 FILLS = ("ibrt", "raycast", "none")
+ANTIALIAS = ("uniform", "edges")
+EDGE_CONTRAST = 0.05  #: ``antialias="edges"``: the luminance step (relative) that makes an edge pixel
 
 
 @dataclass
@@ -732,6 +734,80 @@ def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
     return np.flatnonzero(flag)
 
 
+@nb.njit(cache=True, nogil=True)
+def _mean_luminance(radiance, obj_id, bg):
+    """The mean Rec.709 luminance of the covered pixels of ``radiance`` (h, w, 3) float32 (of
+    the background when none is covered)."""
+    H, W = obj_id.shape
+    acc = 0.0
+    n = 0
+    for y in range(H):
+        for x in range(W):
+            if obj_id[y, x] >= 0:
+                acc += 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
+                n += 1
+    if n == 0:
+        return 0.2126 * bg[0] + 0.7152 * bg[1] + 0.0722 * bg[2]
+    return acc / n
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
+    """(h w,) bool: the pixels of a one-sample image at an edge, the ones ``antialias="edges"``
+    supersamples: a pixel of its 3 x 3 neighbourhood shows another object (or nothing), the
+    same object at a depth more than ``rel_jump`` (relative) away, or a luminance differing by
+    more than ``contrast`` x max(the two luminances, ``y_mean``) (a shadow's edge, a highlight's,
+    a texture's; below ``y_mean`` the step is measured against the image's mean luminance, as
+    the LRMS measures errors)."""
+    H, W = obj_id.shape
+    flag = np.zeros(H * W, np.bool_)
+    for y in nb.prange(H):
+        for x in range(W):
+            o = obj_id[y, x]
+            d = depth[y, x]
+            yl = 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
+            edge = False
+            for yy in range(max(0, y - 1), min(H, y + 2)):
+                for xx in range(max(0, x - 1), min(W, x + 2)):
+                    if obj_id[yy, xx] != o:
+                        edge = True
+                    elif o >= 0 and abs(depth[yy, xx] - d) > rel_jump * min(d, depth[yy, xx]):
+                        edge = True
+                    else:
+                        yn = (0.2126 * radiance[yy, xx, 0] + 0.7152 * radiance[yy, xx, 1] +
+                              0.0722 * radiance[yy, xx, 2])
+                        if abs(yn - yl) > contrast * max(yn, yl, y_mean):
+                            edge = True
+            flag[y * W + x] = edge
+    return flag
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _box_filter_pixels(pix, fine, W, s, out):
+    """out[p] (float32) = the mean of the s x s sub-pixels of flat pixel ``pix[i]`` of a W-wide
+    image in ``fine`` ((s h) (s w), 3) float64, each rounded to float32 first (uniform
+    supersampling's arithmetic: the float32 image of the fine frame, averaged in float64).
+    Returns how many sub-pixel values are not finite."""
+    n = pix.shape[0]
+    Ws = W * s
+    bad = 0
+    for i in nb.prange(n):
+        p = pix[i]
+        y = p // W
+        x = p % W
+        for c in range(3):
+            acc = 0.0
+            for a in range(s):
+                row = (y * s + a) * Ws + x * s
+                for b in range(s):
+                    v = fine[row + b, c]
+                    if not np.isfinite(v):
+                        bad += 1
+                    acc += np.float64(np.float32(v))
+            out[p, c] = acc / (s * s)
+    return bad
+
+
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _silhouette_mesh_test(pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H, prim0, prim1, prim2, tri_p, tri_ng,
                           tri_obj, nbr, tol):
@@ -1180,23 +1256,37 @@ class LDCViewRenderer:
     # ------------------------------------------------------------------ render
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
                progress: Callable[[float, str], None] | None = None, force_all_passes: bool = False,
-               fill: str = "ibrt", supersample: int = 1) -> LDCRenderResult:
+               fill: str = "ibrt", supersample: int = 1, antialias: str = "uniform",
+               edge_contrast: float = EDGE_CONTRAST) -> LDCRenderResult:
         """Render ``camera`` with ``method`` ("ldc", "ldc+llf", "ldc+ibrt" (+ ``ibrt_generations``
         0..8) or "ldc+ibrt:k"); see the module docstring. ``supersample`` s (1..4) renders s x s
-        samples per pixel on a regular grid and box-filters the radiance (antialiasing, s^2 the
-        work); depth, normal, ids and provenance are those of the sample nearest the pixel
-        centre, counts are summed. Raises InvalidInputError for a bad method / fill /
-        supersample or when the method needs an LLF the bake doesn't have."""
+        samples per pixel on a regular grid and box-filters the radiance (antialiasing).
+        ``antialias="uniform"``: every pixel (s^2 the work); depth, normal, ids and provenance
+        are those of the sample nearest the pixel centre, counts are summed. ``antialias="edges"``:
+        only the pixels at an edge of the one-sample image (``_edge_pixels``: another object,
+        a depth jump, or a luminance step of more than ``edge_contrast`` in the 3 x 3
+        neighbourhood) get the s x s samples, exactly those uniform supersampling gives them;
+        every other pixel, and every pixel's depth, normal, ids and provenance, is the
+        one-sample render's (``_render_edges``). Raises InvalidInputError for a bad method /
+        fill / supersample / antialias or when the method needs an LLF the bake doesn't have."""
         spec = method_spec(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
         if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or \
                 not (1 <= supersample <= 4):
             raise InvalidInputError(f"supersample must be an integer in [1, 4], got {supersample!r}")
+        if antialias not in ANTIALIAS:
+            raise InvalidInputError(f"antialias must be one of {list(ANTIALIAS)}, got {antialias!r}")
+        if not isinstance(edge_contrast, (int, float)) or isinstance(edge_contrast, bool) or \
+                not (0.0 < float(edge_contrast) <= 1.0):
+            raise InvalidInputError(f"edge_contrast must be a number in (0, 1], got {edge_contrast!r}")
         with self._lock:
             if supersample == 1:
                 return self._render(camera, spec, progress, bool(force_all_passes), fill)
             s = int(supersample)
+            if antialias == "edges":
+                return self._render_edges(camera, spec, progress, bool(force_all_passes), fill, s,
+                                          float(edge_contrast))
             big = replace(camera, width=camera.width * s, height=camera.height * s)
             r = self._render(big, spec, progress, bool(force_all_passes), fill)
             H, W = camera.height, camera.width
@@ -1207,6 +1297,7 @@ class LDCViewRenderer:
                 return np.ascontiguousarray(a[c::s, c::s])
 
             r.plan["supersample"] = s
+            r.plan["antialias"] = "uniform"
             r.counts["supersample"] = s
             return LDCRenderResult(radiance=rad, depth=pick(r.depth), normal=pick(r.normal),
                                    object_id=pick(r.object_id), material_id=pick(r.material_id),
@@ -1223,6 +1314,64 @@ class LDCViewRenderer:
         vp = self._view_pass(fr, spec, force, rc)
         self._mirrors(fr, vp, spec, force)
         return self._result(fr, spec, fill, force, t_start)
+
+    def _render_edges(self, camera: CameraParams, spec: MethodSpec, progress, force: bool, fill: str, s: int,
+                      contrast: float) -> LDCRenderResult:
+        """``render(..., supersample=s, antialias="edges")``: the one-sample render, its edge
+        pixels (``_edge_pixels``), then the s-times finer frame (``camera`` at s times the width
+        and height: the very sub-pixel rays of uniform supersampling) warped whole (the warp
+        splats every sample anyway) but filled, shaded and traced only on the sub-pixels of the
+        edge pixels; each edge pixel's radiance is the box filter of its s x s sub-pixels. A
+        pixel's stages read only its own record and its warp neighbours', so the edge pixels
+        get uniform supersampling's radiance (float32 sums of at most 16 values: equal up to
+        the order of summation). Timings: the one-sample render's stages, plus ``edges`` (the
+        detection) and ``edge_warp``, ``edge_fill``, ``edge_surfaces``, ``edge_ibrt`` (the fine
+        frame), ``total`` for everything."""
+        t_start = time.perf_counter()
+
+        def part(lo: float, hi: float):
+            return None if progress is None else (lambda f, st: progress(lo + (hi - lo) * f, st))
+
+        r1 = self._render(camera, spec, part(0.0, 0.5), force, fill)
+        H, W = camera.height, camera.width
+        t0 = time.perf_counter()
+        bg = np.asarray(self.ldc.background, np.float64)
+        edge = _edge_pixels(r1.object_id, r1.depth, r1.radiance, self.silhouette_rel_depth, contrast,
+                            _mean_luminance(r1.radiance, r1.object_id, bg))
+        pix = np.flatnonzero(edge)
+        timings = dict(r1.timings)
+        timings["edges"] = time.perf_counter() - t0
+        counts = dict(r1.counts)
+        counts["supersample"] = s
+        counts["edge_pixels"] = int(pix.size)
+        if pix.size:
+            fine = np.repeat(np.repeat(edge.reshape(H, W), s, axis=0), s, axis=1).reshape(-1)
+            big = replace(camera, width=W * s, height=H * s)
+            fr = self._warp(big, part(0.5, 0.95))
+            rc = self._fill(fr, fill, only=fine)
+            vp = self._view_pass(fr, spec, force, rc, only=fine)
+            self._mirrors(fr, vp, spec, force)
+            for k in ("warp", "holes", "fill", "surfaces", "ibrt"):
+                timings["edge_" + k] = fr.timings.get(k, 0.0)
+            timings["edge_warp"] += timings.pop("edge_holes")
+            for k in ("hole_rays", "silhouette_rays", "fill_ibrt_rays", "view_pass_pixels", "traced_rays",
+                      "gather_lookups"):
+                counts["edge_" + k] = int(fr.counts.get(k, 0))
+            rad = r1.radiance.copy()
+            if _box_filter_pixels(pix, fr.radiance, W, s, rad.reshape(-1, 3)):
+                raise NonFiniteOutputError("LDC render produced non-finite values")
+        else:
+            rad = r1.radiance
+        timings["total"] = time.perf_counter() - t_start
+        plan = dict(r1.plan)
+        plan["supersample"] = s
+        plan["antialias"] = "edges"
+        plan["edge_contrast"] = contrast
+        if progress is not None:
+            progress(1.0, "done")
+        return LDCRenderResult(radiance=rad, depth=r1.depth, normal=r1.normal, object_id=r1.object_id,
+                               material_id=r1.material_id, provenance=r1.provenance, hole_mask=r1.hole_mask,
+                               timings=timings, counts=counts, plan=plan)
 
     def _warp(self, camera: CameraParams, progress) -> _Frame:
         """Stage 1, timed as "warp" and "holes": every LDC sample splatted into the camera with a
@@ -1242,13 +1391,14 @@ class LDCViewRenderer:
         fr.report(0.3, "warp")
         return fr
 
-    def _fill(self, fr: _Frame, fill: str) -> RaycastRecords | None:
+    def _fill(self, fr: _Frame, fill: str, only: np.ndarray | None = None) -> RaycastRecords | None:
         """Stage 2, timed as "fill": the hole pixels worth a ray and the silhouette pixels take
         their own eye ray (``_fill_rays``), through the LDC (``fill="ibrt"``: ``_ibrt_fill``) or
         against the triangles (``"raycast"``: ``_raycast_fill``). Returns the raycast fill's
-        surface records (those pixels have no LDC sample), None without them."""
+        surface records (those pixels have no LDC sample), None without them. ``only`` (flat
+        bool): fill only those pixels (``_render_edges``)."""
         t0 = time.perf_counter()
-        fr_rays = self._fill_rays(fr, fill)
+        fr_rays = self._fill_rays(fr, fill, only)
         holes, n_holes = fr_rays.pix, fr_rays.n_holes
         filled = 0
         rc = None
@@ -1276,11 +1426,13 @@ class LDCViewRenderer:
         fr.report(0.5, "fill")
         return rc
 
-    def _fill_rays(self, fr: _Frame, fill: str) -> _FillRays:
+    def _fill_rays(self, fr: _Frame, fill: str, only: np.ndarray | None = None) -> _FillRays:
         """The pixels that take an eye ray in the fill: the hole pixels worth one (``_hole_rays``)
         and, with ``silhouette_rays`` (and a fill), the covered pixels at visibility edges of
-        the warped image (module docstring)."""
+        the warped image (module docstring); of those, the ones in ``only`` (flat bool) if given."""
         holes = self._hole_rays(fr.cam, fr.warp)
+        if only is not None:
+            holes = holes[only[holes]]
         fr.counts["hole_rays"] = int(holes.size)
         n_holes = int(holes.size)
         sil = np.zeros(0, np.int64)
@@ -1290,6 +1442,8 @@ class LDCViewRenderer:
             is_hole[holes] = True
             sil = _silhouette_pixels(fr.obj_id, fr.depth, fr.samples.side, is_hole, fr.height, fr.width,
                                      self.silhouette_rel_depth)
+            if only is not None:
+                sil = sil[only[sil]]
             sil_obj = fr.obj_id[sil].copy()
             holes = np.concatenate([holes, sil])
         fr.counts["silhouette_rays"] = int(sil.size)
@@ -1376,12 +1530,13 @@ class LDCViewRenderer:
         return RaycastRecords(row, c(p, np.float64), c(g, np.float64), c(n, np.float64), c(mat, np.int32),
                               c(bits, np.uint64))
 
-    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
+    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None,
+                   only: np.ndarray | None = None) -> _ViewPassOut:
         """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
         them): on the covered pixels whose material needs it (the effect plan, or every one
         with ``force``), the surface record, its refinement, the highlights and the light-field
         gather (``_view_pass_kernel``); with ``ldc+ibrt:k`` (k >= 1) the mirror rays instead of
-        the mirror cone."""
+        the mirror cone. ``only`` (flat bool): those pixels only (``_render_edges``)."""
         t0 = time.perf_counter()
         counts, passes = fr.counts, fr.passes
         want_vp = force or self.plan.needs_view_pass
@@ -1398,7 +1553,8 @@ class LDCViewRenderer:
                     raise InvalidInputError(f"method {spec.wire!r} needs the bake's LLF (the scene has glossy or "
                                             "mirror materials) but this bake has none; use method 'ldc' or rebake "
                                             "with an LLF")
-        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
+        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id if only is None else np.where(only, fr.obj_id, -1),
+                                               fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
                                                bool(want_rf), force)
         counts["view_pass_pixels"] = int(vp_pix.size)
         counts["highlight_pixels"] = int(n_hl)
@@ -1527,5 +1683,5 @@ def _groups() -> int:
     return max(1, int(nb.get_num_threads()))
 
 
-__all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
+__all__ = ["ANTIALIAS", "EDGE_CONTRAST", "FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
            "PROV_GATHERED", "PROV_NONE", "PROV_TRACED", "PROV_WARPED", "method_spec", "parse_method"]
