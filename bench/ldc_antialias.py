@@ -10,8 +10,8 @@ of one scene merges into the stored results of the others).
 Direct light only (the bake without indirect light, the reference with ``indirect_samples=0``),
 so the error left is the views' own: ground truth = the reference renderer at 64 jittered
 samples per pixel, box filter. Views: cornell_box orbits its box centre (278, 273, 280) at 1080
-units (azimuth / elevation 12 / 7, -20 / -5, 30 / 12 degrees); the other scenes take views 1, 4
-and 6 of ``bench.ldc_accuracy.views`` (none aligned with an LDC axis). LRMS over
+units (azimuth / elevation 12 / 7, -20 / -5, -8 / 12 degrees; all see the box's inside only);
+the other scenes take views 1, 4 and 6 of ``bench.ldc_accuracy.views`` (none aligned with an LDC axis). LRMS over
 ``bench.mitsuba_crosscheck.comparison_mask`` of the ground truth's ids (covered pixels, less the
 3 x 3 neighbourhoods of emissive surfaces), mean over the views.
 
@@ -26,6 +26,7 @@ squared error over all compared pixels: what the image's LRMS would be with perf
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -59,7 +60,7 @@ GT = ReferenceParams(spp=64, max_depth=4, glossy_samples=8, indirect_samples=0, 
 SCENES = {"cornell_box": (256, None, "ldc"), "mirror_box": (256, 4, "ldc+ibrt:1")}
 SETTINGS = [(1, "uniform"), (2, "uniform"), (4, "uniform"), (2, "edges"), (3, "edges"), (4, "edges")]
 CORNELL_CENTRE = (278.0, 273.0, 280.0)
-CORNELL_ORBITS = ((12.0, 7.0), (-20.0, -5.0), (30.0, 12.0))
+CORNELL_ORBITS = ((12.0, 7.0), (-20.0, -5.0), (-8.0, 12.0))
 
 
 def orbit(centre, dist: float, az: float, el: float, size: int, fov: float) -> CameraParams:
@@ -97,7 +98,8 @@ def _timed(fn, repeats: int = 2):
 
 def ground_truth(ren, name: str, vi: int, cam: CameraParams, cache: Path | None):
     """The reference's ground truth of view ``vi`` (radiance, object_id), kept in ``cache`` if given."""
-    f = None if cache is None else cache / f"{name}_{cam.width}x{cam.height}_v{vi}_spp{GT.spp}_s{GT.seed}.npz"
+    key = hashlib.sha256(repr((cam, GT)).encode()).hexdigest()[:12]
+    f = None if cache is None else cache / f"{name}_{cam.width}x{cam.height}_v{vi}_{key}.npz"
     if f is not None and f.exists():
         d = np.load(f)
         return d["radiance"], d["object_id"]

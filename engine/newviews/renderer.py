@@ -782,6 +782,136 @@ def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
     return flag
 
 
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol):
+    """The LDC sample each sub-pixel ray (o, d: of flat pixel ``coarse[i]`` of the W x H
+    one-sample image) shows, from the samples of that pixel's 3 x 3 neighbourhood (``s_axis``,
+    ``s_idx``: the one-sample render's, after its fill): each one's triangle is walked along
+    the ray (``locate_on_mesh``, as in the silhouette mesh test); the nearest crossing decides
+    the surface, and of the candidates on that surface (the same object, crossed within
+    ``tol``) the one whose sample point lies nearest the crossing gives the radiance (the
+    sample whose splat a finer warp would most likely show there: across a shadow's edge the
+    sub-pixels pick different samples). Returns (axis (n,) int8, -1 where the ray crosses no
+    candidate; sample (n,) int64; t (n,) float64)."""
+    n = coarse.shape[0]
+    out_a = np.full(n, -1, np.int8)
+    out_s = np.full(n, -1, np.int64)
+    out_t = np.full(n, np.inf)
+    nblk = (n + 63) // 64
+    for b in nb.prange(nblk):
+        ca = np.empty(9, np.int64)
+        cs = np.empty(9, np.int64)
+        ct = np.empty(9)
+        co = np.empty(9, np.int64)
+        wt = np.empty(9, np.int64)
+        wok = np.empty(9, np.bool_)
+        wt2 = np.empty(9, np.int64)
+        ws2 = np.empty(9)
+        for i in range(b * 64, min(n, b * 64 + 64)):
+            r = coarse[i]
+            x = r % W
+            y = r // W
+            ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
+            best_t = np.inf
+            best_o = -1
+            for k in range(9):
+                ca[k] = -1
+                wt[k] = -1
+                xx = x + k % 3 - 1
+                yy = y + k // 3 - 1
+                if xx < 0 or yy < 0 or xx >= W or yy >= H:
+                    continue
+                j = yy * W + xx
+                a = s_axis[j]
+                sm = s_idx[j]
+                if a < 0:
+                    continue
+                t = ax0.prim[sm] if a == 0 else (ax1.prim[sm] if a == 1 else ax2.prim[sm])
+                kk = -1
+                for q in range(k):
+                    if wt[q] == t:
+                        kk = q
+                        break
+                if kk >= 0:
+                    good = wok[kk]
+                    t2 = wt2[kk]
+                    s2 = ws2[kk]
+                else:
+                    ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, t, tri_p, tri_ng, nbr, 8)
+                    good = ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0
+                wt[k] = t
+                wok[k] = good
+                wt2[k] = t2
+                ws2[k] = s2
+                if good:
+                    ca[k] = a
+                    cs[k] = sm
+                    ct[k] = s2
+                    co[k] = tri_obj[t2]
+                    if s2 < best_t:
+                        best_t = s2
+                        best_o = co[k]
+            if best_t == np.inf:
+                continue
+            px, py, pz = ox + best_t * dx, oy + best_t * dy, oz + best_t * dz
+            pick = -1
+            best_d = np.inf
+            for k in range(9):
+                if ca[k] < 0 or co[k] != best_o or ct[k] > best_t + tol:
+                    continue
+                a = ca[k]
+                ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
+                sm = cs[k]
+                qx, qy, qz = _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]), (ax.u[0], ax.u[1], ax.u[2]),
+                                           (ax.v[0], ax.v[1], ax.v[2]), (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu,
+                                           np.int64(ax.sample_pixel[sm]), ax.depth[sm])
+                dd = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+                if dd < best_d:
+                    best_d = dd
+                    pick = k
+            out_a[i] = ca[pick]
+            out_s[i] = cs[pick]
+            out_t[i] = best_t
+    return out_a, out_s, out_t
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _fill_subpixels(q, hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radiance, depth, normal, obj_id, mat_id, prov,
+                    s_axis, s_idx, s_side):
+    """Sub-pixels ``q`` show their hit sample as ``_fill_from_hits`` shows a hole's (the
+    sample's diffuse radiance, distance, shading normal, ids; provenance 2), or the background
+    as ``_clear_pixels`` leaves a pixel (``hit_axis`` -1); one parallel pass over the three axes."""
+    for i in nb.prange(q.shape[0]):
+        r = q[i]
+        a = hit_axis[i]
+        if a < 0:
+            for c in range(3):
+                radiance[r, c] = bg[c]
+                normal[r, c] = 0.0
+            depth[r] = 0.0
+            obj_id[r] = -1
+            mat_id[r] = -1
+            prov[r] = 0
+            s_axis[r] = -1
+            s_idx[r] = -1
+            continue
+        ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
+        geo, nrm, diff = ax.geo_normal, ax.normal, ax.diffuse
+        sm = hit_sample[i]
+        sd = 1 if geo[sm, 0] * d[i, 0] + geo[sm, 1] * d[i, 1] + geo[sm, 2] * d[i, 2] > 0.0 else 0
+        _, _, _, n0, n1, n2 = _sample_normals(geo[sm, 0], geo[sm, 1], geo[sm, 2], nrm[sm, 0], nrm[sm, 1], nrm[sm, 2],
+                                              sd)
+        radiance[r, 0], radiance[r, 1], radiance[r, 2] = diff[sm, sd, 0], diff[sm, sd, 1], diff[sm, sd, 2]
+        depth[r] = hit_t[i]
+        normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
+        obj_id[r] = ax.object[sm]
+        mat_id[r] = ax.material[sm]
+        prov[r] = 2
+        s_axis[r] = a
+        s_idx[r] = sm
+        s_side[r] = sd
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _box_filter_pixels(pix, fine, W, s, out):
     """out[p] (float32) = the mean of the s x s sub-pixels of flat pixel ``pix[i]`` of a W-wide
@@ -1265,10 +1395,11 @@ class LDCViewRenderer:
         are those of the sample nearest the pixel centre, counts are summed. ``antialias="edges"``:
         only the pixels at an edge of the one-sample image (``_edge_pixels``: another object,
         a depth jump, or a luminance step of more than ``edge_contrast`` in the 3 x 3
-        neighbourhood) get the s x s samples, exactly those uniform supersampling gives them;
-        every other pixel, and every pixel's depth, normal, ids and provenance, is the
-        one-sample render's (``_render_edges``). Raises InvalidInputError for a bad method /
-        fill / supersample / antialias or when the method needs an LLF the bake doesn't have."""
+        neighbourhood) get the s x s samples, on the sub-pixel rays of uniform supersampling
+        but without a second warp (``_render_edges``); every other pixel, and every pixel's
+        depth, normal, ids and provenance, is the one-sample render's, bit for bit. Raises
+        InvalidInputError for a bad method / fill / supersample / antialias or when the method
+        needs an LLF the bake doesn't have."""
         spec = method_spec(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
@@ -1308,31 +1439,36 @@ class LDCViewRenderer:
     def _render(self, camera, spec: MethodSpec, progress, force, fill) -> LDCRenderResult:
         """One render (``render``'s arguments, checked): the stages of the module docstring in
         order, each timed under its name in ``timings``."""
+        return self._render_frame(camera, spec, progress, force, fill)[1]
+
+    def _render_frame(self, camera, spec: MethodSpec, progress, force, fill) -> tuple[_Frame, LDCRenderResult]:
+        """``_render``, with the frame it ran on."""
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
         rc = self._fill(fr, fill)
         vp = self._view_pass(fr, spec, force, rc)
         self._mirrors(fr, vp, spec, force)
-        return self._result(fr, spec, fill, force, t_start)
+        return fr, self._result(fr, spec, fill, force, t_start)
 
     def _render_edges(self, camera: CameraParams, spec: MethodSpec, progress, force: bool, fill: str, s: int,
                       contrast: float) -> LDCRenderResult:
         """``render(..., supersample=s, antialias="edges")``: the one-sample render, its edge
-        pixels (``_edge_pixels``), then the s-times finer frame (``camera`` at s times the width
-        and height: the very sub-pixel rays of uniform supersampling) warped whole (the warp
-        splats every sample anyway) but filled, shaded and traced only on the sub-pixels of the
-        edge pixels; each edge pixel's radiance is the box filter of its s x s sub-pixels. A
-        pixel's stages read only its own record and its warp neighbours', so the edge pixels
-        get uniform supersampling's radiance (float32 sums of at most 16 values: equal up to
-        the order of summation). Timings: the one-sample render's stages, plus ``edges`` (the
-        detection) and ``edge_warp``, ``edge_fill``, ``edge_surfaces``, ``edge_ibrt`` (the fine
-        frame), ``total`` for everything."""
+        pixels (``_edge_pixels``), then s x s sub-pixel rays in each edge pixel: the very rays
+        of uniform supersampling (``camera`` at s times the width and height). No second warp:
+        a sub-pixel shows the sample ``_subpixel_samples`` picks from the one-sample render's
+        3 x 3 neighbourhood (the crossed surface, the nearest sample on it), or where the ray
+        crosses none of them the image-based ray's hit (or the background); then the view pass
+        and the mirror rays run on those sub-pixels as on any pixel (``_view_pass``,
+        ``_mirrors``; a sub-pixel's highlight samples are uniform supersampling's), and each
+        edge pixel's radiance is the box filter of its sub-pixels. Timings: the one-sample
+        render's stages plus ``edges`` (detection), ``edge_rays`` (picking the sub-pixels'
+        samples), ``edge_surfaces``, ``edge_ibrt`` and ``total``."""
         t_start = time.perf_counter()
 
         def part(lo: float, hi: float):
             return None if progress is None else (lambda f, st: progress(lo + (hi - lo) * f, st))
 
-        r1 = self._render(camera, spec, part(0.0, 0.5), force, fill)
+        fr1, r1 = self._render_frame(camera, spec, part(0.0, 0.6), force, fill)
         H, W = camera.height, camera.width
         t0 = time.perf_counter()
         bg = np.asarray(self.ldc.background, np.float64)
@@ -1344,24 +1480,21 @@ class LDCViewRenderer:
         counts = dict(r1.counts)
         counts["supersample"] = s
         counts["edge_pixels"] = int(pix.size)
+        rad = r1.radiance
         if pix.size:
-            fine = np.repeat(np.repeat(edge.reshape(H, W), s, axis=0), s, axis=1).reshape(-1)
+            t0 = time.perf_counter()
             big = replace(camera, width=W * s, height=H * s)
-            fr = self._warp(big, part(0.5, 0.95))
-            rc = self._fill(fr, fill, only=fine)
-            vp = self._view_pass(fr, spec, force, rc, only=fine)
+            fr = self._subpixel_frame(fr1, big, pix, s, counts)
+            timings["edge_rays"] = time.perf_counter() - t0
+            vp = self._view_pass(fr, spec, force, None)
             self._mirrors(fr, vp, spec, force)
-            for k in ("warp", "holes", "fill", "surfaces", "ibrt"):
-                timings["edge_" + k] = fr.timings.get(k, 0.0)
-            timings["edge_warp"] += timings.pop("edge_holes")
-            for k in ("hole_rays", "silhouette_rays", "fill_ibrt_rays", "view_pass_pixels", "traced_rays",
-                      "gather_lookups"):
+            timings["edge_surfaces"] = fr.timings["surfaces"]
+            timings["edge_ibrt"] = fr.timings["ibrt"]
+            for k in ("view_pass_pixels", "traced_rays", "gather_lookups"):
                 counts["edge_" + k] = int(fr.counts.get(k, 0))
             rad = r1.radiance.copy()
             if _box_filter_pixels(pix, fr.radiance, W, s, rad.reshape(-1, 3)):
                 raise NonFiniteOutputError("LDC render produced non-finite values")
-        else:
-            rad = r1.radiance
         timings["total"] = time.perf_counter() - t_start
         plan = dict(r1.plan)
         plan["supersample"] = s
@@ -1372,6 +1505,42 @@ class LDCViewRenderer:
         return LDCRenderResult(radiance=rad, depth=r1.depth, normal=r1.normal, object_id=r1.object_id,
                                material_id=r1.material_id, provenance=r1.provenance, hole_mask=r1.hole_mask,
                                timings=timings, counts=counts, plan=plan)
+
+    def _subpixel_frame(self, fr1: _Frame, big: CameraParams, pix: np.ndarray, s: int, counts: dict) -> _Frame:
+        """The frame of the s-times finer camera ``big`` in which only the sub-pixels of the
+        one-sample frame's pixels ``pix`` are set (``_render_edges``): each shows its sample
+        (``_subpixel_samples``, else an image-based ray's hit), or the background. The other
+        sub-pixels are never read (the arrays are allocated, not filled; ``obj_id`` is -1
+        there, so the view pass skips them)."""
+        W = fr1.width
+        n_f = big.width * big.height
+        a = np.arange(s)
+        y, x = pix // W, pix % W
+        q = (((y[:, None, None] * s + a[None, :, None]) * (W * s)) + (x[:, None, None] * s + a[None, None, :]))
+        q = q.reshape(-1)
+        coarse = np.repeat(pix, s * s)
+        cam = kernel_camera(big)
+        o, d = _pixel_rays(q, cam)
+        ax0, ax1, ax2 = self._axes
+        h_axis, h_sample, h_t = _subpixel_samples(coarse, o, d, fr1.samples.axis, fr1.samples.index, W, fr1.height,
+                                                  ax0, ax1, ax2, self.scene.tri_p, self.scene.tri_ng, self._tri_obj,
+                                                  self._nbr, 2.0 * float(self.ldc.h))
+        ray = np.flatnonzero(h_axis < 0)
+        counts["edge_subpixels"] = int(q.size)
+        counts["edge_ibrt_rays"] = int(ray.size)
+        if ray.size:
+            r_axis, r_sample, r_t, _, _ = self._trace(o[ray], d[ray])
+            h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
+        obj_id = np.full(n_f, -1, np.int32)
+        fr = _Frame(camera=big, cam=cam, warp=fr1.warp, radiance=np.empty((n_f, 3)), depth=np.empty(n_f, np.float32),
+                    normal=np.empty((n_f, 3), np.float32), obj_id=obj_id, mat_id=np.empty(n_f, np.int32),
+                    prov=np.empty(n_f, np.uint8),
+                    samples=PixelSamples(np.empty(n_f, np.int8), np.empty(n_f, np.int64), np.empty(n_f, np.int8)),
+                    progress=None)
+        sm = fr.samples
+        _fill_subpixels(q, h_axis, h_sample, h_t, d, np.asarray(self.ldc.background, np.float64), ax0, ax1, ax2,
+                        fr.radiance, fr.depth, fr.normal, fr.obj_id, fr.mat_id, fr.prov, sm.axis, sm.index, sm.side)
+        return fr
 
     def _warp(self, camera: CameraParams, progress) -> _Frame:
         """Stage 1, timed as "warp" and "holes": every LDC sample splatted into the camera with a
@@ -1391,14 +1560,13 @@ class LDCViewRenderer:
         fr.report(0.3, "warp")
         return fr
 
-    def _fill(self, fr: _Frame, fill: str, only: np.ndarray | None = None) -> RaycastRecords | None:
+    def _fill(self, fr: _Frame, fill: str) -> RaycastRecords | None:
         """Stage 2, timed as "fill": the hole pixels worth a ray and the silhouette pixels take
         their own eye ray (``_fill_rays``), through the LDC (``fill="ibrt"``: ``_ibrt_fill``) or
         against the triangles (``"raycast"``: ``_raycast_fill``). Returns the raycast fill's
-        surface records (those pixels have no LDC sample), None without them. ``only`` (flat
-        bool): fill only those pixels (``_render_edges``)."""
+        surface records (those pixels have no LDC sample), None without them."""
         t0 = time.perf_counter()
-        fr_rays = self._fill_rays(fr, fill, only)
+        fr_rays = self._fill_rays(fr, fill)
         holes, n_holes = fr_rays.pix, fr_rays.n_holes
         filled = 0
         rc = None
@@ -1426,13 +1594,11 @@ class LDCViewRenderer:
         fr.report(0.5, "fill")
         return rc
 
-    def _fill_rays(self, fr: _Frame, fill: str, only: np.ndarray | None = None) -> _FillRays:
+    def _fill_rays(self, fr: _Frame, fill: str) -> _FillRays:
         """The pixels that take an eye ray in the fill: the hole pixels worth one (``_hole_rays``)
         and, with ``silhouette_rays`` (and a fill), the covered pixels at visibility edges of
-        the warped image (module docstring); of those, the ones in ``only`` (flat bool) if given."""
+        the warped image (module docstring)."""
         holes = self._hole_rays(fr.cam, fr.warp)
-        if only is not None:
-            holes = holes[only[holes]]
         fr.counts["hole_rays"] = int(holes.size)
         n_holes = int(holes.size)
         sil = np.zeros(0, np.int64)
@@ -1442,8 +1608,6 @@ class LDCViewRenderer:
             is_hole[holes] = True
             sil = _silhouette_pixels(fr.obj_id, fr.depth, fr.samples.side, is_hole, fr.height, fr.width,
                                      self.silhouette_rel_depth)
-            if only is not None:
-                sil = sil[only[sil]]
             sil_obj = fr.obj_id[sil].copy()
             holes = np.concatenate([holes, sil])
         fr.counts["silhouette_rays"] = int(sil.size)
@@ -1530,13 +1694,12 @@ class LDCViewRenderer:
         return RaycastRecords(row, c(p, np.float64), c(g, np.float64), c(n, np.float64), c(mat, np.int32),
                               c(bits, np.uint64))
 
-    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None,
-                   only: np.ndarray | None = None) -> _ViewPassOut:
+    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
         """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
         them): on the covered pixels whose material needs it (the effect plan, or every one
         with ``force``), the surface record, its refinement, the highlights and the light-field
         gather (``_view_pass_kernel``); with ``ldc+ibrt:k`` (k >= 1) the mirror rays instead of
-        the mirror cone. ``only`` (flat bool): those pixels only (``_render_edges``)."""
+        the mirror cone."""
         t0 = time.perf_counter()
         counts, passes = fr.counts, fr.passes
         want_vp = force or self.plan.needs_view_pass
@@ -1553,8 +1716,7 @@ class LDCViewRenderer:
                     raise InvalidInputError(f"method {spec.wire!r} needs the bake's LLF (the scene has glossy or "
                                             "mirror materials) but this bake has none; use method 'ldc' or rebake "
                                             "with an LLF")
-        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id if only is None else np.where(only, fr.obj_id, -1),
-                                               fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
+        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
                                                bool(want_rf), force)
         counts["view_pass_pixels"] = int(vp_pix.size)
         counts["highlight_pixels"] = int(n_hl)
