@@ -115,3 +115,12 @@ def test_edges_lower_the_error_of_a_hard_edge():
     assert ada.counts["edge_pixels"] < 0.35 * 48 * 48
     assert e_ada < 0.6 * e1
     assert e_ada < 1.15 * e_uni
+
+
+def test_edges_progress_and_plan(shiny):
+    seen = []
+    res = shiny.render(CAM, "ldc+ibrt:1", supersample=2, antialias="edges", progress=lambda f, s: seen.append(f))
+    assert seen == sorted(seen) and seen[-1] == 1.0
+    assert res.plan["antialias"] == "edges" and res.plan["edge_contrast"] == 0.05
+    assert res.counts["edge_subpixels"] == 4 * res.counts["edge_pixels"] > 0
+    assert shiny.render(CAM, "ldc", supersample=2).plan["antialias"] == "uniform"
