@@ -84,6 +84,7 @@ PROV_TRACED = 4
 FILLS = ("ibrt", "raycast", "none")
 ANTIALIAS = ("uniform", "edges")
 EDGE_CONTRAST = 0.05  #: ``antialias="edges"``: the luminance step (relative) that makes an edge pixel
+SAME_FACE_COS = 0.9  #: ``antialias="edges"``: a sample is on the crossed face if its normal is this close
 
 
 @dataclass
@@ -783,7 +784,7 @@ def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
 
 
 @nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol):
+def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol, face_cos):
     """The LDC sample each sub-pixel ray (o, d: of flat pixel ``coarse[i]`` of the W x H
     one-sample image) shows, from the samples of that pixel's 3 x 3 neighbourhood (``s_axis``,
     ``s_idx``: the one-sample render's, after its fill): each one's triangle is walked along
@@ -791,7 +792,9 @@ def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, t
     the surface, and of the candidates on that surface (the same object, crossed within
     ``tol``) the one whose sample point lies nearest the crossing gives the radiance (the
     sample whose splat a finer warp would most likely show there: across a shadow's edge the
-    sub-pixels pick different samples). Returns (axis (n,) int8, -1 where the ray crosses no
+    sub-pixels pick different samples), preferring the samples whose geometric normal is
+    within ``face_cos`` of the crossed triangle's (the same face: at a box's edge the nearest
+    sample may lie on the other face, lit differently). Returns (axis (n,) int8, -1 where the ray crosses no
     candidate; sample (n,) int64; t (n,) float64)."""
     n = coarse.shape[0]
     out_a = np.full(n, -1, np.int8)
@@ -853,22 +856,34 @@ def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, t
                         best_o = co[k]
             if best_t == np.inf:
                 continue
+            tb = -1
+            for k in range(9):
+                if ca[k] >= 0 and ct[k] == best_t:
+                    tb = wt2[k]
+                    break
             px, py, pz = ox + best_t * dx, oy + best_t * dy, oz + best_t * dz
             pick = -1
-            best_d = np.inf
-            for k in range(9):
-                if ca[k] < 0 or co[k] != best_o or ct[k] > best_t + tol:
-                    continue
-                a = ca[k]
-                ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
-                sm = cs[k]
-                qx, qy, qz = _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]), (ax.u[0], ax.u[1], ax.u[2]),
-                                           (ax.v[0], ax.v[1], ax.v[2]), (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu,
-                                           np.int64(ax.sample_pixel[sm]), ax.depth[sm])
-                dd = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
-                if dd < best_d:
-                    best_d = dd
-                    pick = k
+            for same_face in (True, False):
+                best_d = np.inf
+                for k in range(9):
+                    if ca[k] < 0 or co[k] != best_o or ct[k] > best_t + tol:
+                        continue
+                    a = ca[k]
+                    ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
+                    sm = cs[k]
+                    if same_face and abs(ax.geo_normal[sm, 0] * tri_ng[tb, 0] + ax.geo_normal[sm, 1] * tri_ng[tb, 1] +
+                                         ax.geo_normal[sm, 2] * tri_ng[tb, 2]) < face_cos:
+                        continue
+                    qx, qy, qz = _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]),
+                                               (ax.u[0], ax.u[1], ax.u[2]), (ax.v[0], ax.v[1], ax.v[2]),
+                                               (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu, np.int64(ax.sample_pixel[sm]),
+                                               ax.depth[sm])
+                    dd = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+                    if dd < best_d:
+                        best_d = dd
+                        pick = k
+                if pick >= 0:
+                    break
             out_a[i] = ca[pick]
             out_s[i] = cs[pick]
             out_t[i] = best_t
@@ -1524,7 +1539,7 @@ class LDCViewRenderer:
         ax0, ax1, ax2 = self._axes
         h_axis, h_sample, h_t = _subpixel_samples(coarse, o, d, fr1.samples.axis, fr1.samples.index, W, fr1.height,
                                                   ax0, ax1, ax2, self.scene.tri_p, self.scene.tri_ng, self._tri_obj,
-                                                  self._nbr, 2.0 * float(self.ldc.h))
+                                                  self._nbr, 2.0 * float(self.ldc.h), SAME_FACE_COS)
         ray = np.flatnonzero(h_axis < 0)
         counts["edge_subpixels"] = int(q.size)
         counts["edge_ibrt_rays"] = int(ray.size)
