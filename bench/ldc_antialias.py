@@ -41,6 +41,7 @@ import numpy as np
 from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
 from bench.ldc_accuracy import LLF_PARAMS, LLF_RES, scene_setup, views
+from bench.ldc_equal_error import _timed
 from bench.mitsuba_crosscheck import comparison_mask
 from engine.metrics import luminance
 from engine.newviews.ldc import bake_ldc
@@ -83,17 +84,6 @@ def edge_classes(r, rel_depth: float, bg) -> tuple[np.ndarray, np.ndarray]:
     geo = _edge_pixels(r.object_id, r.depth, r.radiance, rel_depth, math.inf, y_mean).reshape(r.object_id.shape)
     every = _edge_pixels(r.object_id, r.depth, r.radiance, rel_depth, EDGE_CONTRAST, y_mean)
     return geo, every.reshape(r.object_id.shape) & ~geo
-
-
-def _timed(fn, repeats: int = 2):
-    best = None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        dt = time.perf_counter() - t0
-        if best is None or dt < best[0]:
-            best = (dt, out)
-    return best
 
 
 def ground_truth(ren, name: str, vi: int, cam: CameraParams, cache: Path | None):

@@ -48,12 +48,11 @@ def _edges_slow(r, rel_depth: float, contrast: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def shiny():
+    """The renderer of test_ldc_render's shiny scene at a coarser LDC (48: samples about as far
+    apart as this camera's pixels) and LLF."""
     sc = _shiny_scene()
     caster = EmbreeCaster(sc)
-    plan = analyze(sc)
-    ldc = bake_ldc(sc, caster, 48, plan=plan)
-    llf = bake_llf(sc, caster, 2, 16, params=LLF_PARAMS)
-    return LDCViewRenderer(sc, ldc, llf, plan)
+    return LDCViewRenderer(sc, bake_ldc(sc, caster, 48), bake_llf(sc, caster, 2, 16, params=LLF_PARAMS))
 
 
 @pytest.mark.parametrize("method", ["ldc", "ldc+llf", "ldc+ibrt:1"])
