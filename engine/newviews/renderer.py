@@ -1524,7 +1524,8 @@ class LDCViewRenderer:
     def _subpixel_frame(self, fr1: _Frame, big: CameraParams, pix: np.ndarray, s: int, counts: dict) -> _Frame:
         """The frame of the s-times finer camera ``big`` in which only the sub-pixels of the
         one-sample frame's pixels ``pix`` are set (``_render_edges``): each shows its sample
-        (``_subpixel_samples``, else an image-based ray's hit), or the background. The other
+        (``_subpixel_samples``, else an image-based ray's hit, whatever the ``fill``: the
+        sub-pixels are no holes of a warp), or the background. The other
         sub-pixels are never read (the arrays are allocated, not filled; ``obj_id`` is -1
         there, so the view pass skips them)."""
         W = fr1.width
