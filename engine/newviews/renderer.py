@@ -82,6 +82,9 @@ PROV_GATHERED = 3
 PROV_TRACED = 4
 
 FILLS = ("ibrt", "raycast", "none")
+ANTIALIAS = ("uniform", "edges")
+EDGE_CONTRAST = 0.05  #: ``antialias="edges"``: the luminance step (relative) that makes an edge pixel
+SAME_FACE_COS = 0.9  #: ``antialias="edges"``: a sample is on the crossed face if its normal is this close
 
 
 @dataclass
@@ -732,6 +735,224 @@ def _silhouette_pixels(obj_id, depth, side, is_hole, h, w, rel_jump):
     return np.flatnonzero(flag)
 
 
+@nb.njit(cache=True, nogil=True)
+def _mean_luminance(radiance, obj_id, bg):
+    """The mean Rec.709 luminance of the covered pixels of ``radiance`` (h, w, 3) float32 (of
+    the background when none is covered)."""
+    H, W = obj_id.shape
+    acc = 0.0
+    n = 0
+    for y in range(H):
+        for x in range(W):
+            if obj_id[y, x] >= 0:
+                acc += 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
+                n += 1
+    if n == 0:
+        return 0.2126 * bg[0] + 0.7152 * bg[1] + 0.0722 * bg[2]
+    return acc / n
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
+    """(h w,) bool: the pixels of a one-sample image at an edge, the ones ``antialias="edges"``
+    supersamples: a pixel of its 3 x 3 neighbourhood shows another object (or nothing), the
+    same object at a depth more than ``rel_jump`` (relative) away, or a luminance differing by
+    more than ``contrast`` x max(the two luminances, ``y_mean``) (a shadow's edge, a highlight's,
+    a texture's; below ``y_mean`` the step is measured against the image's mean luminance, as
+    the LRMS measures errors)."""
+    H, W = obj_id.shape
+    flag = np.zeros(H * W, np.bool_)
+    for y in nb.prange(H):
+        for x in range(W):
+            o = obj_id[y, x]
+            d = depth[y, x]
+            yl = 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
+            edge = False
+            for yy in range(max(0, y - 1), min(H, y + 2)):
+                for xx in range(max(0, x - 1), min(W, x + 2)):
+                    if obj_id[yy, xx] != o:
+                        edge = True
+                    elif o >= 0 and abs(depth[yy, xx] - d) > rel_jump * min(d, depth[yy, xx]):
+                        edge = True
+                    else:
+                        yn = (0.2126 * radiance[yy, xx, 0] + 0.7152 * radiance[yy, xx, 1] +
+                              0.0722 * radiance[yy, xx, 2])
+                        if abs(yn - yl) > contrast * max(yn, yl, y_mean):
+                            edge = True
+            flag[y * W + x] = edge
+    return flag
+
+
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol, face_cos):
+    """The LDC sample each sub-pixel ray (o, d: of flat pixel ``coarse[i]`` of the W x H
+    one-sample image) shows, from the samples of that pixel's 3 x 3 neighbourhood (``s_axis``,
+    ``s_idx``: the one-sample render's, after its fill): each one's triangle is walked along
+    the ray (``locate_on_mesh``, as in the silhouette mesh test); the nearest crossing decides
+    the surface, and of the candidates on that surface (the same object, crossed within
+    ``tol``) the one whose sample point lies nearest the crossing gives the radiance (the
+    sample whose splat a finer warp would most likely show there: across a shadow's edge the
+    sub-pixels pick different samples), preferring the samples whose geometric normal is
+    within ``face_cos`` of the crossed triangle's (the same face: at a box's edge the nearest
+    sample may lie on the other face, lit differently). Returns (axis (n,) int8, -1 where the ray crosses no
+    candidate; sample (n,) int64; t (n,) float64)."""
+    n = coarse.shape[0]
+    out_a = np.full(n, -1, np.int8)
+    out_s = np.full(n, -1, np.int64)
+    out_t = np.full(n, np.inf)
+    nblk = (n + 63) // 64
+    for b in nb.prange(nblk):
+        ca = np.empty(9, np.int64)
+        cs = np.empty(9, np.int64)
+        ct = np.empty(9)
+        co = np.empty(9, np.int64)
+        wt = np.empty(9, np.int64)
+        wok = np.empty(9, np.bool_)
+        wt2 = np.empty(9, np.int64)
+        ws2 = np.empty(9)
+        for i in range(b * 64, min(n, b * 64 + 64)):
+            r = coarse[i]
+            x = r % W
+            y = r // W
+            ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
+            best_t = np.inf
+            best_o = -1
+            for k in range(9):
+                ca[k] = -1
+                wt[k] = -1
+                xx = x + k % 3 - 1
+                yy = y + k // 3 - 1
+                if xx < 0 or yy < 0 or xx >= W or yy >= H:
+                    continue
+                j = yy * W + xx
+                a = s_axis[j]
+                sm = s_idx[j]
+                if a < 0:
+                    continue
+                t = ax0.prim[sm] if a == 0 else (ax1.prim[sm] if a == 1 else ax2.prim[sm])
+                kk = -1
+                for q in range(k):
+                    if wt[q] == t:
+                        kk = q
+                        break
+                if kk >= 0:
+                    good = wok[kk]
+                    t2 = wt2[kk]
+                    s2 = ws2[kk]
+                else:
+                    ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, t, tri_p, tri_ng, nbr, 8)
+                    good = ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0
+                wt[k] = t
+                wok[k] = good
+                wt2[k] = t2
+                ws2[k] = s2
+                if good:
+                    ca[k] = a
+                    cs[k] = sm
+                    ct[k] = s2
+                    co[k] = tri_obj[t2]
+                    if s2 < best_t:
+                        best_t = s2
+                        best_o = co[k]
+            if best_t == np.inf:
+                continue
+            tb = -1
+            for k in range(9):
+                if ca[k] >= 0 and ct[k] == best_t:
+                    tb = wt2[k]
+                    break
+            px, py, pz = ox + best_t * dx, oy + best_t * dy, oz + best_t * dz
+            pick = -1
+            for same_face in (True, False):
+                best_d = np.inf
+                for k in range(9):
+                    if ca[k] < 0 or co[k] != best_o or ct[k] > best_t + tol:
+                        continue
+                    a = ca[k]
+                    ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
+                    sm = cs[k]
+                    if same_face and abs(ax.geo_normal[sm, 0] * tri_ng[tb, 0] + ax.geo_normal[sm, 1] * tri_ng[tb, 1] +
+                                         ax.geo_normal[sm, 2] * tri_ng[tb, 2]) < face_cos:
+                        continue
+                    qx, qy, qz = _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]),
+                                               (ax.u[0], ax.u[1], ax.u[2]), (ax.v[0], ax.v[1], ax.v[2]),
+                                               (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu, np.int64(ax.sample_pixel[sm]),
+                                               ax.depth[sm])
+                    dd = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+                    if dd < best_d:
+                        best_d = dd
+                        pick = k
+                if pick >= 0:
+                    break
+            out_a[i] = ca[pick]
+            out_s[i] = cs[pick]
+            out_t[i] = best_t
+    return out_a, out_s, out_t
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _fill_subpixels(q, hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radiance, depth, normal, obj_id, mat_id, prov,
+                    s_axis, s_idx, s_side):
+    """Sub-pixels ``q`` show their hit sample as ``_fill_from_hits`` shows a hole's (the
+    sample's diffuse radiance, distance, shading normal, ids; provenance 2), or the background
+    as ``_clear_pixels`` leaves a pixel (``hit_axis`` -1); one parallel pass over the three axes."""
+    for i in nb.prange(q.shape[0]):
+        r = q[i]
+        a = hit_axis[i]
+        if a < 0:
+            for c in range(3):
+                radiance[r, c] = bg[c]
+                normal[r, c] = 0.0
+            depth[r] = 0.0
+            obj_id[r] = -1
+            mat_id[r] = -1
+            prov[r] = 0
+            s_axis[r] = -1
+            s_idx[r] = -1
+            continue
+        ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
+        geo, nrm, diff = ax.geo_normal, ax.normal, ax.diffuse
+        sm = hit_sample[i]
+        sd = 1 if geo[sm, 0] * d[i, 0] + geo[sm, 1] * d[i, 1] + geo[sm, 2] * d[i, 2] > 0.0 else 0
+        _, _, _, n0, n1, n2 = _sample_normals(geo[sm, 0], geo[sm, 1], geo[sm, 2], nrm[sm, 0], nrm[sm, 1], nrm[sm, 2],
+                                              sd)
+        radiance[r, 0], radiance[r, 1], radiance[r, 2] = diff[sm, sd, 0], diff[sm, sd, 1], diff[sm, sd, 2]
+        depth[r] = hit_t[i]
+        normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
+        obj_id[r] = ax.object[sm]
+        mat_id[r] = ax.material[sm]
+        prov[r] = 2
+        s_axis[r] = a
+        s_idx[r] = sm
+        s_side[r] = sd
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _box_filter_pixels(pix, fine, W, s, out):
+    """out[p] (float32) = the mean of the s x s sub-pixels of flat pixel ``pix[i]`` of a W-wide
+    image in ``fine`` ((s h) (s w), 3) float64, each rounded to float32 first (uniform
+    supersampling's arithmetic: the float32 image of the fine frame, averaged in float64).
+    Returns how many sub-pixel values are not finite."""
+    n = pix.shape[0]
+    Ws = W * s
+    bad = 0
+    for i in nb.prange(n):
+        p = pix[i]
+        y = p // W
+        x = p % W
+        for c in range(3):
+            acc = 0.0
+            for a in range(s):
+                row = (y * s + a) * Ws + x * s
+                for b in range(s):
+                    v = fine[row + b, c]
+                    if not np.isfinite(v):
+                        bad += 1
+                    acc += np.float64(np.float32(v))
+            out[p, c] = acc / (s * s)
+    return bad
+
+
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _silhouette_mesh_test(pix, o, d, h_axis, h_sample, h_t, s_axis, s_idx, W, H, prim0, prim1, prim2, tri_p, tri_ng,
                           tri_obj, nbr, tol):
@@ -1180,23 +1401,38 @@ class LDCViewRenderer:
     # ------------------------------------------------------------------ render
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
                progress: Callable[[float, str], None] | None = None, force_all_passes: bool = False,
-               fill: str = "ibrt", supersample: int = 1) -> LDCRenderResult:
+               fill: str = "ibrt", supersample: int = 1, antialias: str = "uniform",
+               edge_contrast: float = EDGE_CONTRAST) -> LDCRenderResult:
         """Render ``camera`` with ``method`` ("ldc", "ldc+llf", "ldc+ibrt" (+ ``ibrt_generations``
         0..8) or "ldc+ibrt:k"); see the module docstring. ``supersample`` s (1..4) renders s x s
-        samples per pixel on a regular grid and box-filters the radiance (antialiasing, s^2 the
-        work); depth, normal, ids and provenance are those of the sample nearest the pixel
-        centre, counts are summed. Raises InvalidInputError for a bad method / fill /
-        supersample or when the method needs an LLF the bake doesn't have."""
+        samples per pixel on a regular grid and box-filters the radiance (antialiasing).
+        ``antialias="uniform"``: every pixel (s^2 the work); depth, normal, ids and provenance
+        are those of the sample nearest the pixel centre, counts are summed. ``antialias="edges"``:
+        only the pixels at an edge of the one-sample image (``_edge_pixels``: another object,
+        a depth jump, or a luminance step of more than ``edge_contrast`` in the 3 x 3
+        neighbourhood) get the s x s samples, on the sub-pixel rays of uniform supersampling
+        but without a second warp (``_render_edges``); every other pixel, and every pixel's
+        depth, normal, ids and provenance, is the one-sample render's, bit for bit. Raises
+        InvalidInputError for a bad method / fill / supersample / antialias or when the method
+        needs an LLF the bake doesn't have."""
         spec = method_spec(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
         if not isinstance(supersample, (int, np.integer)) or isinstance(supersample, bool) or \
                 not (1 <= supersample <= 4):
             raise InvalidInputError(f"supersample must be an integer in [1, 4], got {supersample!r}")
+        if antialias not in ANTIALIAS:
+            raise InvalidInputError(f"antialias must be one of {list(ANTIALIAS)}, got {antialias!r}")
+        if not isinstance(edge_contrast, (int, float)) or isinstance(edge_contrast, bool) or \
+                not (0.0 < float(edge_contrast) <= 1.0):
+            raise InvalidInputError(f"edge_contrast must be a number in (0, 1], got {edge_contrast!r}")
         with self._lock:
             if supersample == 1:
                 return self._render(camera, spec, progress, bool(force_all_passes), fill)
             s = int(supersample)
+            if antialias == "edges":
+                return self._render_edges(camera, spec, progress, bool(force_all_passes), fill, s,
+                                          float(edge_contrast))
             big = replace(camera, width=camera.width * s, height=camera.height * s)
             r = self._render(big, spec, progress, bool(force_all_passes), fill)
             H, W = camera.height, camera.width
@@ -1207,6 +1443,7 @@ class LDCViewRenderer:
                 return np.ascontiguousarray(a[c::s, c::s])
 
             r.plan["supersample"] = s
+            r.plan["antialias"] = "uniform"
             r.counts["supersample"] = s
             return LDCRenderResult(radiance=rad, depth=pick(r.depth), normal=pick(r.normal),
                                    object_id=pick(r.object_id), material_id=pick(r.material_id),
@@ -1217,12 +1454,109 @@ class LDCViewRenderer:
     def _render(self, camera, spec: MethodSpec, progress, force, fill) -> LDCRenderResult:
         """One render (``render``'s arguments, checked): the stages of the module docstring in
         order, each timed under its name in ``timings``."""
+        return self._render_frame(camera, spec, progress, force, fill)[1]
+
+    def _render_frame(self, camera, spec: MethodSpec, progress, force, fill) -> tuple[_Frame, LDCRenderResult]:
+        """``_render``, with the frame it ran on."""
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
         rc = self._fill(fr, fill)
         vp = self._view_pass(fr, spec, force, rc)
         self._mirrors(fr, vp, spec, force)
-        return self._result(fr, spec, fill, force, t_start)
+        return fr, self._result(fr, spec, fill, force, t_start)
+
+    def _render_edges(self, camera: CameraParams, spec: MethodSpec, progress, force: bool, fill: str, s: int,
+                      contrast: float) -> LDCRenderResult:
+        """``render(..., supersample=s, antialias="edges")``: the one-sample render, its edge
+        pixels (``_edge_pixels``), then s x s sub-pixel rays in each edge pixel: the very rays
+        of uniform supersampling (``camera`` at s times the width and height). No second warp:
+        a sub-pixel shows the sample ``_subpixel_samples`` picks from the one-sample render's
+        3 x 3 neighbourhood (the crossed surface, the nearest sample on it), or where the ray
+        crosses none of them the image-based ray's hit (or the background); then the view pass
+        and the mirror rays run on those sub-pixels as on any pixel (``_view_pass``,
+        ``_mirrors``; a sub-pixel's highlight samples are uniform supersampling's), and each
+        edge pixel's radiance is the box filter of its sub-pixels. Timings: the one-sample
+        render's stages plus ``edges`` (detection), ``edge_rays`` (picking the sub-pixels'
+        samples), ``edge_surfaces``, ``edge_ibrt`` and ``total``."""
+        t_start = time.perf_counter()
+
+        def part(lo: float, hi: float):
+            return None if progress is None else (lambda f, st: progress(lo + (hi - lo) * f, st))
+
+        fr1, r1 = self._render_frame(camera, spec, part(0.0, 0.6), force, fill)
+        H, W = camera.height, camera.width
+        t0 = time.perf_counter()
+        bg = np.asarray(self.ldc.background, np.float64)
+        edge = _edge_pixels(r1.object_id, r1.depth, r1.radiance, self.silhouette_rel_depth, contrast,
+                            _mean_luminance(r1.radiance, r1.object_id, bg))
+        pix = np.flatnonzero(edge)
+        timings = dict(r1.timings)
+        timings["edges"] = time.perf_counter() - t0
+        counts = dict(r1.counts)
+        counts["supersample"] = s
+        counts["edge_pixels"] = int(pix.size)
+        rad = r1.radiance
+        if pix.size:
+            t0 = time.perf_counter()
+            big = replace(camera, width=W * s, height=H * s)
+            fr = self._subpixel_frame(fr1, big, pix, s, counts)
+            timings["edge_rays"] = time.perf_counter() - t0
+            vp = self._view_pass(fr, spec, force, None)
+            self._mirrors(fr, vp, spec, force)
+            timings["edge_surfaces"] = fr.timings["surfaces"]
+            timings["edge_ibrt"] = fr.timings["ibrt"]
+            for k in ("view_pass_pixels", "traced_rays", "gather_lookups"):
+                counts["edge_" + k] = int(fr.counts.get(k, 0))
+            rad = r1.radiance.copy()
+            if _box_filter_pixels(pix, fr.radiance, W, s, rad.reshape(-1, 3)):
+                raise NonFiniteOutputError("LDC render produced non-finite values")
+        timings["total"] = time.perf_counter() - t_start
+        plan = dict(r1.plan)
+        plan["supersample"] = s
+        plan["antialias"] = "edges"
+        plan["edge_contrast"] = contrast
+        if progress is not None:
+            progress(1.0, "done")
+        return LDCRenderResult(radiance=rad, depth=r1.depth, normal=r1.normal, object_id=r1.object_id,
+                               material_id=r1.material_id, provenance=r1.provenance, hole_mask=r1.hole_mask,
+                               timings=timings, counts=counts, plan=plan)
+
+    def _subpixel_frame(self, fr1: _Frame, big: CameraParams, pix: np.ndarray, s: int, counts: dict) -> _Frame:
+        """The frame of the s-times finer camera ``big`` in which only the sub-pixels of the
+        one-sample frame's pixels ``pix`` are set (``_render_edges``): each shows its sample
+        (``_subpixel_samples``, else an image-based ray's hit, whatever the ``fill``: the
+        sub-pixels are no holes of a warp), or the background. The other
+        sub-pixels are never read (the arrays are allocated, not filled; ``obj_id`` is -1
+        there, so the view pass skips them)."""
+        W = fr1.width
+        n_f = big.width * big.height
+        a = np.arange(s)
+        y, x = pix // W, pix % W
+        q = (((y[:, None, None] * s + a[None, :, None]) * (W * s)) + (x[:, None, None] * s + a[None, None, :]))
+        q = q.reshape(-1)
+        coarse = np.repeat(pix, s * s)
+        cam = kernel_camera(big)
+        o, d = _pixel_rays(q, cam)
+        ax0, ax1, ax2 = self._axes
+        h_axis, h_sample, h_t = _subpixel_samples(coarse, o, d, fr1.samples.axis, fr1.samples.index, W, fr1.height,
+                                                  ax0, ax1, ax2, self.scene.tri_p, self.scene.tri_ng, self._tri_obj,
+                                                  self._nbr, 2.0 * float(self.ldc.h), SAME_FACE_COS)
+        ray = np.flatnonzero(h_axis < 0)
+        counts["edge_subpixels"] = int(q.size)
+        counts["edge_ibrt_rays"] = int(ray.size)
+        if ray.size:
+            r_axis, r_sample, r_t, _, _ = self._trace(o[ray], d[ray])
+            h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
+        obj_id = np.full(n_f, -1, np.int32)
+        fr = _Frame(camera=big, cam=cam, warp=fr1.warp, radiance=np.empty((n_f, 3)), depth=np.empty(n_f, np.float32),
+                    normal=np.empty((n_f, 3), np.float32), obj_id=obj_id, mat_id=np.empty(n_f, np.int32),
+                    prov=np.empty(n_f, np.uint8),
+                    samples=PixelSamples(np.empty(n_f, np.int8), np.empty(n_f, np.int64), np.empty(n_f, np.int8)),
+                    progress=None)
+        sm = fr.samples
+        _fill_subpixels(q, h_axis, h_sample, h_t, d, np.asarray(self.ldc.background, np.float64), ax0, ax1, ax2,
+                        fr.radiance, fr.depth, fr.normal, fr.obj_id, fr.mat_id, fr.prov, sm.axis, sm.index, sm.side)
+        return fr
 
     def _warp(self, camera: CameraParams, progress) -> _Frame:
         """Stage 1, timed as "warp" and "holes": every LDC sample splatted into the camera with a
@@ -1527,5 +1861,5 @@ def _groups() -> int:
     return max(1, int(nb.get_num_threads()))
 
 
-__all__ = ["FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
+__all__ = ["ANTIALIAS", "EDGE_CONTRAST", "FILLS", "LDCRenderResult", "LDCViewRenderer", "PROV_FILLED",
            "PROV_GATHERED", "PROV_NONE", "PROV_TRACED", "PROV_WARPED", "method_spec", "parse_method"]
