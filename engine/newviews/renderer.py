@@ -1806,6 +1806,7 @@ class LDCViewRenderer:
                 "silhouette_rays": self.silhouette_rays and fill != "none",
                 "silhouette_mesh_test": self.silhouette_mesh_test and self.silhouette_rays and fill == "ibrt",
                 "force_all_passes": force, "passes": fr.passes, "effects": self.plan.to_dict(),
+                "indirect": self.ldc.plan.get("indirect", {"state": "off", "reason": "baked without indirect light"}),
                 "non_diffuse_materials": [int(i) for i in np.flatnonzero(nondiffuse)]}
         fr.report(1.0, "done")
         return LDCRenderResult(radiance=out, depth=fr.depth.reshape(H, W).astype(np.float32, copy=False),

@@ -188,3 +188,19 @@ def test_baked_axis_reports_the_achieved_noise_level():
 def test_out_of_range_settings_name_the_allowed_range(kwargs, match):
     with pytest.raises(InvalidInputError, match=match):
         IndirectParams(**kwargs)
+
+
+def test_a_view_says_what_indirect_light_its_bake_holds():
+    from engine.newviews.renderer import LDCViewRenderer
+    from engine.scene import CameraParams
+
+    sc = _box_room()
+    caster = EmbreeCaster(sc)
+    cam = CameraParams("perspective", (0.3, 1.2, 3.0), (0.0, 0.6, 0.0), (0.0, 1.0, 0.0), 24, 24, 50.0)
+    baked = LDCViewRenderer(sc, bake_ldc(sc, caster, 12, indirect=IndirectParams(noise=0.05, bounces=2)), None)
+    plain = LDCViewRenderer(sc, bake_ldc(sc, caster, 12), None)
+    with_gi, without = baked.render(cam, "ldc"), plain.render(cam, "ldc")
+    assert with_gi.plan["indirect"]["state"] == "baked" and without.plan["indirect"]["state"] == "off"
+    covered = without.object_id >= 0
+    assert covered.any() and np.all(with_gi.radiance[covered] >= without.radiance[covered])
+    assert (with_gi.radiance[covered] @ LUMA).mean() > 1.05 * (without.radiance[covered] @ LUMA).mean()
