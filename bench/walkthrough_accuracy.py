@@ -130,7 +130,7 @@ def ground_truth(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int
     base = direct.radiance.reshape(-1, 3)[idx].astype(np.float64)
     receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
     bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
-    ip = IndirectParams(noise=noise, min_paths=64, max_paths=65536, bounces=bounces, round_paths=16, seed=seed,
+    ip = IndirectParams(noise=noise, min_paths=256, max_paths=65536, bounces=bounces, round_paths=16, seed=seed,
                         area_light_samples=4)
     ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GT_STREAM, frame),
                                 brightness=bright)
@@ -426,7 +426,7 @@ def main() -> None:
     if args.quick:
         args.frames, args.width, args.height, args.speed_reps = 4, 32, 24, 3
         args.overrides = {q: dict(face_res=16, probe_res=8, max_views=2, max_time_samples=2, area_light_samples=4,
-                                  indirect_max_paths=256) for q in QUALITIES}
+                                  indirect_max_paths=512) for q in QUALITIES}
         args.gt_noise, args.floor_frames, args.ladder = 0.02, (0, 2), LADDER[:3]
     else:
         args.frames, args.width, args.height, args.speed_reps = 8, 80, 60, 5
