@@ -6,16 +6,20 @@ the usual cube-map layout), the radiance split into **direct** and **indirect** 
 distance along each pixel-centre ray to the first hit (``depth``, 0 where the ray leaves the
 scene) and the object id seen there (-1 for none).
 
-Both radiance parts come from the reference renderer (``engine/reference.py``), which the
+Both radiance parts are the reference renderer's (``engine/reference.py``), which the
 walkthrough reconstruction is measured against:
 
 - direct = a render with ``indirect_samples = 0`` (emission, ambient, direct light with
   shadows, mirror / glossy chains);
-- indirect = (a render with path-traced indirect light) - direct, for the same seed. The
-  camera jitter and the first-hit light samples of both renders come from the same
-  counter-based random streams, so on diffuse surfaces the difference is exactly the
-  path-traced part; behind mirror / glossy chains it also carries the (zero-mean) difference
-  between two samplings of the direct light there.
+- indirect, as the walkthrough bake computes it (``trace_cube_indirect``): the reference
+  renderer's indirect paths from the first hit of every pixel-centre ray, traced per pixel until
+  the estimated standard error reaches a requested noise level
+  (``engine.newviews.indirect.trace_indirect_points``);
+- or, with ``render_cube(..., indirect=True)``, a fixed-sample split: (a render with path-traced
+  indirect light) - direct, for the same seed. The camera jitter and the first-hit light samples
+  of both renders come from the same counter-based random streams, so on diffuse surfaces the
+  difference is exactly the path-traced part; behind mirror / glossy chains it also carries the
+  (zero-mean) difference between two samplings of the direct light there.
 """
 
 from __future__ import annotations
