@@ -28,6 +28,7 @@ ratios within one run.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -107,6 +108,8 @@ def load(name: str) -> tuple[AnimatedScene, ViewSpace]:
     return an, space
 
 
+GT_CACHE = Path(os.environ.get("IBR_BENCH_CACHE", "/tmp/ibr-bench-cache")) / "walkthrough_gt"
+"""Ground truths are cached here between runs (they depend only on the scene, frames and settings)."""
 GT_AREA_SAMPLES = 1024
 """Area-light samples per pixel of the ground truth's direct light (a 32 x 32 jittered grid)."""
 GT_STREAM = 6
@@ -165,22 +168,39 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
             raise SystemExit(f"{name}: camera {c.eye} leaves the view space")
     bounces = args.bounces
     print(f"[{name}] ground truth: {len(cams)} frames, indirect noise {args.gt_noise}", flush=True)
-    gts, masks, gt_stats = [], [], []
     renderers: dict[float, ReferenceRenderer] = {}
-    for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
-        rr = renderers.setdefault(float(t), ReferenceRenderer(an.scene_at(float(t))))
-        img, mask, st = ground_truth(rr, cam, i, 0, args.gt_noise, bounces)
-        gts.append(img)
-        masks.append(mask)
-        gt_stats.append(st)
-        print(f"[{name}] gt {i}: {st['seconds']:.1f} s, paths/pixel {st['paths_mean']:.0f}", flush=True)
-    # noise floor of the ground truth: the same frames with another seed
-    floor = []
-    for k in args.floor_frames:
-        other, _, _ = ground_truth(renderers[float(times[k])], cams[k], k, 1, args.gt_noise, bounces)
-        floor.append(lrms(other, gts[k], masks[k]))
+    for t in times:
+        renderers.setdefault(float(t), ReferenceRenderer(an.scene_at(float(t))))
+    # the ground truth is expensive and depends only on these settings: cached between runs
+    tag = json.dumps([name, args.frames, args.width, args.height, args.gt_noise, bounces, GT_AREA_SAMPLES,
+                      list(args.floor_frames)])
+    cache = GT_CACHE / f"{name}_{hashlib.sha256(tag.encode()).hexdigest()[:16]}.npz"
+    if cache.exists():
+        with np.load(cache) as z:
+            gts, masks, floor_imgs = list(z["gts"]), list(z["masks"]), list(z["floor"])
+            gt_stats = json.loads(str(z["stats"]))
+        print(f"[{name}] ground truth from {cache}", flush=True)
+    else:
+        gts, masks, gt_stats, floor_imgs = [], [], [], []
+        for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
+            img, mask, st = ground_truth(renderers[float(t)], cam, i, 0, args.gt_noise, bounces)
+            gts.append(img)
+            masks.append(mask)
+            gt_stats.append(st)
+            print(f"[{name}] gt {i}: {st['seconds']:.1f} s, paths/pixel {st['paths_mean']:.0f}", flush=True)
+        # noise floor of the ground truth: the same frames with another seed
+        for k in args.floor_frames:
+            floor_imgs.append(ground_truth(renderers[float(times[k])], cams[k], k, 1, args.gt_noise, bounces)[0])
+        GT_CACHE.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, gts=np.stack(gts), masks=np.stack(masks), floor=np.stack(floor_imgs),
+                 stats=np.array(json.dumps(gt_stats)))
+    floor = [lrms(img, gts[k], masks[k]) for img, k in zip(floor_imgs, args.floor_frames, strict=True)]
     # rendering every frame: the reference (same image model) at a ladder of sample counts
     ladder = []
+    warm = ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=1, indirect_samples=1,
+                           indirect_bounces=bounces)
+    for k in args.floor_frames:  # warm-up: kernels compiled, BVHs built before anything is timed
+        renderers[float(times[k])].render(cams[k], warm)
     for area, ind in args.ladder:
         rp = ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=area, indirect_samples=ind,
                              indirect_bounces=bounces, seed=2)
