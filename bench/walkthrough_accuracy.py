@@ -62,6 +62,9 @@ IMG = ROOT / "docs" / "img" / "walkthrough"
 SAMPLES = ROOT / "samples"
 QUALITIES = ("low", "medium", "high")
 SCENES = ("cornell_animated", "static_room")
+PROV_NAMES = ("hole", "reprojected", "foreground_fill", "background_fill", "traced", "sky")
+"""Provenance codes of a frame's pixels (engine.walkthrough.reconstruct), in code order."""
+LUMA = np.asarray(REC709_WEIGHTS, np.float64)
 
 
 def _path_points(points: np.ndarray, n: int) -> np.ndarray:
@@ -114,7 +117,7 @@ GT_AREA_SAMPLES = 1024
 """Area-light samples per pixel of the ground truth's direct light (a 32 x 32 jittered grid)."""
 GT_STREAM = 6
 """Sampler stream of the ground truth's indirect paths: sample_key(seed, 6, frame)."""
-LADDER = ((1, 1), (4, 4), (4, 16), (9, 64), (16, 256), (16, 1024))
+LADDER = ((1, 1), (4, 4), (4, 16), (9, 64), (16, 256), (64, 256))
 """(area_light_samples, indirect_samples) of the reference renders that price 'render every frame'."""
 
 
@@ -195,6 +198,9 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
         np.savez(cache, gts=np.stack(gts), masks=np.stack(masks), floor=np.stack(floor_imgs),
                  stats=np.array(json.dumps(gt_stats)))
     floor = [lrms(img, gts[k], masks[k]) for img, k in zip(floor_imgs, args.floor_frames, strict=True)]
+    print(f"[{name}] ground-truth pairs (seeds 0 / 1) differ by LRMS {[round(x, 5) for x in floor]}", flush=True)
+    if args.gt_only:
+        return {}
     # rendering every frame: the reference (same image model) at a ladder of sample counts
     ladder = []
     warm = ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=1, indirect_samples=1,
@@ -240,16 +246,26 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
             wr.render(cams[0], float(times[0]), fill=fill)  # warm-up (JIT, buffers)
             errs, secs, holes = [], [], []
             frames = []
+            sq = np.zeros(len(PROV_NAMES))
+            npx = np.zeros(len(PROV_NAMES))
             for cam, t, gt, mask in zip(cams, times, gts, masks, strict=True):
                 t1 = time.perf_counter()
                 fr = wr.render(cam, float(t), fill=fill)
                 secs.append(time.perf_counter() - t1)
                 errs.append(lrms(fr.radiance, gt, mask))
+                # where the error is: squared luminance error (relative to the frame's mean) per provenance
+                y_t, y_r = fr.radiance.astype(np.float64) @ LUMA, gt.astype(np.float64) @ LUMA
+                e2 = ((y_t - y_r) / max(float(y_r[mask].mean()), 1e-300)) ** 2
+                prov = np.minimum(fr.provenance, len(PROV_NAMES) - 1)
+                sq += np.bincount(prov[mask], weights=e2[mask], minlength=len(PROV_NAMES))
+                npx += np.bincount(prov[mask], minlength=len(PROV_NAMES))
                 holes.append(fr.counts.get("hole", 0) / (cam.width * cam.height))
                 frames.append(fr.radiance)
             f_entry = {"lrms": [float(e) for e in errs], "mean_lrms": float(np.mean(errs)),
                        "max_lrms": float(np.max(errs)), "seconds_per_frame": float(np.median(secs)),
-                       "hole_fraction": float(np.mean(holes))}
+                       "hole_fraction": float(np.mean(holes)),
+                       "error_share": dict(zip(PROV_NAMES, (sq / max(sq.sum(), 1e-300)).tolist(), strict=True)),
+                       "pixel_share": dict(zip(PROV_NAMES, (npx / max(npx.sum(), 1)).tolist(), strict=True))}
             f_entry["reference_seconds_at_error"], f_entry["reference_at_error"] = time_at_error(
                 ladder, f_entry["mean_lrms"])
             entry["fills"][fill] = f_entry
@@ -384,6 +400,15 @@ def _doc(data: dict) -> str:
                 f"{e['bake_timings'].get('indirect', 0.0):.1f} | {e['bake_mbytes']:.0f} | "
                 f"{1e3 * f['seconds_per_frame']:.1f} | {f['mean_lrms']:.4f} | {f['max_lrms']:.4f} | "
                 f"{t_ref:.2f} ({f['reference_at_error']}) | {total / (n * t_ref):.2f}x | {be} |")
+        lines += ["", "Where the error of fill `both` is: share of the squared error (share of the pixels) by "
+                  "provenance: reprojected base pixels, foreground-fill quads, background fill.", "",
+                  "| quality | reprojected | foreground fill | background fill |", "|---|---|---|---|"]
+        for q in QUALITIES:
+            f = res["qualities"][q]["fills"]["both"]
+            if "error_share" in f:
+                lines.append(f"| {q} | " + " | ".join(
+                    f"{100 * f['error_share'][k]:.0f} % ({100 * f['pixel_share'][k]:.0f} %)"
+                    for k in ("reprojected", "foreground_fill", "background_fill")) + " |")
         lines += ["", "| quality | fill | mean LRMS | max LRMS | holes left (mean fraction) | ms / frame |",
                   "|---|---|---|---|---|---|"]
         for q in QUALITIES:
@@ -424,6 +449,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="tiny run (smoke test)")
     ap.add_argument("--no-doc", action="store_true")
     ap.add_argument("--scene", choices=SCENES, help="run one scene; the other's saved results are kept")
+    ap.add_argument("--gt-only", action="store_true",
+                    help="only compute (and cache) the ground truth of --scene, to split a long run in two")
+    ap.add_argument("--gt-noise", type=float, help="the ground truth's indirect noise target (default 0.006)")
     ap.add_argument("--doc-only", action="store_true", help="rewrite the doc and plots from the saved JSON")
     ap.add_argument("--speed-only", action="store_true",
                     help="re-measure only the 512 x 512 speed section; the rest comes from the saved JSON")
@@ -455,7 +483,7 @@ def main() -> None:
             "medium": dict(face_res=64, probe_res=16, max_views=5, max_time_samples=5, area_light_samples=4),
             "high": dict(face_res=96, probe_res=24, max_views=8, max_time_samples=5, area_light_samples=4),
         }
-        args.gt_noise, args.floor_frames, args.ladder = 0.006, (0, 4), LADDER
+        args.gt_noise, args.floor_frames, args.ladder = args.gt_noise or 0.006, (0, 4), LADDER
     for q in QUALITIES:
         args.overrides[q]["indirect_bounces"] = args.bounces
     IMG.mkdir(parents=True, exist_ok=True)
@@ -470,6 +498,9 @@ def main() -> None:
             data["speed"] = old["speed"]
     t0 = time.perf_counter()
     for name in (args.scene,) if args.scene else SCENES:
+        if args.gt_only:
+            run_scene(name, args)
+            return
         data["scenes"][name] = run_scene(name, args)
         data["scenes"][name]["floor_frames"] = list(args.floor_frames)
     data["scenes"] = {k: data["scenes"][k] for k in SCENES if k in data["scenes"]}
