@@ -373,10 +373,11 @@ def _doc(data: dict) -> str:
                   f"one frame's noise is that / sqrt 2). Scene static: {res['static']}.", "",
                   "Reference renderer rendering every frame (same image model: pixel centres, 1 spp), against the "
                   "ground truth:", "",
-                  "| area-light samples | indirect paths / pixel | LRMS | s / frame |", "|---|---|---|---|"]
+                  "| area-light samples | indirect paths / pixel | LRMS vs ground truth | s / frame |",
+                  "|---|---|---|---|"]
         for x in res["ladder"]:
             lines.append(f"| {x['area_light_samples']} | {x['indirect_samples']} | {x['lrms']:.4f} | "
-                         f"{x['seconds']:.2f} |")
+                         f"{x['seconds']:.3f} |")
         lines += ["", "Walkthrough (fill `both`), and the reference at the same error:", "",
                   "| quality | base views | time samples (direct / indirect) | indirect noise target | achieved "
                   "(median / p95 of cubes, met) | bake (s) | of which indirect (s) | bake MiB | ms / frame | "
@@ -399,7 +400,7 @@ def _doc(data: dict) -> str:
                 f"{e['params']['indirect_noise']:g} | {achieved} | {e['bake_seconds']:.1f} | "
                 f"{e['bake_timings'].get('indirect', 0.0):.1f} | {e['bake_mbytes']:.0f} | "
                 f"{1e3 * f['seconds_per_frame']:.1f} | {f['mean_lrms']:.4f} | {f['max_lrms']:.4f} | "
-                f"{t_ref:.2f} ({f['reference_at_error']}) | {total / (n * t_ref):.2f}x | {be} |")
+                f"{t_ref:.3f} ({f['reference_at_error']}) | {total / (n * t_ref):.2f}x | {be} |")
         lines += ["", "Where the error of fill `both` is: share of the squared error (share of the pixels) by "
                   "provenance: reprojected base pixels, foreground-fill quads, background fill.", "",
                   "| quality | reprojected | foreground fill | background fill |", "|---|---|---|---|"]
