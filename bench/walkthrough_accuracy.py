@@ -28,6 +28,7 @@ ratios within one run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import math
@@ -49,8 +50,15 @@ from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
 from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
-from engine.walkthrough.bake import WalkthroughRenderer, bake_walkthrough, render_bases, walkthrough_preset
-from engine.walkthrough.range_images import surface_points
+from engine.walkthrough.bake import (
+    WalkthroughBake,
+    WalkthroughParams,
+    WalkthroughRenderer,
+    bake_walkthrough,
+    render_bases,
+    walkthrough_preset,
+)
+from engine.walkthrough.range_images import render_cube, surface_points
 from engine.walkthrough.reconstruct import FILL_MODES
 from engine.walkthrough.viewspace import PathSpace, PolygonSpace, ViewSpace
 from workers.scene_loader import directory_resolver, load_animated_scene
@@ -161,6 +169,23 @@ def time_at_error(ladder: list[dict], err: float) -> tuple[float, str]:
             return math.exp(math.log(t0) + a * (math.log(t1) - math.log(t0))), "interpolated"
     e_last, t_last = pts[-1]
     return t_last * (e_last / err) ** 2, "extrapolated"
+
+
+def fixed_sample_bake(an: AnimatedScene, bake: WalkthroughBake, params: WalkthroughParams) -> tuple[
+        WalkthroughBake, float]:
+    """The same bases with the indirect part of a fixed path count instead (``params.indirect_samples``
+    per pixel, ``render_cube(..., indirect=True)``: full render - direct render), for comparison;
+    and the seconds that indirect pass took."""
+    rdiv = params.indirect_res_div
+    ri = params.face_res // rdiv
+    ind = np.zeros_like(bake.indirect)
+    t0 = time.perf_counter()
+    for k, t in enumerate(bake.indirect_times):
+        rr = ReferenceRenderer(an.scene_at(float(t)))
+        for v, eye in enumerate(bake.views):
+            c = render_cube(rr, eye, ri, params.reference_params(True), time_value=float(t), indirect=True)
+            ind[v, k] = np.repeat(np.repeat(c.indirect, rdiv, axis=1), rdiv, axis=2)
+    return dataclasses.replace(bake, indirect=ind), time.perf_counter() - t0
 
 
 def run_scene(name: str, args: argparse.Namespace) -> dict:
@@ -274,6 +299,15 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
                 write_image(IMG / f"{name}_{q}_frame{k}.png", frames[k])
             print(f"[{name}] {q} {fill}: mean LRMS {np.mean(errs):.4f}, {np.median(secs) * 1e3:.1f} ms/frame, "
                   f"reference at that error {f_entry['reference_seconds_at_error']:.2f} s/frame", flush=True)
+        # the previous method's bases (a fixed number of indirect paths per pixel) on the same views and times
+        fixed, fixed_s = fixed_sample_bake(an, bake, params)
+        wf = WalkthroughRenderer(fixed, an)
+        errs = [lrms(wf.render(cam, float(t), fill="both").radiance, gt, mask)
+                for cam, t, gt, mask in zip(cams, times, gts, masks, strict=True)]
+        entry["fixed_samples"] = {"indirect_samples": params.indirect_samples, "indirect_seconds": fixed_s,
+                                  "mean_lrms_both": float(np.mean(errs))}
+        print(f"[{name}] {q} with fixed-sample bases ({params.indirect_samples} paths): mean LRMS (both) "
+              f"{np.mean(errs):.4f}, indirect pass {fixed_s:.1f} s", flush=True)
         result["qualities"][q] = entry
     k = len(cams) // 2
     write_image(IMG / f"{name}_reference_frame{k}.png", gts[k])
@@ -401,6 +435,17 @@ def _doc(data: dict) -> str:
                 f"{e['bake_timings'].get('indirect', 0.0):.1f} | {e['bake_mbytes']:.0f} | "
                 f"{1e3 * f['seconds_per_frame']:.1f} | {f['mean_lrms']:.4f} | {f['max_lrms']:.4f} | "
                 f"{t_ref:.3f} ({f['reference_at_error']}) | {total / (n * t_ref):.2f}x | {be} |")
+        if all("fixed_samples" in res["qualities"][q] for q in QUALITIES):
+            lines += ["", "The same views and times with the previous bases, indirect light of a fixed number of "
+                      "paths per pixel (the preset's `indirect_samples`; full render - direct render):", "",
+                      "| quality | indirect paths / pixel | indirect pass (s) | mean LRMS, fill both | "
+                      "converged bases: indirect pass (s) | mean LRMS |", "|---|---|---|---|---|---|"]
+            for q in QUALITIES:
+                e = res["qualities"][q]
+                fx = e["fixed_samples"]
+                lines.append(f"| {q} | {fx['indirect_samples']} | {fx['indirect_seconds']:.1f} | "
+                             f"{fx['mean_lrms_both']:.4f} | {e['bake_timings'].get('indirect', 0.0):.1f} | "
+                             f"{e['fills']['both']['mean_lrms']:.4f} |")
         lines += ["", "Where the error of fill `both` is: share of the squared error (share of the pixels) by "
                   "provenance: reprojected base pixels, foreground-fill quads, background fill.", "",
                   "| quality | reprojected | foreground fill | background fill |", "|---|---|---|---|"]
