@@ -73,8 +73,8 @@ class WalkthroughParams:
     least ``INDIRECT_FLOOR`` times its cube's mean direct brightness); indirect_max_paths: the
     most paths any base pixel traces (the bake's cost bound; pixels that reach it are counted in
     the achieved-noise summary); max_views / max_time_samples: caps; min_spacing: smallest base
-    spacing (None: view-space diagonal / 32); depth_tol: relative depth tolerance of the reprojection; n_bases: bases
-    reprojected per frame."""
+    spacing (None: view-space diagonal / 32); depth_tol: relative depth tolerance of the
+    reprojection; n_bases: bases reprojected per frame."""
 
     quality: str = "custom"
     q: float = 0.7
