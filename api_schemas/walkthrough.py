@@ -19,6 +19,8 @@ from api_schemas.service import JobPublic, Sha256
 
 __all__ = [
     "BYTES_PER_BASE_PIXEL",
+    "INDIRECT_MAX_PATHS_RANGE",
+    "INDIRECT_NOISE_RANGE",
     "MAX_WALKTHROUGH_FRAMES",
     "PRESET_SIZES",
     "WalkthroughFrame",
@@ -28,6 +30,10 @@ __all__ = [
 ]
 
 MAX_WALKTHROUGH_FRAMES = 10_000
+INDIRECT_NOISE_RANGE = (0.001, 0.5)
+"""Allowed indirect_noise (engine.walkthrough.bake.INDIRECT_NOISE_RANGE; a test keeps them equal)."""
+INDIRECT_MAX_PATHS_RANGE = (128, 65536)
+"""Allowed indirect_max_paths (engine.walkthrough.bake.INDIRECT_MAX_PATHS_RANGE)."""
 PRESET_SIZES: dict[str, dict[str, int]] = {
     "low": {"face_res": 96, "max_views": 4, "max_time_samples": 5},
     "medium": {"face_res": 160, "max_views": 8, "max_time_samples": 9},
@@ -58,7 +64,14 @@ class WalkthroughSettings(FrozenModel):
     face_res: Annotated[int, Field(strict=True, ge=8, le=1024)] | None = None
     """Base cube face resolution (default: the preset's); a multiple of 2."""
     indirect_samples: Annotated[int, Field(strict=True, ge=0, le=1024)] | None = None
-    """Path-traced indirect paths per pixel of the base images (0: no global illumination)."""
+    """0: no global illumination; > 0: indirect light in the bases (traced to ``indirect_noise``) and
+    this many indirect paths per pixel where fill "trace" traces a hole."""
+    indirect_noise: Annotated[float, Field(ge=INDIRECT_NOISE_RANGE[0], le=INDIRECT_NOISE_RANGE[1])] | None = None
+    """Target relative standard error of each base pixel's indirect light (against the pixel's
+    brightness); default: the preset's (low 0.05, medium 0.02, high 0.01)."""
+    indirect_max_paths: Annotated[int, Field(strict=True, ge=INDIRECT_MAX_PATHS_RANGE[0],
+                                             le=INDIRECT_MAX_PATHS_RANGE[1])] | None = None
+    """Most indirect paths any base pixel traces (default: the preset's, low 256, medium 1024, high 4096)."""
     max_views: Annotated[int, Field(strict=True, ge=1, le=256)] | None = None
     """Cap on the number of base viewpoints."""
     max_time_samples: Annotated[int, Field(strict=True, ge=1, le=257)] | None = None
@@ -77,14 +90,16 @@ class WalkthroughSettings(FrozenModel):
     def upper_bound_bytes(self) -> int:
         """Largest bake these settings can produce (every view and time sample used)."""
         size = {**PRESET_SIZES[self.quality], **self.overrides()}
-        return size["max_views"] * size["max_time_samples"] * 6 * size["face_res"] ** 2 * BYTES_PER_BASE_PIXEL
+        return int(size["max_views"] * size["max_time_samples"] * 6 * size["face_res"] ** 2 * BYTES_PER_BASE_PIXEL)
 
-    def overrides(self) -> dict[str, int]:
-        out: dict[str, int] = {"seed": self.seed}
-        for name in ("face_res", "indirect_samples", "max_views", "max_time_samples"):
+    def overrides(self) -> dict[str, int | float]:
+        out: dict[str, int | float] = {"seed": self.seed}
+        for name in ("face_res", "indirect_samples", "indirect_max_paths", "max_views", "max_time_samples"):
             v = getattr(self, name)
             if v is not None:
                 out[name] = int(v)
+        if self.indirect_noise is not None:
+            out["indirect_noise"] = float(self.indirect_noise)
         return out
 
 

@@ -25,11 +25,13 @@ import numpy as np
 
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError
+from engine.newviews.indirect import IndirectParams, merge_summaries
 from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.sampler import sample_key
 from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
 from engine.walkthrough.decompose import GeometryProbe, choose_base_views, choose_time_samples
-from engine.walkthrough.range_images import render_cube
+from engine.walkthrough.range_images import render_cube, trace_cube_indirect
 from engine.walkthrough.reconstruct import FILL_MODES, PROV_HOLE, PROV_TRACED, FrameResult, _Buffers, reproject
 from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace, ViewSpace
 
@@ -39,17 +41,40 @@ __all__ = ["PRESETS", "WalkthroughBake", "WalkthroughParams", "WalkthroughRender
 Progress = Callable[[float, str], None]
 
 
+INDIRECT_NOISE_RANGE = (0.001, 0.5)
+"""Allowed ``indirect_noise`` (relative standard error per base pixel)."""
+INDIRECT_MAX_PATHS_RANGE = (128, 65536)
+"""Allowed ``indirect_max_paths``."""
+INDIRECT_MIN_PATHS = 128
+"""Paths every base pixel traces before its noise test: eight rounds of ``INDIRECT_ROUND_PATHS``.
+The standard error is estimated from the spread of the round means; from two rounds (one degree
+of freedom) it is often far too small, the pixel stops early, and the RMS error of a cube came
+out ~2x its target (tests/engine/test_walkthrough_indirect.py's scene); from eight it is 0.9x."""
+INDIRECT_ROUND_PATHS = 16
+INDIRECT_FLOOR = 0.25
+"""The brightness a pixel's noise is measured against is at least this fraction of its cube's
+mean direct brightness (dark pixels do not run to the path cap for light nobody sees)."""
+_INDIRECT_STREAM = 5
+"""Sampler stream of the bases' indirect paths: sample_key(seed, 5, view, indirect time sample)
+(the reference renderer's camera paths use 0, shade_hits 1, the LDC's indirect pass 3)."""
+
+
 @dataclass(frozen=True)
 class WalkthroughParams:
     """q: coherence threshold of the view-space and direct temporal decompositions (0..1);
     q_indirect: threshold of the (sparser) indirect temporal decomposition; face_res: base
     cube face size; indirect_res_div: indirect light is rendered at face_res / div and
     upsampled (it is smooth); probe_res: face size of the geometry probes used by the
-    decompositions; spp / area_light_samples / indirect_samples / indirect_bounces: reference
-    renderer settings of the base images (indirect_samples = 0: no global illumination);
-    max_views / max_time_samples: caps; min_spacing: smallest base spacing (None: view-space
-    diagonal / 32); depth_tol: relative depth tolerance of the reprojection; n_bases: bases
-    reprojected per frame."""
+    decompositions; spp / area_light_samples / indirect_bounces: reference renderer settings of
+    the base images; indirect_samples: 0 = no global illumination, > 0 = indirect light on (the
+    bases' indirect part is then traced to ``indirect_noise``; holes traced by fill="trace" use
+    indirect_samples paths per pixel); indirect_noise: target relative standard error of each
+    base pixel's indirect light, measured against the pixel's brightness (direct + indirect, at
+    least ``INDIRECT_FLOOR`` times its cube's mean direct brightness); indirect_max_paths: the
+    most paths any base pixel traces (the bake's cost bound; pixels that reach it are counted in
+    the achieved-noise summary); max_views / max_time_samples: caps; min_spacing: smallest base
+    spacing (None: view-space diagonal / 32); depth_tol: relative depth tolerance of the
+    reprojection; n_bases: bases reprojected per frame."""
 
     quality: str = "custom"
     q: float = 0.7
@@ -61,6 +86,8 @@ class WalkthroughParams:
     area_light_samples: int = 16
     indirect_samples: int = 16
     indirect_bounces: int = 2
+    indirect_noise: float = 0.02
+    indirect_max_paths: int = 1024
     max_views: int = 16
     max_time_samples: int = 33
     min_spacing: float | None = None
@@ -74,7 +101,8 @@ class WalkthroughParams:
             if not 0.0 <= v <= 1.0:
                 raise InvalidInputError(f"{name} must be in [0, 1], got {v}")
         ints = {"face_res": (4, 4096), "indirect_res_div": (1, 16), "probe_res": (4, 512), "spp": (1, 1024),
-                "area_light_samples": (1, 4096), "indirect_samples": (0, 1 << 16), "indirect_bounces": (1, 64),
+                "area_light_samples": (1, 4096), "indirect_samples": (0, 1 << 16), "indirect_bounces": (1, 16),
+                "indirect_max_paths": INDIRECT_MAX_PATHS_RANGE,
                 "max_views": (1, 4096), "max_time_samples": (1, 4097), "n_bases": (1, 16)}
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
@@ -83,6 +111,10 @@ class WalkthroughParams:
         if self.face_res % self.indirect_res_div:
             raise InvalidInputError(f"face_res ({self.face_res}) must be a multiple of indirect_res_div "
                                     f"({self.indirect_res_div})")
+        lo_n, hi_n = INDIRECT_NOISE_RANGE
+        v = self.indirect_noise
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo_n <= v <= hi_n:
+            raise InvalidInputError(f"indirect_noise must be a number in [{lo_n:g}, {hi_n:g}], got {v!r}")
         if not 0.0 <= self.depth_tol < 1.0:
             raise InvalidInputError(f"depth_tol must be in [0, 1), got {self.depth_tol}")
 
@@ -91,13 +123,24 @@ class WalkthroughParams:
                                indirect_samples=self.indirect_samples if indirect else 0,
                                indirect_bounces=self.indirect_bounces, seed=self.seed)
 
+    def indirect_params(self) -> IndirectParams:
+        """Settings of the bases' converged indirect pass: the reference renderer's paths
+        (``indirect_bounces`` diffuse vertices, its light sampling and mirror / glossy depth)
+        traced per base pixel until ``indirect_noise`` or ``indirect_max_paths``."""
+        return IndirectParams(noise=float(self.indirect_noise), min_paths=INDIRECT_MIN_PATHS,
+                              max_paths=self.indirect_max_paths, bounces=self.indirect_bounces,
+                              round_paths=INDIRECT_ROUND_PATHS, floor=INDIRECT_FLOOR, seed=self.seed,
+                              area_light_samples=min(self.area_light_samples, 1024),
+                              max_depth=ReferenceParams().max_depth)
+
 
 PRESETS: dict[str, dict[str, object]] = {
-    "low": dict(q=0.5, q_indirect=0.3, face_res=96, spp=1, indirect_samples=8, max_views=4, max_time_samples=5),
-    "medium": dict(q=0.7, q_indirect=0.5, face_res=160, spp=2, indirect_samples=16, max_views=8,
-                   max_time_samples=9),
-    "high": dict(q=0.85, q_indirect=0.65, face_res=256, spp=4, indirect_samples=32, max_views=12,
-                 max_time_samples=17),
+    "low": dict(q=0.5, q_indirect=0.3, face_res=96, spp=1, indirect_samples=8, indirect_noise=0.05,
+                indirect_max_paths=256, max_views=4, max_time_samples=5),
+    "medium": dict(q=0.7, q_indirect=0.5, face_res=160, spp=2, indirect_samples=16, indirect_noise=0.02,
+                   indirect_max_paths=1024, max_views=8, max_time_samples=9),
+    "high": dict(q=0.85, q_indirect=0.65, face_res=256, spp=4, indirect_samples=32, indirect_noise=0.01,
+                 indirect_max_paths=4096, max_views=12, max_time_samples=17),
 }
 """Worst-case base image memory (every view at every time): low 35 MB, medium 0.35 GB, high 2.6 GB."""
 
@@ -114,7 +157,11 @@ class WalkthroughBake:
     """Base images. views (V, 3) float64; direct_times (Td,), indirect_times (Ti,) (a subset);
     direct (V, Td, 6, R, R, 3) float32; indirect (V, Ti, 6, R, R, 3) float32 (Ti = 1 and all
     zero without global illumination); depth, object_id (V, Td, 6, R, R); background (3,);
-    start / end of the animation; timings (seconds per phase); params (WalkthroughParams as a dict)."""
+    start / end of the animation; timings (seconds per phase); params (WalkthroughParams as a dict);
+    indirect_stats: the achieved noise of the indirect pass over all its base pixels
+    (``engine.newviews.indirect.merge_summaries``: relative standard error median / p95 of the
+    cubes, max, the fraction of pixels that met ``indirect_noise``, paths traced) and per cube
+    (``cubes``: view index, animation time ``at``, its own summary and seconds)."""
 
     views: np.ndarray
     direct_times: np.ndarray
@@ -129,6 +176,7 @@ class WalkthroughBake:
     view_space: dict[str, object] = field(default_factory=dict)
     params: dict[str, object] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    indirect_stats: dict[str, object] = field(default_factory=dict)
 
     @property
     def res(self) -> int:
@@ -146,7 +194,8 @@ class WalkthroughBake:
         return {"views": self.views.tolist(), "direct_times": self.direct_times.tolist(),
                 "indirect_times": self.indirect_times.tolist(), "background": self.background.tolist(),
                 "start": self.start, "end": self.end, "res": self.res, "view_space": self.view_space,
-                "params": self.params, "timings": self.timings}
+                "params": self.params, "timings": self.timings,
+                "indirect_stats": self.indirect_stats}
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """One uncompressed .npz (arrays + a JSON ``meta`` entry), written atomically."""
@@ -163,7 +212,8 @@ class WalkthroughBake:
             return WalkthroughBake(np.asarray(meta["views"], np.float64), np.asarray(meta["direct_times"]),
                                    np.asarray(meta["indirect_times"]), z["direct"], z["indirect"], z["depth"],
                                    z["object_id"], np.asarray(meta["background"], np.float64), meta["start"],
-                                   meta["end"], meta["view_space"], meta["params"], meta["timings"])
+                                   meta["end"], meta["view_space"], meta["params"], meta["timings"],
+                                   meta.get("indirect_stats", {}))
 
 
 def _space_dict(space: ViewSpace) -> dict[str, object]:
@@ -220,7 +270,14 @@ def render_bases(animated: AnimatedScene, views: np.ndarray | list[list[float]],
                  progress: Progress | None = None) -> WalkthroughBake:
     """Render the base cubes at given viewpoints and times (no decomposition): direct light
     at every time of ``d_times`` (sorted), indirect at ``i_times`` (a subset of them) when
-    ``params.indirect_samples > 0``."""
+    ``params.indirect_samples > 0``.
+
+    The direct part is a reference render of each face. The indirect part is traced at
+    face_res / indirect_res_div per base pixel to ``params.indirect_noise``
+    (``range_images.trace_cube_indirect``: one surface point per pixel, the first hit of its
+    centre ray, measured against the direct light averaged over the pixel's block) and repeated
+    over each block; the cube of view v at indirect time sample k draws its paths from the
+    sampler stream sample_key(seed, 5, v, k), so a bake is deterministic."""
     views = np.asarray(views, np.float64).reshape(-1, 3)
     d_times = [float(t) for t in d_times]
     i_times = [float(t) for t in i_times]
@@ -245,9 +302,14 @@ def render_bases(animated: AnimatedScene, views: np.ndarray | list[list[float]],
     oid = np.full((V, Td, 6, R, R), -1, np.int32)
     timings["direct"] = 0.0
     timings["indirect"] = 0.0
-    total = V * Td + (V * Ti if gi else 0)
-    done = 0
+    # the indirect pass costs several direct renders per cube: weigh it so in the progress
+    w_ind = 4.0
+    total = V * Td + (w_ind * V * Ti if gi else 0)
+    done = 0.0
     rdiv = params.indirect_res_div
+    ri = R // rdiv
+    iparams = params.indirect_params()
+    cube_stats: list[dict] = []
     for ti, t in enumerate(d_times):
         renderer = ReferenceRenderer(animated.scene_at(t))
         for vi, eye in enumerate(views):
@@ -259,20 +321,36 @@ def render_bases(animated: AnimatedScene, views: np.ndarray | list[list[float]],
             report(done / total, f"direct base {vi} at t={t:g}")
             if gi and t in i_times:
                 t0 = time.perf_counter()
-                ic = render_cube(renderer, eye, R // rdiv, params.reference_params(True), time_value=t, indirect=True)
-                up = ic.indirect
+                k = i_times.index(t)
+                low = cube.direct.reshape(6, ri, rdiv, ri, rdiv, 3).mean(axis=(2, 4))
+                d0 = done
+
+                def cube_progress(f: float, vi: int = vi, t: float = t, d0: float = d0) -> None:
+                    report((d0 + w_ind * f) / total, f"indirect base {vi} at t={t:g}")
+
+                ic = trace_cube_indirect(renderer, eye, ri, low, iparams,
+                                         key=sample_key(params.seed, _INDIRECT_STREAM, vi, k),
+                                         progress=cube_progress if progress is not None else None)
+                up = ic.radiance
                 if rdiv > 1:
                     up = np.repeat(np.repeat(up, rdiv, axis=1), rdiv, axis=2)
-                indirect[vi, i_times.index(t)] = up
+                indirect[vi, k] = up
+                cube_stats.append({**ic.stats, "view": vi, "at": t, "seconds": ic.stats["time"]})
                 timings["indirect"] += time.perf_counter() - t0
-                done += 1
+                done = d0 + w_ind
                 report(done / total, f"indirect base {vi} at t={t:g}")
     timings["total"] = time.perf_counter() - t_all
+    istats: dict[str, object] = {}
+    if gi:
+        istats = {**merge_summaries(cube_stats, iparams), "res": ri,
+                  "cubes": [{k2: c[k2] for k2 in ("view", "at", "sides", "rel_stderr_median", "rel_stderr_p95",
+                                                   "rel_stderr_max", "met_target", "paths_mean", "paths_max",
+                                                   "seconds") if k2 in c} for c in cube_stats]}
     sc0 = animated.scene_at(animated.start)
     return WalkthroughBake(np.asarray(views, np.float64), np.asarray(d_times, np.float64),
                            np.asarray(i_times if gi else [d_times[0]], np.float64), direct, indirect, depth, oid,
                            np.asarray(sc0.background, np.float64), animated.start, animated.end,
-                           _space_dict(space) if space is not None else {}, asdict(params), timings)
+                           _space_dict(space) if space is not None else {}, asdict(params), timings, istats)
 
 
 def _bracket(times: np.ndarray, t: float) -> tuple[int, int, float]:

@@ -6,22 +6,27 @@ the usual cube-map layout), the radiance split into **direct** and **indirect** 
 distance along each pixel-centre ray to the first hit (``depth``, 0 where the ray leaves the
 scene) and the object id seen there (-1 for none).
 
-Both radiance parts come from the reference renderer (``engine/reference.py``), which the
+Both radiance parts are the reference renderer's (``engine/reference.py``), which the
 walkthrough reconstruction is measured against:
 
 - direct = a render with ``indirect_samples = 0`` (emission, ambient, direct light with
   shadows, mirror / glossy chains);
-- indirect = (a render with path-traced indirect light) - direct, for the same seed. The
-  camera jitter and the first-hit light samples of both renders come from the same
-  counter-based random streams, so on diffuse surfaces the difference is exactly the
-  path-traced part; behind mirror / glossy chains it also carries the (zero-mean) difference
-  between two samplings of the direct light there.
+- indirect, as the walkthrough bake computes it (``trace_cube_indirect``): the reference
+  renderer's indirect paths from the first hit of every pixel-centre ray, traced per pixel until
+  the estimated standard error reaches a requested noise level
+  (``engine.newviews.indirect.trace_indirect_points``);
+- or, with ``render_cube(..., indirect=True)``, a fixed-sample split: (a render with path-traced
+  indirect light) - direct, for the same seed. The camera jitter and the first-hit light samples
+  of both renders come from the same counter-based random streams, so on diffuse surfaces the
+  difference is exactly the path-traced part; behind mirror / glossy chains it also carries the
+  (zero-mean) difference between two samplings of the direct light there.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numba as nb
@@ -29,11 +34,14 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
+from engine.metrics import REC709_WEIGHTS
+from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams
 
-__all__ = ["CUBE_FACES", "CubeRangeImage", "cube_directions", "direction_to_cube", "face_camera", "render_cube",
-           "seen_fraction"]
+__all__ = ["CUBE_FACES", "CubeIndirect", "CubeRangeImage", "cube_directions", "cube_surface_points",
+           "direction_to_cube", "face_camera", "render_cube", "seen_fraction", "surface_points",
+           "trace_cube_indirect"]
 
 # (forward, up) per face; right = forward x up
 CUBE_FACES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
@@ -204,3 +212,84 @@ def render_cube(renderer: ReferenceRenderer, eye: np.ndarray | tuple[float, floa
             ind_img[k] = full.radiance - out.radiance
     timings["total"] = time.perf_counter() - t0
     return CubeRangeImage(e, float(time_value), res, direct_img, ind_img, depth, oid, indirect, timings)
+
+
+@dataclass
+class CubeIndirect:
+    """Converged indirect light of one base cube (``trace_cube_indirect``): radiance (6, res, res, 3)
+    float32 (0 where the pixel's ray leaves the scene); stderr (6, res, res) float32, the estimated
+    standard error of each pixel's luminance; paths (6, res, res) int32 paths traced per pixel;
+    stats: ``engine.newviews.indirect.summarize`` of the achieved noise plus timings."""
+
+    radiance: np.ndarray
+    stderr: np.ndarray
+    paths: np.ndarray
+    stats: dict
+
+
+def surface_points(renderer: ReferenceRenderer, origins: np.ndarray,
+                   directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """First hits of rays (n, 3): (index of every ray that hits, hit point, geometric normal,
+    shading normal, material id), the normals on the side the ray arrives on (a shading normal
+    on the wrong side of the geometric one falls back to it), as the reference renderer shades a
+    camera hit."""
+    sc = renderer.scene
+    dirs = np.ascontiguousarray(directions, np.float64).reshape(-1, 3)
+    hits = renderer.caster.intersect(np.ascontiguousarray(origins, np.float64).reshape(-1, 3), dirs)
+    idx = np.flatnonzero(hits.prim >= 0)
+    t = hits.prim[idx]
+    u = hits.u[idx].astype(np.float32).astype(np.float64)[:, None]
+    v = hits.v[idx].astype(np.float32).astype(np.float64)[:, None]
+    w0 = 1.0 - u - v
+    p = w0 * sc.tri_p[t, 0] + u * sc.tri_p[t, 1] + v * sc.tri_p[t, 2]
+    g = sc.tri_ng[t].astype(np.float64)
+    s = w0 * sc.tri_n[t, 0] + u * sc.tri_n[t, 1] + v * sc.tri_n[t, 2]
+    ls = np.linalg.norm(s, axis=1, keepdims=True)
+    s = np.where(ls > 1e-12, s / np.maximum(ls, 1e-300), g)
+    back = np.einsum("ij,ij->i", g, dirs[idx]) > 0.0
+    g[back] *= -1.0
+    s[back] *= -1.0
+    wrong = np.einsum("ij,ij->i", s, g) <= 0.0
+    s[wrong] = g[wrong]
+    return idx, p, g, s, sc.tri_material[t].astype(np.int32)
+
+
+def cube_surface_points(renderer: ReferenceRenderer, eye: np.ndarray,
+                        res: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``surface_points`` of the pixel-centre rays of a cube at ``eye``; the index is into the
+    flattened (6, res, res) cube."""
+    dirs = cube_directions(res).reshape(-1, 3)
+    e = np.asarray(eye, dtype=np.float64).reshape(3)
+    return surface_points(renderer, np.broadcast_to(e, dirs.shape), dirs)
+
+
+def trace_cube_indirect(renderer: ReferenceRenderer, eye: np.ndarray | tuple[float, float, float], res: int,
+                        direct: np.ndarray, params: IndirectParams, *, key: np.uint64,
+                        progress: Callable[[float], None] | None = None) -> CubeIndirect:
+    """Indirect diffuse light of every pixel of a cube at ``eye`` (``res`` pixels per face edge),
+    path traced per pixel until its estimated relative standard error reaches ``params.noise``.
+
+    One surface point per pixel: the first hit of the pixel-centre ray, on the side the ray
+    arrives on (``cube_surface_points``). Its paths are the reference renderer's indirect paths
+    (``ReferenceRenderer.trace_diffuse_paths``, via ``engine.newviews.indirect.trace_indirect_points``):
+    adaptive, the error measured against the pixel's total brightness, ``direct`` (6, res, res, 3)
+    plus the indirect estimate, never less than ``params.floor`` times the cube's mean direct
+    luminance over the surfaces that receive indirect light. Hit j (in pixel order) draws its
+    paths as pixel j of the sampler stream ``key``: equal keys give identical cubes."""
+    t0 = time.perf_counter()
+    if direct.shape != (6, res, res, 3):
+        raise InvalidInputError(f"direct must have shape (6, {res}, {res}, 3), got {direct.shape}")
+    pix, p, g, s, mat = cube_surface_points(renderer, np.asarray(eye, np.float64), res)
+    base = direct.reshape(-1, 3)[pix].astype(np.float64)
+    receives = np.any(renderer.scene.materials.kd[mat] > 0.0, axis=1) if pix.size else np.zeros(0, np.bool_)
+    brightness = float((base[receives] @ np.asarray(REC709_WEIGHTS, np.float64)).mean()) if receives.any() else 0.0
+    res_pts = trace_indirect_points(renderer, p, g, s, mat, base, params, key=key, pixel_base=0,
+                                    brightness=brightness, progress=progress)
+    n = 6 * res * res
+    rad = np.zeros((n, 3), np.float32)
+    se = np.zeros(n, np.float32)
+    paths = np.zeros(n, np.int32)
+    rad[pix], se[pix], paths[pix] = res_pts.radiance, res_pts.stderr, res_pts.paths
+    stats = dict(res_pts.stats)
+    stats["time"] = time.perf_counter() - t0
+    return CubeIndirect(rad.reshape(6, res, res, 3), se.reshape(6, res, res), paths.reshape(6, res, res), stats)

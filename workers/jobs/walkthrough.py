@@ -116,6 +116,7 @@ def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
         data = path.read_bytes()
     result = {"views": bake.views.tolist(), "direct_times": bake.direct_times.tolist(),
               "indirect_times": bake.indirect_times.tolist(), "face_res": bake.res,
+              "indirect": {k: v for k, v in bake.indirect_stats.items() if k != "cubes"},
               "timings": {**bake.timings, "job_total": time.perf_counter() - t_start}}
     progress.check_canceled()
     write_artifact(store, p.bake_key, "walkthrough-bake", {"scene": p.scene_id}, p.settings.model_dump(mode="json"),

@@ -77,6 +77,10 @@ def test_bad_walkthrough_requests_name_field_and_range(client: TestClient) -> No
                                                          "bake": {"face_res": 15}}))
     assert errs["bake.face_res"] == "face_res must be even (got 15)"
     errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
+                                                         "bake": {"indirect_noise": 0.9, "indirect_max_paths": 8}}))
+    assert "less than or equal to 0.5" in errs["bake.indirect_noise"]
+    assert "greater than or equal to 128" in errs["bake.indirect_max_paths"]
+    errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
                                                          "bake": {"quality": "high", "face_res": 1024}}))
     assert "exceeds this server's limit" in errs["bake.face_res"]
     errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": []}))
