@@ -241,13 +241,13 @@ def test_the_plan_refuses_an_indirect_chunk_over_the_memory_limit(
     redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker
 ) -> None:
     """With an 8 MiB limit per job, the LDC axes of this bake fit (<= 3.2 MiB at their worst case)
-    but an indirect chunk (its axis + a path batch of ~6 k sample sides x 16 paths x 576 bytes,
-    ~24 MiB) does not: refused before anything is baked, naming the estimate and what to lower."""
+    but an indirect chunk (its axis + a path batch of ~6 k sample sides x 8 paths x 576 bytes,
+    ~13 MiB) does not: refused before anything is baked, naming the estimate and what to lower."""
     params = BakeParams(ldc_resolution=64, max_layers=8)
     pub = put_scene(worker_store, tiny_scene(), {}, None)
     key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
     w = worker_process("bake", env={"IBR_MAX_BAKE_PART_BYTES": str(8 << 20)})
     st = wait_bake(redis_conn, worker_store, pub.id, key, params, 60, w)
     assert st.state == "failed" and st.error is not None, (st, w.log())
-    assert "an indirect chunk needs up to 24 MiB" in st.error and "limit of 8 MiB" in st.error, st.error
+    assert "an indirect chunk needs up to 13 MiB" in st.error and "limit of 8 MiB" in st.error, st.error
     assert "raise indirect.chunks" in st.error and worker_store.list("artifacts/") == []
