@@ -91,7 +91,9 @@ class LocalStore:
             try:
                 os.mkdir(d)
             except FileExistsError:
-                if not d.is_dir():
+                # a file here is a key clash; nothing here (FileNotFoundError from the stat) is a
+                # concurrent delete that pruned the directory since our mkdir: the caller retries
+                if not stat.S_ISDIR(os.stat(d).st_mode):
                     raise NotADirectoryError(errno.ENOTDIR, "exists and is not a directory", str(d)) from None
                 continue
             self._fsync_dir(d.parent)
