@@ -7,7 +7,6 @@ with its estimate."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -23,6 +22,7 @@ from producer.names import scene_bake_plan_job_id
 from producer.queue import fetch_job
 from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
+from tests.workers.queue.bake_waits import wait_bake, wait_parts
 from tests.workers.queue.jobs_for_tests import tiny_scene
 
 StartWorker = Callable[..., WorkerProcess]
@@ -31,20 +31,6 @@ CHEAP = {"noise": 0.05, "min_paths": 4, "max_paths": 8, "round_paths": 2, "bounc
 """A few paths per sample side: the mechanism, not the converged light, is under test."""
 PARAMS = BakeParams.model_validate({"ldc_resolution": 16, "max_layers": 8, "area_light_samples": 1, "seed": 5,
                                     "indirect": CHEAP})
-
-
-def wait_bake(redis: Redis, store: ObjectStore, sid: str, key: str, params: BakeParams, timeout: float,
-              w: WorkerProcess, seen: list[BakePublic] | None = None) -> BakePublic:
-    deadline = time.monotonic() + timeout
-    st = bakes.bake_status(redis, store, sid, key, params)
-    while time.monotonic() < deadline:
-        st = bakes.bake_status(redis, store, sid, key, params)
-        if seen is not None:
-            seen.append(st)
-        if st.state in ("finished", "failed", "canceled", "missing"):
-            return st
-        time.sleep(0.1)
-    raise AssertionError(f"bake not done after {timeout} s: {st.state} {st.progress}\n{w.log()}")
 
 
 def one_process_ldc(scene: Scene, params: BakeParams, *, indirect: bool) -> Any:
@@ -216,12 +202,7 @@ def test_a_canceled_axis_cancels_its_waiting_chunks_and_a_new_request_redoes_the
     pub = put_scene(worker_store, tiny_scene(), {}, None)
     key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, params, owner=None)
     w = worker_process("bake")
-    deadline = time.monotonic() + 60
-    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
-    while not st.parts:
-        assert time.monotonic() < deadline, w.log()
-        time.sleep(0.02)
-        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, params)
+    st = wait_parts(redis_conn, worker_store, pub.id, key, params, 60, w)
     victim = st.parts[2]  # ldc-axis-2: queued behind the other two on the one worker
     assert victim.name == "ldc-axis-2" and victim.job_id is not None
     cancel(redis_conn, victim.job_id)

@@ -23,6 +23,7 @@ from producer.renders import enqueue_render
 from producer.status import job_public
 from producer.store import ObjectStore
 from tests.fixtures.redis import WorkerProcess
+from tests.workers.queue.bake_waits import wait_bake, wait_parts
 from tests.workers.queue.jobs_for_tests import tiny_scene
 
 StartWorker = Callable[..., WorkerProcess]
@@ -38,19 +39,6 @@ def diffuse_scene() -> Scene:
         m["ks"] = [0.0, 0.0, 0.0]
         m["shininess"] = 0.0
     return Scene.model_validate(doc)
-
-
-def wait_bake(redis: Redis, store: ObjectStore, sid: str, key: str, params: BakeParams, timeout: float,
-              w: WorkerProcess, seen: list[BakePublic] | None = None) -> BakePublic:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        st = bakes.bake_status(redis, store, sid, key, params)
-        if seen is not None:
-            seen.append(st)
-        if st.state in ("finished", "failed", "canceled", "missing"):
-            return st
-        time.sleep(0.1)
-    raise AssertionError(f"bake not done after {timeout} s: {st.state} {st.progress}\n{w.log()}")
 
 
 def test_bake_splits_into_parts_merges_and_redoes_a_deleted_part_alone(
@@ -238,12 +226,7 @@ def test_a_canceled_part_cancels_the_bake_and_a_new_request_redoes_it(
     pub = put_scene(worker_store, diffuse_scene(), {}, None)
     key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
     w = worker_process("bake")
-    deadline = time.monotonic() + 60
-    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
-    while not st.parts:
-        assert time.monotonic() < deadline, w.log()
-        time.sleep(0.02)
-        st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
+    st = wait_parts(redis_conn, worker_store, pub.id, key, SMALL, 60, w)
     victim = st.parts[2]
     assert victim.job_id is not None
     cancel(redis_conn, victim.job_id)
