@@ -38,6 +38,7 @@ the achieved noise level), so a bake reports what it reached, not only what it w
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -133,15 +134,11 @@ class IndirectResult:
     stats: dict = field(default_factory=dict)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        import json
-
         return {"first": np.int64(self.first), "radiance": self.radiance, "stderr": self.stderr,
                 "paths": self.paths, "stats": np.array(json.dumps(self.stats))}
 
     @classmethod
     def from_arrays(cls, d) -> IndirectResult:
-        import json
-
         try:
             r = cls(first=int(np.asarray(d["first"])), radiance=np.ascontiguousarray(d["radiance"], np.float32),
                     stderr=np.ascontiguousarray(d["stderr"], np.float32),
