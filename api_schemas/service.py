@@ -107,6 +107,27 @@ class ScenePublic(FrozenModel):
     links: dict[str, str] = {}
 
 
+class ImportWarning(FrozenModel):
+    """A feature of an imported file that was left out or approximated (docs/scene-import.md)."""
+
+    feature: str
+    """What: ``textures``, ``spot_as_point``, ``animations``, ``cameras_beyond_first``, ..."""
+    message: str
+    """What the import did with it."""
+    count: int
+    """How many places of the file have it."""
+    where: list[str]
+    """The first (at most 10) of those places, named as in the file (``materials[2].normalTexture``)."""
+
+
+class SceneImportPublic(ScenePublic):
+    """A scene stored from an imported glTF / GLB / OBJ file: the stored scene, plus what the
+    conversion left out or approximated. Only the answer to the import carries these."""
+
+    import_format: Literal["gltf", "glb", "obj"]
+    import_warnings: list[ImportWarning] = []
+
+
 class SceneList(FrozenModel):
     items: list[ScenePublic]
     total: int

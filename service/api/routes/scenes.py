@@ -1,4 +1,5 @@
-"""``/v1/scenes``: content-addressed scenes, created from JSON or multipart uploads."""
+"""``/v1/scenes``: content-addressed scenes, created from JSON or multipart uploads, or imported
+from glTF 2.0 / GLB / OBJ + MTL files (producer/scene_import, docs/scene-import.md)."""
 
 from __future__ import annotations
 
@@ -14,11 +15,12 @@ from pydantic import ValidationError
 
 from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
-from api_schemas.service import SceneCreate, SceneList, ScenePublic, Sha256
+from api_schemas.service import SceneCreate, SceneImportPublic, SceneList, ScenePublic, Sha256
 from engine.geometry.meshio import SUPPORTED_MESH_TYPES
 from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.errors import SceneOutputsInUse
 from producer.ownership import remove_bake_owner
+from producer.scene_import import IMPORT_FORMATS, ImportOptions, ImportProblem, import_scene, referenced_files
 from producer.scene_outputs import delete_scene_outputs
 from producer.settings import Settings
 from producer.status import ids_in_active_jobs
@@ -65,9 +67,15 @@ _MULTIPART_SCHEMA: dict[str, Any] = {
     "additionalProperties": {
         "type": "string",
         "format": "binary",
-        "description": "One file part per mesh_file path of the scene, named by that path",
+        "description": "One file part per mesh_file path of the scene, named by that path. To import a file "
+                       "instead, send no 'scene' part but one part named 'gltf', 'glb' or 'obj' (the file) and "
+                       "one part per file it names by relative path (.bin buffers, .mtl files), named by that path",
     },
 }
+
+# Bodies that are one file to import, by Content-Type (a .gltf must then embed its buffers).
+IMPORT_CONTENT_TYPES = {"model/gltf-binary": "glb", "model/gltf+json": "gltf", "model/obj": "obj"}
+_IMPORT_BODY_SCHEMA: dict[str, Any] = {"type": "string", "format": "binary"}
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -334,12 +342,85 @@ def mesh_problem(path: str, data: bytes) -> str | None:
     return check(data)
 
 
+# ------------------------------------------------------------------------------ imports
+
+
+def _no_import_options(options: ImportOptions) -> None:
+    given = [k for k in ("width", "height", "name") if getattr(options, k) is not None]
+    if given:
+        raise ValidationProblem([FieldError(
+            field=given[0], message=f"{given[0]} applies to imported files (glTF, GLB, OBJ) only; a scene document "
+                                    "sets its camera and name itself", type="import_only")])
+
+
+async def _import_parts(import_parts: list[Any], parts: list[Any], options: ImportOptions, response: Response,
+                        store: ObjectStore, owner: str | None, settings: Settings) -> SceneImportPublic:
+    if len(import_parts) != 1:
+        raise ValidationProblem([FieldError(
+            field=import_parts[1].name, message="one file to import per request; found parts "
+                                                + ", ".join(repr(p.name) for p in import_parts),
+            type="duplicate_part")])
+    main = import_parts[0]
+    files: dict[str, bytes] = {}
+    errors: list[FieldError] = []
+    for part in parts:
+        if part is main:
+            continue
+        if part.name in files:
+            errors.append(FieldError(field=f"files.{part.name}", message=f"file part {part.name!r} sent twice",
+                                     type="duplicate_part"))
+        files[part.name] = part.data
+    if errors:
+        raise ValidationProblem(errors)
+    source = PurePosixPath(main.filename).name if main.filename else f"scene.{main.name}"
+    return await _import_and_store(main.name, main.data, files, source, options, response, store, owner, settings)
+
+
+def _convert(fmt: str, data: bytes, files: dict[str, bytes], source: str, options: ImportOptions,
+             settings: Settings) -> tuple[Scene, dict[str, bytes], list[dict[str, Any]]]:
+    """Everything checked before anything is stored: the conversion, the parts, the limits, the blobs."""
+    try:
+        imported = import_scene(fmt, data, files, options, source)
+    except ImportProblem as exc:
+        raise ValidationProblem([FieldError(field=where, message=f"{source}: {message}", type="invalid_import")
+                                 for where, message in exc.errors]) from None
+    named = set(referenced_files(fmt, data))
+    extra = sorted(set(files) - named)
+    errors = limit_errors(imported.scene, settings)
+    if extra:
+        errors.append(FieldError(
+            field="files", message="file parts the imported file does not name: "
+                                   + ", ".join(repr(e) for e in extra[:20])
+                                   + ". Name each part by the relative path the file uses for it",
+            type="unexpected_part"))
+    for path, blob in imported.meshes.items():
+        problem = mesh_problem(path, blob)
+        if problem is not None:  # the importer wrote it: a bug, but never store what a worker refuses
+            errors.append(FieldError(field=f"meshes.{path}", message=problem, type="invalid_mesh"))
+    if errors:
+        raise ValidationProblem(errors)
+    return imported.scene, imported.meshes, imported.warnings
+
+
+async def _import_and_store(fmt: str, data: bytes, files: dict[str, bytes], source: str, options: ImportOptions,
+                            response: Response, store: ObjectStore, owner: str | None,
+                            settings: Settings) -> SceneImportPublic:
+    scene, meshes, warnings = await run_in_threadpool(_convert, fmt, data, files, source, options, settings)
+    public, created = await run_in_threadpool(_create, store, scene, meshes, owner)
+    if created:
+        response.headers["Location"] = f"/v1/scenes/{public.id}"
+    else:
+        response.status_code = 200
+    return SceneImportPublic.model_validate(
+        {**public.model_dump(), "import_format": fmt, "import_warnings": warnings})
+
+
 # ------------------------------------------------------------------------------ routes
 
 
 @router.post(
     "",
-    response_model=ScenePublic,
+    response_model=ScenePublic | SceneImportPublic,
     status_code=201,
     responses={
         200: {"model": ScenePublic, "description": "The same content was already stored by this key"},
@@ -354,16 +435,30 @@ def mesh_problem(path: str, data: bytes) -> str | None:
                     "examples": {"sphere": {"summary": "A sphere on a floor", "value": {"scene": SAMPLE_SCENE}}},
                 },
                 "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+                **{t: {"schema": _IMPORT_BODY_SCHEMA} for t in IMPORT_CONTENT_TYPES},
             },
         }
     },
 )
 async def create_scene(
-    request: Request, response: Response, store: StoreDep, owner: OwnerDep, settings: SettingsDep
-) -> ScenePublic:
-    """Store a scene (JSON, or multipart with its mesh files); 201 when new, 200 when already stored."""
+    request: Request, response: Response, store: StoreDep, owner: OwnerDep, settings: SettingsDep,
+    width: Annotated[int | None, Query(ge=1, le=16384, description="Imports only: image width of the "
+                                       "imported camera (default: from its aspect ratio and the height)")] = None,
+    height: Annotated[int | None, Query(ge=1, le=16384, description="Imports only: image height of the "
+                                        "imported camera (default 480, or from the width)")] = None,
+    name: Annotated[str | None, Query(min_length=1, max_length=128, description="Imports only: the scene's "
+                                      "name (default: the file's)")] = None,
+) -> ScenePublic | SceneImportPublic:
+    """Store a scene (JSON, or multipart with its mesh files), or import one from a glTF 2.0 / GLB / OBJ + MTL
+    file (docs/scene-import.md); 201 when new, 200 when already stored. An import answers with
+    ``import_warnings``: every feature of the file that was left out or approximated."""
     ctype = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    options = ImportOptions(width=width, height=height, name=name)
     meshes: dict[str, bytes] = {}
+    if ctype in IMPORT_CONTENT_TYPES:
+        fmt = IMPORT_CONTENT_TYPES[ctype]
+        return await _import_and_store(fmt, await request.body(), {}, f"scene.{fmt}", options, response, store,
+                                       owner, settings)
     if ctype == "multipart/form-data":
         parts = await read_multipart(
             request,
@@ -372,6 +467,14 @@ async def create_scene(
             field_limits={"scene": settings.max_body_bytes},
         )
         scene_parts = [p for p in parts if p.name == "scene"]
+        import_parts = [p for p in parts if p.name in IMPORT_FORMATS]
+        if import_parts and not scene_parts:
+            return await _import_parts(import_parts, parts, options, response, store, owner, settings)
+        if import_parts:
+            raise ValidationProblem([FieldError(
+                field=import_parts[0].name,
+                message="send either a 'scene' part (a scene document) or one file to import, not both",
+                type="duplicate_part")])
         if len(scene_parts) != 1:
             raise ValidationProblem([FieldError(
                 field="scene",
@@ -415,7 +518,9 @@ async def create_scene(
                     errors.append(FieldError(field=f"files.{path}", message=problem, type="invalid_mesh"))
         if errors:
             raise ValidationProblem(errors)
+        _no_import_options(options)
     elif ctype == "application/json" or ctype.endswith("+json") or ctype == "":
+        _no_import_options(options)
         raw = await request.body()
         scene = await run_in_threadpool(_parse_scene_json, raw, False)
         errors = limit_errors(scene, settings)
@@ -430,8 +535,9 @@ async def create_scene(
             raise ValidationProblem(errors)
     else:
         raise ValidationProblem(
-            [FieldError(field="", message=f"unsupported Content-Type {ctype!r}; use application/json or "
-                                          "multipart/form-data", type="content_type")],
+            [FieldError(field="", message=f"unsupported Content-Type {ctype!r}; use application/json, "
+                                          "multipart/form-data or, to import a file, "
+                                          + ", ".join(IMPORT_CONTENT_TYPES), type="content_type")],
             status=415,
         )
     public, created = await run_in_threadpool(_create, store, scene, meshes, owner)
