@@ -291,14 +291,47 @@ def _scene_doc(scene_arg: str) -> tuple[dict[str, Any], dict[str, Path]]:
     return doc, meshes
 
 
+_IMPORT_SUFFIXES = {".gltf": "gltf", ".glb": "glb", ".obj": "obj"}
+
+
 @scenes_app.command("add")
-def scenes_add(scene: Annotated[str, typer.Argument(help="Scene JSON file or sample name")],
+def scenes_add(scene: Annotated[str, typer.Argument(help="Scene JSON file or sample name, or a glTF 2.0 "
+                                                         "(.gltf with its buffers, .glb) or OBJ (+ MTL) file "
+                                                         "to import")],
+               width: Annotated[int | None, typer.Option(help="Imports: image width of the camera")] = None,
+               height: Annotated[int | None, typer.Option(help="Imports: image height of the camera")] = None,
+               name: Annotated[str | None, typer.Option(help="Imports: the scene's name")] = None,
                api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
-    """Upload a scene (and its mesh files); prints the scene id."""
-    doc, meshes = _scene_doc(scene)
+    """Upload a scene (and its mesh files), or import a glTF / GLB / OBJ file (with the buffers and MTL
+    files it names, read from beside it); prints the scene id. What an import left out or approximated
+    is printed on stderr."""
+    fmt = _IMPORT_SUFFIXES.get(Path(scene).suffix.lower())
+    if fmt is None:
+        if width is not None or height is not None or name is not None:
+            _fail("--width, --height and --name apply to imported files (.gltf, .glb, .obj) only")
+        doc, meshes = _scene_doc(scene)
+        with _client(api_url, api_key) as c:
+            pub = _call(lambda: c.create_scene(doc, meshes or None))
+        typer.echo(pub.id)
+        return
+    from producer.scene_import import companions
+
+    path = Path(scene)
+    if not path.is_file():
+        _fail(f"{scene}: no such file")
+    data = path.read_bytes()
+    files: dict[str, Path] = {}
+    for rel in companions(fmt, data):
+        p = path.parent / rel
+        if not p.is_file():
+            _fail(f"{path.name} names {rel!r}, which is not beside it ({p})")
+        files[rel] = p
     with _client(api_url, api_key) as c:
-        pub = _call(lambda: c.create_scene(doc, meshes or None))
-    typer.echo(pub.id)
+        imp = _call(lambda: c.import_scene(fmt, path, files, width=width, height=height, name=name))  # type: ignore[arg-type]
+    for w in imp.import_warnings:
+        places = ", ".join(w.where) + (f", ... ({w.count} in all)" if w.count > len(w.where) else "")
+        _say(f"import: {w.feature}: {w.message} [{places}]")
+    typer.echo(imp.id)
 
 
 @scenes_app.command("list")

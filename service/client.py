@@ -51,6 +51,7 @@ from api_schemas.service import (
     JobList,
     JobPublic,
     RenderPublic,
+    SceneImportPublic,
     SceneList,
     ScenePublic,
 )
@@ -138,6 +139,23 @@ class Client:
                 files.append((path, (Path(path).name, blob, "application/octet-stream")))
             r = self._request("POST", "/v1/scenes", files=files)
         return ScenePublic.model_validate(r.json())
+
+    def import_scene(self, fmt: Literal["gltf", "glb", "obj"], data: bytes | Path,
+                     files: Mapping[str, bytes | Path] | None = None, filename: str | None = None,
+                     width: int | None = None, height: int | None = None,
+                     name: str | None = None) -> SceneImportPublic:
+        """Import a glTF 2.0 / GLB / OBJ file as a scene (docs/scene-import.md). ``files``: the other
+        files it names by relative path (glTF buffers, MTL files), keyed by that path. The answer's
+        ``import_warnings`` list what the conversion left out or approximated."""
+        main = Path(data).read_bytes() if isinstance(data, Path) else bytes(data)
+        fname = filename or (data.name if isinstance(data, Path) else f"scene.{fmt}")
+        parts: list[tuple[str, tuple[str, bytes, str]]] = [(fmt, (fname, main, "application/octet-stream"))]
+        for path, blob in (files or {}).items():
+            content = Path(blob).read_bytes() if isinstance(blob, Path) else bytes(blob)
+            parts.append((path, (Path(path).name, content, "application/octet-stream")))
+        params = {k: v for k, v in (("width", width), ("height", height), ("name", name)) if v is not None}
+        r = self._request("POST", "/v1/scenes", files=parts, params=params or None)
+        return SceneImportPublic.model_validate(r.json())
 
     def get_scene(self, scene_id: str) -> ScenePublic:
         return ScenePublic.model_validate(self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}").json())

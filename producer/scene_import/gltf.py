@@ -570,6 +570,30 @@ def import_gltf(data: bytes, binary_container: bool, files: Mapping[str, bytes],
     if _list(doc, "skins", "skins"):
         warnings.add("skins", "skins", "skinning is ignored: meshes are imported in their bind pose")
 
+    # the node graph must be a forest: one parent at most, no loops (checked for every node, used or not)
+    children: set[int] = set()
+    child_lists: list[list[int]] = []
+    for i, raw in enumerate(nodes):
+        kids: list[int] = []
+        for k, c in enumerate(_list(_dict(raw, f"nodes[{i}]"), "children", f"nodes[{i}].children")):
+            c = _ref(c, nodes, f"nodes[{i}].children[{k}]", "nodes")
+            if c in children:
+                raise fail(f"nodes[{i}].children[{k}]", f"nodes[{c}] has two parents: the node hierarchy must "
+                                                         "be a forest")
+            children.add(c)
+            kids.append(c)
+        child_lists.append(kids)
+    reached = [i for i in range(len(nodes)) if i not in children]
+    seen = set(reached)
+    while reached:
+        for c in child_lists[reached.pop()]:
+            seen.add(c)
+            reached.append(c)
+    if len(seen) < len(nodes):
+        looped = sorted(set(range(len(nodes))) - seen)
+        raise fail(f"nodes[{looped[0]}].children", "nodes " + ", ".join(str(n) for n in looped[:10])
+                   + " form a loop: the node hierarchy must be a forest")
+
     scenes = _list(doc, "scenes", "scenes")
     if scenes:
         si = _ref(doc.get("scene", 0), scenes, "scene", "scenes")
@@ -578,12 +602,7 @@ def import_gltf(data: bytes, binary_container: bool, files: Mapping[str, bytes],
         if len(scenes) > 1:
             warnings.add("scenes_beyond_default", "scenes", f"the file has {len(scenes)} scenes: only "
                                                             f"scenes[{si}] is imported")
-    else:
-        # no scene: every node without a parent is a root
-        children: set[int] = set()
-        for i, raw in enumerate(nodes):
-            for k, c in enumerate(_list(_dict(raw, f"nodes[{i}]"), "children", f"nodes[{i}].children")):
-                children.add(_ref(c, nodes, f"nodes[{i}].children[{k}]", "nodes"))
+    else:  # no scene: every node without a parent is a root
         roots = [i for i in range(len(nodes)) if i not in children]
 
     material_names: dict[int, str] = {}

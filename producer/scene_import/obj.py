@@ -188,8 +188,8 @@ def import_obj(data: bytes, files: Mapping[str, bytes], options: ImportOptions,
                 except ValueError:
                     raise fail(where, f"face corner {c.decode('latin-1')[:40]!r} is not v, v/vt, v//vn or "
                                       "v/vt/vn with integer indices") from None
-                refs.append((_resolve(vi, len(positions), where, "vertex"),
-                             _resolve(ni, len(normals), where, "normal") if ni else -1))
+                refs.append((_resolve(vi, len(positions), where, "vertex", "vertices"),
+                             _resolve(ni, len(normals), where, "normal", "normals") if ni else -1))
             tris = groups.setdefault(current, [])
             group_first_line.setdefault(current, where)
             for k in range(1, len(refs) - 1):
@@ -257,11 +257,11 @@ def import_obj(data: bytes, files: Mapping[str, bytes], options: ImportOptions,
     return scene, builder.meshes, warnings
 
 
-def _resolve(i: int, n: int, where: str, what: str) -> int:
+def _resolve(i: int, n: int, where: str, what: str, plural: str) -> int:
     """A 1-based or negative (relative) OBJ index -> 0-based, checked against the n read so far."""
     if i > 0 and i <= n:
         return i - 1
     if i < 0 and -i <= n:
         return n + i
-    raise fail(where, f"{what} index {i} is out of range: {n} {what}s defined so far "
+    raise fail(where, f"{what} index {i} is out of range: {n} {plural} defined so far "
                       f"(OBJ indices start at 1; negative ones count back)")
