@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from api_schemas.scene import MAX_MESH_FACES
 from producer.scene_import.common import (
     ImportOptions,
     MeshData,
@@ -42,6 +43,7 @@ _INDEX_TYPES = (5121, 5123, 5125)
 _GLB_JSON = 0x4E4F534A
 _GLB_BIN = 0x004E4942
 _MAX_ITEMS = 1_000_000  # entries of any top-level array: far beyond a real file, bounds the work
+_MAX_ELEMENTS = 3 * MAX_MESH_FACES  # the most elements any accessor the importer reads can need
 
 SUPPORTED_EXTENSIONS = frozenset({
     "KHR_lights_punctual", "KHR_materials_specular", "KHR_materials_emissive_strength", "KHR_materials_ior",
@@ -249,6 +251,9 @@ class _Gltf:
         if kind not in _TYPES:
             raise fail(f"{w}.type", f"{kind!r} is not a glTF accessor type ({', '.join(_TYPES)})"[:200])
         count = _int(a.get("count"), f"{w}.count", 1)
+        if count > _MAX_ELEMENTS:
+            raise fail(f"{w}.count", f"{count} elements: more than the {_MAX_ELEMENTS} any use of an accessor "
+                                     f"allows ({MAX_MESH_FACES} triangles of 3 indices)")
         size = np.dtype(_COMPONENTS[ctype][0]).itemsize
         elem = size * _TYPES[kind]
         offset = _int(a.get("byteOffset", 0), f"{w}.byteOffset")
