@@ -348,6 +348,10 @@ class SceneBuilder:
                               "on its front side, so that it lights the scene")
             self.add_light({"type": "rect", "name": f"{obj['name']}_light", "corner": corner, "edge_u": eu,
                             "edge_v": ev, "radiance": list(radiance)}, where)
+        if not self.lights and self.objects:
+            self.warnings.add("no_lights", self.source, "the file has no light the project can use (glTF viewers "
+                                                        "often add an environment): the scene renders black until "
+                                                        "lights are added to its document")
 
     def default_camera(self, aspect: float | None, options: ImportOptions) -> dict[str, Any]:
         """A perspective camera looking along -z at the scene's bounds, the whole front in view."""

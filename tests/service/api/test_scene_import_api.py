@@ -4,10 +4,12 @@ is the one a user would upload by hand, refusals name the part and store nothing
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from api_schemas.service import SceneImportPublic
@@ -126,3 +128,40 @@ def test_import_options_and_parts_are_checked(client: TestClient) -> None:
     assert r.status_code == 422 and r.json()["errors"][0]["field"] == "gltf"
     r = client.post("/v1/scenes", files=_lamp_parts(), params={"width": 20000})
     assert r.status_code == 422
+
+
+@pytest.mark.slow
+def test_an_imported_obj_renders_in_a_worker_like_the_direct_engine_render(
+    client: TestClient, worker_process: Any, tmp_path: Path
+) -> None:
+    """The workers read an imported scene unchanged: the served EXR equals an in-process render of
+    the import (same blobs through workers.scene_loader)."""
+    from engine.imageio import read_image
+    from engine.reference import ReferenceParams, ReferenceRenderer
+    from producer.scene_import import ImportOptions, import_scene
+    from workers.scene_loader import load_scene
+
+    worker = worker_process("render")
+    obj, mtl = (CBOX / "CornellBox-Original.obj").read_bytes(), (CBOX / "CornellBox-Original.mtl").read_bytes()
+    parts = [("obj", ("CornellBox-Original.obj", obj, "text/plain")),
+             ("CornellBox-Original.mtl", ("CornellBox-Original.mtl", mtl, "text/plain"))]
+    r = client.post("/v1/scenes", files=parts, params={"width": 32, "height": 24})
+    assert r.status_code == 201, r.text
+    params = {"spp": 2, "seed": 3}
+    scene_id = r.json()["id"]
+    deadline = time.monotonic() + 300
+    while True:
+        r = client.post("/v1/renders?wait=30", json={"scene_id": scene_id, "params": params})
+        if r.json()["status"] not in ("queued", "running") or time.monotonic() > deadline:
+            break
+    assert r.json()["status"] in ("finished", "cached"), (r.text, worker.log())
+    key = r.json()["artifact"]["key"]
+    (tmp_path / "served.exr").write_bytes(client.get(f"/v1/artifacts/{key}/image.exr").content)
+    served, _ = read_image(tmp_path / "served.exr")
+
+    imp = import_scene("obj", obj, {"CornellBox-Original.mtl": mtl}, ImportOptions(width=32, height=24),
+                       "CornellBox-Original.obj")
+    loaded = load_scene(imp.scene, lambda rel: (imp.meshes[rel], "ply"))
+    direct = ReferenceRenderer(loaded.runtime).render(loaded.camera, ReferenceParams(**params)).radiance
+    assert np.array_equal(served, np.asarray(direct, dtype=np.float32))
+    assert float(served.max()) > 0
