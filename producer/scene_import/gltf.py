@@ -248,7 +248,7 @@ class _Gltf:
             raise fail(f"{w}.componentType", f"{ctype} is not a glTF component type "
                                              f"({', '.join(str(k) for k in _COMPONENTS)})")
         kind = a.get("type")
-        if kind not in _TYPES:
+        if not isinstance(kind, str) or kind not in _TYPES:
             raise fail(f"{w}.type", f"{kind!r} is not a glTF accessor type ({', '.join(_TYPES)})"[:200])
         count = _int(a.get("count"), f"{w}.count", 1)
         if count > _MAX_ELEMENTS:
@@ -544,6 +544,10 @@ def import_gltf(data: bytes, binary_container: bool, files: Mapping[str, bytes],
     if not (isinstance(version, str) and version.split(".")[0] == "2"):
         raise fail("asset.version", f"{version!r}: only glTF 2.x is supported"[:200])
     required = _list(doc, "extensionsRequired", "extensionsRequired")
+    for list_name in ("extensionsRequired", "extensionsUsed"):
+        for i, e in enumerate(_list(doc, list_name, list_name)):
+            if not isinstance(e, str):
+                raise fail(f"{list_name}[{i}]", f"must be an extension name (a string), got {type(e).__name__}")
     unsupported = [e for e in required if e not in SUPPORTED_EXTENSIONS]
     if unsupported:
         raise fail("extensionsRequired", f"the file requires {', '.join(map(str, unsupported))}, which this "

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from api_schemas.scene import MAX_OBJECTS, MeshFileObject, PointLight, RectLight
@@ -486,3 +488,44 @@ def test_import_is_deterministic() -> None:
     b = load(GLTF / "cameras" / "Cameras.gltf")
     assert a.scene == b.scene and a.meshes == b.meshes
     assert copy.deepcopy(a.warnings) == b.warnings
+
+
+def _paths(o: Any, pre: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    out: list[tuple[Any, ...]] = []
+    items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else []
+    for k, v in items:
+        out.append(pre + (k,))
+        out += _paths(v, pre + (k,))
+    return out
+
+
+_JUNK = [None, -1, 0, 2, 3.5, 1e300, float("nan"), float("inf"), "x", [], {}, [1, 2, 3], True, 10**20, 5123, "VEC3"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_any_mangled_field_is_an_import_problem_or_a_valid_scene(data: Any) -> None:
+    """Whatever a field holds, the import answers ImportProblem (a 422) or a valid scene, never
+    another exception (a 500)."""
+    doc = _triangle(extensions={"KHR_lights_punctual": {"lights": [{"type": "spot", "spot": {}}]}},
+                    cameras=[{"type": "perspective", "perspective": {"yfov": 1.0}}],
+                    materials=[{"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1]}}],
+                    nodes=[{"mesh": 0, "children": [1]},
+                           {"camera": 0, "extensions": {"KHR_lights_punctual": {"light": 0}}}])
+    doc["meshes"][0]["primitives"][0]["material"] = 0
+    for _ in range(data.draw(st.integers(1, 3))):
+        path = data.draw(st.sampled_from(_paths(doc)))
+        target: Any = doc
+        for k in path[:-1]:
+            target = target[k]
+        if isinstance(target, dict) and data.draw(st.booleans()):
+            target.pop(path[-1], None)
+        else:
+            target[path[-1]] = data.draw(st.sampled_from(_JUNK))
+    try:
+        imp = import_scene("gltf", json.dumps(doc).encode())
+    except ImportProblem as exc:
+        assert exc.errors and not exc.errors[0][0].startswith("converted scene"), exc.errors
+    else:
+        for path, blob in imp.meshes.items():
+            assert mesh_problem(path, blob) is None
