@@ -327,7 +327,8 @@ def scenes_add(scene: Annotated[str, typer.Argument(help="Scene JSON file or sam
             _fail(f"{path.name} names {rel!r}, which is not beside it ({p})")
         files[rel] = p
     with _client(api_url, api_key) as c:
-        imp = _call(lambda: c.import_scene(fmt, path, files, width=width, height=height, name=name))  # type: ignore[arg-type]
+        kind = cast(Literal["gltf", "glb", "obj"], fmt)
+        imp = _call(lambda: c.import_scene(kind, path, files, width=width, height=height, name=name))
     for w in imp.import_warnings:
         places = ", ".join(w.where) + (f", ... ({w.count} in all)" if w.count > len(w.where) else "")
         _say(f"import: {w.feature}: {w.message} [{places}]")

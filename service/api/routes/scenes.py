@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
 from api_schemas.service import SceneCreate, SceneImportPublic, SceneList, ScenePublic, Sha256
-from engine.geometry.meshio import SUPPORTED_MESH_TYPES
+from engine.geometry.meshio import DEFAULT_MAX_MESH_BYTES, SUPPORTED_MESH_TYPES
 from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.errors import SceneOutputsInUse
 from producer.ownership import remove_bake_owner
@@ -37,7 +37,7 @@ from service.api.deps import (
     visible_scene_ids,
 )
 from service.api.errors import ValidationProblem, problem_responses
-from service.api.limits import read_multipart
+from service.api.limits import BodyTooLarge, read_multipart
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 
@@ -394,6 +394,12 @@ def _convert(fmt: str, data: bytes, files: dict[str, bytes], source: str, option
                                    + ". Name each part by the relative path the file uses for it",
             type="unexpected_part"))
     for path, blob in imported.meshes.items():
+        if len(blob) > DEFAULT_MAX_MESH_BYTES:
+            errors.append(FieldError(
+                field=f"meshes.{path}", type="mesh_too_large",
+                message=f"{source}: the mesh converts to a {len(blob)}-byte file, over the workers' "
+                        f"{DEFAULT_MAX_MESH_BYTES}-byte limit per mesh file"))
+            continue
         problem = mesh_problem(path, blob)
         if problem is not None:  # the importer wrote it: a bug, but never store what a worker refuses
             errors.append(FieldError(field=f"meshes.{path}", message=problem, type="invalid_mesh"))
@@ -457,8 +463,11 @@ async def create_scene(
     meshes: dict[str, bytes] = {}
     if ctype in IMPORT_CONTENT_TYPES:
         fmt = IMPORT_CONTENT_TYPES[ctype]
-        return await _import_and_store(fmt, await request.body(), {}, f"scene.{fmt}", options, response, store,
-                                       owner, settings)
+        body = await request.body()
+        if len(body) > settings.max_upload_bytes:  # one uploaded file, as a multipart part would be
+            raise BodyTooLarge(f"the {fmt} file of {len(body)} bytes exceeds the {settings.max_upload_bytes}-byte "
+                               "limit per file", field=fmt)
+        return await _import_and_store(fmt, body, {}, f"scene.{fmt}", options, response, store, owner, settings)
     if ctype == "multipart/form-data":
         parts = await read_multipart(
             request,

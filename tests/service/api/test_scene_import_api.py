@@ -165,3 +165,12 @@ def test_an_imported_obj_renders_in_a_worker_like_the_direct_engine_render(
     direct = ReferenceRenderer(loaded.runtime).render(loaded.camera, ReferenceParams(**params)).radiance
     assert np.array_equal(served, np.asarray(direct, dtype=np.float32))
     assert float(served.max()) > 0
+
+
+def test_a_file_body_over_the_upload_limit_is_413(make_app: Any, store_dir: Path) -> None:
+    glb = (FIX / "gltf" / "box-glb" / "Box.glb").read_bytes()
+    with TestClient(make_app(max_upload_bytes=1024)) as c:
+        r = c.post("/v1/scenes", content=glb, headers={"Content-Type": "model/gltf-binary"})
+        assert r.status_code == 413 and "1024" in r.text
+        small = c.post("/v1/scenes", content=glb[:1000], headers={"Content-Type": "model/gltf-binary"})
+        assert small.status_code == 422  # under the limit, then read (and refused: truncated)
