@@ -333,10 +333,13 @@ class SceneBuilder:
             where = f"objects {obj['name']}"
             mesh = self.mesh_data[obj["path"]]
             pts = mesh.positions
+            faces = mesh.faces
             if "transform" in obj:
                 mat = np.asarray(obj["transform"]["matrix"], dtype=np.float64)
                 pts = pts @ mat[:3, :3].T + mat[:3, 3]
-            rect = _parallelogram(pts, mesh.faces)
+                if np.linalg.det(mat[:3, :3]) < 0:  # a mirroring transform turns the front side clockwise
+                    faces = faces[:, ::-1]
+            rect = _parallelogram(pts, faces)
             if rect is None:
                 self.warnings.add("emission_not_a_light", where,
                                   "an emissive surface that is not one flat parallelogram is seen (its emission) "

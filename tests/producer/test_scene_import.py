@@ -529,3 +529,31 @@ def test_any_mangled_field_is_an_import_problem_or_a_valid_scene(data: Any) -> N
     else:
         for path, blob in imp.meshes.items():
             assert mesh_problem(path, blob) is None
+
+
+def _emissive_quad(scale: list[float]) -> ImportedScene:
+    """A unit quad in the local xy plane, counter-clockwise seen from +z, emissive, under a node scale."""
+    quad = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype="<f4").tobytes()
+    idx = np.array([0, 1, 2, 0, 2, 3], dtype="<u2").tobytes()
+    blob = quad + idx
+    doc = _triangle(materials=[{"emissiveFactor": [1, 2, 3]}], nodes=[{"mesh": 0, "scale": scale}])
+    doc["buffers"][0] = {"byteLength": len(blob),
+                         "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()}
+    doc["bufferViews"] = [{"buffer": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 12}]
+    doc["accessors"][0]["count"], doc["accessors"][1]["count"] = 4, 6
+    doc["meshes"][0]["primitives"][0]["material"] = 0
+    return import_scene("gltf", json.dumps(doc).encode())
+
+
+def test_an_emissive_quad_becomes_a_rect_light_facing_its_front_side() -> None:
+    for scale, area_ in (([1, 1, 1], 1.0), ([2, 1, 1], 2.0), ([-1, 1, 1], 1.0), ([1, 1, -3], 1.0)):
+        imp = _emissive_quad(scale)
+        (light,) = imp.scene.lights
+        assert isinstance(light, RectLight)
+        np.testing.assert_allclose(light.radiance, [1, 2, 3])
+        normal = np.cross(light.edge_u, light.edge_v)
+        # glTF: under a mirroring transform (negative determinant) the front side is the clockwise one,
+        # so the front stays the local +z carried by the inverse transpose
+        front = np.linalg.inv(np.diag(np.array(scale, dtype=float))).T @ [0, 0, 1]
+        assert float(np.dot(normal, front)) > 0, (scale, normal)
+        assert float(np.linalg.norm(normal)) == pytest.approx(area_)
