@@ -521,7 +521,7 @@ def test_any_mangled_field_is_an_import_problem_or_a_valid_scene(data: Any) -> N
         if isinstance(target, dict) and data.draw(st.booleans()):
             target.pop(path[-1], None)
         else:
-            target[path[-1]] = data.draw(st.sampled_from(_JUNK))
+            target[path[-1]] = copy.deepcopy(data.draw(st.sampled_from(_JUNK)))
     try:
         imp = import_scene("gltf", json.dumps(doc).encode())
     except ImportProblem as exc:
