@@ -268,6 +268,9 @@ class _Gltf:
             if stride is not None and stride < elem:
                 raise fail(f"bufferViews[{view}].byteStride",
                            f"{stride} is smaller than one element of accessors[{i}] ({elem} bytes)")
+            if offset + elem > vlen:
+                raise fail(f"{w}.byteOffset", f"{offset}: one element of {elem} bytes from there runs past "
+                                              f"bufferViews[{view}] ({vlen} bytes)")
             need = offset + step * (count - 1) + elem
             if need > vlen:
                 raise fail(f"{w}.count", f"{count} elements of {elem} bytes (stride {step}) from byteOffset "

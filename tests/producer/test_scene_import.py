@@ -24,7 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from api_schemas.scene import MAX_OBJECTS, MeshFileObject, PointLight, RectLight
+from api_schemas.scene import MAX_LIGHTS, MAX_OBJECTS, MeshFileObject, PointLight, RectLight
 from producer.scene_import import ImportedScene, ImportOptions, ImportProblem, companions, import_scene
 from producer.scene_import.common import pbr_material, roughness_to_exponent
 from service.api.routes.scenes import mesh_problem
@@ -328,6 +328,8 @@ def test_the_constructed_triangle_imports() -> None:
      "more than"),
     (lambda d: d["accessors"][0].update(byteOffset=2), "accessors[0].byteOffset", "multiple"),
     (lambda d: d["accessors"][0].update(byteOffset=-4), "accessors[0].byteOffset", "out of range"),
+    (lambda d: d["accessors"][0].update(byteOffset=36), "accessors[0].byteOffset", "runs past bufferViews[0]"),
+    (lambda d: d["accessors"][0].update(byteOffset=4), "accessors[0].count", "need 40 bytes"),
     (lambda d: d["accessors"][0].update(componentType=5123), "accessors[0].componentType", "FLOAT"),
     (lambda d: d["accessors"][0].update(componentType=9999), "accessors[0].componentType", "not a glTF"),
     (lambda d: d["accessors"][0].update(type="VEC4"), "accessors[0].count", "need"),
@@ -387,6 +389,15 @@ def test_absurd_instance_counts_stop_at_the_scene_limit() -> None:
                     scenes=[{"nodes": list(range(n))}])
     (err,) = problem("gltf", json.dumps(doc).encode())
     assert err[0] == f"nodes[{MAX_OBJECTS}]" and str(MAX_OBJECTS) in err[1]
+
+
+def test_absurd_light_counts_stop_at_the_scene_limit() -> None:
+    n = MAX_LIGHTS + 1
+    doc = _triangle(extensions={"KHR_lights_punctual": {"lights": [{"type": "point"}]}},
+                    nodes=[{"mesh": 0}] + [{"extensions": {"KHR_lights_punctual": {"light": 0}}}] * n,
+                    scenes=[{"nodes": list(range(n + 1))}])
+    (err,) = problem("gltf", json.dumps(doc).encode())
+    assert err[0] == f"nodes[{MAX_LIGHTS + 1}]" and str(MAX_LIGHTS) in err[1]
 
 
 def test_external_buffer_from_the_upload_and_glb() -> None:
