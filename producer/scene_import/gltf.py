@@ -607,6 +607,7 @@ def import_gltf(data: bytes, binary_container: bool, files: Mapping[str, bytes],
                    + " form a loop: the node hierarchy must be a forest")
 
     scenes = _list(doc, "scenes", "scenes")
+    si = -1
     if scenes:
         si = _ref(doc.get("scene", 0), scenes, "scene", "scenes")
         roots_raw = _list(_dict(scenes[si], f"scenes[{si}]"), "nodes", f"scenes[{si}].nodes")
@@ -624,9 +625,9 @@ def import_gltf(data: bytes, binary_container: bool, files: Mapping[str, bytes],
     used_lights: set[int] = set()
     parent: dict[int, int] = {}
     stack: list[tuple[int, npt.NDArray[np.float64], int | None]] = [(r, np.eye(4), None) for r in reversed(roots)]
-    for r in roots:
+    for k, r in enumerate(roots):
         if r in parent:
-            raise fail("scene", f"nodes[{r}] is listed twice as a root")
+            raise fail(f"scenes[{si}].nodes[{k}]", f"nodes[{r}] is listed twice as a root")
         parent[r] = -1
     while stack:
         ni, parent_world, _ = stack.pop()

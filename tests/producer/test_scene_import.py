@@ -346,6 +346,7 @@ def test_the_constructed_triangle_imports() -> None:
     (lambda d: d["nodes"][0].update(matrix=[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1], scale=[2, 2, 2]),
      "nodes[0].matrix", "must not also"),
     (lambda d: d["nodes"][0].update(children=[0]), "nodes[0].children", "loop"),
+    (lambda d: d["scenes"][0].update(nodes=[0, 0]), "scenes[0].nodes[1]", "twice"),
     (lambda d: d.update(nodes=[{"children": [2]}, {"children": [2]}, {"mesh": 0}]), "nodes[1].children[0]",
      "two parents"),
     (lambda d: d["buffers"][0].update(uri="http://example.com/triangle.bin"), "buffers[0].uri", "nothing is fetched"),
