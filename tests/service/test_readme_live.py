@@ -130,7 +130,7 @@ def test_every_readme_command_works_as_written(stack: Stack, tmp_path: Path) -> 
         logs.mkdir()
         lines = ["set -o pipefail"]
         for i, c in enumerate(cmds):
-            lines += ["{", c, f'}} >"{logs}/{i}.out" 2>"{logs}/{i}.err"', f'echo "{i} $?" >>"{logs}/rc"']
+            lines += ["{", c, f'}} >"{logs}/{i}.out" 2>"{logs}/{i}.err"', f'echo "{i} $? $SECONDS" >>"{logs}/rc"']
         captured = sorted(set(CAPTURE.findall("\n".join(cmds))))
         lines += [f'printf "%s" "${name}" >"{logs}/var.{name}"' for name in captured]
         script = logs / "block.sh"
@@ -138,7 +138,9 @@ def test_every_readme_command_works_as_written(stack: Stack, tmp_path: Path) -> 
         t0 = time.monotonic()
         subprocess.run(["bash", str(script)], cwd=clone, env=env, timeout=BLOCK_TIMEOUT_S, check=False)
         took = time.monotonic() - t0
-        codes = dict(ln.split() for ln in (logs / "rc").read_text().splitlines())
+        ends = [ln.split() for ln in (logs / "rc").read_text().splitlines()]
+        codes = {i: rc for i, rc, _ in ends}
+        took_each = [int(t1) - int(t0) for (_, _, t0), (_, _, t1) in zip([("", "", "0"), *ends], ends)]
         for i, c in enumerate(cmds):
             out, err = (logs / f"{i}.out").read_text(), (logs / f"{i}.err").read_text()
             want = expected_exit(c)
@@ -152,4 +154,4 @@ def test_every_readme_command_works_as_written(stack: Stack, tmp_path: Path) -> 
         for name in captured:
             value = (logs / f"var.{name}").read_text()
             assert re.fullmatch(r"[0-9a-f]{64}", value), f"${name} captured {value!r}, not an id"
-        print(f"README block {n}: {len(cmds)} commands in {took:.1f} s")
+        print(f"README block {n}: {len(cmds)} commands in {took:.1f} s; each (s): {took_each}")
