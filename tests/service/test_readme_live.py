@@ -74,14 +74,15 @@ def expected_exit(command: str) -> int:
 
 
 def test_readme_blocks_are_found_and_split() -> None:
-    """The extraction itself: the tour and the CLI block, the tour's multi-line JSON command kept whole."""
-    blocks = readme_blocks()
-    assert len(blocks) == 2, [b[:40] for b in blocks]
-    tour, cli = (commands(b) for b in blocks)
+    """The extraction itself: the tour (its multi-line JSON command kept whole) and the CLI block."""
+    blocks = [commands(b) for b in readme_blocks()]
+    assert len(blocks) >= 2, blocks
+    tour, cli = blocks[0], next(b for b in blocks if any(".venv/bin/ibr datasets upload" in c for c in b))
     assert tour[0].startswith("API=") and README_API in tour[0]
-    assert tour[1].startswith("SCENE=$(curl") and tour[1].endswith("[\"id\"])')")
-    assert all(c.startswith((".venv/bin/ibr ", "DS=$(.venv/bin/ibr ")) for c in cli), cli
+    assert tour[1].startswith("SCENE=$(curl") and tour[1].endswith("[\"id\"])')") and tour[1].count("\n") == 7
+    assert len(cli) >= 10 and all(".venv/bin/ibr " in c for c in cli), cli
     assert [expected_exit(c) for c in cli].count(2) == 1
+    assert commands("a \\\n  b\n# note\nX=$(echo '\n)')\n") == ["a \\\n  b", "X=$(echo '\n)')"]
 
 
 def _fresh_clone(dest: Path) -> None:
@@ -140,7 +141,8 @@ def test_every_readme_command_works_as_written(stack: Stack, tmp_path: Path) -> 
         took = time.monotonic() - t0
         ends = [ln.split() for ln in (logs / "rc").read_text().splitlines()]
         codes = {i: rc for i, rc, _ in ends}
-        took_each = [int(t1) - int(t0) for (_, _, t0), (_, _, t1) in zip([("", "", "0"), *ends], ends)]
+        stamps = [0] + [int(t) for _, _, t in ends]  # bash's $SECONDS after each command
+        took_each = [b - a for a, b in zip(stamps[:-1], stamps[1:], strict=True)]
         for i, c in enumerate(cmds):
             out, err = (logs / f"{i}.out").read_text(), (logs / f"{i}.err").read_text()
             want = expected_exit(c)
