@@ -38,7 +38,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from api_schemas import format_validation_error, load_scene_file, scene_json_schema
 from api_schemas.datasets import DatasetManifest, FileUploadPublic, RelightPublic
 from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
-from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
+from api_schemas.service import ArtifactManifest, BakePublic, BatchPublic, JobPublic
 from api_schemas.walkthrough import WalkthroughPublic
 from samples import SAMPLES_DIR, sample_names, sample_path
 from service.client import ApiError, Client, InvalidId, JobFailed, read_dataset_dir, with_sha256s
@@ -552,31 +552,54 @@ def jobs_cancel(job_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = No
 
 @app.command()
 def batch(
-    scenes: Annotated[list[str], typer.Argument(help="Scene JSON files or sample names (inline meshes only)")],
+    scenes: Annotated[list[str], typer.Argument(help="Scene JSON files or sample names (scenes with mesh files are "
+                                                     "uploaded first, one request each)")],
     render_them: Annotated[bool, typer.Option("--render/--no-render", help="Also request a render of each")] = True,
     spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel for the renders")] = None,
     follow: Annotated[bool, typer.Option(help="Follow the batch until every job ended")] = False,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
 ) -> None:
-    """Submit many scenes (and renders of them) in one call; prints the batch id."""
+    """Submit many scenes (and renders of them) in one call; prints the batch id.
+
+    A batch carries scene JSON only, so scenes with mesh files go to ``POST /v1/scenes`` first
+    (with their meshes) and the batch's renders name them by id. Every scene is validated locally
+    before anything is sent."""
     docs: list[Mapping[str, Any]] = []
+    with_meshes: list[tuple[str, dict[str, Any], dict[str, Path]]] = []
     for s in scenes:
         doc, meshes = _scene_doc(s)
         if meshes:
-            _fail(f"{s}: scenes with mesh files can't go in a batch; upload them with 'ibr scenes add'")
-        docs.append(doc)
+            with_meshes.append((s, doc, meshes))
+        else:
+            docs.append(doc)
     with _client(api_url, api_key) as c:
-        b = _call(lambda: c.batch(scenes=docs))
+        scene_ids: list[str] = []
+        for name, doc, meshes in with_meshes:
+            sid = _call(partial(c.create_scene, doc, meshes)).id
+            _say(f"scene {name}: {sid} (uploaded with its mesh files)")
+            scene_ids.append(sid)
+        b: BatchPublic | None = None
+        if docs:
+            b = _call(lambda: c.batch(scenes=docs))
+            scene_ids += b.scene_ids
         if render_them:
             params = {"spp": spp} if spp else {}
-            b = _call(lambda: c.batch(renders=[{"scene_id": sid, "params": params} for sid in b.scene_ids]))
+            renders: list[Mapping[str, Any]] = [{"scene_id": sid, "params": params} for sid in dict.fromkeys(scene_ids)]
+            b = _call(lambda: c.batch(renders=renders))
+        if b is None:  # --no-render and every scene had mesh files: no batch, the scene ids are the result
+            for sid in scene_ids:
+                typer.echo(sid)
+            return
         typer.echo(b.id)
         batch_id = b.id
         while follow:
             b = _call(lambda: c.get_batch(batch_id))
-            typer.echo(f"  {b.progress.fraction * 100:5.1f}%  {b.counts}", err=True)
+            _say(f"  {b.progress.fraction * 100:5.1f}%  {b.counts}")
             if not any(b.counts.get(k, 0) for k in ("queued", "started")):
+                unfinished = {k: b.counts[k] for k in ("failed", "canceled", "lost") if b.counts.get(k)}
+                if unfinished:  # exit 4 like a single render's failed job
+                    _fail(f"batch {batch_id}: renders without an image: {unfinished}", code=4)
                 break
             time.sleep(1.0)
 

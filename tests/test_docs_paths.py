@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PAGES = sorted([*ROOT.glob("docs/**/*.md"), ROOT / "README.md"])
 # the top-level directories a cited path can start with, and the importable packages among them
 TOP = sorted(p.name for p in ROOT.iterdir()
-             if (p / "__init__.py").exists() or p.name in {"docs", "samples", ".ci"})
+             if (p / "__init__.py").exists() or p.name in {"docs", "samples", "examples", ".ci"})
 PACKAGES = sorted(p.name for p in ROOT.iterdir() if (p / "__init__.py").exists())
 
 # (page relative to the root, cited text): deliberate names of things that are not in the tree.

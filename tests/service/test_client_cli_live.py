@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -80,6 +81,19 @@ def test_cli_client_commands(stack, tmp_path):
                                                      "intensity": [5, 5, 5]}])))
     r = runner.invoke(app, ["batch", str(scene_file), str(other), "--spp", "1", "--follow"], env=env)
     assert r.exit_code == 0, r.output
+    # a scene with a mesh file goes too: stored with its mesh first, then rendered in the batch
+    pyramid = Path(__file__).resolve().parents[2] / "examples" / "scenes" / "pyramid.json"
+    r = runner.invoke(app, ["batch", str(pyramid), str(scene_file), "--spp", "1", "--follow"], env=env)
+    assert r.exit_code == 0, r.output
+    r_add = runner.invoke(app, ["scenes", "add", str(pyramid)], env=env)
+    pid = r_add.stdout.strip()
+    assert f"scene {pyramid}: {pid} (uploaded with its mesh files)" in r.stderr
+    with Client(stack.api_url) as c:
+        b = c.get_batch(r.stdout.strip().splitlines()[-1])
+        assert len(b.renders) == 2 and b.counts == {"finished": 1, "cached": 1}, b.counts  # scene_file: cached
+        pyr = next(x for x in b.renders if x.status == "finished")
+        man = c.wait_render(pyr)
+        assert man.inputs["scene"] == pid and man.result["mesh_reports"][0]["source"] == "meshes/pyramid.obj"
     # bad input: exit code 2 with the field
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(dict(SMALL, camera=dict(SMALL["camera"], width=0))))
