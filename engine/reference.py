@@ -62,6 +62,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -76,6 +77,9 @@ from engine.scene import CameraParams, RuntimeScene
 from engine.shading import DualKernel, phong_pow
 
 INV_PI = 1.0 / math.pi
+MAX_RENDER_MS = 600_000.0
+"""Largest time budget (``max_ms``) of a reference render: the render job's timeout
+(``producer.queue.RENDER_TIMEOUT_S``; tests/engine/test_progressive.py checks they agree)."""
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
 _NO_LIT_C = np.zeros((0, 3))
 
@@ -119,6 +123,11 @@ class ReferenceParams:
     pipelines: chunks rendered concurrently in threads (serial kernels that release the
         GIL overlap with Embree calls); 1 = one chunk at a time with parallel kernels.
         The image does not depend on it.
+    max_error: progressive, adaptive rendering (engine/progressive.py) until the estimated LRMS
+        against the converged image is at most this, in (0, 1); ``spp`` is then the cap on any
+        pixel's samples. None (the default): a plain render of ``spp`` samples per pixel.
+    max_ms: progressive rendering that stops when this many milliseconds of render time are
+        spent (> 0, at most MAX_RENDER_MS), alone or with ``max_error``; None: no time budget.
     """
 
     spp: int = 4
@@ -131,6 +140,8 @@ class ReferenceParams:
     chunk_pixels: int = 16384
     pipelines: int = 2
     pixel_jitter: bool = True
+    max_error: float | None = None
+    max_ms: float | None = None
 
     def __post_init__(self) -> None:
         checks = {
@@ -144,9 +155,33 @@ class ReferenceParams:
                 raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
         if not isinstance(self.pixel_jitter, bool):
             raise InvalidInputError(f"pixel_jitter must be true or false, got {self.pixel_jitter!r}")
+        for name, hi, closed in (("max_error", 1.0, False), ("max_ms", MAX_RENDER_MS, True)):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            if not ok or not (v <= hi if closed else v < hi):
+                raise InvalidInputError(f"{name} must be a number in (0, {hi:g}{']' if closed else ')'}, got {v!r}")
+        if self.adaptive:
+            if self.spp < 2:
+                raise InvalidInputError(f"progressive rendering (max_error / max_ms) needs spp >= 2 (the cap on "
+                                        f"each pixel's samples, split over two half buffers), got {self.spp}")
+            if not self.pixel_jitter:
+                raise InvalidInputError("progressive rendering (max_error / max_ms) needs pixel_jitter")
+
+    @property
+    def adaptive(self) -> bool:
+        """True when a progressive, adaptive render is asked for (an error target or a time budget)."""
+        return self.max_error is not None or self.max_ms is not None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The settings as a dict; the progressive settings only when set (a plain render's
+        description is what it was before they existed)."""
+        d = asdict(self)
+        for name in ("max_error", "max_ms"):
+            if d[name] is None:
+                del d[name]
+        return d
 
 
 @dataclass
@@ -154,7 +189,7 @@ class RenderOutput:
     """radiance (h, w, 3) float32 linear; depth (h, w) float32 distance along the pixel-centre
     ray (0 where nothing is hit); normal (h, w, 3) float32 world shading normal facing the
     camera; object_id / material_id (h, w) int32 (-1 where nothing is hit); timings in
-    seconds per stage; counts of rays per kind."""
+    seconds per stage; counts of rays per kind; ``adaptive``: see below."""
 
     radiance: np.ndarray
     depth: np.ndarray
@@ -163,6 +198,9 @@ class RenderOutput:
     material_id: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    adaptive: dict[str, Any] | None = None
+    """Progressive renders only (``max_error`` / ``max_ms``): the estimated error and how it was
+    reached (engine/progressive.py, ``AdaptiveReport``); None for a plain render."""
 
     @property
     def coverage(self) -> np.ndarray:
@@ -658,6 +696,34 @@ def _cell_centre(j, spp, gx):
     return (k + 0.5) / c, (before + 0.5 * c) / spp
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _pixel_ray(r, x, y, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, center, o_out, d_out, d32_out):
+    """Row r of the ray arrays: the camera ray through image position (x, y) in pixels."""
+    fx = x / width
+    fy = y / height
+    sx = (2.0 * fx - 1.0) * sx_scale
+    sy = (1.0 - 2.0 * fy) * sy_scale
+    if ortho:
+        ox = eye[0] + sx * right[0] + sy * up[0]
+        oy = eye[1] + sx * right[1] + sy * up[1]
+        oz = eye[2] + sx * right[2] + sy * up[2]
+        dx, dy, dz = fwd[0], fwd[1], fwd[2]
+    else:
+        ox, oy, oz = eye[0], eye[1], eye[2]
+        dx = fwd[0] + sx * right[0] + sy * up[0]
+        dy = fwd[1] + sx * right[1] + sy * up[1]
+        dz = fwd[2] + sx * right[2] + sy * up[2]
+        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx /= ln
+        dy /= ln
+        dz /= ln
+    o_out[r, 0] = ox - center[0]
+    o_out[r, 1] = oy - center[1]
+    o_out[r, 2] = oz - center[2]
+    d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
+    d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
+
+
 @DualKernel
 def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key, center,
                   o_out, d_out, d32_out, pix_out, sidx_out, skey_out, jitter=True):
@@ -677,30 +743,34 @@ def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_sc
                 jx, jy = sample_2d(pkey, q, j)
             else:
                 jx, jy = _cell_centre(j, spp, gx)
-            fx = (qx + jx) / width
-            fy = (qy + jy) / height
-            sx = (2.0 * fx - 1.0) * sx_scale
-            sy = (1.0 - 2.0 * fy) * sy_scale
-            if ortho:
-                ox = eye[0] + sx * right[0] + sy * up[0]
-                oy = eye[1] + sx * right[1] + sy * up[1]
-                oz = eye[2] + sx * right[2] + sy * up[2]
-                dx, dy, dz = fwd[0], fwd[1], fwd[2]
-            else:
-                ox, oy, oz = eye[0], eye[1], eye[2]
-                dx = fwd[0] + sx * right[0] + sy * up[0]
-                dy = fwd[1] + sx * right[1] + sy * up[1]
-                dz = fwd[2] + sx * right[2] + sy * up[2]
-                ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-                dx /= ln
-                dy /= ln
-                dz /= ln
-            o_out[r, 0] = ox - center[0]
-            o_out[r, 1] = oy - center[1]
-            o_out[r, 2] = oz - center[2]
-            d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
-            d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
+            _pixel_ray(r, qx + jx, qy + jy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, center,
+                       o_out, d_out, d32_out)
             pix_out[r] = q
+            sidx_out[r] = j
+            skey_out[r] = key
+
+
+@DualKernel
+def _camera_rows(rid, start, cnt, first, npix, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key,
+                 center, o_out, d_out, d32_out, pix_out, sidx_out, skey_out):
+    """Camera rays of one pass of a progressive render (engine/progressive.py): row a is the
+    (virtual) pixel ``rid[a]``, samples ``start[a] .. start[a] + cnt[a] - 1``, written from ray
+    ``first[a]``. A virtual pixel v is image pixel v % npix; v < npix is its half buffer A, whose
+    samples are those ``_camera_batch`` gives the pixel, v >= npix its half buffer B, an
+    independent sequence (every sample value is keyed by the pixel number, engine/sampler.py)."""
+    pkey = derive_key(key, 0, DIM_PIXEL)
+    for a in nb.prange(rid.shape[0]):
+        v = rid[a]
+        q = v % npix
+        qx = q % width
+        qy = q // width
+        for t in range(cnt[a]):
+            j = start[a] + t
+            r = first[a] + t
+            jx, jy = sample_2d(pkey, v, j)
+            _pixel_ray(r, qx + jx, qy + jy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale,
+                       center, o_out, d_out, d32_out)
+            pix_out[r] = v
             sidx_out[r] = j
             skey_out[r] = key
 
@@ -713,6 +783,16 @@ def _compact_shadow(live, so, sd, tmax, so_out, sd_out, tm_out):
             so_out[j, k] = so[i, k]
             sd_out[j, k] = sd[i, k]
         tm_out[j] = tmax[i]
+
+
+def _camera_frame(camera: CameraParams):
+    """(right, up, forward, x scale, y scale) of the camera kernels: perspective scales are
+    tan(fov/2) * aspect and tan(fov/2), orthographic ones the half extents."""
+    right, up, fwd = camera.basis()
+    if camera.kind == "perspective":
+        th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
+        return right, up, fwd, th * camera.width / camera.height, th
+    return right, up, fwd, 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
 
 
 # ============================================================================ driver
@@ -735,8 +815,16 @@ class ReferenceRenderer:
     # ------------------------------------------------------------------ public
     def render(self, camera: CameraParams, params: ReferenceParams | None = None,
                progress: Callable[[float, str], None] | None = None) -> RenderOutput:
-        """Render ``camera`` view; raises NonFiniteOutputError if any pixel is NaN/Inf."""
+        """Render ``camera`` view; raises NonFiniteOutputError if any pixel is NaN/Inf.
+
+        With ``max_error`` or ``max_ms`` set the render is progressive and adaptive
+        (engine/progressive.py: passes until the estimated error or the time budget is reached,
+        ``spp`` samples per pixel at most) and ``RenderOutput.adaptive`` says how it ended."""
         params = params or ReferenceParams()
+        if params.adaptive:
+            from engine.progressive import render_progressive
+
+            return render_progressive(self, camera, params, progress)
         timer = _Timer()
         counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
         t0 = time.perf_counter()
@@ -944,12 +1032,7 @@ class ReferenceRenderer:
         pix = np.empty(n, np.int64)
         sidx = np.empty(n, np.int64)
         skey = np.empty(n, np.uint64)
-        right, up, fwd = camera.basis()
-        if camera.kind == "perspective":
-            th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
-            sxs, sys_ = th * camera.width / camera.height, th
-        else:
-            sxs, sys_ = 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
+        right, up, fwd, sxs, sys_ = _camera_frame(camera)
         gx = int(math.ceil(math.sqrt(params.spp)))
         _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
                                    camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
@@ -962,6 +1045,30 @@ class ReferenceRenderer:
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
         self._trace(params, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc, timer, counts, serial)
+
+    def _render_rows(self, camera, params: ReferenceParams, rid, start, cnt, acc, timer, counts,
+                     serial: bool) -> None:
+        """Samples ``start[a] .. start[a] + cnt[a] - 1`` of each virtual pixel ``rid[a]`` (see
+        ``_camera_rows``), accumulated into ``acc[rid]`` (acc has a row per virtual pixel)."""
+        sc = self.scene
+        t0 = time.perf_counter()
+        first = np.zeros(rid.shape[0], np.int64)
+        np.cumsum(cnt[:-1], out=first[1:])
+        n = int(cnt.sum())
+        o32 = np.empty((n, 3), np.float32)
+        d = np.empty((n, 3))
+        d32 = np.empty((n, 3), np.float32)
+        pix = np.empty(n, np.int64)
+        sidx = np.empty(n, np.int64)
+        skey = np.empty(n, np.uint64)
+        right, up, fwd, sxs, sys_ = _camera_frame(camera)
+        _camera_rows.pick(serial)(rid, start, cnt, first, camera.width * camera.height, camera.width, camera.height,
+                                  camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
+                                  sxs, sys_, sample_key(params.seed, 0), sc.center, o32, d, d32, pix, sidx, skey)
+        counts["camera"] += n
+        timer.add("camera_rays", time.perf_counter() - t0)
+        self._trace(params, o32, d, d32, np.ones((n, 3)), np.zeros(n, np.int8), np.zeros(n, np.int32),
+                    np.full(n, params.indirect_bounces, np.int32), pix, sidx, skey, acc, timer, counts, serial)
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
                timer, counts, serial: bool, first_hits=None, pix_base: int = 0) -> None:

@@ -1,0 +1,324 @@
+"""Progressive, adaptive reference rendering: passes of samples until an estimated error or a
+time budget is reached, with more samples where the image is noisy.
+
+``ReferenceRenderer.render`` comes here when ``ReferenceParams.max_error`` or ``max_ms`` is set;
+``spp`` is then the cap on any pixel's samples. docs/reference-renderer.md describes the mode
+and its measured costs.
+
+Two half buffers. Every pixel q owns two independent sample sequences of the engine's sampler
+(engine/sampler.py): half A is the pixel's own sequence (the samples a plain render takes, in the
+same order), half B the sequence of the virtual pixel q + w h, whose scrambles are independent of
+A's. A pass gives a pixel the same number of new samples in both halves, continuing each sequence
+where it stopped (sample indices keep counting). The pixel's value is the mean of all its
+samples, ``(S_A + S_B) / n`` with ``n`` samples in all, and since A and B are independent
+estimates of the same integral with ``n/2`` samples each,
+
+    v_q = (Y_A - Y_B)^2 / 4        (Y_A, Y_B: the halves' mean luminance)
+
+is an unbiased estimate of the variance of the pixel's mean luminance, whatever its samples'
+distribution and however well stratified each half is (the estimate of a stratified sequence's
+variance from its own samples would not be). Independent halves cost a little against one
+sequence of ``n``: the two halves are not stratified against each other.
+
+Image error. The estimated LRMS against the converged image (the metric of engine/metrics.py,
+RMS of the luminance difference over the mean luminance, over every pixel of the image) is
+
+    E = sqrt(mean_q v_q) / mean_q Y_q.
+
+Its square's numerator is unbiased for the expected squared error; on images of a few thousand
+pixels and more E is within a few per cent of the truth (tests/engine/test_progressive.py
+measures it against high-spp renders).
+
+Allocation (Cycles-style adaptive sampling, planned for the image's error rather than a
+per-pixel threshold). With per-sample standard deviations sigma_q, the allocation minimising
+the image's error for a given total is ``n_q`` proportional to ``sigma_q``, and the total that
+meets an error ``x`` is ``(sum sigma)^2 / (P (x Y)^2)`` for P pixels of mean luminance Y. Each
+pass plans for ``AIM`` x ``max_error`` (the plan is made from noisy estimates), gives every
+pixel at most ``GROWTH`` times its samples (so estimates refresh before much is spent), at least
+``MIN_PASS`` of the samples taken so far in all, and never more than ``spp``. Without an error
+target, each pass doubles the total, distributed the same way.
+
+No bias from the allocation. A pixel's samples are never used to decide how many samples the
+pixel gets: ``sigma_q^2`` is the mean of ``v_r n_r`` over the 8 neighbours r of q (the pixel
+itself left out), so a pixel's sample count is independent of its own sample values, and the mean
+of a prefix of a scrambled Sobol sequence whose length does not depend on its values is unbiased.
+What remains is second order: the stopping rule reads the image error, to which one pixel
+contributes 1/P of the sum, and a neighbour's sample count (which depends on this pixel's values)
+changes only the precision of that neighbour's estimate, not its expectation.
+(One exception: when no neighbour of any unfinished pixel is noisy but the image's error is still
+above the target, the pixels with their own non-zero variance are doubled; isolated noise is
+rare.) tests/engine/test_progressive.py checks that means over seeds converge to closed forms.
+
+Stopping, after every pass: ``error`` when E <= max_error; ``spp_cap`` when no pixel that could
+still improve has room below the cap; ``time`` when the budget is spent, or when the next pass,
+cut to the time left (from the measured seconds per sample), would hold no sample. The first
+pass always runs (``FIRST_PASS`` samples per half), so a budget shorter than it is overrun, and
+reported. A render that cannot reach its error within its limits returns its best image with
+``target_met`` False and the estimated error it has.
+
+Determinism: a render stopped by its error or by the cap is bit-for-bit deterministic for its
+seed (any number of pipelines and chunks). A time budget is not: where the budget cuts the render
+depends on the machine's speed and load, so with ``max_ms`` set the image is deterministic only
+when the budget never cut a pass short.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from engine.errors import NonFiniteOutputError
+from engine.metrics import REC709_WEIGHTS
+from engine.reference import ReferenceParams, ReferenceRenderer, RenderOutput, _Timer
+from engine.scene import CameraParams
+
+__all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "estimate_error",
+           "render_progressive"]
+
+FIRST_PASS = 4
+"""Samples per half buffer in the first pass (8 per pixel; fewer when the cap is lower)."""
+AIM = 0.9
+"""Each pass is planned for AIM x max_error."""
+GROWTH = 2.0
+"""A pass at most multiplies a pixel's samples by this."""
+MIN_PASS = 0.125
+"""A pass adds at least this fraction of the samples taken so far (no long tail of tiny passes)."""
+STOP_REASONS = ("error", "time", "spp_cap")
+_LUM = np.asarray(REC709_WEIGHTS, np.float64)
+
+
+@dataclass(frozen=True)
+class AdaptiveReport:
+    """How a progressive render ended.
+
+    estimated_error: estimated LRMS of the image against the converged one;
+    target_met: ``estimated_error <= max_error`` (None without an error target);
+    stop_reason: ``error`` (the target is met), ``time`` (the budget is spent) or ``spp_cap``
+        (every pixel that could still improve has ``spp`` samples);
+    passes: rounds of samples taken; spp_mean / spp_min / spp_max: samples per pixel (both halves);
+    spp_cap: the cap (the request's ``spp``, rounded down to even); samples: camera samples in all;
+    elapsed_ms: render time, from the start of the render to the image."""
+
+    estimated_error: float
+    target_met: bool | None
+    stop_reason: str
+    passes: int
+    spp_mean: float
+    spp_min: int
+    spp_max: int
+    spp_cap: int
+    samples: int
+    max_error: float | None
+    max_ms: float | None
+    elapsed_ms: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def estimate_error(sum_a: np.ndarray, sum_b: np.ndarray, n_half: np.ndarray) -> tuple[float, np.ndarray]:
+    """(E, v): the estimated image LRMS against the converged image and the estimated variance
+    of each pixel's mean luminance, from the half buffers' sums ``sum_a``, ``sum_b`` (P, 3) of
+    ``n_half`` (P,) samples each (>= 1)."""
+    nh = n_half.astype(np.float64)
+    ya = (sum_a @ _LUM) / nh
+    yb = (sum_b @ _LUM) / nh
+    v = 0.25 * (ya - yb) ** 2
+    y = float(np.mean(0.5 * (ya + yb)))
+    num = math.sqrt(float(np.mean(v)))
+    if y <= 0.0:
+        return (0.0 if num == 0.0 else math.inf), v
+    return num / y, v
+
+
+def _ring_mean(x: np.ndarray) -> np.ndarray:
+    """Mean of each pixel's (up to 8) neighbours in the (h, w) image x, the pixel itself left out
+    (a 1 x 1 image: the pixel)."""
+    h, w = x.shape
+    if h * w == 1:
+        return x.copy()
+    p = np.pad(x, 1)
+    c = np.pad(np.ones_like(x), 1)
+    s = np.zeros_like(x)
+    k = np.zeros_like(x)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            s += p[dy:dy + h, dx:dx + w]
+            k += c[dy:dy + h, dx:dx + w]
+    return s / k
+
+
+def _plan(n_half: np.ndarray, v: np.ndarray, shape: tuple[int, int], cap_half: int, max_error: float | None,
+          y_mean: float) -> np.ndarray:
+    """New samples per half buffer for every pixel in the next pass (all zero: nothing left to do)."""
+    n = 2.0 * n_half
+    room = cap_half - n_half
+    sigma = np.sqrt(_ring_mean((v * n).reshape(shape)).ravel())
+    total_sigma = float(sigma.sum())
+    add = np.zeros_like(n_half)
+    if total_sigma > 0.0:
+        if max_error is not None and y_mean > 0.0:
+            want = sigma * total_sigma / (sigma.size * (AIM * max_error * y_mean) ** 2)
+        else:
+            want = sigma * 2.0 * float(n.sum()) / total_sigma
+        target = np.minimum(np.maximum(want, n), GROWTH * n)
+        add = np.minimum(np.ceil((target - n) / 2.0).astype(np.int64), room)
+    if add.sum() == 0:
+        # no neighbour of an unfinished pixel is noisy: double the pixels that are
+        add = np.where((v > 0.0) & (room > 0), np.minimum(n_half, room), 0)
+    low = int(math.ceil(MIN_PASS * float(n_half.sum())))
+    if 0 < add.sum() < low:
+        add = np.minimum(np.ceil(add * (low / add.sum())).astype(np.int64), room)
+    return add
+
+
+def _run_pass(renderer: ReferenceRenderer, camera: CameraParams, params: ReferenceParams, rid: np.ndarray,
+              start: np.ndarray, cnt: np.ndarray, acc: np.ndarray, timer: _Timer, counts: dict[str, int],
+              tick: Callable[[], None]) -> None:
+    """One pass: the rows (virtual pixel, first sample, count) in chunks of about the plain
+    render's rays per chunk, ``params.pipelines`` at a time; a row is never split, so every
+    accumulator row is written by one chunk in ray order (the image does not depend on the
+    chunking or the threads)."""
+    npix = camera.width * camera.height
+    total = int(cnt.sum())
+    chunk_px = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
+    budget = max(1, min(chunk_px * params.spp, -(-total // (4 * params.pipelines))))
+    offset = np.cumsum(cnt) - cnt
+    cuts = np.flatnonzero(np.diff(offset // budget)) + 1
+    pieces = [(a, b) for a, b in zip(np.r_[0, cuts], np.r_[cuts, rid.size], strict=True) if b > a]
+    pipelines = min(params.pipelines, len(pieces))
+    if pipelines <= 1:
+        for a, b in pieces:
+            renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, timer, counts, serial=False)
+            tick()
+        return
+    lock = threading.Lock()
+    stop = threading.Event()
+
+    def run(a: int, b: int) -> None:
+        if stop.is_set():
+            return
+        t_local = _Timer()
+        c_local = dict.fromkeys(counts, 0)
+        renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t_local, c_local, serial=True)
+        with lock:
+            for k, dt in t_local.t.items():
+                timer.add(k, dt)
+            for k, c in c_local.items():
+                counts[k] += c
+
+    with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
+        futures = [pool.submit(run, a, b) for a, b in pieces]
+        try:
+            for f in futures:
+                f.result()
+                tick()
+        except BaseException:
+            stop.set()  # cancellation / errors: let in-flight chunks finish, start no more
+            for f in futures:
+                f.cancel()
+            raise
+
+
+def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params: ReferenceParams,
+                       progress: Callable[[float, str], None] | None = None) -> RenderOutput:
+    """Render ``camera`` in passes until ``params.max_error`` (estimated LRMS) or ``params.max_ms``
+    is reached, or every pixel that could improve has ``params.spp`` samples (see the module
+    docstring). ``RenderOutput.adaptive`` is the :class:`AdaptiveReport` as a dict."""
+    t_start = time.perf_counter()
+    timer = _Timer()
+    counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
+    if hasattr(renderer.caster, "_get"):
+        renderer.caster._get()  # build the BVH now so its cost is reported on its own
+    timer.add("bvh_build", time.perf_counter() - t_start)
+    w, h = camera.width, camera.height
+    npix = w * h
+    aov = renderer._aovs(camera, timer)
+    cap_half = params.spp // 2
+    deadline = None if params.max_ms is None else t_start + params.max_ms / 1000.0
+    acc = np.zeros((2 * npix, 3))  # rows 0..P-1: half A's sums, P..2P-1: half B's
+    n_half = np.zeros(npix, np.int64)
+    add = np.full(npix, min(FIRST_PASS, cap_half), np.int64)
+    passes = 0
+    err = math.inf
+    first_err: float | None = None
+    t_sampling = 0.0
+    shown = [0.0]
+
+    def report(frac: float) -> None:
+        shown[0] = max(shown[0], min(0.99, frac))
+        if progress is not None:
+            progress(shown[0], "render")
+
+    def fraction() -> float:
+        f = 0.0
+        x = params.max_error
+        if x is not None and first_err is not None and math.isfinite(err) and first_err > x:
+            f = math.log(first_err / max(err, 1e-300)) / math.log(first_err / x)
+        if deadline is not None:
+            f = max(f, (time.perf_counter() - t_start) / (params.max_ms / 1000.0))  # type: ignore[operator]
+        f = max(f, float(n_half.sum()) / (cap_half * npix))
+        return min(max(f, 0.0), 0.99)
+
+    while True:
+        rows = np.flatnonzero(add)
+        rid = np.concatenate([rows, rows + npix])
+        start = np.concatenate([n_half[rows], n_half[rows]])
+        cnt = np.concatenate([add[rows], add[rows]])
+        t0 = time.perf_counter()
+        _run_pass(renderer, camera, params, rid, start, cnt, acc, timer, counts, lambda: report(shown[0]))
+        t_sampling += time.perf_counter() - t0
+        n_half += add
+        passes += 1
+        t0 = time.perf_counter()
+        err, v = estimate_error(acc[:npix], acc[npix:], n_half)
+        if first_err is None:
+            first_err = err
+        timer.add("estimate", time.perf_counter() - t0)
+        report(fraction())
+        if params.max_error is not None and err <= params.max_error:
+            reason = "error"
+            break
+        if deadline is not None and time.perf_counter() >= deadline:
+            reason = "time"
+            break
+        y_mean = float(np.mean((acc[:npix] + acc[npix:]) @ _LUM / (2.0 * n_half)))
+        add = _plan(n_half, v, (h, w), cap_half, params.max_error, y_mean)
+        if add.sum() == 0:
+            reason = "spp_cap"
+            break
+        if deadline is not None:
+            per_sample = t_sampling / (2.0 * float(n_half.sum()))
+            left = deadline - time.perf_counter()
+            need = per_sample * 2.0 * float(add.sum())
+            if need > left:
+                add = np.floor(add * max(0.0, left / need)).astype(np.int64)
+                if add.sum() == 0:
+                    reason = "time"
+                    break
+
+    radiance = ((acc[:npix] + acc[npix:]) / (2.0 * n_half)[:, None]).reshape(h, w, 3)
+    bad = ~np.isfinite(radiance)
+    if np.any(bad):
+        raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
+    elapsed = time.perf_counter() - t_start
+    timer.add("total", elapsed)
+    spp = 2 * n_half
+    rep = AdaptiveReport(
+        estimated_error=float(err), target_met=None if params.max_error is None else bool(err <= params.max_error),
+        stop_reason=reason, passes=passes, spp_mean=float(spp.mean()), spp_min=int(spp.min()),
+        spp_max=int(spp.max()), spp_cap=2 * cap_half, samples=int(spp.sum()), max_error=params.max_error,
+        max_ms=params.max_ms, elapsed_ms=1000.0 * elapsed)
+    if progress is not None:
+        progress(1.0, "render")
+    depth, normal, oid, mid = aov
+    return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
