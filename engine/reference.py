@@ -71,15 +71,13 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import light_sample
+from engine.methods import REFERENCE
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.shading import DualKernel, phong_pow
 
 INV_PI = 1.0 / math.pi
-MAX_RENDER_MS = 600_000.0
-"""Largest time budget (``max_ms``) of a reference render: the render job's timeout
-(``producer.queue.RENDER_TIMEOUT_S``; tests/engine/test_progressive.py checks they agree)."""
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
 _NO_LIT_C = np.zeros((0, 3))
 
@@ -127,7 +125,8 @@ class ReferenceParams:
         against the converged image is at most this, in (0, 1); ``spp`` is then the cap on any
         pixel's samples. None (the default): a plain render of ``spp`` samples per pixel.
     max_ms: progressive rendering that stops when this many milliseconds of render time are
-        spent (> 0, at most MAX_RENDER_MS), alone or with ``max_error``; None: no time budget.
+        spent, in (0, engine.methods.MAX_RENDER_MS] (the render job's timeout), alone or with
+        ``max_error``; None: no time budget.
     """
 
     spp: int = 4
@@ -155,13 +154,9 @@ class ReferenceParams:
                 raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
         if not isinstance(self.pixel_jitter, bool):
             raise InvalidInputError(f"pixel_jitter must be true or false, got {self.pixel_jitter!r}")
-        for name, hi, closed in (("max_error", 1.0, False), ("max_ms", MAX_RENDER_MS, True)):
-            v = getattr(self, name)
-            if v is None:
-                continue
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            if not ok or not (v <= hi if closed else v < hi):
-                raise InvalidInputError(f"{name} must be a number in (0, {hi:g}{']' if closed else ')'}, got {v!r}")
+        for name in ("max_error", "max_ms"):  # ranges: the registry's (engine/methods.py)
+            if getattr(self, name) is not None:
+                REFERENCE.param(name).check(getattr(self, name))
         if self.adaptive:
             if self.spp < 2:
                 raise InvalidInputError(f"progressive rendering (max_error / max_ms) needs spp >= 2 (the cap on "
