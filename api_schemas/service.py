@@ -144,10 +144,11 @@ def _number_in(p: Param) -> AfterValidator:
 
 
 def _number_doc(p: Param) -> Any:
-    """The float parameter's description and range in the JSON schema."""
+    """The float parameter's description and range in the JSON schema; left out of dumps when not
+    set, so a request without it dumps (and hashes into its artifact key) as before it existed."""
     bounds: dict[str, Any] = {"exclusiveMinimum" if p.low_open else "minimum": p.low,
                               "exclusiveMaximum" if p.high_open else "maximum": p.high}
-    return Field(description=p.doc, json_schema_extra=bounds)
+    return Field(description=p.doc, json_schema_extra=bounds, exclude_if=lambda v: v is None)
 
 
 class ReferenceRenderParams(FrozenModel):

@@ -70,7 +70,6 @@ from producer.ownership import (
     remove_dataset_owner,
     visible_dataset_ids,
 )
-from producer.renders import set_params_only
 from producer.store import ChecksumMismatch, NotFound, ObjectStore
 
 __all__ = [
@@ -689,5 +688,4 @@ def composite_inputs(req: CompositeRequest) -> tuple[dict[str, str], dict[str, A
 def generate_artifact_key(req: GenerateRequest) -> str:
     params = req.model_dump(mode="json")
     params.pop("scene_id")
-    params["params"] = set_params_only(params["params"])
     return artifact_key(GENERATE_KIND, {"scene": req.scene_id}, params, ENGINE_VERSION)

@@ -24,7 +24,7 @@ from producer.payloads import RenderJobPayload
 from producer.queue import ACTIVE_STATUSES, RENDER_TIMEOUT_S, fetch_job, job_retry
 from producer.store import ObjectStore
 
-__all__ = ["enqueue_render", "render_artifact_key", "render_params", "set_params_only"]
+__all__ = ["enqueue_render", "render_artifact_key", "render_params"]
 
 
 def render_params(req: RenderRequest) -> dict[str, Any]:
@@ -38,15 +38,7 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
         params.pop("params")  # the LDC methods shade with the bake's settings
     else:
         params.pop("bake")
-        params["params"] = set_params_only(params["params"])
     return params
-
-
-def set_params_only(params: dict[str, Any]) -> dict[str, Any]:
-    """Reference settings for an artifact key: those that are set (an optional setting left unset,
-    e.g. ``max_error``, is not part of the key, so a render's key is what it was before the
-    setting existed)."""
-    return {k: v for k, v in params.items() if v is not None}
 
 
 def render_artifact_key(req: RenderRequest) -> str:
