@@ -280,6 +280,9 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
         n_half += add
         passes += 1
         t0 = time.perf_counter()
+        bad = ~np.isfinite(acc)
+        if np.any(bad):  # before any estimate or plan reads it
+            raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
         err, v = estimate_error(acc[:npix], acc[npix:], n_half)
         if first_err is None:
             first_err = err
@@ -307,9 +310,6 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
                     break
 
     radiance = ((acc[:npix] + acc[npix:]) / (2.0 * n_half)[:, None]).reshape(h, w, 3)
-    bad = ~np.isfinite(radiance)
-    if np.any(bad):
-        raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
     elapsed = time.perf_counter() - t_start
     timer.add("total", elapsed)
     spp = 2 * n_half

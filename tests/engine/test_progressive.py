@@ -192,3 +192,14 @@ def test_image_mean_over_seeds_is_unbiased(setup):
                                                           **BASE)).radiance).mean() for s in range(48)])
     se = m.std(ddof=1) / math.sqrt(m.size)
     assert abs(m.mean() - want) <= 4.0 * se + 1e-4 * want, (m.mean() / want, se / want)
+
+
+def test_non_finite_result_fails_the_render():
+    """As the plain render (HARD_CASES 13): an overflowing light fails loudly, before any estimate."""
+    from engine.errors import NonFiniteOutputError
+    from tests.engine.test_reference import DOWN
+
+    sc = scene([(quad((0, 0, 0), 4.0), mat(kd=(1, 1, 1)))],
+               [dict(type="point", position=(0, 1e-3, 0), intensity=(1e307, 1e307, 1e307))])
+    with pytest.raises(NonFiniteOutputError):
+        render_reference(sc, DOWN, ReferenceParams(spp=8, max_error=0.1))
