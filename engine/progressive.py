@@ -51,7 +51,7 @@ rare.) tests/engine/test_progressive.py checks that means over seeds converge to
 
 Stopping, after every pass: ``error`` when E <= max_error; ``spp_cap`` when no pixel that could
 still improve has room below the cap; ``time`` when the budget is spent, or when the next pass,
-cut to the time left (from the measured seconds per sample), would hold no sample. The first
+cut to the time left (at the last pass's measured seconds per sample), would hold no sample. The first
 pass always runs (``FIRST_PASS`` samples per half), so a budget shorter than it is overrun, and
 reported. A render that cannot reach its error within its limits returns its best image with
 ``target_met`` False and the estimated error it has.
@@ -65,10 +65,8 @@ when the budget never cut a pass short.
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -76,7 +74,7 @@ import numpy as np
 
 from engine.errors import NonFiniteOutputError
 from engine.metrics import REC709_WEIGHTS
-from engine.reference import ReferenceParams, ReferenceRenderer, RenderOutput, _Timer
+from engine.reference import ReferenceParams, ReferenceRenderer, RenderOutput, _Timer, run_pieces
 from engine.scene import CameraParams
 
 __all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "estimate_error",
@@ -195,38 +193,12 @@ def _run_pass(renderer: ReferenceRenderer, camera: CameraParams, params: Referen
     offset = np.cumsum(cnt) - cnt
     cuts = np.flatnonzero(np.diff(offset // budget)) + 1
     pieces = [(a, b) for a, b in zip(np.r_[0, cuts], np.r_[cuts, rid.size], strict=True) if b > a]
-    pipelines = min(params.pipelines, len(pieces))
-    if pipelines <= 1:
-        for a, b in pieces:
-            renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, timer, counts, serial=False)
-            tick()
-        return
-    lock = threading.Lock()
-    stop = threading.Event()
 
-    def run(a: int, b: int) -> None:
-        if stop.is_set():
-            return
-        t_local = _Timer()
-        c_local = dict.fromkeys(counts, 0)
-        renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t_local, c_local, serial=True)
-        with lock:
-            for k, dt in t_local.t.items():
-                timer.add(k, dt)
-            for k, c in c_local.items():
-                counts[k] += c
+    def piece(i: int, t: _Timer, c: dict[str, int], serial: bool) -> None:
+        a, b = pieces[i]
+        renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial)
 
-    with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
-        futures = [pool.submit(run, a, b) for a, b in pieces]
-        try:
-            for f in futures:
-                f.result()
-                tick()
-        except BaseException:
-            stop.set()  # cancellation / errors: let in-flight chunks finish, start no more
-            for f in futures:
-                f.cancel()
-            raise
+    run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
 
 
 def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params: ReferenceParams,
@@ -251,7 +223,7 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
     passes = 0
     err = math.inf
     first_err: float | None = None
-    t_sampling = 0.0
+    per_sample = 0.0
     shown = [0.0]
 
     def report(frac: float) -> None:
@@ -276,7 +248,8 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
         cnt = np.concatenate([add[rows], add[rows]])
         t0 = time.perf_counter()
         _run_pass(renderer, camera, params, rid, start, cnt, acc, timer, counts, lambda: report(shown[0]))
-        t_sampling += time.perf_counter() - t0
+        # seconds per sample of the last pass: later passes sample the noisy (costlier) pixels
+        per_sample = (time.perf_counter() - t0) / max(1, int(cnt.sum()))
         n_half += add
         passes += 1
         t0 = time.perf_counter()
@@ -300,7 +273,6 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
             reason = "spp_cap"
             break
         if deadline is not None:
-            per_sample = t_sampling / (2.0 * float(n_half.sum()))
             left = deadline - time.perf_counter()
             need = per_sample * 2.0 * float(add.sum())
             if need > left:

@@ -793,6 +793,52 @@ def _camera_frame(camera: CameraParams):
 # ============================================================================ driver
 
 
+def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n_pieces: int, pipelines: int,
+               timer: _Timer, counts: dict[str, int], done: Callable[[float], None] | None = None) -> None:
+    """Run pieces 0 .. n_pieces - 1 of a render, which accumulate into disjoint rows (so no locks):
+    ``run_piece(i, timer, counts, serial)``. ``pipelines`` <= 1: one piece at a time with parallel
+    kernels; else that many in flight, one per thread, with serial nogil kernels: while one
+    pipeline holds the GIL inside Embree the others shade. ``done(fraction of pieces finished)``
+    after each piece (it may raise to cancel: in-flight pieces finish, no more start)."""
+    if pipelines <= 1:
+        for i in range(n_pieces):
+            run_piece(i, timer, counts, False)
+            if done is not None:
+                done((i + 1) / n_pieces)
+        return
+    lock = threading.Lock()
+    finished = [0]
+    stop = threading.Event()
+
+    def run(i: int) -> None:
+        if stop.is_set():
+            return
+        t_local = _Timer()
+        c_local = dict.fromkeys(counts, 0)
+        run_piece(i, t_local, c_local, True)
+        with lock:
+            for k, v in t_local.t.items():
+                timer.add(k, v)
+            for k, c in c_local.items():
+                counts[k] += c
+            finished[0] += 1
+
+    with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
+        futures = [pool.submit(run, i) for i in range(n_pieces)]
+        try:
+            for f in futures:
+                f.result()
+                if done is not None:
+                    with lock:
+                        frac = finished[0] / n_pieces
+                    done(frac)
+        except BaseException:
+            stop.set()  # cancellation / errors: let in-flight pieces finish, start no more
+            for f in futures:
+                f.cancel()
+            raise
+
+
 class ReferenceRenderer:
     """Reusable renderer bound to one scene (keeps its Embree scene warm)."""
 
@@ -836,14 +882,9 @@ class ReferenceRenderer:
         chunk = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
         n_chunks = (npix + chunk - 1) // chunk
         chunks = [np.arange(ci * chunk, min(npix, (ci + 1) * chunk)) for ci in range(n_chunks)]
-        pipelines = min(params.pipelines, n_chunks)
-        if pipelines <= 1:
-            for ci, ids in enumerate(chunks):
-                self._render_chunk(camera, params, ids, ci, acc, timer, counts, serial=False)
-                if progress is not None:
-                    progress((ci + 1) / n_chunks, "render")
-        else:
-            self._render_pipelined(camera, params, chunks, pipelines, acc, timer, counts, progress)
+        run_pieces(lambda ci, t, c, serial: self._render_chunk(camera, params, chunks[ci], ci, acc, t, c, serial),
+                   n_chunks, min(params.pipelines, n_chunks), timer, counts,
+                   None if progress is None else (lambda f: progress(f, "render")))
         radiance = (acc / params.spp).reshape(h, w, 3)
         bad = ~np.isfinite(radiance)
         if np.any(bad):
@@ -851,42 +892,6 @@ class ReferenceRenderer:
         timer.add("total", time.perf_counter() - t0)
         depth, normal, oid, mid = aov
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts)
-
-    def _render_pipelined(self, camera, params, chunks, pipelines, acc, timer, counts, progress) -> None:
-        """Several chunks in flight, one per thread, with serial nogil kernels: while one
-        pipeline holds the GIL inside Embree the others shade. Chunks own disjoint pixels,
-        so they accumulate into ``acc`` without locks."""
-        lock = threading.Lock()
-        done = [0]
-        stop = threading.Event()
-
-        def run(ci: int) -> None:
-            if stop.is_set():
-                return
-            t_local = _Timer()
-            c_local = dict.fromkeys(counts, 0)
-            self._render_chunk(camera, params, chunks[ci], ci, acc, t_local, c_local, serial=True)
-            with lock:
-                for k, v in t_local.t.items():
-                    timer.add(k, v)
-                for k, v in c_local.items():
-                    counts[k] += v
-                done[0] += 1
-
-        with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
-            futures = [pool.submit(run, ci) for ci in range(len(chunks))]
-            try:
-                for f in futures:
-                    f.result()
-                    if progress is not None:
-                        with lock:
-                            frac = done[0] / len(chunks)
-                        progress(frac, "render")
-            except BaseException:
-                stop.set()  # cancellation / errors: let in-flight chunks finish, start no more
-                for f in futures:
-                    f.cancel()
-                raise
 
     def shade_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions: np.ndarray,
                    params: ReferenceParams | None = None, *, stream_id: int = 0, chunk: int = 1 << 15,
