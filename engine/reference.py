@@ -1023,48 +1023,43 @@ class ReferenceRenderer:
 
     def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts,
                       serial: bool) -> None:
-        sc = self.scene
-        t0 = time.perf_counter()
-        n = ids.shape[0] * params.spp
-        o32 = np.empty((n, 3), np.float32)
-        d = np.empty((n, 3))
-        d32 = np.empty((n, 3), np.float32)
-        pix = np.empty(n, np.int64)
-        sidx = np.empty(n, np.int64)
-        skey = np.empty(n, np.uint64)
         right, up, fwd, sxs, sys_ = _camera_frame(camera)
         gx = int(math.ceil(math.sqrt(params.spp)))
-        _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
-                                   camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
-                                   sxs, sys_, sample_key(params.seed, 0), sc.center, o32, d, d32, pix, sidx, skey,
-                                   bool(params.pixel_jitter))
-        weight = np.ones((n, 3))
-        kind = np.zeros(n, np.int8)
-        depth = np.zeros(n, np.int32)
-        bounces = np.full(n, params.indirect_bounces, np.int32)
-        counts["camera"] += n
-        timer.add("camera_rays", time.perf_counter() - t0)
-        self._trace(params, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc, timer, counts, serial)
+
+        def fill(o32, d, d32, pix, sidx, skey):
+            _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
+                                       camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up,
+                                       fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix,
+                                       sidx, skey, bool(params.pixel_jitter))
+
+        self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial)
 
     def _render_rows(self, camera, params: ReferenceParams, rid, start, cnt, acc, timer, counts,
                      serial: bool) -> None:
         """Samples ``start[a] .. start[a] + cnt[a] - 1`` of each virtual pixel ``rid[a]`` (see
         ``_camera_rows``), accumulated into ``acc[rid]`` (acc has a row per virtual pixel)."""
-        sc = self.scene
-        t0 = time.perf_counter()
         first = np.zeros(rid.shape[0], np.int64)
         np.cumsum(cnt[:-1], out=first[1:])
-        n = int(cnt.sum())
+        right, up, fwd, sxs, sys_ = _camera_frame(camera)
+
+        def fill(o32, d, d32, pix, sidx, skey):
+            _camera_rows.pick(serial)(rid, start, cnt, first, camera.width * camera.height, camera.width,
+                                      camera.height, camera.kind == "orthographic", np.asarray(camera.eye, np.float64),
+                                      right, up, fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32,
+                                      d, d32, pix, sidx, skey)
+
+        self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial)
+
+    def _trace_camera_rays(self, params: ReferenceParams, n: int, fill, acc, timer, counts, serial: bool) -> None:
+        """n camera rays, written by ``fill(o32, d, d32, pix, sidx, skey)``, traced into ``acc``."""
+        t0 = time.perf_counter()
         o32 = np.empty((n, 3), np.float32)
         d = np.empty((n, 3))
         d32 = np.empty((n, 3), np.float32)
         pix = np.empty(n, np.int64)
         sidx = np.empty(n, np.int64)
         skey = np.empty(n, np.uint64)
-        right, up, fwd, sxs, sys_ = _camera_frame(camera)
-        _camera_rows.pick(serial)(rid, start, cnt, first, camera.width * camera.height, camera.width, camera.height,
-                                  camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
-                                  sxs, sys_, sample_key(params.seed, 0), sc.center, o32, d, d32, pix, sidx, skey)
+        fill(o32, d, d32, pix, sidx, skey)
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
         self._trace(params, o32, d, d32, np.ones((n, 3)), np.zeros(n, np.int8), np.zeros(n, np.int32),
