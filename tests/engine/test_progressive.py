@@ -138,8 +138,9 @@ def test_time_budget_stops_the_render(setup):
     out = r.render(CAM, ReferenceParams(spp=4096, indirect_samples=4096, max_error=1e-4, max_ms=300, **BASE))
     a = out.adaptive
     assert a is not None and a["stop_reason"] == "time" and a["target_met"] is False
-    # the last pass is cut to the time left (from the measured cost per sample)
-    assert a["elapsed_ms"] < 300 * 1.5 + 100, a
+    # the last pass is cut to the time left (from the measured cost per sample): near the budget (the
+    # cap, 4096 spp, would take seconds), with room for a loaded machine
+    assert a["elapsed_ms"] < 1500, a
     alone = r.render(CAM, ReferenceParams(spp=4096, indirect_samples=4096, max_ms=200, **BASE)).adaptive
     assert alone is not None and alone["stop_reason"] == "time" and alone["target_met"] is None
 
