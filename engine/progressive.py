@@ -1,9 +1,10 @@
 """Progressive, adaptive reference rendering: passes of samples until an estimated error or a
 time budget is reached, with more samples where the image is noisy.
 
-``ReferenceRenderer.render`` comes here when ``ReferenceParams.max_error`` or ``max_ms`` is set;
-``spp`` is then the cap on any pixel's samples. docs/reference-renderer.md describes the mode
-and its measured costs.
+``ReferenceRenderer.render`` (engine/reference.py) comes here when ``ReferenceParams.max_error``
+or ``max_ms`` is set; ``spp`` is then the cap on any pixel's samples. This module plans and
+estimates; the renderer traces the samples of each pass (``run_progressive``'s ``render_rows``).
+docs/reference-renderer.md describes the mode and its measured costs.
 
 Two half buffers. Every pixel q owns two independent sample sequences of the engine's sampler
 (engine/sampler.py): half A is the pixel's own sequence (the samples a plain render takes, in the
@@ -74,11 +75,9 @@ import numpy as np
 
 from engine.errors import NonFiniteOutputError
 from engine.metrics import REC709_WEIGHTS
-from engine.reference import ReferenceParams, ReferenceRenderer, RenderOutput, _Timer, run_pieces
-from engine.scene import CameraParams
 
-__all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "estimate_error",
-           "render_progressive"]
+__all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "RenderRows",
+           "estimate_error", "pass_pieces", "run_progressive"]
 
 FIRST_PASS = 4
 """Samples per half buffer in the first pass (8 per pixel; fewer when the cap is lower)."""
@@ -179,44 +178,38 @@ def _plan(n_half: np.ndarray, v: np.ndarray, shape: tuple[int, int], cap_half: i
     return add
 
 
-def _run_pass(renderer: ReferenceRenderer, camera: CameraParams, params: ReferenceParams, rid: np.ndarray,
-              start: np.ndarray, cnt: np.ndarray, acc: np.ndarray, timer: _Timer, counts: dict[str, int],
-              tick: Callable[[], None]) -> None:
-    """One pass: the rows (virtual pixel, first sample, count) in chunks of about the plain
-    render's rays per chunk, ``params.pipelines`` at a time; a row is never split, so every
-    accumulator row is written by one chunk in ray order (the image does not depend on the
-    chunking or the threads)."""
-    npix = camera.width * camera.height
+def pass_pieces(cnt: np.ndarray, npix: int, chunk_pixels: int, spp: int, pipelines: int) -> list[tuple[int, int]]:
+    """Split a pass's rows (``cnt`` samples each) into pieces of about the plain render's rays per
+    chunk (``chunk_pixels`` pixels, ``spp`` samples) and at most a quarter of the pass per
+    pipeline: ``[(first row, end row), ...]``. A row is never split, so every accumulator row is
+    written by one piece, in ray order: the image does not depend on the split or the threads."""
     total = int(cnt.sum())
-    chunk_px = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
-    budget = max(1, min(chunk_px * params.spp, -(-total // (4 * params.pipelines))))
+    chunk_px = max(1, min(chunk_pixels, max(1024, -(-npix // 8))))
+    budget = max(1, min(chunk_px * spp, -(-total // (4 * pipelines))))
     offset = np.cumsum(cnt) - cnt
     cuts = np.flatnonzero(np.diff(offset // budget)) + 1
-    pieces = [(a, b) for a, b in zip(np.r_[0, cuts], np.r_[cuts, rid.size], strict=True) if b > a]
-
-    def piece(i: int, t: _Timer, c: dict[str, int], serial: bool) -> None:
-        a, b = pieces[i]
-        renderer._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial)
-
-    run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
+    return [(int(a), int(b)) for a, b in zip(np.r_[0, cuts], np.r_[cuts, cnt.size], strict=True) if b > a]
 
 
-def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params: ReferenceParams,
-                       progress: Callable[[float, str], None] | None = None) -> RenderOutput:
-    """Render ``camera`` in passes until ``params.max_error`` (estimated LRMS) or ``params.max_ms``
-    is reached, or every pixel that could improve has ``params.spp`` samples (see the module
-    docstring). ``RenderOutput.adaptive`` is the :class:`AdaptiveReport` as a dict."""
-    t_start = time.perf_counter()
-    timer = _Timer()
-    counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
-    if hasattr(renderer.caster, "_get"):
-        renderer.caster._get()  # build the BVH now so its cost is reported on its own
-    timer.add("bvh_build", time.perf_counter() - t_start)
-    w, h = camera.width, camera.height
+RenderRows = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Callable[[], None]], None]
+"""``render_rows(rid, start, cnt, acc, tick)``: samples ``start[a] .. start[a] + cnt[a] - 1`` of
+each virtual pixel ``rid[a]`` added to ``acc[rid]``; ``tick()`` between pieces (it may raise to
+cancel)."""
+
+
+def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, max_error: float | None,
+                    max_ms: float | None, t_start: float, add_time: Callable[[str, float], None],
+                    progress: Callable[[float, str], None] | None = None) -> tuple[np.ndarray, AdaptiveReport]:
+    """The passes of a progressive render (see the module docstring) of a ``width`` x ``height``
+    image with at most ``spp`` samples per pixel, until ``max_error`` (estimated LRMS) or
+    ``max_ms`` after ``t_start`` (``time.perf_counter()``) is reached, or every pixel that could
+    improve is at the cap. Returns the radiance (h, w, 3) float64 and the report;
+    ``add_time(stage, seconds)`` collects the estimate's time. The renderer
+    (``engine.reference.ReferenceRenderer``) supplies ``render_rows``."""
+    h, w = height, width
     npix = w * h
-    aov = renderer._aovs(camera, timer)
-    cap_half = params.spp // 2
-    deadline = None if params.max_ms is None else t_start + params.max_ms / 1000.0
+    cap_half = spp // 2
+    deadline = None if max_ms is None else t_start + max_ms / 1000.0
     acc = np.zeros((2 * npix, 3))  # rows 0..P-1: half A's sums, P..2P-1: half B's
     n_half = np.zeros(npix, np.int64)
     add = np.full(npix, min(FIRST_PASS, cap_half), np.int64)
@@ -233,11 +226,10 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
 
     def fraction() -> float:
         f = 0.0
-        x = params.max_error
-        if x is not None and first_err is not None and math.isfinite(err) and first_err > x:
-            f = math.log(first_err / max(err, 1e-300)) / math.log(first_err / x)
-        if deadline is not None:
-            f = max(f, (time.perf_counter() - t_start) / (params.max_ms / 1000.0))  # type: ignore[operator]
+        if max_error is not None and first_err is not None and math.isfinite(err) and first_err > max_error:
+            f = math.log(first_err / max(err, 1e-300)) / math.log(first_err / max_error)
+        if max_ms is not None:
+            f = max(f, (time.perf_counter() - t_start) / (max_ms / 1000.0))
         f = max(f, float(n_half.sum()) / (cap_half * npix))
         return min(max(f, 0.0), 0.99)
 
@@ -247,7 +239,7 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
         start = np.concatenate([n_half[rows], n_half[rows]])
         cnt = np.concatenate([add[rows], add[rows]])
         t0 = time.perf_counter()
-        _run_pass(renderer, camera, params, rid, start, cnt, acc, timer, counts, lambda: report(shown[0]))
+        render_rows(rid, start, cnt, acc, lambda: report(shown[0]))
         # seconds per sample of the last pass: later passes sample the noisy (costlier) pixels
         per_sample = (time.perf_counter() - t0) / max(1, int(cnt.sum()))
         n_half += add
@@ -259,16 +251,16 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
         err, v = estimate_error(acc[:npix], acc[npix:], n_half)
         if first_err is None:
             first_err = err
-        timer.add("estimate", time.perf_counter() - t0)
+        add_time("estimate", time.perf_counter() - t0)
         report(fraction())
-        if params.max_error is not None and err <= params.max_error:
+        if max_error is not None and err <= max_error:
             reason = "error"
             break
         if deadline is not None and time.perf_counter() >= deadline:
             reason = "time"
             break
         y_mean = float(np.mean((acc[:npix] + acc[npix:]) @ _LUM / (2.0 * n_half)))
-        add = _plan(n_half, v, (h, w), cap_half, params.max_error, y_mean)
+        add = _plan(n_half, v, (h, w), cap_half, max_error, y_mean)
         if add.sum() == 0:
             reason = "spp_cap"
             break
@@ -282,15 +274,10 @@ def render_progressive(renderer: ReferenceRenderer, camera: CameraParams, params
                     break
 
     radiance = ((acc[:npix] + acc[npix:]) / (2.0 * n_half)[:, None]).reshape(h, w, 3)
-    elapsed = time.perf_counter() - t_start
-    timer.add("total", elapsed)
-    spp = 2 * n_half
+    spp_px = 2 * n_half
     rep = AdaptiveReport(
-        estimated_error=float(err), target_met=None if params.max_error is None else bool(err <= params.max_error),
-        stop_reason=reason, passes=passes, spp_mean=float(spp.mean()), spp_min=int(spp.min()),
-        spp_max=int(spp.max()), spp_cap=2 * cap_half, samples=int(spp.sum()), max_error=params.max_error,
-        max_ms=params.max_ms, elapsed_ms=1000.0 * elapsed)
-    if progress is not None:
-        progress(1.0, "render")
-    depth, normal, oid, mid = aov
-    return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
+        estimated_error=float(err), target_met=None if max_error is None else bool(err <= max_error),
+        stop_reason=reason, passes=passes, spp_mean=float(spp_px.mean()), spp_min=int(spp_px.min()),
+        spp_max=int(spp_px.max()), spp_cap=2 * cap_half, samples=int(spp_px.sum()), max_error=max_error,
+        max_ms=max_ms, elapsed_ms=1000.0 * (time.perf_counter() - t_start))
+    return radiance, rep

@@ -72,6 +72,7 @@ from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import light_sample
 from engine.methods import REFERENCE
+from engine.progressive import pass_pieces, run_progressive
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
@@ -195,7 +196,7 @@ class RenderOutput:
     counts: dict[str, int] = field(default_factory=dict)
     adaptive: dict[str, Any] | None = None
     """Progressive renders only (``max_error`` / ``max_ms``): the estimated error and how it was
-    reached (engine/progressive.py, ``AdaptiveReport``); None for a plain render."""
+    reached (``engine.progressive.AdaptiveReport`` as a dict); None for a plain render."""
 
     @property
     def coverage(self) -> np.ndarray:
@@ -863,9 +864,7 @@ class ReferenceRenderer:
         ``spp`` samples per pixel at most) and ``RenderOutput.adaptive`` says how it ended."""
         params = params or ReferenceParams()
         if params.adaptive:
-            from engine.progressive import render_progressive
-
-            return render_progressive(self, camera, params, progress)
+            return self._render_progressive(camera, params, progress)
         timer = _Timer()
         counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
         t0 = time.perf_counter()
@@ -892,6 +891,35 @@ class ReferenceRenderer:
         timer.add("total", time.perf_counter() - t0)
         depth, normal, oid, mid = aov
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts)
+
+    def _render_progressive(self, camera: CameraParams, params: ReferenceParams,
+                            progress: Callable[[float, str], None] | None) -> RenderOutput:
+        """``render`` with ``max_error`` / ``max_ms``: passes planned by engine/progressive.py, each
+        traced here in pieces (``pass_pieces``, ``run_pieces``)."""
+        t_start = time.perf_counter()
+        timer = _Timer()
+        counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
+        if hasattr(self.caster, "_get"):
+            self.caster._get()  # build the BVH now so its cost is reported on its own
+        timer.add("bvh_build", time.perf_counter() - t_start)
+        depth, normal, oid, mid = self._aovs(camera, timer)
+        npix = camera.width * camera.height
+
+        def render_rows(rid, start, cnt, acc, tick) -> None:
+            pieces = pass_pieces(cnt, npix, params.chunk_pixels, params.spp, params.pipelines)
+
+            def piece(i: int, t: _Timer, c: dict[str, int], serial: bool) -> None:
+                a, b = pieces[i]
+                self._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial)
+
+            run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
+
+        radiance, rep = run_progressive(render_rows, camera.width, camera.height, params.spp, params.max_error,
+                                        params.max_ms, t_start, timer.add, progress)
+        timer.add("total", time.perf_counter() - t_start)
+        if progress is not None:
+            progress(1.0, "render")
+        return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
 
     def shade_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions: np.ndarray,
                    params: ReferenceParams | None = None, *, stream_id: int = 0, chunk: int = 1 << 15,
