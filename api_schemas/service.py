@@ -25,7 +25,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from api_schemas.common import FrozenModel
+from api_schemas.common import FiniteFloat, FrozenModel
 from api_schemas.scene import Camera, Scene
 from engine.errors import InvalidInputError
 from engine.methods import (
@@ -140,8 +140,36 @@ def _ref(name: str) -> Param:
     return REFERENCE.param(name)
 
 
+def _int_default(name: str) -> int:
+    """The default of the registry's integer reference parameter ``name``."""
+    d = _ref(name).default
+    assert isinstance(d, int), name
+    return d
+
+
 def _bounds(p: Param) -> Any:
     return Field(ge=p.low, le=p.high, description=p.doc)
+
+
+def _number_in(p: Param) -> AfterValidator:
+    """An optional float parameter of the registry: its range (open or closed bounds) checked with a
+    message naming the whole range."""
+
+    def check(value: Any) -> Any:
+        if value is not None and not p.contains(value):
+            raise PydanticCustomError("param_range", "{name} must be a number in {range}, got {value}",
+                                      {"name": p.name, "range": p.range_text, "value": value})
+        return value
+
+    return AfterValidator(check)
+
+
+def _number_doc(p: Param) -> Any:
+    """The float parameter's description and range in the JSON schema; left out of dumps when not
+    set, so a request without it dumps (and hashes into its artifact key) as before it existed."""
+    bounds: dict[str, Any] = {"exclusiveMinimum" if p.low_open else "minimum": p.low,
+                              "exclusiveMaximum" if p.high_open else "maximum": p.high}
+    return Field(description=p.doc, json_schema_extra=bounds, exclude_if=lambda v: v is None)
 
 
 class ReferenceRenderParams(FrozenModel):
@@ -150,13 +178,15 @@ class ReferenceRenderParams(FrozenModel):
     # ranges, defaults and meanings: the registry entry engine.methods.REFERENCE (tests/engine/test_methods.py
     # checks that these fields are exactly its parameters)
 
-    spp: Annotated[int, _bounds(_ref("spp"))] = _ref("spp").default
-    max_depth: Annotated[int, _bounds(_ref("max_depth"))] = _ref("max_depth").default
-    glossy_samples: Annotated[int, _bounds(_ref("glossy_samples"))] = _ref("glossy_samples").default
-    area_light_samples: Annotated[int, _bounds(_ref("area_light_samples"))] = _ref("area_light_samples").default
-    indirect_samples: Annotated[int, _bounds(_ref("indirect_samples"))] = _ref("indirect_samples").default
-    indirect_bounces: Annotated[int, _bounds(_ref("indirect_bounces"))] = _ref("indirect_bounces").default
-    seed: Annotated[int, _bounds(_ref("seed"))] = _ref("seed").default
+    spp: Annotated[int, _bounds(_ref("spp"))] = _int_default("spp")
+    max_depth: Annotated[int, _bounds(_ref("max_depth"))] = _int_default("max_depth")
+    glossy_samples: Annotated[int, _bounds(_ref("glossy_samples"))] = _int_default("glossy_samples")
+    area_light_samples: Annotated[int, _bounds(_ref("area_light_samples"))] = _int_default("area_light_samples")
+    indirect_samples: Annotated[int, _bounds(_ref("indirect_samples"))] = _int_default("indirect_samples")
+    indirect_bounces: Annotated[int, _bounds(_ref("indirect_bounces"))] = _int_default("indirect_bounces")
+    seed: Annotated[int, _bounds(_ref("seed"))] = _int_default("seed")
+    max_error: Annotated[FiniteFloat | None, _number_in(_ref("max_error")), _number_doc(_ref("max_error"))] = None
+    max_ms: Annotated[FiniteFloat | None, _number_in(_ref("max_ms")), _number_doc(_ref("max_ms"))] = None
 
 
 class LLFRenderParams(FrozenModel):

@@ -31,11 +31,12 @@ artifact key as sent, so two spellings of one render would be two cache entries.
 
 from __future__ import annotations
 
+import math
 import operator
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal, SupportsIndex
+from typing import Literal, SupportsFloat, SupportsIndex
 
 from engine.errors import InvalidInputError
 
@@ -43,6 +44,7 @@ __all__ = [
     "LDC",
     "LDC_IBRT",
     "LDC_LLF",
+    "MAX_RENDER_MS",
     "METHODS",
     "REFERENCE",
     "IBRT_GENERATIONS",
@@ -65,21 +67,50 @@ layered light field (outgoing radiance by direction, for reflections)."""
 
 @dataclass(frozen=True)
 class Param:
-    """An integer parameter of a method: ``low <= value <= high``, ``default`` when not given."""
+    """A parameter of a method: an integer with ``low <= value <= high`` (``kind`` "int"), or a
+    number (``kind`` "float") between ``low`` and ``high``, each bound excluded when
+    ``low_open`` / ``high_open``. ``default`` is used when the value is not given; a float
+    parameter may default to None: optional, not set unless given."""
 
     name: str
-    default: int
-    low: int
-    high: int
+    default: int | float | None
+    low: int | float
+    high: int | float
     doc: str
+    kind: Literal["int", "float"] = "int"
+    low_open: bool = False
+    high_open: bool = False
 
     def __post_init__(self) -> None:
-        if not self.low <= self.default <= self.high:
-            raise ValueError(f"parameter {self.name}: default {self.default} outside [{self.low}, {self.high}]")
+        if self.kind == "int" and (self.low_open or self.high_open):
+            raise ValueError(f"parameter {self.name}: an integer parameter has closed bounds")
+        if self.default is None:
+            if self.kind != "float":
+                raise ValueError(f"parameter {self.name}: only a float parameter may be optional")
+        elif not self.contains(self.default):
+            raise ValueError(f"parameter {self.name}: default {self.default} outside {self.range_text}")
 
-    def check(self, value: object, what: str | None = None) -> int:
-        """``value`` (an int or a numpy integer, not a bool or a float) as an int in range, else
-        :class:`InvalidInputError` naming the range."""
+    @property
+    def optional(self) -> bool:
+        """Not set unless given (default None)."""
+        return self.default is None
+
+    def contains(self, value: float) -> bool:
+        """``value`` lies in the parameter's range (bounds as the parameter says)."""
+        above = value > self.low if self.low_open else value >= self.low
+        below = value < self.high if self.high_open else value <= self.high
+        return bool(above and below)
+
+    def check(self, value: object, what: str | None = None) -> int | float:
+        """``value`` in range, else :class:`InvalidInputError` naming the range. An int parameter
+        takes an int or a numpy integer (not a bool or a float), a float one any finite real number
+        but a bool."""
+        if self.kind == "float":
+            ok = (isinstance(value, (int, float, SupportsFloat)) and not isinstance(value, bool)
+                  and math.isfinite(float(value)) and self.contains(float(value)))  # type: ignore[arg-type]
+            if not ok:
+                raise InvalidInputError(f"{what or self.name} must be a number in {self.range_text}, got {value!r}")
+            return float(value)  # type: ignore[arg-type]
         v = operator.index(value) if isinstance(value, SupportsIndex) and not isinstance(value, bool) else None
         if v is None or not self.low <= v <= self.high:
             raise InvalidInputError(f"{what or self.name} must be an integer in [{self.low}, {self.high}], "
@@ -88,7 +119,10 @@ class Param:
 
     @property
     def range_text(self) -> str:
-        return f"{self.low}..{self.high}"
+        """``1..4096`` (integers), ``(0, 1)`` or ``(0, 600000]`` (numbers, brackets for included bounds)."""
+        if self.kind == "int":
+            return f"{self.low}..{self.high}"
+        return f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
 
 
 @dataclass(frozen=True)
@@ -183,6 +217,10 @@ class MethodSpec:
 
 # ------------------------------------------------------------------------------ the methods
 
+MAX_RENDER_MS = 600_000.0
+"""Largest time budget of a reference render (``max_ms``): the render job's timeout,
+``producer.queue.RENDER_TIMEOUT_S`` (tests/engine/test_progressive.py checks they agree)."""
+
 REFERENCE = Method(
     name="reference",
     summary="The ray tracer (Embree + numba): ground truth, rendered from the scene's triangles.",
@@ -191,7 +229,8 @@ REFERENCE = Method(
          "light, glossy_samples rays at the first glossy hit and one mirror ray per mirror hit (to max_depth), "
          "plus indirect_samples paths of indirect_bounces bounces per pixel; no bake, no precomputation.",
     params=(
-        Param("spp", 4, 1, 4096, "antialiasing samples per pixel (stratified jittered grid, box filter)"),
+        Param("spp", 4, 1, 4096, "antialiasing samples per pixel (scrambled Sobol points, box filter); with "
+              "max_error or max_ms, the most any pixel gets"),
         Param("max_depth", 4, 0, 64, "mirror / glossy recursion depth"),
         Param("glossy_samples", 16, 1, 4096, "samples of the glossy lobe at the first glossy bounce of a chain"),
         Param("area_light_samples", 16, 1, 4096, "shadow rays per rectangular light per shading point "
@@ -199,6 +238,12 @@ REFERENCE = Method(
         Param("indirect_samples", 0, 0, 65536, "indirect diffuse paths per pixel (0: direct lighting only)"),
         Param("indirect_bounces", 2, 1, 64, "diffuse bounces per indirect path"),
         Param("seed", 0, 0, 2**31 - 1, "random seed"),
+        Param("max_error", None, 0.0, 1.0, "progressive, adaptive render until the estimated LRMS against the "
+              "converged image is at most this (spp is then the cap per pixel); not set: spp samples per pixel",
+              kind="float", low_open=True, high_open=True),
+        Param("max_ms", None, 0.0, MAX_RENDER_MS, "progressive render that stops when this many milliseconds "
+              "of render time are spent (alone or with max_error); not set: no time budget",
+              kind="float", low_open=True),
     ),
 )
 

@@ -62,6 +62,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -70,6 +71,8 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import light_sample
+from engine.methods import REFERENCE
+from engine.progressive import pass_pieces, run_progressive
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
@@ -119,6 +122,12 @@ class ReferenceParams:
     pipelines: chunks rendered concurrently in threads (serial kernels that release the
         GIL overlap with Embree calls); 1 = one chunk at a time with parallel kernels.
         The image does not depend on it.
+    max_error: progressive, adaptive rendering (engine/progressive.py) until the estimated LRMS
+        against the converged image is at most this, in (0, 1); ``spp`` is then the cap on any
+        pixel's samples. None (the default): a plain render of ``spp`` samples per pixel.
+    max_ms: progressive rendering that stops when this many milliseconds of render time are
+        spent, in (0, engine.methods.MAX_RENDER_MS] (the render job's timeout), alone or with
+        ``max_error``; None: no time budget.
     """
 
     spp: int = 4
@@ -131,6 +140,8 @@ class ReferenceParams:
     chunk_pixels: int = 16384
     pipelines: int = 2
     pixel_jitter: bool = True
+    max_error: float | None = None
+    max_ms: float | None = None
 
     def __post_init__(self) -> None:
         checks = {
@@ -144,9 +155,29 @@ class ReferenceParams:
                 raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
         if not isinstance(self.pixel_jitter, bool):
             raise InvalidInputError(f"pixel_jitter must be true or false, got {self.pixel_jitter!r}")
+        for name in ("max_error", "max_ms"):  # ranges: the registry's (engine/methods.py)
+            if getattr(self, name) is not None:
+                REFERENCE.param(name).check(getattr(self, name))
+        if self.adaptive:
+            if self.spp < 2:
+                raise InvalidInputError(f"progressive rendering (max_error / max_ms) needs spp >= 2 (the cap on "
+                                        f"each pixel's samples, split over two half buffers), got {self.spp}")
+            if not self.pixel_jitter:
+                raise InvalidInputError("progressive rendering (max_error / max_ms) needs pixel_jitter")
+
+    @property
+    def adaptive(self) -> bool:
+        """True when a progressive, adaptive render is asked for (an error target or a time budget)."""
+        return self.max_error is not None or self.max_ms is not None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The settings as a dict; the progressive settings only when set (a plain render's
+        description is what it was before they existed)."""
+        d = asdict(self)
+        for name in ("max_error", "max_ms"):
+            if d[name] is None:
+                del d[name]
+        return d
 
 
 @dataclass
@@ -154,7 +185,7 @@ class RenderOutput:
     """radiance (h, w, 3) float32 linear; depth (h, w) float32 distance along the pixel-centre
     ray (0 where nothing is hit); normal (h, w, 3) float32 world shading normal facing the
     camera; object_id / material_id (h, w) int32 (-1 where nothing is hit); timings in
-    seconds per stage; counts of rays per kind."""
+    seconds per stage; counts of rays per kind; ``adaptive``: see below."""
 
     radiance: np.ndarray
     depth: np.ndarray
@@ -163,6 +194,9 @@ class RenderOutput:
     material_id: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    adaptive: dict[str, Any] | None = None
+    """Progressive renders only (``max_error`` / ``max_ms``): the estimated error and how it was
+    reached (``engine.progressive.AdaptiveReport`` as a dict); None for a plain render."""
 
     @property
     def coverage(self) -> np.ndarray:
@@ -658,6 +692,34 @@ def _cell_centre(j, spp, gx):
     return (k + 0.5) / c, (before + 0.5 * c) / spp
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _pixel_ray(r, x, y, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, center, o_out, d_out, d32_out):
+    """Row r of the ray arrays: the camera ray through image position (x, y) in pixels."""
+    fx = x / width
+    fy = y / height
+    sx = (2.0 * fx - 1.0) * sx_scale
+    sy = (1.0 - 2.0 * fy) * sy_scale
+    if ortho:
+        ox = eye[0] + sx * right[0] + sy * up[0]
+        oy = eye[1] + sx * right[1] + sy * up[1]
+        oz = eye[2] + sx * right[2] + sy * up[2]
+        dx, dy, dz = fwd[0], fwd[1], fwd[2]
+    else:
+        ox, oy, oz = eye[0], eye[1], eye[2]
+        dx = fwd[0] + sx * right[0] + sy * up[0]
+        dy = fwd[1] + sx * right[1] + sy * up[1]
+        dz = fwd[2] + sx * right[2] + sy * up[2]
+        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx /= ln
+        dy /= ln
+        dz /= ln
+    o_out[r, 0] = ox - center[0]
+    o_out[r, 1] = oy - center[1]
+    o_out[r, 2] = oz - center[2]
+    d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
+    d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
+
+
 @DualKernel
 def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key, center,
                   o_out, d_out, d32_out, pix_out, sidx_out, skey_out, jitter=True):
@@ -677,30 +739,34 @@ def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_sc
                 jx, jy = sample_2d(pkey, q, j)
             else:
                 jx, jy = _cell_centre(j, spp, gx)
-            fx = (qx + jx) / width
-            fy = (qy + jy) / height
-            sx = (2.0 * fx - 1.0) * sx_scale
-            sy = (1.0 - 2.0 * fy) * sy_scale
-            if ortho:
-                ox = eye[0] + sx * right[0] + sy * up[0]
-                oy = eye[1] + sx * right[1] + sy * up[1]
-                oz = eye[2] + sx * right[2] + sy * up[2]
-                dx, dy, dz = fwd[0], fwd[1], fwd[2]
-            else:
-                ox, oy, oz = eye[0], eye[1], eye[2]
-                dx = fwd[0] + sx * right[0] + sy * up[0]
-                dy = fwd[1] + sx * right[1] + sy * up[1]
-                dz = fwd[2] + sx * right[2] + sy * up[2]
-                ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-                dx /= ln
-                dy /= ln
-                dz /= ln
-            o_out[r, 0] = ox - center[0]
-            o_out[r, 1] = oy - center[1]
-            o_out[r, 2] = oz - center[2]
-            d_out[r, 0], d_out[r, 1], d_out[r, 2] = dx, dy, dz
-            d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
+            _pixel_ray(r, qx + jx, qy + jy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, center,
+                       o_out, d_out, d32_out)
             pix_out[r] = q
+            sidx_out[r] = j
+            skey_out[r] = key
+
+
+@DualKernel
+def _camera_rows(rid, start, cnt, first, npix, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key,
+                 center, o_out, d_out, d32_out, pix_out, sidx_out, skey_out):
+    """Camera rays of one pass of a progressive render (engine/progressive.py): row a is the
+    (virtual) pixel ``rid[a]``, samples ``start[a] .. start[a] + cnt[a] - 1``, written from ray
+    ``first[a]``. A virtual pixel v is image pixel v % npix; v < npix is its half buffer A, whose
+    samples are those ``_camera_batch`` gives the pixel, v >= npix its half buffer B, an
+    independent sequence (every sample value is keyed by the pixel number, engine/sampler.py)."""
+    pkey = derive_key(key, 0, DIM_PIXEL)
+    for a in nb.prange(rid.shape[0]):
+        v = rid[a]
+        q = v % npix
+        qx = q % width
+        qy = q // width
+        for t in range(cnt[a]):
+            j = start[a] + t
+            r = first[a] + t
+            jx, jy = sample_2d(pkey, v, j)
+            _pixel_ray(r, qx + jx, qy + jy, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale,
+                       center, o_out, d_out, d32_out)
+            pix_out[r] = v
             sidx_out[r] = j
             skey_out[r] = key
 
@@ -715,7 +781,63 @@ def _compact_shadow(live, so, sd, tmax, so_out, sd_out, tm_out):
         tm_out[j] = tmax[i]
 
 
+def _camera_frame(camera: CameraParams):
+    """(right, up, forward, x scale, y scale) of the camera kernels: perspective scales are
+    tan(fov/2) * aspect and tan(fov/2), orthographic ones the half extents."""
+    right, up, fwd = camera.basis()
+    if camera.kind == "perspective":
+        th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
+        return right, up, fwd, th * camera.width / camera.height, th
+    return right, up, fwd, 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
+
+
 # ============================================================================ driver
+
+
+def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n_pieces: int, pipelines: int,
+               timer: _Timer, counts: dict[str, int], done: Callable[[float], None] | None = None) -> None:
+    """Run pieces 0 .. n_pieces - 1 of a render, which accumulate into disjoint rows (so no locks):
+    ``run_piece(i, timer, counts, serial)``. ``pipelines`` <= 1: one piece at a time with parallel
+    kernels; else that many in flight, one per thread, with serial nogil kernels: while one
+    pipeline holds the GIL inside Embree the others shade. ``done(fraction of pieces finished)``
+    after each piece (it may raise to cancel: in-flight pieces finish, no more start)."""
+    if pipelines <= 1:
+        for i in range(n_pieces):
+            run_piece(i, timer, counts, False)
+            if done is not None:
+                done((i + 1) / n_pieces)
+        return
+    lock = threading.Lock()
+    finished = [0]
+    stop = threading.Event()
+
+    def run(i: int) -> None:
+        if stop.is_set():
+            return
+        t_local = _Timer()
+        c_local = dict.fromkeys(counts, 0)
+        run_piece(i, t_local, c_local, True)
+        with lock:
+            for k, v in t_local.t.items():
+                timer.add(k, v)
+            for k, c in c_local.items():
+                counts[k] += c
+            finished[0] += 1
+
+    with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
+        futures = [pool.submit(run, i) for i in range(n_pieces)]
+        try:
+            for f in futures:
+                f.result()
+                if done is not None:
+                    with lock:
+                        frac = finished[0] / n_pieces
+                    done(frac)
+        except BaseException:
+            stop.set()  # cancellation / errors: let in-flight pieces finish, start no more
+            for f in futures:
+                f.cancel()
+            raise
 
 
 class ReferenceRenderer:
@@ -735,8 +857,14 @@ class ReferenceRenderer:
     # ------------------------------------------------------------------ public
     def render(self, camera: CameraParams, params: ReferenceParams | None = None,
                progress: Callable[[float, str], None] | None = None) -> RenderOutput:
-        """Render ``camera`` view; raises NonFiniteOutputError if any pixel is NaN/Inf."""
+        """Render ``camera`` view; raises NonFiniteOutputError if any pixel is NaN/Inf.
+
+        With ``max_error`` or ``max_ms`` set the render is progressive and adaptive
+        (engine/progressive.py: passes until the estimated error or the time budget is reached,
+        ``spp`` samples per pixel at most) and ``RenderOutput.adaptive`` says how it ended."""
         params = params or ReferenceParams()
+        if params.adaptive:
+            return self._render_progressive(camera, params, progress)
         timer = _Timer()
         counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
         t0 = time.perf_counter()
@@ -753,14 +881,9 @@ class ReferenceRenderer:
         chunk = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
         n_chunks = (npix + chunk - 1) // chunk
         chunks = [np.arange(ci * chunk, min(npix, (ci + 1) * chunk)) for ci in range(n_chunks)]
-        pipelines = min(params.pipelines, n_chunks)
-        if pipelines <= 1:
-            for ci, ids in enumerate(chunks):
-                self._render_chunk(camera, params, ids, ci, acc, timer, counts, serial=False)
-                if progress is not None:
-                    progress((ci + 1) / n_chunks, "render")
-        else:
-            self._render_pipelined(camera, params, chunks, pipelines, acc, timer, counts, progress)
+        run_pieces(lambda ci, t, c, serial: self._render_chunk(camera, params, chunks[ci], ci, acc, t, c, serial),
+                   n_chunks, min(params.pipelines, n_chunks), timer, counts,
+                   None if progress is None else (lambda f: progress(f, "render")))
         radiance = (acc / params.spp).reshape(h, w, 3)
         bad = ~np.isfinite(radiance)
         if np.any(bad):
@@ -769,41 +892,34 @@ class ReferenceRenderer:
         depth, normal, oid, mid = aov
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts)
 
-    def _render_pipelined(self, camera, params, chunks, pipelines, acc, timer, counts, progress) -> None:
-        """Several chunks in flight, one per thread, with serial nogil kernels: while one
-        pipeline holds the GIL inside Embree the others shade. Chunks own disjoint pixels,
-        so they accumulate into ``acc`` without locks."""
-        lock = threading.Lock()
-        done = [0]
-        stop = threading.Event()
+    def _render_progressive(self, camera: CameraParams, params: ReferenceParams,
+                            progress: Callable[[float, str], None] | None) -> RenderOutput:
+        """``render`` with ``max_error`` / ``max_ms``: passes planned by engine/progressive.py, each
+        traced here in pieces (``pass_pieces``, ``run_pieces``)."""
+        t_start = time.perf_counter()
+        timer = _Timer()
+        counts = {"camera": 0, "shadow": 0, "reflection": 0, "indirect": 0}
+        if hasattr(self.caster, "_get"):
+            self.caster._get()  # build the BVH now so its cost is reported on its own
+        timer.add("bvh_build", time.perf_counter() - t_start)
+        depth, normal, oid, mid = self._aovs(camera, timer)
+        npix = camera.width * camera.height
 
-        def run(ci: int) -> None:
-            if stop.is_set():
-                return
-            t_local = _Timer()
-            c_local = dict.fromkeys(counts, 0)
-            self._render_chunk(camera, params, chunks[ci], ci, acc, t_local, c_local, serial=True)
-            with lock:
-                for k, v in t_local.t.items():
-                    timer.add(k, v)
-                for k, v in c_local.items():
-                    counts[k] += v
-                done[0] += 1
+        def render_rows(rid, start, cnt, acc, tick) -> None:
+            pieces = pass_pieces(cnt, npix, params.chunk_pixels, params.spp, params.pipelines)
 
-        with ThreadPoolExecutor(max_workers=pipelines, thread_name_prefix="ibr-ref") as pool:
-            futures = [pool.submit(run, ci) for ci in range(len(chunks))]
-            try:
-                for f in futures:
-                    f.result()
-                    if progress is not None:
-                        with lock:
-                            frac = done[0] / len(chunks)
-                        progress(frac, "render")
-            except BaseException:
-                stop.set()  # cancellation / errors: let in-flight chunks finish, start no more
-                for f in futures:
-                    f.cancel()
-                raise
+            def piece(i: int, t: _Timer, c: dict[str, int], serial: bool) -> None:
+                a, b = pieces[i]
+                self._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial)
+
+            run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
+
+        radiance, rep = run_progressive(render_rows, camera.width, camera.height, params.spp, params.max_error,
+                                        params.max_ms, t_start, timer.add, progress)
+        timer.add("total", time.perf_counter() - t_start)
+        if progress is not None:
+            progress(1.0, "render")
+        return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
 
     def shade_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions: np.ndarray,
                    params: ReferenceParams | None = None, *, stream_id: int = 0, chunk: int = 1 << 15,
@@ -935,33 +1051,47 @@ class ReferenceRenderer:
 
     def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts,
                       serial: bool) -> None:
-        sc = self.scene
+        right, up, fwd, sxs, sys_ = _camera_frame(camera)
+        gx = int(math.ceil(math.sqrt(params.spp)))
+
+        def fill(o32, d, d32, pix, sidx, skey):
+            _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
+                                       camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up,
+                                       fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix,
+                                       sidx, skey, bool(params.pixel_jitter))
+
+        self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial)
+
+    def _render_rows(self, camera, params: ReferenceParams, rid, start, cnt, acc, timer, counts,
+                     serial: bool) -> None:
+        """Samples ``start[a] .. start[a] + cnt[a] - 1`` of each virtual pixel ``rid[a]`` (see
+        ``_camera_rows``), accumulated into ``acc[rid]`` (acc has a row per virtual pixel)."""
+        first = np.zeros(rid.shape[0], np.int64)
+        np.cumsum(cnt[:-1], out=first[1:])
+        right, up, fwd, sxs, sys_ = _camera_frame(camera)
+
+        def fill(o32, d, d32, pix, sidx, skey):
+            _camera_rows.pick(serial)(rid, start, cnt, first, camera.width * camera.height, camera.width,
+                                      camera.height, camera.kind == "orthographic", np.asarray(camera.eye, np.float64),
+                                      right, up, fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32,
+                                      d, d32, pix, sidx, skey)
+
+        self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial)
+
+    def _trace_camera_rays(self, params: ReferenceParams, n: int, fill, acc, timer, counts, serial: bool) -> None:
+        """n camera rays, written by ``fill(o32, d, d32, pix, sidx, skey)``, traced into ``acc``."""
         t0 = time.perf_counter()
-        n = ids.shape[0] * params.spp
         o32 = np.empty((n, 3), np.float32)
         d = np.empty((n, 3))
         d32 = np.empty((n, 3), np.float32)
         pix = np.empty(n, np.int64)
         sidx = np.empty(n, np.int64)
         skey = np.empty(n, np.uint64)
-        right, up, fwd = camera.basis()
-        if camera.kind == "perspective":
-            th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
-            sxs, sys_ = th * camera.width / camera.height, th
-        else:
-            sxs, sys_ = 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
-        gx = int(math.ceil(math.sqrt(params.spp)))
-        _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
-                                   camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd,
-                                   sxs, sys_, sample_key(params.seed, 0), sc.center, o32, d, d32, pix, sidx, skey,
-                                   bool(params.pixel_jitter))
-        weight = np.ones((n, 3))
-        kind = np.zeros(n, np.int8)
-        depth = np.zeros(n, np.int32)
-        bounces = np.full(n, params.indirect_bounces, np.int32)
+        fill(o32, d, d32, pix, sidx, skey)
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
-        self._trace(params, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc, timer, counts, serial)
+        self._trace(params, o32, d, d32, np.ones((n, 3)), np.zeros(n, np.int8), np.zeros(n, np.int32),
+                    np.full(n, params.indirect_bounces, np.int32), pix, sidx, skey, acc, timer, counts, serial)
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
                timer, counts, serial: bool, first_hits=None, pix_base: int = 0) -> None:

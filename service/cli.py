@@ -384,6 +384,9 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
             t = manifest.result["timings"]
             typer.echo("timings: " + ", ".join(f"{k}={v:.3f}s" for k, v in t.items()
                                                if isinstance(v, int | float)), err=True)
+        adaptive = manifest.result.get("adaptive")
+        if isinstance(adaptive, dict):
+            typer.echo(_adaptive_line(adaptive), err=True)
         counts = manifest.result.get("counts") or {}
         if "hole_pixels" in counts:
             typer.echo(f"hole pixels: {counts['hole_pixels']}, provenance: {counts.get('provenance')}", err=True)
@@ -394,6 +397,15 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
             typer.echo(str(output))
 
 
+def _adaptive_line(a: dict[str, Any]) -> str:
+    """One line on how a progressive reference render ended (the result's ``adaptive``)."""
+    target = a.get("max_error")
+    met = "" if target is None else f" (target {target * 100:g} % {'met' if a.get('target_met') else 'NOT met'})"
+    return (f"estimated error {a['estimated_error'] * 100:.2f} %{met}, stopped by {a['stop_reason']} after "
+            f"{a['passes']} passes, spp mean {a['spp_mean']:.1f} min {a['spp_min']} max {a['spp_max']} "
+            f"(cap {a['spp_cap']}), {a['elapsed_ms']:.0f} ms")
+
+
 @app.command()
 def render(
     scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
@@ -402,6 +414,11 @@ def render(
     indirect: Annotated[int | None, typer.Option(help="Indirect paths per pixel")] = None,
     bounces: Annotated[int | None, typer.Option(help="Bounces per indirect path")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed")] = None,
+    max_error: Annotated[float | None, typer.Option(
+        help="Reference: render progressively until the estimated LRMS against the converged image is at most "
+             "this, in (0, 1) (--spp is then the cap per pixel)")] = None,
+    max_ms: Annotated[float | None, typer.Option(
+        help="Reference: render progressively, stopping after this many milliseconds of render time")] = None,
     method: Annotated[str, typer.Option(help="reference, ldc, ldc+llf or ldc+ibrt:k (k = 0..8)")] = "reference",
     ldc_resolution: Annotated[int | None, typer.Option(help="LDC methods: the bake's LDC resolution")] = None,
     llf_f: Annotated[int | None, typer.Option(help="LDC methods: the bake's LLF subdivision f")] = None,
@@ -413,10 +430,11 @@ def render(
 ) -> None:
     """Request a render from the service, follow it with a progress bar and fetch the image."""
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
-                                "seed": seed}.items() if v is not None}
+                                "seed": seed, "max_error": max_error, "max_ms": max_ms}.items() if v is not None}
     bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
     if method != "reference" and params:
-        _fail("--spp/--indirect/--bounces/--seed apply to --method reference; LDC methods use the bake's settings")
+        _fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
+              "the bake's settings")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         scene_id = scene
     else:

@@ -106,7 +106,7 @@ def test_param_ranges() -> None:
         REFERENCE.param("nope")
     for m in METHODS:
         for p in m.params:
-            assert p.low <= p.default <= p.high and p.doc
+            assert p.doc and (p.optional or p.contains(p.default))
 
 
 def test_reference_params_model_reads_the_registry() -> None:
@@ -120,9 +120,12 @@ def test_reference_params_model_reads_the_registry() -> None:
     defaults = ReferenceRenderParams()
     for p in REFERENCE.params:
         assert getattr(defaults, p.name) == p.default
-        ReferenceRenderParams.model_validate({p.name: p.low})
-        ReferenceRenderParams.model_validate({p.name: p.high})
-        for out in (p.low - 1, p.high + 1):
+        # the bounds themselves when included, just inside them when excluded (float parameters)
+        step = 0 if p.kind == "int" else 1e-9 * max(1.0, abs(p.high))
+        ReferenceRenderParams.model_validate({p.name: p.low + step if p.low_open else p.low})
+        ReferenceRenderParams.model_validate({p.name: p.high - step if p.high_open else p.high})
+        outside = [p.low - 1, p.high + 1] + ([p.low] if p.low_open else []) + ([p.high] if p.high_open else [])
+        for out in outside:
             with pytest.raises(ValidationError):
                 ReferenceRenderParams.model_validate({p.name: out})
 

@@ -179,7 +179,10 @@ def encode_render_blobs(images: Mapping[str, Any], meta: dict[str, Any],
 def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Render one view of a stored scene and publish it as an artifact.
 
-    Returns ``{"artifact_key", "timings", "counts", "mesh_reports"}``.
+    Returns ``{"artifact_key", "timings", "counts", "mesh_reports"}``, plus ``adaptive`` for a
+    progressive reference render (``max_error`` / ``max_ms``: ``engine.progressive.AdaptiveReport``,
+    the estimated error, samples per pixel, passes and why it stopped), which the artifact's
+    manifest keeps in its result and the images in their ``ibr:`` metadata.
     """
     t_start = time.perf_counter()
     try:
@@ -193,7 +196,8 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     store = worker_store()
     existing = read_manifest(store, key)
     if existing is not None:  # already published (retry after commit, or a duplicate run)
-        return {"artifact_key": key, **{k: existing.result.get(k) for k in ("timings", "counts", "mesh_reports")}}
+        keep = [k for k in ("timings", "counts", "mesh_reports", "adaptive") if k in existing.result or k != "adaptive"]
+        return {"artifact_key": key, **{k: existing.result.get(k) for k in keep}}
 
     job = get_current_job()
     progress = ProgressReporter(job)
@@ -223,12 +227,17 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
         "engine_version": ENGINE_VERSION,
         "artifact_key": key,
     }
+    if out.adaptive is not None:  # a progressive render: its estimated error travels with its images
+        meta["adaptive"] = out.adaptive
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
                                  "object_id": out.object_id, "material_id": out.material_id}, meta, req.outputs)
     progress.check_canceled()  # last chance before the commit
     timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
-    result = json_safe({"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports})
+    doc: dict[str, Any] = {"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports}
+    if out.adaptive is not None:
+        doc["adaptive"] = out.adaptive
+    result = json_safe(doc)
     t0 = time.perf_counter()
     write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,
                    max_workers=STORE_WRITERS)

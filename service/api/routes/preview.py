@@ -29,7 +29,7 @@ import threading
 from collections import OrderedDict
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any, get_args
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request, Response
@@ -123,13 +123,18 @@ def static_file(name: str) -> FileResponse:
 # ------------------------------------------------------------------------------ capabilities
 
 class ParamInfo(FrozenModel):
-    """A setting of the request's ``params`` for a method: integer in ``[low, high]``."""
+    """A setting of the request's ``params`` for a method: an integer in ``[low, high]``, or (``kind``
+    "float") a number between ``low`` and ``high``, a bound excluded when ``low_open`` / ``high_open``;
+    ``default`` None: not set unless given."""
 
     name: str
-    default: int
-    low: int
-    high: int
+    default: int | float | None
+    low: int | float
+    high: int | float
     doc: str
+    kind: Literal["int", "float"] = "int"
+    low_open: bool = False
+    high_open: bool = False
 
 
 class MethodInfo(FrozenModel):
@@ -188,10 +193,12 @@ def capabilities_of(paths: list[str]) -> Capabilities:
     bakes = any(p.startswith("/v1/scenes/{scene_id}/bakes") for p in paths)
     walkthroughs = "/v1/walkthroughs" in paths and any(p.startswith("/v1/walkthroughs/{key}/frames") for p in paths)
     methods = [MethodInfo(name=m.name, needs_bake=m.needs_bake,
-                          k=list(range(m.arg.low, m.arg.high + 1)) if m.arg is not None else [],
-                          k_default=m.arg.default if m.arg is not None else None,
+                          k=list(range(int(m.arg.low), int(m.arg.high) + 1)) if m.arg is not None else [],
+                          k_default=int(m.arg.default) if m.arg is not None and m.arg.default is not None
+                          else None,
                           bake=list(m.bake), summary=m.summary, cost=m.cost,
-                          params=[ParamInfo(name=p.name, default=p.default, low=p.low, high=p.high, doc=p.doc)
+                          params=[ParamInfo(name=p.name, default=p.default, low=p.low, high=p.high, doc=p.doc,
+                                            kind=p.kind, low_open=p.low_open, high_open=p.high_open)
                                   for p in m.params])
                for m in METHODS if bakes or not m.needs_bake]
     return Capabilities(
