@@ -24,6 +24,10 @@ window.__preview = perf;
 window.__relight = relightPerf;
 window.__bake = bakePerf;
 window.__compare = comparePerf;
+const relightComparePerf = { runs: 0, last: null };
+const walkComparePerf = { runs: 0, last: null };
+window.__relightCompare = relightComparePerf;
+window.__walkCompare = walkComparePerf;
 
 // ------------------------------------------------------------------ API access and errors
 
@@ -671,6 +675,18 @@ async function runCompare(me) {
   }
 }
 
+// Compare an image with its reference through the preview API (the same LRMS and difference map as
+// the view's Compare): `query` names both; `refPng` is the reference as shown side by side.
+async function showComparison(els, mode, query, refPng, signal) {
+  const { data: result } = await api(`/v1/preview/compare?${query}`, { signal });
+  const url = await fetchBlobUrl(mode === "diff" ? `/v1/preview/compare/heatmap.png?${query}` : refPng, signal);
+  await showBlob(els.img, url, query);
+  els.lrms.textContent = result.lrms === null ? "LRMS ∞ (black reference)" : `LRMS ${result.lrms.toFixed(4)}`;
+  els.lrms.title = `${(result.fraction_over_5pct * 100).toFixed(1)} % of pixels off by more than 5 % of the mean `
+    + `reference luminance (${result.n_pixels} pixels)`;
+  return result;
+}
+
 // ------------------------------------------------------------------ bakes
 
 const bake = { params: null, controller: null, key: null };
@@ -964,6 +980,7 @@ async function loadDatasets() {
 function closeDataset() {
   ds.controller?.abort();
   relightCur?.controller.abort();
+  stopRelightCompare();
   ds.dataset = null;
   $("relight-panel").hidden = true;
   $("coverage-warning").hidden = true;
@@ -1000,6 +1017,12 @@ async function openDataset(d) {
   $("view-panel").hidden = true;
   $("relight-panel").hidden = false;
   $("dataset-name").textContent = `— ${datasetLabel(d)}`;
+  const gt = hasGroundTruth(d);
+  $("relight-compare").disabled = !gt;
+  if (!gt) $("relight-compare").value = "off";
+  $("relight-compare").title = gt ? "" : "This dataset was uploaded, not generated from a scene: it has no ground truth.";
+  $("relight-compare-view").hidden = true;
+  $("relight-compare-img").removeAttribute("src");
   const man = d.manifest;
   const positions = man.images.map((im) => im.position).filter(Boolean);
   const directions = man.images.map((im) => im.direction).filter(Boolean);
@@ -1155,6 +1178,7 @@ function startRelight(inputAt) {
     label: `${datasetLabel(ds.dataset)} · relight` };
   relightCur = me;
   relightPerf.requests += 1;
+  stopRelightCompare();
   relight(me, body).catch((err) => {
     if (me.controller.signal.aborted && me.jobId && !me.done) cancelJob(me.jobId);
     if (isAbort(err) || me !== relightCur) return;
@@ -1190,6 +1214,7 @@ async function relight(me, body) {
   fillTable($("relight-stats"), rows);
   showCoverageWarning(counts, body.lights.length);
   updateCoverage();
+  scheduleRelightCompare();
 }
 
 // counts.n_outside: pixels where some light's direction fell outside the dataset's coverage (that
@@ -1204,6 +1229,76 @@ function showCoverageWarning(counts, nLights) {
   $("coverage-warning-text").textContent = `Outside the dataset's coverage: ${n} pixels${pct} get no light from `
     + `${which}, which comes from a direction the dataset was not lit from (nothing is extrapolated there).`;
   $("coverage-show").hidden = $("coverage").checked;
+}
+
+// ---- relit image vs ground truth (datasets generated from a scene)
+
+let relightCmp = null; // {controller, jobId, done}
+let relightCmpTimer = null;
+const relightCmpEls = () => ({ img: $("relight-compare-img"), lrms: $("relight-lrms") });
+
+function stopRelightCompare() {
+  clearTimeout(relightCmpTimer);
+  relightCmpTimer = null;
+  if (relightCmp) {
+    relightCmp.controller.abort();
+    if (relightCmp.jobId && !relightCmp.done) cancelJob(relightCmp.jobId);
+    relightCmp = null;
+  }
+}
+
+function hasGroundTruth(d) {
+  return Boolean(d && d.source && d.source.kind === "generated" && d.source.generation_key && d.source.scene_id);
+}
+
+function scheduleRelightCompare() {
+  stopRelightCompare();
+  const mode = $("relight-compare").value;
+  $("relight-compare-view").hidden = mode === "off";
+  if (mode === "off" || !relightCur || !relightCur.done || !relightPerf.last) return;
+  $("relight-lrms").textContent = "";
+  $("relight-compare-caption").textContent = "ground truth: waiting for the lights to rest…";
+  const me = relightCur;
+  relightCmpTimer = setTimeout(() => { relightCmpTimer = null; runRelightCompare(me).catch(() => {}); },
+    COMPARE_REST_MS);
+}
+
+async function runRelightCompare(me) {
+  if (me !== relightCur || !hasGroundTruth(ds.dataset)) return;
+  const mode = $("relight-compare").value;
+  const c = { controller: new AbortController(), jobId: null, done: false,
+    label: `${datasetLabel(ds.dataset)} · ground truth` };
+  relightCmp = c;
+  const { signal } = c.controller;
+  const relitKey = relightPerf.last.key;
+  const lights = relightPerf.last.lights;
+  const src = ds.dataset.source;
+  const caption = $("relight-compare-caption");
+  caption.textContent = "ground truth: rendering…";
+  try {
+    // the generation that made this dataset, asked again with these lights as its ground truth: the API
+    // reuses the stored dataset and renders only the scene under each light
+    if (!ds.generation || ds.generation.key !== src.generation_key) {
+      const { data: m } = await api(`/v1/datasets/generations/${src.generation_key}`, { signal });
+      ds.generation = { key: src.generation_key, params: m.params };
+    }
+    const body = { ...ds.generation.params, scene_id: src.scene_id, ground_truth: lights };
+    const { manifest: gen } = await runToArtifact(c, "/v1/datasets/generate", body, "/v1/datasets/generations", signal,
+      (job) => { caption.textContent = `ground truth: ${job.state} ${Math.round((job.progress?.fraction || 0) * 100)}%`; });
+    c.done = true;
+    const query = `test=${relitKey}&test_kind=relight&ref=${gen.key}&ref_kind=ground_truth`;
+    const ev = Number($("relight-exposure").value);
+    const result = await showComparison(relightCmpEls(), mode, query,
+      `/v1/preview/reference.png?ref=${gen.key}&ref_kind=ground_truth&exposure=${ev}`, signal);
+    if (relightCmp !== c) return;
+    caption.textContent = mode === "diff" ? "difference vs ground truth," : "ground truth,";
+    relightComparePerf.runs += 1;
+    relightComparePerf.last = { ...result, mode, seq: me.seq, relight: relitKey, generation: gen.key };
+  } catch (err) {
+    if (isAbort(err) || relightCmp !== c) return;
+    caption.textContent = "ground truth: failed";
+    showError(err);
+  }
 }
 
 let coverageKey = null;
@@ -1307,6 +1402,7 @@ function bindSphere() {
     ds.sel = ds.lights.length - 1;
     syncLightControls(); drawSphere(); relightChanged();
   });
+  $("relight-compare").addEventListener("change", () => scheduleRelightCompare());
   $("coverage").addEventListener("change", () => { $("coverage-show").hidden = $("coverage").checked; updateCoverage(); });
   $("coverage-show").addEventListener("click", () => {
     $("coverage").checked = true;
@@ -1326,7 +1422,7 @@ function stopScene() {
 
 // ------------------------------------------------------------------ walkthroughs
 
-const walk = { scene: null, info: null, key: null, urls: [], timer: null, controller: null, index: 0 };
+const walk = { scene: null, info: null, key: null, urls: [], timer: null, controller: null, index: 0, request: null };
 
 function walkScenes(scenes) {
   return scenes.filter((s) => sampleCameras[s.name] && sampleCameras[s.name].view_space);
@@ -1348,6 +1444,8 @@ function closeWalk() {
 }
 
 function stopWalk() {
+  stopWalkCompare();
+  $("wt-compare-view").hidden = true;
   walk.controller?.abort();
   walk.controller = null;
   clearInterval(walk.timer);
@@ -1455,7 +1553,9 @@ async function startWalk() {
   walkPerf.loaded = 0;
   walkPerf.shown = -1;
   try {
-    let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: walkRequest() });
+    const request = walkRequest();
+    walk.request = request;
+    let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: request });
     showError(null);
     walk.key = pub.key;
     showWalk(pub);
@@ -1503,11 +1603,80 @@ async function showWalkFrame(i) {
   $("wt-slider").value = String(walk.index);
   $("wt-label").textContent = `frame ${walk.index + 1} / ${walk.urls.length}`;
   walkPerf.shown = walk.index;
+  scheduleWalkCompare();
+}
+
+// ---- walkthrough frame vs a reference render of its camera (shown while paused)
+
+let walkCmp = null;
+let walkCmpTimer = null;
+
+function stopWalkCompare() {
+  clearTimeout(walkCmpTimer);
+  walkCmpTimer = null;
+  if (walkCmp) {
+    walkCmp.controller.abort();
+    if (walkCmp.jobId && !walkCmp.done) cancelJob(walkCmp.jobId);
+    walkCmp = null;
+  }
+}
+
+function scheduleWalkCompare() {
+  stopWalkCompare();
+  const mode = $("wt-compare").value;
+  $("wt-compare-view").hidden = mode === "off";
+  if (mode === "off" || !walk.urls.length || !walk.request) return;
+  $("wt-lrms").textContent = "";
+  if (walk.info && walk.info.animation) {
+    // a render request has no animation time: its image would be the scene as stored, not at this frame's time
+    $("wt-compare-caption").textContent = "no reference: this scene is animated, and a render request has no "
+      + "animation time to render the frame's moment";
+    $("wt-compare-img").removeAttribute("src");
+    return;
+  }
+  if (walk.timer) { $("wt-compare-caption").textContent = "reference: pause to compare the shown frame"; return; }
+  $("wt-compare-caption").textContent = "reference: waiting…";
+  const index = walk.index;
+  walkCmpTimer = setTimeout(() => { walkCmpTimer = null; runWalkCompare(index).catch(() => {}); }, COMPARE_REST_MS);
+}
+
+async function runWalkCompare(index) {
+  const mode = $("wt-compare").value;
+  const c = { controller: new AbortController(), jobId: null, done: false,
+    label: `${walk.scene ? walk.scene.name : "scene"} · reference of walkthrough frame ${index + 1}` };
+  walkCmp = c;
+  const { signal } = c.controller;
+  const wkey = walk.key;
+  const cam = walk.request.frames[index].camera;
+  const sppText = $("spp").value.trim();
+  const body = { scene_id: walk.request.scene_id, camera: cam, method: "reference",
+    params: { spp: Number(sppText) || 4 }, outputs: ["preview", "radiance"] };
+  const caption = $("wt-compare-caption");
+  caption.textContent = "reference: rendering…";
+  try {
+    const { manifest: ref } = await runToArtifact(c, "/v1/renders", body, "/v1/artifacts", signal, (job) => {
+      caption.textContent = `reference: ${job.state} ${Math.round((job.progress?.fraction || 0) * 100)}%`;
+    });
+    c.done = true;
+    const query = `test=${wkey}&test_kind=walkthrough&frame=${index}&ref=${ref.key}`;
+    const result = await showComparison({ img: $("wt-compare-img"), lrms: $("wt-lrms") }, mode, query,
+      `/v1/artifacts/${ref.key}/image.png`, signal);
+    if (walkCmp !== c) return;
+    caption.textContent = `${mode === "diff" ? "difference vs reference" : "reference"} (${body.params.spp} spp) `
+      + `of frame ${index + 1},`;
+    walkComparePerf.runs += 1;
+    walkComparePerf.last = { ...result, mode, frame: index, walkthrough: wkey, ref: ref.key };
+  } catch (err) {
+    if (isAbort(err) || walkCmp !== c) return;
+    caption.textContent = "reference: failed";
+    showError(err);
+  }
 }
 
 function playWalk(on) {
   clearInterval(walk.timer);
   walk.timer = null;
+  if (!on) scheduleWalkCompare(); // the shown frame rests: compare it
   $("wt-play").textContent = on ? "Pause" : "Play";
   if (!on) return;
   const fps = Math.max(1, Math.min(120, Number($("wt-fps").value) || 12));
@@ -1534,6 +1703,7 @@ function bindWalk() {
   $("wt-play").addEventListener("click", () => playWalk(!walk.timer));
   $("wt-slider").addEventListener("input", () => { playWalk(false); showWalkFrame(Number($("wt-slider").value)); });
   $("wt-video").addEventListener("click", () => downloadWalkVideo());
+  $("wt-compare").addEventListener("change", () => scheduleWalkCompare());
   $("wt-viewport").addEventListener("keydown", (e) => {
     if (e.key === " ") { e.preventDefault(); playWalk(!walk.timer); }
     else if (e.key === "ArrowRight") { e.preventDefault(); playWalk(false); showWalkFrame(walk.index + 1); }

@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
+from engine.imageio import decode_image
+from engine.metrics import lrms
 from service.up import Stack
 from tests.e2e.conftest import RELIT_SETTLED, drag, element_pixels, new_page, shot
 
@@ -165,3 +167,50 @@ def test_coverage_mask_and_warning(page: Page, dataset: dict[str, Any]) -> None:
     page.wait_for_function(RELIT_SETTLED + f" && window.__relight.last.seq > {seq}", timeout=60_000)
     assert page.evaluate("window.__relight.last.counts.n_outside") == 0
     expect(warning).to_be_hidden()
+
+
+def _exr(url: str) -> np.ndarray:
+    r = httpx.get(url, timeout=30)
+    assert r.status_code == 200, (url, r.text)
+    return decode_image("x.exr", r.content)[0]
+
+
+def test_relit_image_compares_with_its_ground_truth(page: Page, stack: Stack, dataset: dict[str, Any]) -> None:
+    """The dataset was generated from a scene: the ground truth of the relit image is that scene under the
+    same lights, which the page asks from the generation API; the LRMS is engine.metrics' of the two."""
+    api = stack.api_url
+    page.wait_for_function(RELIT_SETTLED)
+    runs = page.evaluate("window.__relightCompare.runs")
+    page.select_option("#relight-compare", "diff")
+    try:
+        page.wait_for_function(f"window.__relightCompare.runs > {runs}", timeout=120_000)
+    except Exception:
+        shot(page, "24-relight-ground-truth-failed")
+        raise AssertionError((page.locator("#relight-compare-caption").inner_text(),
+                              page.locator("#error").inner_text())) from None
+    last = page.evaluate("window.__relightCompare.last")
+    lights = page.evaluate("window.__relight.last.lights")
+    assert last["relight"] == page.evaluate("window.__relight.last.key") and len(lights) == 2
+    gen = httpx.get(f"{api}/v1/datasets/generations/{last['generation']}", timeout=30).json()
+    assert gen["params"]["ground_truth"] == lights  # the relight's lights, one ground-truth render each
+    # the stored dataset was reused: only the ground truth was rendered
+    assert gen["result"]["dataset_id"] == dataset["id"]
+    assert gen["result"]["dataset_from"] == dataset["source"]["generation_key"]
+    relit = _exr(f"{api}/v1/relights/{last['relight']}/image.exr")
+    truth = sum(_exr(f"{api}/v1/datasets/generations/{last['generation']}/ground_truth_{i}.exr")[..., :3]
+                .astype(np.float64) for i in range(len(lights)))
+    assert last["lrms"] == pytest.approx(lrms(relit, np.asarray(truth, np.float32)), rel=1e-9)
+    text = page.locator("#relight-lrms").inner_text()
+    assert text == f"LRMS {last['lrms']:.4f}"
+    expect(page.locator("#relight-compare-caption")).to_contain_text("difference vs ground truth")
+    expect(page.locator("#relight-compare-img")).to_be_visible()
+    shot(page, "24-relight-ground-truth-diff")
+    page.select_option("#relight-compare", "side")
+    page.wait_for_function(f"window.__relightCompare.runs > {runs + 1}", timeout=120_000)
+    assert page.evaluate("document.querySelector('#relight-compare-img').naturalWidth") == dataset["width"]
+    side = element_pixels(page, "#relight-compare-img")
+    assert side.mean() > 5  # the lit ground truth, not a black image
+    shot(page, "25-relight-ground-truth-side")
+    page.select_option("#relight-compare", "off")
+    expect(page.locator("#relight-compare-view")).to_be_hidden()
+    expect(page.locator("#error")).to_be_hidden()
