@@ -579,7 +579,10 @@ function showTimings(manifest, job, status, clientMs) {
   if (counts.provenance && typeof counts.provenance === "object") {
     for (const [k, v] of Object.entries(counts.provenance)) crows.push([k, String(v)]);
   }
-  if (manifest.result && manifest.result.bake_key) crows.push(["bake", manifest.result.bake_key.slice(0, 12)]);
+  if (manifest.result && manifest.result.bake_key) {
+    const bk = manifest.result.bake_key;
+    crows.push(["bake", bk === bake.key && bake.params ? `${bakeLabel(bake.params)} (${shortId(bk)})` : shortId(bk)]);
+  }
   fillTable($("counts"), crows);
 }
 

@@ -49,7 +49,7 @@ from producer.ownership import dataset_visible
 from producer.store import NotFound, ObjectStore
 from producer.walkthroughs import chunk_key, chunks, read_request
 from service.api.deps import OwnerDep, StoreDep, scene_visible
-from service.api.errors import LacksPart, ValidationProblem, problem_responses
+from service.api.errors import LacksPart, MissingResource, ValidationProblem, problem_responses
 
 router = APIRouter()
 
@@ -345,11 +345,11 @@ def _test_image(store: ObjectStore, owner: str | None, key: str, kind: str, fram
         manifest = read_manifest(store, key)
         did = manifest.inputs.get("dataset") if manifest is not None and manifest.kind == RELIGHT_KIND else None
         if did is None or (owner is not None and not dataset_visible(store, did, owner)):
-            raise NotFound(f"no relight {key} ({field})")
+            raise MissingResource(field, key)
         return RADIANCE.get(store, key)  # the relit image.exr is stored as radiance.exr
     req = read_request(store, key)
     if req is None or not scene_visible(store, req.scene_id, owner):
-        raise NotFound(f"no walkthrough {key} ({field})")
+        raise MissingResource(field, key)
     if frame is None or not 0 <= frame < len(req.frames):
         raise ValidationProblem([FieldError(field="query.frame", type="frame_index", message=(
             f"give the frame index, in [0, {len(req.frames) - 1}]" if frame is None
@@ -368,7 +368,7 @@ def _ref_image(store: ObjectStore, owner: str | None, key: str, kind: str, light
     manifest = read_manifest(store, key)
     if manifest is None or manifest.kind != GENERATE_KIND or (
             owner is not None and not scene_visible(store, manifest.inputs.get("scene", ""), owner)):
-        raise NotFound(f"no dataset generation {key} ({field})")
+        raise MissingResource(field, key)
     have = sorted(b.name for b in manifest.blobs if b.name.startswith("ground_truth_"))
     names = have if lights is None else [f"ground_truth_{int(i)}.exr" for i in lights.split(",")]
     missing = [n for n in names if n not in have]
