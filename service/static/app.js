@@ -316,8 +316,10 @@ function objectSphere(o) {
   else if (o.type === "cylinder") r = Math.hypot(o.radius, o.height / 2);
   else if (o.type === "plane") r = Math.hypot(o.size[0], o.size[1]) / 2;
   else if (o.type === "mesh" && o.vertices && o.vertices.length) {
-    const lo = [0, 1, 2].map((k) => Math.min(...o.vertices.map((v) => v[k])));
-    const hi = [0, 1, 2].map((k) => Math.max(...o.vertices.map((v) => v[k])));
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (const v of o.vertices) {
+      for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], v[k]); hi[k] = Math.max(hi[k], v[k]); }
+    }
     centre = scale(add(lo, hi), 0.5);
     r = len(sub(hi, lo)) / 2;
   }
@@ -474,6 +476,7 @@ function startRender(inputAt) {
   const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt, body,
     label: `${sceneLabel(view.scene)} · ${body.method} view` };
   current = me;
+  $("no-bake").hidden = true; // shown again if this view has no bake either
   if (prev) cancelStale(prev);
   stopCompare();
   perf.requests += 1;
