@@ -518,8 +518,8 @@ function clearView() {
 
 function showNoBake(method) {
   if (!view.scene) return;
-  $("no-bake-text").textContent = `${view.scene.name || "This scene"} has no bake for ${method} with these bake `
-    + "settings yet, so there is no view to show.";
+  $("no-bake-text").textContent = `${sceneLabel(view.scene)} has no bake for ${method} yet.`;
+  $("no-bake-text").title = "No bake of this scene with the bake settings below: an LDC method has nothing to render from.";
   $("no-bake-go").hidden = !caps.bakes;
   $("no-bake").hidden = false;
 }
