@@ -24,6 +24,10 @@ window.__preview = perf;
 window.__relight = relightPerf;
 window.__bake = bakePerf;
 window.__compare = comparePerf;
+const relightComparePerf = { runs: 0, last: null };
+const walkComparePerf = { runs: 0, last: null };
+window.__relightCompare = relightComparePerf;
+window.__walkCompare = walkComparePerf;
 
 // ------------------------------------------------------------------ API access and errors
 
@@ -69,14 +73,20 @@ async function api(path, { method = "GET", body, signal, raw = false } = {}) {
   return { status: res.status, data: res.status === 204 ? null : await res.json() };
 }
 
+// The error banner: the problem's title, detail, per-field errors and hint as separate blocks (each
+// part also separated by a space in the text, so read as text it never runs words together), long
+// tokens (hashes, paths) wrapped inside the box, and a button to dismiss it.
 function showError(err) {
   const box = $("error");
-  if (!err) { box.hidden = true; box.replaceChildren(); return; }
+  const body = $("error-body");
+  if (!err) { box.hidden = true; body.replaceChildren(); return; }
   const p = err instanceof ApiError ? err.problem : { title: "Error", detail: String(err.message || err) };
-  const head = document.createElement("strong");
-  head.textContent = err instanceof ApiError && err.status ? `${p.title} (HTTP ${err.status})` : p.title;
+  const head = document.createElement("p");
+  const title = document.createElement("strong");
+  title.textContent = err instanceof ApiError && err.status ? `${p.title} (HTTP ${err.status})` : p.title;
+  head.append(title);
+  if (p.detail) head.append(document.createTextNode(`: ${p.detail}`));
   const parts = [head];
-  if (p.detail) parts.push(document.createTextNode(`: ${p.detail}`));
   if (p.errors && p.errors.length) {
     const ul = document.createElement("ul");
     for (const e of p.errors) {
@@ -84,16 +94,16 @@ function showError(err) {
       const f = document.createElement("code");
       f.textContent = e.field || "request";
       li.append(f, document.createTextNode(`: ${e.message}`));
-      ul.append(li);
+      ul.append(" ", li);
     }
     parts.push(ul);
   }
   if (p.hint) {
-    const hint = document.createElement("div");
+    const hint = document.createElement("p");
     hint.textContent = p.hint;
     parts.push(hint);
   }
-  box.replaceChildren(...parts);
+  body.replaceChildren(...parts.flatMap((x, i) => (i ? [" ", x] : [x])));
   box.hidden = false;
 }
 
@@ -105,6 +115,10 @@ const sleep = (ms, signal) => new Promise((resolve, reject) => {
   signal?.addEventListener("abort", () => { clearTimeout(t); reject(ABORTED); }, { once: true });
 });
 
+// Readable names of jobs (the API's job ids are "<kind>-<hash>"): what the page asked for, by job id.
+const jobNames = new Map();
+function nameJob(jobId, label) { if (jobId && label) jobNames.set(jobId, label); }
+
 function cancelJob(jobId) {
   if (jobId) api(`/v1/jobs/${encodeURIComponent(jobId)}/cancel`, { method: "POST" }).catch(() => {});
 }
@@ -115,6 +129,7 @@ function cancelJob(jobId) {
 async function runToArtifact(req, postPath, body, manifestPath, signal, onProgress) {
   let { data: r } = await api(`${postPath}?wait=${RENDER_WAIT_S}`, { method: "POST", body });
   if (r.job) req.jobId = r.job.id;
+  if (r.job && req.label) nameJob(r.job.id, req.label);
   if (signal.aborted) throw ABORTED;
   let manifest = r.artifact;
   let delay = JOB_POLL_MS[0];
@@ -253,6 +268,7 @@ function rotate(v, k, t) {
 
 const view = {
   scene: null, // ScenePublic
+  bounds: null, // {center, radius}: bounding sphere of the scene's objects (null: not known)
   base: null, // {camera, pivot} the scene started from
   cam: null, // {type, eye, look_at, up, fov_y_deg | ortho_height}
   pivot: null,
@@ -266,6 +282,89 @@ function setCamera(base) {
   view.pivot = (base.pivot || view.cam.look_at).slice();
   // Orbit around the pivot: aim at it, keeping the distance.
   view.cam.look_at = view.pivot.slice();
+}
+
+// ---- scale of the scene: how far a drag turns, pans and zooms
+
+const ORBIT_TURN_PER_VIEW = [Math.PI / 4, 2 * Math.PI]; // least and most a drag across the whole view turns
+
+// 3x3 rotation (rows) of a scene Transform: extrinsic x, y, z Euler angles or an (x, y, z, w) quaternion.
+function rotationOf(t) {
+  if (t.quaternion) {
+    const [x0, y0, z0, w0] = t.quaternion;
+    const n = Math.hypot(x0, y0, z0, w0) || 1;
+    const x = x0 / n, y = y0 / n, z = z0 / n, w = w0 / n;
+    return [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]];
+  }
+  const [a, b, c] = (t.rotate_deg || [0, 0, 0]).map((v) => v * Math.PI / 180);
+  const rx = [[1, 0, 0], [0, Math.cos(a), -Math.sin(a)], [0, Math.sin(a), Math.cos(a)]];
+  const ry = [[Math.cos(b), 0, Math.sin(b)], [0, 1, 0], [-Math.sin(b), 0, Math.cos(b)]];
+  const rz = [[Math.cos(c), -Math.sin(c), 0], [Math.sin(c), Math.cos(c), 0], [0, 0, 1]];
+  const mul = (p, q) => p.map((row) => [0, 1, 2].map((j) => row[0] * q[0][j] + row[1] * q[1][j] + row[2] * q[2][j]));
+  return mul(rz, mul(ry, rx));
+}
+
+// World bounding sphere of one object from its local one (centre, radius) and its transform.
+function objectSphere(o) {
+  const c = o.center || [0, 0, 0];
+  let r = null;
+  let centre = c;
+  if (o.type === "sphere" || o.type === "disk") r = o.radius;
+  else if (o.type === "box") r = len(o.size) / 2;
+  else if (o.type === "cylinder") r = Math.hypot(o.radius, o.height / 2);
+  else if (o.type === "plane") r = Math.hypot(o.size[0], o.size[1]) / 2;
+  else if (o.type === "mesh" && o.vertices && o.vertices.length) {
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (const v of o.vertices) {
+      for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], v[k]); hi[k] = Math.max(hi[k], v[k]); }
+    }
+    centre = scale(add(lo, hi), 0.5);
+    r = len(sub(hi, lo)) / 2;
+  }
+  if (r === null) return null; // a mesh file: its extent is not in the scene document
+  const t = o.transform || {};
+  if (t.matrix) {
+    const m = t.matrix;
+    const col = (j) => [m[0][j], m[1][j], m[2][j]];
+    const s = Math.max(len(col(0)), len(col(1)), len(col(2)));
+    const w = [0, 1, 2].map((i) => dot(m[i].slice(0, 3), centre) + m[i][3]);
+    return { center: w, radius: r * s };
+  }
+  const sc = t.scale || [1, 1, 1];
+  const rot = rotationOf(t);
+  const scaled = [centre[0] * sc[0], centre[1] * sc[1], centre[2] * sc[2]];
+  const w = add(rot.map((row) => dot(row, scaled)), t.translate || [0, 0, 0]);
+  return { center: w, radius: r * Math.max(...sc.map(Math.abs)) };
+}
+
+// A sphere (centre, radius) around the objects' spheres, centred on their bounding box; null if none is known.
+function sceneBounds(doc) {
+  const spheres = (doc.objects || []).map(objectSphere).filter(Boolean);
+  if (!spheres.length) return null;
+  const lo = [0, 1, 2].map((k) => Math.min(...spheres.map((q) => q.center[k] - q.radius)));
+  const hi = [0, 1, 2].map((k) => Math.max(...spheres.map((q) => q.center[k] + q.radius)));
+  const center = scale(add(lo, hi), 0.5);
+  const radius = Math.max(...spheres.map((q) => len(sub(q.center, center)) + q.radius));
+  return radius > 0 && Number.isFinite(radius) ? { center, radius } : null;
+}
+
+// World height the view spans at the pivot.
+function viewHeightAtPivot() {
+  if (view.cam.type === "orthographic") return view.cam.ortho_height;
+  return 2 * len(sub(view.cam.eye, view.pivot)) * Math.tan((view.cam.fov_y_deg || 45) * Math.PI / 360);
+}
+
+// Radians per pixel of drag: the surface of the scene's bounding sphere follows the pointer (one
+// pixel's world size at the pivot over the scene's radius); an unknown extent counts as filling the
+// view. A drag across the whole view turns between ORBIT_TURN_PER_VIEW's bounds.
+function orbitRadPerPx() {
+  const px = viewSize();
+  const h = viewHeightAtPivot();
+  const r = view.bounds ? view.bounds.radius : h / 2;
+  const perPx = h / px / r;
+  return Math.min(Math.max(perPx, ORBIT_TURN_PER_VIEW[0] / px), ORBIT_TURN_PER_VIEW[1] / px);
 }
 
 function orbit(dTheta, dPhi) {
@@ -296,12 +395,14 @@ function pan(dx, dy) {
 
 function zoom(factor) {
   if (view.cam.type === "orthographic") {
-    view.cam.ortho_height = Math.max(1e-4, view.cam.ortho_height * factor);
+    const r = view.bounds ? view.bounds.radius : view.cam.ortho_height;
+    view.cam.ortho_height = Math.min(Math.max(r * 1e-3, view.cam.ortho_height * factor), r * 1e3);
     return;
   }
   const off = sub(view.cam.eye, view.pivot);
   const d = len(off);
-  const nd = Math.min(Math.max(d * factor, 1e-3), 1e6);
+  const r = view.bounds ? view.bounds.radius : d; // zoom from 1/1000 to 1000 scene radii away
+  const nd = Math.min(Math.max(d * factor, r * 1e-3), r * 1e3);
   view.cam.eye = add(view.pivot, scale(off, nd / d));
 }
 
@@ -372,8 +473,10 @@ function startRender(inputAt) {
     if (prev.bodyText === bodyText && !prev.done) return; // the same view is already on its way
     prev.controller.abort();
   }
-  const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt, body };
+  const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt, body,
+    label: `${sceneLabel(view.scene)} · ${body.method} view` };
   current = me;
+  $("no-bake").hidden = true; // shown again if this view has no bake either
   if (prev) cancelStale(prev);
   stopCompare();
   perf.requests += 1;
@@ -386,9 +489,39 @@ function startRender(inputAt) {
     if (err instanceof ApiError && err.status === 409 && body.bake) {
       err.problem.hint = caps.bakes ? "Press Bake below (or pick a finished bake) before rendering with an LDC method."
         : "";
+      // the image shown (another scene's, or another method's) is not this view: never leave it up
+      clearView();
+      showNoBake(body.method);
     }
     showError(err);
   });
+}
+
+// Empty the view: no image, no overlays, no numbers of a render that is not the one asked for.
+function clearView() {
+  const img = $("view");
+  if (img.dataset.blobUrl) URL.revokeObjectURL(img.dataset.blobUrl);
+  img.removeAttribute("src");
+  delete img.dataset.blobUrl;
+  delete img.dataset.key;
+  view.manifest = null;
+  provenanceKey = null;
+  $("provenance-img").hidden = true;
+  $("no-bake").hidden = true;
+  stopCompare();
+  $("compare-img").removeAttribute("src");
+  $("lrms").textContent = "";
+  $("compare-caption").textContent = "";
+  fillTable($("timings"), []);
+  fillTable($("counts"), []);
+}
+
+function showNoBake(method) {
+  if (!view.scene) return;
+  $("no-bake-text").textContent = `${sceneLabel(view.scene)} has no bake for ${method} yet.`;
+  $("no-bake-text").title = "No bake of this scene with the bake settings below: an LDC method has nothing to render from.";
+  $("no-bake-go").hidden = !caps.bakes;
+  $("no-bake").hidden = false;
 }
 
 function setStatus(text) { $("view-status").textContent = text; }
@@ -418,6 +551,7 @@ async function render(me, body) {
   me.done = true;
   view.manifest = manifest;
   $("render-progress").hidden = true;
+  $("no-bake").hidden = true;
   showError(null);
   showTimings(manifest, r.job, r.status, performance.now() - t0);
   await showBlob($("view"), url, manifest.key);
@@ -427,7 +561,8 @@ async function render(me, body) {
   const timings = { ...((manifest.result && manifest.result.timings) || {}),
     ...((r.job && r.job.result && r.job.result.timings) || {}) };
   perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status,
-    method: body.method, timings, counts: (manifest.result && manifest.result.counts) || {} };
+    method: body.method, camera: body.camera, scene: body.scene_id, timings,
+    counts: (manifest.result && manifest.result.counts) || {} };
   perf.latencies.push(now - me.inputAt);
   setStatus("");
   updateProvenanceView();
@@ -447,7 +582,10 @@ function showTimings(manifest, job, status, clientMs) {
   if (counts.provenance && typeof counts.provenance === "object") {
     for (const [k, v] of Object.entries(counts.provenance)) crows.push([k, String(v)]);
   }
-  if (manifest.result && manifest.result.bake_key) crows.push(["bake", manifest.result.bake_key.slice(0, 12)]);
+  if (manifest.result && manifest.result.bake_key) {
+    const bk = manifest.result.bake_key;
+    crows.push(["bake", bk === bake.key && bake.params ? `${bakeLabel(bake.params)} (${shortId(bk)})` : shortId(bk)]);
+  }
   fillTable($("counts"), crows);
 }
 
@@ -512,7 +650,8 @@ function scheduleCompare(me) {
 async function runCompare(me) {
   if (me !== current || !view.manifest) return;
   const mode = $("compare").value;
-  const c = { controller: new AbortController(), jobId: null, done: false };
+  const c = { controller: new AbortController(), jobId: null, done: false,
+    label: `${sceneLabel(view.scene)} · reference for compare` };
   cmp = c;
   const { signal } = c.controller;
   const testKey = view.manifest.key;
@@ -540,6 +679,18 @@ async function runCompare(me) {
     $("compare-caption").textContent = "reference: failed";
     showError(err);
   }
+}
+
+// Compare an image with its reference through the preview API (the same LRMS and difference map as
+// the view's Compare): `query` names both; `refPng` is the reference as shown side by side.
+async function showComparison(els, mode, query, refPng, signal) {
+  const { data: result } = await api(`/v1/preview/compare?${query}`, { signal });
+  const url = await fetchBlobUrl(mode === "diff" ? `/v1/preview/compare/heatmap.png?${query}` : refPng, signal);
+  await showBlob(els.img, url, query);
+  els.lrms.textContent = result.lrms === null ? "LRMS ∞ (black reference)" : `LRMS ${result.lrms.toFixed(4)}`;
+  els.lrms.title = `${(result.fraction_over_5pct * 100).toFixed(1)} % of pixels off by more than 5 % of the mean `
+    + `reference luminance (${result.n_pixels} pixels)`;
+  return result;
 }
 
 // ------------------------------------------------------------------ bakes
@@ -589,7 +740,14 @@ function useBake(b) {
   if (currentMethod().needsBake) changed();
 }
 
+function nameBakeJobs(b) {
+  const scene = sceneNames.get(b.scene_id) || "scene";
+  nameJob(b.job?.id, `${scene} · bake ${bakeLabel(b.params)}`);
+  for (const p of b.parts || []) nameJob(p.job_id, `${scene} · bake ${p.name}`);
+}
+
 function showBake(b) {
+  nameBakeJobs(b);
   bakePerf.state = b.state;
   bakePerf.fraction = b.progress.fraction;
   bakePerf.key = b.key;
@@ -671,12 +829,32 @@ async function loadSampleCameras() {
   } catch { /* no samples: default camera */ }
 }
 
+// Names, not hashes: the API's documents carry names; the short id is secondary text (not part of
+// the button's accessible name), the full id is in the tooltip.
+const shortId = (id) => String(id || "").slice(0, 8);
+const sceneNames = new Map(); // scene id -> name, from the scene list
+function sceneLabel(s) { return s ? s.name || sceneNames.get(s.id) || `scene ${shortId(s.id)}` : "scene"; }
+function datasetLabel(d) {
+  if (!d) return "dataset";
+  const src = d.source || {};
+  // a generated dataset's own name is "generated-<scene id>": name it by its scene instead
+  if (src.kind === "generated" && (!d.name || d.name.startsWith("generated-"))) {
+    return `${sceneNames.get(src.scene_id) || `scene ${shortId(src.scene_id)}`} (generated)`;
+  }
+  return d.name || `dataset ${shortId(d.id)}`;
+}
+
 function pickList(list, items, label, title, onPick) {
   list.replaceChildren(...items.map((s) => {
     const li = document.createElement("li");
     const b = document.createElement("button");
     b.type = "button";
     b.textContent = label(s);
+    const hash = document.createElement("span");
+    hash.className = "hash";
+    hash.setAttribute("aria-hidden", "true");
+    hash.textContent = shortId(s.id);
+    b.append(hash);
     b.title = title(s);
     b.dataset.id = s.id;
     b.dataset.name = s.name;
@@ -693,7 +871,8 @@ function markCurrent(id) {
 async function loadScenes() {
   try {
     const { data } = await api("/v1/scenes?limit=1000");
-    pickList($("scene-list"), data.items, (s) => s.name || s.id.slice(0, 12),
+    for (const s of data.items) sceneNames.set(s.id, s.name);
+    pickList($("scene-list"), data.items, sceneLabel,
       (s) => `${s.id}\n${s.n_objects} objects, ${s.n_lights} lights`, openScene);
     for (const b of $("scene-list").querySelectorAll("button")) b.dataset.sceneId = b.dataset.id;
     $("scene-empty").hidden = data.items.length > 0;
@@ -735,11 +914,12 @@ async function bakeBadges(items) {
 function openScene(s) {
   closeDataset();
   closeWalk();
+  stopScene();
+  clearView();
   view.scene = s;
-  view.manifest = null;
   markCurrent(s.id);
   $("view-panel").hidden = false;
-  $("scene-name").textContent = `— ${s.name}`;
+  $("scene-name").textContent = `— ${sceneLabel(s)}`;
   $("reset-camera").disabled = false;
   $("bake-box").hidden = !caps.bakes;
   $("bake").disabled = false;
@@ -748,23 +928,32 @@ function openScene(s) {
   bake.params = null;
   bake.key = null;
   const sample = sampleCameras[s.name];
+  view.bounds = null;
   setCamera(sample ? { camera: sample.camera, pivot: sample.pivot } : { camera: DEFAULT_CAMERA, pivot: null });
-  if (caps.bakes) {
-    // Render the LDC methods from a finished bake matching the controls, if there is one.
-    loadBakes().then((items) => {
-      const want = bakeParams();
-      const done = items.filter((b) => b.state === "finished");
-      const match = done.find((b) => b.params.ldc_resolution === want.ldc_resolution && b.params.llf === want.llf);
-      if (match && !bake.key && view.scene && view.scene.id === s.id) {
-        bake.params = match.params;
-        bake.key = match.key;
-        loadBakes();
+  // The stored document gives the scene's own camera (for scenes that are not samples) and its extent
+  // (how far a drag turns); the bakes say whether the LDC methods can render now.
+  const doc = api(`/v1/scenes/${s.id}/document`).then((r) => r.data).catch(() => null);
+  const bakes = caps.bakes ? loadBakes() : Promise.resolve([]);
+  Promise.all([doc, bakes]).then(([d, items]) => {
+    if (!view.scene || view.scene.id !== s.id) return;
+    if (d) {
+      view.bounds = sceneBounds(d);
+      if (!sample && d.camera) {
+        const { width: _w, height: _h, ...camera } = d.camera;
+        setCamera({ camera, pivot: null });
       }
-      changed();
-    });
-  } else {
+    }
+    // Render the LDC methods from a finished bake matching the controls, if there is one.
+    const want = bakeParams();
+    const done = items.filter((b) => b.state === "finished");
+    const match = done.find((b) => b.params.ldc_resolution === want.ldc_resolution && b.params.llf === want.llf);
+    if (match && !bake.key) {
+      bake.params = match.params;
+      bake.key = match.key;
+      loadBakes();
+    }
     changed();
-  }
+  });
 }
 
 // ------------------------------------------------------------------ datasets and relighting
@@ -783,7 +972,7 @@ async function loadDatasets() {
   if (!(caps.datasets && caps.relights)) return [];
   try {
     const { data } = await api("/v1/datasets?limit=1000");
-    pickList($("dataset-list"), data.items, (d) => d.name || d.id.slice(0, 12),
+    pickList($("dataset-list"), data.items, datasetLabel,
       (d) => `${d.id}\n${d.n_images} images, ${d.width} x ${d.height}${d.distant ? ", distant lights" : ""}`,
       openDataset);
     $("dataset-empty").hidden = data.items.length > 0;
@@ -797,8 +986,10 @@ async function loadDatasets() {
 function closeDataset() {
   ds.controller?.abort();
   relightCur?.controller.abort();
+  stopRelightCompare();
   ds.dataset = null;
   $("relight-panel").hidden = true;
+  $("coverage-warning").hidden = true;
 }
 
 function cameraEye(cam) {
@@ -831,7 +1022,13 @@ async function openDataset(d) {
   markCurrent(d.id);
   $("view-panel").hidden = true;
   $("relight-panel").hidden = false;
-  $("dataset-name").textContent = `— ${d.name}`;
+  $("dataset-name").textContent = `— ${datasetLabel(d)}`;
+  const gt = hasGroundTruth(d);
+  $("relight-compare").disabled = !gt;
+  if (!gt) $("relight-compare").value = "off";
+  $("relight-compare").title = gt ? "" : "This dataset was uploaded, not generated from a scene: it has no ground truth.";
+  $("relight-compare-view").hidden = true;
+  $("relight-compare-img").removeAttribute("src");
   const man = d.manifest;
   const positions = man.images.map((im) => im.position).filter(Boolean);
   const directions = man.images.map((im) => im.direction).filter(Boolean);
@@ -865,7 +1062,7 @@ async function openDataset(d) {
 }
 
 async function bakeDataset(d, signal) {
-  const req = { jobId: null };
+  const req = { jobId: null, label: `${datasetLabel(d)} · dataset bake` };
   $("dbake-progress").hidden = false;
   const show = (job) => {
     const f = job.state === "finished" ? 1 : job.progress?.fraction || 0;
@@ -983,9 +1180,11 @@ function startRelight(inputAt) {
     prev.controller.abort();
     if (prev.jobId && !prev.done) cancelJob(prev.jobId);
   }
-  const me = { seq: ++relightSeq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt };
+  const me = { seq: ++relightSeq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt,
+    label: `${datasetLabel(ds.dataset)} · relight` };
   relightCur = me;
   relightPerf.requests += 1;
+  stopRelightCompare();
   relight(me, body).catch((err) => {
     if (me.controller.signal.aborted && me.jobId && !me.done) cancelJob(me.jobId);
     if (isAbort(err) || me !== relightCur) return;
@@ -1019,7 +1218,93 @@ async function relight(me, body) {
   const counts = manifest.result?.counts || {};
   for (const [k, v] of Object.entries(counts)) if (typeof v === "number") rows.push([k, String(v)]);
   fillTable($("relight-stats"), rows);
+  showCoverageWarning(counts, body.lights.length);
   updateCoverage();
+  scheduleRelightCompare();
+}
+
+// counts.n_outside: pixels where some light's direction fell outside the dataset's coverage (that
+// light adds nothing there; the relighting never extrapolates). Said in words, not only in the table.
+function showCoverageWarning(counts, nLights) {
+  const n = Number(counts.n_outside) || 0;
+  $("coverage-warning").hidden = n === 0;
+  if (!n) return;
+  const total = (Number(counts.width) || 0) * (Number(counts.height) || 0);
+  const pct = total ? ` (${(100 * n / total).toFixed(n / total < 0.001 ? 2 : 1)} % of the image)` : "";
+  const which = nLights > 1 ? "at least one of the lights" : "the light";
+  $("coverage-warning-text").textContent = `Outside the dataset's coverage: ${n} pixels${pct} get no light from `
+    + `${which}, which comes from a direction the dataset was not lit from (nothing is extrapolated there).`;
+  $("coverage-show").hidden = $("coverage").checked;
+}
+
+// ---- relit image vs ground truth (datasets generated from a scene)
+
+let relightCmp = null; // {controller, jobId, done}
+let relightCmpTimer = null;
+const relightCmpEls = () => ({ img: $("relight-compare-img"), lrms: $("relight-lrms") });
+
+function stopRelightCompare() {
+  clearTimeout(relightCmpTimer);
+  relightCmpTimer = null;
+  if (relightCmp) {
+    relightCmp.controller.abort();
+    if (relightCmp.jobId && !relightCmp.done) cancelJob(relightCmp.jobId);
+    relightCmp = null;
+  }
+}
+
+function hasGroundTruth(d) {
+  return Boolean(d && d.source && d.source.kind === "generated" && d.source.generation_key && d.source.scene_id);
+}
+
+function scheduleRelightCompare() {
+  stopRelightCompare();
+  const mode = $("relight-compare").value;
+  $("relight-compare-view").hidden = mode === "off";
+  if (mode === "off" || !relightCur || !relightCur.done || !relightPerf.last) return;
+  $("relight-lrms").textContent = "";
+  $("relight-compare-caption").textContent = "ground truth: waiting for the lights to rest…";
+  const me = relightCur;
+  relightCmpTimer = setTimeout(() => { relightCmpTimer = null; runRelightCompare(me).catch(() => {}); },
+    COMPARE_REST_MS);
+}
+
+async function runRelightCompare(me) {
+  if (me !== relightCur || !hasGroundTruth(ds.dataset)) return;
+  const mode = $("relight-compare").value;
+  const c = { controller: new AbortController(), jobId: null, done: false,
+    label: `${datasetLabel(ds.dataset)} · ground truth` };
+  relightCmp = c;
+  const { signal } = c.controller;
+  const relitKey = relightPerf.last.key;
+  const lights = relightPerf.last.lights;
+  const src = ds.dataset.source;
+  const caption = $("relight-compare-caption");
+  caption.textContent = "ground truth: rendering…";
+  try {
+    // the generation that made this dataset, asked again with these lights as its ground truth: the API
+    // reuses the stored dataset and renders only the scene under each light
+    if (!ds.generation || ds.generation.key !== src.generation_key) {
+      const { data: m } = await api(`/v1/datasets/generations/${src.generation_key}`, { signal });
+      ds.generation = { key: src.generation_key, params: m.params };
+    }
+    const body = { ...ds.generation.params, scene_id: src.scene_id, ground_truth: lights };
+    const { manifest: gen } = await runToArtifact(c, "/v1/datasets/generate", body, "/v1/datasets/generations", signal,
+      (job) => { caption.textContent = `ground truth: ${job.state} ${Math.round((job.progress?.fraction || 0) * 100)}%`; });
+    c.done = true;
+    const query = `test=${relitKey}&test_kind=relight&ref=${gen.key}&ref_kind=ground_truth`;
+    const ev = Number($("relight-exposure").value);
+    const result = await showComparison(relightCmpEls(), mode, query,
+      `/v1/preview/reference.png?ref=${gen.key}&ref_kind=ground_truth&exposure=${ev}`, signal);
+    if (relightCmp !== c) return;
+    caption.textContent = mode === "diff" ? "difference vs ground truth," : "ground truth,";
+    relightComparePerf.runs += 1;
+    relightComparePerf.last = { ...result, mode, seq: me.seq, relight: relitKey, generation: gen.key };
+  } catch (err) {
+    if (isAbort(err) || relightCmp !== c) return;
+    caption.textContent = "ground truth: failed";
+    showError(err);
+  }
 }
 
 let coverageKey = null;
@@ -1123,7 +1408,13 @@ function bindSphere() {
     ds.sel = ds.lights.length - 1;
     syncLightControls(); drawSphere(); relightChanged();
   });
-  $("coverage").addEventListener("change", updateCoverage);
+  $("relight-compare").addEventListener("change", () => scheduleRelightCompare());
+  $("coverage").addEventListener("change", () => { $("coverage-show").hidden = $("coverage").checked; updateCoverage(); });
+  $("coverage-show").addEventListener("click", () => {
+    $("coverage").checked = true;
+    $("coverage-show").hidden = true;
+    updateCoverage();
+  });
   $("reload-datasets").addEventListener("click", () => loadDatasets());
 }
 
@@ -1137,7 +1428,7 @@ function stopScene() {
 
 // ------------------------------------------------------------------ walkthroughs
 
-const walk = { scene: null, info: null, key: null, urls: [], timer: null, controller: null, index: 0 };
+const walk = { scene: null, info: null, key: null, urls: [], timer: null, controller: null, index: 0, request: null };
 
 function walkScenes(scenes) {
   return scenes.filter((s) => sampleCameras[s.name] && sampleCameras[s.name].view_space);
@@ -1159,6 +1450,8 @@ function closeWalk() {
 }
 
 function stopWalk() {
+  stopWalkCompare();
+  $("wt-compare-view").hidden = true;
   walk.controller?.abort();
   walk.controller = null;
   clearInterval(walk.timer);
@@ -1244,6 +1537,7 @@ function walkRequest() {
 }
 
 function showWalk(pub) {
+  for (const j of pub.jobs || []) nameJob(j.id, `${walk.scene ? walk.scene.name : "scene"} · walkthrough`);
   walkPerf.status = pub.status;
   walkPerf.progress = pub.progress;
   walkPerf.key = pub.key;
@@ -1265,7 +1559,9 @@ async function startWalk() {
   walkPerf.loaded = 0;
   walkPerf.shown = -1;
   try {
-    let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: walkRequest() });
+    const request = walkRequest();
+    walk.request = request;
+    let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: request });
     showError(null);
     walk.key = pub.key;
     showWalk(pub);
@@ -1313,11 +1609,80 @@ async function showWalkFrame(i) {
   $("wt-slider").value = String(walk.index);
   $("wt-label").textContent = `frame ${walk.index + 1} / ${walk.urls.length}`;
   walkPerf.shown = walk.index;
+  scheduleWalkCompare();
+}
+
+// ---- walkthrough frame vs a reference render of its camera (shown while paused)
+
+let walkCmp = null;
+let walkCmpTimer = null;
+
+function stopWalkCompare() {
+  clearTimeout(walkCmpTimer);
+  walkCmpTimer = null;
+  if (walkCmp) {
+    walkCmp.controller.abort();
+    if (walkCmp.jobId && !walkCmp.done) cancelJob(walkCmp.jobId);
+    walkCmp = null;
+  }
+}
+
+function scheduleWalkCompare() {
+  stopWalkCompare();
+  const mode = $("wt-compare").value;
+  $("wt-compare-view").hidden = mode === "off";
+  if (mode === "off" || !walk.urls.length || !walk.request) return;
+  $("wt-lrms").textContent = "";
+  if (walk.info && walk.info.animation) {
+    // a render request has no animation time: its image would be the scene as stored, not at this frame's time
+    $("wt-compare-caption").textContent = "no reference: this scene is animated, and a render request has no "
+      + "animation time to render the frame's moment";
+    $("wt-compare-img").removeAttribute("src");
+    return;
+  }
+  if (walk.timer) { $("wt-compare-caption").textContent = "reference: pause to compare the shown frame"; return; }
+  $("wt-compare-caption").textContent = "reference: waiting…";
+  const index = walk.index;
+  walkCmpTimer = setTimeout(() => { walkCmpTimer = null; runWalkCompare(index).catch(() => {}); }, COMPARE_REST_MS);
+}
+
+async function runWalkCompare(index) {
+  const mode = $("wt-compare").value;
+  const c = { controller: new AbortController(), jobId: null, done: false,
+    label: `${walk.scene ? walk.scene.name : "scene"} · reference of walkthrough frame ${index + 1}` };
+  walkCmp = c;
+  const { signal } = c.controller;
+  const wkey = walk.key;
+  const cam = walk.request.frames[index].camera;
+  const sppText = $("spp").value.trim();
+  const body = { scene_id: walk.request.scene_id, camera: cam, method: "reference",
+    params: { spp: Number(sppText) || 4 }, outputs: ["preview", "radiance"] };
+  const caption = $("wt-compare-caption");
+  caption.textContent = "reference: rendering…";
+  try {
+    const { manifest: ref } = await runToArtifact(c, "/v1/renders", body, "/v1/artifacts", signal, (job) => {
+      caption.textContent = `reference: ${job.state} ${Math.round((job.progress?.fraction || 0) * 100)}%`;
+    });
+    c.done = true;
+    const query = `test=${wkey}&test_kind=walkthrough&frame=${index}&ref=${ref.key}`;
+    const result = await showComparison({ img: $("wt-compare-img"), lrms: $("wt-lrms") }, mode, query,
+      `/v1/artifacts/${ref.key}/image.png`, signal);
+    if (walkCmp !== c) return;
+    caption.textContent = `${mode === "diff" ? "difference vs reference" : "reference"} (${body.params.spp} spp) `
+      + `of frame ${index + 1},`;
+    walkComparePerf.runs += 1;
+    walkComparePerf.last = { ...result, mode, frame: index, walkthrough: wkey, ref: ref.key };
+  } catch (err) {
+    if (isAbort(err) || walkCmp !== c) return;
+    caption.textContent = "reference: failed";
+    showError(err);
+  }
 }
 
 function playWalk(on) {
   clearInterval(walk.timer);
   walk.timer = null;
+  if (!on) scheduleWalkCompare(); // the shown frame rests: compare it
   $("wt-play").textContent = on ? "Pause" : "Play";
   if (!on) return;
   const fps = Math.max(1, Math.min(120, Number($("wt-fps").value) || 12));
@@ -1344,6 +1709,7 @@ function bindWalk() {
   $("wt-play").addEventListener("click", () => playWalk(!walk.timer));
   $("wt-slider").addEventListener("input", () => { playWalk(false); showWalkFrame(Number($("wt-slider").value)); });
   $("wt-video").addEventListener("click", () => downloadWalkVideo());
+  $("wt-compare").addEventListener("change", () => scheduleWalkCompare());
   $("wt-viewport").addEventListener("keydown", (e) => {
     if (e.key === " ") { e.preventDefault(); playWalk(!walk.timer); }
     else if (e.key === "ArrowRight") { e.preventDefault(); playWalk(false); showWalkFrame(walk.index + 1); }
@@ -1355,10 +1721,37 @@ function bindWalk() {
 
 let jobsBusy = false;
 
-function jobLabel(j) {
+function jobKind(j) {
   // "render-<key>", "bake-<key>", "bake-part-<key>", ...: the prefix says what the job is
   const m = /^(.*?)-?([0-9a-f]{16,})$/.exec(j.id);
-  return m ? `${m[1] || j.kind} ${m[2].slice(0, 8)}` : j.id;
+  return m ? { what: m[1] || j.kind, key: m[2] } : { what: j.kind, key: "" };
+}
+
+// A job the page did not start: a finished render names its scene and method in its artifact.
+const jobLookups = new Set();
+async function lookUpJobName(j) {
+  const { what, key } = jobKind(j);
+  if (what !== "render" || j.state !== "finished" || !key || jobLookups.has(j.id)) return;
+  jobLookups.add(j.id);
+  try {
+    const { data: m } = await api(`/v1/artifacts/${key}`);
+    const scene = sceneNames.get(m.inputs && m.inputs.scene);
+    if (scene) nameJob(j.id, `${scene} · ${(m.params && m.params.method) || "reference"} view`);
+  } catch { /* not visible to this key, or gone: keep the kind and the short id */ }
+}
+
+function jobCell(j) {
+  const { what, key } = jobKind(j);
+  const td = document.createElement("td");
+  const name = document.createElement("span");
+  name.className = "job-name";
+  name.textContent = jobNames.get(j.id) || what;
+  const hash = document.createElement("span");
+  hash.className = "hash";
+  hash.textContent = jobNames.has(j.id) ? `${what} ${shortId(key)}` : shortId(key);
+  td.append(name, " ", hash);
+  td.title = j.id;
+  return td;
 }
 
 async function pollJobs() {
@@ -1372,9 +1765,8 @@ async function pollJobs() {
       tr.dataset.state = j.state;
       tr.dataset.jobId = j.id;
       tr.dataset.kind = j.kind;
-      const id = document.createElement("td");
-      id.textContent = jobLabel(j);
-      id.title = j.id;
+      const id = jobCell(j);
+      if (!jobNames.has(j.id)) lookUpJobName(j);
       const st = document.createElement("td");
       st.textContent = j.state;
       st.className = `state-${j.state}`;
@@ -1404,7 +1796,7 @@ function bindViewport() {
   let drag = null;
   vp.addEventListener("contextmenu", (e) => e.preventDefault());
   vp.addEventListener("pointerdown", (e) => {
-    if (!view.cam || !view.scene) return;
+    if (!view.cam || !view.scene || e.target.closest("#no-bake")) return; // the overlay's button takes its clicks
     vp.focus();
     drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey || e.button === 1 };
     vp.setPointerCapture(e.pointerId);
@@ -1418,7 +1810,7 @@ function bindViewport() {
     if (!dx && !dy) return;
     drag.x = e.clientX; drag.y = e.clientY;
     if (drag.pan) pan(dx, dy);
-    else orbit(-dx * 0.01, -dy * 0.01);
+    else orbit(-dx * orbitRadPerPx(), -dy * orbitRadPerPx());
     changed(t);
   });
   const end = (e) => {
@@ -1439,7 +1831,7 @@ function bindViewport() {
   vp.addEventListener("keydown", (e) => {
     if (!view.cam || !view.scene) return;
     const t = performance.now();
-    const step = 0.15, px = 20;
+    const px = 20, step = px * orbitRadPerPx(); // a key press moves like a 20-pixel drag
     const keys = {
       ArrowLeft: () => (e.shiftKey ? pan(px, 0) : orbit(step, 0)),
       ArrowRight: () => (e.shiftKey ? pan(-px, 0) : orbit(-step, 0)),
@@ -1470,6 +1862,12 @@ function bindControls() {
   });
   $("provenance").addEventListener("change", () => updateProvenanceView());
   $("bake").addEventListener("click", () => startBake());
+  $("no-bake-go").addEventListener("click", () => {
+    $("no-bake-text").textContent = "Baking: the view follows when the bake is done.";
+    $("no-bake-go").hidden = true;
+    startBake();
+  });
+  $("error-close").addEventListener("click", () => showError(null));
   for (const id of ["bake-res", "bake-llf", "bake-indirect"]) {
     $(id).addEventListener("change", () => {
       bake.params = null; bake.key = null;

@@ -35,7 +35,8 @@ def image_pixels(page: Page) -> np.ndarray:
 def test_page_loads_and_lists_sample_scenes(page: Page, capabilities: dict[str, Any]) -> None:
     assert page.url.endswith(f"/preview/?size={SIZE}&spp=1")  # / redirects to the page
     page.wait_for_selector("body[data-ready=true]")
-    names = page.locator("#scene-list button").all_inner_texts()
+    # each button's label (its first text): the scene's name; the short id follows as secondary text
+    names = page.locator("#scene-list button").evaluate_all("bs => bs.map((b) => b.firstChild.textContent)")
     assert {"teapot_glossy", "mirror_box", "cornell_box"} <= set(names)
     # only the methods that exist, as the API says (never a list of its own)
     assert page.locator("#method option").all_inner_texts() == [m["name"] for m in capabilities["methods"]]

@@ -154,3 +154,25 @@ def test_compare_exposure_and_errors(stack: Stack, scene_ids: dict[str, str]) ->
     # a reference render has no provenance
     r = httpx.get(f"{api}/v1/preview/artifacts/{a}/provenance.png", timeout=30)
     assert r.status_code == 404 and "provenance" in r.json()["detail"]
+
+
+def test_compare_of_relights_walkthroughs_and_ground_truth_names_bad_input(stack: Stack,
+                                                                          scene_ids: dict[str, str]) -> None:
+    api = stack.api_url
+    a = _render(api, scene_ids["teapot_glossy"], 16, 1)["artifact"]["key"]
+    q = f"{api}/v1/preview/compare"
+    # a render's key is not a relight, a walkthrough or a generation: 404 naming the parameter and the key
+    for params, field in (({"test": a, "ref": a, "test_kind": "relight"}, "query.test"),
+                          ({"test": a, "ref": a, "test_kind": "walkthrough", "frame": 0}, "query.test"),
+                          ({"test": a, "ref": a, "ref_kind": "ground_truth"}, "query.ref")):
+        r = httpx.get(q, params=params, timeout=30)
+        assert r.status_code == 404 and r.json()["errors"][0]["field"] == field, (params, r.text)
+        assert a in r.json()["detail"]
+    r = httpx.get(q, params={"test": a, "ref": a, "ref_kind": "ground_truth", "ref_lights": "0;1"}, timeout=30)
+    assert r.status_code == 422 and r.json()["errors"][0]["field"] == "query.ref_lights"
+    # the reference image of a render at exposure 0 is its stored preview's pixels
+    png = httpx.get(f"{api}/v1/preview/reference.png", params={"ref": a}, timeout=30)
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    stored = httpx.get(f"{api}/v1/artifacts/{a}/image.png", timeout=30).content
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(png.content)).convert("RGB")),
+                                  np.asarray(Image.open(io.BytesIO(stored)).convert("RGB")))

@@ -1,16 +1,19 @@
 """The preview page's Walkthroughs panel (on top of the walkthrough API): request a walkthrough of
 the animated sample scene along its view-space path at a quality level, watch the progress reach
-done, play the frames (mouse and keyboard)."""
+done, play the frames (mouse and keyboard); compare a static scene's frame with a reference render."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
+from engine.imageio import decode_image
+from engine.metrics import lrms
 from service.up import Stack
 from tests.e2e.conftest import element_pixels, new_page, shot
 
@@ -73,3 +76,56 @@ def test_walkthrough_frames_step_with_keyboard(page: Page) -> None:
     page.keyboard.press(" ")
     expect(page.locator("#wt-play")).to_have_text("Pause")
     shot(page, "31-walkthrough-last-frame")
+
+
+def test_animated_frames_say_they_have_no_reference(page: Page) -> None:
+    page.select_option("#wt-compare", "diff")
+    expect(page.locator("#wt-compare-caption")).to_contain_text("no reference: this scene is animated")
+    assert page.evaluate("window.__walkCompare.runs") == 0
+    page.select_option("#wt-compare", "off")
+    expect(page.locator("#wt-compare-view")).to_be_hidden()
+
+
+STATIC = "static_room"
+
+
+def _exr(url: str) -> np.ndarray:
+    r = httpx.get(url, timeout=30)
+    assert r.status_code == 200, (url, r.text)
+    return decode_image("x.exr", r.content)[0]
+
+
+def test_static_scene_frame_compares_with_a_reference_render(stack: Stack, browser: Browser) -> None:
+    with new_page(browser, stack.api_url + URL.format(scene=STATIC) + "&spp=1") as pg:
+        pg.wait_for_selector("body[data-ready=true]")
+        pg.select_option("#wt-quality", "low")
+        pg.select_option("#wt-frames", "8")
+        pg.select_option("#wt-size", "64")
+        pg.click("#wt-go")
+        pg.wait_for_function("window.__walk.loaded === 8", timeout=600_000)
+        pg.click("#wt-play")  # pause
+        pg.locator("#wt-slider").fill("3")
+        pg.locator("#wt-slider").dispatch_event("input")
+        pg.select_option("#wt-compare", "diff")
+        pg.wait_for_function("window.__walkCompare.runs > 0 && window.__walkCompare.last.frame === 3",
+                             timeout=120_000)
+        last = pg.evaluate("window.__walkCompare.last")
+        api = stack.api_url
+        frame = _exr(f"{api}/v1/walkthroughs/{last['walkthrough']}/frames/3.exr")
+        ref = _exr(f"{api}/v1/artifacts/{last['ref']}/image.exr")
+        manifest = httpx.get(f"{api}/v1/artifacts/{last['ref']}", timeout=30).json()
+        request = httpx.get(f"{api}/v1/walkthroughs/{last['walkthrough']}", timeout=30).json()
+        assert request["frames"] == 8
+        # the reference is a reference render of frame 3's camera, at the frame's size
+        assert manifest["params"]["method"] == "reference"
+        assert frame.shape[:2] == ref.shape[:2] == (48, 64)
+        assert last["lrms"] == pytest.approx(lrms(frame, ref), rel=1e-9)
+        assert pg.locator("#wt-lrms").inner_text() == f"LRMS {last['lrms']:.4f}"
+        expect(pg.locator("#wt-compare-caption")).to_contain_text("difference vs reference (1 spp) of frame 4")
+        shot(pg, "32-walkthrough-frame-diff")
+        pg.select_option("#wt-compare", "side")
+        pg.wait_for_function("window.__walkCompare.runs > 1 && window.__walkCompare.last.mode === 'side'",
+                             timeout=120_000)
+        assert pg.evaluate("document.querySelector('#wt-compare-img').naturalWidth") == 64
+        expect(pg.locator("#error")).to_be_hidden()
+        shot(pg, "33-walkthrough-frame-side")

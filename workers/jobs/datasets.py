@@ -37,7 +37,8 @@ import OpenImageIO as oiio
 from pydantic import BaseModel, ValidationError
 from rq import get_current_job
 
-from api_schemas.datasets import DatasetManifest, DepthGeometry, PinholeCamera, SceneGeometry
+from api_schemas.datasets import DatasetManifest, DepthGeometry, GenerateRequest, PinholeCamera, SceneGeometry
+from api_schemas.service import ArtifactManifest
 from engine import ENGINE_VERSION
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
@@ -473,6 +474,12 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.report(0.0, "loading scene", force=True)
     loaded = load_stored_scene(store, req.scene_id)
     camera = camera_params(req.camera) if req.camera is not None else loaded.camera
+    if req.ground_truth:
+        # the same generation without ground truth already stored its dataset: render only the ground
+        # truth (the dataset images would come out the same: the renders are deterministic)
+        base = read_manifest(store, generate_artifact_key(req.model_copy(update={"ground_truth": []})))
+        if base is not None:
+            return _ground_truth_only(req, key, store, loaded, camera, base, owners, progress, t_start)
     placement = LightPlacement.from_dict(req.placement.model_dump(mode="python"))
     n = placement.light_count()
     if n > req.max_lights:
@@ -527,26 +534,55 @@ def generate_job(payload: dict[str, Any]) -> dict[str, Any]:
     for who in owners or {None}:
         add_dataset_owner(store, public.id, who)
     t_store = time.perf_counter() - t0
-    # ground truth for testing: the scene under each requested light alone (same replacements)
     t0 = time.perf_counter()
-    gt_blobs: dict[str, tuple[bytes, str]] = {}
+    gt_blobs = _ground_truth_blobs(req, store, loaded, camera, params, progress)
     n_gt = len(req.ground_truth)
-    if n_gt:
-        gt_lights = _engine_lights(store, list(req.ground_truth))
-        with tempfile.TemporaryDirectory(prefix="ibr-ground-truth-", dir=_SCRATCH) as tmpdir:
-            for i, light in enumerate(gt_lights):
-                progress.report(0.92 + 0.07 * i / n_gt, "ground truth renders", force=True)
-                img = render_ground_truth(loaded.runtime, camera, [light], params)
-                gt_blobs[f"ground_truth_{i}.exr"] = (
-                    _image_bytes(Path(tmpdir), f"ground_truth_{i}.exr", img,
-                                 metadata={"scene_id": req.scene_id, "light": req.ground_truth[i].model_dump(
-                                     mode="json"), "engine_version": ENGINE_VERSION}), EXR)
     result = json_safe({
         "dataset_id": public.id,
         "counts": {"n_lights": int(ds.images.shape[0]), "n_surface_pixels": int(surface.sum()),
                    "width": camera.width, "height": camera.height, "n_ground_truth": n_gt},
         "timings": {"render": t_render, "store": t_store, "ground_truth": time.perf_counter() - t0},
     })
+    write_artifact(store, key, GENERATE_KIND, {"scene": req.scene_id}, _gen_params(req), ENGINE_VERSION, gt_blobs,
+                   result)
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": key, **result}
+
+
+def _ground_truth_blobs(req: GenerateRequest, store: ObjectStore, loaded: Any, camera: Any, params: ReferenceParams,
+                       progress: ProgressReporter) -> dict[str, tuple[bytes, str]]:
+    """Ground truth for testing: the scene under each requested light alone (same replacements)."""
+    gt_blobs: dict[str, tuple[bytes, str]] = {}
+    n_gt = len(req.ground_truth)
+    if not n_gt:
+        return gt_blobs
+    gt_lights = _engine_lights(store, list(req.ground_truth))
+    with tempfile.TemporaryDirectory(prefix="ibr-ground-truth-", dir=_SCRATCH) as tmpdir:
+        for i, light in enumerate(gt_lights):
+            progress.report(0.92 + 0.07 * i / n_gt, "ground truth renders", force=True)
+            img = render_ground_truth(loaded.runtime, camera, [light], params)
+            gt_blobs[f"ground_truth_{i}.exr"] = (
+                _image_bytes(Path(tmpdir), f"ground_truth_{i}.exr", img,
+                             metadata={"scene_id": req.scene_id, "light": req.ground_truth[i].model_dump(
+                                 mode="json"), "engine_version": ENGINE_VERSION}), EXR)
+    return gt_blobs
+
+
+def _ground_truth_only(req: GenerateRequest, key: str, store: ObjectStore, loaded: Any, camera: Any,
+                       base: ArtifactManifest, owners: set[str | None], progress: ProgressReporter,
+                       t_start: float) -> dict[str, Any]:
+    """A generation whose dataset is already stored (by the same request without ground truth):
+    the ground-truth renders only, recorded under this request's key with the same dataset id."""
+    did = str(base.result["dataset_id"])
+    for who in owners or {None}:
+        add_dataset_owner(store, did, who)
+    t0 = time.perf_counter()
+    gt_blobs = _ground_truth_blobs(req, store, loaded, camera, ReferenceParams(**req.params.model_dump()), progress)
+    counts = {**dict(base.result.get("counts") or {}), "n_ground_truth": len(req.ground_truth)}
+    result = json_safe({"dataset_id": did, "counts": counts,
+                        "timings": {"render": 0.0, "store": 0.0, "ground_truth": time.perf_counter() - t0},
+                        "dataset_from": base.key})
     write_artifact(store, key, GENERATE_KIND, {"scene": req.scene_id}, _gen_params(req), ENGINE_VERSION, gt_blobs,
                    result)
     result["timings"]["job_total"] = time.perf_counter() - t_start

@@ -44,9 +44,12 @@ from engine.imageio import decode_image, encode_display
 from engine.methods import METHODS, BakePart
 from engine.metrics import error_heatmap_display, fraction_over, lrms, luminance
 from producer.artifacts import read_blob, read_manifest
+from producer.names import GENERATE_KIND, RELIGHT_KIND
+from producer.ownership import dataset_visible
 from producer.store import NotFound, ObjectStore
+from producer.walkthroughs import chunk_key, chunks, read_request
 from service.api.deps import OwnerDep, StoreDep, scene_visible
-from service.api.errors import LacksPart, ValidationProblem, problem_responses
+from service.api.errors import LacksPart, MissingResource, ValidationProblem, problem_responses
 
 router = APIRouter()
 
@@ -326,14 +329,72 @@ class Comparison(FrozenModel):
     links: dict[str, str] = {}
 
 
-TestKey = Annotated[Sha256, Query(description="Artifact key of the render to judge")]
-RefKey = Annotated[Sha256, Query(description="Artifact key of the reference render")]
+TestKey = Annotated[Sha256, Query(description="Key of the image to judge: a render's artifact key, a relight's "
+                                  "artifact key (test_kind=relight) or a walkthrough's key (test_kind=walkthrough)")]
+RefKey = Annotated[Sha256, Query(description="Key of the reference: a render's artifact key, or a dataset "
+                                 "generation's key (ref_kind=ground_truth)")]
+TestKind = Annotated[Literal["render", "relight", "walkthrough"], Query(
+    description="render: the artifact's radiance.exr; relight: the relit image.exr; walkthrough: frame `frame`'s EXR")]
+Frame = Annotated[int | None, Query(ge=0, le=100_000, description="Walkthrough frame index (test_kind=walkthrough)")]
+RefKind = Annotated[Literal["render", "ground_truth"], Query(
+    description="render: the artifact's radiance.exr; ground_truth: the sum of a dataset generation's ground-truth "
+                "renders (one per light: the reference of a relight under those lights together)")]
+RefLights = Annotated[str | None, Query(pattern=r"^[0-9]{1,2}(,[0-9]{1,2}){0,63}$",
+                                        description="Ground-truth images to sum, e.g. 0,1 (default: all)")]
 
 
-def _pair(store: ObjectStore, owner: str | None, test: str, ref: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    visible_render(store, test, owner, "query.test")
-    visible_render(store, ref, owner, "query.ref")
-    t, r = RADIANCE.get(store, test), RADIANCE.get(store, ref)
+def _test_image(store: ObjectStore, owner: str | None, key: str, kind: str, frame: int | None) -> np.ndarray:
+    field = "query.test"
+    if kind == "render":
+        visible_render(store, key, owner, field)
+        return RADIANCE.get(store, key)
+    if kind == "relight":
+        manifest = read_manifest(store, key)
+        did = manifest.inputs.get("dataset") if manifest is not None and manifest.kind == RELIGHT_KIND else None
+        if did is None or (owner is not None and not dataset_visible(store, did, owner)):
+            raise MissingResource(field, key)
+        return RADIANCE.get(store, key)  # the relit image.exr is stored as radiance.exr
+    req = read_request(store, key)
+    if req is None or not scene_visible(store, req.scene_id, owner):
+        raise MissingResource(field, key)
+    if frame is None or not 0 <= frame < len(req.frames):
+        raise ValidationProblem([FieldError(field="query.frame", type="frame_index", message=(
+            f"give the frame index, in [0, {len(req.frames) - 1}]" if frame is None
+            else f"frame index {frame} is outside [0, {len(req.frames) - 1}]"))])
+    for i, (a, b) in enumerate(chunks(req)):
+        if a <= frame < b:
+            return RADIANCE.get(store, chunk_key(key, i, a, b), f"frame_{frame:05d}.exr")
+    raise NotFound(key)  # pragma: no cover - chunks cover every index
+
+
+def _ref_image(store: ObjectStore, owner: str | None, key: str, kind: str, lights: str | None) -> np.ndarray:
+    field = "query.ref"
+    if kind == "render":
+        visible_render(store, key, owner, field)
+        return RADIANCE.get(store, key)
+    manifest = read_manifest(store, key)
+    if manifest is None or manifest.kind != GENERATE_KIND or (
+            owner is not None and not scene_visible(store, manifest.inputs.get("scene", ""), owner)):
+        raise MissingResource(field, key)
+    have = sorted(b.name for b in manifest.blobs if b.name.startswith("ground_truth_"))
+    names = have if lights is None else [f"ground_truth_{int(i)}.exr" for i in lights.split(",")]
+    missing = [n for n in names if n not in have]
+    if missing or not names:
+        raise ValidationProblem([FieldError(field="query.ref_lights", type="no_ground_truth", message=(
+            f"generation {key} has no {', '.join(missing)}" if missing else f"generation {key} has no ground truth"))])
+    total: np.ndarray | None = None
+    for n in dict.fromkeys(names):  # each light once
+        img = RADIANCE.get(store, key, n)[..., :3].astype(np.float64)
+        total = img if total is None else total + img
+    assert total is not None
+    return total.astype(np.float32)
+
+
+def _pair(store: ObjectStore, owner: str | None, test: str, ref: str, test_kind: str = "render",
+          frame: int | None = None, ref_kind: str = "render", ref_lights: str | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = _test_image(store, owner, test, test_kind, frame)
+    r = _ref_image(store, owner, ref, ref_kind, ref_lights)
     if t.shape[:2] != r.shape[:2]:
         raise ValidationProblem([FieldError(
             field="query.test", message=f"image is {t.shape[1]} x {t.shape[0]} but the reference is "
@@ -345,17 +406,23 @@ def _pair(store: ObjectStore, owner: str | None, test: str, ref: str) -> tuple[n
     return t, r, mask
 
 
-def _compare(store: ObjectStore, owner: str | None, test: str, ref: str) -> Comparison:
-    t, r, mask = _pair(store, owner, test, ref)
+def _compare(store: ObjectStore, owner: str | None, test: str, ref: str, test_kind: str = "render",
+             frame: int | None = None, ref_kind: str = "render", ref_lights: str | None = None) -> Comparison:
+    t, r, mask = _pair(store, owner, test, ref, test_kind, frame, ref_kind, ref_lights)
     lum_t, lum_r = luminance(t), luminance(r)  # the metrics of a luminance image are those of the image
     y_t, y_r = lum_t[mask], lum_r[mask]
     value = lrms(lum_t, lum_r, mask)
+    query = f"test={test}&ref={ref}"
+    if test_kind != "render":
+        query += f"&test_kind={test_kind}" + (f"&frame={frame}" if frame is not None else "")
+    if ref_kind != "render":
+        query += f"&ref_kind={ref_kind}" + (f"&ref_lights={ref_lights}" if ref_lights is not None else "")
     return Comparison(
         test=test, ref=ref, lrms=value if math.isfinite(value) else None,
         rms=math.sqrt(float(np.mean(np.square(y_t - y_r)))), mean_ref_luminance=float(np.mean(y_r)),
         fraction_over_5pct=fraction_over(lum_t, lum_r, 0.05, mask),
         n_pixels=int(y_r.size), width=int(r.shape[1]), height=int(r.shape[0]),
-        links={"heatmap": f"/v1/preview/compare/heatmap.png?test={test}&ref={ref}"},
+        links={"heatmap": f"/v1/preview/compare/heatmap.png?{query}"},
     )
 
 
@@ -365,21 +432,24 @@ _PNG: dict[int | str, dict[str, Any]] = {
 
 
 @router.get("/v1/preview/compare", response_model=Comparison, tags=["preview"], responses=_ERRORS)
-async def compare(store: StoreDep, owner: OwnerDep, test: TestKey, ref: RefKey) -> Comparison:
-    """LRMS of render ``test`` against render ``ref`` (both artifacts' ``radiance.exr``)."""
-    return await run_in_threadpool(_compare, store, owner, test, ref)
+async def compare(store: StoreDep, owner: OwnerDep, test: TestKey, ref: RefKey, test_kind: TestKind = "render",
+                  frame: Frame = None, ref_kind: RefKind = "render", ref_lights: RefLights = None) -> Comparison:
+    """LRMS of image ``test`` (a render, a relit image or a walkthrough frame) against reference ``ref`` (a
+    render, or the ground truth of a generated dataset under the relight's lights)."""
+    return await run_in_threadpool(_compare, store, owner, test, ref, test_kind, frame, ref_kind, ref_lights)
 
 
 @router.get("/v1/preview/compare/heatmap.png", response_class=Response, tags=["preview"],
             responses={**_PNG, **_ERRORS})
 async def compare_heatmap(
-    store: StoreDep, owner: OwnerDep, test: TestKey, ref: RefKey,
+    store: StoreDep, owner: OwnerDep, test: TestKey, ref: RefKey, test_kind: TestKind = "render",
+    frame: Frame = None, ref_kind: RefKind = "render", ref_lights: RefLights = None,
     scale: Annotated[float | None, Query(gt=0, le=1e30, description="Error shown at full scale (default: the "
                                          "mean reference luminance, so yellow = 100 % relative error)")] = None,
 ) -> Response:
     """False-colour map of the luminance error of ``test`` against ``ref`` (viridis, black outside coverage)."""
     def run() -> bytes:
-        t, r, mask = _pair(store, owner, test, ref)
+        t, r, mask = _pair(store, owner, test, ref, test_kind, frame, ref_kind, ref_lights)
         return png_bytes(heatmap(t, r, mask, scale))
 
     return Response(await run_in_threadpool(run), media_type="image/png",
@@ -399,6 +469,21 @@ async def exposed_image(
         if exposure == 0.0:
             return read_blob(store, key, "preview.png")
         return png_bytes(to_srgb8(RADIANCE.get(store, key), exposure))
+
+    return Response(await run_in_threadpool(run), media_type="image/png",
+                    headers={"Cache-Control": "private, max-age=31536000, immutable"})
+
+
+@router.get("/v1/preview/reference.png", response_class=Response, tags=["preview"], responses={**_PNG, **_ERRORS})
+async def reference_image(
+    store: StoreDep, owner: OwnerDep, ref: RefKey, ref_kind: RefKind = "render", ref_lights: RefLights = None,
+    exposure: Annotated[float, Query(ge=-30, le=30, allow_inf_nan=False,
+                                     description="Exposure in stops applied to the linear radiance")] = 0.0,
+) -> Response:
+    """A reference as an sRGB PNG at an exposure: a render's radiance, or the summed ground truth of a
+    generated dataset (what ``/v1/preview/compare`` compares with)."""
+    def run() -> bytes:
+        return png_bytes(to_srgb8(_ref_image(store, owner, ref, ref_kind, ref_lights), exposure))
 
     return Response(await run_in_threadpool(run), media_type="image/png",
                     headers={"Cache-Control": "private, max-age=31536000, immutable"})
