@@ -8,9 +8,10 @@ Candidates come from the render-method registry (:mod:`engine.methods`): ``refer
 power-of-two spp of its range, ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k`` for the calibrated k. The
 model, per scene and bake:
 
-- reference at ``s`` spp: ``error(s) = a / sqrt(s)`` (LRMS against the converged image; ``a`` is
-  fitted conservatively: the largest ``e_i / sqrt(1/s_i + 1/S)`` over the calibrated ladder,
-  which removes the ground truth's own noise at ``S`` spp), ``ms(s, px) = b + c * s * px``;
+- reference at ``s`` spp: ``error(s) = a s^-p`` (LRMS against the converged image; ``p`` in
+  [0.5, 1] fitted on the calibrated spp, 0.5 past the largest of them; ``a`` fitted
+  conservatively, the ground truth's own noise at ``S`` spp removed: :func:`fit_reference`),
+  ``ms(s, px) = b + c * s * px``;
 - an LDC method: ``error`` = its measured LRMS against the converged image (the largest over the
   probe views, the ground truth's noise removed in quadrature), taken as independent of the image
   size; ``ms(px) = b + c * px`` (fitted on two image sizes).
@@ -38,7 +39,7 @@ candidates in :func:`extra_candidates`, the one seam for it.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -132,11 +133,17 @@ class CandidateFit:
     b_ms: float
     c_ms: float
     points: list[dict[str, Any]] = field(default_factory=list)
+    exponent: float = 0.5
+    """Reference: the error falls as ``spp^-exponent`` up to ``knee_spp``, as ``spp^-0.5`` past it."""
+    knee_spp: int = 1
 
     def error_at(self, spp: int | None) -> float:
         if self.method == REFERENCE.name:
             assert spp is not None
-            return self.error / math.sqrt(spp)
+            knee = max(self.knee_spp, 1)
+            if spp <= knee:
+                return self.error * spp ** -self.exponent
+            return self.error * knee ** -self.exponent * math.sqrt(knee / spp)
         return self.error
 
     def ms_at(self, pixels: int, spp: int | None) -> float:
@@ -164,16 +171,32 @@ def fit_time(units: Sequence[float], ms: Sequence[float]) -> tuple[float, float]
 
 def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> CandidateFit:
     """The reference's fit from ``points`` ``{"spp", "error", "pixels", "ms"}`` (error measured
-    against a ground truth of the same estimator at ``truth_spp``): both images' noise adds in
-    quadrature, ``e^2 = a^2 (1/s + 1/S)``; ``a`` is the largest per-spp RMS over the probe views
-    (conservative: the planner then over-predicts rather than misses)."""
+    against a ground truth of the same estimator at ``truth_spp``).
+
+    The error falls as ``a s^-p``: ``p`` = 0.5 for independent samples, faster for stratified ones
+    where the image is smooth. Both images' noise adds in quadrature, ``e^2 = a^2 (s^-2p + S^-2p)``;
+    ``p`` is the exponent in [0.5, 1] that fits the per-spp RMS over the probe views best (log
+    residuals), and ``a`` the largest ratio over the spp (conservative: the planner then
+    over-predicts rather than misses). Past the largest calibrated spp the fit continues at
+    ``p = 0.5`` (``knee_spp``): convergence is never assumed faster than measured."""
     by_spp: dict[int, list[float]] = {}
     for p in points:
         by_spp.setdefault(int(p["spp"]), []).append(float(p["error"]))
-    a = max(math.sqrt(sum(e * e for e in errs) / len(errs)) / math.sqrt(1.0 / s + 1.0 / truth_spp)
-            for s, errs in by_spp.items())
+    rms = {s: math.sqrt(sum(e * e for e in errs) / len(errs)) for s, errs in by_spp.items()}
+    best: tuple[float, float, float] | None = None
+    for i in range(51):
+        q = 0.5 + 0.01 * i
+        scale = {s: math.sqrt(s ** (-2 * q) + truth_spp ** (-2 * q)) for s in rms}
+        a = max(e / scale[s] for s, e in rms.items())
+        if a <= 0:
+            continue
+        resid = sum(math.log(max(e, 1e-12) / (a * scale[s])) ** 2 for s, e in rms.items())
+        if best is None or resid < best[0] - 1e-12:
+            best = (resid, q, a)
+    exponent, a = (0.5, 0.0) if best is None else (best[1], best[2])
     b, c = fit_time([float(p["spp"]) * float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
-    return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points])
+    return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points], exponent=exponent,
+                        knee_spp=max(rms) if rms else 1)
 
 
 def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
@@ -255,10 +278,12 @@ def extra_candidates(model: SceneModel, pixels: int) -> list[Prediction]:
     return []
 
 
-def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_bake: bool = True
-            ) -> list[Prediction]:
+def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_bake: bool = True,
+            allowed: Callable[[Setting], bool] | None = None) -> list[Prediction]:
     """Every candidate of ``model`` at an image of ``pixels`` pixels. A method needing the bake
-    when it is not ready: priced with the bake's cost when ``allow_bake``, left out otherwise."""
+    when it is not ready: priced with the bake's cost when ``allow_bake``, left out otherwise.
+    ``allowed``: the settings this server accepts (e.g. under its render memory limit); the others
+    are left out."""
     if pixels < 1:
         raise ValueError("pixels must be >= 1")
     out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s))
@@ -269,7 +294,8 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
             if name in model.excluded:
                 continue
             out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms))
-    return out + extra_candidates(model, pixels)
+    out += extra_candidates(model, pixels)
+    return out if allowed is None else [p for p in out if allowed(p.setting)]
 
 
 @dataclass(frozen=True)
@@ -295,7 +321,8 @@ def _fmt(p: Prediction) -> str:
 
 
 def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_ms: float | None = None,
-         best_effort: bool = False, bake_ready: bool = True, allow_bake: bool = True) -> Plan:
+         best_effort: bool = False, bake_ready: bool = True, allow_bake: bool = True,
+         allowed: Callable[[Setting], bool] | None = None) -> Plan:
     """Pick a setting for ``max_error`` (LRMS against the converged image) and / or ``max_ms``
     (milliseconds) at an image of ``pixels`` pixels; see the module docstring for the rules.
     ``best_effort``: when the targets cannot all be met, still choose (the most accurate, within the
@@ -303,8 +330,11 @@ def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_
     ``choice`` is None and ``reason`` says what the scene can do."""
     if max_error is None and max_ms is None:
         raise ValueError("plan needs max_error, max_ms or both")
-    cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake)
+    cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed)
     n = len(cands)
+    if not cands:
+        return Plan(None, None, tuple(t for t, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None),
+                    "no setting of this scene can render this image on this server (its limits)", 0)
     cheapest = min(cands, key=lambda p: (p.ms, p.error))
     most_accurate = min(cands, key=lambda p: (p.error, p.ms))
     in_time = [p for p in cands if max_ms is None or p.ms <= max_ms]
@@ -315,7 +345,7 @@ def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_
         rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
         return Plan(min(good, key=lambda p: (p.ms, p.error)), rule, candidates=n)
     if not in_time:  # a time budget nothing fits
-        fixed = min(model.reference.b_ms, *(f.b_ms for k, f in model.methods.items() if k not in model.excluded))
+        fixed = min([model.reference.b_ms] + [f.b_ms for k, f in model.methods.items() if k not in model.excluded])
         if max_ms is not None and max_ms < fixed:
             why = (f"max_ms {max_ms:g} is below this scene's fixed overhead: every setting needs at least "
                    f"{fixed:.0f} ms however small the image; the fastest at this size is {_fmt(cheapest)}")

@@ -31,13 +31,14 @@ from api_schemas.service import (
     RenderRequest,
 )
 from engine import ENGINE_VERSION
-from engine.quality import Plan, SceneModel, plan
+from engine.quality import Plan, SceneModel, Setting, plan
 from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
 from producer.names import CALIBRATE_JOB, calibrate_job_id, scene_bake_job_id
 from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
+from producer.render_memory import estimate_render_bytes
 from producer.status import job_public
 from producer.store import NotFound, ObjectStore
 
@@ -142,13 +143,22 @@ def _pixels(store: ObjectStore, req: RenderRequest) -> tuple[int, int]:
     return cam.width, cam.height
 
 
-def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest) -> tuple[RenderRequest, ContractPublic]:
+def _request_for(req: RenderRequest, model: SceneModel, setting: Setting) -> RenderRequest:
+    update: dict[str, Any] = {"method": setting.method, "quality": None}
+    if setting.spp is not None:
+        update["params"] = ReferenceRenderParams(**model.reference_request_params(setting.spp))
+    return req.model_copy(update=update)
+
+
+def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render_bytes: int | None = None
+                ) -> tuple[RenderRequest, ContractPublic]:
     """The request with the planner's method and params, and the contract to state.
 
     Raises :class:`CalibrationMissing` (409) when the scene's bake ``req.bake`` was never
     calibrated; :class:`ContractUnmet` (422) when no setting meets the targets and
     ``on_miss`` is ``fail``; :class:`BakeMissing` (409, the ``missing_bake`` rule) when the bake is
-    missing, ``missing_bake`` is ``fail`` and only a setting that needs the bake would meet them."""
+    missing, ``missing_bake`` is ``fail`` and only a setting that needs the bake would meet them.
+    ``max_render_bytes``: settings whose estimated memory exceeds it are not candidates."""
     q = req.quality
     assert q is not None
     bkey = bake_key(req.scene_id, req.bake)
@@ -160,10 +170,16 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest) -> tuple[R
     ready = bake_complete(store, bkey)
     best_effort = q.on_miss == "best_effort"
     allow_bake = ready or req.missing_bake == "bake"
+
+    def allowed(s: Setting) -> bool:
+        return max_render_bytes is None or \
+            estimate_render_bytes(_request_for(req, model, s), width, height) <= max_render_bytes
+
     p = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, best_effort=best_effort,
-             bake_ready=ready, allow_bake=allow_bake)
+             bake_ready=ready, allow_bake=allow_bake, allowed=allowed)
     if not ready and not allow_bake and not p.met:
-        with_bake = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, bake_ready=False)
+        with_bake = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, bake_ready=False,
+                         allowed=allowed)
         if with_bake.met and with_bake.choice is not None:
             running = fetch_job(redis, scene_bake_job_id(bkey))
             active = running is not None and running.get_status(refresh=False) in ACTIVE_STATUSES
@@ -187,12 +203,8 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
     choice = p.choice
     assert q is not None and choice is not None and p.rule is not None
     setting = choice.setting
-    update: dict[str, Any] = {"method": setting.method, "quality": None}
-    params: dict[str, Any] | None = None
-    if setting.spp is not None:
-        params = model.reference_request_params(setting.spp)
-        update["params"] = ReferenceRenderParams(**params)
-    planned = req.model_copy(update=update)
+    params = model.reference_request_params(setting.spp) if setting.spp is not None else None
+    planned = _request_for(req, model, setting)
     if setting.needs_bake:
         bake = "ready" if ready else "waited"
     else:

@@ -144,7 +144,13 @@ def test_fits_recover_known_coefficients() -> None:
     pts = [{"spp": s, "pixels": 100, "ms": 1.0 + 0.01 * s * 100, "error": a * math.sqrt(1 / s + 1 / s_truth)}
            for s in (1, 4, 16)]
     fit = fit_reference(pts, s_truth)
-    assert fit.error == pytest.approx(a) and fit.error_at(4) == pytest.approx(0.15)
+    assert fit.error == pytest.approx(a) and fit.error_at(4) == pytest.approx(0.15) and fit.exponent == 0.5
+    # stratified sampling converging as s^-0.75: the exponent is found; past 16 spp the fit goes on at 0.5
+    pts = [{"spp": s, "pixels": 100, "ms": 1.0 + s, "error": a * math.sqrt(s ** -1.5 + s_truth ** -1.5)}
+           for s in (1, 4, 16)]
+    fit = fit_reference(pts, s_truth)
+    assert fit.exponent == pytest.approx(0.75) and fit.error == pytest.approx(a) and fit.knee_spp == 16
+    assert fit.error_at(16) == pytest.approx(a / 8) and fit.error_at(64) == pytest.approx(a / 16)
     assert fit.b_ms == pytest.approx(1.0) and fit.c_ms == pytest.approx(0.01)
     # an LDC method: the ground truth's noise removed in quadrature, the worst probe kept
     fit = fit_ldc("ldc", [{"pixels": 100, "ms": 3.0, "error": 0.05}, {"pixels": 100, "ms": 3.0, "error": 0.1},

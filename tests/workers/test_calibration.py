@@ -28,7 +28,7 @@ from workers.jobs.calibrate import calibrate_scene, turned_camera
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
           dict(type="directional", direction=(0.2, -1.0, -0.5), irradiance=(0.5, 0.4, 0.3))]
 CAMERA = CameraParams("perspective", (0.0, 1.2, 3.2), (0.0, -0.1, 0.0), (0.0, 1.0, 0.0), 48, 32, 45.0)
-PARAMS = CalibrationParams(probes=2, size=32, time_scale=2, truth_spp=64, ibrt_ks=[1])
+PARAMS = CalibrationParams(probes=2, size=32, time_scale=4, truth_spp=64, ibrt_ks=[1])
 FACTOR = 2.0
 """Stated accuracy of a calibrated error prediction on a held-out view: within a factor of 2 either way
 (the predictions are conservative: the largest over the probe views)."""

@@ -159,7 +159,7 @@ async def request_render(
     contract: ContractPublic | None = None
     if req.quality is not None:
         await run_in_threadpool(_check_visible, req, store, owner)
-        req, contract = await run_in_threadpool(plan_render, redis, store, req)  # 409 / 422
+        req, contract = await run_in_threadpool(plan_render, redis, store, req, settings.max_render_bytes)  # 409/422
     pub = await _render(req, response, store, redis, owner, settings, metrics, wait, contract)
     return _with_contract(pub, contract)
 
