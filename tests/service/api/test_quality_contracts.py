@@ -22,6 +22,7 @@ from producer.calibrations import calibration_key, write_calibration
 from producer.renders import render_artifact_key
 from producer.store import open_store
 from tests.service.api.conftest import small_scene
+from tests.service.api.test_cli_api import api_url as api_url  # the uvicorn fixture
 
 BAKE = {"ldc_resolution": 16, "max_layers": 8, "area_light_samples": 1, "indirect": {"mode": "off"}}
 CAMERA = {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "fov_y_deg": 40, "width": 32,
@@ -50,10 +51,10 @@ def _model(sid: str, **changes: Any) -> SceneModel:
     return SceneModel(**doc)
 
 
-def _store_model(store_dir: Any, model: SceneModel) -> None:
+def _store_model(store_dir: Any, model: SceneModel, bake: dict[str, Any] = BAKE) -> None:
     from api_schemas.service import CalibrationRequest
 
-    req = CalibrationRequest(bake=BakeParams.model_validate(BAKE))
+    req = CalibrationRequest(bake=BakeParams.model_validate(bake))
     write_calibration(open_store(f"file://{store_dir}"), model.scene_id, model.bake_key,
                       calibration_key(model.scene_id, model.bake_key, req), req.params.model_dump(mode="json"), model)
 
@@ -154,6 +155,31 @@ def test_targets_no_setting_meets_are_never_silent(client: TestClient, store_dir
     con = r.json()["contract"]
     assert con["rule"] == "most_accurate_within_time_error_unmet" and con["params"]["spp"] == 4
     assert con["predicted_ms"] <= 50 and con["unmet"] == ["max_error"]
+
+
+def test_cli_asks_by_error_and_states_the_plan(client: TestClient, store_dir: Any, api_url: str) -> None:
+    from tests.service.api.test_cli_api import ibr
+
+    sid = _scene(client)
+    bake = {"ldc_resolution": 16}
+    _store_model(store_dir, _model(sid, bake_key=bake_key(sid, BakeParams.model_validate(bake))), bake)
+    r = ibr(api_url, "render", sid, "--quality-error", "0.06", "--ldc-resolution", "16", "--no-wait")
+    assert r.exit_code == 0, r.output
+    assert "plan: reference at 16 spp (cheapest_meeting_error, the best available now" in r.stderr, r.stderr
+    assert "meets the contract" in r.stderr and r.stdout.startswith("render-")
+    r = ibr(api_url, "render", sid, "--quality-ms", "1", "--ldc-resolution", "16", "--no-wait")
+    assert r.exit_code == 2 and "fixed overhead" in r.stderr, r.output
+    r = ibr(api_url, "render", sid, "--quality-error", "0.0001", "--ldc-resolution", "16", "--best-effort",
+            "--no-wait")
+    assert r.exit_code == 0 and "DOES NOT meet max_error" in r.stderr, r.output
+    r = ibr(api_url, "render", sid, "--quality-error", "0.05", "--method", "ldc")
+    assert r.exit_code == 2 and "leave out --method" in r.stderr, r.output
+    r = ibr(api_url, "render", sid, "--quality-error", "1.5")
+    assert r.exit_code == 2 and "(0, 1)" in r.stderr, r.output
+    r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--no-wait")  # the stored one: no work
+    assert r.exit_code == 0 and "(cached)" in r.stderr and "ldc: LRMS 0.0030" in r.stderr, r.output
+    r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--probes", "3")  # no bake: the missing_bake rule
+    assert r.exit_code == 2 and "missing_bake" in r.stderr, r.output
 
 
 def _poll(c: TestClient, url: str, done: tuple[str, ...], timeout: float) -> dict[str, Any]:
