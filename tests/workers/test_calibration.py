@@ -23,7 +23,7 @@ from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
-from workers.jobs.calibrate import calibrate_scene, turned_camera
+from workers.jobs.calibrate import calibrate_scene, turned_camera, view_pivot
 
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
           dict(type="directional", direction=(0.2, -1.0, -0.5), irradiance=(0.5, 0.4, 0.3))]
@@ -66,7 +66,7 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     assert model.reference.b_ms >= 0 and model.reference.c_ms > 0
     gi = bool(model.reference_params["indirect_per_spp"])
 
-    held = turned_camera(CAMERA, 6.0, 32)
+    held = turned_camera(CAMERA, 6.0, 32, view_pivot(CAMERA, *sc.bounds))
     truth = _truth(ref, held, 64, 101, gi, 2)
     other = _truth(ref, held, 64, 202, gi, 2)
     mask = truth.object_id >= 0

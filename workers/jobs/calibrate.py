@@ -3,8 +3,9 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
 
 ``calibrate_job(payload)`` runs on the ``bake`` queue after the bake it calibrates:
 
-1. probe views: the scene's camera turned about its up axis around its look-at point by
-   +-12 deg, +-24 deg, ... (never the scene's own view), at ``size`` pixels on the longest side;
+1. probe views: the scene's camera turned about its up axis by +-12 deg, +-24 deg, ... around
+   the point of its view axis as deep as the scene's centre (never the scene's own view), at
+   ``size`` pixels on the longest side;
 2. a ground truth per probe: the reference at ``truth_spp`` spp with a seed of its own (and as
    many indirect paths per pixel when indirect light can arrive in the scene), so its noise is
    independent of the candidates';
@@ -56,7 +57,8 @@ from producer.payloads import CalibrateJobPayload, InvalidPayload, describe_vali
 from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
-__all__ = ["PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "probe_cameras"]
+__all__ = ["PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "probe_cameras", "turned_camera",
+           "view_pivot"]
 
 PROBE_STEP_DEG = 12.0
 """Probe views turn the scene's camera by multiples of this angle (+12, -12, +24, -24, ...)."""
@@ -65,24 +67,41 @@ TRUTH_SEED = 7_919
 """Seed of the ground truth (the candidates render with the service's default seed 0)."""
 
 
-def turned_camera(cam: CameraParams, degrees: float, longest: int) -> CameraParams:
-    """``cam`` turned by ``degrees`` about its up axis around its look-at point, resized so that its
-    longest side is ``longest`` pixels (same aspect ratio)."""
+def view_pivot(cam: CameraParams, lo: Any, hi: Any) -> np.ndarray:
+    """The point the probe views turn around: on the camera's view axis, as deep as the centre of the
+    scene's bounding box ``lo``..``hi`` (a camera whose look-at point is just in front of it, like the
+    Cornell box's, then orbits the scene instead of turning in place)."""
     eye, at = np.asarray(cam.eye, float), np.asarray(cam.look_at, float)
+    d = (at - eye) / np.linalg.norm(at - eye)
+    centre = 0.5 * (np.asarray(lo, float) + np.asarray(hi, float))
+    depth = float((centre - eye) @ d)
+    pivot: np.ndarray = eye + d * (depth if depth > 0 else float(np.linalg.norm(at - eye)))
+    return pivot
+
+
+def turned_camera(cam: CameraParams, degrees: float, longest: int, pivot: Any = None) -> CameraParams:
+    """``cam`` turned by ``degrees`` about its up axis through ``pivot`` (default: its look-at
+    point), eye and look-at point alike, resized so that its longest side is ``longest`` pixels
+    (same aspect ratio)."""
     up = np.asarray(cam.up, float)
     up = up / np.linalg.norm(up)
-    v = eye - at
+    c = np.asarray(cam.look_at if pivot is None else pivot, float)
     t = math.radians(degrees)
-    v = v * math.cos(t) + np.cross(up, v) * math.sin(t) + up * float(up @ v) * (1.0 - math.cos(t))  # Rodrigues
+
+    def turn(p: Any) -> tuple[float, float, float]:
+        v = np.asarray(p, float) - c
+        v = v * math.cos(t) + np.cross(up, v) * math.sin(t) + up * float(up @ v) * (1.0 - math.cos(t))  # Rodrigues
+        return (float(c[0] + v[0]), float(c[1] + v[1]), float(c[2] + v[2]))
+
     scale = longest / max(cam.width, cam.height)
     w, h = max(1, round(cam.width * scale)), max(1, round(cam.height * scale))
-    return replace(cam, eye=tuple(float(x) for x in at + v), width=w, height=h)  # type: ignore[arg-type]
+    return replace(cam, eye=turn(cam.eye), look_at=turn(cam.look_at), width=w, height=h)
 
 
-def probe_cameras(cam: CameraParams, n: int, longest: int) -> list[CameraParams]:
-    """The ``n`` probe views: +12, -12, +24, -24, ... degrees from ``cam``."""
+def probe_cameras(cam: CameraParams, n: int, longest: int, pivot: Any = None) -> list[CameraParams]:
+    """The ``n`` probe views: +12, -12, +24, -24, ... degrees from ``cam`` (see :func:`turned_camera`)."""
     angles = [PROBE_STEP_DEG * (i // 2 + 1) * (1 if i % 2 == 0 else -1) for i in range(n)]
-    return [turned_camera(cam, a, longest) for a in angles]
+    return [turned_camera(cam, a, longest, pivot) for a in angles]
 
 
 def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
@@ -140,8 +159,9 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         for k in (params.ibrt_ks if mirror else []):
             excluded[f"ldc+ibrt:{k}"] = why
     methods = [s.method for s in settings if s.method not in excluded]
-    cams = probe_cameras(camera, params.probes, params.size)
-    tiny = turned_camera(camera, PROBE_STEP_DEG, 8)
+    pivot = view_pivot(camera, *scene.bounds)
+    cams = probe_cameras(camera, params.probes, params.size, pivot)
+    tiny = turned_camera(camera, PROBE_STEP_DEG, 8, pivot)
     cost: dict[str, float] = {"truth": 0.0, "reference": 0.0, "ldc": 0.0, "warmup": 0.0}
 
     _, ms = _timed(ref.render, tiny, ref_at(1))  # compile / build once, untimed
@@ -174,7 +194,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
             ldc_points[m].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask)})
             done += 1
             report(done / steps, m)
-    big = turned_camera(camera, PROBE_STEP_DEG, params.size * params.time_scale)
+    big = turned_camera(camera, PROBE_STEP_DEG, params.size * params.time_scale, pivot)
     for m in methods:
         _, ms = _timed_best(ldc_renderer.render, big, m)
         cost["ldc"] += ms / 1000
