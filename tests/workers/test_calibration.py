@@ -91,9 +91,15 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     assert p.met and p.choice is not None
     name = p.choice.setting.name.replace("spp", "")
     assert checks[name][0] <= target * FACTOR
-    # time grows with the image for both kinds of method
-    assert model.methods["ldc"].ms_at(512 * 512, None) > model.methods["ldc"].ms_at(32 * 32, None)
-    assert model.reference.ms_at(64 * 64, 64) > model.reference.ms_at(64 * 64, 1)
+    # the reference's time fit reproduces its measurements (on a shared machine: within 3x) and grows with the
+    # samples; the LDC views' few milliseconds at these sizes are mostly their fixed part
+    for pt in model.reference.points:
+        predicted = model.reference.ms_at(int(pt["pixels"]), int(pt["spp"]))
+        assert pt["ms"] / 3 <= predicted <= pt["ms"] * 3, (pt, predicted)
+    assert model.reference.ms_at(64 * 64, 64) > 4 * model.reference.ms_at(64 * 64, 1)
+    ldc_ms = [pt["ms"] for pt in model.methods["ldc"].points]
+    assert model.methods["ldc"].b_ms > 0
+    assert min(ldc_ms) / 3 <= model.methods["ldc"].ms_at(32 * 32, None) <= 3 * max(ldc_ms)
 
 
 @pytest.mark.slow

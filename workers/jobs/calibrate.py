@@ -174,7 +174,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     ldc_points: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     steps = len(cams) * (1 + len(CALIBRATION_SPP) + len(methods)) + len(methods)
     done = 0
-    for cam in cams:
+    for probe, cam in enumerate(cams):
         px = cam.width * cam.height
         truth, ms = _timed(ref.render, cam, ref_at(params.truth_spp, TRUTH_SEED))
         cost["truth"] += ms / 1000
@@ -191,14 +191,15 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         for m in methods:
             out, ms = _timed_best(ldc_renderer.render, cam, m)
             cost["ldc"] += ms / 1000
-            ldc_points[m].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask)})
+            ldc_points[m].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask),
+                                  "probe": probe})
             done += 1
             report(done / steps, m)
     big = turned_camera(camera, PROBE_STEP_DEG, params.size * params.time_scale, pivot)
     for m in methods:
         _, ms = _timed_best(ldc_renderer.render, big, m)
         cost["ldc"] += ms / 1000
-        ldc_points[m].append({"pixels": big.width * big.height, "ms": ms, "error": None})
+        ldc_points[m].append({"pixels": big.width * big.height, "ms": ms, "error": None, "probe": 0})
         done += 1
         report(done / steps, f"{m} at {big.width} x {big.height}")
 
@@ -211,6 +212,13 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     fits = {}
     for m, pts in ldc_points.items():
         fit = fit_ldc(m, pts, truth_noise)
+        # the time's per-pixel part from one view at two sizes (views differ in cost more than sizes do
+        # at probe sizes), the fixed part as the mean over the probes' time at their size
+        same_view = [p for p in pts if p["probe"] == 0]
+        b, c = fit_time([float(p["pixels"]) for p in same_view], [float(p["ms"]) for p in same_view])
+        at_size = [p for p in pts if p["error"] is not None]
+        b = max(0.0, sum(float(p["ms"]) for p in at_size) / len(at_size) - c * float(at_size[0]["pixels"]))
+        fit = replace(fit, b_ms=b, c_ms=c)
         fits[m] = fit
         if fit.error > MAX_USEFUL_ERROR:
             excluded[m] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it does "
