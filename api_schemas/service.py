@@ -424,7 +424,8 @@ class ContractPublic(FrozenModel):
     bake: Literal["not_needed", "ready", "waited", "best_available_now"]
     """``ready``: the LDC bake was in the store; ``waited``: it was queued and the render waits for it;
     ``best_available_now``: the bake is missing and ``missing_bake`` is ``fail``, so only the settings
-    that render now were considered; ``not_needed``: the chosen method needs no bake (and it was there)."""
+    that render now were considered; ``not_needed``: the chosen method needs no bake (whether the bake
+    exists or, with ``missing_bake: "bake"``, waiting for it would have cost more)."""
     excluded: dict[str, str] = {}
     """Methods the calibration excluded on this scene, and why."""
     calibration: dict[str, Any] = {}
