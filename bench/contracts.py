@@ -45,7 +45,7 @@ from engine.newviews.renderer import LDCViewRenderer
 from engine.quality import SceneModel, plan
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
-from samples import sample_path
+from samples import SAMPLES_DIR, sample_path
 from workers.jobs.calibrate import calibrate_scene, turned_camera, view_pivot
 from workers.scene_loader import directory_resolver, load_scene
 
@@ -59,7 +59,7 @@ BUDGETS_MS = tuple(float(x) for x in np.geomspace(20.0, 5000.0, 8))
 
 def _setup(name: str, ldc_res: int, log: Any) -> tuple[Any, Any, LDCViewRenderer, ReferenceRenderer, float]:
     path = sample_path(name)
-    loaded = load_scene(load_scene_file(path), directory_resolver(path.parent))
+    loaded = load_scene(load_scene_file(path), directory_resolver(SAMPLES_DIR))
     sc = loaded.runtime
     caster = EmbreeCaster(sc)
     effects = analyze(sc)
