@@ -46,7 +46,7 @@ from engine.quality import SceneModel, plan
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from samples import SAMPLES_DIR, sample_path
-from workers.jobs.calibrate import calibrate_scene, turned_camera, view_pivot
+from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
 from workers.scene_loader import directory_resolver, load_scene
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "accuracy" / "contracts.md"
@@ -136,7 +136,7 @@ def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRend
     t0 = time.perf_counter()
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
     h2 = ref.render(cam, rp(truth_spp // 2, 2002)).radiance
-    mask = ref.render(cam, ReferenceParams(spp=1, max_depth=0)).object_id >= 0
+    mask = contract_mask(ref.scene, ref.render(cam, ReferenceParams(spp=1, max_depth=0)).object_id)
     noise = lrms(h1, h2, mask) / 2.0  # the mean of two halves: half their difference's spread
     log(f"{name} view {deg:+.0f} deg {cam.width}x{cam.height}: truth {time.perf_counter() - t0:.1f} s, "
         f"its noise {noise:.4f}")
