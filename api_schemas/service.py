@@ -439,8 +439,9 @@ class CalibrationParams(FrozenModel):
     """How a scene is calibrated for quality contracts (``docs/quality-contracts.md``): probe views
     near the scene's camera, each rendered by every candidate and by a ground truth."""
 
-    probes: Annotated[int, Field(ge=1, le=8)] = 2
-    """Probe views (the scene's camera turned around its look-at point; never the camera itself)."""
+    probes: Annotated[int, Field(ge=1, le=8)] = 4
+    """Probe views (the scene's camera turned about its up axis; never the camera itself). The model
+    keeps the worst probe's error, so more probes cover more of the views callers ask for."""
     size: Annotated[int, Field(ge=16, le=512)] = 64
     """Longest side of the probe images, in pixels (the aspect ratio is the scene camera's)."""
     time_scale: Annotated[int, Field(ge=2, le=8)] = 4

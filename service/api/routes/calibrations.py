@@ -25,7 +25,7 @@ router = APIRouter(prefix="/v1/scenes", tags=["calibrations"])
 SceneIdPath = Annotated[Sha256, Path(description="Scene id (sha256 hex)")]
 BakeKeyPath = Annotated[Sha256, Path(description="Bake key (sha256 hex) the calibration is for")]
 
-CALIBRATION_EXAMPLE: dict[str, Any] = {"bake": {"ldc_resolution": 128}, "params": {"probes": 2, "size": 64},
+CALIBRATION_EXAMPLE: dict[str, Any] = {"bake": {"ldc_resolution": 128}, "params": {"probes": 4, "size": 64},
                                        "missing_bake": "bake"}
 DEFAULT_REQUEST = CalibrationRequest()
 
