@@ -226,3 +226,15 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
                                           "outputs": ["preview", "radiance"]})
     assert r2.status_code == 200 and r2.json()["status"] == "cached"
     assert r2.json()["contract"]["method"] == con["method"]
+
+
+def test_a_scenes_calibrations_go_with_it(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    model = _model(sid)
+    _store_model(store_dir, model)
+    url = f"/v1/scenes/{sid}/calibrations/{model.bake_key}"
+    got = client.get(url)
+    assert got.status_code == 200 and got.json()["state"] == "finished" and got.json()["model"]["cost_s"] == 3.0
+    assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+    assert not open_store(f"file://{store_dir}").list(f"calibrations/{sid}/")
+    assert client.get(url).status_code == 404
