@@ -50,8 +50,8 @@ from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera
 from workers.scene_loader import directory_resolver, load_scene
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "accuracy" / "contracts.md"
-HELD_OUT_DEG = (5.0, -5.0, 18.0, -18.0, 30.0, -30.0)
-"""Held-out views: angles the probes (+-12, +-24) never use."""
+HELD_OUT_DEG = (4.0, -4.0, 12.0, -12.0, 20.0, -20.0)
+"""Held-out views: angles the probes (+-8, +-16) never use."""
 GRID_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
 ERRORS = tuple(float(x) for x in np.geomspace(0.01, 0.2, 10))
 BUDGETS_MS = tuple(float(x) for x in np.geomspace(20.0, 5000.0, 8))
@@ -174,7 +174,7 @@ def _grid_names(model: SceneModel) -> set[str]:
     return {f"reference@{s}spp" for s in GRID_SPP} | set(model.methods)
 
 
-def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int) -> str:
+def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int, views: int) -> str:
     reqs = [r for res in results for r in res["requests"]]
     n = len(reqs)
     met = sum(1 for r in reqs if r["met"])
@@ -182,8 +182,9 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
     refused = [r for r in reqs if r["choice"] is None]
     missed = [r for r in reqs if not r["met"]]
     lines = [f"Machine: {platform.machine()}, Python {sys.version.split()[0]}. Command: `{cmd}`. Held-out views of "
-             f"{size} px (longest side) turned by {', '.join(f'{d:+g}' for d in HELD_OUT_DEG)} degrees (the probes: "
-             f"+-12, +-24); converged ground truth {truth_spp} spp in two halves (its noise removed in quadrature).",
+             f"{size} px (longest side) turned by {', '.join(f'{d:+g}' for d in HELD_OUT_DEG[:views])} degrees (the "
+             f"probes: +-8, +-16); converged ground truth {truth_spp} spp in two halves (its noise removed in "
+             "quadrature).",
              "",
              f"**{met} of {n} requests ({100.0 * met / max(n, 1):.1f} %) met their contract** (measured error and time "
              f"of the chosen setting on the held-out view; {len(refused)} refused with a reason, of which "
@@ -237,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
 
     results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log) for s in a.scenes.split(",")]
     cmd = "python -m bench.contracts" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip()
-    block = doc_block(results, cmd, a.size, a.truth_spp)
+    block = doc_block(results, cmd, a.size, a.truth_spp, a.views)
     print(block)
     if not a.no_doc and not a.quick:
         replace_block(DOC, "contracts", block, title="Quality contracts: met targets and their cost")

@@ -3,7 +3,7 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
 
 ``calibrate_job(payload)`` runs on the ``bake`` queue after the bake it calibrates:
 
-1. probe views: the scene's camera turned about its up axis by +-12 deg, +-24 deg, ... around
+1. probe views: the scene's camera turned about its up axis by +-8 deg, +-16 deg, ... around
    the point of its view axis as deep as the scene's centre (never the scene's own view), at
    ``size`` pixels on the longest side;
 2. a ground truth per probe: the reference at ``truth_spp`` spp with a seed of its own (and as
@@ -62,8 +62,10 @@ from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, 
 __all__ = ["PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "contract_mask", "probe_cameras",
            "turned_camera", "view_pivot"]
 
-PROBE_STEP_DEG = 12.0
-"""Probe views turn the scene's camera by multiples of this angle (+12, -12, +24, -24, ...)."""
+PROBE_STEP_DEG = 8.0
+"""Probe views turn the scene's camera by multiples of this angle (+8, -8, +16, -16, ...): near the
+views callers ask for (a closed room seen from 24 degrees off shows its unlit outside, which is
+not what a contract on the room is about)."""
 
 TRUTH_SEED = 7_919
 """Seed of the ground truth (the candidates render with the service's default seed 0)."""
@@ -101,7 +103,7 @@ def turned_camera(cam: CameraParams, degrees: float, longest: int, pivot: Any = 
 
 
 def probe_cameras(cam: CameraParams, n: int, longest: int, pivot: Any = None) -> list[CameraParams]:
-    """The ``n`` probe views: +12, -12, +24, -24, ... degrees from ``cam`` (see :func:`turned_camera`)."""
+    """The ``n`` probe views: +8, -8, +16, -16, ... degrees from ``cam`` (see :func:`turned_camera`)."""
     angles = [PROBE_STEP_DEG * (i // 2 + 1) * (1 if i % 2 == 0 else -1) for i in range(n)]
     return [turned_camera(cam, a, longest, pivot) for a in angles]
 
