@@ -332,8 +332,42 @@ def _check_outputs(value: list[str] | None) -> list[str] | None:
 RenderOutputs = Annotated[list[RenderOutput] | None, AfterValidator(_check_outputs)]
 
 
+MAX_CONTRACT_MS = 600_000.0
+"""The largest ``quality.max_ms``: the render job's timeout (``producer.queue.RENDER_TIMEOUT_S``, in
+ms; the API process's schema cannot import the producer, tests/api_schemas/test_quality_schema.py
+checks that they agree)."""
+
+QualityMiss = Literal["fail", "best_effort"]
+
+
+class QualityContract(FrozenModel):
+    """A quality contract instead of a method (``docs/quality-contracts.md``): the planner picks the
+    method and its settings from the scene's calibration, the cheapest that meets ``max_error``,
+    the most accurate within ``max_ms``, or with both the cheapest meeting the error within the
+    time."""
+
+    max_error: float | None = None
+    """Largest LRMS against the converged image of the same view, in (0, 1): 0.05 is 5 %."""
+    max_ms: float | None = None
+    """Largest render time in the worker, in milliseconds, in (0, 600000] (the render job's timeout)."""
+    on_miss: QualityMiss = "fail"
+    """When no setting meets every target: ``fail`` answers 422 saying what the scene can do;
+    ``best_effort`` renders the closest setting and marks the answer as not meeting the contract."""
+
+    @model_validator(mode="after")
+    def _ranges(self) -> QualityContract:
+        from engine.quality import check_targets
+
+        problems = check_targets(self.max_error, self.max_ms, MAX_CONTRACT_MS)
+        if problems:
+            raise PydanticCustomError("quality_range", "{message}",
+                                      {"message": "; ".join(message for _, message in problems)})
+        return self
+
+
 class RenderRequest(FrozenModel):
-    """Body of ``POST /v1/renders``: a view of a stored scene by a method."""
+    """Body of ``POST /v1/renders``: a view of a stored scene by a method, or by a quality
+    contract (``quality``) that lets the planner pick the method."""
 
     scene_id: Sha256
     camera: Camera | None = None
@@ -353,6 +387,28 @@ class RenderRequest(FrozenModel):
     ``["preview", "radiance"]``: the job encodes and stores only those (a 512x512 LDC view saves
     most of its encode time). The list is normalised (order, duplicates) and is part of the
     artifact key; a request with a subset is answered from the full artifact when that exists."""
+    quality: QualityContract | None = None
+    """An error target and / or a time budget instead of a method: the API plans the request from the
+    scene's calibration (``POST /v1/scenes/{id}/calibrations``) before it is queued, and the answer's
+    ``contract`` says what was chosen and why. Explicit ``method`` or ``params`` with ``quality`` are
+    422 (the planner chooses them); ``bake`` and ``missing_bake`` still say which bake the LDC
+    methods may use and whether to wait for it."""
+
+    @model_validator(mode="after")
+    def _quality_chooses_the_method(self) -> RenderRequest:
+        if self.quality is None:
+            return self
+        explicit = sorted({"method", "params"} & self.model_fields_set)
+        if explicit:
+            raise PydanticCustomError(
+                "quality_with_method",
+                "quality lets the planner choose the method and its settings: leave out {fields}, or leave out "
+                "quality to choose them yourself", {"fields": " and ".join(explicit)})
+        if self.outputs is not None and "provenance" in self.outputs:
+            raise PydanticCustomError(
+                "quality_outputs", "'provenance' exists for the LDC methods only, and with quality the planner "
+                "may choose 'reference': leave it out of outputs", {})
+        return self
 
     @field_validator("outputs")
     @classmethod
@@ -377,6 +433,103 @@ class RenderPublic(FrozenModel):
     artifact: ArtifactManifest | None = None
     bake: BakePublic | None = None
     """LDC methods: the bake the render reads (with ``missing_bake: "bake"``, the bake it waits for)."""
+    contract: ContractPublic | None = None
+    """Requests with ``quality``: the plan chosen, its predicted error and time, the achieved time."""
+    links: dict[str, str] = {}
+
+
+ContractRule = Literal["cheapest_meeting_error", "most_accurate_within_time", "cheapest_meeting_error_within_time",
+                       "most_accurate_within_time_error_unmet", "best_effort_most_accurate", "best_effort_fastest"]
+
+
+class ContractPublic(FrozenModel):
+    """What a quality contract got: the setting the planner chose, by which rule, what it predicts
+    and what the render achieved."""
+
+    max_error: float | None = None
+    max_ms: float | None = None
+    on_miss: QualityMiss = "fail"
+    rule: ContractRule
+    """``cheapest_meeting_error`` (max_error alone), ``most_accurate_within_time`` (max_ms alone),
+    ``cheapest_meeting_error_within_time`` (both, met), ``most_accurate_within_time_error_unmet``
+    (both: the error is not reachable within the time), ``best_effort_most_accurate`` /
+    ``best_effort_fastest`` (``on_miss: best_effort`` and a target no setting meets)."""
+    met: bool
+    """The chosen setting is predicted to meet every target."""
+    unmet: list[str] = []
+    """The targets it is predicted to miss (``max_error``, ``max_ms``), with ``reason``."""
+    reason: str = ""
+    method: str
+    params: dict[str, Any] | None = None
+    """The reference renderer's settings when the method is ``reference``."""
+    width: int
+    height: int
+    predicted_error: float
+    """LRMS against the converged image of the view, from the scene's calibration."""
+    predicted_ms: float
+    """Render time in the worker (the renderer's call, without queueing, loading and encoding)."""
+    predicted_bake_ms: float = 0.0
+    """The bake's cost when the plan waits for a bake that is not made yet (part of the cost ranked)."""
+    achieved_ms: float | None = None
+    """The render's measured time in the worker, once it has run."""
+    bake: Literal["not_needed", "ready", "waited", "best_available_now"]
+    """``ready``: the LDC bake was in the store; ``waited``: it was queued and the render waits for it;
+    ``best_available_now``: the bake is missing and ``missing_bake`` is ``fail``, so only the settings
+    that render now were considered; ``not_needed``: the chosen method needs no bake (whether the bake
+    exists or, with ``missing_bake: "bake"``, waiting for it would have cost more)."""
+    excluded: dict[str, str] = {}
+    """Methods the calibration excluded on this scene, and why."""
+    calibration: dict[str, Any] = {}
+    """Which calibration planned it: its key, when it was made, what it cost."""
+
+
+# ------------------------------------------------------------------------------ calibrations
+
+
+class CalibrationParams(FrozenModel):
+    """How a scene is calibrated for quality contracts (``docs/quality-contracts.md``): probe views
+    near the scene's camera, each rendered by every candidate and by a ground truth."""
+
+    probes: Annotated[int, Field(ge=1, le=8)] = 4
+    """Probe views (the scene's camera turned about its up axis; never the camera itself). The model
+    keeps the worst probe's error, so more probes cover more of the views callers ask for."""
+    size: Annotated[int, Field(ge=16, le=512)] = 64
+    """Longest side of the probe images, in pixels (the aspect ratio is the scene camera's)."""
+    time_scale: Annotated[int, Field(ge=2, le=8)] = 4
+    """The LDC methods are also timed at ``size x time_scale`` (their time's per-pixel part)."""
+    truth_spp: Annotated[int, Field(ge=16, le=4096)] = 256
+    """Samples per pixel of the ground truth (its remaining noise is removed from the fits)."""
+    ibrt_ks: Annotated[list[Annotated[int, Field(ge=1, le=MAX_IBRT_GENERATIONS)]],
+                       Field(min_length=1, max_length=8)] = [1, 2, 4]
+    """The ``ldc+ibrt:k`` generations calibrated (on scenes with mirrors)."""
+
+
+class CalibrationRequest(FrozenModel):
+    """Body of ``POST /v1/scenes/{scene_id}/calibrations``."""
+
+    bake: BakeParams = BakeParams()
+    """The bake whose LDC methods are calibrated (the bake render requests name)."""
+    params: CalibrationParams = CalibrationParams()
+    missing_bake: MissingBake = "fail"
+    """When the bake does not exist: ``fail`` (409) or ``bake`` (queue it; the calibration runs after it)."""
+
+
+CalibrationState = Literal["queued", "running", "finished", "failed", "missing"]
+
+
+class CalibrationPublic(FrozenModel):
+    """A scene's calibration for one bake: the job making it, then the fitted model."""
+
+    scene_id: Sha256
+    bake_key: Sha256
+    key: Sha256
+    """Content key of the calibration (scene, bake, calibration params, engine version)."""
+    state: CalibrationState
+    cached: bool = False
+    job: JobPublic | None = None
+    model: dict[str, Any] | None = None
+    """The fitted model (``engine.quality.SceneModel``): per method its error and time fit, the
+    excluded methods and why, the bake's cost and ``cost_s``, what the calibration took."""
     links: dict[str, str] = {}
 
 
@@ -527,4 +680,5 @@ class Problem(FrozenModel):
 
 
 RenderPublic.model_rebuild()
+CalibrationPublic.model_rebuild()
 BakePublic.model_rebuild()

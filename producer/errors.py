@@ -11,6 +11,8 @@ from api_schemas.service import JobPublic
 __all__ = [
     "BakeInUse",
     "BakeMissing",
+    "CalibrationMissing",
+    "ContractUnmet",
     "JobNotCancelable",
     "JobNotFound",
     "SceneOutputsInUse",
@@ -39,12 +41,12 @@ class BakeMissing(LookupError):
     """An LDC render (``missing_bake: "fail"``) of a scene whose bake is not complete: HTTP 409.
     ``bake_key`` names the bake; ``job_id`` is its running job, if any."""
 
-    def __init__(self, scene_id: str, bake_key: str, job_id: str | None):
+    def __init__(self, scene_id: str, bake_key: str, job_id: str | None, note: str = ""):
         running = f" (in progress: job {job_id})" if job_id else ""
         super().__init__(
             f"scene {scene_id} has no complete bake {bake_key}{running}; request it with POST "
             f"/v1/scenes/{scene_id}/bakes (same bake params), or send missing_bake: \"bake\" to queue the "
-            "render after the bake")
+            f"render after the bake{note}")
         self.scene_id = scene_id
         self.bake_key = bake_key
         self.job_id = job_id
@@ -60,3 +62,26 @@ class WalkthroughInUse(RuntimeError):
 
 class SceneOutputsInUse(RuntimeError):
     """A job of the scene, of one of its bakes or of one of its walkthroughs is queued or running (HTTP 409)."""
+
+
+class CalibrationMissing(LookupError):
+    """A render with ``quality`` on a scene whose bake was never calibrated: HTTP 409, naming the
+    calibration to request."""
+
+    def __init__(self, scene_id: str, bake_key: str):
+        super().__init__(
+            f"scene {scene_id} has no calibration for bake {bake_key}: quality contracts are planned from a "
+            f"per-scene calibration; request it with POST /v1/scenes/{scene_id}/calibrations (body: the same "
+            "\"bake\" params as the render, optionally \"missing_bake\": \"bake\"), or name a method instead "
+            "of quality")
+        self.scene_id = scene_id
+        self.bake_key = bake_key
+
+
+class ContractUnmet(ValueError):
+    """No render setting meets a quality contract and ``on_miss`` is ``fail``: HTTP 422 naming the
+    unmet targets (``quality.max_error``, ``quality.max_ms``) and what the scene can do."""
+
+    def __init__(self, unmet: tuple[str, ...], reason: str):
+        super().__init__(reason + '; send quality.on_miss: "best_effort" to render the closest setting anyway')
+        self.unmet = unmet

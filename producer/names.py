@@ -10,6 +10,7 @@ Job ids are deterministic (``<kind>-<artifact key>``): identical requests share 
 from __future__ import annotations
 
 __all__ = [
+    "CALIBRATE_JOB",
     "COMPOSITE_JOB",
     "COMPOSITE_KIND",
     "DATASET_BAKE_JOB",
@@ -27,6 +28,7 @@ __all__ = [
     "WALKTHROUGH_BAKE_JOB",
     "WALKTHROUGH_CHUNK_JOB",
     "WALKTHROUGH_VIDEO_JOB",
+    "calibrate_job_id",
     "dataset_job_id",
     "render_job_id",
     "scene_bake_job_id",
@@ -53,6 +55,8 @@ SCENE_BAKE_LLF_JOB = "workers.jobs.bake.bake_llf_views_job"
 SCENE_BAKE_MERGE_JOB = "workers.jobs.bake.bake_merge_job"
 """Verifies a scene bake's parts and publishes its manifest."""
 
+CALIBRATE_JOB = "workers.jobs.calibrate.calibrate_job"
+"""Calibrates a scene's render settings for quality contracts (``bake`` queue)."""
 DATASET_BAKE_JOB = "workers.jobs.datasets.bake_job"
 """Bakes an illumination dataset for relighting (``bake`` queue)."""
 RELIGHT_JOB = "workers.jobs.datasets.relight_job"
@@ -95,6 +99,10 @@ def scene_bake_plan_job_id(key: str) -> str:
 
 def scene_bake_part_job_id(part_key: str) -> str:
     return f"bake-part-{part_key}"
+
+
+def calibrate_job_id(key: str) -> str:
+    return f"calibrate-{key}"
 
 
 def walkthrough_bake_job_id(bake_key: str) -> str:

@@ -15,10 +15,11 @@ from pydantic import Field, ValidationError, model_validator
 
 from api_schemas.common import FrozenModel
 from api_schemas.datasets import CompositeRequest, DatasetBakeParams, GenerateRequest, RelightRequest
-from api_schemas.service import BakeParams, RenderRequest, Sha256
+from api_schemas.service import BakeParams, CalibrationRequest, ContractPublic, RenderRequest, Sha256
 from api_schemas.walkthrough import WalkthroughSettings
 
 __all__ = [
+    "CalibrateJobPayload",
     "CompositeJobPayload",
     "DatasetBakeJobPayload",
     "GenerateJobPayload",
@@ -49,6 +50,20 @@ class RenderJobPayload(FrozenModel):
     request: RenderRequest
     artifact_key: Sha256
     """The key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
+    contract: ContractPublic | None = None
+    """A request planned from a quality contract: the contract, written into the artifact's result
+    with the achieved time (not part of the key: the same image answers the same explicit request)."""
+
+
+class CalibrateJobPayload(FrozenModel):
+    """Payload of ``workers.jobs.calibrate.calibrate_job``."""
+
+    v: Literal[1] = 1
+    scene_id: Sha256
+    bake_key: Sha256
+    key: Sha256
+    """The calibration key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
+    request: CalibrationRequest
 
 
 class SceneBakeJobPayload(FrozenModel):

@@ -13,7 +13,7 @@ from typing import Any
 from redis import Redis
 from rq.job import Dependency, Job
 
-from api_schemas.service import RenderRequest, method_needs_bake
+from api_schemas.service import ContractPublic, RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from producer.artifacts import artifact_key, read_manifest
 from producer.bakes import bake_complete, bake_key, enqueue_bake
@@ -34,6 +34,8 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
     params = req.model_dump(mode="json", exclude={"scene_id", "missing_bake"})
     if params.get("outputs") is None:  # every image (the default): the key of a full artifact stays as it was
         params.pop("outputs", None)
+    if params.get("quality") is None:  # planned requests carry the chosen method instead: keys as before
+        params.pop("quality", None)
     if method_needs_bake(req.method):
         params.pop("params")  # the LDC methods shade with the bake's settings
     else:
@@ -54,6 +56,7 @@ def enqueue_render(
     *,
     store: ObjectStore | None = None,
     timeout: int = RENDER_TIMEOUT_S,
+    contract: ContractPublic | None = None,
 ) -> tuple[str, Job | None]:
     """Queue a render, or find it done or in progress.
 
@@ -85,7 +88,7 @@ def enqueue_render(
             _, merge = enqueue_bake(redis, store, req.scene_id, req.bake, owner)
             if merge is not None:
                 depends_on = Dependency(jobs=[merge.id], allow_failure=True)
-    payload = RenderJobPayload(request=req, artifact_key=key).model_dump(mode="json")
+    payload = RenderJobPayload(request=req, artifact_key=key, contract=contract).model_dump(mode="json")
     meta: dict[str, Any] = {
         "kind": "render",
         "artifact_key": key,

@@ -4,7 +4,8 @@ A scene's LDC bakes (``bakes/<scene>/<key>.json`` records, see :mod:`producer.ba
 walkthroughs (``walkthroughs/<key>.json``, indexed per scene under
 ``walkthroughs-by-scene/<scene>/<key>``) and their walkthrough bakes are derived from the scene
 alone: once the scene is gone nobody can request them again, so ``DELETE /v1/scenes/{id}``
-removes them with it (the last owner's delete). Single renders stay in the content-addressed
+removes them with it (the last owner's delete), and with them the scene's calibrations for quality
+contracts (``calibrations/<scene>/``). Single renders stay in the content-addressed
 artifact cache (they are small, and a re-upload of the same scene reuses them).
 
 The delete is all-or-nothing with respect to running work: when any job of the scene or of one
@@ -79,5 +80,7 @@ def delete_scene_outputs(redis: Redis, store: ObjectStore, scene_id: str) -> Sce
         if job is not None:
             job.delete(remove_from_queue=True)
     for k in store.list(f"walkthroughs-by-scene/{scene_id}/"):  # markers of walkthroughs deleted earlier
+        store.delete(k)
+    for k in store.list(f"calibrations/{scene_id}/"):  # quality-contract models (producer.calibrations)
         store.delete(k)
     return outs

@@ -3,9 +3,10 @@
 Service: ``ibr up`` (everything on one machine), ``ibr api``, ``ibr worker --queue
 bake|render``. Client (talks to the API at ``--api`` / ``IBR_API_URL``, default
 http://127.0.0.1:8000, key from ``IBR_API_KEY``): ``ibr scenes add|list|show|delete``,
-``ibr render`` (request a render, follow it with a progress bar, fetch the image; ``--method
-ldc+llf`` renders from the scene's bake), ``ibr bake`` (bake a scene, ``--wait`` follows its parts),
-``ibr bakes list|show|delete``,
+``ibr calibrate`` (per-scene calibration for quality contracts: ``ibr render --quality-error 0.05``
+or ``--quality-ms 100`` instead of a method), ``ibr render`` (request a render, follow it with a
+progress bar, fetch the image; ``--method ldc+llf`` renders from the scene's bake), ``ibr bake``
+(bake a scene, ``--wait`` follows its parts), ``ibr bakes list|show|delete``,
 ``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``; illumination datasets: ``ibr datasets
 upload|list|show|delete|generate|bake``, ``ibr relight``, ``ibr composite``; walkthroughs:
 ``ibr walkthrough`` (request, follow with a progress bar, fetch the MP4 / frames),
@@ -360,13 +361,17 @@ def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt 
 
 def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict[str, Any],
                       output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
-                      method: str = "reference", bake: dict[str, Any] | None = None,
-                      missing_bake: str | None = None) -> None:
+                      method: str | None = "reference", bake: dict[str, Any] | None = None,
+                      missing_bake: str | None = None, max_error: float | None = None,
+                      max_ms: float | None = None, best_effort: bool = False) -> None:
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
-                                   missing_bake="bake" if missing_bake == "bake" else None))
+                                   missing_bake="bake" if missing_bake == "bake" else None,
+                                   max_error=max_error, max_ms=max_ms, best_effort=best_effort))
         typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
+        if r.contract is not None:
+            typer.echo(_contract_line(r.contract), err=True)
         if r.bake is not None:
             typer.echo(f"waiting for bake {r.bake.key} ({r.bake.state}; follow it with "
                        f"'ibr bake {scene_id} --wait')", err=True)
@@ -387,6 +392,9 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
         adaptive = manifest.result.get("adaptive")
         if isinstance(adaptive, dict):
             typer.echo(_adaptive_line(adaptive), err=True)
+        achieved = (manifest.result.get("timings") or {}).get("render_wall")
+        if r.contract is not None and isinstance(achieved, int | float):
+            typer.echo(f"achieved: {achieved * 1000:.1f} ms (predicted {r.contract.predicted_ms:.1f} ms)", err=True)
         counts = manifest.result.get("counts") or {}
         if "hole_pixels" in counts:
             typer.echo(f"hole pixels: {counts['hole_pixels']}, provenance: {counts.get('provenance')}", err=True)
@@ -406,6 +414,16 @@ def _adaptive_line(a: dict[str, Any]) -> str:
             f"(cap {a['spp_cap']}), {a['elapsed_ms']:.0f} ms")
 
 
+def _contract_line(con: Any) -> str:
+    """One line saying what a quality contract got."""
+    setting = con.method + (f" at {con.params['spp']} spp" if con.params else "")
+    met = "meets the contract" if con.met else f"DOES NOT meet {', '.join(con.unmet)}: {con.reason}"
+    bake = {"waited": ", after its bake", "best_available_now": ", the best available now (bake missing)"}.get(
+        con.bake, "")
+    return (f"plan: {setting} ({con.rule}{bake}); predicted LRMS {con.predicted_error:.4f}, "
+            f"{con.predicted_ms:.1f} ms; {met}")
+
+
 @app.command()
 def render(
     scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
@@ -419,11 +437,20 @@ def render(
              "this, in (0, 1) (--spp is then the cap per pixel)")] = None,
     max_ms: Annotated[float | None, typer.Option(
         help="Reference: render progressively, stopping after this many milliseconds of render time")] = None,
-    method: Annotated[str, typer.Option(help="reference, ldc, ldc+llf or ldc+ibrt:k (k = 0..8)")] = "reference",
+    method: Annotated[str | None, typer.Option(help="reference (default), ldc, ldc+llf or ldc+ibrt:k (k = 0..8)")
+                      ] = None,
     ldc_resolution: Annotated[int | None, typer.Option(help="LDC methods: the bake's LDC resolution")] = None,
     llf_f: Annotated[int | None, typer.Option(help="LDC methods: the bake's LLF subdivision f")] = None,
     bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
                                                help="LDC methods: bake first when the bake is missing")] = False,
+    quality_error: Annotated[float | None, typer.Option(
+        help="Quality contract: largest LRMS against the converged image, in (0, 1); the planner picks the "
+             "method (needs 'ibr calibrate' of the scene first)")] = None,
+    quality_ms: Annotated[float | None, typer.Option(
+        help="Quality contract: largest render time in the worker, in ms; the planner picks the method")] = None,
+    best_effort: Annotated[bool, typer.Option(
+        "--best-effort/--strict", help="Quality contract no setting meets: render the closest (marked) "
+                                       "instead of failing")] = False,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")] = True,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
@@ -432,7 +459,13 @@ def render(
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
                                 "seed": seed, "max_error": max_error, "max_ms": max_ms}.items() if v is not None}
     bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
-    if method != "reference" and params:
+    contract = quality_error is not None or quality_ms is not None
+    if contract and (method is not None or params):
+        _fail("--quality-error/--quality-ms let the planner choose the method: leave out --method and "
+              "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
+    if method is None and not contract:
+        method = "reference"
+    if method not in (None, "reference") and params:
         _fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
               "the bake's settings")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
@@ -445,7 +478,49 @@ def render(
     if output is not None and output.suffix.lower() not in (".png", ".exr"):
         _fail(f"{output}: the service delivers .png or .exr")
     _render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
-                      missing_bake="bake" if bake_missing else None)
+                      missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
+                      best_effort=best_effort)
+
+
+@app.command()
+def calibrate(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
+    ldc_resolution: Annotated[int | None, typer.Option(help="The bake's LDC resolution")] = None,
+    llf_f: Annotated[int | None, typer.Option(help="The bake's LLF subdivision f")] = None,
+    probes: Annotated[int | None, typer.Option(help="Probe views (1..8)")] = None,
+    size: Annotated[int | None, typer.Option(help="Probe images' longest side, pixels")] = None,
+    truth_spp: Annotated[int | None, typer.Option(help="Ground truth samples per pixel")] = None,
+    bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
+                                               help="Bake first when the bake is missing")] = False,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the calibration")] = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Calibrate a scene's render settings for quality contracts (render --quality-error / --quality-ms)."""
+    bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
+    params = {k: v for k, v in {"probes": probes, "size": size, "truth_spp": truth_spp}.items() if v is not None}
+    scene_id = _scene_id_of(scene, api_url, api_key)
+    with _client(api_url, api_key) as c:
+        cal = _call(lambda: c.calibrate(scene_id, bake, params, missing_bake="bake" if bake_missing else None))
+        typer.echo(f"calibration {cal.key} ({'cached' if cal.cached else cal.state})", err=True)
+        if wait and cal.state != "finished":
+            with _bar("calibrate") as update:
+                def show(p: Any) -> None:
+                    if p.job is not None:
+                        update(p.job.progress.fraction, p.job.progress.stage or p.state)
+
+                cal = _call(lambda: c.wait_calibration(cal, on_progress=show))
+        if cal.model is not None:
+            m = cal.model
+            typer.echo(f"cost: {m['cost_s']:.1f} s; reference: LRMS {m['reference']['error']:.3f} at 1 spp "
+                       f"(falls as spp^-{m['reference'].get('exponent', 0.5):.2f})", err=True)
+            for name, fit in m["methods"].items():
+                if name not in m["excluded"]:
+                    typer.echo(f"{name}: LRMS {fit['error']:.4f}, {fit['b_ms']:.1f} ms + "
+                               f"{fit['c_ms'] * 1e6:.1f} ms per Mpixel", err=True)
+            for name, why in m["excluded"].items():
+                typer.echo(f"{name}: excluded ({why})", err=True)
+    typer.echo(cal.bake_key)
 
 
 def _scene_id_of(scene: str, api_url: str, api_key: str | None) -> str:

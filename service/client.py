@@ -48,6 +48,7 @@ from api_schemas.service import (
     BakeList,
     BakePublic,
     BatchPublic,
+    CalibrationPublic,
     JobList,
     JobPublic,
     RenderPublic,
@@ -172,15 +173,29 @@ class Client:
         self._request("DELETE", f"/v1/scenes/{_id(scene_id, 'scene id')}")
 
     # ------------------------------------------------------------------ renders and jobs
-    def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str = "reference",
+    def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str | None = None,
                params: Mapping[str, Any] | None = None, wait: float = 0.0, bake: Mapping[str, Any] | None = None,
-               missing_bake: Literal["fail", "bake"] | None = None) -> RenderPublic:
+               missing_bake: Literal["fail", "bake"] | None = None, max_error: float | None = None,
+               max_ms: float | None = None, best_effort: bool = False) -> RenderPublic:
         """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``.
 
-        ``method``: ``reference``, ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods render from
-        the bake named by ``bake`` (its params; default params when None). Without that bake the API
-        answers 409 (ApiError), unless ``missing_bake="bake"`` queues the render after the bake."""
-        body: dict[str, Any] = {"scene_id": scene_id, "method": method}
+        ``method``: ``reference`` (the default), ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods
+        render from the bake named by ``bake`` (its params; default params when None). Without that bake
+        the API answers 409 (ApiError), unless ``missing_bake="bake"`` queues the render after the bake.
+
+        ``max_error`` (LRMS against the converged image) and / or ``max_ms`` (render time in the worker)
+        instead of a method: a quality contract, planned from the scene's calibration (see
+        :meth:`calibrate`); the answer's ``contract`` states the plan. ``best_effort``: when no setting
+        meets the targets, render the closest one, marked, instead of an ApiError (422)."""
+        body: dict[str, Any] = {"scene_id": scene_id}
+        if max_error is not None or max_ms is not None:
+            if method is not None or params:
+                raise ValueError("max_error / max_ms let the planner choose the method: leave out method and params")
+            body["quality"] = {k: v for k, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None}
+            if best_effort:
+                body["quality"]["on_miss"] = "best_effort"
+        else:
+            body["method"] = method or "reference"
         if camera is not None:
             body["camera"] = dict(camera)
         if params:
@@ -262,6 +277,42 @@ class Client:
             time.sleep(delay)
             delay = min(2.0, delay * 1.3)
             b = self.get_bake(b.scene_id, b.key)
+
+    # ------------------------------------------------------------------ calibrations
+    def calibrate(self, scene_id: str, bake: Mapping[str, Any] | None = None,
+                  params: Mapping[str, Any] | None = None,
+                  missing_bake: Literal["fail", "bake"] | None = None) -> CalibrationPublic:
+        """Calibrate a scene's bake for quality contracts (``CalibrationParams`` fields in ``params``);
+        ``cached`` when this calibration exists already."""
+        body: dict[str, Any] = {"bake": dict(bake or {}), "params": dict(params or {})}
+        if missing_bake is not None:
+            body["missing_bake"] = missing_bake
+        r = self._request("POST", f"/v1/scenes/{_id(scene_id, 'scene id')}/calibrations", json=body)
+        return CalibrationPublic.model_validate(r.json())
+
+    def get_calibration(self, scene_id: str, bake_key: str, key: str | None = None) -> CalibrationPublic:
+        r = self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/calibrations/{_id(bake_key, 'bake key')}",
+                          params={"key": key} if key else None)
+        return CalibrationPublic.model_validate(r.json())
+
+    def wait_calibration(self, c: CalibrationPublic, timeout: float = 3600.0, poll: float = 0.5,
+                         on_progress: Callable[[CalibrationPublic], None] | None = None) -> CalibrationPublic:
+        """Poll a calibration until it is finished (returned) or failed / missing (ApiError)."""
+        deadline = time.monotonic() + timeout
+        delay = poll
+        while True:
+            if on_progress is not None:
+                on_progress(c)
+            if c.state == "finished":
+                return c
+            if c.state in ("failed", "missing"):
+                raise JobFailed(500 if c.state == "failed" else 409, f"calibration {c.state}",
+                                (c.job.error if c.job is not None else None) or "")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"calibration {c.key} still {c.state} after {timeout} s")
+            time.sleep(delay)
+            delay = min(2.0, delay * 1.3)
+            c = self.get_calibration(c.scene_id, c.bake_key, c.key)
 
     # ------------------------------------------------------------------ artifacts
     def artifact(self, key: str) -> ArtifactManifest:

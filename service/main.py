@@ -26,7 +26,19 @@ from producer.settings import Settings, load_settings
 from producer.store import ObjectStore, open_configured_store
 from service.api.errors import install_exception_handlers
 from service.api.limits import BodyLimitMiddleware
-from service.api.routes import artifacts, bakes, batches, datasets, health, jobs, preview, renders, scenes, walkthroughs
+from service.api.routes import (
+    artifacts,
+    bakes,
+    batches,
+    calibrations,
+    datasets,
+    health,
+    jobs,
+    preview,
+    renders,
+    scenes,
+    walkthroughs,
+)
 from service.core.logging import RequestContextMiddleware, configure_logging
 from service.core.metrics import MetricsMiddleware, ServiceMetrics
 from service.core.security import KeyRing, RateLimiter
@@ -148,7 +160,8 @@ def create_app(
 
     install_exception_handlers(app)
     _install_docs(app)
-    for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes, walkthroughs):
+    for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes, calibrations,
+                   walkthroughs):
         app.include_router(module.router)
 
     # add_middleware wraps: the LAST added is the outermost.

@@ -14,6 +14,8 @@ leading ``"body"`` of FastAPI's locations is dropped, so a body error reads
 | LacksPart | 404 with its own message (the caller can see the resource; it lacks the part asked for) |
 | producer.store.ChecksumMismatch | 404, "stored data corrupt" (the manifest is gone: request it again to rebake) |
 | queues.BakeMissing (an LDC render without its bake) | 409, "bake missing", naming the bake to request |
+| CalibrationMissing (a quality contract on an uncalibrated scene) | 409, "calibration missing", naming the request |
+| ContractUnmet (no setting meets a quality contract, ``on_miss: fail``) | 422, one error per unmet target |
 | BodyTooLarge | 413 |
 | MultipartError | 400 |
 | OverflowError (a validator overflowing on numbers near 1e308) | 422 |
@@ -43,7 +45,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas.errors import FieldError, format_error_details
 from api_schemas.service import Problem, ProblemField
-from producer.errors import BakeMissing, JobNotFound, UnknownScene
+from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, JobNotFound, UnknownScene
 from producer.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
 from service.api.limits import BodyTooLarge, MultipartError
 from service.core.security import AuthError, RateLimited
@@ -270,6 +272,17 @@ def install_exception_handlers(app: FastAPI) -> None:
     @app.exception_handler(BakeMissing)
     async def _bake_missing(request: Request, exc: BakeMissing) -> JSONResponse:
         return problem_response(409, str(exc), title="Bake missing", type_="urn:ibr:problem:bake-missing")
+
+    @app.exception_handler(CalibrationMissing)
+    async def _calibration_missing(request: Request, exc: CalibrationMissing) -> JSONResponse:
+        return problem_response(409, str(exc), title="Calibration missing", type_="urn:ibr:problem:calibration-missing")
+
+    @app.exception_handler(ContractUnmet)
+    async def _contract_unmet(request: Request, exc: ContractUnmet) -> JSONResponse:
+        return problem_response(422, str(exc), title="Quality contract cannot be met",
+                                type_="urn:ibr:problem:contract-unmet",
+                                errors=[{"field": f"quality.{t}", "message": str(exc), "type": "contract_unmet"}
+                                        for t in exc.unmet])
 
     @app.exception_handler(StoreError)
     async def _store_error(request: Request, exc: StoreError) -> JSONResponse:

@@ -202,8 +202,9 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     job = get_current_job()
     progress = ProgressReporter(job)
     progress.report(0.0, "loading scene", force=True)
+    contract = p.contract.model_dump(mode="json") if p.contract is not None else None
     if method_needs_bake(p.request.method):
-        return _render_from_bake(p.request, key, store, progress, t_start)
+        return _render_from_bake(p.request, key, store, progress, t_start, contract)
 
     req = p.request
     t0 = time.perf_counter()
@@ -214,7 +215,9 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     params = ReferenceParams(**req.params.model_dump())
     progress.report(LOAD_END, "render", force=True)
 
+    t0 = time.perf_counter()
     out = entry.renderer.render(camera, params, progress)  # NonFiniteOutputError: nothing is written
+    t_render = time.perf_counter() - t0
 
     progress.report(RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
@@ -232,9 +235,10 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
                                  "object_id": out.object_id, "material_id": out.material_id}, meta, req.outputs)
     progress.check_canceled()  # last chance before the commit
-    timings = {**out.timings, "load_scene": t_load, "encode": time.perf_counter() - t0}
+    timings = {**out.timings, "render_wall": t_render, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
-    doc: dict[str, Any] = {"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports}
+    doc: dict[str, Any] = {"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports,
+                           **_contract_result(contract, t_render)}
     if out.adaptive is not None:
         doc["adaptive"] = out.adaptive
     result = json_safe(doc)
@@ -282,8 +286,13 @@ def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> Ca
     return CachedBakeRenderer(loaded=loaded, renderer=renderer, bake_key=bkey, plan=plan)
 
 
+def _contract_result(contract: dict[str, Any] | None, t_render: float) -> dict[str, Any]:
+    """``{"contract": ...}`` with the achieved time for a request planned from a quality contract."""
+    return {} if contract is None else {"contract": {**contract, "achieved_ms": 1000.0 * t_render}}
+
+
 def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress: ProgressReporter,
-                      t_start: float) -> dict[str, Any]:
+                      t_start: float, contract: dict[str, Any] | None = None) -> dict[str, Any]:
     """``ldc``, ``ldc+llf``, ``ldc+ibrt:k``: render from the scene's bake (LDC + LLF) with
     ``engine.newviews.renderer.LDCViewRenderer``, cached per bake in this worker."""
     bkey = bake_key(req.scene_id, req.bake)
@@ -296,7 +305,9 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
         raise BakeUnavailable(f"method {req.method} needs the light field, but bake {bkey} has none "
                               f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
     progress.report(LOAD_END, "render", force=True)
+    t0 = time.perf_counter()
     out = entry.renderer.render(camera, req.method, progress=progress)
+    t_render = time.perf_counter() - t0
     renderer_cache().resize(f"bake:{bkey}", runtime_scene_bytes(loaded.runtime) + int(entry.renderer.nbytes))
     progress.report(RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
@@ -308,12 +319,12 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                                  "provenance": out.provenance}, meta, req.outputs)
     progress.check_canceled()
     prov = np.bincount(np.asarray(out.provenance, dtype=np.int64).ravel(), minlength=5)
-    timings = {**out.timings, "load_bake": t_load, "encode": time.perf_counter() - t0}
+    timings = {**out.timings, "render_wall": t_render, "load_bake": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "hole_pixels": int(np.count_nonzero(out.hole_mask)),
               "provenance": {PROVENANCE_CODES[i]: int(prov[i]) for i in range(5)},
               "bake_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
     result = json_safe({"timings": timings, "counts": counts, "plan": out.plan, "bake_key": bkey,
-                         "mesh_reports": loaded.mesh_reports})
+                         "mesh_reports": loaded.mesh_reports, **_contract_result(contract, t_render)})
     t0 = time.perf_counter()
     write_artifact(store, key, "render", {"scene": req.scene_id}, render_params(req), ENGINE_VERSION, blobs, result,
                    max_workers=STORE_WRITERS)

@@ -50,6 +50,13 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, owner: str | 
             else:
                 errors.append(FieldError(field=f"renders.{j}.scene_id", message=f"no scene {req.scene_id}",
                                          type="unknown_scene"))
+        if req.quality is not None:
+            errors.append(FieldError(
+                field=f"renders.{j}.quality",
+                message="quality contracts are planned one request at a time: send this render to POST /v1/renders, "
+                        "or name its method here",
+                type="quality_in_batch",
+            ))
         if req.camera is not None and req.camera.width * req.camera.height > settings.max_image_pixels:
             errors.append(FieldError(
                 field=f"renders.{j}.camera.height",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Collection
+from functools import partial
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, Query, Response
@@ -10,9 +11,18 @@ from fastapi.concurrency import run_in_threadpool
 from rq.job import Job
 
 from api_schemas.errors import FieldError
-from api_schemas.service import ArtifactManifest, BakePublic, JobPublic, RenderPublic, RenderRequest, method_needs_bake
+from api_schemas.service import (
+    ArtifactManifest,
+    BakePublic,
+    ContractPublic,
+    JobPublic,
+    RenderPublic,
+    RenderRequest,
+    method_needs_bake,
+)
 from producer.artifacts import get_scene, read_manifest
 from producer.bakes import bake_key, bake_status
+from producer.calibrations import plan_render
 from producer.render_memory import estimate_render_bytes
 from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
@@ -69,9 +79,28 @@ def _answer(key: str, job: JobPublic | None, manifest: ArtifactManifest | None, 
     return RenderPublic(artifact_key=key, status=_STATUS[job.state], job=job, links=links)
 
 
-def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int, max_bytes: int) -> None:
+def achieved_ms(manifest: ArtifactManifest | None) -> float | None:
+    """The render's time in the worker (the renderer's call), from an artifact's result."""
+    if manifest is None:
+        return None
+    timings = manifest.result.get("timings") or {}
+    wall = timings.get("render_wall")
+    return 1000.0 * float(wall) if isinstance(wall, (int, float)) else None
+
+
+def _with_contract(pub: RenderPublic, contract: ContractPublic | None) -> RenderPublic:
+    if contract is None:
+        return pub
+    return pub.model_copy(update={"contract": contract.model_copy(update={"achieved_ms": achieved_ms(pub.artifact)})})
+
+
+def _check_visible(req: RenderRequest, store: Any, owner: str | None) -> None:
     if not scene_visible(store, req.scene_id, owner):
         raise MissingResource("scene_id", req.scene_id)
+
+
+def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int, max_bytes: int) -> None:
+    _check_visible(req, store, owner)
     try:
         scene, _, _ = get_scene(store, req.scene_id)
     except NotFound:
@@ -124,7 +153,19 @@ async def request_render(
     metrics: MetricsDep,
     wait: Annotated[float, Query(ge=0, le=MAX_WAIT_S, description="Seconds to wait for the result (0..60)")] = 0,
 ) -> RenderPublic:
-    """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job."""
+    """Render a stored scene: 200 with the artifact when cached or done within `wait`, else 202 and the job.
+    With `quality` instead of a method, the planner picks the method from the scene's calibration
+    (409 when there is none) and the answer's `contract` states the plan."""
+    contract: ContractPublic | None = None
+    if req.quality is not None:
+        await run_in_threadpool(_check_visible, req, store, owner)
+        req, contract = await run_in_threadpool(plan_render, redis, store, req, settings.max_render_bytes)  # 409/422
+    pub = await _render(req, response, store, redis, owner, settings, metrics, wait, contract)
+    return _with_contract(pub, contract)
+
+
+async def _render(req: RenderRequest, response: Response, store: Any, redis: Any, owner: str | None, settings: Any,
+                  metrics: Any, wait: float, contract: ContractPublic | None) -> RenderPublic:
     await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels,
                             settings.max_render_bytes)
     if req.outputs is not None:  # a subset of the images: the full artifact, when it exists, holds them
@@ -133,14 +174,15 @@ async def request_render(
         if manifest is not None:
             metrics.render_cache.labels("hit").inc()
             return _answer(full_key, None, manifest, cached=True)
-    key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)  # BakeMissing: 409
+    key, job = await run_in_threadpool(partial(enqueue_render, redis, req, owner, store=store,
+                                               contract=contract))  # BakeMissing: 409
     if job is None:
         manifest = await run_in_threadpool(read_manifest, store, key)
         if manifest is not None:
             metrics.render_cache.labels("hit").inc()
             return _answer(key, None, manifest, cached=True)
         # the artifact vanished between the two reads (invalidated): queue it again
-        key, job = await run_in_threadpool(enqueue_render, redis, req, owner, store=store)
+        key, job = await run_in_threadpool(partial(enqueue_render, redis, req, owner, store=store, contract=contract))
         if job is None:
             manifest = await run_in_threadpool(read_manifest, store, key)
             if manifest is not None:

@@ -1,0 +1,249 @@
+"""Quality contracts, measured: does the planner's choice meet its target on views it was not
+calibrated on, and what does it cost against the cheapest setting that would have met it?
+
+Per sample scene (in process, the engine directly; the service adds queueing and encoding, not
+error): bake the LDC (indirect light when the scene has any; a light field when its materials need
+one), calibrate it with the service's defaults (``workers.jobs.calibrate.calibrate_scene``: two
+probe views of 64 px, ground truth at 256 spp), then on held-out views (turned by angles the probes
+do not use, at another size) render a converged ground truth (two halves of different seeds: their
+spread is its noise, removed in quadrature from every measured error) and an exhaustive grid of
+settings: the reference at 1, 2, 4, ..., 256 spp and every LDC method of the bake, each timed.
+Requests: error targets from 1 % to 20 % and time budgets from 20 ms to 5 s (log-spaced), and
+pairs of both, on each held-out view. Each is planned (``engine.quality.plan``) and checked against
+the grid's measurements (a reference above 256 spp is rendered and measured when planned):
+
+- **met**: the chosen setting's measured error is at most the target and its measured time at most
+  the budget (a request that no setting of the grid meets either, and that the planner refuses, is
+  counted as answered correctly: "refused, nothing meets it");
+- **cost ratio**: the chosen setting's measured time over the cheapest grid setting's that met the
+  same target on that view.
+
+``python -m bench.contracts`` (writes docs/accuracy/contracts.md); ``--quick`` for a smoke run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from api_schemas import load_scene_file
+from api_schemas.service import CalibrationParams
+from bench.docs_writer import replace_block
+from engine.metrics import lrms
+from engine.newviews.effects import analyze
+from engine.newviews.indirect import IndirectParams
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf
+from engine.newviews.renderer import LDCViewRenderer
+from engine.quality import SceneModel, plan
+from engine.raycast import EmbreeCaster
+from engine.reference import ReferenceParams, ReferenceRenderer
+from samples import SAMPLES_DIR, sample_path
+from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
+from workers.scene_loader import directory_resolver, load_scene
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "accuracy" / "contracts.md"
+HELD_OUT_DEG = (4.0, -4.0, 12.0, -12.0, 20.0, -20.0)
+"""Held-out views: angles the probes (+-8, +-16) never use."""
+GRID_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+ERRORS = tuple(float(x) for x in np.geomspace(0.01, 0.2, 10))
+BUDGETS_MS = tuple(float(x) for x in np.geomspace(20.0, 5000.0, 8))
+
+
+def _setup(name: str, ldc_res: int, log: Any) -> tuple[Any, Any, LDCViewRenderer, ReferenceRenderer, float]:
+    path = sample_path(name)
+    loaded = load_scene(load_scene_file(path), directory_resolver(SAMPLES_DIR))
+    sc = loaded.runtime
+    caster = EmbreeCaster(sc)
+    effects = analyze(sc)
+    t0 = time.perf_counter()
+    gi = IndirectParams(noise=0.05, bounces=3) if effects.indirect_skip == "" else None
+    ldc = bake_ldc(sc, caster, ldc_res, plan=effects, indirect=gi)
+    llf = bake_llf(sc, caster, 4, 32, params=ReferenceParams(spp=1, max_depth=4, glossy_samples=8,
+                                                             area_light_samples=4)) if effects.needs_llf else None
+    bake_s = time.perf_counter() - t0
+    log(f"{name}: bake LDC {ldc_res}{' + indirect' if gi else ''}{' + LLF' if llf is not None else ''} {bake_s:.1f} s")
+    return sc, loaded.camera, LDCViewRenderer(sc, ldc, llf, effects), ReferenceRenderer(sc, caster), bake_s
+
+
+def _best_ms(fn: Any, *args: Any, repeats: int = 3) -> tuple[Any, float]:
+    best, out = math.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn(*args)
+        best = min(best, 1000.0 * (time.perf_counter() - t0))
+    return out, best
+
+
+def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, cal: CalibrationParams,
+              log: Any) -> dict[str, Any]:
+    sc, cam0, ren, ref, bake_s = _setup(name, ldc_res, log)
+    model: SceneModel = calibrate_scene(sc, cam0, ren, params=cal, bake_plan={}, indirect_bounces=3, reference=ref,
+                                        bake_cost_s=bake_s)
+    log(f"{name}: calibration {model.cost_s:.1f} s, reference a={model.reference.error:.3f} "
+        f"p={model.reference.exponent:.2f}, methods {[(m, round(f.error, 4)) for m, f in model.methods.items()]}, "
+        f"excluded {list(model.excluded)}")
+    pivot = view_pivot(cam0, *sc.bounds)
+    gi = bool(model.reference_params.get("indirect_per_spp"))
+
+    def rp(spp: int, seed: int = 0) -> ReferenceParams:
+        p = model.reference_request_params(spp)
+        return ReferenceParams(spp=p["spp"], max_depth=p["max_depth"], glossy_samples=p["glossy_samples"],
+                               area_light_samples=p["area_light_samples"],
+                               indirect_samples=p.get("indirect_samples", 0),
+                               indirect_bounces=p["indirect_bounces"], seed=seed)
+
+    requests: list[dict[str, Any]] = []
+    for deg in HELD_OUT_DEG[:views]:
+        requests += _view(name, model, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp, log)
+    return {"scene": name, "ldc_resolution": ldc_res, "bake_s": bake_s, "calibration_s": model.cost_s,
+            "calibration_breakdown_s": model.probe.get("cost_breakdown_s"),
+            "model_reference_a": model.reference.error, "model_reference_p": model.reference.exponent,
+            "model_methods": {m: f.error for m, f in model.methods.items()}, "excluded": model.excluded,
+            "requests": requests, "indirect": gi}
+
+
+class _Grid:
+    """One held-out view's measurements: error (ground truth noise removed) and time per setting."""
+
+    def __init__(self, ref: ReferenceRenderer, cam: Any, truth: Any, mask: Any, noise: float, rp: Any):
+        self.ref, self.cam, self.truth, self.mask, self.noise, self.rp = ref, cam, truth, mask, noise, rp
+        self.m: dict[str, tuple[float, float]] = {}
+
+    def measure(self, key: str, img: Any, ms: float) -> None:
+        e = lrms(img, self.truth, self.mask)
+        self.m[key] = (math.sqrt(max(e * e - self.noise * self.noise, 0.0)), ms)
+
+    def reference(self, spp: int) -> tuple[float, float]:
+        key = f"reference@{spp}spp"
+        if key not in self.m:
+            t0 = time.perf_counter()
+            img = self.ref.render(self.cam, self.rp(spp)).radiance
+            self.measure(key, img, 1000.0 * (time.perf_counter() - t0))
+        return self.m[key]
+
+
+def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRenderer, cam: Any, deg: float,
+          truth_spp: int, rp: Any, log: Any) -> list[dict[str, Any]]:
+    px = cam.width * cam.height
+    t0 = time.perf_counter()
+    h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
+    h2 = ref.render(cam, rp(truth_spp // 2, 2002)).radiance
+    mask = contract_mask(ref.scene, ref.render(cam, ReferenceParams(spp=1, max_depth=0)).object_id)
+    noise = lrms(h1, h2, mask) / 2.0  # the mean of two halves: half their difference's spread
+    log(f"{name} view {deg:+.0f} deg {cam.width}x{cam.height}: truth {time.perf_counter() - t0:.1f} s, "
+        f"its noise {noise:.4f}")
+    grid = _Grid(ref, cam, 0.5 * (h1 + h2), mask, noise, rp)
+    for spp in GRID_SPP:
+        grid.reference(spp)
+    for m in model.methods:
+        out, ms = _best_ms(ren.render, cam, m)
+        grid.measure(m, out.radiance, ms)
+    names = _grid_names(model)
+    rows: list[dict[str, Any]] = []
+    targets: list[tuple[float | None, float | None]] = [(e, None) for e in ERRORS] + \
+        [(None, t) for t in BUDGETS_MS] + [(e, t) for e in ERRORS[::3] for t in BUDGETS_MS[2::2]]
+    for max_error, max_ms in targets:
+        p = plan(model, px, max_error=max_error, max_ms=max_ms)
+        ok_grid = [ms for k, (e, ms) in grid.m.items() if k in names
+                   and (max_error is None or e <= max_error) and (max_ms is None or ms <= max_ms)]
+        cheapest = min(ok_grid) if ok_grid else None
+        row: dict[str, Any] = {"scene": name, "view": deg, "max_error": max_error, "max_ms": max_ms,
+                               "planned": p.met, "grid_can": cheapest is not None}
+        if p.choice is not None:
+            s = p.choice.setting
+            err, ms = grid.reference(s.spp) if s.spp is not None else grid.m[s.name]
+            met = (max_error is None or err <= max_error) and (max_ms is None or ms <= max_ms)
+            row |= {"choice": s.name, "predicted_error": p.choice.error, "predicted_ms": p.choice.ms, "error": err,
+                    "ms": ms, "met": met,
+                    "cost_ratio": ms / cheapest if cheapest and max_error is not None else None}
+        else:
+            row |= {"choice": None, "met": cheapest is None, "reason": p.reason}
+        rows.append(row)
+    return rows
+
+
+def _grid_names(model: SceneModel) -> set[str]:
+    return {f"reference@{s}spp" for s in GRID_SPP} | set(model.methods)
+
+
+def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int, views: int) -> str:
+    reqs = [r for res in results for r in res["requests"]]
+    n = len(reqs)
+    met = sum(1 for r in reqs if r["met"])
+    ratios = sorted(r["cost_ratio"] for r in reqs if r.get("cost_ratio") is not None and r.get("met"))
+    refused = [r for r in reqs if r["choice"] is None]
+    missed = [r for r in reqs if not r["met"]]
+    lines = [f"Machine: {platform.machine()}, Python {sys.version.split()[0]}. Command: `{cmd}`. Held-out views of "
+             f"{size} px (longest side) turned by {', '.join(f'{d:+g}' for d in HELD_OUT_DEG[:views])} degrees (the "
+             f"probes: +-8, +-16); converged ground truth {truth_spp} spp in two halves (its noise removed in "
+             "quadrature).",
+             "",
+             f"**{met} of {n} requests ({100.0 * met / max(n, 1):.1f} %) met their contract** (measured error and time "
+             f"of the chosen setting on the held-out view; {len(refused)} refused with a reason, of which "
+             f"{sum(1 for r in refused if r['met'])} correctly: no grid setting met them either).",
+             ""]
+    if ratios:
+        med = ratios[len(ratios) // 2]
+        p90 = ratios[min(len(ratios) - 1, int(0.9 * len(ratios)))]
+        lines += [f"Cost of the chosen setting over the cheapest grid setting that met the same error target on the "
+                  f"same view ({len(ratios)} error requests that met theirs): median {med:.2f}x, 90th percentile "
+                  f"{p90:.2f}x.", ""]
+    lines += ["| scene | bake | calibration | reference a, p | LDC methods' error | excluded |",
+              "|---|---|---|---|---|---|"]
+    for res in results:
+        br = res["calibration_breakdown_s"] or {}
+        cal = (f"{res['calibration_s']:.1f} s (truth {br.get('truth', 0):.1f}, reference {br.get('reference', 0):.1f}, "
+               f"LDC {br.get('ldc', 0):.1f}, warm-up {br.get('warmup', 0):.1f})")
+        methods = ", ".join(f"{m} {e:.3f}" for m, e in res["model_methods"].items())
+        lines.append(f"| {res['scene']} | LDC {res['ldc_resolution']}, {res['bake_s']:.1f} s | {cal} | "
+                     f"{res['model_reference_a']:.3f}, {res['model_reference_p']:.2f} | {methods} | "
+                     f"{'; '.join(res['excluded']) or 'none'} |")
+    lines += ["", "Requests that missed (first 15):", "",
+              "| scene | view | max_error | max_ms | chosen | predicted error, ms | measured error, ms |",
+              "|---|---|---|---|---|---|---|"]
+    for r in missed[:15]:
+        pe = f"{r['predicted_error']:.4f}, {r['predicted_ms']:.0f}" if r.get("choice") else "-"
+        me = f"{r['error']:.4f}, {r['ms']:.0f}" if r.get("choice") else r.get("reason", "")[:60]
+        e = "-" if r["max_error"] is None else f"{r['max_error']:.3f}"
+        t = "-" if r["max_ms"] is None else f"{r['max_ms']:.0f}"
+        lines.append(f"| {r['scene']} | {r['view']:+g} | {e} | {t} | {r.get('choice')} | {pe} | {me} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", default="cornell_box,mirror_box")
+    ap.add_argument("--ldc", type=int, default=64)
+    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--truth-spp", type=int, default=1024)
+    ap.add_argument("--quick", action="store_true", help="smoke run: one scene, two small views")
+    ap.add_argument("--no-doc", action="store_true")
+    a = ap.parse_args(argv)
+    cal = CalibrationParams()
+    if a.quick:
+        a.scenes, a.views, a.size, a.truth_spp, a.ldc = "mirror_box", 2, 32, 64, 24
+        cal = CalibrationParams(probes=1, size=32, truth_spp=64, ibrt_ks=[1])
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+
+    results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log) for s in a.scenes.split(",")]
+    cmd = "python -m bench.contracts" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip()
+    block = doc_block(results, cmd, a.size, a.truth_spp, a.views)
+    print(block)
+    if not a.no_doc and not a.quick:
+        replace_block(DOC, "contracts", block, title="Quality contracts: met targets and their cost")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

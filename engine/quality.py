@@ -1,0 +1,383 @@
+"""Quality contracts: a per-scene model of what each render setting costs and how close it comes
+to the converged image, and the planner that picks a setting for an error target or a time budget.
+
+Pure Python (no numba, no numpy): the API process imports it to plan a request when it arrives;
+the calibration job (``workers/jobs/calibrate.py``) measures what :func:`fit_model` fits.
+
+Candidates come from the render-method registry (:mod:`engine.methods`): ``reference`` at every
+power-of-two spp of its range, ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k`` for the calibrated k. The
+model, per scene and bake:
+
+- reference at ``s`` spp: ``error(s) = a s^-p`` (LRMS against the converged image; ``p`` in
+  [0.5, 1] fitted on the calibrated spp, 0.5 past the largest of them; ``a`` fitted
+  conservatively, the ground truth's own noise at ``S`` spp removed: :func:`fit_reference`),
+  ``ms(s, px) = b + c * s * px``;
+- an LDC method: ``error`` = its measured LRMS against the converged image (the largest over the
+  probe views, the ground truth's noise removed in quadrature), taken as independent of the image
+  size; ``ms(px) = b + c * px`` (fitted on two image sizes).
+
+``plan(model, pixels, max_error=..., max_ms=...)`` applies one rule:
+
+=========================  ================================================================
+targets                    rule
+=========================  ================================================================
+``max_error``              the cheapest setting whose predicted error is at most the target
+``max_ms``                 the most accurate setting whose predicted time fits the budget
+both                       the cheapest meeting the error within the time; else (error not
+                           reachable in time) the most accurate within the time, marked
+=========================  ================================================================
+
+"Cost" is the predicted time, plus the bake's measured cost when a setting needs a bake that is
+not in the store yet and the caller allows waiting for it. A target no setting meets is never
+missed silently: :class:`Plan` says which target is unmet and why; the service answers 422 or, on
+request, the best effort marked as not meeting it.
+
+The adaptive reference (a progressive render that stops at an error or a time) joins the
+candidates in :func:`extra_candidates`, the one seam for it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+from engine.methods import IBRT_GENERATIONS, LDC, LDC_IBRT, LDC_LLF, REFERENCE, parse_method
+
+__all__ = [
+    "CALIBRATION_SPP",
+    "DEFAULT_IBRT_KS",
+    "MAX_USEFUL_ERROR",
+    "MODEL_VERSION",
+    "REFERENCE_SPP_LADDER",
+    "CandidateFit",
+    "Plan",
+    "Prediction",
+    "Rule",
+    "SceneModel",
+    "Setting",
+    "check_targets",
+    "extra_candidates",
+    "fit_ldc",
+    "fit_reference",
+    "fit_time",
+    "ldc_settings",
+    "plan",
+    "predict",
+]
+
+MODEL_VERSION = 1
+
+REFERENCE_SPP_LADDER: tuple[int, ...] = tuple(2 ** i for i in range(13) if 2 ** i <= REFERENCE.param("spp").high)
+"""The reference spp the planner offers: 1, 2, 4, ..., 4096."""
+
+CALIBRATION_SPP: tuple[int, ...] = (1, 4, 16)
+"""The reference spp the calibration renders on each probe view (the ladder's error and time fit)."""
+
+DEFAULT_IBRT_KS: tuple[int, ...] = (1, 2, 4)
+"""The ``ldc+ibrt:k`` generations calibrated by default (on mirror scenes only: elsewhere every k
+renders the ``ldc+llf`` image)."""
+
+MAX_USEFUL_ERROR = 0.5
+"""A method whose measured error exceeds this on the probe views is excluded from planning: it does
+not render what the scene holds (e.g. ``ldc`` on a mirror scene, or a bake without indirect light in
+a room lit mostly indirectly), so no contract should be met with it."""
+
+Rule = Literal["cheapest_meeting_error", "most_accurate_within_time", "cheapest_meeting_error_within_time",
+               "most_accurate_within_time_error_unmet", "best_effort_most_accurate", "best_effort_fastest"]
+
+
+@dataclass(frozen=True)
+class Setting:
+    """A candidate: a wire method and, for ``reference``, its spp."""
+
+    method: str
+    spp: int | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}@{self.spp}spp" if self.spp is not None else self.method
+
+    @property
+    def needs_bake(self) -> bool:
+        return parse_method(self.method).needs_bake
+
+
+def ldc_settings(has_llf: bool, mirror: bool, ibrt_ks: Iterable[int] = DEFAULT_IBRT_KS) -> list[Setting]:
+    """The LDC candidates of a bake: ``ldc``; ``ldc+llf`` when the bake has a light field
+    (``has_llf``; without one it renders the ``ldc`` image); on a scene with mirrors ``ldc+ibrt:k``
+    for each k (elsewhere IBRT changes nothing)."""
+    out = [Setting(LDC.name)]
+    if has_llf:
+        out.append(Setting(LDC_LLF.name))
+    if has_llf and mirror:
+        for k in sorted(set(ibrt_ks)):
+            IBRT_GENERATIONS.check(k)
+            if k > 0:
+                out.append(Setting(f"{LDC_IBRT.name}:{k}"))
+    return out
+
+
+# ------------------------------------------------------------------------------------ fits
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """The model of one method on one scene: ``error`` (LDC: the LRMS; reference: ``a`` of
+    ``a / sqrt(spp)``) and time ``b_ms + c_ms * units`` (units: pixels, or spp x pixels for the
+    reference). ``points`` keeps the measurements the fit came from."""
+
+    method: str
+    error: float
+    b_ms: float
+    c_ms: float
+    points: list[dict[str, Any]] = field(default_factory=list)
+    exponent: float = 0.5
+    """Reference: the error falls as ``spp^-exponent`` up to ``knee_spp``, as ``spp^-0.5`` past it."""
+    knee_spp: int = 1
+
+    def error_at(self, spp: int | None) -> float:
+        if self.method == REFERENCE.name:
+            assert spp is not None
+            knee = max(self.knee_spp, 1)
+            if spp <= knee:
+                return self.error * spp ** -self.exponent
+            return self.error * knee ** -self.exponent * math.sqrt(knee / spp)
+        return self.error
+
+    def ms_at(self, pixels: int, spp: int | None) -> float:
+        units = pixels * (spp if self.method == REFERENCE.name and spp is not None else 1)
+        return self.b_ms + self.c_ms * units
+
+
+def fit_time(units: Sequence[float], ms: Sequence[float]) -> tuple[float, float]:
+    """Least squares ``ms = b + c * units`` with ``b, c >= 0`` (a negative intercept, from timing
+    noise, is refitted through the origin; a negative slope becomes a constant)."""
+    n = len(units)
+    if n == 0 or n != len(ms):
+        raise ValueError("fit_time needs as many times as units, at least one")
+    mu, mt = sum(units) / n, sum(ms) / n
+    sxx = sum((u - mu) ** 2 for u in units)
+    c = sum((u - mu) * (t - mt) for u, t in zip(units, ms, strict=True)) / sxx if sxx > 0 else 0.0
+    b = mt - c * mu
+    if c < 0:
+        return max(mt, 0.0), 0.0
+    if b < 0:
+        suu = sum(u * u for u in units)
+        return 0.0, sum(u * t for u, t in zip(units, ms, strict=True)) / suu if suu > 0 else 0.0
+    return b, c
+
+
+def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> CandidateFit:
+    """The reference's fit from ``points`` ``{"spp", "error", "pixels", "ms"}`` (error measured
+    against a ground truth of the same estimator at ``truth_spp``).
+
+    The error falls as ``a s^-p``: ``p`` = 0.5 for independent samples, faster for stratified ones
+    where the image is smooth. Both images' noise adds in quadrature, ``e^2 = a^2 (s^-2p + S^-2p)``;
+    ``p`` is the exponent in [0.5, 1] that fits the per-spp RMS over the probe views best (log
+    residuals), and ``a`` the largest ratio over the spp (conservative: the planner then
+    over-predicts rather than misses). Past the largest calibrated spp the fit continues at
+    ``p = 0.5`` (``knee_spp``): convergence is never assumed faster than measured."""
+    by_spp: dict[int, list[float]] = {}
+    for p in points:
+        by_spp.setdefault(int(p["spp"]), []).append(float(p["error"]))
+    rms = {s: math.sqrt(sum(e * e for e in errs) / len(errs)) for s, errs in by_spp.items()}
+    best: tuple[float, float, float] | None = None
+    for i in range(51):
+        q = 0.5 + 0.01 * i
+        scale = {s: math.sqrt(s ** (-2 * q) + truth_spp ** (-2 * q)) for s in rms}
+        a = max(e / scale[s] for s, e in rms.items())
+        if a <= 0:
+            continue
+        resid = sum(math.log(max(e, 1e-12) / (a * scale[s])) ** 2 for s, e in rms.items())
+        if best is None or resid < best[0] - 1e-12:
+            best = (resid, q, a)
+    exponent, a = (0.5, 0.0) if best is None else (best[1], best[2])
+    b, c = fit_time([float(p["spp"]) * float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
+    return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points], exponent=exponent,
+                        knee_spp=max(rms) if rms else 1)
+
+
+def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
+    """An LDC method's fit from ``points`` ``{"error", "pixels", "ms"}`` (``error`` measured on the
+    probe views at the calibration size; time-only points, at other sizes, have ``error`` None). The
+    error is the largest over the probe views with the ground truth's noise ``truth_noise`` removed
+    in quadrature."""
+    errs = [float(p["error"]) for p in points if p.get("error") is not None]
+    if not errs:
+        raise ValueError(f"{method}: no error measured")
+    err = max(math.sqrt(max(e * e - truth_noise * truth_noise, 0.25 * e * e)) for e in errs)
+    b, c = fit_time([float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
+    return CandidateFit(method, err, b, c, [dict(p) for p in points])
+
+
+# ------------------------------------------------------------------------------------ the model
+
+
+@dataclass
+class SceneModel:
+    """What the calibration measured on one scene and bake: the reference's fit, each LDC method's
+    fit, the methods excluded and why, the bake's cost and what the calibration itself cost."""
+
+    scene_id: str
+    bake_key: str
+    reference: CandidateFit
+    methods: dict[str, CandidateFit]
+    excluded: dict[str, str]
+    reference_params: dict[str, int]
+    """The reference's settings besides spp (indirect paths per pixel = spp when the scene has
+    indirect light: ``indirect_per_spp``)."""
+    bake_cost_s: float
+    cost_s: float
+    probe: dict[str, Any]
+    engine_version: str = ""
+    created_at: str = ""
+    version: int = MODEL_VERSION
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any]) -> SceneModel:
+        if doc.get("version") != MODEL_VERSION:
+            raise ValueError(f"calibration model version {doc.get('version')!r}, expected {MODEL_VERSION}")
+        d = dict(doc)
+        d["reference"] = CandidateFit(**d["reference"])
+        d["methods"] = {k: CandidateFit(**v) for k, v in d["methods"].items()}
+        return cls(**d)
+
+    def reference_request_params(self, spp: int) -> dict[str, int]:
+        """The ``ReferenceRenderParams`` of the reference candidate at ``spp``."""
+        out = {k: v for k, v in self.reference_params.items() if k != "indirect_per_spp"}
+        out["spp"] = spp
+        if self.reference_params.get("indirect_per_spp"):
+            out["indirect_samples"] = spp * int(self.reference_params["indirect_per_spp"])
+        return out
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A candidate's predicted error and time at one image size. ``ms`` is the render time plus
+    ``bake_ms`` (the bake's cost, when it is still to be made)."""
+
+    setting: Setting
+    error: float
+    render_ms: float
+    bake_ms: float = 0.0
+
+    @property
+    def ms(self) -> float:
+        return self.render_ms + self.bake_ms
+
+
+def extra_candidates(model: SceneModel, pixels: int) -> list[Prediction]:
+    """Candidates beyond the fitted ladder. The seam for the adaptive reference: a progressive
+    render that stops at an error or a time joins the planner here (priced by what it reports of
+    itself); until it exists there are none."""
+    return []
+
+
+def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_bake: bool = True,
+            allowed: Callable[[Setting], bool] | None = None) -> list[Prediction]:
+    """Every candidate of ``model`` at an image of ``pixels`` pixels. A method needing the bake
+    when it is not ready: priced with the bake's cost when ``allow_bake``, left out otherwise.
+    ``allowed``: the settings this server accepts (e.g. under its render memory limit); the others
+    are left out."""
+    if pixels < 1:
+        raise ValueError("pixels must be >= 1")
+    out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s))
+           for s in REFERENCE_SPP_LADDER]
+    if bake_ready or allow_bake:
+        bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s
+        for name, fit in model.methods.items():
+            if name in model.excluded:
+                continue
+            out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms))
+    out += extra_candidates(model, pixels)
+    return out if allowed is None else [p for p in out if allowed(p.setting)]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The planner's answer: ``choice`` (None when no setting meets the targets and no best effort
+    was asked), the ``rule`` that picked it, ``unmet`` (the targets the choice does not meet, with
+    ``reason`` in words)."""
+
+    choice: Prediction | None
+    rule: Rule | None
+    unmet: tuple[str, ...] = ()
+    reason: str = ""
+    candidates: int = 0
+
+    @property
+    def met(self) -> bool:
+        return self.choice is not None and not self.unmet
+
+
+def _fmt(p: Prediction) -> str:
+    bake = f", {p.bake_ms / 1000:.1f} s of it the bake" if p.bake_ms else ""
+    return f"{p.setting.name} (predicted LRMS {p.error:.3g}, {p.ms:.0f} ms{bake})"
+
+
+def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_ms: float | None = None,
+         best_effort: bool = False, bake_ready: bool = True, allow_bake: bool = True,
+         allowed: Callable[[Setting], bool] | None = None) -> Plan:
+    """Pick a setting for ``max_error`` (LRMS against the converged image) and / or ``max_ms``
+    (milliseconds) at an image of ``pixels`` pixels; see the module docstring for the rules.
+    ``best_effort``: when the targets cannot all be met, still choose (the most accurate, within the
+    time when there is a time budget, else the fastest) and mark the unmet target; otherwise
+    ``choice`` is None and ``reason`` says what the scene can do."""
+    if max_error is None and max_ms is None:
+        raise ValueError("plan needs max_error, max_ms or both")
+    cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed)
+    n = len(cands)
+    if not cands:
+        return Plan(None, None, tuple(t for t, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None),
+                    "no setting of this scene can render this image on this server (its limits)", 0)
+    cheapest = min(cands, key=lambda p: (p.ms, p.error))
+    most_accurate = min(cands, key=lambda p: (p.error, p.ms))
+    in_time = [p for p in cands if max_ms is None or p.ms <= max_ms]
+    good = [p for p in in_time if max_error is None or p.error <= max_error]
+    if good:
+        if max_error is None:
+            return Plan(min(good, key=lambda p: (p.error, p.ms)), "most_accurate_within_time", candidates=n)
+        rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
+        return Plan(min(good, key=lambda p: (p.ms, p.error)), rule, candidates=n)
+    if not in_time:  # a time budget nothing fits
+        fixed = min([model.reference.b_ms] + [f.b_ms for k, f in model.methods.items() if k not in model.excluded])
+        if max_ms is not None and max_ms < fixed:
+            why = (f"max_ms {max_ms:g} is below this scene's fixed overhead: every setting needs at least "
+                   f"{fixed:.0f} ms however small the image; the fastest at this size is {_fmt(cheapest)}")
+        else:
+            why = f"no setting renders {pixels} pixels within {max_ms:g} ms; the fastest is {_fmt(cheapest)}"
+        unmet = ("max_ms",) if max_error is None or cheapest.error <= max_error else ("max_ms", "max_error")
+        return Plan(cheapest if best_effort else None, "best_effort_fastest" if best_effort else None, unmet,
+                    why, n)
+    # the error is not reachable (within the time, when there is a budget)
+    best = min(in_time, key=lambda p: (p.error, p.ms))
+    assert max_error is not None
+    if max_ms is None:
+        why = (f"no setting reaches LRMS {max_error:g} on this scene; the most accurate is {_fmt(most_accurate)}")
+        return Plan(best if best_effort else None, "best_effort_most_accurate" if best_effort else None,
+                    ("max_error",), why, n)
+    why = (f"no setting reaches LRMS {max_error:g} within {max_ms:g} ms; the most accurate within the time is "
+           f"{_fmt(best)}")
+    return Plan(best if best_effort else None, "most_accurate_within_time_error_unmet" if best_effort else None,
+                ("max_error",), why, n)
+
+
+def check_targets(max_error: float | None, max_ms: float | None, max_job_ms: float) -> list[tuple[str, str]]:
+    """``(field, message)`` for each target out of range: ``0 < max_error < 1`` (LRMS is a fraction:
+    0 is the converged image itself, 1 an error as large as the image's mean); ``0 < max_ms <=
+    max_job_ms`` (a render job is stopped at its timeout)."""
+    errors: list[tuple[str, str]] = []
+    if max_error is None and max_ms is None:
+        errors.append(("quality", "quality needs max_error, max_ms or both"))
+    if max_error is not None and not (math.isfinite(max_error) and 0.0 < max_error < 1.0):
+        errors.append(("quality.max_error", f"max_error must be in (0, 1) (LRMS, e.g. 0.05 for 5 %), "
+                                            f"got {max_error!r}"))
+    if max_ms is not None and not (math.isfinite(max_ms) and 0.0 < max_ms <= max_job_ms):
+        errors.append(("quality.max_ms", f"max_ms must be in (0, {max_job_ms:g}] (milliseconds; the render job "
+                                         f"timeout), got {max_ms!r}"))
+    return errors

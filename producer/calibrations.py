@@ -1,0 +1,220 @@
+"""Calibrations of a scene for quality contracts, and the planning of a render request with one.
+
+A calibration measures, on a few probe views of a scene, every candidate render setting's error
+against a converged image and its time, and fits the per-scene model of :mod:`engine.quality`
+(the job: ``workers/jobs/calibrate.py``, on the ``bake`` queue after the bake it calibrates).
+
+Store: ``calibrations/<scene_id>/<bake_key>.json`` holds the model of that scene and bake (the
+latest calibration of it: a new one replaces it), ``{"key", "params", "model"}``. It is removed with
+the scene. Job id ``calibrate-<key>``, ``key = artifact_key("calibration", {"scene", "bake"},
+params, ENGINE_VERSION)``: identical requests share one job.
+
+:func:`plan_render` runs in the API when a request with ``quality`` arrives: it reads the model,
+plans (``engine.quality.plan``) and returns the request with the chosen method and params (its
+artifact key is that of the same explicit request, so the cache is shared) and the contract the
+answer states.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from redis import Redis
+from rq.job import Dependency, Job
+
+from api_schemas.service import (
+    CalibrationPublic,
+    CalibrationRequest,
+    ContractPublic,
+    ReferenceRenderParams,
+    RenderRequest,
+)
+from engine import ENGINE_VERSION
+from engine.quality import Plan, SceneModel, Setting, plan
+from producer.artifacts import artifact_key, get_scene
+from producer.bakes import bake_complete, bake_key, enqueue_bake
+from producer.enqueue import enqueue_unique
+from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
+from producer.names import CALIBRATE_JOB, calibrate_job_id, scene_bake_job_id
+from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
+from producer.render_memory import estimate_render_bytes
+from producer.status import job_public
+from producer.store import NotFound, ObjectStore
+
+__all__ = [
+    "calibration_key",
+    "calibration_status",
+    "enqueue_calibration",
+    "model_path",
+    "plan_render",
+    "read_calibration",
+    "write_calibration",
+]
+
+
+def calibration_key(scene_id: str, bkey: str, req: CalibrationRequest) -> str:
+    return artifact_key("calibration", {"scene": scene_id, "bake": bkey}, req.params.model_dump(mode="json"),
+                        ENGINE_VERSION)
+
+
+def model_path(scene_id: str, bkey: str) -> str:
+    return f"calibrations/{scene_id}/{bkey}.json"
+
+
+def read_calibration(store: ObjectStore, scene_id: str, bkey: str) -> dict[str, Any] | None:
+    """The stored calibration document ``{"key", "params", "model"}`` of a scene's bake, or None."""
+    try:
+        doc = json.loads(store.get_bytes(model_path(scene_id, bkey)))
+    except NotFound:
+        return None
+    return doc if isinstance(doc, dict) and doc.get("model", {}).get("engine_version") == ENGINE_VERSION else None
+
+
+def write_calibration(store: ObjectStore, scene_id: str, bkey: str, key: str, params: dict[str, Any],
+                      model: SceneModel) -> None:
+    doc = {"key": key, "params": params, "model": model.to_json()}
+    store.put_bytes(model_path(scene_id, bkey), json.dumps(doc, sort_keys=True).encode(), "application/json")
+
+
+def enqueue_calibration(redis: Redis, store: ObjectStore, scene_id: str, req: CalibrationRequest,
+                        owner: str | None) -> tuple[str, str, Job | None]:
+    """Queue a calibration: ``(key, bake key, None)`` when the stored one has the same key,
+    else ``(key, bake key, job)``. A missing bake: :class:`BakeMissing` with ``missing_bake: "fail"``,
+    else the bake is queued and the calibration waits for it."""
+    if not store.exists(f"scenes/{scene_id}.json"):
+        raise UnknownScene(f"scene {scene_id} does not exist")
+    bkey = bake_key(scene_id, req.bake)
+    key = calibration_key(scene_id, bkey, req)
+
+    def cached() -> bool:
+        doc = read_calibration(store, scene_id, bkey)
+        return doc is not None and doc.get("key") == key
+
+    if cached():
+        return key, bkey, None
+    depends_on: Dependency | None = None
+    if not bake_complete(store, bkey):
+        if req.missing_bake == "fail":
+            running = fetch_job(redis, scene_bake_job_id(bkey))
+            active = running is not None and running.get_status(refresh=False) in ACTIVE_STATUSES
+            raise BakeMissing(scene_id, bkey, running.id if running is not None and active else None)
+        _, merge = enqueue_bake(redis, store, scene_id, req.bake, owner)
+        if merge is not None:
+            depends_on = Dependency(jobs=[merge.id], allow_failure=True)
+    payload = {"v": 1, "scene_id": scene_id, "bake_key": bkey, "key": key, "request": req.model_dump(mode="json")}
+    meta: dict[str, Any] = {"kind": "bake", "scene_id": scene_id, "bake_key": bkey, "owner": owner,
+                            "progress": {"fraction": 0.0, "stage": "waiting for the bake" if depends_on else "queued",
+                                         "eta_s": None}}
+    job = enqueue_unique(redis, "bake", CALIBRATE_JOB, payload, calibrate_job_id(key), timeout=BAKE_TIMEOUT_S,
+                         meta=meta, retry=job_retry(), description=f"calibrate scene {scene_id[:12]}", owner=owner,
+                         is_cached=cached, depends_on=depends_on)
+    return key, bkey, job
+
+
+def calibration_status(redis: Redis, store: ObjectStore, scene_id: str, bkey: str, key: str | None = None,
+                       cached: bool = False) -> CalibrationPublic:
+    """The calibration of ``scene_id``'s bake ``bkey``: the stored model (``finished``), else the job
+    ``calibrate-<key>`` when ``key`` is given, else ``missing``."""
+    doc = read_calibration(store, scene_id, bkey)
+    links = {"self": f"/v1/scenes/{scene_id}/calibrations/{bkey}"}
+    job = fetch_job(redis, calibrate_job_id(key)) if key is not None else None
+    if doc is not None and (key is None or doc.get("key") == key):
+        return CalibrationPublic(scene_id=scene_id, bake_key=bkey, key=doc["key"], state="finished", cached=cached,
+                                 job=job_public(job) if job is not None else None, model=doc["model"], links=links)
+    if job is None or key is None:
+        return CalibrationPublic(scene_id=scene_id, bake_key=bkey, key=key or "0" * 64, state="missing", links=links)
+    pub = job_public(job)
+    links["job"] = f"/v1/jobs/{job.id}"
+    state = {"queued": "queued", "started": "running", "finished": "finished", "failed": "failed",
+             "canceled": "failed"}[pub.state]
+    return CalibrationPublic(scene_id=scene_id, bake_key=bkey, key=key, state=state,  # type: ignore[arg-type]
+                             job=pub, links=links)
+
+
+# ------------------------------------------------------------------------------------ planning
+
+
+def _pixels(store: ObjectStore, req: RenderRequest) -> tuple[int, int]:
+    cam = req.camera
+    if cam is None:
+        scene, _, _ = get_scene(store, req.scene_id)
+        cam = scene.camera
+    return cam.width, cam.height
+
+
+def _request_for(req: RenderRequest, model: SceneModel, setting: Setting) -> RenderRequest:
+    update: dict[str, Any] = {"method": setting.method, "quality": None}
+    if setting.spp is not None:
+        update["params"] = ReferenceRenderParams(**model.reference_request_params(setting.spp))
+    return req.model_copy(update=update)
+
+
+def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render_bytes: int | None = None
+                ) -> tuple[RenderRequest, ContractPublic]:
+    """The request with the planner's method and params, and the contract to state.
+
+    Raises :class:`CalibrationMissing` (409) when the scene's bake ``req.bake`` was never
+    calibrated; :class:`ContractUnmet` (422) when no setting meets the targets and
+    ``on_miss`` is ``fail``; :class:`BakeMissing` (409, the ``missing_bake`` rule) when the bake is
+    missing, ``missing_bake`` is ``fail`` and only a setting that needs the bake would meet them.
+    ``max_render_bytes``: settings whose estimated memory exceeds it are not candidates."""
+    q = req.quality
+    assert q is not None
+    bkey = bake_key(req.scene_id, req.bake)
+    doc = read_calibration(store, req.scene_id, bkey)
+    if doc is None:
+        raise CalibrationMissing(req.scene_id, bkey)
+    model = SceneModel.from_json(doc["model"])
+    width, height = _pixels(store, req)
+    ready = bake_complete(store, bkey)
+    best_effort = q.on_miss == "best_effort"
+    allow_bake = ready or req.missing_bake == "bake"
+
+    def allowed(s: Setting) -> bool:
+        return max_render_bytes is None or \
+            estimate_render_bytes(_request_for(req, model, s), width, height) <= max_render_bytes
+
+    p = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, best_effort=best_effort,
+             bake_ready=ready, allow_bake=allow_bake, allowed=allowed)
+    if not ready and not allow_bake and not p.met:
+        with_bake = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, bake_ready=False,
+                         allowed=allowed)
+        if with_bake.met and with_bake.choice is not None:
+            running = fetch_job(redis, scene_bake_job_id(bkey))
+            active = running is not None and running.get_status(refresh=False) in ACTIVE_STATUSES
+            raise BakeMissing(req.scene_id, bkey, running.id if running is not None and active else None,
+                              note=f"; the contract would be met by {with_bake.choice.setting.name} from that bake "
+                                   f"(what renders now cannot: {p.reason})")
+    if p.choice is None:
+        raise ContractUnmet(p.unmet, p.reason + _excluded_note(model))
+    return _planned(req, model, doc, p, width, height, ready, allow_bake)
+
+
+def _excluded_note(model: SceneModel) -> str:
+    if not model.excluded:
+        return ""
+    return "; excluded on this scene: " + "; ".join(f"{m}: {why}" for m, why in sorted(model.excluded.items()))
+
+
+def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan, width: int, height: int,
+             ready: bool, allow_bake: bool) -> tuple[RenderRequest, ContractPublic]:
+    q = req.quality
+    choice = p.choice
+    assert q is not None and choice is not None and p.rule is not None
+    setting = choice.setting
+    params = model.reference_request_params(setting.spp) if setting.spp is not None else None
+    planned = _request_for(req, model, setting)
+    if setting.needs_bake:
+        bake = "ready" if ready else "waited"
+    else:
+        bake = "not_needed" if ready or allow_bake else "best_available_now"
+    contract = ContractPublic(
+        max_error=q.max_error, max_ms=q.max_ms, on_miss=q.on_miss, rule=p.rule, met=p.met, unmet=list(p.unmet),
+        reason=p.reason, method=setting.method, params=params, width=width, height=height,
+        predicted_error=choice.error, predicted_ms=choice.render_ms, predicted_bake_ms=choice.bake_ms,
+        bake=bake, excluded=dict(model.excluded),  # type: ignore[arg-type]
+        calibration={"key": doc["key"], "bake_key": model.bake_key, "created_at": model.created_at,
+                     "cost_s": model.cost_s, "probes": model.probe.get("views"),
+                     "url": f"/v1/scenes/{req.scene_id}/calibrations/{model.bake_key}"})
+    return planned, contract
