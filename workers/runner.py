@@ -66,6 +66,7 @@ import ctypes
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 import time
@@ -85,7 +86,8 @@ from rq.exceptions import AbandonedJobError, NoSuchJobError
 from rq.job import Job, JobStatus
 from rq.job_lifecycle import call_exception_handlers
 from rq.queue import Queue
-from rq.scheduler import RQScheduler
+from rq.scheduler import SCHEDULER_KEY_TEMPLATE, RQScheduler
+from rq.scripts import release_lock
 from rq.serializers import JSONSerializer
 from rq.worker import BaseWorker, WorkerStatus
 
@@ -385,10 +387,41 @@ class _TunedWorkerMixin:
                 self.clean_registries()  # type: ignore[attr-defined]
                 self.clean_group_registries()  # type: ignore[attr-defined]
                 return
+            self.reap_dead_local_peers()
             super().run_maintenance_tasks()  # type: ignore[misc]
         except REDIS_DOWN as exc:
             # not marked as done: the next pass (inside the dequeue's backoff loop) tries again
             self.log.warning("Worker %s: maintenance skipped, Redis unreachable: %s", self.name, exc)
+
+    def reap_dead_local_peers(self) -> None:
+        """Release what a worker of this host that no longer exists (SIGKILL, OOM) still holds,
+        instead of waiting for it to expire: its scheduler's lock (RQ: up to 61 s, during which
+        no scheduler enqueues the retries it scheduled) and its running executions (expiry
+        ``job_monitoring_interval + heartbeat_grace``). An execution is only marked expired:
+        RQ's own abandoned-job handling of the same maintenance pass then retries or fails it.
+
+        "No longer exists" is decided by its registered hostname being this one and its pid
+        being gone, so it holds only where pids are this host's (one machine, one container):
+        a registration from elsewhere, or a pid now reused, is left to the expiry."""
+        conn = self.connection
+        host = socket.gethostname()
+        for queue in self.queues:  # type: ignore[attr-defined]
+            lock_key = RQScheduler.get_locking_key(queue.name)
+            name = _text(conn.get(lock_key))
+            if name and _gone_here(conn.hmget(SCHEDULER_KEY_TEMPLATE % name, ["hostname", "pid"]), host) and \
+                    release_lock(conn, lock_key, name):
+                self.log.warning("Worker %s: released the %s scheduler lock of scheduler %s, whose process on "
+                                 "this host is gone", self.name, queue.name, name)
+            registry = queue.started_job_registry
+            for job_id, execution_id in registry.get_job_and_execution_ids(cleanup=False):
+                peer_name = _text(conn.hget(f"rq:execution:{job_id}:{execution_id}", "worker_name"))
+                if not peer_name or peer_name == self.name:
+                    continue
+                peer = conn.hmget(Worker.redis_worker_namespace_prefix + peer_name, ["hostname", "pid"])
+                if _gone_here(peer, host) and conn.zadd(registry.key, {f"{job_id}:{execution_id}": 1}, xx=True,
+                                                        ch=True):
+                    self.log.warning("Worker %s: job %s was run by worker %s, whose process on this host is gone; "
+                                     "handled as abandoned now", self.name, job_id, peer_name)
 
     def _start_scheduler(self, burst: bool = False, logging_level: str | None = "INFO",
                          date_format: str = DEFAULT_LOGGING_DATE_FORMAT,
@@ -403,6 +436,10 @@ class _TunedWorkerMixin:
             serializer=self.serializer,
         )
         self.scheduler = scheduler
+        try:
+            self.reap_dead_local_peers()  # a killed predecessor's lock would keep this one idle
+        except REDIS_DOWN as exc:
+            self.log.warning("Worker %s: could not check for dead peers: %s", self.name, exc)
         scheduler.acquire_locks()  # type: ignore[no-untyped-call]
         if not scheduler.acquired_locks:
             return
@@ -422,6 +459,24 @@ class _TunedWorkerMixin:
             remaining = int(job.timeout - working_time)
             interval = max(1, min(remaining, interval))
         return interval + int(self.heartbeat_grace)
+
+
+def _text(value: Any) -> str | None:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _gone_here(registration: list[Any], host: str) -> bool:
+    """True when a (hostname, pid) registration names this host and a pid that does not exist."""
+    hostname, pid = (_text(v) for v in registration)
+    if hostname is None or pid is None or hostname != host:
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, ValueError, OverflowError):
+        return False
+    return False
 
 
 def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
