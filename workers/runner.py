@@ -718,7 +718,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def healthcheck(redis: Redis, queue: QueueName, settings: Settings) -> int:
-    """0 when a worker of ``queue`` registered from this host has sent a heartbeat within
+    """0 when a live worker of ``queue`` registered from this host has sent a heartbeat within
     ``2 x maintenance_interval + job_monitoring_interval + 30`` seconds (an idle worker beats at
     every dequeue timeout, a busy one with every job heartbeat), else 1 with the reason."""
     import socket
@@ -729,7 +729,7 @@ def healthcheck(redis: Redis, queue: QueueName, settings: Settings) -> int:
     host = socket.gethostname()
     ages = []
     for w in Worker.all(connection=redis, queue=get_queue(redis, queue)):
-        if w.hostname == host and w.last_heartbeat is not None:
+        if w.hostname == host and w.last_heartbeat is not None and not _gone_here([w.hostname, str(w.pid)], host):
             ages.append((now() - w.last_heartbeat).total_seconds())
     if ages and min(ages) <= limit:
         print(f"ok: {queue} worker on {host}, last heartbeat {min(ages):.0f} s ago")
