@@ -41,6 +41,21 @@ A dead worker's job is therefore noticed within about
 long as one worker of that queue is alive. Worker registration TTL: ``worker_ttl`` (RQ's 420 s),
 refreshed while the worker lives.
 
+Redis outages (docs/reliability.md). RQ records a job's start and end with Redis calls outside
+its own error handling, so stock, a worker busy when Redis goes away exits ("unhandled
+exception") and its job stays 'started' until another worker's maintenance finds it. Here a Redis
+error while a job runs or records its end (in the render worker, the bake worker's parent or its
+horse) waits for Redis with backoff (0.5 s doubling to 5 s), then :meth:`settle_after_outage`
+puts the job back at the front of its queue unless its end was recorded or another worker runs
+it; no retry is spent. The loop's own Redis calls (heartbeats, maintenance, the suspension check,
+the shutdown bookkeeping) log and back off instead of ending the loop; the idle dequeue
+reconnects with RQ's backoff, capped at 5 s. :class:`DyingScheduler` (RQ's forked scheduler) dies
+with its worker and waits out outages instead of exiting. On each maintenance pass a worker also
+releases what a dead worker of the same host still holds (:meth:`reap_dead_local_peers`), so a
+SIGKILLed worker's job is retried at the next pass rather than after its heartbeat expiry and the
+dead scheduler's lock (up to 30 + 61 s). ``--healthcheck`` answers 0 when a live worker of the
+queue on this host has beaten recently (the compose health check).
+
 Warm-up (render workers only). Before the worker registers with Redis -- so it takes no job
 while numba compiles; other workers keep serving -- :func:`warm_up_render_worker` runs
 ``workers.warmup.warm_up``: every engine path of the render queue's jobs on tiny built-in data,
