@@ -12,7 +12,8 @@ and starts only the API and the workers.
 Supervision (:meth:`Stack.supervise`, every half second while ``ibr up`` runs): a process that
 exits is started again -- a worker, the API, and the embedded Redis (same socket, same
 append-only file, so queued jobs survive) -- after a backoff that doubles from 1 s to 30 s
-while it keeps dying within 30 s of its start, and resets once it has run longer. No death
+while it keeps exiting within 30 s of its start (a crash loop), and at once when it ran longer
+or was SIGKILLed (the OOM killer, an operator: a kill says nothing about the next start). No death
 stops the others: a killed worker never takes the API down, and jobs it held are settled by
 the workers themselves (workers/runner.py). Only a crash loop of the API (5 deaths in a row,
 each within 30 s of its start: a taken port, a broken configuration) stops the stack, since
@@ -114,7 +115,9 @@ class Stack:
             state = self.restarts.setdefault(name, _Restarts(started_at=t))
             if state.due is None and proc.poll() is not None:
                 ran = t - state.started_at
-                state.quick_deaths = state.quick_deaths + 1 if ran < QUICK_DEATH_S else 0
+                # SIGKILL comes from outside (the OOM killer, an operator), not from a broken start
+                killed = proc.returncode == -signal.SIGKILL
+                state.quick_deaths = state.quick_deaths + 1 if ran < QUICK_DEATH_S and not killed else 0
                 delay = 0.0 if not state.quick_deaths else min(
                     RESTART_BACKOFF_CAP_S, RESTART_BACKOFF_FIRST_S * 2 ** (state.quick_deaths - 1))
                 if name == "api" and state.quick_deaths >= API_CRASH_LOOP:

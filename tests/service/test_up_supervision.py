@@ -59,6 +59,13 @@ def test_a_dying_worker_is_restarted_with_doubling_backoff(tmp_path: Path) -> No
         st.supervise(lines.append, now=late)
         assert st.restarts["render-worker"].count == 4 and st.restarts["render-worker"].quick_deaths == 0
         assert any("exited with status 4" in line and "again in 0 s" in line for line in lines)
+        # a SIGKILLed worker (OOM killer, operator) is started again at once, however young
+        st.cmds["render-worker"] = [PY, "-c", "import time; time.sleep(120)"]
+        st.spawn("render-worker")
+        st.procs["render-worker"].kill()
+        st.procs["render-worker"].wait(timeout=10)
+        st.supervise(lines.append, now=st.restarts["render-worker"].started_at + 0.1)
+        assert st.restarts["render-worker"].count == 5 and st.procs["render-worker"].poll() is None
     finally:
         for p in st.procs.values():
             p.kill()
