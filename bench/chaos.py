@@ -262,10 +262,13 @@ def main() -> None:
     ap.add_argument("--ldc-resolution", type=int, default=128, help="bake LDC resolution (job length)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--keep", default=None, metavar="DIR",
+                    help="run the stack in DIR (short path) and keep its logs there, instead of a temporary directory")
     args = ap.parse_args()
     rng = random.Random(args.seed)
     t_start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="ibr-chaos-", dir="/tmp") as tmp:
+    with tempfile.TemporaryDirectory(prefix="ibr-chaos-", dir="/tmp") as tmp_dir:
+        tmp = args.keep or tmp_dir
         os.environ.pop("IBR_REDIS_URL", None)
         os.environ.pop("IBR_STORE_URL", None)
         stack = start_stack(Path(tmp), port=free_port(), log=lambda s: None, ready_timeout=180)

@@ -435,6 +435,9 @@ class _TunedWorkerMixin:
                 peer = conn.hmget(Worker.redis_worker_namespace_prefix + peer_name, ["hostname", "pid"])
                 if _gone_here(peer, host) and conn.zadd(registry.key, {f"{job_id}:{execution_id}": 1}, xx=True,
                                                         ch=True):
+                    # killed before its job left RQ's intermediate queue: RQ's intermediate cleanup
+                    # would otherwise fail or retry the job a minute later, whatever it is by then
+                    conn.lrem(queue.intermediate_queue_key, 0, job_id)
                     self.log.warning("Worker %s: job %s was run by worker %s, whose process on this host is gone; "
                                      "handled as abandoned now", self.name, job_id, peer_name)
 
