@@ -484,7 +484,9 @@ def _text(value: Any) -> str | None:
 
 
 def _gone_here(registration: list[Any], host: str) -> bool:
-    """True when a (hostname, pid) registration names this host and a pid that does not exist."""
+    """True when a (hostname, pid) registration names this host and a pid that does not exist
+    or is a zombie (a killed worker's scheduler is reparented, and stays a zombie until the
+    host's init reaps it)."""
     hostname, pid = (_text(v) for v in registration)
     if hostname is None or pid is None or hostname != host:
         return False
@@ -494,7 +496,11 @@ def _gone_here(registration: list[Any], host: str) -> bool:
         return True
     except (PermissionError, ValueError, OverflowError):
         return False
-    return False
+    try:
+        stat = open(f"/proc/{int(pid)}/stat", "rb").read()  # noqa: SIM115 - read at once
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:stat.rfind(b")") + 3] == b"Z"
 
 
 def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
