@@ -433,11 +433,26 @@ class _TunedWorkerMixin:
                 if not peer_name or peer_name == self.name:
                     continue
                 peer = conn.hmget(Worker.redis_worker_namespace_prefix + peer_name, ["hostname", "pid"])
-                if _gone_here(peer, host) and conn.zadd(registry.key, {f"{job_id}:{execution_id}": 1}, xx=True,
-                                                        ch=True):
-                    # killed before its job left RQ's intermediate queue: RQ's intermediate cleanup
-                    # would otherwise fail or retry the job a minute later, whatever it is by then
-                    conn.lrem(queue.intermediate_queue_key, 0, job_id)
+                if not _gone_here(peer, host):
+                    continue
+                entry = f"{job_id}:{execution_id}"
+                try:
+                    job = Job.fetch(job_id, connection=conn, serializer=self.serializer)
+                except NoSuchJobError:
+                    conn.zrem(registry.key, entry)
+                    continue
+                if job.get_status(refresh=False) == JobStatus.QUEUED:
+                    # killed between taking the job and starting it: RQ's abandoned-job handling
+                    # skips a job that is not 'started' (it would wait in RQ's intermediate queue
+                    # for a minute); it never ran, so it goes back to the front, no retry spent
+                    if conn.zrem(registry.key, entry):
+                        conn.lrem(queue.intermediate_queue_key, 0, job_id)
+                        if conn.lpos(queue.key, job_id) is None:
+                            queue.enqueue_job(job, at_front=True)
+                        self.log.warning("Worker %s: job %s was taken by worker %s, whose process on this host is "
+                                         "gone, before it started; queued again at the front", self.name, job_id,
+                                         peer_name)
+                elif conn.zadd(registry.key, {entry: 1}, xx=True, ch=True):
                     self.log.warning("Worker %s: job %s was run by worker %s, whose process on this host is gone; "
                                      "handled as abandoned now", self.name, job_id, peer_name)
 
