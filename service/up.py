@@ -8,6 +8,16 @@ workers (warm shutdown: a running job finishes or is handed back), then Redis.
 
 With ``IBR_REDIS_URL`` / ``IBR_STORE_URL`` (and S3 settings) set, it uses those instead
 and starts only the API and the workers.
+
+Supervision (:meth:`Stack.supervise`, every half second while ``ibr up`` runs): a process that
+exits is started again -- a worker, the API, and the embedded Redis (same socket, same
+append-only file, so queued jobs survive) -- after a backoff that doubles from 1 s to 30 s
+while it keeps exiting within 30 s of its start (a crash loop), and at once when it ran longer
+or was SIGKILLed (the OOM killer, an operator: a kill says nothing about the next start). No death
+stops the others: a killed worker never takes the API down, and jobs it held are settled by
+the workers themselves (workers/runner.py). Only a crash loop of the API (5 deaths in a row,
+each within 30 s of its start: a taken port, a broken configuration) stops the stack, since
+restarting cannot fix it and nothing can be served without it.
 """
 
 from __future__ import annotations
@@ -23,9 +33,26 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from producer.embedded import start_embedded_redis
+from producer.embedded import EmbeddedRedisError, start_embedded_redis
 from samples import SAMPLES_DIR, sample_names, sample_path
 from service.client import ApiError, Client
+
+RESTART_BACKOFF_FIRST_S = 1.0
+RESTART_BACKOFF_CAP_S = 30.0
+QUICK_DEATH_S = 30.0
+"""A process that dies within this many seconds of its start doubles its restart delay."""
+API_CRASH_LOOP = 5
+"""Consecutive quick deaths of the API after which the stack stops."""
+
+
+@dataclass
+class _Restarts:
+    """Restart bookkeeping of one supervised process."""
+
+    started_at: float = 0.0
+    count: int = 0
+    quick_deaths: int = 0
+    due: float | None = None  # when the next start is due (None: running)
 
 
 @dataclass
@@ -35,6 +62,26 @@ class Stack:
     env: dict[str, str]
     redis: object | None = None  # producer.embedded.EmbeddedRedis when embedded
     procs: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+    cmds: dict[str, list[str]] = field(default_factory=dict)
+    restarts: dict[str, _Restarts] = field(default_factory=dict)
+
+    @property
+    def logs(self) -> Path:
+        return self.data_dir / "logs"
+
+    def spawn(self, name: str) -> subprocess.Popen[bytes]:
+        """Start (or start again) the process ``name``, its output appended to logs/<name>.log."""
+        state = self.restarts.setdefault(name, _Restarts())
+        cmd = self.cmds[name]
+        if name.endswith("-worker"):
+            # a fresh name per start: a killed worker's registration stays in Redis until it expires
+            cmd = [*cmd, "--name", f"{name.removesuffix('-worker')}-{os.getpid()}-{state.count}"]
+        with open(self.logs / f"{name}.log", "ab") as out:
+            proc = subprocess.Popen(cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL)
+        self.procs[name] = proc
+        state.started_at, state.due = time.monotonic(), None
+        return proc
 
     def stop(self, timeout: float = 20.0) -> None:
         """API first (no new work), then workers (warm shutdown), then the embedded Redis."""
@@ -52,6 +99,39 @@ class Stack:
 
     def dead(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() is not None]
+
+    def supervise(self, log: Callable[[str], None] = print, now: float | None = None) -> str | None:
+        """One supervision pass (module docstring): schedule a restart for each process found
+        dead, start those whose backoff has passed. Returns why the stack must stop, else None."""
+        t = time.monotonic() if now is None else now
+        if self.redis is not None and self.redis.owned and self.redis.process.poll() is not None:  # type: ignore[attr-defined]
+            code = self.redis.process.returncode  # type: ignore[attr-defined]
+            log(f"redis   exited with status {code}; starting it again on the same socket and append-only file")
+            try:
+                self.redis = start_embedded_redis(self.data_dir)
+            except EmbeddedRedisError as exc:
+                log(f"redis   did not start again: {exc}; retrying")
+        for name, proc in self.procs.items():
+            state = self.restarts.setdefault(name, _Restarts(started_at=t))
+            if state.due is None and proc.poll() is not None:
+                ran = t - state.started_at
+                # SIGKILL comes from outside (the OOM killer, an operator), not from a broken start
+                killed = proc.returncode == -signal.SIGKILL
+                state.quick_deaths = state.quick_deaths + 1 if ran < QUICK_DEATH_S and not killed else 0
+                delay = 0.0 if not state.quick_deaths else min(
+                    RESTART_BACKOFF_CAP_S, RESTART_BACKOFF_FIRST_S * 2 ** (state.quick_deaths - 1))
+                if name == "api" and state.quick_deaths >= API_CRASH_LOOP:
+                    return (f"the API exited {state.quick_deaths} times in a row within {QUICK_DEATH_S:g} s of "
+                            f"its start (last status {proc.returncode}); see {self.logs / 'api.log'}")
+                state.due = t + delay
+                log(f"{name:<7} exited with status {proc.returncode} after {ran:.1f} s; "
+                    f"starting it again in {delay:g} s")
+        for name, state in self.restarts.items():
+            if state.due is not None and t >= state.due and name in self.cmds:
+                state.count += 1
+                proc = self.spawn(name)
+                log(f"{name:<7} restarted (#{state.count}), pid {proc.pid}")
+        return None
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -87,18 +167,16 @@ def start_stack(data_dir: Path, host: str = "127.0.0.1", port: int = 8000,
     logs = data_dir / "logs"
     logs.mkdir(exist_ok=True)
     py = sys.executable
-    cmds = {
-        "bake-worker": [py, "-m", "workers.runner", "--queue", "bake", "--name", f"bake-{os.getpid()}"],
-        "render-worker": [py, "-m", "workers.runner", "--queue", "render", "--name", f"render-{os.getpid()}"],
+    stack.cmds = {
+        "bake-worker": [py, "-m", "workers.runner", "--queue", "bake"],
+        "render-worker": [py, "-m", "workers.runner", "--queue", "render"],
         "api": [py, "-m", "uvicorn", "service.main:create_app", "--factory", "--host", host, "--port", str(port),
                 "--no-access-log"],
     }
     try:
-        for name, cmd in cmds.items():
-            out = open(logs / f"{name}.log", "ab")  # noqa: SIM115 - owned by the child for its lifetime
-            stack.procs[name] = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT,
-                                                 stdin=subprocess.DEVNULL)
-            log(f"{name:<7} pid {stack.procs[name].pid}, log {logs / f'{name}.log'}")
+        for name in stack.cmds:
+            proc = stack.spawn(name)
+            log(f"{name:<7} pid {proc.pid}, log {logs / f'{name}.log'}")
         deadline = time.monotonic() + ready_timeout
         with Client(api_url, api_key=env.get("IBR_API_KEY")) as c:
             while not c.ready():
@@ -133,7 +211,8 @@ def load_samples(api_url: str, api_key: str | None = None, log: Callable[[str], 
 
 
 def run_forever(stack: Stack, log: Callable[[str], None] = print) -> int:
-    """Block until Ctrl-C / SIGTERM or a child dies; then stop everything."""
+    """Supervise the stack (:meth:`Stack.supervise`) until Ctrl-C / SIGTERM, or until the API
+    crash-loops (status 1); then stop everything."""
     stopping = {"flag": False}
 
     def _term(signum: int, frame: object) -> None:
@@ -143,9 +222,9 @@ def run_forever(stack: Stack, log: Callable[[str], None] = print) -> int:
     code = 0
     try:
         while not stopping["flag"]:
-            dead = stack.dead()
-            if dead:
-                log(f"{', '.join(dead)} exited; stopping (logs in {stack.data_dir / 'logs'})")
+            fatal = stack.supervise(log)
+            if fatal:
+                log(f"{fatal}; stopping (logs in {stack.logs})")
                 code = 1
                 break
             time.sleep(0.5)

@@ -36,3 +36,19 @@ def test_compose_has_the_service_stack():
     assert services["render-worker"]["command"] == ["worker", "--queue", "render"]
     env = doc["x-ibr-env"]
     assert env["IBR_STORE_URL"].startswith("s3://") and env["IBR_S3_ENDPOINT_URL"] == "http://minio:9000"
+
+
+def test_compose_restarts_services_and_checks_worker_health():
+    """Long-running services come back when they exit; workers report health from Redis
+    (``python -m workers.runner --healthcheck``, exercised in tests/workers/queue/test_outages.py)."""
+    import yaml
+
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    for name in ("redis", "minio", "api", "bake-worker", "render-worker"):
+        assert services[name].get("restart") in ("unless-stopped", "always"), name
+        assert "healthcheck" in services[name], name
+    assert "restart" not in services["minio-init"]  # a one-shot job
+    for queue in ("bake", "render"):
+        test = services[f"{queue}-worker"]["healthcheck"]["test"]
+        assert test[:4] == ["CMD", "python", "-m", "workers.runner"] and "--healthcheck" in test
+        assert test[test.index("--queue") + 1] == queue

@@ -41,6 +41,21 @@ A dead worker's job is therefore noticed within about
 long as one worker of that queue is alive. Worker registration TTL: ``worker_ttl`` (RQ's 420 s),
 refreshed while the worker lives.
 
+Redis outages (docs/reliability.md). RQ records a job's start and end with Redis calls outside
+its own error handling, so stock, a worker busy when Redis goes away exits ("unhandled
+exception") and its job stays 'started' until another worker's maintenance finds it. Here a Redis
+error while a job runs or records its end (in the render worker, the bake worker's parent or its
+horse) waits for Redis with backoff (0.5 s doubling to 5 s), then :meth:`settle_after_outage`
+puts the job back at the front of its queue unless its end was recorded or another worker runs
+it; no retry is spent. The loop's own Redis calls (heartbeats, maintenance, the suspension check,
+the shutdown bookkeeping) log and back off instead of ending the loop; the idle dequeue
+reconnects with RQ's backoff, capped at 5 s. :class:`DyingScheduler` (RQ's forked scheduler) dies
+with its worker and waits out outages instead of exiting. On each maintenance pass a worker also
+releases what a dead worker of the same host still holds (:meth:`reap_dead_local_peers`), so a
+SIGKILLed worker's job is retried at the next pass rather than after its heartbeat expiry and the
+dead scheduler's lock (up to 30 + 61 s). ``--healthcheck`` answers 0 when a live worker of the
+queue on this host has beaten recently (the compose health check).
+
 Warm-up (render workers only). Before the worker registers with Redis -- so it takes no job
 while numba compiles; other workers keep serving -- :func:`warm_up_render_worker` runs
 ``workers.warmup.warm_up``: every engine path of the render queue's jobs on tiny built-in data,
@@ -66,10 +81,11 @@ import ctypes
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from types import TracebackType
 from typing import Any, Literal
@@ -80,10 +96,13 @@ from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import RedisError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from rq import SimpleWorker, Worker
-from rq.exceptions import AbandonedJobError
-from rq.job import Job
+from rq.defaults import DEFAULT_LOGGING_DATE_FORMAT, DEFAULT_LOGGING_FORMAT
+from rq.exceptions import AbandonedJobError, NoSuchJobError
+from rq.job import Job, JobStatus
 from rq.job_lifecycle import call_exception_handlers
 from rq.queue import Queue
+from rq.scheduler import SCHEDULER_KEY_TEMPLATE, RQScheduler
+from rq.scripts import release_lock
 from rq.serializers import JSONSerializer
 from rq.worker import BaseWorker, WorkerStatus
 
@@ -113,6 +132,35 @@ TRANSIENT_ERRORS: tuple[type[BaseException], ...] = (
     AbandonedJobError,
 )
 """Failures worth a retry; every other exception fails the job at once."""
+
+REDIS_DOWN: tuple[type[BaseException], ...] = (RedisConnectionError, RedisTimeoutError)
+"""What redis-py raises while the server is unreachable, restarting or still loading its AOF
+(``BusyLoadingError`` is a ``ConnectionError``), after its own short retries."""
+
+OUTAGE_BACKOFF_FIRST_S = 0.5
+OUTAGE_BACKOFF_CAP_S = 5.0
+
+
+def wait_for_redis(redis: Redis, should_stop: Callable[[], bool], what: str,
+                   first: float = OUTAGE_BACKOFF_FIRST_S, cap: float = OUTAGE_BACKOFF_CAP_S) -> bool:
+    """Block until ``redis`` answers PING again (exponential backoff from ``first`` to ``cap``
+    seconds between attempts); False when ``should_stop()`` turned true first."""
+    delay, t0, attempts = first, time.monotonic(), 0
+    while not should_stop():
+        try:
+            redis.ping()
+        except REDIS_DOWN as exc:
+            attempts += 1
+            if attempts == 1 or attempts % 10 == 0:
+                log.warning("%s: Redis unreachable for %.0f s (%s); retrying every %.1f s at most",
+                            what, time.monotonic() - t0, exc, cap)
+            time.sleep(delay)
+            delay = min(cap, delay * 2)
+            continue
+        if attempts:
+            log.info("%s: Redis reachable again after %.1f s", what, time.monotonic() - t0)
+        return True
+    return False
 
 
 def retry_policy(job: Job, exc_type: type[BaseException] | None, exc_value: BaseException | None,
@@ -166,6 +214,7 @@ class _TunedWorkerMixin:
     where the job runs; shared by both worker classes."""
 
     heartbeat_grace: int = 20
+    max_connection_wait_time = OUTAGE_BACKOFF_CAP_S  # the idle dequeue's reconnect backoff (RQ: 60 s)
     maintenance_interval: int
     worker_ttl: int
     job_monitoring_interval: int
@@ -173,15 +222,161 @@ class _TunedWorkerMixin:
     name: str
     _exc_handlers: list[Any]
 
+    connection: Redis
+    serializer: Any
+    scheduler: RQScheduler | None
+    _stop_requested: bool
+
     def perform_job(self, job: Job, queue: Queue, execution: Any) -> bool:
         # Runs where the job runs (the render worker itself, a bake worker's forked horse).
         t0 = time.monotonic()
-        ok: bool = super().perform_job(job, queue, execution)  # type: ignore[misc]
+        try:
+            ok: bool = super().perform_job(job, queue, execution)  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            # RQ records a job's end with Redis calls outside its own error handling: an outage
+            # while the job runs or ends escapes here (and would end the worker's loop).
+            self.settle_after_outage(job, queue, execution, exc)
+            return False
         outcome: Literal["finished", "failed", "canceled"] = "finished"
         if not ok:
+            # RQ logs (does not raise) a failure it could not write: the job would stay 'started'.
+            if self._end_not_recorded(job, execution):
+                self.settle_after_outage(job, queue, execution, None)
+                return False
             outcome = "canceled" if _was_canceled(job, None) else "failed"
         _observe(job, queue.name, outcome, time.monotonic() - t0)
         return ok
+
+    def execute_job(self, job: Job, queue: Queue) -> None:
+        # Runs in the worker process. A Redis outage anywhere in it (creating the execution,
+        # the bake worker's heartbeats and its reading of the horse's outcome, the state change
+        # to idle) settles the job instead of ending the work loop.
+        self._current_execution: Any = None
+        try:
+            super().execute_job(job, queue)  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            self.settle_after_outage(job, queue, self._current_execution, exc)
+
+    def prepare_execution(self, job: Job) -> Any:
+        # remembered for settle_after_outage: RQ forgets it once the horse has ended
+        self._current_execution = None
+        executions: dict[str, Any] = self.executions  # type: ignore[attr-defined]
+        before = set(executions)
+        try:
+            self._current_execution = super().prepare_execution(job)  # type: ignore[misc]
+        except REDIS_DOWN:
+            # RQ registers the execution in memory before writing it: settle cleans it up
+            added = [e for k, e in executions.items() if k not in before]
+            self._current_execution = added[0] if added else None
+            raise
+        return self._current_execution
+
+    def _end_not_recorded(self, job: Job, execution: Any) -> bool:
+        """True when Redis still lists this execution of ``job`` as running (its end was lost)."""
+        if execution is None:
+            return False
+        try:
+            entries = job.started_job_registry.get_job_and_execution_ids(cleanup=False)
+        except REDIS_DOWN:
+            return True
+        return (job.id, execution.id) in entries
+
+    def settle_after_outage(self, job: Job, queue: Queue, execution: Any, exc: BaseException | None) -> None:
+        """Once Redis answers again, put a job whose end was never recorded back at the front
+        of its queue (no retry is spent: the outage is not the job's fault). A job that did end
+        (finished, failed, retried, canceled) or that another worker runs by now is left alone.
+
+        A job that already stored its artifact finds it on the rerun and ends at once. Gives up
+        when the worker is asked to stop first: maintenance then treats the job as abandoned
+        (retried or failed) once its heartbeat expires."""
+        self.log.warning("Worker %s: job %s: Redis went away while it ran or recorded its end (%s); "
+                         "settling it once Redis is back", self.name, job.id, exc or "failure not recorded")
+        if not wait_for_redis(self.connection, lambda: bool(getattr(self, "_stop_requested", False)),
+                              f"job {job.id}"):
+            self.log.warning("Worker %s: stopping before Redis came back; job %s is left to maintenance "
+                             "(abandoned-job handling)", self.name, job.id)
+            return
+        for attempt in range(5):
+            try:
+                self._requeue_if_unrecorded(job, queue, execution)
+                return
+            except REDIS_DOWN as again:  # Redis went away again in between: wait once more
+                if not wait_for_redis(self.connection, lambda: bool(getattr(self, "_stop_requested", False)),
+                                      f"job {job.id} (attempt {attempt + 2})"):
+                    return
+                exc = again
+        self.log.error("Worker %s: job %s could not be settled (%s); maintenance will treat it as abandoned",
+                       self.name, job.id, exc)
+
+    def _requeue_if_unrecorded(self, job: Job, queue: Queue, execution: Any) -> None:
+        conn = self.connection
+        try:
+            fresh = Job.fetch(job.id, connection=conn, serializer=self.serializer)
+        except NoSuchJobError:
+            fresh = None
+        entries = job.started_job_registry.get_job_and_execution_ids(cleanup=False)
+        mine = execution.id if execution is not None else None
+        others = [eid for jid, eid in entries if jid == job.id and eid != mine]
+        with conn.pipeline() as p:
+            if execution is not None:
+                self.cleanup_execution(fresh or job, pipeline=p, execution=execution)  # type: ignore[attr-defined]
+            p.execute()
+        if fresh is None:
+            self.log.info("Worker %s: job %s was deleted meanwhile; nothing to settle", self.name, job.id)
+            return
+        status = fresh.get_status(refresh=False)
+        in_queue = conn.lpos(queue.key, job.id) is not None
+        if others or not (status == JobStatus.STARTED or (status == JobStatus.QUEUED and not in_queue)):
+            self.log.info("Worker %s: job %s needs nothing after the outage (status %s%s)", self.name, job.id,
+                          status, ", run by another worker" if others else "")
+            return
+        conn.lrem(queue.intermediate_queue_key, 0, job.id)
+        queue.enqueue_job(fresh, at_front=True)
+        self.log.warning("Worker %s: job %s was %s when Redis went away; queued again at the front",
+                         self.name, job.id, status)
+
+    # -- Redis outages outside a job: the loop keeps running, with backoff ----------------------
+
+    def heartbeat(self, timeout: int | None = None, pipeline: Any = None) -> None:
+        if pipeline is not None:
+            super().heartbeat(timeout, pipeline=pipeline)  # type: ignore[misc]
+            return
+        try:
+            super().heartbeat(timeout)  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            # the dequeue that follows backs off until Redis is back; the registration's TTL is
+            # refreshed by the next heartbeat
+            self.log.warning("Worker %s: heartbeat failed: %s", self.name, exc)
+
+    def maintain_heartbeats(self, job: Job, execution: Any) -> None:
+        try:
+            super().maintain_heartbeats(job, execution)  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            self.log.warning("Worker %s: heartbeat of job %s failed: %s", self.name, job.id, exc)
+
+    def check_for_suspension(self, burst: bool) -> None:
+        while True:
+            try:
+                super().check_for_suspension(burst)  # type: ignore[misc]
+                return
+            except REDIS_DOWN:
+                if not wait_for_redis(self.connection, lambda: bool(getattr(self, "_stop_requested", False)),
+                                      f"worker {self.name}"):
+                    return
+
+    def set_shutdown_requested_date(self) -> None:
+        # called from the signal handler: an outage must not turn a warm shutdown into a crash
+        try:
+            super().set_shutdown_requested_date()  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            self.log.warning("Worker %s: shutdown request not recorded in Redis: %s", self.name, exc)
+
+    def teardown(self) -> None:
+        try:
+            super().teardown()  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            self.log.warning("Worker %s: Redis unreachable at shutdown (%s); the registration expires "
+                             "by its TTL", self.name, exc)
 
     def handle_exception(self, job: Job, *exc_info: Any) -> None:
         # RQ logs every exception at ERROR with its traceback; a job that stops because it was
@@ -202,11 +397,94 @@ class _TunedWorkerMixin:
         # RQ 3.0 restarts a stopped scheduler here even after a warm shutdown was requested
         # (SIGTERM stops the scheduler, the running job ends, maintenance starts a new one),
         # and the worker then hangs joining it. Once stopping, only clean the registries.
-        if getattr(self, "_stop_requested", False):
-            self.clean_registries()  # type: ignore[attr-defined]
-            self.clean_group_registries()  # type: ignore[attr-defined]
+        try:
+            if getattr(self, "_stop_requested", False):
+                self.clean_registries()  # type: ignore[attr-defined]
+                self.clean_group_registries()  # type: ignore[attr-defined]
+                return
+            self.reap_dead_local_peers()
+            super().run_maintenance_tasks()  # type: ignore[misc]
+        except REDIS_DOWN as exc:
+            # not marked as done: the next pass (inside the dequeue's backoff loop) tries again
+            self.log.warning("Worker %s: maintenance skipped, Redis unreachable: %s", self.name, exc)
+
+    def reap_dead_local_peers(self) -> None:
+        """Release what a worker of this host that no longer exists (SIGKILL, OOM) still holds,
+        instead of waiting for it to expire: its scheduler's lock (RQ: up to 61 s, during which
+        no scheduler enqueues the retries it scheduled) and its running executions (expiry
+        ``job_monitoring_interval + heartbeat_grace``). An execution is only marked expired:
+        RQ's own abandoned-job handling of the same maintenance pass then retries or fails it.
+
+        "No longer exists" is decided by its registered hostname being this one and its pid
+        being gone, so it holds only where pids are this host's (one machine, one container):
+        a registration from elsewhere, or a pid now reused, is left to the expiry."""
+        conn = self.connection
+        host = socket.gethostname()
+        for queue in self.queues:  # type: ignore[attr-defined]
+            lock_key = RQScheduler.get_locking_key(queue.name)
+            name = _text(conn.get(lock_key))
+            if name and _gone_here(conn.hmget(SCHEDULER_KEY_TEMPLATE % name, ["hostname", "pid"]), host) and \
+                    release_lock(conn, lock_key, name):
+                self.log.warning("Worker %s: released the %s scheduler lock of scheduler %s, whose process on "
+                                 "this host is gone", self.name, queue.name, name)
+            registry = queue.started_job_registry
+            for job_id, execution_id in registry.get_job_and_execution_ids(cleanup=False):
+                peer_name = _text(conn.hget(f"rq:execution:{job_id}:{execution_id}", "worker_name"))
+                if not peer_name or peer_name == self.name:
+                    continue
+                peer = conn.hmget(Worker.redis_worker_namespace_prefix + peer_name, ["hostname", "pid"])
+                if not _gone_here(peer, host):
+                    continue
+                entry = f"{job_id}:{execution_id}"
+                try:
+                    job = Job.fetch(job_id, connection=conn, serializer=self.serializer)
+                except NoSuchJobError:
+                    conn.zrem(registry.key, entry)
+                    continue
+                if job.get_status(refresh=False) == JobStatus.QUEUED:
+                    # killed between taking the job and starting it: RQ's abandoned-job handling
+                    # skips a job that is not 'started' (it would wait in RQ's intermediate queue
+                    # for a minute); it never ran, so it goes back to the front, no retry spent
+                    if conn.zrem(registry.key, entry):
+                        conn.lrem(queue.intermediate_queue_key, 0, job_id)
+                        if conn.lpos(queue.key, job_id) is None:
+                            queue.enqueue_job(job, at_front=True)
+                        self.log.warning("Worker %s: job %s was taken by worker %s, whose process on this host is "
+                                         "gone, before it started; queued again at the front", self.name, job_id,
+                                         peer_name)
+                elif conn.zadd(registry.key, {entry: 1}, xx=True, ch=True):
+                    self.log.warning("Worker %s: job %s was run by worker %s, whose process on this host is gone; "
+                                     "handled as abandoned now", self.name, job_id, peer_name)
+
+    def _start_scheduler(self, burst: bool = False, logging_level: str | None = "INFO",
+                         date_format: str = DEFAULT_LOGGING_DATE_FORMAT,
+                         log_format: str = DEFAULT_LOGGING_FORMAT) -> None:
+        # RQ's own start-up of its scheduler, with DyingScheduler in place of RQScheduler.
+        scheduler = DyingScheduler(
+            self.queues,  # type: ignore[attr-defined]
+            connection=self.connection,
+            logging_level=logging_level if logging_level is not None else self.log.level,
+            date_format=date_format,
+            log_format=log_format,
+            serializer=self.serializer,
+        )
+        self.scheduler = scheduler
+        try:
+            self.reap_dead_local_peers()  # a killed predecessor's lock would keep this one idle
+        except REDIS_DOWN as exc:
+            self.log.warning("Worker %s: could not check for dead peers: %s", self.name, exc)
+        scheduler.acquire_locks()  # type: ignore[no-untyped-call]
+        if not scheduler.acquired_locks:
             return
-        super().run_maintenance_tasks()  # type: ignore[misc]
+        if burst:
+            try:
+                scheduler.register_birth()
+                scheduler.enqueue_scheduled_jobs()  # type: ignore[no-untyped-call]
+            finally:
+                scheduler.release_locks()  # type: ignore[no-untyped-call]
+                scheduler.register_death()
+        else:
+            scheduler.start()
 
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         interval = int(self.job_monitoring_interval)
@@ -214,6 +492,30 @@ class _TunedWorkerMixin:
             remaining = int(job.timeout - working_time)
             interval = max(1, min(remaining, interval))
         return interval + int(self.heartbeat_grace)
+
+
+def _text(value: Any) -> str | None:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _gone_here(registration: list[Any], host: str) -> bool:
+    """True when a (hostname, pid) registration names this host and a pid that does not exist
+    or is a zombie (a killed worker's scheduler is reparented, and stays a zombie until the
+    host's init reaps it)."""
+    hostname, pid = (_text(v) for v in registration)
+    if hostname is None or pid is None or hostname != host:
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, ValueError, OverflowError):
+        return False
+    try:
+        stat = open(f"/proc/{int(pid)}/stat", "rb").read()  # noqa: SIM115 - read at once
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:stat.rfind(b")") + 3] == b"Z"
 
 
 def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
@@ -226,6 +528,41 @@ def _set_parent_death_signal(sig: int = signal.SIGKILL) -> None:
         libc.prctl(pr_set_pdeathsig, sig, 0, 0, 0)
     except (OSError, AttributeError):
         log.warning("prctl(PR_SET_PDEATHSIG) unavailable; a horse may outlive a killed worker")
+
+
+class DyingScheduler(RQScheduler):
+    """RQ's scheduler process, tied to its worker and tolerant of Redis outages.
+
+    RQ forks the scheduler from the worker. Stock, a SIGKILLed worker leaves it running as an
+    orphan that still holds the worker's scheduler lock and a copy of the worker's Redis
+    sockets: Redis keeps the dead worker's blocking dequeue open and hands it the next job,
+    which then waits in the intermediate queue until maintenance frees it (measured 88.5 s).
+    Here the child asks the kernel to kill it with its parent (``PR_SET_PDEATHSIG``), and a
+    Redis outage makes it wait and carry on (its lock is refreshed or re-taken by its next
+    heartbeat) instead of exiting."""
+
+    _parent_pid: int = 0
+
+    def start(self) -> Any:
+        self._parent_pid = os.getpid()
+        return super().start()  # type: ignore[no-untyped-call]
+
+    def work(self) -> None:
+        # in the forked child
+        _set_parent_death_signal()
+        if self._parent_pid and os.getppid() != self._parent_pid:  # the worker died before prctl
+            os._exit(0)
+        delay = OUTAGE_BACKOFF_FIRST_S
+        while True:
+            try:
+                super().work()  # type: ignore[no-untyped-call]
+                return
+            except REDIS_DOWN as exc:
+                if self._stop_requested:
+                    return
+                self.log.warning("Scheduler: Redis unreachable (%s); retrying in %.1f s", exc, delay)
+                time.sleep(delay)
+                delay = min(OUTAGE_BACKOFF_CAP_S, delay * 2)
 
 
 class BakeWorker(_TunedWorkerMixin, Worker):
@@ -256,17 +593,21 @@ class RenderWorker(_TunedWorkerMixin, SimpleWorker):
     """In-process worker (warm caches) whose running job keeps a heartbeat from a thread."""
 
     def execute_job(self, job: Job, queue: Queue) -> None:
-        execution = self.prepare_execution(job)
-        stop = threading.Event()
-        beat = threading.Thread(target=self._keep_alive, args=(job, execution, stop),
-                                name="ibr-job-heartbeat", daemon=True)
-        beat.start()
+        self._current_execution = None
         try:
-            self.perform_job(job, queue, execution)
-        finally:
-            stop.set()
-            beat.join(timeout=10)
-        self.set_state(WorkerStatus.IDLE)
+            execution = self.prepare_execution(job)
+            stop = threading.Event()
+            beat = threading.Thread(target=self._keep_alive, args=(job, execution, stop),
+                                    name="ibr-job-heartbeat", daemon=True)
+            beat.start()
+            try:
+                self.perform_job(job, queue, execution)
+            finally:
+                stop.set()
+                beat.join(timeout=10)
+            self.set_state(WorkerStatus.IDLE)
+        except REDIS_DOWN as exc:
+            self.settle_after_outage(job, queue, self._current_execution, exc)
 
     def _keep_alive(self, job: Job, execution: Any, stop: threading.Event) -> None:
         started = time.monotonic()
@@ -351,6 +692,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-warmup", action="store_true",
                    help="render worker: skip the start-up warm-up of the numba kernels "
                         "(default: IBR_WORKER_WARMUP, on)")
+    p.add_argument("--healthcheck", action="store_true",
+                   help="exit 0 when a worker of --queue on this host is registered in Redis with a recent "
+                        "heartbeat, else 1 (a container health check); starts no worker")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     return p
 
@@ -369,6 +713,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (RedisError, OSError) as exc:
         print(f"cannot reach Redis at {settings.effective_redis_url}: {exc}", file=sys.stderr)
         return 3
+    if args.healthcheck:
+        return healthcheck(redis, args.queue, settings)
     # keep image-sized buffers mapped between jobs (engine/memory.py); inherited by forked horses
     if keep_freed_memory(settings.malloc_keep_mib << 20):
         log.info("malloc: blocks up to 32 MiB from the heap, up to %d MiB of freed memory kept for the next job",
@@ -400,7 +746,36 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
                 max_jobs=args.max_jobs)
+    asked_to_stop = worker._shutdown_requested_date is not None or worker._stop_requested
+    if not (args.burst or args.max_jobs is not None or asked_to_stop):
+        # RQ's loop ends on an exception it does not handle (logged above with its traceback):
+        # a non-zero status, so the supervisor (ibr up, the container's restart policy) starts
+        # a fresh worker instead of taking the exit for a requested stop.
+        log.error("worker %s: the work loop ended without a stop request; exiting with status 1", worker.name)
+        return 1
     return 0
+
+
+def healthcheck(redis: Redis, queue: QueueName, settings: Settings) -> int:
+    """0 when a live worker of ``queue`` registered from this host has sent a heartbeat within
+    ``2 x maintenance_interval + job_monitoring_interval + 30`` seconds (an idle worker beats at
+    every dequeue timeout, a busy one with every job heartbeat), else 1 with the reason."""
+    import socket
+
+    from rq.utils import now
+
+    limit = 2 * settings.maintenance_interval_s + settings.job_monitoring_interval_s + 30
+    host = socket.gethostname()
+    ages = []
+    for w in Worker.all(connection=redis, queue=get_queue(redis, queue)):
+        if w.hostname == host and w.last_heartbeat is not None and not _gone_here([w.hostname, str(w.pid)], host):
+            ages.append((now() - w.last_heartbeat).total_seconds())
+    if ages and min(ages) <= limit:
+        print(f"ok: {queue} worker on {host}, last heartbeat {min(ages):.0f} s ago")
+        return 0
+    print(f"unhealthy: no {queue} worker on {host} with a heartbeat in the last {limit} s "
+          f"({len(ages)} registered)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":
