@@ -109,7 +109,8 @@ class ScenePublic(FrozenModel):
 
 class SceneList(FrozenModel):
     items: list[ScenePublic]
-    total: int
+    next_cursor: str | None = None
+    """Pass as ``cursor`` for the next page; null on the last page."""
 
 
 # ------------------------------------------------------------------------------ renders
@@ -408,6 +409,8 @@ class JobPublic(FrozenModel):
 
 class JobList(FrozenModel):
     items: list[JobPublic]
+    next_cursor: str | None = None
+    """Pass as ``cursor`` for the next page; null on the last page."""
 
 
 # ------------------------------------------------------------------------------ artifacts

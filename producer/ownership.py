@@ -17,11 +17,18 @@ bytes.
 - ``ibr:job-owners:<job_id>``: the Redis set of everybody who asked for the job;
   ``ibr:job-detached:<job_id>``: those of them who canceled it. Canceling detaches the caller; the
   job is canceled when no owner remains attached (``producer.cancel.cancel_for``).
+- ``ibr:job-index:<owner>``: the sorted set of the jobs an owner asked for (score: when it asked,
+  in microseconds), and ``ibr:job-index`` of every job: what ``GET /v1/jobs`` pages through
+  (``producer.status.list_jobs_page``), so a listing never reads the jobs of other keys. Entries
+  are not removed when RQ expires a job (its result or failure TTL): the listing drops the entries
+  of jobs Redis no longer holds, and every addition trims entries older than
+  ``JOB_INDEX_HORIZON_S``.
 """
 
 from __future__ import annotations
 
 import re
+import time
 from typing import Any, cast
 
 from redis import Redis
@@ -46,6 +53,9 @@ __all__ = [
     "dataset_visible",
     "job_owners",
     "job_owners_key",
+    "JOB_INDEX_HORIZON_S",
+    "index_job",
+    "job_index_key",
     "remove_dataset_owner",
     "remove_scene_owner",
     "scene_owners",
@@ -209,16 +219,47 @@ def job_detached_key(job_id: str) -> str:
     return f"{KEY_PREFIX}job-detached:{job_id}"
 
 
+JOB_INDEX_HORIZON_S = 2 * FAILURE_TTL_S
+"""How long a job stays in the job indexes: longer than any job lives in Redis once it ended (RQ
+keeps a failed job ``FAILURE_TTL_S``); a job still queued after this long drops out of the
+listing (it stays readable by its id)."""
+
+
+def job_index_key(owner: str | None) -> str:
+    """The sorted set ``GET /v1/jobs`` reads for ``owner`` (None: every job, for auth off)."""
+    return f"{KEY_PREFIX}job-index:{owner}" if owner else f"{KEY_PREFIX}job-index"
+
+
+def _index_add(p: Any, owner: str | None, job_id: str, now_us: int, *, only_new: bool) -> None:
+    key = job_index_key(owner)
+    p.zadd(key, {job_id: now_us}, nx=only_new)
+    p.zremrangebyscore(key, "-inf", f"({now_us - JOB_INDEX_HORIZON_S * 1_000_000}")
+    p.expire(key, JOB_INDEX_HORIZON_S)
+
+
+def index_job(redis: Redis, job_id: str, owner: str | None) -> None:
+    """A job was created (anew, or again under the same id): it goes to the top of the index of
+    every job and of ``owner``'s (an earlier entry of the same id moves)."""
+    now_us = time.time_ns() // 1000
+    with redis.pipeline(transaction=False) as p:
+        _index_add(p, None, job_id, now_us, only_new=False)
+        if owner:
+            _index_add(p, owner, job_id, now_us, only_new=False)
+        p.execute()
+
+
 def add_job_owner(redis: Redis, job_id: str, owner: str | None, timeout: int) -> None:
     """Record ``owner`` as one of the keys that asked for ``job_id`` (so they may see it); the set
     lives as long as the job can (its timeout plus the failure TTL). Asking again after canceling
-    attaches the owner again."""
+    attaches the owner again. The job enters ``owner``'s job index unless it is there already (a
+    key joining a shared job lists it from the time it first asked)."""
     if owner:
         key = job_owners_key(job_id)
         with redis.pipeline() as p:
             p.sadd(key, owner)
             p.expire(key, timeout + FAILURE_TTL_S)
             p.srem(job_detached_key(job_id), owner)
+            _index_add(p, owner, job_id, time.time_ns() // 1000, only_new=True)
             p.execute()
 
 

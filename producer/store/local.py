@@ -31,6 +31,9 @@ from producer.store.base import (
 
 __all__ = ["LocalStore"]
 
+_Keys = list[str]
+"""(A name of the type: inside the classes ``list`` is the method.)"""
+
 _TEMP_MARK = "~"
 _PUT_ATTEMPTS = 16
 """A concurrent delete may prune a directory between our mkdir and our open: retry. (Three
@@ -211,6 +214,30 @@ class LocalStore:
                     keys.append(key)
         keys.sort()
         return keys
+
+    def list_page(self, prefix: str, start_after: str = "", limit: int = 1000) -> _Keys:
+        if limit < 1:
+            raise ValueError(f"limit must be positive, got {limit}")
+        validate_prefix(prefix)
+        if prefix.endswith("/"):
+            # the usual case, an index "directory": one scandir, no walk, when it holds no subdirectory
+            base = self.root.joinpath(*prefix[:-1].split("/"))
+            names: list[str] = []
+            try:
+                with os.scandir(base) as it:
+                    for entry in it:
+                        if entry.is_dir(follow_symlinks=False):
+                            break
+                        if _TEMP_MARK not in entry.name:
+                            names.append(entry.name)
+                    else:
+                        keys = sorted(k for k in (prefix + n for n in names) if k > start_after and is_valid_key(k))
+                        return keys[:limit]
+            except (FileNotFoundError, NotADirectoryError):
+                return []
+            except OSError as exc:
+                raise _unavailable(f"cannot list {prefix!r}", exc) from exc
+        return [k for k in self.list(prefix) if k > start_after][:limit]
 
     def open_stream(self, key: str, chunk: int = DEFAULT_CHUNK) -> Iterator[bytes]:
         if chunk <= 0:
