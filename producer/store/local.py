@@ -15,6 +15,7 @@ import errno
 import os
 import secrets
 import stat
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -243,6 +244,30 @@ class LocalStore:
         if chunk <= 0:
             raise ValueError(f"chunk must be positive, got {chunk}")
         return _iter_file(self._open(key), key, chunk)
+
+    def sweep_temp_files(self, older_than_s: float) -> _Keys:
+        """Remove the temp files of writes that never finished (a ``~`` in the name, last modified
+        more than ``older_than_s`` seconds ago) anywhere under the root; prunes directories left
+        empty. Returns the removed paths, relative to the root. A live writer's temp file is
+        younger than the grace period (its write takes less than that), so it is left alone."""
+        cutoff = time.time() - older_than_s
+        removed: _Keys = []
+        for dirpath, _dirnames, filenames in os.walk(self.root):
+            for name in filenames:
+                if _TEMP_MARK not in name:
+                    continue
+                path = Path(dirpath) / name
+                try:
+                    if os.lstat(path).st_mtime >= cutoff:
+                        continue
+                    os.unlink(path)
+                except FileNotFoundError:
+                    continue  # renamed into place or removed meanwhile
+                except OSError as exc:
+                    raise _unavailable(f"cannot remove the stray temp file {path}", exc) from exc
+                removed.append(path.relative_to(self.root).as_posix())
+                self._prune_empty_dirs(path.parent)
+        return removed
 
     def check(self) -> None:
         try:

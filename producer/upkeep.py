@@ -1,0 +1,71 @@
+"""Store upkeep the API runs at start-up and then periodically, in a background thread.
+
+- stray temp files: a local store's writes go through temp files (``producer.store.local``); a
+  writer killed mid-write (a job process SIGKILLed, the host lost) leaves
+  ``artifacts/<key>/.<name>~<hex>.tmp`` behind, which :meth:`LocalStore.sweep_temp_files`
+  removes once older than ``store_temp_grace_s``. (S3 PUTs are atomic: nothing to sweep.)
+- the scene index (``producer.listings``): a store written before scene listings read an index
+  gets its index built once (``scene-index/built``, an empty marker, records that it was).
+
+Every step is idempotent, so several API replicas may run it at once; a failure is logged and
+retried at the next round, never raised into the API.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from producer.listings import SCENE_INDEX_PREFIX, rebuild_scene_index
+from producer.store import LocalStore, ObjectStore
+
+__all__ = ["INDEX_BUILT_KEY", "StoreUpkeep", "run_upkeep"]
+
+log = logging.getLogger(__name__)
+
+INDEX_BUILT_KEY = f"{SCENE_INDEX_PREFIX}built"
+
+
+def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
+    """One round: sweep stray temp files, build the scene index if it never was. Returns counts."""
+    out = {"temp_files_removed": 0, "scenes_indexed": 0}
+    if isinstance(store, LocalStore):
+        removed = store.sweep_temp_files(temp_grace_s)
+        out["temp_files_removed"] = len(removed)
+        if removed:
+            log.warning("removed %d stray temp files of writes that never finished: %s", len(removed),
+                        ", ".join(removed[:10]) + (" ..." if len(removed) > 10 else ""))
+    if not store.exists(INDEX_BUILT_KEY):
+        out["scenes_indexed"] = rebuild_scene_index(store)
+        store.put_bytes(INDEX_BUILT_KEY, b"", "text/plain")
+        log.info("scene index built for %d stored scenes", out["scenes_indexed"])
+    return out
+
+
+class StoreUpkeep:
+    """``run_upkeep`` now and then every ``interval_s`` seconds (0: once) on a daemon thread."""
+
+    def __init__(self, store: ObjectStore, temp_grace_s: float, interval_s: float) -> None:
+        self.store, self.temp_grace_s, self.interval_s = store, temp_grace_s, interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ibr-store-upkeep", daemon=True)
+        self.rounds = 0
+
+    def start(self) -> StoreUpkeep:
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                run_upkeep(self.store, self.temp_grace_s)
+            except Exception:  # a store outage: the next round tries again
+                log.exception("store upkeep failed; retrying at the next round")
+            self.rounds += 1
+            if self.interval_s <= 0 or self._stop.wait(self.interval_s):
+                return
