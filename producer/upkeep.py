@@ -5,7 +5,8 @@
   ``artifacts/<key>/.<name>~<hex>.tmp`` behind, which :meth:`LocalStore.sweep_temp_files`
   removes once older than ``store_temp_grace_s``. (S3 PUTs are atomic: nothing to sweep.)
 - the scene index (``producer.listings``): a store written before scene listings read an index
-  gets its index built once (``scene-index/built``, an empty marker, records that it was).
+  gets its index built once (``scene-index/built``, an empty marker, records that it was; a store
+  without scenes is left as it is).
 
 Every step is idempotent, so several API replicas may run it at once; a failure is logged and
 retried at the next round, never raised into the API.
@@ -37,8 +38,9 @@ def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
                         ", ".join(removed[:10]) + (" ..." if len(removed) > 10 else ""))
     if not store.exists(INDEX_BUILT_KEY):
         out["scenes_indexed"] = rebuild_scene_index(store)
-        store.put_bytes(INDEX_BUILT_KEY, b"", "text/plain")
-        log.info("scene index built for %d stored scenes", out["scenes_indexed"])
+        if out["scenes_indexed"]:  # an empty store has nothing to build (and gets no write)
+            store.put_bytes(INDEX_BUILT_KEY, b"", "text/plain")
+            log.info("scene index built for %d stored scenes", out["scenes_indexed"])
     return out
 
 

@@ -28,7 +28,7 @@ import hashlib
 import json
 import re
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -147,8 +147,20 @@ class Client:
         doc: dict[str, Any] = self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/document").json()
         return doc
 
-    def list_scenes(self) -> SceneList:
-        return SceneList.model_validate(self._request("GET", "/v1/scenes").json())
+    def list_scenes(self, limit: int = 100, cursor: str | None = None) -> SceneList:
+        """One page of this key's scenes, oldest first; pass ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return SceneList.model_validate(self._request("GET", "/v1/scenes", params=params).json())
+
+    def iter_scenes(self, page_size: int = 100) -> Iterator[ScenePublic]:
+        """Every scene of this key, oldest first, a page at a time."""
+        cursor: str | None = None
+        while True:
+            page = self.list_scenes(page_size, cursor)
+            yield from page.items
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
 
     def delete_scene(self, scene_id: str) -> None:
         self._request("DELETE", f"/v1/scenes/{_id(scene_id, 'scene id')}")
@@ -177,8 +189,13 @@ class Client:
     def job(self, job_id: str) -> JobPublic:
         return JobPublic.model_validate(self._request("GET", f"/v1/jobs/{_id(job_id, 'job id')}").json())
 
-    def jobs(self) -> JobList:
-        return JobList.model_validate(self._request("GET", "/v1/jobs").json())
+    def jobs(self, limit: int = 100, cursor: str | None = None, state: Sequence[str] | None = None) -> JobList:
+        """One page of this key's jobs, newest first (only ``state`` when given); pass
+        ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        if state:
+            params["state"] = list(state)
+        return JobList.model_validate(self._request("GET", "/v1/jobs", params=params).json())
 
     def cancel(self, job_id: str) -> JobPublic:
         return JobPublic.model_validate(self._request("POST", f"/v1/jobs/{_id(job_id, 'job id')}/cancel").json())

@@ -240,6 +240,8 @@ def test_scene_listing_with_auth_off_and_a_store_written_before_the_index(
     assert store.exists(INDEX_BUILT_KEY)
     assert _flat(_pages(client, "/v1/scenes", {}, 2)) == scenes
     assert run_upkeep(store, 3600.0)["scenes_indexed"] == 0  # once
+    empty = open_store(str(store_dir.parent / "empty"))
+    assert run_upkeep(empty, 3600.0)["scenes_indexed"] == 0 and empty.list("") == []
 
 
 # ------------------------------------------------------------------------------------ latency
