@@ -56,6 +56,7 @@ __all__ = [
     "list_scenes",
     "manifest_key",
     "mesh_paths",
+    "put_blob_unless_intact",
     "put_scene",
     "read_blob",
     "read_manifest",
@@ -357,10 +358,12 @@ def store_scene(
     """:func:`put_scene`, also saying whether the scene was new (True) or already stored.
 
     Only the mesh files the scene references are stored (each under ``blobs/<sha256>``,
-    skipped when present); other entries of ``meshes`` are ignored. A referenced path
-    missing from ``meshes`` raises ValueError before anything is written. An existing
-    scene keeps its document (first owner and ``created_at``), but missing blobs are
-    restored, so uploading again repairs a scene whose blob was found corrupt."""
+    skipped when an intact copy is stored); other entries of ``meshes`` are ignored. A
+    referenced path missing from ``meshes`` raises ValueError before anything is written.
+    An existing scene keeps its document (first owner and ``created_at``), but blobs that
+    are missing or fail their checksum are written again, so uploading again repairs a
+    scene whose blob was found corrupt, or went bad before any reader found out. Its
+    summary (``scene_summary_key``) is written after the document (again when missing)."""
     paths = mesh_paths(scene)
     missing = [p for p in paths if p not in meshes]
     if missing:
@@ -373,7 +376,7 @@ def store_scene(
     for p in paths:
         sha = shas[p]
         if sha not in written:
-            _put_blob_unless_intact(store, sha, meshes[p])
+            put_blob_unless_intact(store, sha, meshes[p])
         written.add(sha)
 
     try:
@@ -397,7 +400,7 @@ def store_scene(
     return public, True
 
 
-def _put_blob_unless_intact(store: ObjectStore, sha: str, data: bytes) -> bool:
+def put_blob_unless_intact(store: ObjectStore, sha: str, data: bytes) -> bool:
     """Write ``blobs/<sha>`` unless a copy that matches its checksum is stored: an upload of the
     same bytes replaces a stored blob that went bad (before a reader found it out). True when
     written."""

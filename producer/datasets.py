@@ -59,7 +59,7 @@ from api_schemas.datasets import (
 )
 from api_schemas.errors import FieldError, format_error_details
 from engine import ENGINE_VERSION
-from producer.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
+from producer.artifacts import artifact_key, blob_key, canonical_json, put_blob_unless_intact, sha256_hex
 from producer.names import COMPOSITE_KIND, DATASET_BAKE_KIND, GENERATE_KIND, RELIGHT_KIND
 from producer.ownership import (
     add_blob_owner,
@@ -380,14 +380,14 @@ def store_file(store: ObjectStore, data: bytes, *, max_pixels: int, expected_sha
         raise FileProblem(f"the content's sha256 is {sha}, not {expected_sha} as the URL / manifest says")
     existing = blob_info(store, sha)
     if existing is not None:
+        put_blob_unless_intact(store, sha, data)  # a stored copy that went bad is replaced by these bytes
         add_blob_owner(store, sha, owner)  # the bytes were sent: proof of possession
         return existing
     img, stats = scan_image(data, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes)
     info: dict[str, Any] = {"sha256": sha, "size": len(data), "width": img.width, "height": img.height,
                             "channels": img.channels, "format": img.format, "pixel_type": img.pixel_type,
                             **stats}
-    if not store.exists(blob_key(sha)):
-        store.put_bytes(blob_key(sha), data)
+    put_blob_unless_intact(store, sha, data)
     store.put_bytes(_info_key(sha), canonical_json(info).encode(), "application/json")
     add_blob_owner(store, sha, owner)
     return info

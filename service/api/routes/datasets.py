@@ -37,7 +37,7 @@ from api_schemas.datasets import (
 )
 from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, JobPublic, Sha256
-from producer.artifacts import read_blob, read_manifest
+from producer.artifacts import put_blob_unless_intact, read_blob, read_manifest, sha256_hex
 from producer.datasets import (
     DatasetInvalid,
     FileProblem,
@@ -334,15 +334,17 @@ async def upload_file(sha256: FileSha, request: Request, response: Response, sto
     API key sent it before; a file stored already for another key is stored once, but each key
     proves it holds the bytes by sending them (the answer is then 201 for it)."""
     known = await run_in_threadpool(owned_blob_info, store, sha256, owner)
-    if known is not None:
-        response.status_code = 200
-        return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
     limit = settings.max_upload_bytes
     buf = bytearray()
     async for chunk in request.stream():
         buf += chunk
         if len(buf) > limit:
             raise BodyTooLarge(f"file exceeds the {limit}-byte limit per file", field=f"files.{sha256}")
+    if known is not None:
+        if sha256_hex(bytes(buf)) == sha256:  # the same bytes: they replace a stored copy gone bad
+            await run_in_threadpool(put_blob_unless_intact, store, sha256, bytes(buf))
+        response.status_code = 200
+        return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
     try:
         info = await run_in_threadpool(_store_file, store, bytes(buf), settings, owner, sha256)
     except FileProblem as exc:

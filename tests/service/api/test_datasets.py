@@ -385,3 +385,22 @@ def test_file_names_are_metadata_only(client: TestClient, store_dir: Path) -> No
     m["images"][0]["file"] = "a\x00b.png"
     r = client.post("/v1/datasets", json=with_shas({**manifest}, files) | {"images": m["images"]})
     assert r.status_code == 422 and "images.0.file" in fields(r)
+
+
+def test_uploading_a_file_again_replaces_its_corrupt_stored_copy(client: TestClient, store_dir: Path) -> None:
+    """A stored image that went bad before any reader checked it (a flipped byte, a truncation) is
+    replaced by the next upload of the same bytes, by PUT or in a multipart dataset."""
+    manifest, files = subset(3)
+    did = client.post("/v1/datasets", files=multipart(manifest, files)).json()["id"]
+    name = manifest["images"][1]["file"]
+    data = files[name]
+    blob = store_dir / "blobs" / sha(data)
+    for bad in (data[:100] + bytes([data[100] ^ 1]) + data[101:], data[:-9]):
+        blob.write_bytes(bad)
+        put = client.put(f"/v1/datasets/uploads/{sha(data)}", content=data)
+        assert put.status_code == 200, put.text  # already received ...
+        assert blob.read_bytes() == data  # ... and its stored copy is good again
+    blob.write_bytes(b"")
+    assert client.post("/v1/datasets", files=multipart(manifest, files)).json()["id"] == did
+    assert blob.read_bytes() == data
+    assert client.get(f"/v1/datasets/{did}/files/{sha(data)}").content == data
