@@ -22,13 +22,13 @@ longer visible to the owner removes the entry and goes on; a scene whose summary
 from __future__ import annotations
 
 import logging
-import re
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from datetime import UTC
+from typing import TypeVar
 
 from api_schemas.service import ScenePublic
 from producer.artifacts import get_scene, read_scene_summary, scene_key, write_scene_summary
-from producer.ownership import ANON_OWNER, SCENE_OWNERS_PREFIX, scene_visible
+from producer.ownership import ANON_OWNER, SCENE_OWNERS_PREFIX, is_entry, scene_visible, stamp
 from producer.store import ChecksumMismatch, LocalStore, NotFound, ObjectStore, StoreError
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "BadCursor",
     "index_scene",
     "list_scene_page",
+    "page_index",
     "rebuild_scene_index",
     "unindex_scene",
     "unindex_scene_owner",
@@ -44,7 +45,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 SCENE_INDEX_PREFIX = "scene-index/"
-_ENTRY = re.compile(r"\d{8}T\d{12}Z-[0-9a-f]{64}")
 _READ_THREADS = 8
 
 
@@ -57,7 +57,7 @@ def _prefix(owner: str | None) -> str:
 
 
 def _entry(public: ScenePublic) -> str:
-    return f"{public.created_at.astimezone(UTC).strftime('%Y%m%dT%H%M%S%fZ')}-{public.id}"
+    return f"{stamp(public.created_at)}-{public.id}"
 
 
 def index_scene(store: ObjectStore, public: ScenePublic, owner: str | None) -> None:
@@ -113,40 +113,57 @@ def _repair(store: ObjectStore, scene_id: str, owner: str | None) -> ScenePublic
     return public
 
 
+T = TypeVar("T")
+
+
+def page_index(store: ObjectStore, prefix: str, limit: int, cursor: str | None,
+               load: Callable[[list[str]], list[T | None]]) -> tuple[list[T], str | None]:
+    """One page of an index of entries ``<prefix><stamp>-<id>``: ``load(ids)`` gives each entry's
+    item, None for a stale entry (its resource is gone), which is removed; reads ``limit`` (+1)
+    entries, more only to replace stale ones. ``(items, cursor of the next page or None)``;
+    ``BadCursor`` for a cursor that is not an entry name."""
+    if cursor is not None and not is_entry(cursor):
+        raise BadCursor(f"invalid cursor {cursor[:80]!r}: pass the next_cursor of the previous page")
+    limit = max(1, limit)
+    after = prefix + cursor if cursor else ""
+    out: list[T] = []
+    while True:
+        want = limit - len(out)
+        keys = store.list_page(prefix, start_after=after, limit=want + 1)
+        page = keys[:want]
+        valid = [k for k in page if is_entry(k[len(prefix):])]
+        found = dict(zip(valid, load([k[-64:] for k in valid]), strict=True))
+        for key in page:
+            after = key
+            item = found.get(key)
+            if item is None:
+                log.info("index entry %s of a resource that is gone removed", key)
+                store.delete(key)
+                continue
+            out.append(item)
+        if len(keys) <= want:  # nothing after this page
+            return out, None
+        if len(out) == limit:
+            return out, after[len(prefix):]
+
+
 def list_scene_page(store: ObjectStore, owner: str | None, limit: int, cursor: str | None = None
                     ) -> tuple[list[ScenePublic], str | None]:
     """One page of the scenes ``owner`` stored (every scene with owner None), oldest first, and the
     cursor of the next page (None after the last). Reads ``limit`` (+1) index entries and the
     summaries of the scenes shown; stale entries are removed on the way. ``BadCursor`` for a cursor
     no listing returned."""
-    if cursor is not None and _ENTRY.fullmatch(cursor) is None:
-        raise BadCursor(f"invalid cursor {cursor[:80]!r}: pass the next_cursor of the previous page")
-    limit = max(1, limit)
-    prefix = _prefix(owner)
-    after = prefix + cursor if cursor else ""
-    out: list[ScenePublic] = []
-    while True:
-        want = limit - len(out)
-        keys = store.list_page(prefix, start_after=after, limit=want + 1)
-        page = keys[:want]
-        valid = [k for k in page if _ENTRY.fullmatch(k[len(prefix):])]
-        found = dict(zip(valid, _read_summaries(store, [k[-64:] for k in valid]), strict=True))
-        for key in page:
-            after = key
-            sid = key[-64:]
-            summary = found.get(key)
-            if summary is None and key in found:
-                summary = _repair(store, sid, owner)
+
+    def load(ids: list[str]) -> list[ScenePublic | None]:
+        out: list[ScenePublic | None] = []
+        for sid, summary in zip(ids, _read_summaries(store, ids), strict=True):
             if summary is None:
-                log.info("scene index: entry %s of a scene that is gone removed", key)
-                store.delete(key)
-                continue
-            out.append(summary.model_copy(update={"links": {"self": f"/v1/scenes/{sid}",
-                                                             "document": f"/v1/scenes/{sid}/document"}}))
-        if len(keys) <= want:  # nothing after this page
-            return out, None
-        if len(out) == limit:
-            return out, after[len(prefix):]
+                summary = _repair(store, sid, owner)
+            out.append(None if summary is None else summary.model_copy(update={"links": {
+                "self": f"/v1/scenes/{sid}", "document": f"/v1/scenes/{sid}/document"}}))
+        return out
+
+    return page_index(store, _prefix(owner), limit, cursor, load)
 
 
 def rebuild_scene_index(store: ObjectStore) -> int:

@@ -9,7 +9,9 @@ gets 404, exactly as for content that does not exist; an upload proves possessio
 bytes.
 
 - ``scene-owners/<scene_id>/<owner>``, ``dataset-owners/<dataset_id>/<owner>``: markers in the
-  object store (``_`` for an object stored with auth off);
+  object store (``_`` for an object stored with auth off); a dataset marker holds the name of the
+  owner's entry ``dataset-index/owners/<owner>/<stamp>-<dataset_id>`` in its dataset index
+  (``GET /v1/datasets`` pages through it; scenes have theirs in ``producer.listings``);
 - ``blob-owners/<sha256>/<owner>``: a key that uploaded the file ``blobs/<sha256>`` itself;
 - ``bake-owners/<bake_key>/<owner>``: a key that requested the scene bake. A bake recorded before
   these markers existed (none present) is held by the owner its record names. Deleting a bake
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import re
 import time
+from datetime import UTC, datetime
 from typing import Any, cast
 
 from redis import Redis
@@ -49,7 +52,10 @@ __all__ = [
     "add_dataset_owner",
     "add_job_owner",
     "add_scene_owner",
+    "dataset_index_prefix",
     "dataset_owners",
+    "is_entry",
+    "stamp",
     "dataset_visible",
     "job_owners",
     "job_owners_key",
@@ -70,7 +76,19 @@ SCENE_OWNERS_PREFIX = "scene-owners/"
 DATASET_OWNERS_PREFIX = "dataset-owners/"
 BLOB_OWNERS_PREFIX = "blob-owners/"
 BAKE_OWNERS_PREFIX = "bake-owners/"
+DATASET_INDEX_PREFIX = "dataset-index/"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+_ENTRY = re.compile(r"\d{8}T\d{12}Z-[0-9a-f]{64}")
+
+
+def stamp(when: datetime) -> str:
+    """The sortable time in an index entry's name ``<stamp>-<id>``: ``20261202T153012123456Z`` (UTC)."""
+    return when.astimezone(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+
+
+def is_entry(name: str) -> bool:
+    """Is ``name`` an index entry's name ``<stamp>-<sha256 id>`` (what listings take as a cursor)?"""
+    return _ENTRY.fullmatch(name) is not None
 
 
 def _checked_marker(prefix: str, what: str, ident: str, owner: str | None) -> str:
@@ -131,12 +149,44 @@ def _dataset_marker(dataset_id: str, owner: str | None) -> str:
     return _checked_marker(DATASET_OWNERS_PREFIX, "dataset", dataset_id, owner)
 
 
-def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.put_bytes(_dataset_marker(dataset_id, owner), b"", "text/plain")
+def dataset_index_prefix(owner: str | None) -> str:
+    """The index ``GET /v1/datasets`` pages through for ``owner`` (None: every dataset, auth off)."""
+    if owner is None or owner == ANON_OWNER:
+        return f"{DATASET_INDEX_PREFIX}all/"
+    return f"{DATASET_INDEX_PREFIX}owners/{owner}/"
+
+
+def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None, since: datetime | None = None) -> None:
+    """``owner`` holds the dataset: its marker, then its entry in ``owner``'s dataset index (so a
+    listed dataset is always visible). The marker holds the entry's name; the entry's time is when
+    ``owner`` first held the dataset (``since``, else now), kept when it is added again."""
+    marker = _dataset_marker(dataset_id, owner)
+    if owner is None or owner == ANON_OWNER:  # auth off: listed from the index of every dataset
+        store.put_bytes(marker, b"", "text/plain")
+        return
+    try:
+        entry = store.get_bytes(marker).decode("ascii", "replace")
+    except NotFound:
+        entry = ""
+    if not is_entry(entry) or not entry.endswith(dataset_id):
+        entry = f"{stamp(since or datetime.now(UTC))}-{dataset_id}"
+        store.put_bytes(marker, entry.encode("ascii"), "text/plain")
+    store.put_bytes(dataset_index_prefix(owner) + entry, b"", "text/plain")
 
 
 def remove_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.delete(_dataset_marker(dataset_id, owner))
+    """``owner`` lets go of the dataset: its index entry first, then its marker."""
+    marker = _dataset_marker(dataset_id, owner)
+    if owner is not None and owner != ANON_OWNER:
+        prefix = dataset_index_prefix(owner)
+        try:
+            entry = store.get_bytes(marker).decode("ascii", "replace")
+        except NotFound:
+            entry = ""
+        for key in [prefix + entry] if is_entry(entry) else [k for k in store.list(prefix)
+                                                              if k.endswith(f"-{dataset_id}")]:
+            store.delete(key)
+    store.delete(marker)
 
 
 def dataset_owners(store: ObjectStore, dataset_id: str) -> list[str]:

@@ -4,9 +4,10 @@
   writer killed mid-write (a job process SIGKILLed, the host lost) leaves
   ``artifacts/<key>/.<name>~<hex>.tmp`` behind, which :meth:`LocalStore.sweep_temp_files`
   removes once older than ``store_temp_grace_s``. (S3 PUTs are atomic: nothing to sweep.)
-- the scene index (``producer.listings``): a store written before scene listings read an index
-  gets its index built once (``scene-index/built``, an empty marker, records that it was; a store
-  without scenes is left as it is).
+- the scene and dataset indexes (``producer.listings``, ``producer.datasets``): a store written
+  before listings read an index gets its indexes built once (``scene-index/built`` and
+  ``dataset-index/built``, empty markers, record that they were; a store without scenes or
+  datasets is left as it is).
 
 Every step is idempotent, so several API replicas may run it at once; a failure is logged and
 retried at the next round, never raised into the API.
@@ -17,19 +18,22 @@ from __future__ import annotations
 import logging
 import threading
 
+from producer.datasets import rebuild_dataset_index
 from producer.listings import SCENE_INDEX_PREFIX, rebuild_scene_index
+from producer.ownership import DATASET_INDEX_PREFIX
 from producer.store import LocalStore, ObjectStore
 
-__all__ = ["INDEX_BUILT_KEY", "StoreUpkeep", "run_upkeep"]
+__all__ = ["DATASET_INDEX_BUILT_KEY", "INDEX_BUILT_KEY", "StoreUpkeep", "run_upkeep"]
 
 log = logging.getLogger(__name__)
 
 INDEX_BUILT_KEY = f"{SCENE_INDEX_PREFIX}built"
+DATASET_INDEX_BUILT_KEY = f"{DATASET_INDEX_PREFIX}built"
 
 
 def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
     """One round: sweep stray temp files, build the scene index if it never was. Returns counts."""
-    out = {"temp_files_removed": 0, "scenes_indexed": 0}
+    out = {"temp_files_removed": 0, "scenes_indexed": 0, "datasets_indexed": 0}
     if isinstance(store, LocalStore):
         removed = store.sweep_temp_files(temp_grace_s)
         out["temp_files_removed"] = len(removed)
@@ -41,6 +45,11 @@ def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
         if out["scenes_indexed"]:  # an empty store has nothing to build (and gets no write)
             store.put_bytes(INDEX_BUILT_KEY, b"", "text/plain")
             log.info("scene index built for %d stored scenes", out["scenes_indexed"])
+    if not store.exists(DATASET_INDEX_BUILT_KEY):
+        out["datasets_indexed"] = rebuild_dataset_index(store)
+        if out["datasets_indexed"]:
+            store.put_bytes(DATASET_INDEX_BUILT_KEY, b"", "text/plain")
+            log.info("dataset index built for %d stored datasets", out["datasets_indexed"])
     return out
 
 

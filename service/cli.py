@@ -649,8 +649,8 @@ def datasets_upload(
 def datasets_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
     """List stored datasets."""
     with _client(api_url, api_key) as c:
-        res = _call(c.list_datasets)
-    for d in res.items:
+        items = _call(lambda: list(c.iter_datasets()))
+    for d in items:
         typer.echo(f"{d.id}  {d.name}  images={d.n_images} {d.width}x{d.height} "
                    f"{'distant' if d.distant else 'point'} {d.source.get('kind', 'upload')}")
 

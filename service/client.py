@@ -327,8 +327,20 @@ class Client:
         return self.commit_dataset(status.dataset_id)
 
     # ------------------------------------------------------------------ datasets: read, generate, bake
-    def list_datasets(self) -> DatasetList:
-        return DatasetList.model_validate(self._request("GET", "/v1/datasets", params={"limit": 1000}).json())
+    def list_datasets(self, limit: int = 100, cursor: str | None = None) -> DatasetList:
+        """One page of this key's datasets, oldest first; pass ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return DatasetList.model_validate(self._request("GET", "/v1/datasets", params=params).json())
+
+    def iter_datasets(self, page_size: int = 100) -> Iterator[DatasetPublic]:
+        """Every dataset of this key, oldest first, a page at a time."""
+        cursor: str | None = None
+        while True:
+            page = self.list_datasets(page_size, cursor)
+            yield from page.items
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
 
     def get_dataset(self, dataset_id: str) -> DatasetPublic:
         url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}"

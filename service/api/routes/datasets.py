@@ -51,7 +51,7 @@ from producer.datasets import (
     fill_shas,
     generate_artifact_key,
     get_dataset,
-    list_datasets,
+    list_dataset_page,
     manifest_errors,
     missing_files,
     owned_blob_info,
@@ -63,6 +63,7 @@ from producer.datasets import (
     store_file,
 )
 from producer.enqueue import enqueue_unique
+from producer.listings import BadCursor
 from producer.names import (
     COMPOSITE_JOB,
     COMPOSITE_KIND,
@@ -393,11 +394,17 @@ def commit(dataset_id: DatasetId, response: Response, store: StoreDep, owner: Ow
 
 
 @router.get("/v1/datasets", response_model=DatasetList, responses=problem_responses(401, 422, 429, 503))
-def list_all(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-             offset: Annotated[int, Query(ge=0)] = 0) -> DatasetList:
-    """The datasets this API key stored (or generated), oldest first."""
-    items = list_datasets(store, owner)
-    return DatasetList(items=items[offset:offset + limit], total=len(items))
+def list_all(store: StoreDep, owner: OwnerDep,
+             limit: Annotated[int, Query(ge=1, le=1000, description="Datasets per page at most")] = 100,
+             cursor: Annotated[str | None, Query(max_length=160, description="The next_cursor of the previous page")]
+             = None) -> DatasetList:
+    """The datasets this API key stored (or generated), oldest first, a page at a time: follow
+    ``next_cursor`` until it is null."""
+    try:
+        items, nxt = list_dataset_page(store, owner, limit, cursor)
+    except BadCursor as exc:
+        raise ValidationProblem([FieldError(field="query.cursor", message=str(exc), type="invalid_cursor")]) from None
+    return DatasetList(items=items, next_cursor=nxt)
 
 
 @router.get("/v1/datasets/{dataset_id}", response_model=DatasetPublic,

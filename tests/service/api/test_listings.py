@@ -244,6 +244,48 @@ def test_scene_listing_with_auth_off_and_a_store_written_before_the_index(
     assert run_upkeep(empty, 3600.0)["scenes_indexed"] == 0 and empty.list("") == []
 
 
+# ------------------------------------------------------------------------------------ datasets
+
+
+def test_dataset_pages_hold_every_dataset_once_and_survive_a_rebuild(c: TestClient, store_dir: Path) -> None:
+    from tests.service.api.test_datasets import multipart, subset
+
+    manifest, files = subset(3)
+
+    def post(who: dict[str, str], name: str) -> str:
+        r = c.post("/v1/datasets", files=multipart({**manifest, "name": name}, files), headers=who)
+        assert r.status_code in (200, 201), r.text
+        return str(r.json()["id"])
+
+    alice = [post(A, f"ds {i}") for i in range(7)]
+    bob = [post(B, f"bob {i}") for i in range(2)]
+    assert post(B, "ds 4") == alice[4]  # Bob holds one of Alice's too (he sent its files)
+    for limit in (1, 3, 7, 100):
+        assert _flat(_pages(c, "/v1/datasets", A, limit)) == alice
+    assert _flat(_pages(c, "/v1/datasets", B, 2)) == [*bob, alice[4]]  # in the order Bob came to hold them
+    first = c.get("/v1/datasets", params={"limit": 3}, headers=A).json()
+    assert c.delete(f"/v1/datasets/{alice[3]}", headers=A).status_code == 204
+    assert c.delete(f"/v1/datasets/{alice[4]}", headers=A).status_code == 204  # Bob still holds it
+    rest = _flat(_pages_from(c, "/v1/datasets", A, 3, first["next_cursor"]))
+    assert [d["id"] for d in first["items"]] + rest == [d for d in alice if d not in (alice[3], alice[4])]
+    assert alice[4] in _flat(_pages(c, "/v1/datasets", B, 10))
+    (store_dir / "datasets" / f"{alice[5]}.json").unlink()  # gone behind the API's back: skipped, removed
+    remaining = [alice[0], alice[1], alice[2], alice[6]]
+    assert _flat(_pages(c, "/v1/datasets", A, 2)) == remaining
+    assert c.get("/v1/datasets", params={"cursor": "x"}, headers=A).status_code == 422
+
+    # a store written before the dataset index: built once by the store upkeep, in the same order
+    shutil.rmtree(store_dir / "dataset-index")
+    for marker in (store_dir / "dataset-owners").rglob("*"):
+        if marker.is_file():
+            marker.write_bytes(b"")  # markers were empty then
+    assert c.get("/v1/datasets", headers=A).json()["items"] == []
+    indexed = run_upkeep(open_store(str(store_dir)), 3600.0)["datasets_indexed"]
+    assert indexed == 7  # Alice's four, the one both hold, Bob's two
+    assert _flat(_pages(c, "/v1/datasets", A, 3)) == remaining
+    assert sorted(_flat(_pages(c, "/v1/datasets", B, 3))) == sorted([*bob, alice[4]])
+
+
 # ------------------------------------------------------------------------------------ latency
 
 
