@@ -59,3 +59,24 @@ def test_api_start_up_sweeps_the_temp_file_of_a_killed_writer(make_app: Any, sto
         assert {p: p.stat().st_size for p in store_dir.rglob("*")
                 if p.is_file() and "~" not in p.name and "scene-index" not in p.parts} == objects
         assert c.get("/readyz").status_code == 200
+
+
+def test_the_upkeep_runs_again_every_interval(tmp_path: Path) -> None:
+    from producer.store import LocalStore
+    from producer.upkeep import StoreUpkeep
+
+    store = LocalStore(tmp_path / "store")
+    store.put_bytes("artifacts/" + "d" * 64 + "/image.exr", b"kept")
+    upkeep = StoreUpkeep(store, temp_grace_s=1.5, interval_s=0.1).start()
+    try:
+        wait_for(lambda: upkeep.rounds >= 1, 10, "the first round")
+        stray = store.root / "artifacts" / ("d" * 64) / ".image.exr~0011223344556677.tmp"
+        stray.write_bytes(b"half")  # a writer killed after the first round
+        seen = upkeep.rounds
+        wait_for(lambda: upkeep.rounds >= seen + 2, 10, "two more rounds")
+        assert stray.exists()  # still younger than the grace period: maybe a write in progress
+        wait_for(lambda: not stray.exists(), 15, "a later round to remove it")
+        assert upkeep.rounds >= 2 and store.get_bytes("artifacts/" + "d" * 64 + "/image.exr") == b"kept"
+    finally:
+        upkeep.stop()
+    assert not upkeep._thread.is_alive()
