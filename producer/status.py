@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from collections.abc import Iterable
+from datetime import UTC
 from typing import Any, cast
 
 from redis import Redis
@@ -19,7 +21,7 @@ from rq.serializers import JSONSerializer
 from rq.utils import str_to_date
 
 from api_schemas.service import JobProgress, JobPublic, JobState
-from producer.ownership import job_index_key, job_owners_key
+from producer.ownership import JOB_INDEX_HORIZON_S, job_index_key, job_owners_key
 from producer.queue import KEY_PREFIX, QUEUE_NAMES, QueueName, fetch_jobs, get_queue
 
 __all__ = [
@@ -37,6 +39,8 @@ __all__ = [
     "job_state",
     "list_jobs",
     "list_jobs_page",
+    "JOB_INDEX_BUILT_KEY",
+    "rebuild_job_index",
     "BadCursor",
     "JOB_SCAN_BUDGET",
     "decode_job_cursor",
@@ -317,6 +321,53 @@ def list_jobs_page(
     assert pos is not None
     more = _entries_after(redis, key, pos, 1)
     return out, encode_job_cursor(*pos) if more else None
+
+
+JOB_INDEX_BUILT_KEY = f"{KEY_PREFIX}job-index-built"
+"""Set once the job indexes hold the jobs enqueued before they existed (``rebuild_job_index``)."""
+
+
+def rebuild_job_index(redis: Redis, batch: int = 500) -> int:
+    """Put every job Redis holds (queued, scheduled, deferred, started, finished, failed, canceled)
+    into the index of every job and into those of the keys that asked for it, at the time it was
+    created, unless it is there already: what a Redis written before the job indexes needs once
+    (``JOB_INDEX_BUILT_KEY`` records it; idempotent). Returns how many jobs were indexed (0 when
+    the indexes were built already)."""
+    if redis.exists(JOB_INDEX_BUILT_KEY):
+        return 0
+    ids: list[str] = []
+    for name in QUEUE_NAMES:
+        q = get_queue(redis, name)
+        ids += q.get_job_ids()
+        for reg in (q.scheduled_job_registry, q.deferred_job_registry, q.started_job_registry,
+                    q.finished_job_registry, q.failed_job_registry, q.canceled_job_registry):
+            ids += reg.get_job_ids(cleanup=False)
+    ids = list(dict.fromkeys(ids))
+    n = 0
+    for i in range(0, len(ids), batch):
+        chunk = ids[i:i + batch]
+        jobs, _ = _listed_jobs(redis, chunk, None)
+        with redis.pipeline(transaction=False) as p:
+            for jid in chunk:
+                p.smembers(job_owners_key(jid))
+            askers = p.execute()
+        with redis.pipeline(transaction=False) as p:
+            for jid, job, asked in zip(chunk, jobs, askers, strict=True):
+                if job is None:
+                    continue
+                when = job.created_at.replace(tzinfo=job.created_at.tzinfo or UTC) if job.created_at else None
+                score = int(when.timestamp() * 1_000_000) if when else time.time_ns() // 1000
+                first = job.meta.get("owner")
+                owners = {_text(a) for a in cast(set[Any], asked)}
+                if isinstance(first, str) and first:
+                    owners.add(first)
+                for owner in (None, *sorted(owners)):
+                    p.zadd(job_index_key(owner), {jid: score}, nx=True)
+                    p.expire(job_index_key(owner), JOB_INDEX_HORIZON_S)
+                n += 1
+            p.execute()
+    redis.set(JOB_INDEX_BUILT_KEY, "1")
+    return n
 
 
 def list_jobs(

@@ -7,7 +7,8 @@
 - the scene and dataset indexes (``producer.listings``, ``producer.datasets``): a store written
   before listings read an index gets its indexes built once (``scene-index/built`` and
   ``dataset-index/built``, empty markers, record that they were; a store without scenes or
-  datasets is left as it is).
+  datasets is left as it is); a Redis holding jobs enqueued before the job indexes gets them
+  indexed once (``producer.status.rebuild_job_index``).
 
 Every step is idempotent, so several API replicas may run it at once; a failure is logged and
 retried at the next round, never raised into the API.
@@ -18,9 +19,12 @@ from __future__ import annotations
 import logging
 import threading
 
+from redis import Redis
+
 from producer.datasets import rebuild_dataset_index
 from producer.listings import SCENE_INDEX_PREFIX, rebuild_scene_index
 from producer.ownership import DATASET_INDEX_PREFIX
+from producer.status import rebuild_job_index
 from producer.store import LocalStore, ObjectStore
 
 __all__ = ["DATASET_INDEX_BUILT_KEY", "INDEX_BUILT_KEY", "StoreUpkeep", "run_upkeep"]
@@ -31,9 +35,14 @@ INDEX_BUILT_KEY = f"{SCENE_INDEX_PREFIX}built"
 DATASET_INDEX_BUILT_KEY = f"{DATASET_INDEX_PREFIX}built"
 
 
-def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
-    """One round: sweep stray temp files, build the scene index if it never was. Returns counts."""
-    out = {"temp_files_removed": 0, "scenes_indexed": 0, "datasets_indexed": 0}
+def run_upkeep(store: ObjectStore, temp_grace_s: float, redis: Redis | None = None) -> dict[str, int]:
+    """One round: sweep stray temp files, build the scene, dataset (and, given ``redis``, job)
+    indexes if they never were. Returns counts."""
+    out = {"temp_files_removed": 0, "scenes_indexed": 0, "datasets_indexed": 0, "jobs_indexed": 0}
+    if redis is not None:
+        out["jobs_indexed"] = rebuild_job_index(redis)
+        if out["jobs_indexed"]:
+            log.info("job indexes built for %d jobs", out["jobs_indexed"])
     if isinstance(store, LocalStore):
         removed = store.sweep_temp_files(temp_grace_s)
         out["temp_files_removed"] = len(removed)
@@ -56,8 +65,9 @@ def run_upkeep(store: ObjectStore, temp_grace_s: float) -> dict[str, int]:
 class StoreUpkeep:
     """``run_upkeep`` now and then every ``interval_s`` seconds (0: once) on a daemon thread."""
 
-    def __init__(self, store: ObjectStore, temp_grace_s: float, interval_s: float) -> None:
-        self.store, self.temp_grace_s, self.interval_s = store, temp_grace_s, interval_s
+    def __init__(self, store: ObjectStore, temp_grace_s: float, interval_s: float, redis: Redis | None = None
+                 ) -> None:
+        self.store, self.temp_grace_s, self.interval_s, self.redis = store, temp_grace_s, interval_s, redis
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ibr-store-upkeep", daemon=True)
         self.rounds = 0
@@ -74,7 +84,7 @@ class StoreUpkeep:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                run_upkeep(self.store, self.temp_grace_s)
+                run_upkeep(self.store, self.temp_grace_s, self.redis)
             except Exception:  # a store outage: the next round tries again
                 log.exception("store upkeep failed; retrying at the next round")
             self.rounds += 1

@@ -125,7 +125,7 @@ def create_app(
             extra={"store": type(store).__name__, "redis": settings.effective_redis_url.split("@")[-1],
                    "auth": settings.auth_enabled, "rate_limit_per_minute": settings.rate_limit_per_minute},
         )
-        upkeep = StoreUpkeep(store, settings.store_temp_grace_s, settings.store_upkeep_interval_s).start()
+        upkeep = StoreUpkeep(store, settings.store_temp_grace_s, settings.store_upkeep_interval_s, redis).start()
         app.state.store_upkeep = upkeep
         yield
         upkeep.stop()

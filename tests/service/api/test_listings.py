@@ -166,6 +166,31 @@ def test_listed_jobs_equal_the_jobs_read_in_full(redis_conn: Redis) -> None:
     assert list_jobs_page(redis_conn, BOB, limit=10) == ([], None)
 
 
+def test_jobs_enqueued_before_the_index_are_indexed_once(redis_conn: Redis, tmp_path: Path) -> None:
+    """A Redis written before the job indexes: its jobs (with their owners: the one in the job's
+    meta, the others in its owners set) are indexed once by the store upkeep, at their creation
+    time, and list like any other."""
+    from producer.queue import get_queue
+    from producer.status import JOB_INDEX_BUILT_KEY, list_jobs_page
+
+    q = get_queue(redis_conn, "render")
+    ids = []
+    for i in range(5):
+        job = q.enqueue("tests.workers.queue.jobs_for_tests.quick", {"i": i}, job_id=f"render-old-{i}",
+                        meta={"kind": "render", "owner": ALICE if i != 2 else BOB})
+        ids.append(job.id)
+        time.sleep(0.002)
+    redis_conn.sadd(f"ibr:job-owners:{ids[3]}", BOB)  # Bob asked for one of Alice's too
+    assert list_jobs_page(redis_conn, ALICE, limit=10) == ([], None)
+    store = open_store(str(tmp_path / "store"))
+    assert run_upkeep(store, 3600.0, redis_conn)["jobs_indexed"] == 5
+    assert redis_conn.exists(JOB_INDEX_BUILT_KEY)
+    assert [j.id for j in list_jobs_page(redis_conn, ALICE, limit=10)[0]] == [ids[4], ids[3], ids[1], ids[0]]
+    assert [j.id for j in list_jobs_page(redis_conn, BOB, limit=10)[0]] == [ids[3], ids[2]]
+    assert [j.id for j in list_jobs_page(redis_conn, None, limit=2)[0]] == [ids[4], ids[3]]
+    assert run_upkeep(store, 3600.0, redis_conn)["jobs_indexed"] == 0  # once
+
+
 def test_job_listing_with_auth_off_shows_every_job(client: TestClient) -> None:
     sid = client.post("/v1/scenes", json={"scene": small_scene()}).json()["id"]
     jobs = [_render(client, sid, {}, 8 + i) for i in range(6)]
