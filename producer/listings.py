@@ -1,8 +1,8 @@
 """Scene listings that read an index, not every scene: per-owner index entries in the store.
 
 ``GET /v1/scenes`` pages through the scenes an API key stored. Reading every scene document to
-answer it made its time grow with the size of every scene in the store (a 31 MiB scene made each
-listing of every key take seconds); the index makes it a listing of one "directory" page and one
+answer it would make its time grow with the size of every scene in the store (one 30 MiB scene:
+seconds per listing, for every key); the index makes it a listing of one "directory" page and one
 small read per scene shown:
 
 - ``scene-index/owners/<owner>/<stamp>-<scene_id>``: an empty entry per scene ``owner`` stored;
