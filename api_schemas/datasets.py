@@ -360,7 +360,8 @@ class DatasetPublic(FrozenModel):
 
 class DatasetList(FrozenModel):
     items: list[DatasetPublic]
-    total: int
+    next_cursor: str | None = None
+    """Pass as ``cursor`` for the next page; null on the last page."""
 
 
 class MissingFile(FrozenModel):

@@ -130,7 +130,8 @@ class SceneImportPublic(ScenePublic):
 
 class SceneList(FrozenModel):
     items: list[ScenePublic]
-    total: int
+    next_cursor: str | None = None
+    """Pass as ``cursor`` for the next page; null on the last page."""
 
 
 # ------------------------------------------------------------------------------ renders
@@ -612,6 +613,8 @@ class JobPublic(FrozenModel):
 
 class JobList(FrozenModel):
     items: list[JobPublic]
+    next_cursor: str | None = None
+    """Pass as ``cursor`` for the next page; null on the last page."""
 
 
 # ------------------------------------------------------------------------------ artifacts

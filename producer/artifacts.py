@@ -6,6 +6,9 @@ Key layout (see docs/service-design.md):
   become keys; they are only metadata inside scene documents.
 - ``scenes/<scene_id>.json``: ``{"scene", "meshes": [{"path", "sha256", "size"}],
   "created_at", "owner"}``, written after its blobs.
+- ``scene-summaries/<scene_id>.json``: the scene's public view (``ScenePublic``: name, counts,
+  mesh list), a few hundred bytes whatever the scene's size, written after the document and
+  removed before it: what scene listings read (``producer.listings``).
 - ``artifacts/<key>/<name>``: an artifact's blobs; ``artifacts/<key>/manifest.json``
   (an ``ArtifactManifest`` with each blob's sha256) is written LAST and commits the
   artifact. No manifest = no artifact.
@@ -53,11 +56,15 @@ __all__ = [
     "list_scenes",
     "manifest_key",
     "mesh_paths",
+    "put_blob_unless_intact",
     "put_scene",
     "read_blob",
     "read_manifest",
     "scene_id_for",
     "scene_key",
+    "scene_summary_key",
+    "read_scene_summary",
+    "write_scene_summary",
     "sha256_hex",
     "store_scene",
     "stream_blob",
@@ -112,6 +119,10 @@ def blob_key(sha256: str) -> str:
 
 def scene_key(scene_id: str) -> str:
     return f"scenes/{_require_sha(scene_id, 'scene id')}.json"
+
+
+def scene_summary_key(scene_id: str) -> str:
+    return f"scene-summaries/{_require_sha(scene_id, 'scene id')}.json"
 
 
 def _now() -> datetime:
@@ -347,10 +358,12 @@ def store_scene(
     """:func:`put_scene`, also saying whether the scene was new (True) or already stored.
 
     Only the mesh files the scene references are stored (each under ``blobs/<sha256>``,
-    skipped when present); other entries of ``meshes`` are ignored. A referenced path
-    missing from ``meshes`` raises ValueError before anything is written. An existing
-    scene keeps its document (first owner and ``created_at``), but missing blobs are
-    restored, so uploading again repairs a scene whose blob was found corrupt."""
+    skipped when an intact copy is stored); other entries of ``meshes`` are ignored. A
+    referenced path missing from ``meshes`` raises ValueError before anything is written.
+    An existing scene keeps its document (first owner and ``created_at``), but blobs that
+    are missing or fail their checksum are written again, so uploading again repairs a
+    scene whose blob was found corrupt, or went bad before any reader found out. Its
+    summary (``scene_summary_key``) is written after the document (again when missing)."""
     paths = mesh_paths(scene)
     missing = [p for p in paths if p not in meshes]
     if missing:
@@ -362,8 +375,8 @@ def store_scene(
     written: set[str] = set()
     for p in paths:
         sha = shas[p]
-        if sha not in written and not store.exists(blob_key(sha)):
-            store.put_bytes(blob_key(sha), meshes[p])
+        if sha not in written:
+            put_blob_unless_intact(store, sha, meshes[p])
         written.add(sha)
 
     try:
@@ -371,7 +384,10 @@ def store_scene(
     except ChecksumMismatch:
         existing = None  # the corrupt document was removed: write a good one
     if existing is not None:
-        return _public(scene_id, existing), False
+        public = _public(scene_id, existing)
+        if read_scene_summary(store, scene_id) is None:  # stored before summaries existed, or lost
+            write_scene_summary(store, public)
+        return public, False
     doc: dict[str, Any] = {
         "scene": json.loads(scene_text),
         "meshes": [{"path": p, "sha256": shas[p], "size": len(meshes[p])} for p in paths],
@@ -379,7 +395,49 @@ def store_scene(
         "owner": owner,
     }
     store.put_bytes(scene_key(scene_id), _canonical_ascii(doc).encode("ascii"), "application/json")
-    return _public(scene_id, doc), True
+    public = _public(scene_id, doc)
+    write_scene_summary(store, public)
+    return public, True
+
+
+def put_blob_unless_intact(store: ObjectStore, sha: str, data: bytes) -> bool:
+    """Write ``blobs/<sha>`` unless a copy that matches its checksum is stored: an upload of the
+    same bytes replaces a stored blob that went bad (before a reader found it out). True when
+    written."""
+    bkey = blob_key(sha)
+    try:
+        if sha256_hex(store.get_bytes(bkey)) == sha:
+            return False
+        log.error("blob %s does not match its checksum; replaced by the uploaded bytes", sha)
+    except NotFound:
+        pass
+    store.put_bytes(bkey, data)
+    return True
+
+
+def write_scene_summary(store: ObjectStore, public: ScenePublic) -> None:
+    # ASCII JSON like the document: a mesh path may hold a lone surrogate (escaped, never encoded)
+    doc = public.model_dump(mode="json", exclude={"links"})
+    store.put_bytes(scene_summary_key(public.id), _canonical_ascii(doc).encode("ascii"), "application/json")
+
+
+def read_scene_summary(store: ObjectStore, scene_id: str) -> ScenePublic | None:
+    """The scene's stored public view, or None when the scene (or its summary) is absent. An
+    unreadable summary, or one of another scene, is removed (the next upload writes it again)."""
+    skey = scene_summary_key(scene_id)
+    try:
+        raw = store.get_bytes(skey)
+    except NotFound:
+        return None
+    try:
+        public: ScenePublic | None = ScenePublic.model_validate(json.loads(raw))
+    except (ValueError, TypeError):  # ValidationError is a ValueError
+        public = None
+    if public is None or public.id != scene_id:
+        log.error("scene %s: unreadable summary removed", scene_id)
+        store.delete(skey)
+        return None
+    return public
 
 
 def put_scene(store: ObjectStore, scene: Scene, meshes: Mapping[str, bytes], owner: str | None) -> ScenePublic:
@@ -407,6 +465,7 @@ def _read_scene_doc(store: ObjectStore, scene_id: str) -> dict[str, Any] | None:
         problem = f"unreadable ({exc})"
     if problem:
         log.error("scene %s: stored document %s; deleted", scene_id, problem)
+        store.delete(scene_summary_key(scene_id))  # summary first: listings never show a scene without a document
         store.delete(skey)
         raise ChecksumMismatch(f"scene {scene_id}: stored document is corrupt and was removed; upload it again")
     result: dict[str, Any] = doc
@@ -432,8 +491,9 @@ def get_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, dict[str, str],
 def list_scenes(store: ObjectStore, owner: str | None = None) -> list[ScenePublic]:
     """Stored scenes (of ``owner`` when given), oldest first.
 
-    Reads every scene document: fine for thousands of scenes; a per-owner index is the
-    next step if that grows. Unreadable documents are skipped (``get_scene`` removes them)."""
+    Reads every scene document: for maintenance and tests; the API's listing reads a page of
+    the per-owner index and the scenes' summaries instead (``producer.listings``). Unreadable
+    documents are skipped (``get_scene`` removes them)."""
     out: list[ScenePublic] = []
     for key in store.list("scenes/"):
         scene_id = key[len("scenes/") : -len(".json")] if key.endswith(".json") else ""
@@ -462,6 +522,7 @@ def delete_scene(store: ObjectStore, scene_id: str) -> None:
     skey = scene_key(scene_id)
     if not store.exists(skey):
         raise NotFound(f"scene {scene_id}")
+    store.delete(scene_summary_key(scene_id))
     store.delete(skey)
 
 

@@ -59,16 +59,20 @@ from api_schemas.datasets import (
 )
 from api_schemas.errors import FieldError, format_error_details
 from engine import ENGINE_VERSION
-from producer.artifacts import artifact_key, blob_key, canonical_json, sha256_hex
+from producer.artifacts import artifact_key, blob_key, canonical_json, put_blob_unless_intact, sha256_hex
+from producer.listings import page_index
 from producer.names import COMPOSITE_KIND, DATASET_BAKE_KIND, GENERATE_KIND, RELIGHT_KIND
 from producer.ownership import (
+    ANON_OWNER,
+    DATASET_OWNERS_PREFIX,
     add_blob_owner,
     add_dataset_owner,
     blob_visible,
+    dataset_index_prefix,
     dataset_owners,
     dataset_visible,
     remove_dataset_owner,
-    visible_dataset_ids,
+    stamp,
 )
 from producer.store import ChecksumMismatch, NotFound, ObjectStore
 
@@ -97,7 +101,9 @@ __all__ = [
     "fill_shas",
     "get_dataset",
     "linearise",
+    "list_dataset_page",
     "list_datasets",
+    "rebuild_dataset_index",
     "missing_files",
     "put_pending",
     "read_file_blob",
@@ -380,14 +386,14 @@ def store_file(store: ObjectStore, data: bytes, *, max_pixels: int, expected_sha
         raise FileProblem(f"the content's sha256 is {sha}, not {expected_sha} as the URL / manifest says")
     existing = blob_info(store, sha)
     if existing is not None:
+        put_blob_unless_intact(store, sha, data)  # a stored copy that went bad is replaced by these bytes
         add_blob_owner(store, sha, owner)  # the bytes were sent: proof of possession
         return existing
     img, stats = scan_image(data, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes)
     info: dict[str, Any] = {"sha256": sha, "size": len(data), "width": img.width, "height": img.height,
                             "channels": img.channels, "format": img.format, "pixel_type": img.pixel_type,
                             **stats}
-    if not store.exists(blob_key(sha)):
-        store.put_bytes(blob_key(sha), data)
+    put_blob_unless_intact(store, sha, data)
     store.put_bytes(_info_key(sha), canonical_json(info).encode(), "application/json")
     add_blob_owner(store, sha, owner)
     return info
@@ -549,6 +555,7 @@ def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | N
     if existing is not None:
         if add_owner and not dataset_visible(store, dataset_id, owner):
             _check_files(store, manifest, owner)  # 409 naming the files this key has not sent
+        _index(store, dataset_id, existing)  # idempotent: the entry's name depends only on the document
         if add_owner:
             add_dataset_owner(store, dataset_id, owner)
         store.delete(_pending_key(dataset_id))
@@ -564,10 +571,20 @@ def commit_dataset(store: ObjectStore, manifest: DatasetManifest, owner: str | N
            "width": width, "height": height, "created_at": _now().isoformat(),
            "source": dict(source or {"kind": "upload"})}
     store.put_bytes(dataset_key(dataset_id), canonical_json(doc).encode("utf-8"), "application/json")
+    _index(store, dataset_id, doc)
     if add_owner:
         add_dataset_owner(store, dataset_id, owner)
     store.delete(_pending_key(dataset_id))
     return _public(dataset_id, doc), True
+
+
+def _all_entry(dataset_id: str, doc: Mapping[str, Any]) -> str:
+    """The dataset's entry in the index of every dataset: named by when it was stored."""
+    return f"{dataset_index_prefix(None)}{stamp(datetime.fromisoformat(str(doc['created_at'])))}-{dataset_id}"
+
+
+def _index(store: ObjectStore, dataset_id: str, doc: Mapping[str, Any]) -> None:
+    store.put_bytes(_all_entry(dataset_id, doc), b"", "text/plain")
 
 
 def _read_doc(store: ObjectStore, dataset_id: str) -> dict[str, Any] | None:
@@ -598,32 +615,77 @@ def get_dataset(store: ObjectStore, dataset_id: str) -> tuple[DatasetManifest, D
     return public.manifest, public
 
 
+def list_dataset_page(store: ObjectStore, owner: str | None, limit: int, cursor: str | None = None
+                      ) -> tuple[list[DatasetPublic], str | None]:
+    """One page of the datasets ``owner`` holds (every dataset with owner None), oldest first (by
+    when ``owner`` first held it; by when it was stored with auth off), and the cursor of the next
+    page (None after the last): reads ``owner``'s dataset index (``dataset_index_prefix``) and the
+    documents of this page only. An entry whose dataset is gone (deleted, or its document found
+    corrupt) is removed. ``producer.listings.BadCursor`` for a cursor no listing returned."""
+
+    def load(ids: list[str]) -> list[DatasetPublic | None]:
+        out: list[DatasetPublic | None] = []
+        for did in ids:
+            try:
+                doc = _read_doc(store, did)
+            except ChecksumMismatch:
+                doc = None
+            out.append(_public(did, doc) if doc is not None else None)
+        return out
+
+    return page_index(store, dataset_index_prefix(owner), limit, cursor, load)
+
+
 def list_datasets(store: ObjectStore, owner: str | None) -> list[DatasetPublic]:
-    """Datasets ``owner`` may see (all with auth off), oldest first."""
-    visible = visible_dataset_ids(store, owner)
+    """Every dataset ``owner`` holds, oldest first (all pages of ``list_dataset_page``)."""
     out: list[DatasetPublic] = []
-    for key in store.list("datasets/"):
-        did = key[len("datasets/"):-len(".json")] if key.endswith(".json") else ""
-        if _SHA256.fullmatch(did) is None or (visible is not None and did not in visible):
-            continue
+    cursor: str | None = None
+    while True:
+        page, cursor = list_dataset_page(store, owner, 1000, cursor)
+        out += page
+        if cursor is None:
+            return out
+
+
+def rebuild_dataset_index(store: ObjectStore) -> int:
+    """Index every stored dataset for its holders (the markers ``dataset-owners/<id>/<owner>``) and
+    for everybody, each at the time it was stored: what a store written before the index needs
+    once; idempotent. Returns how many datasets were indexed."""
+    holders: dict[str, list[str]] = {}
+    for key in store.list(DATASET_OWNERS_PREFIX):
+        did, _, who = key[len(DATASET_OWNERS_PREFIX):].partition("/")
+        holders.setdefault(did, []).append(who)
+    n = 0
+    for did, held_by in holders.items():
         try:
-            doc = _read_doc(store, did)
+            doc = _read_doc(store, did) if _SHA256.fullmatch(did) else None
         except ChecksumMismatch:
+            doc = None
+        if doc is None:
             continue
-        if doc is not None:
-            out.append(_public(did, doc))
-    out.sort(key=lambda d: (d.created_at, d.id))
-    return out
+        _index(store, did, doc)
+        for w in held_by:
+            add_dataset_owner(store, did, None if w == ANON_OWNER else w,
+                              since=datetime.fromisoformat(str(doc["created_at"])))
+        n += 1
+    return n
 
 
 def delete_dataset(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
     """Remove ``owner``'s marker (every marker with auth off); the document goes with the last
-    marker. Blobs stay (content-addressed, possibly shared). NotFound when not visible."""
+    marker (its entry in the index of every dataset first). Blobs stay (content-addressed,
+    possibly shared). NotFound when not visible."""
     if not dataset_visible(store, dataset_id, owner) or not store.exists(dataset_key(dataset_id)):
         raise NotFound(f"dataset {dataset_id}")
     for who in dataset_owners(store, dataset_id) if owner is None else [owner]:
         remove_dataset_owner(store, dataset_id, who)
     if not dataset_owners(store, dataset_id):
+        try:
+            doc = _read_doc(store, dataset_id)
+        except ChecksumMismatch:
+            doc = None  # removed as corrupt: its index entry goes at the next listing
+        if doc is not None:
+            store.delete(_all_entry(dataset_id, doc))
         store.delete(dataset_key(dataset_id))
 
 

@@ -15,7 +15,7 @@ from rq import Retry
 from rq.exceptions import DuplicateJobError
 from rq.job import Dependency, Job, JobStatus
 
-from producer.ownership import add_job_owner, job_owners_key
+from producer.ownership import add_job_owner, index_job, job_owners_key
 from producer.queue import (
     ACTIVE_STATUSES,
     ENQUEUE_LOCK_TIMEOUT_S,
@@ -86,5 +86,6 @@ def enqueue_unique(
             if existing is None:
                 raise
             job = existing
+        index_job(redis, job_id, owner)
         add_job_owner(redis, job_id, owner, timeout)
         return job

@@ -9,7 +9,9 @@ gets 404, exactly as for content that does not exist; an upload proves possessio
 bytes.
 
 - ``scene-owners/<scene_id>/<owner>``, ``dataset-owners/<dataset_id>/<owner>``: markers in the
-  object store (``_`` for an object stored with auth off);
+  object store (``_`` for an object stored with auth off); a dataset marker holds the name of the
+  owner's entry ``dataset-index/owners/<owner>/<stamp>-<dataset_id>`` in its dataset index
+  (``GET /v1/datasets`` pages through it; scenes have theirs in ``producer.listings``);
 - ``blob-owners/<sha256>/<owner>``: a key that uploaded the file ``blobs/<sha256>`` itself;
 - ``bake-owners/<bake_key>/<owner>``: a key that requested the scene bake. A bake recorded before
   these markers existed (none present) is held by the owner its record names. Deleting a bake
@@ -17,11 +19,19 @@ bytes.
 - ``ibr:job-owners:<job_id>``: the Redis set of everybody who asked for the job;
   ``ibr:job-detached:<job_id>``: those of them who canceled it. Canceling detaches the caller; the
   job is canceled when no owner remains attached (``producer.cancel.cancel_for``).
+- ``ibr:job-index:<owner>``: the sorted set of the jobs an owner asked for (score: when it asked,
+  in microseconds), and ``ibr:job-index`` of every job: what ``GET /v1/jobs`` pages through
+  (``producer.status.list_jobs_page``), so a listing never reads the jobs of other keys. Entries
+  are not removed when RQ expires a job (its result or failure TTL): the listing drops the entries
+  of jobs Redis no longer holds, and every addition trims entries older than
+  ``JOB_INDEX_HORIZON_S``.
 """
 
 from __future__ import annotations
 
 import re
+import time
+from datetime import UTC, datetime
 from typing import Any, cast
 
 from redis import Redis
@@ -42,10 +52,16 @@ __all__ = [
     "add_dataset_owner",
     "add_job_owner",
     "add_scene_owner",
+    "dataset_index_prefix",
     "dataset_owners",
+    "is_entry",
+    "stamp",
     "dataset_visible",
     "job_owners",
     "job_owners_key",
+    "JOB_INDEX_HORIZON_S",
+    "index_job",
+    "job_index_key",
     "remove_dataset_owner",
     "remove_scene_owner",
     "scene_owners",
@@ -60,7 +76,19 @@ SCENE_OWNERS_PREFIX = "scene-owners/"
 DATASET_OWNERS_PREFIX = "dataset-owners/"
 BLOB_OWNERS_PREFIX = "blob-owners/"
 BAKE_OWNERS_PREFIX = "bake-owners/"
+DATASET_INDEX_PREFIX = "dataset-index/"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+_ENTRY = re.compile(r"\d{8}T\d{12}Z-[0-9a-f]{64}")
+
+
+def stamp(when: datetime) -> str:
+    """The sortable time in an index entry's name ``<stamp>-<id>``: ``20261202T153012123456Z`` (UTC)."""
+    return when.astimezone(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+
+
+def is_entry(name: str) -> bool:
+    """Is ``name`` an index entry's name ``<stamp>-<sha256 id>`` (what listings take as a cursor)?"""
+    return _ENTRY.fullmatch(name) is not None
 
 
 def _checked_marker(prefix: str, what: str, ident: str, owner: str | None) -> str:
@@ -121,12 +149,44 @@ def _dataset_marker(dataset_id: str, owner: str | None) -> str:
     return _checked_marker(DATASET_OWNERS_PREFIX, "dataset", dataset_id, owner)
 
 
-def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.put_bytes(_dataset_marker(dataset_id, owner), b"", "text/plain")
+def dataset_index_prefix(owner: str | None) -> str:
+    """The index ``GET /v1/datasets`` pages through for ``owner`` (None: every dataset, auth off)."""
+    if owner is None or owner == ANON_OWNER:
+        return f"{DATASET_INDEX_PREFIX}all/"
+    return f"{DATASET_INDEX_PREFIX}owners/{owner}/"
+
+
+def add_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None, since: datetime | None = None) -> None:
+    """``owner`` holds the dataset: its marker, then its entry in ``owner``'s dataset index (so a
+    listed dataset is always visible). The marker holds the entry's name; the entry's time is when
+    ``owner`` first held the dataset (``since``, else now), kept when it is added again."""
+    marker = _dataset_marker(dataset_id, owner)
+    if owner is None or owner == ANON_OWNER:  # auth off: listed from the index of every dataset
+        store.put_bytes(marker, b"", "text/plain")
+        return
+    try:
+        entry = store.get_bytes(marker).decode("ascii", "replace")
+    except NotFound:
+        entry = ""
+    if not is_entry(entry) or not entry.endswith(dataset_id):
+        entry = f"{stamp(since or datetime.now(UTC))}-{dataset_id}"
+        store.put_bytes(marker, entry.encode("ascii"), "text/plain")
+    store.put_bytes(dataset_index_prefix(owner) + entry, b"", "text/plain")
 
 
 def remove_dataset_owner(store: ObjectStore, dataset_id: str, owner: str | None) -> None:
-    store.delete(_dataset_marker(dataset_id, owner))
+    """``owner`` lets go of the dataset: its index entry first, then its marker."""
+    marker = _dataset_marker(dataset_id, owner)
+    if owner is not None and owner != ANON_OWNER:
+        prefix = dataset_index_prefix(owner)
+        try:
+            entry = store.get_bytes(marker).decode("ascii", "replace")
+        except NotFound:
+            entry = ""
+        for key in [prefix + entry] if is_entry(entry) else [k for k in store.list(prefix)
+                                                              if k.endswith(f"-{dataset_id}")]:
+            store.delete(key)
+    store.delete(marker)
 
 
 def dataset_owners(store: ObjectStore, dataset_id: str) -> list[str]:
@@ -209,16 +269,47 @@ def job_detached_key(job_id: str) -> str:
     return f"{KEY_PREFIX}job-detached:{job_id}"
 
 
+JOB_INDEX_HORIZON_S = 2 * FAILURE_TTL_S
+"""How long a job stays in the job indexes: longer than any job lives in Redis once it ended (RQ
+keeps a failed job ``FAILURE_TTL_S``); a job still queued after this long drops out of the
+listing (it stays readable by its id)."""
+
+
+def job_index_key(owner: str | None) -> str:
+    """The sorted set ``GET /v1/jobs`` reads for ``owner`` (None: every job, for auth off)."""
+    return f"{KEY_PREFIX}job-index:{owner}" if owner else f"{KEY_PREFIX}job-index"
+
+
+def _index_add(p: Any, owner: str | None, job_id: str, now_us: int, *, only_new: bool) -> None:
+    key = job_index_key(owner)
+    p.zadd(key, {job_id: now_us}, nx=only_new)
+    p.zremrangebyscore(key, "-inf", f"({now_us - JOB_INDEX_HORIZON_S * 1_000_000}")
+    p.expire(key, JOB_INDEX_HORIZON_S)
+
+
+def index_job(redis: Redis, job_id: str, owner: str | None) -> None:
+    """A job was created (anew, or again under the same id): it goes to the top of the index of
+    every job and of ``owner``'s (an earlier entry of the same id moves)."""
+    now_us = time.time_ns() // 1000
+    with redis.pipeline(transaction=False) as p:
+        _index_add(p, None, job_id, now_us, only_new=False)
+        if owner:
+            _index_add(p, owner, job_id, now_us, only_new=False)
+        p.execute()
+
+
 def add_job_owner(redis: Redis, job_id: str, owner: str | None, timeout: int) -> None:
     """Record ``owner`` as one of the keys that asked for ``job_id`` (so they may see it); the set
     lives as long as the job can (its timeout plus the failure TTL). Asking again after canceling
-    attaches the owner again."""
+    attaches the owner again. The job enters ``owner``'s job index unless it is there already (a
+    key joining a shared job lists it from the time it first asked)."""
     if owner:
         key = job_owners_key(job_id)
         with redis.pipeline() as p:
             p.sadd(key, owner)
             p.expire(key, timeout + FAILURE_TTL_S)
             p.srem(job_detached_key(job_id), owner)
+            _index_add(p, owner, job_id, time.time_ns() // 1000, only_new=True)
             p.execute()
 
 

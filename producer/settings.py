@@ -72,6 +72,11 @@ class Settings(BaseSettings):
     s3_region: str | None = None
     s3_access_key: str | None = None
     s3_secret_key: SecretStr | None = None
+    store_temp_grace_s: Annotated[float, Field(gt=0)] = 3600.0
+    """A local store's temp file (a write in progress) older than this is the leftover of a killed
+    writer and is removed by the store upkeep (``producer.upkeep``): longer than any one write."""
+    store_upkeep_interval_s: Annotated[float, Field(ge=0)] = 3600.0
+    """How often the API runs the store upkeep after the one at start-up; 0 = only at start-up."""
 
     # --- the HTTP API -------------------------------------------------------------------------------
     api_keys: Annotated[list[str], NoDecode] = []

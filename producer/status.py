@@ -8,19 +8,21 @@ running job rewrites ``job.meta`` wholesale on every ``save_meta()``).
 
 from __future__ import annotations
 
+import json
 import re
+import time
 from collections.abc import Iterable
 from datetime import UTC, datetime
 from typing import Any, cast
 
 from redis import Redis
-from rq import Queue
 from rq.job import Job, JobStatus
 from rq.serializers import JSONSerializer
+from rq.utils import str_to_date
 
 from api_schemas.service import JobProgress, JobPublic, JobState
-from producer.ownership import job_owners
-from producer.queue import KEY_PREFIX, QUEUE_NAMES, QueueName, get_queue
+from producer.ownership import JOB_INDEX_HORIZON_S, job_index_key, job_owners_key
+from producer.queue import KEY_PREFIX, QUEUE_NAMES, QueueName, fetch_jobs, get_queue
 
 __all__ = [
     "JOB_SECONDS_BUCKETS",
@@ -36,6 +38,13 @@ __all__ = [
     "job_public",
     "job_state",
     "list_jobs",
+    "list_jobs_page",
+    "JOB_INDEX_BUILT_KEY",
+    "rebuild_job_index",
+    "BadCursor",
+    "JOB_SCAN_BUDGET",
+    "decode_job_cursor",
+    "encode_job_cursor",
 ]
 
 _STATE_OF: dict[JobStatus, JobState] = {
@@ -182,12 +191,199 @@ def job_public(job: Job) -> JobPublic:
     )
 
 
-def _queue_job_ids(q: Queue) -> list[str]:
-    ids: list[str] = list(q.get_job_ids())
-    for reg in (q.scheduled_job_registry, q.deferred_job_registry, q.started_job_registry,
-                q.finished_job_registry, q.failed_job_registry, q.canceled_job_registry):
-        ids.extend(reg.get_job_ids(cleanup=False))
-    return ids
+JOB_SCAN_BUDGET = 2000
+"""Index entries one listing request reads at most: with a state filter that few jobs match, the
+page comes back short and its ``next_cursor`` continues the scan, so no request reads every job."""
+_CURSOR = re.compile(r"(\d{1,20})-([A-Za-z0-9_-]{1,128})")
+
+
+class BadCursor(ValueError):
+    """A listing cursor that no listing returned."""
+
+
+def encode_job_cursor(score: int, job_id: str) -> str:
+    return f"{score}-{job_id}"
+
+
+def decode_job_cursor(cursor: str) -> tuple[int, str]:
+    m = _CURSOR.fullmatch(cursor)
+    if m is None:
+        raise BadCursor(f"invalid cursor {cursor[:80]!r}: pass the next_cursor of the previous page")
+    return int(m.group(1)), m.group(2)
+
+
+def _text(raw: Any) -> str:
+    return raw.decode() if isinstance(raw, bytes) else str(raw)
+
+
+def _entries_after(redis: Redis, key: str, after: tuple[int, str] | None, n: int) -> list[tuple[str, int]]:
+    """Up to ``n`` index entries ``(job id, score)`` newest first, strictly after ``after`` in the
+    index's order (score descending, then job id descending, as ZREVRANGE orders ties)."""
+    if after is None:
+        first = cast(list[tuple[Any, float]], redis.zrevrange(key, 0, n - 1, withscores=True))
+        return [(_text(m), int(sc)) for m, sc in first]
+    score, member = after
+    out: list[tuple[str, int]] = []
+    offset = 0
+    step = n + 8
+    while True:
+        chunk = cast(list[tuple[Any, float]],
+                     redis.zrevrangebyscore(key, score, "-inf", start=offset, num=step, withscores=True))
+        for raw, sc in chunk:
+            m, s = _text(raw), int(sc)
+            if s < score or m < member:  # entries tied with the cursor's score and not after it come first
+                out.append((m, s))
+        if len(out) >= n or len(chunk) < step:
+            return out[:n]
+        offset += len(chunk)
+
+
+_LIST_FIELDS = ("status", "origin", "meta", "created_at", "started_at", "ended_at")
+
+
+def _date(raw: Any) -> datetime:
+    """An RQ timestamp (``2026-12-02T15:43:11.123456Z``) as an aware UTC datetime: the C parser,
+    RQ's own (strptime, several times slower) for anything else it wrote."""
+    try:
+        when = datetime.fromisoformat(_text(raw))
+    except ValueError:
+        return str_to_date(raw)
+    return when if when.tzinfo is not None else when.replace(tzinfo=UTC)
+
+
+def _listed_jobs(redis: Redis, job_ids: list[str], owner: str | None) -> tuple[list[Job | None], list[bool]]:
+    """The jobs of a listing page with only the fields ``job_public`` reads (state, times, meta):
+    one pipelined HMGET each instead of the whole hash (payload included), which made a page's
+    time grow with the size of its jobs' requests; None for a job Redis does not hold. And whether
+    ``owner`` asked for each: its meta names ``owner``, or (one more round trip, only for the jobs
+    it does not name) ``owner`` is in the job's owners set."""
+    with redis.pipeline(transaction=False) as p:
+        for jid in job_ids:
+            p.hmget(Job.key_for(jid), list(_LIST_FIELDS))
+        rows = cast(list[list[Any]], p.execute())
+    out: list[Job | None] = []
+    for jid, (status, origin, meta, created, started, ended) in zip(job_ids, rows, strict=True):
+        if status is None and created is None:
+            out.append(None)  # expired or deleted
+            continue
+        job = Job(jid, connection=redis, serializer=JSONSerializer)
+        try:
+            job._status = JobStatus(_text(status)) if status else JobStatus.CREATED
+            job.origin = _text(origin) if origin else ""
+            loaded = json.loads(meta) if meta else {}
+            job.meta = loaded if isinstance(loaded, dict) else {}
+            job.created_at = _date(created) if created else None  # type: ignore[assignment]
+            job.started_at = _date(started) if started else None
+            job.ended_at = _date(ended) if ended else None
+        except (ValueError, TypeError):  # a hash that is not an RQ job's: read it the slow, checked way
+            out.append(fetch_jobs(redis, [jid])[0])
+            continue
+        out.append(job)
+    if owner is None:
+        return out, [True] * len(job_ids)
+    asked = [job is not None and job.meta.get("owner") == owner for job in out]
+    others = [i for i, (job, a) in enumerate(zip(out, asked, strict=True)) if job is not None and not a]
+    if others:
+        with redis.pipeline(transaction=False) as p:
+            for i in others:
+                p.sismember(job_owners_key(job_ids[i]), owner)
+            for i, member in zip(others, p.execute(), strict=True):
+                asked[i] = bool(member)
+    return out, asked
+
+
+def list_jobs_page(
+    redis: Redis,
+    owner: str | None = None,
+    states: Iterable[JobState] | None = None,
+    kinds: Iterable[QueueName] = QUEUE_NAMES,
+    limit: int = 100,
+    cursor: str | None = None,
+) -> tuple[list[JobPublic], str | None]:
+    """One page of the jobs ``owner`` asked for (every job with owner None), newest first, and the
+    cursor of the next page (None after the last). Reads ``owner``'s job index
+    (``producer.ownership.job_index_key``) and only the jobs of this page: the time does not grow
+    with the number of jobs in Redis. Entries of jobs Redis no longer holds (expired, deleted) or
+    that ``owner`` can no longer see (recreated for another key) are removed from the index on
+    the way. ``BadCursor`` for a cursor no listing returned."""
+    wanted = set(states) if states is not None else None
+    queues = set(kinds)
+    key = job_index_key(owner)
+    pos = decode_job_cursor(cursor) if cursor else None
+    out: list[JobPublic] = []
+    scanned = 0
+    limit = max(1, limit)
+    while len(out) < limit and scanned < JOB_SCAN_BUDGET:
+        entries = _entries_after(redis, key, pos, min(limit - len(out) + 1, JOB_SCAN_BUDGET - scanned))
+        if not entries:
+            return out, None
+        jobs, asked = _listed_jobs(redis, [jid for jid, _ in entries], owner)
+        stale: list[str] = []
+        for (jid, score), job, member in zip(entries, jobs, asked, strict=True):
+            if len(out) == limit:
+                break
+            pos = (score, jid)
+            scanned += 1
+            if job is None or not (owner is None or member or job.meta.get("owner") == owner):
+                stale.append(jid)
+                continue
+            if job.origin not in queues:
+                continue
+            pub = job_public(job)
+            if wanted is None or pub.state in wanted:
+                out.append(pub)
+        if stale:
+            redis.zrem(key, *stale)
+    assert pos is not None
+    more = _entries_after(redis, key, pos, 1)
+    return out, encode_job_cursor(*pos) if more else None
+
+
+JOB_INDEX_BUILT_KEY = f"{KEY_PREFIX}job-index-built"
+"""Set once the job indexes hold the jobs enqueued before they existed (``rebuild_job_index``)."""
+
+
+def rebuild_job_index(redis: Redis, batch: int = 500) -> int:
+    """Put every job Redis holds (queued, scheduled, deferred, started, finished, failed, canceled)
+    into the index of every job and into those of the keys that asked for it, at the time it was
+    created, unless it is there already: what a Redis written before the job indexes needs once
+    (``JOB_INDEX_BUILT_KEY`` records it; idempotent). Returns how many jobs were indexed (0 when
+    the indexes were built already)."""
+    if redis.exists(JOB_INDEX_BUILT_KEY):
+        return 0
+    ids: list[str] = []
+    for name in QUEUE_NAMES:
+        q = get_queue(redis, name)
+        ids += q.get_job_ids()
+        for reg in (q.scheduled_job_registry, q.deferred_job_registry, q.started_job_registry,
+                    q.finished_job_registry, q.failed_job_registry, q.canceled_job_registry):
+            ids += reg.get_job_ids(cleanup=False)
+    ids = list(dict.fromkeys(ids))
+    n = 0
+    for i in range(0, len(ids), batch):
+        chunk = ids[i:i + batch]
+        jobs, _ = _listed_jobs(redis, chunk, None)
+        with redis.pipeline(transaction=False) as p:
+            for jid in chunk:
+                p.smembers(job_owners_key(jid))
+            askers = p.execute()
+        with redis.pipeline(transaction=False) as p:
+            for jid, job, asked in zip(chunk, jobs, askers, strict=True):
+                if job is None:
+                    continue
+                when = job.created_at.replace(tzinfo=job.created_at.tzinfo or UTC) if job.created_at else None
+                score = int(when.timestamp() * 1_000_000) if when else time.time_ns() // 1000
+                first = job.meta.get("owner")
+                owners = {_text(a) for a in cast(set[Any], asked)}
+                if isinstance(first, str) and first:
+                    owners.add(first)
+                for owner in (None, *sorted(owners)):
+                    p.zadd(job_index_key(owner), {jid: score}, nx=True)
+                    p.expire(job_index_key(owner), JOB_INDEX_HORIZON_S)
+                n += 1
+            p.execute()
+    redis.set(JOB_INDEX_BUILT_KEY, "1")
+    return n
 
 
 def list_jobs(
@@ -197,23 +393,8 @@ def list_jobs(
     kinds: Iterable[QueueName] = QUEUE_NAMES,
     limit: int = 100,
 ) -> list[JobPublic]:
-    """Jobs still known to Redis, newest first; optionally only ``owner``'s and only ``states``."""
-    wanted = set(states) if states is not None else None
-    seen: dict[str, None] = {}
-    for name in kinds:
-        for jid in _queue_job_ids(get_queue(redis, name)):
-            seen.setdefault(jid, None)
-    jobs = [j for j in Job.fetch_many(list(seen), connection=redis, serializer=JSONSerializer) if j is not None]
-    out: list[JobPublic] = []
-    for job in jobs:
-        if owner is not None and job.meta.get("owner") != owner and owner not in job_owners(redis, job.id):
-            continue
-        pub = job_public(job)
-        if wanted is None or pub.state in wanted:
-            out.append(pub)
-    epoch = datetime.min.replace(tzinfo=UTC)
-    out.sort(key=lambda p: p.created_at or epoch, reverse=True)
-    return out[: max(0, limit)]
+    """The first page of ``list_jobs_page``: up to ``limit`` jobs, newest first."""
+    return list_jobs_page(redis, owner, states, kinds, limit)[0]
 
 
 def ids_in_active_jobs(redis: Redis, keys: Iterable[str]) -> set[str]:

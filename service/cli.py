@@ -340,9 +340,8 @@ def scenes_add(scene: Annotated[str, typer.Argument(help="Scene JSON file or sam
 def scenes_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
     """List stored scenes."""
     with _client(api_url, api_key) as c:
-        res = _call(c.list_scenes)
-    for s in res.items:
-        typer.echo(f"{s.id}  {s.name}  objects={s.n_objects} lights={s.n_lights}")
+        for s in _call(lambda: list(c.iter_scenes())):
+            typer.echo(f"{s.id}  {s.name}  objects={s.n_objects} lights={s.n_lights}")
 
 
 @scenes_app.command("show")
@@ -800,8 +799,8 @@ def datasets_upload(
 def datasets_list(api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = None) -> None:
     """List stored datasets."""
     with _client(api_url, api_key) as c:
-        res = _call(c.list_datasets)
-    for d in res.items:
+        items = _call(lambda: list(c.iter_datasets()))
+    for d in items:
         typer.echo(f"{d.id}  {d.name}  images={d.n_images} {d.width}x{d.height} "
                    f"{'distant' if d.distant else 'point'} {d.source.get('kind', 'upload')}")
 

@@ -28,7 +28,7 @@ import hashlib
 import json
 import re
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -166,8 +166,20 @@ class Client:
         doc: dict[str, Any] = self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/document").json()
         return doc
 
-    def list_scenes(self) -> SceneList:
-        return SceneList.model_validate(self._request("GET", "/v1/scenes").json())
+    def list_scenes(self, limit: int = 100, cursor: str | None = None) -> SceneList:
+        """One page of this key's scenes, oldest first; pass ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return SceneList.model_validate(self._request("GET", "/v1/scenes", params=params).json())
+
+    def iter_scenes(self, page_size: int = 100) -> Iterator[ScenePublic]:
+        """Every scene of this key, oldest first, a page at a time."""
+        cursor: str | None = None
+        while True:
+            page = self.list_scenes(page_size, cursor)
+            yield from page.items
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
 
     def delete_scene(self, scene_id: str) -> None:
         self._request("DELETE", f"/v1/scenes/{_id(scene_id, 'scene id')}")
@@ -210,8 +222,13 @@ class Client:
     def job(self, job_id: str) -> JobPublic:
         return JobPublic.model_validate(self._request("GET", f"/v1/jobs/{_id(job_id, 'job id')}").json())
 
-    def jobs(self) -> JobList:
-        return JobList.model_validate(self._request("GET", "/v1/jobs").json())
+    def jobs(self, limit: int = 100, cursor: str | None = None, state: Sequence[str] | None = None) -> JobList:
+        """One page of this key's jobs, newest first (only ``state`` when given); pass
+        ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        if state:
+            params["state"] = list(state)
+        return JobList.model_validate(self._request("GET", "/v1/jobs", params=params).json())
 
     def cancel(self, job_id: str) -> JobPublic:
         return JobPublic.model_validate(self._request("POST", f"/v1/jobs/{_id(job_id, 'job id')}/cancel").json())
@@ -379,8 +396,20 @@ class Client:
         return self.commit_dataset(status.dataset_id)
 
     # ------------------------------------------------------------------ datasets: read, generate, bake
-    def list_datasets(self) -> DatasetList:
-        return DatasetList.model_validate(self._request("GET", "/v1/datasets", params={"limit": 1000}).json())
+    def list_datasets(self, limit: int = 100, cursor: str | None = None) -> DatasetList:
+        """One page of this key's datasets, oldest first; pass ``next_cursor`` for the next one."""
+        params: dict[str, Any] = {"limit": limit, **({"cursor": cursor} if cursor else {})}
+        return DatasetList.model_validate(self._request("GET", "/v1/datasets", params=params).json())
+
+    def iter_datasets(self, page_size: int = 100) -> Iterator[DatasetPublic]:
+        """Every dataset of this key, oldest first, a page at a time."""
+        cursor: str | None = None
+        while True:
+            page = self.list_datasets(page_size, cursor)
+            yield from page.items
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
 
     def get_dataset(self, dataset_id: str) -> DatasetPublic:
         url = f"/v1/datasets/{_id(dataset_id, 'dataset id')}"

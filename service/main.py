@@ -24,6 +24,7 @@ from redis import Redis
 from producer.queue import redis_from_url
 from producer.settings import Settings, load_settings
 from producer.store import ObjectStore, open_configured_store
+from producer.upkeep import StoreUpkeep
 from service.api.errors import install_exception_handlers
 from service.api.limits import BodyLimitMiddleware
 from service.api.routes import (
@@ -136,7 +137,10 @@ def create_app(
             extra={"store": type(store).__name__, "redis": settings.effective_redis_url.split("@")[-1],
                    "auth": settings.auth_enabled, "rate_limit_per_minute": settings.rate_limit_per_minute},
         )
+        upkeep = StoreUpkeep(store, settings.store_temp_grace_s, settings.store_upkeep_interval_s, redis).start()
+        app.state.store_upkeep = upkeep
         yield
+        upkeep.stop()
         redis.close()
 
     app = FastAPI(

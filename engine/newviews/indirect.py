@@ -134,8 +134,10 @@ class IndirectResult:
     stats: dict = field(default_factory=dict)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays for storage; ``stats`` without its wall-clock times (``content_stats``), so
+        the same chunk computed twice stores the same bytes."""
         return {"first": np.int64(self.first), "radiance": self.radiance, "stderr": self.stderr,
-                "paths": self.paths, "stats": np.array(json.dumps(self.stats))}
+                "paths": self.paths, "stats": np.array(json.dumps(content_stats(self.stats), sort_keys=True))}
 
     @classmethod
     def from_arrays(cls, d) -> IndirectResult:
@@ -311,13 +313,29 @@ def summarize(rel: np.ndarray, paths: np.ndarray, params: IndirectParams) -> dic
             "paths_total": int(paths.sum()), "paths_mean": float(paths.mean()), "paths_max": int(paths.max())}
 
 
+WALL_CLOCK_STATS = ("time", "stages")
+"""The entries of an indirect pass's ``stats`` that measure wall-clock time (seconds): they differ
+from one run to the next, so stored bytes leave them out (they live in job results instead)."""
+
+
+def content_stats(stats: dict) -> dict:
+    """``stats`` without its wall-clock entries: what a stored chunk keeps."""
+    return {k: v for k, v in stats.items() if k not in WALL_CLOCK_STATS}
+
+
+def _time_of(parts: list[dict]) -> dict:
+    """``{"time": total}`` when the parts carry times (freshly computed), else nothing (loaded)."""
+    return {"time": float(sum(s["time"] for s in parts if "time" in s))} if any("time" in s for s in parts) else {}
+
+
 def merge_summaries(parts: list[dict], params: IndirectParams) -> dict:
     """One summary for several chunks' ``stats`` (weighted by their sample sides; p95 and median
-    are the sides-weighted means of the chunks', an approximation stated in the key name)."""
+    are the sides-weighted means of the chunks', an approximation stated in the key name). The
+    total ``time`` only when the chunks carry theirs (not when they were loaded from the store)."""
     live = [s for s in parts if s.get("sides", 0)]
     sides = sum(s["sides"] for s in live)
     if not sides:
-        return summarize(np.zeros(0), np.zeros(0, np.int64), params) | {"time": sum(s.get("time", 0.0) for s in parts)}
+        return summarize(np.zeros(0), np.zeros(0, np.int64), params) | _time_of(parts)
     w = [s["sides"] / sides for s in live]
 
     def weighted(name: str) -> float:
@@ -331,4 +349,4 @@ def merge_summaries(parts: list[dict], params: IndirectParams) -> dict:
             "paths_total": int(sum(s["paths_total"] for s in live)),
             "paths_mean": float(sum(s["paths_total"] for s in live) / sides),
             "paths_max": int(max(s["paths_max"] for s in live)),
-            "time": float(sum(s.get("time", 0.0) for s in parts))}
+            **_time_of(parts)}

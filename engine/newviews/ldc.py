@@ -45,6 +45,7 @@ from engine.newviews.indirect import (
     IndirectParams,
     IndirectResult,
     axis_brightness,
+    content_stats,
     merge_summaries,
     trace_indirect,
 )
@@ -84,11 +85,15 @@ class LDCAxis:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays for storage (``np.savez``, no pickle): the LDI under ``ldi_``, the per-sample
-        attributes, ``axis`` and the bake timings as a JSON string."""
+        attributes, ``axis`` and, as a JSON string under ``timings``, what of the bake's
+        ``timings`` does not measure wall-clock time (the counts, the indirect light's noise
+        summary): the same axis baked twice stores the same bytes."""
         out = self.ldi.to_arrays("ldi_")
+        kept = {k: (content_stats(v) if isinstance(v, dict) else v) for k, v in self.timings.items()
+                if not isinstance(v, float)}  # floats are seconds (ldi, shade, shadow, total)
         out.update(axis=np.int64(self.axis), normal=self.normal, geo_normal=self.geo_normal, facing=self.facing,
                    material=self.material, object=self.object, diffuse=self.diffuse, visibility=self.visibility,
-                   timings=np.array(json.dumps(self.timings)))
+                   timings=np.array(json.dumps(kept, sort_keys=True)))
         return out
 
     @classmethod
@@ -493,7 +498,8 @@ def with_indirect(axis: LDCAxis, chunks: list[IndirectResult], params: IndirectP
     diffuse = (axis.diffuse.astype(np.float64) + radiance).astype(np.float32)
     timings = dict(axis.timings)
     timings["indirect"] = merge_summaries([c.stats for c in order], params)
-    timings["total"] = float(timings.get("total", 0.0)) + timings["indirect"]["time"]
+    if "time" in timings["indirect"]:
+        timings["total"] = float(timings.get("total", 0.0)) + timings["indirect"]["time"]
     return LDCAxis(axis=axis.axis, ldi=axis.ldi, normal=axis.normal, geo_normal=axis.geo_normal, facing=axis.facing,
                    material=axis.material, object=axis.object, diffuse=diffuse, visibility=axis.visibility,
                    timings=timings)

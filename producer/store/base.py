@@ -25,6 +25,9 @@ __all__ = [
     "validate_prefix",
 ]
 
+_Keys = list[str]
+"""(A name of the type: inside the classes ``list`` is the method.)"""
+
 MAX_KEY_LENGTH = 1024
 DEFAULT_CHUNK = 1 << 20
 
@@ -125,6 +128,11 @@ class ObjectStore(Protocol):
 
     def list(self, prefix: str) -> list[str]:
         """Keys starting with ``prefix`` (string prefix), sorted."""
+        ...
+
+    def list_page(self, prefix: str, start_after: str = "", limit: int = 1000) -> _Keys:
+        """At most ``limit`` keys of ``list(prefix)`` that sort after ``start_after``, sorted: one
+        page of a listing that keeps its position in the key (an index of small objects)."""
         ...
 
     def open_stream(self, key: str, chunk: int = DEFAULT_CHUNK) -> Iterator[bytes]:

@@ -15,6 +15,7 @@ import errno
 import os
 import secrets
 import stat
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -30,6 +31,9 @@ from producer.store.base import (
 )
 
 __all__ = ["LocalStore"]
+
+_Keys = list[str]
+"""(A name of the type: inside the classes ``list`` is the method.)"""
 
 _TEMP_MARK = "~"
 _PUT_ATTEMPTS = 16
@@ -212,10 +216,58 @@ class LocalStore:
         keys.sort()
         return keys
 
+    def list_page(self, prefix: str, start_after: str = "", limit: int = 1000) -> _Keys:
+        if limit < 1:
+            raise ValueError(f"limit must be positive, got {limit}")
+        validate_prefix(prefix)
+        if prefix.endswith("/"):
+            # the usual case, an index "directory": one scandir, no walk, when it holds no subdirectory
+            base = self.root.joinpath(*prefix[:-1].split("/"))
+            names: list[str] = []
+            try:
+                with os.scandir(base) as it:
+                    for entry in it:
+                        if entry.is_dir(follow_symlinks=False):
+                            break
+                        if _TEMP_MARK not in entry.name:
+                            names.append(entry.name)
+                    else:
+                        keys = sorted(k for k in (prefix + n for n in names) if k > start_after and is_valid_key(k))
+                        return keys[:limit]
+            except (FileNotFoundError, NotADirectoryError):
+                return []
+            except OSError as exc:
+                raise _unavailable(f"cannot list {prefix!r}", exc) from exc
+        return [k for k in self.list(prefix) if k > start_after][:limit]
+
     def open_stream(self, key: str, chunk: int = DEFAULT_CHUNK) -> Iterator[bytes]:
         if chunk <= 0:
             raise ValueError(f"chunk must be positive, got {chunk}")
         return _iter_file(self._open(key), key, chunk)
+
+    def sweep_temp_files(self, older_than_s: float) -> _Keys:
+        """Remove the temp files of writes that never finished (a ``~`` in the name, last modified
+        more than ``older_than_s`` seconds ago) anywhere under the root; prunes directories left
+        empty. Returns the removed paths, relative to the root. A live writer's temp file is
+        younger than the grace period (its write takes less than that), so it is left alone."""
+        cutoff = time.time() - older_than_s
+        removed: _Keys = []
+        for dirpath, _dirnames, filenames in os.walk(self.root):
+            for name in filenames:
+                if _TEMP_MARK not in name:
+                    continue
+                path = Path(dirpath) / name
+                try:
+                    if os.lstat(path).st_mtime >= cutoff:
+                        continue
+                    os.unlink(path)
+                except FileNotFoundError:
+                    continue  # renamed into place or removed meanwhile
+                except OSError as exc:
+                    raise _unavailable(f"cannot remove the stray temp file {path}", exc) from exc
+                removed.append(path.relative_to(self.root).as_posix())
+                self._prune_empty_dirs(path.parent)
+        return removed
 
     def check(self) -> None:
         try:

@@ -40,6 +40,9 @@ from producer.store.base import (
 
 __all__ = ["S3Store"]
 
+_Keys = list[str]
+"""(A name of the type: inside the classes ``list`` is the method.)"""
+
 _BUCKET = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{1,254}")
 _NOT_FOUND_CODES = frozenset({"NoSuchKey", "404", "NotFound"})
 _UNAVAILABLE_CODES = frozenset(
@@ -230,6 +233,31 @@ class S3Store:
             raise self._error(exc, f"cannot list {prefix!r}") from exc
         keys.sort()
         return keys
+
+    def list_page(self, prefix: str, start_after: str = "", limit: int = 1000) -> _Keys:
+        if limit < 1:
+            raise ValueError(f"limit must be positive, got {limit}")
+        validate_prefix(prefix)
+        keys: list[str] = []
+        after = self.prefix + start_after if start_after > prefix else ""
+        try:
+            while len(keys) < limit:  # S3 lists in key order: one request per page, unless keys are skipped
+                args: dict[str, Any] = {"Bucket": self.bucket, "Prefix": self.prefix + prefix,
+                                        "MaxKeys": min(self.list_page_size, limit - len(keys))}
+                if after:
+                    args["StartAfter"] = after
+                page = self._client.list_objects_v2(**args)
+                contents = page.get("Contents", [])
+                for item in contents:
+                    key = str(item["Key"])[len(self.prefix):]
+                    if is_valid_key(key):
+                        keys.append(key)
+                if not contents or not page.get("IsTruncated"):
+                    break
+                after = str(contents[-1]["Key"])
+        except (ClientError, *_TRANSPORT_ERRORS) as exc:
+            raise self._error(exc, f"cannot list {prefix!r}") from exc
+        return sorted(keys)[:limit]
 
     def open_stream(self, key: str, chunk: int = DEFAULT_CHUNK) -> Iterator[bytes]:
         if chunk <= 0:

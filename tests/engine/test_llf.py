@@ -196,7 +196,9 @@ def test_ldc_storage_roundtrip():
     assert back.h == ldc.h and back.resolution == 24 and back.plan == ldc.plan
     assert back.closed_objects == ldc.closed_objects and np.array_equal(back.background, ldc.background)
     for x, y in zip(back.axes, ldc.axes, strict=True):
-        assert x.axis == y.axis and x.timings == y.timings
+        # stored: the counts of the bake's timings, not its wall-clock seconds (same bytes every bake)
+        assert x.axis == y.axis and x.timings == {k: v for k, v in y.timings.items() if not isinstance(v, float)}
+        assert "shadow_rays" in x.timings and not any(isinstance(v, float) for v in x.timings.values())
         for k in ("normal", "geo_normal", "facing", "material", "object", "diffuse", "visibility"):
             assert np.array_equal(getattr(x, k), getattr(y, k)) and getattr(x, k).dtype == getattr(y, k).dtype
         assert np.array_equal(x.ldi.depth, y.ldi.depth) and np.array_equal(x.ldi.offsets, y.ldi.offsets)

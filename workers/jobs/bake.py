@@ -5,10 +5,11 @@ payload, recomputes the keys it was given (a payload cannot make a worker publis
 request's key), reads the store URL from the worker's own settings, reports progress in
 ``job.meta["progress"]`` and honours cancellation between stages.
 
-Parts are stored as ``npz`` blobs (``np.savez``, no pickle) of the engine's ``to_arrays()``:
-``ldc_axis.npz`` for an LDC axis (direct light), ``ldc_indirect.npz`` for a chunk of an axis's
-indirect light (``IndirectResult.to_arrays``), ``llf_views.npz`` (views prefixed ``v<index>_``) for an
-LLF chunk.
+Parts are stored as ``npz`` blobs (``npz_bytes``: ``np.load`` reads them, no pickle) of the engine's
+``to_arrays()``: ``ldc_axis.npz`` for an LDC axis (direct light), ``ldc_indirect.npz`` for a chunk
+of an axis's indirect light (``IndirectResult.to_arrays``), ``llf_views.npz`` (views prefixed
+``v<index>_``) for an LLF chunk. The same part baked twice stores the same bytes: the blobs hold no
+wall-clock time (no zip member dates, no timings), which go to the part's manifest ``result``.
 
 Estimates (the plan job, before anything is baked; refused over ``Settings.max_bake_part_bytes`` /
 ``Settings.max_bake_cpu_s`` with the estimate in the message):
@@ -31,6 +32,7 @@ import importlib
 import io
 import json
 import time
+import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
@@ -127,9 +129,20 @@ def preload_modules() -> None:
 
 
 
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
 def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """The arrays as an ``.npz`` (what ``np.savez`` writes, read by ``np.load``), byte for byte the
+    same for the same arrays: ``np.savez`` stamps each member with the current time, so the same
+    part baked twice would differ; here every member carries the zip epoch instead."""
     buf = io.BytesIO()
-    np.savez(buf, allow_pickle=False, **{k: np.asarray(v) for k, v in arrays.items()})
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
+            info.external_attr = 0o644 << 16
+            with zf.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
     return buf.getvalue()
 
 
@@ -605,7 +618,7 @@ def _ldc_summary(axes: list[dict[str, Any]], noise: float) -> dict[str, Any]:
             "rel_stderr_max": float(max((a.get("rel_stderr_max", 0.0) for a in live), default=0.0)),
             "paths_total": paths, "paths_mean": paths / sides if sides else 0.0,
             "paths_max": int(max((a.get("paths_max", 0) for a in live), default=0)),
-            "time": float(sum(a.get("time", 0.0) for a in axes))}
+            **({"time": float(sum(a["time"] for a in axes if "time" in a))} if any("time" in a for a in axes) else {})}
 
 
 def bake_merge_job(payload: dict[str, Any]) -> dict[str, Any]:

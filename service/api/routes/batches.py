@@ -12,6 +12,7 @@ from api_schemas.errors import FieldError
 from api_schemas.service import BatchPublic, BatchRequest, JobId
 from producer.artifacts import mesh_paths, scene_id_for, store_scene
 from producer.batches import batch_owner, batch_status, enqueue_batch
+from producer.listings import index_scene
 from producer.settings import Settings
 from producer.store import ObjectStore
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, add_scene_owner, scene_visible
@@ -68,6 +69,7 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, owner: str | 
     for sc in batch.scenes:
         public, _ = store_scene(store, sc.scene, {}, owner)
         add_scene_owner(store, public.id, owner)
+        index_scene(store, public, owner)
     return enqueue_batch(redis, list(batch.renders), owner, store=store, scene_ids=list(dict.fromkeys(new_ids)))
 
 

@@ -37,7 +37,7 @@ from api_schemas.datasets import (
 )
 from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, JobPublic, Sha256
-from producer.artifacts import read_blob, read_manifest
+from producer.artifacts import put_blob_unless_intact, read_blob, read_manifest, sha256_hex
 from producer.datasets import (
     DatasetInvalid,
     FileProblem,
@@ -51,7 +51,7 @@ from producer.datasets import (
     fill_shas,
     generate_artifact_key,
     get_dataset,
-    list_datasets,
+    list_dataset_page,
     manifest_errors,
     missing_files,
     owned_blob_info,
@@ -63,6 +63,7 @@ from producer.datasets import (
     store_file,
 )
 from producer.enqueue import enqueue_unique
+from producer.listings import BadCursor
 from producer.names import (
     COMPOSITE_JOB,
     COMPOSITE_KIND,
@@ -334,15 +335,17 @@ async def upload_file(sha256: FileSha, request: Request, response: Response, sto
     API key sent it before; a file stored already for another key is stored once, but each key
     proves it holds the bytes by sending them (the answer is then 201 for it)."""
     known = await run_in_threadpool(owned_blob_info, store, sha256, owner)
-    if known is not None:
-        response.status_code = 200
-        return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
     limit = settings.max_upload_bytes
     buf = bytearray()
     async for chunk in request.stream():
         buf += chunk
         if len(buf) > limit:
             raise BodyTooLarge(f"file exceeds the {limit}-byte limit per file", field=f"files.{sha256}")
+    if known is not None:
+        if sha256_hex(bytes(buf)) == sha256:  # the same bytes: they replace a stored copy gone bad
+            await run_in_threadpool(put_blob_unless_intact, store, sha256, bytes(buf))
+        response.status_code = 200
+        return FileUploadPublic.model_validate({k: known[k] for k in FileUploadPublic.model_fields})
     try:
         info = await run_in_threadpool(_store_file, store, bytes(buf), settings, owner, sha256)
     except FileProblem as exc:
@@ -391,11 +394,17 @@ def commit(dataset_id: DatasetId, response: Response, store: StoreDep, owner: Ow
 
 
 @router.get("/v1/datasets", response_model=DatasetList, responses=problem_responses(401, 422, 429, 503))
-def list_all(store: StoreDep, owner: OwnerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-             offset: Annotated[int, Query(ge=0)] = 0) -> DatasetList:
-    """The datasets this API key stored (or generated), oldest first."""
-    items = list_datasets(store, owner)
-    return DatasetList(items=items[offset:offset + limit], total=len(items))
+def list_all(store: StoreDep, owner: OwnerDep,
+             limit: Annotated[int, Query(ge=1, le=1000, description="Datasets per page at most")] = 100,
+             cursor: Annotated[str | None, Query(max_length=160, description="The next_cursor of the previous page")]
+             = None) -> DatasetList:
+    """The datasets this API key stored (or generated), oldest first, a page at a time: follow
+    ``next_cursor`` until it is null."""
+    try:
+        items, nxt = list_dataset_page(store, owner, limit, cursor)
+    except BadCursor as exc:
+        raise ValidationProblem([FieldError(field="query.cursor", message=str(exc), type="invalid_cursor")]) from None
+    return DatasetList(items=items, next_cursor=nxt)
 
 
 @router.get("/v1/datasets/{dataset_id}", response_model=DatasetPublic,

@@ -7,14 +7,15 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Path, Query
 from redis import Redis
 
+from api_schemas.errors import FieldError
 from api_schemas.service import JobId, JobList, JobPublic, JobState
 from producer.cancel import cancel_for
 from producer.errors import JobNotCancelable, JobNotFound
 from producer.ownership import job_owners
 from producer.queue import fetch_job
-from producer.status import job_public, list_jobs
+from producer.status import BadCursor, job_public, list_jobs_page
 from service.api.deps import OwnerDep, RedisDep
-from service.api.errors import MissingResource, problem_responses
+from service.api.errors import MissingResource, ValidationProblem, problem_responses
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -35,10 +36,17 @@ def list_my_jobs(
     redis: RedisDep,
     owner: OwnerDep,
     state: Annotated[list[JobState] | None, Query(description="Only jobs in these states")] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    limit: Annotated[int, Query(ge=1, le=1000, description="Jobs per page at most")] = 100,
+    cursor: Annotated[str | None, Query(max_length=160, description="The next_cursor of the previous page")] = None,
 ) -> JobList:
-    """Jobs this API key asked for, newest first."""
-    return JobList(items=list_jobs(redis, owner=owner, states=state, limit=limit))
+    """Jobs this API key asked for, newest first, a page at a time: follow ``next_cursor`` until
+    it is null. With a ``state`` filter a page may hold fewer than ``limit`` jobs (each request
+    scans a bounded part of the key's jobs) while ``next_cursor`` is not null."""
+    try:
+        items, nxt = list_jobs_page(redis, owner=owner, states=state, limit=limit, cursor=cursor)
+    except BadCursor as exc:
+        raise ValidationProblem([FieldError(field="query.cursor", message=str(exc), type="invalid_cursor")]) from None
+    return JobList(items=items, next_cursor=nxt)
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=problem_responses(401, 404, 422, 429, 503))

@@ -17,9 +17,10 @@ from api_schemas.errors import FieldError
 from api_schemas.scene import MeshFileObject, Scene
 from api_schemas.service import SceneCreate, SceneImportPublic, SceneList, ScenePublic, Sha256
 from engine.geometry.meshio import DEFAULT_MAX_MESH_BYTES, SUPPORTED_MESH_TYPES
-from producer.artifacts import delete_scene, get_scene, list_scenes, mesh_paths, scene_id_for, sha256_hex, store_scene
+from producer.artifacts import delete_scene, get_scene, mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.errors import SceneOutputsInUse
-from producer.ownership import remove_bake_owner
+from producer.listings import BadCursor, index_scene, list_scene_page, unindex_scene, unindex_scene_owner
+from producer.ownership import ANON_OWNER, remove_bake_owner
 from producer.scene_import import IMPORT_FORMATS, ImportOptions, ImportProblem, import_scene, referenced_files
 from producer.scene_outputs import delete_scene_outputs
 from producer.settings import Settings
@@ -34,7 +35,6 @@ from service.api.deps import (
     remove_scene_owner,
     scene_owners,
     scene_visible,
-    visible_scene_ids,
 )
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import BodyTooLarge, read_multipart
@@ -140,6 +140,7 @@ def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: s
     had_marker = owner is not None and scene_visible(store, scene_id, owner)
     public, new_record = store_scene(store, scene, meshes, owner)
     add_scene_owner(store, public.id, owner)  # after the record: a visible scene always exists
+    index_scene(store, public, owner)  # after the marker: a listed scene is always visible
     created = new_record if owner is None else (new_record or not had_marker)
     return public.model_copy(update={"links": {"self": f"/v1/scenes/{public.id}",
                                                "document": f"/v1/scenes/{public.id}/document"}}), created
@@ -561,15 +562,17 @@ async def create_scene(
 def list_all_scenes(
     store: StoreDep,
     owner: OwnerDep,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000, description="Scenes per page at most")] = 100,
+    cursor: Annotated[str | None, Query(max_length=160, description="The next_cursor of the previous page")] = None,
 ) -> SceneList:
-    """List the scenes this API key stored, oldest first."""
-    visible = visible_scene_ids(store, owner)
-    scenes = [s for s in list_scenes(store) if visible is None or s.id in visible]
-    page = [s.model_copy(update={"links": {"self": f"/v1/scenes/{s.id}", "document": f"/v1/scenes/{s.id}/document"}})
-            for s in scenes[offset:offset + limit]]
-    return SceneList(items=page, total=len(scenes))
+    """The scenes this API key stored, oldest first, a page at a time: follow ``next_cursor``
+    until it is null. Reads an index and small summaries: the time does not depend on how many
+    scenes the store holds or how large they are."""
+    try:
+        items, nxt = list_scene_page(store, owner, limit, cursor)
+    except BadCursor as exc:
+        raise ValidationProblem([FieldError(field="query.cursor", message=str(exc), type="invalid_cursor")]) from None
+    return SceneList(items=items, next_cursor=nxt)
 
 
 @router.get("/{scene_id}", response_model=ScenePublic, responses=problem_responses(401, 404, 422, 429, 503))
@@ -616,10 +619,14 @@ def remove_scene(scene_id: SceneId, store: StoreDep, redis: RedisDep, owner: Own
         raise HTTPException(409, f"scene {scene_id} is used by a queued or running job; cancel it or wait")
     if owner is None:
         for who in owners:  # auth off: one namespace, delete for everybody
+            if who != ANON_OWNER:
+                unindex_scene_owner(store, scene_id, who)
             store.delete(f"scene-owners/{scene_id}/{who}")
     else:
+        unindex_scene_owner(store, scene_id, owner)  # before the marker: a listed scene is always visible
         remove_scene_owner(store, scene_id, owner)
     if not scene_owners(store, scene_id):
+        unindex_scene(store, scene_id)
         try:
             delete_scene(store, scene_id)
         except NotFound:

@@ -44,7 +44,7 @@ def test_a_key_cannot_see_another_keys_resources(auth_client: TestClient, redis_
     sid = auth_client.post("/v1/scenes", json={"scene": small_scene()}, headers=A).json()["id"]
     assert auth_client.get(f"/v1/scenes/{sid}", headers=A).status_code == 200
     assert auth_client.get(f"/v1/scenes/{sid}", headers=B).status_code == 404
-    assert auth_client.get("/v1/scenes", headers=B).json() == {"items": [], "total": 0}
+    assert auth_client.get("/v1/scenes", headers=B).json() == {"items": [], "next_cursor": None}
     assert auth_client.delete(f"/v1/scenes/{sid}", headers=B).status_code == 404
     r = auth_client.post("/v1/renders", json={"scene_id": sid}, headers=B)
     assert r.status_code == 404

@@ -100,3 +100,23 @@ def test_upload_names_a_bad_file_as_given(api_url: str, tmp_path: Path) -> None:
         assert f"files.{bad}" in r.stderr, (mode, r.stderr)
         assert sha not in r.output and sha[:8] not in r.output, (mode, r.output)
         assert r.stdout == ""
+
+
+def test_scenes_list_and_the_client_follow_every_page(api_url: str, tmp_path: Path) -> None:
+    from service.client import Client
+
+    ids = []
+    for i in range(7):
+        (tmp_path / f"s{i}.json").write_text(json.dumps(small_scene(name=f"paged {i}")))
+        r = ibr(api_url, "scenes", "add", str(tmp_path / f"s{i}.json"))
+        assert r.exit_code == 0, r.output
+        ids.append(r.stdout.strip())
+    with Client(api_url) as c:
+        assert [s.id for s in c.iter_scenes(page_size=3)] == ids
+        first = c.list_scenes(limit=5)
+        assert [s.id for s in first.items] == ids[:5] and first.next_cursor is not None
+        assert [s.id for s in c.list_scenes(limit=5, cursor=first.next_cursor).items] == ids[5:]
+        assert c.jobs(limit=3).items == [] and c.jobs(state=["failed"]).next_cursor is None
+    r = ibr(api_url, "scenes", "list")
+    assert r.exit_code == 0, r.output
+    assert [line.split()[0] for line in r.stdout.splitlines()] == ids

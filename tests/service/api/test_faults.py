@@ -70,7 +70,7 @@ def test_store_failing_mid_upload_leaves_no_scene(make_app: Any, embedded_redis:
     with TestClient(create_app(settings, store=flaky)) as c:
         r = c.post("/v1/scenes", files=files)
         assert r.status_code == 503 and r.headers["retry-after"] == "5"
-        assert c.get("/v1/scenes").json()["total"] == 0  # no scene became visible
+        assert c.get("/v1/scenes").json()["items"] == []  # no scene became visible
         assert not (store_dir / "scenes").exists() or not any((store_dir / "scenes").iterdir())
     with TestClient(make_app()) as c:  # the store is back: the retry succeeds, reusing the blob
         r = c.post("/v1/scenes", files=files)

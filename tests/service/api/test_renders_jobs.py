@@ -99,14 +99,14 @@ def test_batches(client: TestClient, store_dir: Path) -> None:
     assert r.status_code == 202 and r.json()["scene_ids"] == [sid2]
 
     # all-or-nothing: one bad entry stores no scene and queues no job
-    scenes_before = client.get("/v1/scenes").json()["total"]
+    scenes_before = len(client.get("/v1/scenes").json()["items"])
     mesh = small_scene(name="m")
     mesh["objects"].append({"type": "mesh_file", "path": "x.ply", "material": "white"})
     r = client.post("/v1/batches", json={"scenes": [{"scene": small_scene(name="three")}, {"scene": mesh}],
                                          "renders": [{"scene_id": "f" * 64}]})
     assert r.status_code == 422
     assert {e["field"] for e in r.json()["errors"]} == {"scenes.1.scene", "renders.0.scene_id"}
-    assert client.get("/v1/scenes").json()["total"] == scenes_before
+    assert len(client.get("/v1/scenes").json()["items"]) == scenes_before
     assert client.get("/v1/batches/nope").status_code == 404
 
 

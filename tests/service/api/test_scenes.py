@@ -53,12 +53,12 @@ def test_json_create_get_list_delete(client: TestClient, store_dir: Path) -> Non
     got = client.get(f"/v1/scenes/{created.id}")
     assert got.status_code == 200 and got.json()["id"] == created.id
     listing = client.get("/v1/scenes").json()
-    assert listing["total"] == 1 and listing["items"][0]["id"] == created.id
+    assert [s["id"] for s in listing["items"]] == [created.id] and listing["next_cursor"] is None
 
     assert client.delete(f"/v1/scenes/{created.id}").status_code == 204
     assert client.get(f"/v1/scenes/{created.id}").status_code == 404
     assert client.delete(f"/v1/scenes/{created.id}").status_code == 404
-    assert client.get("/v1/scenes").json()["total"] == 0
+    assert client.get("/v1/scenes").json()["items"] == []
 
 
 def test_multipart_teapot(client: TestClient, store_dir: Path) -> None:
@@ -241,7 +241,8 @@ def test_hostile_upload_names_are_metadata_only(client: TestClient, store_dir: P
     sha = hashlib.sha256(data).hexdigest()
     files = {p.relative_to(store_dir).as_posix() for p in _all_files(store_dir)}
     assert f"blobs/{sha}" in files
-    assert all(f.startswith(("blobs/", "scenes/", "scene-owners/")) for f in files), files
+    assert all(f.startswith(("blobs/", "scenes/", "scene-owners/", "scene-summaries/", "scene-index/"))
+                   for f in files), files
     assert {p.name for p in tmp_path.parent.iterdir()} == outside_before
     assert not os.path.exists("/x") and not Path(store_dir.parent.parent, "x").exists()
 

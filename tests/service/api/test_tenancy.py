@@ -80,7 +80,7 @@ def test_a_manifest_naming_another_keys_files_does_not_commit(c: TestClient) -> 
     r = c.post(f"/v1/datasets/{did}/commit", headers=B)
     assert r.status_code == 200 and r.json()["id"] == did, r.text
     assert c.get(f"/v1/datasets/{did}", headers=B).status_code == 200
-    assert c.get("/v1/datasets", headers=B).json()["total"] == 1
+    assert len(c.get("/v1/datasets", headers=B).json()["items"]) == 1
 
 
 def test_dataset_files_are_not_readable_through_a_hash_alone(c: TestClient) -> None:
@@ -98,7 +98,7 @@ def test_dataset_files_are_not_readable_through_a_hash_alone(c: TestClient) -> N
     mine = {**full, "name": "bob's own manifest"}  # another dataset id, same files
     r = c.post("/v1/datasets", json=mine, headers=B)
     c.post(f"/v1/datasets/{r.json()['dataset_id']}/commit", headers=B)
-    assert c.get("/v1/datasets", headers=B).json()["total"] == 0
+    assert c.get("/v1/datasets", headers=B).json()["items"] == []
     for dataset in (did, r.json()["dataset_id"]):
         assert c.get(f"/v1/datasets/{dataset}/files/{h}", headers=B).status_code == 404
 

@@ -94,7 +94,7 @@ def test_bombs_are_refused_from_the_header_naming_the_file_and_the_limit(client:
     r = client.post("/v1/datasets", files=multipart(manifest, files))
     p = _problem(r)
     assert p["field"] == f"files.{name}" and p["message"].startswith(f"{name}: ") and "8000x8000" in p["message"]
-    assert client.get("/v1/datasets").json()["total"] == 0
+    assert client.get("/v1/datasets").json()["items"] == []
 
 
 def test_the_budget_is_a_setting(make_app: Any) -> None:

@@ -360,11 +360,11 @@ def test_scene_blobs_are_written_first_and_not_rewritten(any_store: ObjectStore)
     scene = _scene(["a.ply", "b.obj"])
     rec = Recording(any_store)
     first = art.put_scene(rec, scene, {"a.ply": MESH_A, "b.obj": MESH_B}, owner=None)
-    assert [k.split("/")[0] for k in rec.puts] == ["blobs", "blobs", "scenes"]
+    assert [k.split("/")[0] for k in rec.puts] == ["blobs", "blobs", "scenes", "scene-summaries"]
     other = _scene(["c.ply"], name="shares a blob")
     rec2 = Recording(any_store)
     art.put_scene(rec2, other, {"c.ply": MESH_A}, owner=None)
-    assert [k.split("/")[0] for k in rec2.puts] == ["scenes"]  # MESH_A already stored
+    assert [k.split("/")[0] for k in rec2.puts] == ["scenes", "scene-summaries"]  # MESH_A already stored
     rec3 = Recording(any_store)
     again, created = art.store_scene(rec3, scene, {"a.ply": MESH_A, "b.obj": MESH_B}, owner="bob")
     assert rec3.puts == [] and not created
@@ -458,8 +458,32 @@ def test_corrupt_mesh_blob_is_removed_and_reupload_repairs(
     assert art.blob_reader(any_store, shas)("a.ply") == (MESH_A, "ply")
 
 
+@pytest.mark.parametrize("corruption", ["same_size", "truncated", "empty"])
+def test_reupload_replaces_a_corrupt_blob_nobody_read_yet(
+    any_store: ObjectStore, raw_write: Callable[[str, bytes], None], corruption: str
+) -> None:
+    """A stored mesh blob that went bad before any reader checked it: uploading the same scene (or
+    any scene with the same file) again writes the good bytes over it."""
+    scene = _scene(["a.ply"])
+    public = art.put_scene(any_store, scene, {"a.ply": MESH_A}, owner=None)
+    bkey = art.blob_key(hashlib.sha256(MESH_A).hexdigest())
+    bad = {"same_size": _flip_one_byte(MESH_A), "truncated": MESH_A[:-7], "empty": b""}[corruption]
+    raw_write(bkey, bad)
+    rec = Recording(any_store)
+    again, created = art.store_scene(rec, scene, {"a.ply": MESH_A}, owner=None)
+    assert again.id == public.id and not created
+    assert rec.puts == [bkey] and any_store.get_bytes(bkey) == MESH_A
+    other = _scene(["b/a.ply"], name="another scene with the same file")
+    raw_write(bkey, bad)
+    art.put_scene(any_store, other, {"b/a.ply": MESH_A}, owner=None)
+    assert any_store.get_bytes(bkey) == MESH_A
+    rec = Recording(any_store)  # an intact blob is not written again
+    art.store_scene(rec, scene, {"a.ply": MESH_A}, owner=None)
+    assert rec.puts == []
+
+
 HOSTILE_NAMES = ["../../x", "C:\\..\\x", "a\x00b.ply", "/etc/passwd", "..", "blobs/../../y", "\ud800.obj"]
-_OUR_KEYS = re.compile(r"blobs/[0-9a-f]{64}|scenes/[0-9a-f]{64}\.json")
+_OUR_KEYS = re.compile(r"blobs/[0-9a-f]{64}|scenes/[0-9a-f]{64}\.json|scene-summaries/[0-9a-f]{64}\.json")
 
 
 def test_hostile_upload_names_only_become_metadata(any_store: ObjectStore, tmp_path: Path) -> None:
@@ -472,7 +496,7 @@ def test_hostile_upload_names_only_become_metadata(any_store: ObjectStore, tmp_p
     public = art.put_scene(any_store, scene, meshes, owner=None)
 
     keys = any_store.list("")
-    assert len(keys) == len(HOSTILE_NAMES) + 1
+    assert len(keys) == len(HOSTILE_NAMES) + 2  # the blobs, the document and its summary
     assert all(_OUR_KEYS.fullmatch(k) for k in keys), keys
     assert sorted(m.path for m in public.meshes) == sorted(HOSTILE_NAMES)
     if isinstance(any_store, LocalStore):

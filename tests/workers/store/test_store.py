@@ -537,3 +537,48 @@ def test_open_store_urls(tmp_path: Path, s3_bucket: str, s3_config: dict[str, An
 def test_open_store_rejects(url: str) -> None:
     with pytest.raises(ValueError):
         open_store(url)
+
+
+def test_list_page_resumes_after_a_key(any_store: ObjectStore) -> None:
+    keys = [f"idx/o/{i:04d}-k" for i in range(23)]
+    for k in keys:
+        any_store.put_bytes(k, b"")
+    any_store.put_bytes("idx/other", b"")  # outside the prefix
+    any_store.put_bytes("idx/o0", b"")  # starts with "idx/o" but not "idx/o/"
+    got: list[str] = []
+    after = ""
+    while True:
+        page = any_store.list_page("idx/o/", start_after=after, limit=5)
+        got += page
+        if len(page) < 5:
+            break
+        after = page[-1]
+    assert got == keys
+    assert any_store.list_page("idx/o/", start_after=keys[20], limit=100) == keys[21:]
+    assert any_store.list_page("idx/none/", limit=3) == []
+    assert any_store.list_page("idx/", limit=100) == any_store.list("idx/")  # nested keys too
+
+
+def _age(path: Path, seconds: float) -> None:
+    t = time.time() - seconds
+    os.utime(path, (t, t))
+
+
+def test_local_sweep_removes_only_the_old_temp_files(local_store: LocalStore) -> None:
+    key = "artifacts/" + "a" * 64
+    local_store.put_bytes(f"{key}/ldc_axis.npz", b"kept")
+    d = local_store.root / key
+    old = d / ".ldc_axis.npz~0123456789abcdef.tmp"  # a writer killed an hour ago
+    live = d / ".llf_views.npz~fedcba9876543210.tmp"  # a write in progress
+    old.write_bytes(b"partial")
+    live.write_bytes(b"partial")
+    _age(old, 2 * 3600)
+    lone = local_store.root / "artifacts" / ("b" * 64) / ".manifest.json~00ff00ff00ff00ff.tmp"
+    lone.parent.mkdir(parents=True)
+    lone.write_bytes(b"{")
+    _age(lone, 2 * 3600)
+    removed = local_store.sweep_temp_files(3600)
+    assert sorted(removed) == sorted(p.relative_to(local_store.root).as_posix() for p in (old, lone))
+    assert not old.exists() and live.exists() and not lone.parent.exists()  # the emptied directory went too
+    assert local_store.get_bytes(f"{key}/ldc_axis.npz") == b"kept"
+    assert local_store.sweep_temp_files(3600) == []
