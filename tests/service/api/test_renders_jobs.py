@@ -149,7 +149,9 @@ def test_openapi_document(client: TestClient) -> None:
         assert op.get("description") or op.get("summary"), (method, path)
         assert op.get("tags"), (method, path)
     scenes_post = spec["paths"]["/v1/scenes"]["post"]["requestBody"]["content"]
-    assert set(scenes_post) == {"application/json", "multipart/form-data"}
+    # a scene document as JSON or multipart (with its meshes), or a file to import (docs/scene-import.md)
+    assert set(scenes_post) == {"application/json", "multipart/form-data", "model/gltf-binary", "model/gltf+json",
+                                "model/obj"}
     assert scenes_post["application/json"]["examples"]
     assert spec["paths"]["/v1/renders"]["post"]["requestBody"]["content"]["application/json"]["examples"]
     assert "bearerAuth" in str(spec["components"].get("securitySchemes", {})) or \
