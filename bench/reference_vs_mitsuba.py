@@ -220,8 +220,8 @@ def write(a) -> None:
         rows = d["rows"]
         title = f"{r['scene']} {kind}, {r['res']} x {r['res']}"
         for c in CONTESTANTS:
-            xs = [row[2] for row in rows[c]]
-            ax.loglog(xs, [100 * row[1] for row in rows[c]], "o-", label=LABEL[c], ms=3)
+            pts = sorted((row[2], 100 * row[1]) for row in rows[c])
+            ax.loglog([x for x, _ in pts], [e for _, e in pts], "o-", label=LABEL[c], ms=3)
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("wall seconds")
         ax.set_ylabel("LRMS %")
@@ -267,7 +267,7 @@ def _mi_version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default="cornell_box")
+    ap.add_argument("--scenes", default="cornell_box", help="comma-separated; empty: only --write")
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--spp", default="4,16,64,256,1024")
     ap.add_argument("--errors", default="0.1,0.05,0.03,0.02,0.01")
