@@ -352,27 +352,31 @@ def runtime_to_mitsuba(scene: RuntimeScene, camera: CameraParams, workdir: str |
     return mitsuba(variant).load_dict(runtime_to_mitsuba_dict(scene, camera, workdir, spp, sampler, variant))
 
 
-def resampled_sensor(scene, sampler: str = "multijitter", spp: int = 16):
+def resampled_sensor(scene, sampler: str = "multijitter", spp: int = 16, variant: str = MITSUBA_VARIANT):
     """A copy of ``scene``'s first sensor (same fov, frame, film size, box filter) with another
     sampler, to pass as ``mi.render(..., sensor=...)``.
 
     Mitsuba's native scene files use the ``independent`` sampler; a stratified one converges
     much faster on pixel edges (anti-aliasing) and area-light penumbrae, and both are unbiased.
     Refuses sensors this copy would not reproduce (non-perspective, off-centre principal
-    point, a pixel filter other than box)."""
-    mi = mitsuba()
+    point, a pixel filter other than box). ``variant``: the one ``scene`` was loaded in."""
+    mi = mitsuba(variant)
     s = scene.sensors()[0]
     p = mi.traverse(s)
-    if "x_fov" not in p or abs(p["principal_point_offset_x"]) + abs(p["principal_point_offset_y"]) > 0:
+
+    def scalar(x) -> float:  # a Python float in scalar variants, a 1-wide Dr.Jit array in JIT ones
+        return float(np.asarray(x, dtype=np.float64).ravel()[0])
+
+    if "x_fov" not in p or abs(scalar(p["principal_point_offset_x"])) + abs(scalar(p["principal_point_offset_y"])) > 0:
         raise ValueError(f"cannot copy sensor {s}")
     film = s.film()
     if "BoxFilter" not in str(film.rfilter()):
         raise ValueError(f"sensor filter is {film.rfilter()}, expected box")
     size = film.size()
-    m = np.array(s.world_transform().matrix, dtype=np.float64)
+    m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
     return mi.load_dict({
-        "type": "perspective", "fov_axis": "x", "fov": float(p["x_fov"]),
-        "near_clip": float(p["near_clip"]), "far_clip": float(p["far_clip"]),
+        "type": "perspective", "fov_axis": "x", "fov": scalar(p["x_fov"]),
+        "near_clip": scalar(p["near_clip"]), "far_clip": scalar(p["far_clip"]),
         "to_world": mi.ScalarTransform4f(m.tolist()),
         "sampler": {"type": sampler, "sample_count": int(spp)},
         "film": {"type": "hdrfilm", "width": int(size[0]), "height": int(size[1]),

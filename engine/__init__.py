@@ -22,4 +22,6 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # Owen-scrambled Sobol sampler, engine/sampler.py; camera samples unbiased at every spp).
 # 0.4.0: reference renders and everything baked from them (rect lights are seen by camera rays and
 # by mirror / glossy rays at chain hits and path vertices: caustic paths, visible lights).
-ENGINE_VERSION = "0.4.0"
+# 0.5.0: reference renders and everything baked from them (glossy lobes weigh light sampling and
+# their own rays by multiple importance sampling; Russian roulette on paths past 3 bounces).
+ENGINE_VERSION = "0.5.0"

@@ -35,15 +35,13 @@ n, direction to the viewer wo, mirror direction wr = reflect(wo, n):
             Point and directional lights cannot be met by a ray: they reach surfaces through kd
             and ks only, never through a mirror or a glossy lobe.
 
-No multiple importance sampling is needed: next-event estimation evaluates only the kd and ks
-lobes, and rays that meet lights leave only from the kr and kg lobes (or the camera), so each
-(lobe, light) term of the rendering equation is estimated by exactly one strategy and the image
-is their plain sum; neither strategy estimates a term the other one does too, so nothing is
-counted twice or weighted. The price is variance where one strategy is poor: a glossy lobe much
-wider than the light it reflects finds it rarely (the ks lobe is the low-variance way to show a
-light's highlight). tests/engine/test_reference_caustics.py checks the sum numerically: the same
-Phong lobe as ks (light sampling) and as kg (BSDF sampling) gives the same radiance, and half of
-each gives it again, all equal to an independent quadrature.
+Multiple importance sampling: next-event estimation evaluates the kd and ks lobes, rays that
+meet lights leave the camera and the kr lobe; those terms have one strategy each and are added
+plainly. The kg lobe has both (next-event estimation evaluates it too, and its rays meet lights):
+each side is weighted by the power heuristic over (sample count x density), so the weights sum to
+one per direction and the sum stays unbiased (docs/reference-renderer.md, ``_light_rays`` and
+``_rect_hits``; tests/engine/test_reference_mis.py). Russian roulette cuts path vertices past
+RR_MIN_BOUNCES bounces with a survival probability from the path's throughput (``_spawn``).
 
 Sampling: every sample value comes from engine/sampler.py (Owen-scrambled Sobol), keyed by
 (seed, pixel, the sample's index among the pixel's samples, the dimension it serves): the pixel
@@ -92,10 +90,32 @@ DIM_PIXEL = 1  # (vertex 0) position in the pixel
 DIM_LIGHT = 2  # rect-light positions (then derive_key(., light, stratum))
 DIM_LOBE = 3  # lobe choice at a path vertex
 DIM_DIR = 4  # BSDF direction
+DIM_RR = 5  # Russian roulette at a path vertex
 # a chain hit's children: their key is derive_key(key, vertex, BRANCH_*)
 BRANCH_MIRROR = 10
 BRANCH_GLOSSY = 11
 BRANCH_DIFFUSE = 12
+
+# how the kg lobe's light from rect lights is estimated (ReferenceRenderer(glossy_mis=...))
+MIS_MODES = {"power": 0, "balance": 1, "light": 2, "bsdf": 3}
+# Russian roulette: a path vertex that has used RR_MIN_BOUNCES bounces or more continues with
+# probability min(1, max(throughput) / max(throughput at the path's first ray))
+RR_MIN_BOUNCES = 3
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _mis_weight(mode, a, b):
+    """Weight of strategy a (density x sample count ``a``) against strategy b (``b``): power
+    heuristic (mode 0), balance heuristic (1); mode 2: light sampling alone (a = the light),
+    mode 3: BSDF sampling alone (a = the light: weight 0)."""
+    if mode == 0:
+        a2 = a * a
+        den = a2 + b * b
+        return a2 / den if den > 0.0 else 0.0
+    if mode == 1:
+        den = a + b
+        return a / den if den > 0.0 else 0.0
+    return 1.0 if mode == 2 else 0.0
 
 
 @dataclass(frozen=True)
@@ -265,7 +285,8 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
 
 
 @DualKernel
-def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
+def _light_rays(p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, spec_cut, kr, kg, gexp,
+                max_depth, glossy_samples, mis,
                 pt_pos, pt_int, dir_dir, dir_irr,
                 rc, ru, rv, r_n, r_area, rL, r2s, r_g, pix, sidx, skey, vertex,
                 center, extent, o_out, d_out, tmax_out, c_out, alive):
@@ -276,6 +297,13 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
     dimension derive_key(derive_key(skey, vertex, DIM_LIGHT), l, s): each cell's jitter is
     stratified over the pixel's samples. Origins are written in float32 relative to ``center``
     (Embree's frame); ``alive`` marks rows worth casting.
+
+    Rect-light rows also carry the glossy (kg) lobe's share, weighted by multiple importance
+    sampling against the glossy rays that ``_plan`` / ``_spawn`` send from the same hit (``mis``:
+    MIS_MODES): the light strategy's density is g*g / (pdf of a point of the light in solid angle),
+    the BSDF strategy's c_b (g+1)/(2 pi) cos^g(alpha), c_b the hit's glossy rays (M or 1 at chain
+    hits, the lobe's choice probability at path vertices). A hit that sends no glossy ray (a chain
+    at max_depth) gets no kg light from either strategy, as before.
     """
     n = p.shape[0]
     npt = pt_pos.shape[0]
@@ -295,6 +323,19 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
         ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
         spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
         has_spec = ks[m, 0] > 0 or ks[m, 1] > 0 or ks[m, 2] > 0
+        has_kg = kg[m, 0] > 0 or kg[m, 1] > 0 or kg[m, 2] > 0
+        # c_b: the glossy rays this hit sends (as _plan / _spawn decide), in expected count
+        c_b = 0.0
+        if has_kg:
+            if kind[i] == KIND_CHAIN:
+                if depth[i] < max_depth:
+                    c_b = glossy_samples if depth[i] == 0 else 1.0
+            else:
+                ag = (kg[m, 0] + kg[m, 1] + kg[m, 2]) / 3.0
+                ar = (kr[m, 0] + kr[m, 1] + kr[m, 2]) / 3.0
+                ad = (kd[m, 0] + kd[m, 1] + kd[m, 2]) / 3.0 if bounces[i] > 0 else 0.0
+                c_b = ag / (ad + ar + ag)
+        ge = gexp[m]
         base = i * per
         lkey = derive_key(skey[i], vertex, DIM_LIGHT)
         for j in range(per):
@@ -314,13 +355,23 @@ def _light_rays(p, ng, ns, d, mat, weight, kd, ks, shin, spec_cut,
             if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
                 continue
             fs = 0.0
+            ca = _dot(wr0, wr1, wr2, lx, ly, lz)
             if has_spec:
-                ca = _dot(wr0, wr1, wr2, lx, ly, lz)
                 if ca > spec_cut[m]:  # below it cos^s < e^-40: skip the exp/log
                     fs = spec_norm * phong_pow(ca, shin[m])
-            c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs) * e0 * cos_s
-            c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs) * e1 * cos_s
-            c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs) * e2 * cos_s
+            fg = 0.0
+            if c_b > 0.0 and ca > 0.0 and j >= npt + ndir:
+                q = (j - npt - ndir) // gg
+                lobe = phong_pow(ca, ge)
+                dist = (tmax + mag) / (1.0 - SHADOW_SHORTEN)
+                cos_l = abs(_dot(r_n[q, 0], r_n[q, 1], r_n[q, 2], lx, ly, lz))
+                if lobe > 0.0 and cos_l > 0.0:
+                    n_l = gg * dist * dist / (cos_l * r_area[q])
+                    n_b = c_b * (ge + 1.0) * 0.5 * INV_PI * lobe
+                    fg = (ge + 2.0) * 0.5 * INV_PI * lobe * _mis_weight(mis, n_l, n_b)
+            c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs + kg[m, 0] * fg) * e0 * cos_s
+            c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs + kg[m, 1] * fg) * e1 * cos_s
+            c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs + kg[m, 2] * fg) * e2 * cos_s
             if c0 > 0.0 or c1 > 0.0 or c2 > 0.0 or not (c0 == c0 and c1 == c1 and c2 == c2):
                 alive[row] = True
                 c_out[row, 0], c_out[row, 1], c_out[row, 2] = c0, c1, c2
@@ -391,16 +442,24 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
 
 
 @DualKernel
-def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy, n_ind,
-           count, vertex, kd, kr, kg, gexp, center, extent,
-           o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out, alive):
+def _spawn(p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy,
+           n_ind, count, vertex, total_bounces, rr_min, kd, kr, kg, gexp, center, extent,
+           o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out, bpdf_out,
+           wref_out, alive):
     """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
     mirror direction, weight kg (g+2)/(g+1) cos_i / M), diffuse (cosine-weighted, weight kd / K').
     Path vertices pick one lobe with probability proportional to its mean albedo.
     Samples: a chain hit's B glossy (diffuse) children are samples parent * B + b of the key
     derive_key(key, vertex, BRANCH_GLOSSY (DIFFUSE)); a path vertex keeps its index and key and
     draws its lobe choice from dimension DIM_LOBE; directions come from the child's DIM_DIR.
-    Origins are written float32 relative to ``center``."""
+    Origins are written float32 relative to ``center``.
+    ``bpdf_out``: a glossy ray's sampling density times its expected count (the BSDF strategy of
+    multiple importance sampling, see ``_rect_hits``), 0 for other rays. ``wref_out``: the
+    largest component of a path's first ray's weight (a diffuse child of a chain hit; inherited
+    along the path), the reference of Russian roulette: a path vertex that has used ``rr_min``
+    (RR_MIN_BOUNCES; larger: no roulette) of its ``total_bounces`` bounces or more continues with probability
+    q = min(1, max(new weight) / wref), decided by dimension DIM_RR, and a survivor's weight is
+    divided by q (so its expected contribution is unchanged)."""
     for i in nb.prange(p.shape[0]):
         if count[i] == 0:
             continue
@@ -454,6 +513,7 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
                     lb, scale = 1, tot / ag
             f0 = f1 = f2 = 0.0
             x0, x1, x2 = wr0, wr1, wr2
+            bp = 0.0
             if lb == 0:
                 f0, f1, f2 = kr[m, 0], kr[m, 1], kr[m, 2]
             elif lb == 1:
@@ -461,6 +521,7 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
                 u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix[i], cidx)
                 cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
                 x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * u1)
+                bp = (ge + 1.0) * 0.5 * INV_PI * phong_pow(cos_a, ge) / scale
                 cos_i = _dot(n0, n1, n2, x0, x1, x2)
                 if cos_i > 0.0:
                     k = (ge + 2.0) / (ge + 1.0) * cos_i
@@ -480,7 +541,19 @@ def _spawn(p, ng, ns, d, mat, weight, kind, depth, bounces, pix, sidx, skey, fir
             w0 = weight[i, 0] * f0 * scale
             w1 = weight[i, 1] * f1 * scale
             w2 = weight[i, 2] * f2 * scale
+            wr_ = wref[i]
+            if kind[i] == KIND_CHAIN:
+                wr_ = max(w0, w1, w2) if lb == 2 else 0.0
+            elif bounces[i] > 0 and total_bounces - bounces[i] >= rr_min and wr_ > 0.0:
+                qs = min(1.0, max(w0, w1, w2) / wr_)
+                if qs < 1.0:
+                    if sample_1d(derive_key(key, vertex, DIM_RR), pix[i], cidx) < qs:
+                        w0, w1, w2 = w0 / qs, w1 / qs, w2 / qs
+                    else:
+                        w0 = w1 = w2 = 0.0
             w_out[r, 0], w_out[r, 1], w_out[r, 2] = w0, w1, w2
+            bpdf_out[r] = bp
+            wref_out[r] = wr_
             alive[r] = w0 > 0.0 or w1 > 0.0 or w2 > 0.0
             pix_out[r] = pix[i]
             sidx_out[r] = cidx
@@ -528,9 +601,9 @@ def _diffuse_starts(p, ng, ns, mat, pix, sidx, key, kd, center, extent, o_out, d
         alive[i] = ok and (kd[m, 0] > 0.0 or kd[m, 1] > 0.0 or kd[m, 2] > 0.0)
 
 @DualKernel
-def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng, tri_mat,
-                 p_out, ng_out, ns_out, mat_out, d_out, w_out, kind_out, depth_out, bounces_out, pix_out,
-                 sidx_out, skey_out):
+def _gather_hits(idx, prim, u, v, d, w, wref, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng,
+                 tri_mat, p_out, ng_out, ns_out, mat_out, d_out, w_out, wref_out, kind_out, depth_out, bounces_out,
+                 pix_out, sidx_out, skey_out):
     """Compact the rays that hit something and compute their surface frames."""
     for j in nb.prange(idx.shape[0]):
         i = idx[j]
@@ -546,6 +619,7 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, t
         ng_out[j, 0], ng_out[j, 1], ng_out[j, 2] = g0, g1, g2
         ns_out[j, 0], ns_out[j, 1], ns_out[j, 2] = s0, s1, s2
         mat_out[j] = tri_mat[t]
+        wref_out[j] = wref[i]
         kind_out[j] = kind[i]
         depth_out[j] = depth[i]
         bounces_out[j] = bounces[i]
@@ -555,7 +629,8 @@ def _gather_hits(idx, prim, u, v, d, w, kind, depth, bounces, pix, sidx, skey, t
 
 
 @DualKernel
-def _rect_hits(o32, d, prim, u, v, kind, weight, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s, lit, c_out):
+def _rect_hits(o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s,
+               lit, c_out):
     """Rect lights seen by the rays that see lights: camera rays and mirror / glossy continuations
     (``kind`` KIND_CHAIN or KIND_SPEC; diffuse path rays never do, next-event estimation covers
     them). A ray that meets a rect light's emitting side (either side if two-sided) before its
@@ -565,7 +640,10 @@ def _rect_hits(o32, d, prim, u, v, kind, weight, tri_p, center, rc, ru, rv, r_n,
     light seen by a mirror ray is visible exactly where a shadow ray would reach it. A light's
     back side (one-sided lights) is not there: the ray goes on, as every other ray does.
     Origins are float32 relative to ``center``; the triangle's distance is rebuilt in float64
-    from its barycentrics."""
+    from its barycentrics. A glossy ray (``bpdf`` > 0: its density times its expected count)
+    brings the light with the multiple importance sampling weight of the BSDF strategy against
+    the gg light samples next-event estimation takes (``_light_rays`` weighs the other side);
+    camera and mirror rays (``bpdf`` 0) with weight 1."""
     nrect = rc.shape[0]
     for i in nb.prange(prim.shape[0]):
         lit[i] = False
@@ -609,9 +687,14 @@ def _rect_hits(o32, d, prim, u, v, kind, weight, tri_p, center, rc, ru, rv, r_n,
                 hit = q
         if hit >= 0 and not (t_tri < best * (1.0 - SHADOW_SHORTEN)):
             lit[i] = True
-            c_out[i, 0] = weight[i, 0] * rL[hit, 0]
-            c_out[i, 1] = weight[i, 1] * rL[hit, 1]
-            c_out[i, 2] = weight[i, 2] * rL[hit, 2]
+            wm = 1.0
+            if bpdf[i] > 0.0:
+                cos_l = abs(_dot(dx, dy, dz, r_n[hit, 0], r_n[hit, 1], r_n[hit, 2]))
+                n_l = gg * best * best / (cos_l * r_area[hit]) if cos_l > 0.0 else np.inf
+                wm = 1.0 - _mis_weight(mis, n_l, bpdf[i]) if n_l < np.inf else 1.0
+            c_out[i, 0] = weight[i, 0] * rL[hit, 0] * wm
+            c_out[i, 1] = weight[i, 1] * rL[hit, 1] * wm
+            c_out[i, 2] = weight[i, 2] * rL[hit, 2] * wm
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -656,8 +739,9 @@ def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
 
 
 @DualKernel
-def _compact_rays(idx, o, d, w, kind, depth, bounces, pix, sidx, skey,
-                  o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out):
+def _compact_rays(idx, o, d, w, bpdf, wref, kind, depth, bounces, pix, sidx, skey,
+                  o_out, d_out, d32_out, w_out, bpdf_out, wref_out, kind_out, depth_out, bounces_out, pix_out,
+                  sidx_out, skey_out):
     for j in nb.prange(idx.shape[0]):
         i = idx[j]
         for k in range(3):
@@ -665,6 +749,8 @@ def _compact_rays(idx, o, d, w, kind, depth, bounces, pix, sidx, skey,
             d_out[j, k] = d[i, k]
             d32_out[j, k] = d[i, k]
             w_out[j, k] = w[i, k]
+        bpdf_out[j] = bpdf[i]
+        wref_out[j] = wref[i]
         kind_out[j] = kind[i]
         depth_out[j] = depth[i]
         bounces_out[j] = bounces[i]
@@ -843,7 +929,18 @@ def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n
 class ReferenceRenderer:
     """Reusable renderer bound to one scene (keeps its Embree scene warm)."""
 
-    def __init__(self, scene: RuntimeScene, caster: RayCaster | None = None):
+    def __init__(self, scene: RuntimeScene, caster: RayCaster | None = None, glossy_mis: str = "power",
+                 roulette: bool = True):
+        """``glossy_mis``: how rect lights reach glossy (kg) lobes: "power" (the default) or
+        "balance" weigh next-event estimation and the lobe's own rays by multiple importance
+        sampling with that heuristic; "light" / "bsdf" use one strategy alone (the same image in
+        the mean, with more noise: for tests and benchmarks). ``roulette``: Russian roulette on
+        path vertices past RR_MIN_BOUNCES bounces (``_spawn``); False traces every path to its
+        last bounce (the same image in the mean, slower)."""
+        if glossy_mis not in MIS_MODES:
+            raise InvalidInputError(f"glossy_mis must be one of {sorted(MIS_MODES)}, got {glossy_mis!r}")
+        self._mis = MIS_MODES[glossy_mis]
+        self._rr_min = RR_MIN_BOUNCES if roulette else 1 << 30
         self.scene = scene
         self.caster = caster if caster is not None else make_caster(scene, "embree")
         lt = scene.lights
@@ -1014,7 +1111,8 @@ class ReferenceRenderer:
         if k:
             self._trace(params, o32[live], d[live], d32[live], w[live], np.full(k, KIND_PATH, np.int8),
                         np.zeros(k, np.int32), np.full(k, int(bounces) - 1, np.int32), pix[live], sidx[live],
-                        np.full(k, np.uint64(key), np.uint64), acc, timer, c, serial=False, pix_base=pix_base)
+                        np.full(k, np.uint64(key), np.uint64), acc, timer, c, serial=False, pix_base=pix_base,
+                        wref=w[live].max(axis=1), total_bounces=int(bounces))
         if timings is not None:
             for name, dt in timer.t.items():
                 timings[name] = timings.get(name, 0.0) + dt
@@ -1094,11 +1192,15 @@ class ReferenceRenderer:
                     np.full(n, params.indirect_bounces, np.int32), pix, sidx, skey, acc, timer, counts, serial)
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
-               timer, counts, serial: bool, first_hits=None, pix_base: int = 0) -> None:
+               timer, counts, serial: bool, first_hits=None, pix_base: int = 0, wref=None,
+               total_bounces: int | None = None) -> None:
         """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix - pix_base];
         ``sidx`` (int64) and ``skey`` (uint64) are each ray's sample index and dimension key
         (engine/sampler.py). ``first_hits`` = (prim int32, u, v float32): the first intersection of
-        every ray is given (no Embree query for it), e.g. a sample of a layered depth image."""
+        every ray is given (no Embree query for it), e.g. a sample of a layered depth image.
+        ``wref``: the throughput reference of Russian roulette of path rays (``_spawn``; default 0:
+        none); ``total_bounces``: the bounce budget the paths started with (default
+        ``params.indirect_bounces``)."""
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
@@ -1109,6 +1211,9 @@ class ReferenceRenderer:
         if params.indirect_samples > 0:
             k_per_hit = max(1, math.ceil(params.indirect_samples / params.spp))
         r_g = max(1, int(round(math.sqrt(params.area_light_samples))))
+        total = params.indirect_bounces if total_bounces is None else int(total_bounces)
+        bpdf = np.zeros(n)  # camera rays (and given starts): no BSDF strategy to weigh
+        wref = np.zeros(n) if wref is None else np.ascontiguousarray(wref, np.float64)
         it = 0
         while n > 0:
             it += 1
@@ -1125,7 +1230,8 @@ class ReferenceRenderer:
             if lt.n_rect and not (it == 1 and first_hits is not None) and np.any(kind != KIND_PATH):
                 lit = np.empty(n, np.bool_)
                 lit_c = np.empty((n, 3))
-                _rect_hits.pick(serial)(o32, d, prim, u, v, kind, weight, sc.tri_p, sc.center, lt.rect_corner,
+                _rect_hits.pick(serial)(o32, d, prim, u, v, kind, weight, bpdf, r_g * r_g, self._mis, sc.tri_p,
+                                        sc.center, lt.rect_corner,
                                         lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
                                         lt.rect_radiance, lt.rect_two_sided, lit, lit_c)
                 # a ray that ends on a light hits nothing; a last vertex's light-seeking ray (bounces
@@ -1140,15 +1246,16 @@ class ReferenceRenderer:
             mat = np.empty(m, np.int32)
             d_h = np.empty((m, 3))
             w_h = np.empty((m, 3))
+            wref_h = np.empty(m)
             kind_h = np.empty(m, np.int8)
             depth_h = np.empty(m, np.int32)
             bnc_h = np.empty(m, np.int32)
             pix_h = np.empty(m, np.int64)
             sidx_h = np.empty(m, np.int64)
             skey_h = np.empty(m, np.uint64)
-            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, kind, depth, bounces, pix, sidx, skey,
+            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, wref, kind, depth, bounces, pix, sidx, skey,
                                       sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h,
-                                      kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
+                                      wref_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
                                             idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
                                             mt.emission, mt.kd, sc.ambient, lit, lit_c)
@@ -1158,8 +1265,8 @@ class ReferenceRenderer:
 
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
-                self._direct(it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts,
-                             serial, pix_base)
+                self._direct(params, it, p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h,
+                             r_g, acc, timer, counts, serial, pix_base)
 
             # ---- secondary rays
             t0 = time.perf_counter()
@@ -1184,17 +1291,19 @@ class ReferenceRenderer:
             pix2 = np.empty(tot, np.int64)
             sidx2 = np.empty(tot, np.int64)
             skey2 = np.empty(tot, np.uint64)
+            bpdf2 = np.empty(tot)
+            wref2 = np.empty(tot)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h, first,
-                                n_mirror, n_glossy, n_ind, count, it, mt.kd, mt.kr, mt.kg, mt.gloss_exponent,
-                                sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2, sidx2, skey2,
-                                alive)
+            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h,
+                                first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min, mt.kd, mt.kr, mt.kg,
+                                mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2,
+                                pix2, sidx2, skey2, bpdf2, wref2, alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
                 # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy
                 o32, d, d32, weight, kind, depth, bounces, pix = o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2
-                sidx, skey = sidx2, skey2
+                sidx, skey, bpdf, wref = sidx2, skey2, bpdf2, wref2
                 n = tot
             else:
                 live = np.flatnonzero(alive)
@@ -1209,15 +1318,17 @@ class ReferenceRenderer:
                 pix = np.empty(n, np.int64)
                 sidx = np.empty(n, np.int64)
                 skey = np.empty(n, np.uint64)
-                _compact_rays.pick(serial)(live, o2, d2, w2, kind2, depth2, bnc2, pix2, sidx2, skey2,
-                                           o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey)
+                bpdf = np.empty(n)
+                wref = np.empty(n)
+                _compact_rays.pick(serial)(live, o2, d2, w2, bpdf2, wref2, kind2, depth2, bnc2, pix2, sidx2, skey2,
+                                           o32, d, d32, weight, bpdf, wref, kind, depth, bounces, pix, sidx, skey)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path
             timer.add("shading", time.perf_counter() - t0)
 
-    def _direct(self, it, p, ng, ns, d_h, mat, w_h, pix_h, sidx_h, skey_h, r_g, acc, timer, counts, serial,
-                pix_base: int = 0):
+    def _direct(self, params: ReferenceParams, it, p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h,
+                skey_h, r_g, acc, timer, counts, serial, pix_base: int = 0):
         sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
         gg = r_g * r_g
         per = lt.n_point + lt.n_directional + lt.n_rect * gg
@@ -1234,8 +1345,10 @@ class ReferenceRenderer:
             tmax = np.empty(rows, np.float32)
             contrib = np.empty((rows, 3))
             alive = np.empty(rows, np.bool_)
-            _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], mt.kd, mt.ks, mt.shininess,
-                        self._spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
+            _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], kind_h[sl], depth_h[sl],
+                        bnc_h[sl], mt.kd, mt.ks, mt.shininess, self._spec_cut, mt.kr, mt.kg, mt.gloss_exponent,
+                        params.max_depth, params.glossy_samples, self._mis, lt.point_position, lt.point_intensity,
+                        lt.dir_direction, lt.dir_irradiance,
                         lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
                         lt.rect_radiance, lt.rect_two_sided,
                         r_g, pix_h[sl], sidx_h[sl], skey_h[sl], it, sc.center, sc.extent, so, sd, tmax,

@@ -101,10 +101,11 @@ def _glossy_quadrature(g: float, size: float, h: float, Le: float, n: int = 1200
 
 @pytest.mark.parametrize("g", [1.0, 20.0])
 def test_glossy_lobe_sees_the_light_and_agrees_with_next_event_estimation(g):
-    """The same Phong lobe as a highlight (ks, sampled by next-event estimation) and as a glossy
-    lobe (kg, sampled from the BSDF: its rays now meet the light) must give the same radiance,
-    the quadrature's. The two strategies never estimate the same term, so no MIS weights are
-    needed: half ks + half kg must give the full value again (not 1.5 x or 0.5 x of it)."""
+    """The same Phong lobe as a highlight (ks, sampled by next-event estimation only) and as a
+    glossy lobe (kg: its rays meet the light, and next-event estimation evaluates it too, the two
+    weighted by multiple importance sampling) must give the same radiance, the quadrature's; half
+    ks + half kg must give the full value again (not 1.5 x or 0.5 x of it: nothing counted twice
+    or lost)."""
     Le, size, h, rho = 2.0, 2.0, 1.0, 0.8
     want = rho * _glossy_quadrature(g, size, h, Le)
     light = [_down_light(size, h, Le)]
