@@ -91,7 +91,18 @@ def achieved_ms(manifest: ArtifactManifest | None) -> float | None:
 def _with_contract(pub: RenderPublic, contract: ContractPublic | None) -> RenderPublic:
     if contract is None:
         return pub
-    return pub.model_copy(update={"contract": contract.model_copy(update={"achieved_ms": achieved_ms(pub.artifact)})})
+    return pub.model_copy(update={"contract": contract.model_copy(update=contract_outcome(contract, pub.artifact))})
+
+
+def contract_outcome(contract: ContractPublic, manifest: ArtifactManifest | None) -> dict[str, Any]:
+    """What the render achieved, from its artifact: ``achieved_ms`` and, for the adaptive reference,
+    ``estimated_error`` (its own estimate times the calibrated ``error_scale``)."""
+    out: dict[str, Any] = {"achieved_ms": achieved_ms(manifest)}
+    if contract.estimated_error_source == "render" and manifest is not None and contract.error_scale is not None:
+        est = (manifest.result.get("adaptive") or {}).get("estimated_error")
+        if isinstance(est, (int, float)):
+            out["estimated_error"] = contract.error_scale * float(est)
+    return out
 
 
 def _check_visible(req: RenderRequest, store: Any, owner: str | None) -> None:
@@ -159,7 +170,9 @@ async def request_render(
     contract: ContractPublic | None = None
     if req.quality is not None:
         await run_in_threadpool(_check_visible, req, store, owner)
-        req, contract = await run_in_threadpool(plan_render, redis, store, req, settings.max_render_bytes)  # 409/422
+        req, contract = await run_in_threadpool(partial(  # 409/422
+            plan_render, redis, store, req, settings.max_render_bytes, error_margin=settings.contract_error_margin,
+            time_margin=settings.contract_time_margin))
     pub = await _render(req, response, store, redis, owner, settings, metrics, wait, contract)
     return _with_contract(pub, contract)
 

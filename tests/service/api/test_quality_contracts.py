@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api_schemas.service import BakeParams, RenderRequest
-from engine.quality import CandidateFit, SceneModel
+from engine.quality import AdaptiveFit, CandidateFit, SceneModel
 from producer.bakes import bake_key
 from producer.calibrations import calibration_key, write_calibration
 from producer.renders import render_artifact_key
@@ -101,6 +101,7 @@ def test_plans_with_the_bake_missing(client: TestClient, store_dir: Any) -> None
     assert con["rule"] == "cheapest_meeting_error" and con["met"] and con["predicted_error"] == pytest.approx(0.05)
     assert con["predicted_ms"] == pytest.approx(2.0 + 0.01 * 16 * PX) and con["width"] == 32
     assert con["calibration"]["cost_s"] == 3.0 and con["achieved_ms"] is None
+    assert con["planned_for"] == {"max_error": pytest.approx(0.051)}
     # the plan's artifact is the explicit request's: one cache entry for both
     explicit = RenderRequest(scene_id=sid, method="reference", params=con["params"], bake=BAKE)
     assert r.json()["artifact_key"] == render_artifact_key(explicit)
@@ -109,13 +110,41 @@ def test_plans_with_the_bake_missing(client: TestClient, store_dir: Any) -> None
     r = _render(client, sid, {"max_error": 0.004, "max_ms": 35_000})
     assert r.status_code == 409 and r.json()["type"] == "urn:ibr:problem:bake-missing", r.text
     assert "ldc" in r.json()["detail"] and "missing_bake" in r.json()["detail"]
-    # missing_bake bake: 4 % by reference at 32 spp takes 0.33 s, by ldc 30 s of bake: the reference
+    # missing_bake bake: 4 %, planned for 4 % x 0.85 (the default error margin) = 3.4 %: reference at 64 spp
+    # (2.5 %; 32 spp is 3.5 %) takes 0.66 s, ldc 30 s of bake: the reference
     r = _render(client, sid, {"max_error": 0.04}, missing_bake="bake")
     assert r.status_code == 202 and r.json()["contract"]["method"] == "reference"
-    assert r.json()["contract"]["bake"] == "not_needed" and r.json()["contract"]["params"]["spp"] == 32
-    # 2 %: reference at 128 spp (1.3 s) still beats the bake
+    assert r.json()["contract"]["bake"] == "not_needed" and r.json()["contract"]["params"]["spp"] == 64
+    assert r.json()["contract"]["planned_for"] == {"max_error": pytest.approx(0.034)}
+    assert r.json()["contract"]["margins"] == {"error": 0.85, "time": 0.7}
+    # 2 % (1.7 %): reference at 256 spp (1.25 %, 2.6 s) still beats the bake
     r = _render(client, sid, {"max_error": 0.02}, missing_bake="bake")
-    assert r.json()["contract"]["params"]["spp"] == 128
+    assert r.json()["contract"]["params"]["spp"] == 256
+    assert r.json()["contract"]["estimated_error"] == 0.0125
+    assert r.json()["contract"]["estimated_error_source"] == "calibration"
+
+
+def test_the_adaptive_reference_is_planned_at_the_spp_its_target_needs(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    _store_model(store_dir, _model(sid, adaptive=AdaptiveFit(error_scale=1.5, time_ratio=0.8)))
+    # 4 %, planned for 3.4 %: the spp model needs (0.2 / 0.034)^2 = 34.6 spp, 0.8 x (2 + 0.01 x 34.6 x 1024) =
+    # 285 ms, against the ladder's 64 spp (657 ms) and ldc's 30 s bake: the adaptive reference, told 3.4 % / 1.5
+    # (its estimate covers the whole image), capped at 4 x 34.6 spp rounded up to a power of two
+    r = _render(client, sid, {"max_error": 0.04}, missing_bake="bake")
+    assert r.status_code == 202, r.text
+    con = r.json()["contract"]
+    spp = (0.2 / 0.034) ** 2
+    assert con["method"] == "reference" and con["params"]["spp"] == 256
+    assert con["params"]["max_error"] == pytest.approx(0.034 / 1.5) and "max_ms" not in con["params"]
+    assert con["predicted_ms"] == pytest.approx(0.8 * (2.0 + 0.01 * spp * PX))
+    assert con["predicted_error"] == pytest.approx(0.034) and con["met"]
+    # its error is estimated by the render once it has run; the scale travels with the contract
+    assert con["estimated_error_source"] == "render" and con["error_scale"] == 1.5 and con["estimated_error"] is None
+    explicit = RenderRequest(scene_id=sid, method="reference", params=con["params"], bake=BAKE)
+    assert r.json()["artifact_key"] == render_artifact_key(explicit)
+    # with a time budget too, the render is told to stop at it (the request's budget, not the margined one)
+    r = _render(client, sid, {"max_error": 0.04, "max_ms": 2000}, missing_bake="bake")
+    assert r.json()["contract"]["params"]["max_ms"] == 2000 and r.json()["contract"]["params"]["max_error"]
 
 
 def test_a_cheap_bake_is_waited_for(client: TestClient, store_dir: Any) -> None:
