@@ -10,6 +10,7 @@ from a calibration the worker measured."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -18,7 +19,7 @@ from fastapi.testclient import TestClient
 from api_schemas.service import BakeParams, RenderRequest
 from engine.quality import AdaptiveFit, CandidateFit, SceneModel
 from producer.bakes import bake_key
-from producer.calibrations import calibration_key, write_calibration
+from producer.calibrations import calibration_key, read_calibration, write_calibration
 from producer.renders import render_artifact_key
 from producer.store import open_store
 from tests.service.api.conftest import small_scene
@@ -223,7 +224,7 @@ def _poll(c: TestClient, url: str, done: tuple[str, ...], timeout: float) -> dic
 
 
 @pytest.mark.slow
-def test_calibrate_then_render_by_error_target(client: TestClient, worker_process: Any) -> None:
+def test_calibrate_then_render_by_error_target(client: TestClient, worker_process: Any, store_dir: Any) -> None:
     sid = _scene(client)
     bake_worker = worker_process("bake")
     render_worker = worker_process("render")
@@ -255,6 +256,26 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
                                           "outputs": ["preview", "radiance"]})
     assert r2.status_code == 200 and r2.json()["status"] == "cached"
     assert r2.json()["contract"]["method"] == con["method"]
+
+    # the adaptive reference through the worker: the measured model with its LDC methods left out and the adaptive
+    # render's time ratio made small (an input to the planner, so that it is the cheapest setting)
+    store = open_store(f"file://{store_dir}")
+    bkey = bake_key(sid, BakeParams.model_validate(BAKE))
+    doc = read_calibration(store, sid, bkey)
+    assert doc is not None
+    m = SceneModel.from_json(doc["model"])
+    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 1
+    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3))
+    write_calibration(store, sid, bkey, doc["key"], doc["params"], m)
+    r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "outputs": ["preview"],
+                                                 "quality": {"max_error": m.reference.error_at(8)}})
+    assert r.status_code == 200, (r.text, render_worker.log())
+    body = r.json()
+    con = body["contract"]
+    assert con["estimated_error_source"] == "render" and con["params"]["max_error"] > 0
+    adaptive = body["artifact"]["result"]["adaptive"]
+    assert con["estimated_error"] == pytest.approx(con["error_scale"] * adaptive["estimated_error"])
+    assert body["artifact"]["result"]["contract"]["estimated_error"] == pytest.approx(con["estimated_error"])
 
 
 def test_a_scenes_calibrations_go_with_it(client: TestClient, store_dir: Any) -> None:
