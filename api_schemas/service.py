@@ -353,6 +353,11 @@ class QualityContract(FrozenModel):
     on_miss: QualityMiss = "fail"
     """When no setting meets every target: ``fail`` answers 422 saying what the scene can do;
     ``best_effort`` renders the closest setting and marks the answer as not meeting the contract."""
+    verify: bool = False
+    """Also measure the error: a follow-up job renders a converged reference of the same view (the
+    adaptive reference at a tight error, capped in samples and time) and reports the LRMS of the image
+    against it in ``contract.verification``, at the caller's cost (its time is reported). The image's
+    ``radiance`` output is then always made (the measurement reads it)."""
 
     @model_validator(mode="after")
     def _ranges(self) -> QualityContract:
@@ -489,6 +494,12 @@ class ContractPublic(FrozenModel):
     (``margins``), or the request's own when no setting keeps the margin (``reason`` says so)."""
     margins: dict[str, float] = {}
     """The server's safety margins (``IBR_CONTRACT_ERROR_MARGIN``, ``IBR_CONTRACT_TIME_MARGIN``)."""
+    verify: bool = False
+    verification: dict[str, Any] | None = None
+    """With ``verify``: the verification job (``job_id``, ``url``, ``state``) and, once it has finished,
+    ``measured_error`` (LRMS of the image against the converged reference, that reference's own
+    estimated noise removed in quadrature), ``measured_error_raw``, ``reference_error`` (the converged
+    reference's estimated error), ``met`` and ``verify_ms`` (what the measurement cost)."""
     bake: Literal["not_needed", "ready", "waited", "best_available_now"]
     """``ready``: the LDC bake was in the store; ``waited``: it was queued and the render waits for it;
     ``best_available_now``: the bake is missing and ``missing_bake`` is ``fail``, so only the settings

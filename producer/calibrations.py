@@ -36,7 +36,8 @@ from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
-from producer.names import CALIBRATE_JOB, calibrate_job_id, scene_bake_job_id
+from producer.names import CALIBRATE_JOB, VERIFY_JOB, calibrate_job_id, render_job_id, scene_bake_job_id, verify_job_id
+from producer.payloads import VerifyJobPayload
 from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
 from producer.render_memory import estimate_render_bytes
 from producer.status import job_public
@@ -45,10 +46,13 @@ from producer.store import NotFound, ObjectStore
 __all__ = [
     "calibration_key",
     "calibration_status",
+    "VERIFY_TIMEOUT_S",
     "enqueue_calibration",
+    "enqueue_verification",
     "model_path",
     "plan_render",
     "read_calibration",
+    "verification_status",
     "write_calibration",
 ]
 
@@ -223,8 +227,49 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
         reason=p.reason, method=setting.method, params=params, width=width, height=height,
         predicted_error=choice.error, predicted_ms=choice.render_ms, predicted_bake_ms=choice.bake_ms,
         bake=bake, excluded=dict(model.excluded), planned_for=dict(p.planned_for),  # type: ignore[arg-type]
-        margins={"error": margins["error_margin"], "time": margins["time_margin"]}, **estimate,
+        margins={"error": margins["error_margin"], "time": margins["time_margin"]}, verify=q.verify, **estimate,
         calibration={"key": doc["key"], "bake_key": model.bake_key, "created_at": model.created_at,
                      "cost_s": model.cost_s, "probes": model.probe.get("views"),
                      "url": f"/v1/scenes/{req.scene_id}/calibrations/{model.bake_key}"})
     return planned, contract
+
+
+# ------------------------------------------------------------------------------------ verification
+
+VERIFY_TIMEOUT_S = 300
+"""The verification job's timeout: the converged reference is capped in time below it
+(``workers.jobs.verify.VERIFY_MAX_MS``)."""
+
+
+def enqueue_verification(redis: Redis, planned: RenderRequest, key: str, contract: ContractPublic,
+                         owner: str | None) -> Job | None:
+    """Queue the measurement of artifact ``key`` (the render of ``planned``) against a converged
+    reference of its view, after the render's job when it is still running. One job per artifact
+    (``verify-<key>``): the same contract asked again finds it, finished or not. None when a finished
+    one exists already (:func:`verification_status` reads it)."""
+    render = fetch_job(redis, render_job_id(key))
+    depends_on = None
+    if render is not None and render.get_status(refresh=False) in ACTIVE_STATUSES:
+        depends_on = Dependency(jobs=[render.id], allow_failure=True)
+    payload = VerifyJobPayload(request=planned, artifact_key=key, contract=contract).model_dump(mode="json")
+    meta: dict[str, Any] = {"kind": "verify", "artifact_key": key, "owner": owner,
+                            "progress": {"fraction": 0.0, "stage": "waiting for the render" if depends_on else "queued",
+                                         "eta_s": None}}
+    return enqueue_unique(redis, "render", VERIFY_JOB, payload, verify_job_id(key), timeout=VERIFY_TIMEOUT_S,
+                          meta=meta, retry=job_retry(), description=f"verify render {key[:12]}", owner=owner,
+                          is_cached=lambda: True, depends_on=depends_on)
+
+
+def verification_status(redis: Redis, key: str) -> dict[str, Any] | None:
+    """``contract.verification`` of artifact ``key``: its job's id, URL and state, and once finished
+    the measurement (the job's result); None when there is no such job."""
+    job = fetch_job(redis, verify_job_id(key))
+    if job is None:
+        return None
+    pub = job_public(job)
+    out: dict[str, Any] = {"job_id": job.id, "url": f"/v1/jobs/{job.id}", "state": pub.state}
+    if pub.state == "finished" and pub.result:
+        out.update({k: v for k, v in pub.result.items() if k != "artifact_key"})
+    elif pub.error:
+        out["error"] = pub.error
+    return out

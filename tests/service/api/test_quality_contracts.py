@@ -277,6 +277,26 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     assert con["estimated_error"] == pytest.approx(con["error_scale"] * adaptive["estimated_error"])
     assert body["artifact"]["result"]["contract"]["estimated_error"] == pytest.approx(con["estimated_error"])
 
+    # verify: a follow-up job measures the image against a converged reference of the view, at the caller's cost;
+    # the radiance is made for it even when the request names only the preview
+    write_calibration(store, sid, bkey, doc["key"], doc["params"], SceneModel.from_json(doc["model"]))  # as measured
+    q = {"max_error": 0.5 * (ldc_err + model["reference"]["error"]), "verify": True}
+    r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "quality": q, "outputs": ["preview"]})
+    assert r.status_code == 200, (r.text, render_worker.log())
+    con = r.json()["contract"]
+    assert con["verify"] and con["verification"]["job_id"] == f"verify-{r.json()['artifact_key']}"
+    assert "image.exr" in r.json()["links"], r.json()["links"]
+    job = _poll(client, con["verification"]["url"], ("finished", "failed"), 300)
+    assert job["state"] == "finished", (job, render_worker.log())
+    res = job["result"]
+    # the measured error agrees with the calibrated prediction within the calibration's stated factor (2), and the
+    # converged reference's own noise is small against it
+    assert con["predicted_error"] / 2 <= res["measured_error"] <= con["predicted_error"] * 2, (res, con)
+    assert res["measured_error"] <= res["measured_error_raw"] and res["reference_error"] < 0.5 * res["measured_error"]
+    assert res["verify_ms"] > 0 and res["met"] == (res["measured_error"] <= q["max_error"])
+    again = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": q, "outputs": ["preview"]})
+    assert again.json()["contract"]["verification"]["measured_error"] == pytest.approx(res["measured_error"])
+
 
 def test_a_scenes_calibrations_go_with_it(client: TestClient, store_dir: Any) -> None:
     sid = _scene(client)
