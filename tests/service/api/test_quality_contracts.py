@@ -204,6 +204,8 @@ def test_cli_asks_by_error_and_states_the_plan(client: TestClient, store_dir: An
     assert r.exit_code == 0 and "DOES NOT meet max_error" in r.stderr, r.output
     r = ibr(api_url, "render", sid, "--quality-error", "0.05", "--method", "ldc")
     assert r.exit_code == 2 and "leave out --method" in r.stderr, r.output
+    r = ibr(api_url, "render", sid, "--verify", "--ldc-resolution", "16")
+    assert r.exit_code == 2 and "--quality-error" in r.stderr, r.output
     r = ibr(api_url, "render", sid, "--quality-error", "1.5")
     assert r.exit_code == 2 and "(0, 1)" in r.stderr, r.output
     r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--no-wait")  # the stored one: no work
