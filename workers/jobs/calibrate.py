@@ -73,7 +73,7 @@ PROBE_STEP_DEG = 8.0
 views callers ask for (a closed room seen from 24 degrees off shows its unlit outside, which is
 not what a contract on the room is about)."""
 
-ADAPTIVE_PROBE_SPP = 16
+ADAPTIVE_PROBE_SPP = 64
 """The adaptive reference is calibrated at the error the reference's fit predicts at this many spp
 (the middle of the errors contracts ask of it: a few per cent)."""
 
