@@ -125,7 +125,8 @@ class Setting:
     @property
     def name(self) -> str:
         if self.adaptive:
-            return f"{self.method}@adaptive(max_error {self.max_error:.3g}, cap {self.spp}spp)"
+            budget = "" if self.max_ms is None else f", max_ms {self.max_ms:g}"
+            return f"{self.method}@adaptive(max_error {self.max_error:.3g}{budget}, cap {self.spp}spp)"
         return f"{self.method}@{self.spp}spp" if self.spp is not None else self.method
 
     @property
