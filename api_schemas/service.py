@@ -354,6 +354,11 @@ class QualityContract(FrozenModel):
     on_miss: QualityMiss = "fail"
     """When no setting meets every target: ``fail`` answers 422 saying what the scene can do;
     ``best_effort`` renders the closest setting and marks the answer as not meeting the contract."""
+    verify: bool = False
+    """Also measure the error: a follow-up job renders a converged reference of the same view (the
+    adaptive reference at a tight error, capped in samples and time) and reports the LRMS of the image
+    against it in ``contract.verification``, at the caller's cost (its time is reported). The image's
+    ``radiance`` output is then always made (the measurement reads it)."""
 
     @model_validator(mode="after")
     def _ranges(self) -> QualityContract:
@@ -473,6 +478,29 @@ class ContractPublic(FrozenModel):
     """The bake's cost when the plan waits for a bake that is not made yet (part of the cost ranked)."""
     achieved_ms: float | None = None
     """The render's measured time in the worker, once it has run."""
+    estimated_error: float | None = None
+    """The estimated achieved error (LRMS against the converged image, as ``predicted_error``): for
+    the adaptive reference the render's own estimate (``result.adaptive.estimated_error``) times
+    ``error_scale``, once it has run; for every other setting the calibrated prediction, which is
+    all that is known without a converged render (``estimated_error_source`` says which)."""
+    estimated_error_source: Literal["render", "calibration"] | None = None
+    """``render``: estimated by the render itself (the adaptive reference); ``calibration``: the
+    calibration's prediction for this setting."""
+    error_scale: float | None = None
+    """The adaptive reference only: the contract's error over the render's own estimate, measured at
+    calibration (the render estimates over the whole image, the contract leaves out the pixels next to
+    emitters); the render is told ``planned_for.max_error / error_scale``."""
+    planned_for: dict[str, float] = {}
+    """The targets the choice was planned against: the request's times the safety margins
+    (``margins``), or the request's own when no setting keeps the margin (``reason`` says so)."""
+    margins: dict[str, float] = {}
+    """The server's safety margins (``IBR_CONTRACT_ERROR_MARGIN``, ``IBR_CONTRACT_TIME_MARGIN``)."""
+    verify: bool = False
+    verification: dict[str, Any] | None = None
+    """With ``verify``: the verification job (``job_id``, ``url``, ``state``) and, once it has finished,
+    ``measured_error`` (LRMS of the image against the converged reference, that reference's own
+    estimated noise removed in quadrature), ``measured_error_raw``, ``reference_error`` (the converged
+    reference's estimated error), ``met`` and ``verify_ms`` (what the measurement cost)."""
     bake: Literal["not_needed", "ready", "waited", "best_available_now"]
     """``ready``: the LDC bake was in the store; ``waited``: it was queued and the render waits for it;
     ``best_available_now``: the bake is missing and ``missing_bake`` is ``fail``, so only the settings

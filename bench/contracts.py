@@ -18,6 +18,11 @@ the grid's measurements (a reference above 256 spp is rendered and measured when
 - **cost ratio**: the chosen setting's measured time over the cheapest grid setting's that met the
   same target on that view.
 
+Plans use the service's safety margins (``producer.settings.Settings.contract_error_margin`` and
+``contract_time_margin``; ``--error-margin`` / ``--time-margin`` to change them, 1 for none) and
+include the adaptive reference for error targets (rendered and measured when chosen; its estimated
+error, times the calibrated scale, is reported against the measured one).
+
 ``python -m bench.contracts`` (writes docs/accuracy/contracts.md); ``--quick`` for a smoke run.
 """
 
@@ -42,9 +47,10 @@ from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
 from engine.newviews.llf import bake_llf
 from engine.newviews.renderer import LDCViewRenderer
-from engine.quality import SceneModel, plan
+from engine.quality import SceneModel, Setting, plan
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
+from producer.settings import Settings
 from samples import SAMPLES_DIR, sample_path
 from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
 from workers.scene_loader import directory_resolver, load_scene
@@ -82,8 +88,13 @@ def _best_ms(fn: Any, *args: Any, repeats: int = 3) -> tuple[Any, float]:
     return out, best
 
 
+MARGINS = (float(Settings.model_fields["contract_error_margin"].default),
+           float(Settings.model_fields["contract_time_margin"].default))
+"""The service's default safety margins (error, time)."""
+
+
 def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, cal: CalibrationParams,
-              log: Any) -> dict[str, Any]:
+              log: Any, margins: tuple[float, float] = MARGINS) -> dict[str, Any]:
     sc, cam0, ren, ref, bake_s = _setup(name, ldc_res, log)
     model: SceneModel = calibrate_scene(sc, cam0, ren, params=cal, bake_plan={}, indirect_bounces=3, reference=ref,
                                         bake_cost_s=bake_s)
@@ -102,11 +113,14 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
 
     requests: list[dict[str, Any]] = []
     for deg in HELD_OUT_DEG[:views]:
-        requests += _view(name, model, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp, log)
+        requests += _view(name, model, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp, log,
+                          margins)
     return {"scene": name, "ldc_resolution": ldc_res, "bake_s": bake_s, "calibration_s": model.cost_s,
             "calibration_breakdown_s": model.probe.get("cost_breakdown_s"),
             "model_reference_a": model.reference.error, "model_reference_p": model.reference.exponent,
             "model_methods": {m: f.error for m, f in model.methods.items()}, "excluded": model.excluded,
+            "adaptive": None if model.adaptive is None else {"error_scale": model.adaptive.error_scale,
+                                                             "time_ratio": model.adaptive.time_ratio},
             "requests": requests, "indirect": gi}
 
 
@@ -116,6 +130,7 @@ class _Grid:
     def __init__(self, ref: ReferenceRenderer, cam: Any, truth: Any, mask: Any, noise: float, rp: Any):
         self.ref, self.cam, self.truth, self.mask, self.noise, self.rp = ref, cam, truth, mask, noise, rp
         self.m: dict[str, tuple[float, float]] = {}
+        self.estimated: dict[str, float] = {}
 
     def measure(self, key: str, img: Any, ms: float) -> None:
         e = lrms(img, self.truth, self.mask)
@@ -129,9 +144,21 @@ class _Grid:
             self.measure(key, img, 1000.0 * (time.perf_counter() - t0))
         return self.m[key]
 
+    def adaptive(self, model: SceneModel, s: Setting) -> tuple[float, float]:
+        """The adaptive reference of setting ``s``, measured; ``estimated[name]``: its own estimate times
+        the calibrated scale."""
+        if s.name not in self.m:
+            p = model.setting_params(s)
+            assert p is not None and model.adaptive is not None
+            t0 = time.perf_counter()
+            out = self.ref.render(self.cam, ReferenceParams(**p))
+            self.measure(s.name, out.radiance, 1000.0 * (time.perf_counter() - t0))
+            self.estimated[s.name] = model.adaptive.error_scale * float((out.adaptive or {})["estimated_error"])
+        return self.m[s.name]
+
 
 def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRenderer, cam: Any, deg: float,
-          truth_spp: int, rp: Any, log: Any) -> list[dict[str, Any]]:
+          truth_spp: int, rp: Any, log: Any, margins: tuple[float, float] = MARGINS) -> list[dict[str, Any]]:
     px = cam.width * cam.height
     t0 = time.perf_counter()
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
@@ -151,7 +178,7 @@ def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRend
     targets: list[tuple[float | None, float | None]] = [(e, None) for e in ERRORS] + \
         [(None, t) for t in BUDGETS_MS] + [(e, t) for e in ERRORS[::3] for t in BUDGETS_MS[2::2]]
     for max_error, max_ms in targets:
-        p = plan(model, px, max_error=max_error, max_ms=max_ms)
+        p = plan(model, px, max_error=max_error, max_ms=max_ms, error_margin=margins[0], time_margin=margins[1])
         ok_grid = [ms for k, (e, ms) in grid.m.items() if k in names
                    and (max_error is None or e <= max_error) and (max_ms is None or ms <= max_ms)]
         cheapest = min(ok_grid) if ok_grid else None
@@ -159,9 +186,14 @@ def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRend
                                "planned": p.met, "grid_can": cheapest is not None}
         if p.choice is not None:
             s = p.choice.setting
-            err, ms = grid.reference(s.spp) if s.spp is not None else grid.m[s.name]
+            if s.adaptive:
+                err, ms = grid.adaptive(model, s)
+                row["estimated_error"] = grid.estimated[s.name]
+            else:
+                err, ms = grid.reference(s.spp) if s.spp is not None else grid.m[s.name]
             met = (max_error is None or err <= max_error) and (max_ms is None or ms <= max_ms)
-            row |= {"choice": s.name, "predicted_error": p.choice.error, "predicted_ms": p.choice.ms, "error": err,
+            row |= {"choice": "reference@adaptive" if s.adaptive else s.name, "adaptive": s.adaptive,
+                    "predicted_error": p.choice.error, "predicted_ms": p.choice.ms, "error": err,
                     "ms": ms, "met": met,
                     "cost_ratio": ms / cheapest if cheapest and max_error is not None else None}
         else:
@@ -174,7 +206,8 @@ def _grid_names(model: SceneModel) -> set[str]:
     return {f"reference@{s}spp" for s in GRID_SPP} | set(model.methods)
 
 
-def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int, views: int) -> str:
+def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int, views: int,
+              margins: tuple[float, float] = MARGINS) -> str:
     reqs = [r for res in results for r in res["requests"]]
     n = len(reqs)
     met = sum(1 for r in reqs if r["met"])
@@ -184,7 +217,7 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
     lines = [f"Machine: {platform.machine()}, Python {sys.version.split()[0]}. Command: `{cmd}`. Held-out views of "
              f"{size} px (longest side) turned by {', '.join(f'{d:+g}' for d in HELD_OUT_DEG[:views])} degrees (the "
              f"probes: +-8, +-16); converged ground truth {truth_spp} spp in two halves (its noise removed in "
-             "quadrature).",
+             f"quadrature). Safety margins: error x {margins[0]:g}, time x {margins[1]:g}.",
              "",
              f"**{met} of {n} requests ({100.0 * met / max(n, 1):.1f} %) met their contract** (measured error and time "
              f"of the chosen setting on the held-out view; {len(refused)} refused with a reason, of which "
@@ -196,15 +229,26 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
         lines += [f"Cost of the chosen setting over the cheapest grid setting that met the same error target on the "
                   f"same view ({len(ratios)} error requests that met theirs): median {med:.2f}x, 90th percentile "
                   f"{p90:.2f}x.", ""]
-    lines += ["| scene | bake | calibration | reference a, p | LDC methods' error | excluded |",
-              "|---|---|---|---|---|---|"]
+    adaptive = [r for r in reqs if r.get("adaptive")]
+    if adaptive:
+        a_met = sum(1 for r in adaptive if r["met"])
+        est = sorted(r["error"] / r["estimated_error"] for r in adaptive if r.get("estimated_error"))
+        lines += [f"The adaptive reference was chosen for {len(adaptive)} requests, {a_met} of them met; its measured "
+                  f"error over its estimated one (the render's estimate times the calibrated scale): median "
+                  f"{est[len(est) // 2]:.2f}, range {est[0]:.2f}-{est[-1]:.2f}." if est else
+                  f"The adaptive reference was chosen for {len(adaptive)} requests, {a_met} of them met.", ""]
+    lines += ["| scene | bake | calibration | reference a, p | LDC methods' error | adaptive scale, time ratio "
+              "| excluded |",
+              "|---|---|---|---|---|---|---|"]
     for res in results:
         br = res["calibration_breakdown_s"] or {}
         cal = (f"{res['calibration_s']:.1f} s (truth {br.get('truth', 0):.1f}, reference {br.get('reference', 0):.1f}, "
-               f"LDC {br.get('ldc', 0):.1f}, warm-up {br.get('warmup', 0):.1f})")
+               f"LDC {br.get('ldc', 0):.1f}, adaptive {br.get('adaptive', 0):.1f}, warm-up {br.get('warmup', 0):.1f})")
+        ad = res.get("adaptive")
+        ad_s = "-" if not ad else f"{ad['error_scale']:.2f}, {ad['time_ratio']:.2f}"
         methods = ", ".join(f"{m} {e:.3f}" for m, e in res["model_methods"].items())
         lines.append(f"| {res['scene']} | LDC {res['ldc_resolution']}, {res['bake_s']:.1f} s | {cal} | "
-                     f"{res['model_reference_a']:.3f}, {res['model_reference_p']:.2f} | {methods} | "
+                     f"{res['model_reference_a']:.3f}, {res['model_reference_p']:.2f} | {methods} | {ad_s} | "
                      f"{'; '.join(res['excluded']) or 'none'} |")
     lines += ["", "Requests that missed (first 15):", "",
               "| scene | view | max_error | max_ms | chosen | predicted error, ms | measured error, ms |",
@@ -227,7 +271,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--truth-spp", type=int, default=1024)
     ap.add_argument("--quick", action="store_true", help="smoke run: one scene, two small views")
     ap.add_argument("--no-doc", action="store_true")
+    ap.add_argument("--error-margin", type=float, default=MARGINS[0])
+    ap.add_argument("--time-margin", type=float, default=MARGINS[1])
     a = ap.parse_args(argv)
+    margins = (a.error_margin, a.time_margin)
     cal = CalibrationParams()
     if a.quick:
         a.scenes, a.views, a.size, a.truth_spp, a.ldc = "mirror_box", 2, 32, 64, 24
@@ -236,9 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
-    results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log) for s in a.scenes.split(",")]
+    results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log, margins) for s in a.scenes.split(",")]
     cmd = "python -m bench.contracts" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip()
-    block = doc_block(results, cmd, a.size, a.truth_spp, a.views)
+    block = doc_block(results, cmd, a.size, a.truth_spp, a.views, margins)
     print(block)
     if not a.no_doc and not a.quick:
         replace_block(DOC, "contracts", block, title="Quality contracts: met targets and their cost")

@@ -32,20 +32,31 @@ not in the store yet and the caller allows waiting for it. A target no setting m
 missed silently: :class:`Plan` says which target is unmet and why; the service answers 422 or, on
 request, the best effort marked as not meeting it.
 
-The adaptive reference (a progressive render that stops at an error or a time) joins the
-candidates in :func:`extra_candidates`, the one seam for it.
+For an error target the adaptive reference joins the candidates (:func:`extra_candidates`): a
+progressive render (``engine/progressive.py``) told to stop at the target, whose time is predicted
+from the spp model at the (not necessarily power-of-two) spp the target needs, times the ratio the
+calibration measured between an adaptive render's time and that prediction (:class:`AdaptiveFit`).
+The render estimates its own error over the whole image; the contract's error leaves out the
+pixels next to emitters, so the render is told ``target / error_scale`` and its estimate is
+reported times ``error_scale`` (both measured at calibration).
+
+Safety margins: ``plan(..., error_margin=0.85, time_margin=0.7)`` plans for ``max_error x
+error_margin`` and ``max_ms x time_margin`` (the service's defaults: ``producer.settings``); when no
+setting is predicted to meet the margined targets but one meets the targets themselves, that one
+is chosen and the plan says the margin was not kept.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
 from engine.methods import IBRT_GENERATIONS, LDC, LDC_IBRT, LDC_LLF, REFERENCE, parse_method
 
 __all__ = [
+    "ADAPTIVE_CAP_FACTOR",
     "CALIBRATION_SPP",
     "DEFAULT_IBRT_KS",
     "MAX_USEFUL_ERROR",
@@ -54,6 +65,7 @@ __all__ = [
     "CandidateFit",
     "Plan",
     "Prediction",
+    "AdaptiveFit",
     "Rule",
     "SceneModel",
     "Setting",
@@ -65,6 +77,7 @@ __all__ = [
     "ldc_settings",
     "plan",
     "predict",
+    "spp_for_error",
 ]
 
 MODEL_VERSION = 1
@@ -88,15 +101,32 @@ Rule = Literal["cheapest_meeting_error", "most_accurate_within_time", "cheapest_
                "most_accurate_within_time_error_unmet", "best_effort_most_accurate", "best_effort_fastest"]
 
 
+ADAPTIVE_CAP_FACTOR = 4.0
+"""An adaptive reference's cap on any pixel's samples: this many times the uniform spp its target
+needs (rounded up to a power of two), so a render whose estimate never reaches the target stops."""
+
+
 @dataclass(frozen=True)
 class Setting:
-    """A candidate: a wire method and, for ``reference``, its spp."""
+    """A candidate: a wire method and, for ``reference``, its spp; for the adaptive reference
+    ``spp`` is the cap on a pixel's samples and ``max_error`` / ``max_ms`` the render's own stopping
+    criteria (``max_error`` in the render's metric: the contract's target over the model's
+    ``error_scale``)."""
 
     method: str
     spp: int | None = None
+    max_error: float | None = None
+    max_ms: float | None = None
+
+    @property
+    def adaptive(self) -> bool:
+        return self.max_error is not None or self.max_ms is not None
 
     @property
     def name(self) -> str:
+        if self.adaptive:
+            budget = "" if self.max_ms is None else f", max_ms {self.max_ms:g}"
+            return f"{self.method}@adaptive(max_error {self.max_error:.3g}{budget}, cap {self.spp}spp)"
         return f"{self.method}@{self.spp}spp" if self.spp is not None else self.method
 
     @property
@@ -212,6 +242,33 @@ def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float
     return CandidateFit(method, err, b, c, [dict(p) for p in points])
 
 
+def spp_for_error(fit: CandidateFit, error: float) -> float:
+    """The (real-valued) spp at which the reference's fit ``fit`` predicts ``error``: the inverse of
+    :meth:`CandidateFit.error_at` (at least 1)."""
+    if error <= 0:
+        return math.inf
+    knee = max(fit.knee_spp, 1)
+    at_knee = fit.error * knee ** -fit.exponent
+    if error >= at_knee:
+        s = (fit.error / error) ** (1.0 / fit.exponent) if fit.error > 0 else 1.0
+    else:
+        s = knee * (at_knee / error) ** 2
+    return max(1.0, s)
+
+
+@dataclass(frozen=True)
+class AdaptiveFit:
+    """The adaptive reference on one scene, measured at calibration by adaptive renders of the probe
+    views: ``error_scale``, the contract's error (against the ground truth, emitter pixels left out)
+    over the render's own estimate (whole image), and ``time_ratio``, the render's time over what the
+    spp model predicts at the spp that reaches the same contract error; both the largest over the
+    probes (conservative). ``points`` keeps the measurements."""
+
+    error_scale: float
+    time_ratio: float
+    points: list[dict[str, Any]] = field(default_factory=list)
+
+
 # ------------------------------------------------------------------------------------ the model
 
 
@@ -234,6 +291,9 @@ class SceneModel:
     engine_version: str = ""
     created_at: str = ""
     version: int = MODEL_VERSION
+    adaptive: AdaptiveFit | None = None
+    """The adaptive reference's fit; None: the calibration did not measure it (it is then no
+    candidate)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -245,15 +305,29 @@ class SceneModel:
         d = dict(doc)
         d["reference"] = CandidateFit(**d["reference"])
         d["methods"] = {k: CandidateFit(**v) for k, v in d["methods"].items()}
+        if d.get("adaptive") is not None:
+            d["adaptive"] = AdaptiveFit(**d["adaptive"])
         return cls(**d)
 
-    def reference_request_params(self, spp: int) -> dict[str, int]:
-        """The ``ReferenceRenderParams`` of the reference candidate at ``spp``."""
-        out = {k: v for k, v in self.reference_params.items() if k != "indirect_per_spp"}
+    def reference_request_params(self, spp: int, max_error: float | None = None,
+                                 max_ms: float | None = None) -> dict[str, Any]:
+        """The ``ReferenceRenderParams`` of the reference candidate at ``spp`` (the adaptive one:
+        ``spp`` is the cap, with its ``max_error`` / ``max_ms``)."""
+        out: dict[str, Any] = {k: v for k, v in self.reference_params.items() if k != "indirect_per_spp"}
         out["spp"] = spp
         if self.reference_params.get("indirect_per_spp"):
             out["indirect_samples"] = spp * int(self.reference_params["indirect_per_spp"])
+        if max_error is not None:
+            out["max_error"] = max_error
+        if max_ms is not None:
+            out["max_ms"] = max_ms
         return out
+
+    def setting_params(self, setting: Setting) -> dict[str, Any] | None:
+        """The reference's request params of ``setting`` (None for the LDC methods)."""
+        if setting.spp is None:
+            return None
+        return self.reference_request_params(setting.spp, setting.max_error, setting.max_ms)
 
 
 @dataclass(frozen=True)
@@ -271,19 +345,35 @@ class Prediction:
         return self.render_ms + self.bake_ms
 
 
-def extra_candidates(model: SceneModel, pixels: int) -> list[Prediction]:
-    """Candidates beyond the fitted ladder. The seam for the adaptive reference: a progressive
-    render that stops at an error or a time joins the planner here (priced by what it reports of
-    itself); until it exists there are none."""
-    return []
+def extra_candidates(model: SceneModel, pixels: int, aim_error: float | None = None,
+                     max_ms: float | None = None) -> list[Prediction]:
+    """Candidates beyond the fitted ladder: the adaptive reference told to stop at ``aim_error``
+    (the contract's error target, times its margin), when the calibration measured it
+    (``model.adaptive``) and the target is within the reference's reach. Predicted error: the aim
+    (the render then estimates what it reached); time: ``time_ratio`` x the spp model's time at the
+    spp the aim needs. Its cap is :data:`ADAPTIVE_CAP_FACTOR` x that spp; with a time budget
+    ``max_ms`` the render also stops there."""
+    fit = model.adaptive
+    if fit is None or aim_error is None or fit.error_scale <= 0:
+        return []
+    high = REFERENCE.param("spp").high
+    s = spp_for_error(model.reference, aim_error)
+    if not math.isfinite(s) or s > high:
+        return []
+    cap = int(min(high, max(2, 2 ** math.ceil(math.log2(ADAPTIVE_CAP_FACTOR * s)))))
+    render_error = min(aim_error / fit.error_scale, 0.99)
+    ms = fit.time_ratio * (model.reference.b_ms + model.reference.c_ms * s * pixels)
+    return [Prediction(Setting(REFERENCE.name, cap, render_error, max_ms), aim_error, ms)]
 
 
 def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_bake: bool = True,
-            allowed: Callable[[Setting], bool] | None = None) -> list[Prediction]:
+            allowed: Callable[[Setting], bool] | None = None, aim_error: float | None = None,
+            max_ms: float | None = None) -> list[Prediction]:
     """Every candidate of ``model`` at an image of ``pixels`` pixels. A method needing the bake
     when it is not ready: priced with the bake's cost when ``allow_bake``, left out otherwise.
     ``allowed``: the settings this server accepts (e.g. under its render memory limit); the others
-    are left out."""
+    are left out. ``aim_error`` / ``max_ms``: the targets the adaptive reference is told (with an
+    error target only: :func:`extra_candidates`)."""
     if pixels < 1:
         raise ValueError("pixels must be >= 1")
     out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s))
@@ -294,7 +384,7 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
             if name in model.excluded:
                 continue
             out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms))
-    out += extra_candidates(model, pixels)
+    out += extra_candidates(model, pixels, aim_error, max_ms)
     return out if allowed is None else [p for p in out if allowed(p.setting)]
 
 
@@ -309,6 +399,9 @@ class Plan:
     unmet: tuple[str, ...] = ()
     reason: str = ""
     candidates: int = 0
+    planned_for: dict[str, float] = field(default_factory=dict)
+    """The targets the choice was planned against: the request's times the margins, or the request's
+    own when no setting kept the margin (``reason`` then says so)."""
 
     @property
     def met(self) -> bool:
@@ -322,15 +415,47 @@ def _fmt(p: Prediction) -> str:
 
 def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_ms: float | None = None,
          best_effort: bool = False, bake_ready: bool = True, allow_bake: bool = True,
-         allowed: Callable[[Setting], bool] | None = None) -> Plan:
+         allowed: Callable[[Setting], bool] | None = None, error_margin: float = 1.0,
+         time_margin: float = 1.0) -> Plan:
     """Pick a setting for ``max_error`` (LRMS against the converged image) and / or ``max_ms``
     (milliseconds) at an image of ``pixels`` pixels; see the module docstring for the rules.
     ``best_effort``: when the targets cannot all be met, still choose (the most accurate, within the
     time when there is a time budget, else the fastest) and mark the unmet target; otherwise
-    ``choice`` is None and ``reason`` says what the scene can do."""
+    ``choice`` is None and ``reason`` says what the scene can do.
+
+    ``error_margin`` / ``time_margin`` (in (0, 1]): plan for ``max_error x error_margin`` and
+    ``max_ms x time_margin``, so that a view a little worse than the probes or a worker a little
+    busier than at calibration still meets the contract. When nothing is predicted to meet the
+    margined targets, the plan for the targets themselves is returned (met or not; its ``reason``
+    says when the margin was not kept)."""
     if max_error is None and max_ms is None:
         raise ValueError("plan needs max_error, max_ms or both")
-    cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed)
+    for name, m in (("error_margin", error_margin), ("time_margin", time_margin)):
+        if not 0.0 < m <= 1.0:
+            raise ValueError(f"{name} must be in (0, 1], got {m!r}")
+    kw = dict(best_effort=best_effort, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed)
+    raw = {k: v for k, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None}
+    if error_margin < 1.0 or time_margin < 1.0:
+        e = None if max_error is None else max_error * error_margin
+        t = None if max_ms is None else max_ms * time_margin
+        margined = _plan_once(model, pixels, e, t, max_ms, **kw)  # type: ignore[arg-type]
+        if margined.met:
+            return replace(margined, planned_for={k: v for k, v in (("max_error", e), ("max_ms", t)) if v is not None})
+    p = _plan_once(model, pixels, max_error, max_ms, max_ms, **kw)  # type: ignore[arg-type]
+    p = replace(p, planned_for=raw)
+    if p.met and (error_margin < 1.0 or time_margin < 1.0):
+        p = replace(p, reason=f"predicted to meet the targets, but not with the safety margin (error x "
+                              f"{error_margin:g}, time x {time_margin:g}): nothing does")
+    return p
+
+
+def _plan_once(model: SceneModel, pixels: int, max_error: float | None, max_ms: float | None,
+               render_ms: float | None, *, best_effort: bool, bake_ready: bool, allow_bake: bool,
+               allowed: Callable[[Setting], bool] | None) -> Plan:
+    """:func:`plan` for one pair of limits (``render_ms``: the time budget the adaptive reference is
+    told, the request's own)."""
+    cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed,
+                    aim_error=max_error, max_ms=render_ms)
     n = len(cands)
     if not cands:
         return Plan(None, None, tuple(t for t, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None),

@@ -36,7 +36,8 @@ from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
-from producer.names import CALIBRATE_JOB, calibrate_job_id, scene_bake_job_id
+from producer.names import CALIBRATE_JOB, VERIFY_JOB, calibrate_job_id, render_job_id, scene_bake_job_id, verify_job_id
+from producer.payloads import VerifyJobPayload
 from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
 from producer.render_memory import estimate_render_bytes
 from producer.status import job_public
@@ -45,10 +46,13 @@ from producer.store import NotFound, ObjectStore
 __all__ = [
     "calibration_key",
     "calibration_status",
+    "VERIFY_TIMEOUT_S",
     "enqueue_calibration",
+    "enqueue_verification",
     "model_path",
     "plan_render",
     "read_calibration",
+    "verification_status",
     "write_calibration",
 ]
 
@@ -145,20 +149,22 @@ def _pixels(store: ObjectStore, req: RenderRequest) -> tuple[int, int]:
 
 def _request_for(req: RenderRequest, model: SceneModel, setting: Setting) -> RenderRequest:
     update: dict[str, Any] = {"method": setting.method, "quality": None}
-    if setting.spp is not None:
-        update["params"] = ReferenceRenderParams(**model.reference_request_params(setting.spp))
+    params = model.setting_params(setting)
+    if params is not None:
+        update["params"] = ReferenceRenderParams(**params)
     return req.model_copy(update=update)
 
 
-def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render_bytes: int | None = None
-                ) -> tuple[RenderRequest, ContractPublic]:
+def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render_bytes: int | None = None, *,
+                error_margin: float = 1.0, time_margin: float = 1.0) -> tuple[RenderRequest, ContractPublic]:
     """The request with the planner's method and params, and the contract to state.
 
     Raises :class:`CalibrationMissing` (409) when the scene's bake ``req.bake`` was never
     calibrated; :class:`ContractUnmet` (422) when no setting meets the targets and
     ``on_miss`` is ``fail``; :class:`BakeMissing` (409, the ``missing_bake`` rule) when the bake is
     missing, ``missing_bake`` is ``fail`` and only a setting that needs the bake would meet them.
-    ``max_render_bytes``: settings whose estimated memory exceeds it are not candidates."""
+    ``max_render_bytes``: settings whose estimated memory exceeds it are not candidates.
+    ``error_margin`` / ``time_margin``: the safety margins of ``engine.quality.plan``."""
     q = req.quality
     assert q is not None
     bkey = bake_key(req.scene_id, req.bake)
@@ -175,11 +181,13 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
         return max_render_bytes is None or \
             estimate_render_bytes(_request_for(req, model, s), width, height) <= max_render_bytes
 
+    margins = {"error_margin": error_margin, "time_margin": time_margin}
     p = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, best_effort=best_effort,
-             bake_ready=ready, allow_bake=allow_bake, allowed=allowed)
+             bake_ready=ready, allow_bake=allow_bake, allowed=allowed, error_margin=error_margin,
+             time_margin=time_margin)
     if not ready and not allow_bake and not p.met:
         with_bake = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, bake_ready=False,
-                         allowed=allowed)
+                         allowed=allowed, error_margin=error_margin, time_margin=time_margin)
         if with_bake.met and with_bake.choice is not None:
             running = fetch_job(redis, scene_bake_job_id(bkey))
             active = running is not None and running.get_status(refresh=False) in ACTIVE_STATUSES
@@ -188,7 +196,7 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
                                    f"(what renders now cannot: {p.reason})")
     if p.choice is None:
         raise ContractUnmet(p.unmet, p.reason + _excluded_note(model))
-    return _planned(req, model, doc, p, width, height, ready, allow_bake)
+    return _planned(req, model, doc, p, width, height, ready, allow_bake, margins)
 
 
 def _excluded_note(model: SceneModel) -> str:
@@ -198,12 +206,17 @@ def _excluded_note(model: SceneModel) -> str:
 
 
 def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan, width: int, height: int,
-             ready: bool, allow_bake: bool) -> tuple[RenderRequest, ContractPublic]:
+             ready: bool, allow_bake: bool, margins: dict[str, float]) -> tuple[RenderRequest, ContractPublic]:
     q = req.quality
     choice = p.choice
     assert q is not None and choice is not None and p.rule is not None
     setting = choice.setting
-    params = model.reference_request_params(setting.spp) if setting.spp is not None else None
+    params = model.setting_params(setting)
+    if setting.adaptive:  # the render estimates its own error once it has run
+        assert model.adaptive is not None
+        estimate: dict[str, Any] = {"estimated_error_source": "render", "error_scale": model.adaptive.error_scale}
+    else:
+        estimate = {"estimated_error": choice.error, "estimated_error_source": "calibration"}
     planned = _request_for(req, model, setting)
     if setting.needs_bake:
         bake = "ready" if ready else "waited"
@@ -213,8 +226,50 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
         max_error=q.max_error, max_ms=q.max_ms, on_miss=q.on_miss, rule=p.rule, met=p.met, unmet=list(p.unmet),
         reason=p.reason, method=setting.method, params=params, width=width, height=height,
         predicted_error=choice.error, predicted_ms=choice.render_ms, predicted_bake_ms=choice.bake_ms,
-        bake=bake, excluded=dict(model.excluded),  # type: ignore[arg-type]
+        bake=bake, excluded=dict(model.excluded), planned_for=dict(p.planned_for),  # type: ignore[arg-type]
+        margins={"error": margins["error_margin"], "time": margins["time_margin"]}, verify=q.verify, **estimate,
         calibration={"key": doc["key"], "bake_key": model.bake_key, "created_at": model.created_at,
                      "cost_s": model.cost_s, "probes": model.probe.get("views"),
                      "url": f"/v1/scenes/{req.scene_id}/calibrations/{model.bake_key}"})
     return planned, contract
+
+
+# ------------------------------------------------------------------------------------ verification
+
+VERIFY_TIMEOUT_S = 300
+"""The verification job's timeout: the converged reference is capped in time below it
+(``workers.jobs.verify.VERIFY_MAX_MS``)."""
+
+
+def enqueue_verification(redis: Redis, planned: RenderRequest, key: str, contract: ContractPublic,
+                         owner: str | None) -> Job | None:
+    """Queue the measurement of artifact ``key`` (the render of ``planned``) against a converged
+    reference of its view, after the render's job when it is still running. One job per artifact
+    (``verify-<key>``): the same contract asked again finds it, finished or not. None when a finished
+    one exists already (:func:`verification_status` reads it)."""
+    render = fetch_job(redis, render_job_id(key))
+    depends_on = None
+    if render is not None and render.get_status(refresh=False) in ACTIVE_STATUSES:
+        depends_on = Dependency(jobs=[render.id], allow_failure=True)
+    payload = VerifyJobPayload(request=planned, artifact_key=key, contract=contract).model_dump(mode="json")
+    meta: dict[str, Any] = {"kind": "verify", "artifact_key": key, "owner": owner,
+                            "progress": {"fraction": 0.0, "stage": "waiting for the render" if depends_on else "queued",
+                                         "eta_s": None}}
+    return enqueue_unique(redis, "render", VERIFY_JOB, payload, verify_job_id(key), timeout=VERIFY_TIMEOUT_S,
+                          meta=meta, retry=job_retry(), description=f"verify render {key[:12]}", owner=owner,
+                          is_cached=lambda: True, depends_on=depends_on)
+
+
+def verification_status(redis: Redis, key: str) -> dict[str, Any] | None:
+    """``contract.verification`` of artifact ``key``: its job's id, URL and state, and once finished
+    the measurement (the job's result); None when there is no such job."""
+    job = fetch_job(redis, verify_job_id(key))
+    if job is None:
+        return None
+    pub = job_public(job)
+    out: dict[str, Any] = {"job_id": job.id, "url": f"/v1/jobs/{job.id}", "state": pub.state}
+    if pub.state == "finished" and pub.result:
+        out.update({k: v for k, v in pub.result.items() if k != "artifact_key"})
+    elif pub.error:
+        out["error"] = pub.error
+    return out

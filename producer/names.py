@@ -20,6 +20,7 @@ __all__ = [
     "RELIGHT_JOB",
     "RELIGHT_KIND",
     "RENDER_JOB",
+    "VERIFY_JOB",
     "SCENE_BAKE_LDC_JOB",
     "SCENE_BAKE_INDIRECT_JOB",
     "SCENE_BAKE_LLF_JOB",
@@ -34,6 +35,7 @@ __all__ = [
     "scene_bake_job_id",
     "scene_bake_part_job_id",
     "scene_bake_plan_job_id",
+    "verify_job_id",
     "walkthrough_bake_job_id",
     "walkthrough_chunk_job_id",
     "walkthrough_video_job_id",
@@ -43,6 +45,8 @@ __all__ = [
 
 RENDER_JOB = "workers.jobs.render.render_job"
 """Renders one image of a stored scene (``render`` queue)."""
+VERIFY_JOB = "workers.jobs.verify.verify_job"
+"""Measures a quality contract's render against a converged reference of its view (``render`` queue)."""
 
 SCENE_BAKE_PLAN_JOB = "workers.jobs.bake.bake_plan_job"
 """Plans a scene bake (effect analysis, memory check) and enqueues its missing parts."""
@@ -86,6 +90,11 @@ COMPOSITE_KIND = "composite"
 
 def render_job_id(key: str) -> str:
     return f"render-{key}"
+
+
+def verify_job_id(key: str) -> str:
+    """The verification of a contract's render artifact ``key``."""
+    return f"verify-{key}"
 
 
 def scene_bake_job_id(key: str) -> str:

@@ -55,6 +55,18 @@ class RenderJobPayload(FrozenModel):
     with the achieved time (not part of the key: the same image answers the same explicit request)."""
 
 
+class VerifyJobPayload(FrozenModel):
+    """Payload of ``workers.jobs.verify.verify_job``: measure a contract's render against a converged
+    reference of the same view."""
+
+    v: Literal[1] = 1
+    request: RenderRequest
+    """The planned request (method and params as chosen)."""
+    artifact_key: Sha256
+    """The artifact whose ``radiance.exr`` is measured."""
+    contract: ContractPublic
+
+
 class CalibrateJobPayload(FrozenModel):
     """Payload of ``workers.jobs.calibrate.calibrate_job``."""
 

@@ -101,6 +101,15 @@ class Settings(BaseSettings):
     size, the method and the samples per pixel): a request over it is refused with 422 naming the
     estimate and the limit before it is queued. 6 GiB: a reference render of about 4300 x 4300 at
     the default samples, an LDC render of about 5300 x 5300."""
+    contract_error_margin: Annotated[float, Field(gt=0, le=1)] = 0.85
+    """Quality contracts are planned for ``max_error`` times this (``engine.quality.plan``): the
+    calibration's error model holds for the probe views, and a view a little noisier than them (the
+    reference's error varies by ~10 % from view to view) would otherwise miss a target that sits just
+    above a prediction. 1: no margin; lower: more contracts met, at a higher cost."""
+    contract_time_margin: Annotated[float, Field(gt=0, le=1)] = 0.7
+    """Quality contracts are planned for ``max_ms`` times this: the time model is fitted when the
+    calibration runs, and a worker busier than it was then renders slower (~1.6x measured on the shared
+    2-core machine). 1: no margin."""
     rate_limit_per_minute: Annotated[int, Field(ge=0)] = 0
     """Requests per minute per API key (per client address when auth is off); 0 = no limit."""
     rate_limit_burst: Annotated[int, Field(ge=0)] = 0

@@ -362,15 +362,18 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
                       output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
                       method: str | None = "reference", bake: dict[str, Any] | None = None,
                       missing_bake: str | None = None, max_error: float | None = None,
-                      max_ms: float | None = None, best_effort: bool = False) -> None:
+                      max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> None:
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
                                    missing_bake="bake" if missing_bake == "bake" else None,
-                                   max_error=max_error, max_ms=max_ms, best_effort=best_effort))
+                                   max_error=max_error, max_ms=max_ms, best_effort=best_effort, verify=verify))
         typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
         if r.contract is not None:
             typer.echo(_contract_line(r.contract), err=True)
+            if r.contract.verification is not None:
+                typer.echo(f"verification: job {r.contract.verification['job_id']} "
+                           f"({r.contract.verification['state']}; its result has measured_error)", err=True)
         if r.bake is not None:
             typer.echo(f"waiting for bake {r.bake.key} ({r.bake.state}; follow it with "
                        f"'ibr bake {scene_id} --wait')", err=True)
@@ -393,7 +396,11 @@ def _render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: 
             typer.echo(_adaptive_line(adaptive), err=True)
         achieved = (manifest.result.get("timings") or {}).get("render_wall")
         if r.contract is not None and isinstance(achieved, int | float):
-            typer.echo(f"achieved: {achieved * 1000:.1f} ms (predicted {r.contract.predicted_ms:.1f} ms)", err=True)
+            est = (manifest.result.get("contract") or {}).get("estimated_error", r.contract.estimated_error)
+            est_s = "" if est is None else (f", estimated LRMS {est:.4f} (by the "
+                                            f"{r.contract.estimated_error_source or 'calibration'})")
+            typer.echo(f"achieved: {achieved * 1000:.1f} ms (predicted {r.contract.predicted_ms:.1f} ms){est_s}",
+                       err=True)
         counts = manifest.result.get("counts") or {}
         if "hole_pixels" in counts:
             typer.echo(f"hole pixels: {counts['hole_pixels']}, provenance: {counts.get('provenance')}", err=True)
@@ -415,7 +422,10 @@ def _adaptive_line(a: dict[str, Any]) -> str:
 
 def _contract_line(con: Any) -> str:
     """One line saying what a quality contract got."""
-    setting = con.method + (f" at {con.params['spp']} spp" if con.params else "")
+    if con.params and con.params.get("max_error") is not None:
+        setting = f"{con.method} adaptive (told {con.params['max_error']:.4g}, cap {con.params['spp']} spp)"
+    else:
+        setting = con.method + (f" at {con.params['spp']} spp" if con.params else "")
     met = "meets the contract" if con.met else f"DOES NOT meet {', '.join(con.unmet)}: {con.reason}"
     bake = {"waited": ", after its bake", "best_available_now": ", the best available now (bake missing)"}.get(
         con.bake, "")
@@ -450,6 +460,9 @@ def render(
     best_effort: Annotated[bool, typer.Option(
         "--best-effort/--strict", help="Quality contract no setting meets: render the closest (marked) "
                                        "instead of failing")] = False,
+    verify: Annotated[bool, typer.Option(
+        "--verify", help="Quality contract: also measure the image against a converged reference of the view "
+                         "(a follow-up job, at your cost)")] = False,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")] = True,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
@@ -462,6 +475,8 @@ def render(
     if contract and (method is not None or params):
         _fail("--quality-error/--quality-ms let the planner choose the method: leave out --method and "
               "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
+    if verify and not contract:
+        _fail("--verify measures a quality contract's render: give --quality-error and / or --quality-ms")
     if method is None and not contract:
         method = "reference"
     if method not in (None, "reference") and params:
@@ -478,7 +493,7 @@ def render(
         _fail(f"{output}: the service delivers .png or .exr")
     _render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
                       missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
-                      best_effort=best_effort)
+                      best_effort=best_effort, verify=verify)
 
 
 @app.command()

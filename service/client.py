@@ -188,7 +188,7 @@ class Client:
     def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str | None = None,
                params: Mapping[str, Any] | None = None, wait: float = 0.0, bake: Mapping[str, Any] | None = None,
                missing_bake: Literal["fail", "bake"] | None = None, max_error: float | None = None,
-               max_ms: float | None = None, best_effort: bool = False) -> RenderPublic:
+               max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> RenderPublic:
         """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``.
 
         ``method``: ``reference`` (the default), ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods
@@ -198,7 +198,9 @@ class Client:
         ``max_error`` (LRMS against the converged image) and / or ``max_ms`` (render time in the worker)
         instead of a method: a quality contract, planned from the scene's calibration (see
         :meth:`calibrate`); the answer's ``contract`` states the plan. ``best_effort``: when no setting
-        meets the targets, render the closest one, marked, instead of an ApiError (422)."""
+        meets the targets, render the closest one, marked, instead of an ApiError (422). ``verify``: also
+        measure the image against a converged reference of the view (a follow-up job, at the caller's
+        cost: ``contract.verification`` names it; its result holds ``measured_error``)."""
         body: dict[str, Any] = {"scene_id": scene_id}
         if max_error is not None or max_ms is not None:
             if method is not None or params:
@@ -206,6 +208,10 @@ class Client:
             body["quality"] = {k: v for k, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None}
             if best_effort:
                 body["quality"]["on_miss"] = "best_effort"
+            if verify:
+                body["quality"]["verify"] = True
+        elif verify:
+            raise ValueError("verify measures a quality contract's render: give max_error and / or max_ms")
         else:
             body["method"] = method or "reference"
         if camera is not None:

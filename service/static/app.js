@@ -207,6 +207,9 @@ async function loadCapabilities() {
     $("ibrt-k").replaceChildren(...ibrt.k.map((k) => new Option(String(k), String(k))));
     $("ibrt-k").value = String(ibrt.k.includes(ibrt.k_default) ? ibrt.k_default : ibrt.k[0]);
   }
+  if (["method", "error", "time"].includes(params.get("ask"))) $("ask").value = params.get("ask");
+  if (params.get("target") && Number(params.get("target")) > 0) $("target").value = String(Number(params.get("target")));
+  askChanged(false);
   const want = params.get("method");
   if (want) {
     const [name, k] = want.split(":");
@@ -242,7 +245,7 @@ function currentMethod() {
 
 function methodChanged(render = true) {
   const m = currentMethod();
-  $("k-label").hidden = !m.hasK;
+  $("k-label").hidden = !m.hasK || $("ask").value !== "method";
   $("provenance-label").hidden = !m.needsBake;
   if (!m.needsBake) $("provenance").checked = false;
   updateProvenanceView();
@@ -429,8 +432,44 @@ function bakeParams() {
            indirect: { mode: $("bake-indirect").value } };
 }
 
-function requestBody(method = currentMethod()) {
+// "Ask by error / time": a quality contract instead of a method (the planner picks it from the
+// scene's calibration); null when asking by method.
+function currentQuality() {
+  const ask = $("ask").value;
+  if (ask === "method") return null;
+  const t = Number($("target").value);
+  // a time budget nothing meets still renders the closest setting, marked; an error target is strict
+  return ask === "error" ? { max_error: t / 100 } : { max_ms: t, on_miss: "best_effort" };
+}
+
+function askChanged(render = true) {
+  const ask = $("ask").value;
+  const byMethod = ask === "method";
+  $("target-label").hidden = byMethod;
+  $("method-label").hidden = !byMethod;
+  $("spp-label").hidden = !byMethod;
+  if (!byMethod) {
+    $("k-label").hidden = true;
+    $("target-unit").textContent = ask === "error" ? "max error %" : "max ms";
+    if (ask === "time" && Number($("target").value) < 20) $("target").value = "200";
+    if (ask === "error" && Number($("target").value) > 50) $("target").value = "5";
+  } else {
+    $("contract").hidden = true;
+    methodChanged(false);
+  }
+  if (render) changed();
+}
+
+function requestBody(explicit = null) {
+  const method = explicit || currentMethod();
   const size = viewSize();
+  const quality = explicit ? null : currentQuality(); // an explicit method (the compare view's reference) is not planned
+  if (quality) {
+    const c = { ...view.cam, width: size, height: size };
+    const r6 = (v) => v.map((x) => Math.round(x * 1e6) / 1e6);
+    c.eye = r6(c.eye); c.look_at = r6(c.look_at); c.up = r6(c.up);
+    return { scene_id: view.scene.id, camera: c, quality, bake: bakeParams(), outputs: ["preview", "radiance"] };
+  }
   const cam = { ...view.cam, width: size, height: size };
   const round = (v) => v.map((x) => Math.round(x * 1e6) / 1e6);
   cam.eye = round(cam.eye); cam.look_at = round(cam.look_at); cam.up = round(cam.up);
@@ -474,7 +513,7 @@ function startRender(inputAt) {
     prev.controller.abort();
   }
   const me = { seq: ++seq, controller: new AbortController(), jobId: null, bodyText, done: false, inputAt, body,
-    label: `${sceneLabel(view.scene)} · ${body.method} view` };
+    label: `${sceneLabel(view.scene)} · ${body.quality ? "contract" : body.method} view` };
   current = me;
   $("no-bake").hidden = true; // shown again if this view has no bake either
   if (prev) cancelStale(prev);
@@ -486,7 +525,14 @@ function startRender(inputAt) {
     me.done = true;
     setStatus("");
     $("render-progress").hidden = true;
-    if (err instanceof ApiError && err.status === 409 && body.bake) {
+    if (err instanceof ApiError && body.quality) {
+      $("contract").hidden = true;
+      if (err.problem && err.problem.type === "urn:ibr:problem:calibration-missing") {
+        err.problem.hint = "Asking by error or time plans from a calibration of the scene's bake: calibrate it "
+          + `(POST /v1/scenes/${view.scene.id}/calibrations, or 'ibr calibrate'), or ask by method.`;
+      }
+      clearView();
+    } else if (err instanceof ApiError && err.status === 409 && body.bake) {
       err.problem.hint = caps.bakes ? "Press Bake below (or pick a finished bake) before rendering with an LDC method."
         : "";
       // the image shown (another scene's, or another method's) is not this view: never leave it up
@@ -560,13 +606,44 @@ async function render(me, body) {
   perf.loads += 1;
   const timings = { ...((manifest.result && manifest.result.timings) || {}),
     ...((r.job && r.job.result && r.job.result.timings) || {}) };
+  const contract = r.contract ? showContract(r.contract, manifest) : null;
+  $("contract").hidden = !contract;
   perf.last = { seq: me.seq, key: manifest.key, latency: now - me.inputAt, request: now - t0, status: r.status,
-    method: body.method, camera: body.camera, scene: body.scene_id, timings,
-    counts: (manifest.result && manifest.result.counts) || {} };
+    method: contract ? contract.method : body.method, camera: body.camera, scene: body.scene_id, timings,
+    counts: (manifest.result && manifest.result.counts) || {}, contract };
   perf.latencies.push(now - me.inputAt);
   setStatus("");
   updateProvenanceView();
   scheduleCompare(me);
+}
+
+// The plan a quality contract got and its predicted against achieved numbers; returns what it shows.
+function showContract(con, manifest) {
+  const res = (manifest && manifest.result) || {};
+  const wall = res.timings && res.timings.render_wall;
+  const achievedMs = typeof wall === "number" ? wall * 1000 : con.achieved_ms;
+  let estimated = con.estimated_error;
+  if (res.contract && typeof res.contract.estimated_error === "number") estimated = res.contract.estimated_error;
+  else if (con.estimated_error_source === "render" && res.adaptive && con.error_scale) {
+    estimated = con.error_scale * res.adaptive.estimated_error;
+  }
+  const p = con.params || {};
+  const plan = p.max_error != null ? `${con.method} adaptive (cap ${p.spp} spp)`
+    : `${con.method}${p.spp != null ? ` at ${p.spp} spp` : ""}`;
+  const pct = (x) => (typeof x === "number" ? `${(x * 100).toFixed(2)} %` : "–");
+  const ms = (x) => (typeof x === "number" ? `${x.toFixed(1)} ms` : "–");
+  const target = [con.max_error != null ? `error ≤ ${pct(con.max_error)}` : null,
+    con.max_ms != null ? `time ≤ ${ms(con.max_ms)}` : null].filter(Boolean).join(", ");
+  const src = con.estimated_error_source === "render" ? "estimated by the render" : "calibrated prediction";
+  const rows = [["contract", target], ["plan", plan], ["rule", con.rule],
+    ["predicted", con.met ? "meets the contract" : `misses ${con.unmet.join(", ")}`],
+    ["error predicted", pct(con.predicted_error)], ["error achieved", `${pct(estimated)} (${src})`],
+    ["time predicted", ms(con.predicted_ms)], ["time achieved", ms(achievedMs)]];
+  if (con.reason) rows.push(["note", con.reason]);
+  fillTable($("contract"), rows);
+  return { method: con.method, plan, rule: con.rule, met: con.met, predicted_error: con.predicted_error,
+    estimated_error: estimated, estimated_error_source: con.estimated_error_source,
+    predicted_ms: con.predicted_ms, achieved_ms: achievedMs };
 }
 
 function showTimings(manifest, job, status, clientMs) {
@@ -1850,6 +1927,8 @@ function bindViewport() {
 
 function bindControls() {
   $("method").addEventListener("change", () => methodChanged());
+  $("ask").addEventListener("change", () => askChanged());
+  $("target").addEventListener("change", () => changed());
   $("ibrt-k").addEventListener("change", () => changed());
   $("spp").addEventListener("change", () => changed());
   $("size").addEventListener("change", () => { sizeViewport(); changed(); });

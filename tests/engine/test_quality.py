@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import pytest
 
 from engine.quality import (
     REFERENCE_SPP_LADDER,
+    AdaptiveFit,
     CandidateFit,
     SceneModel,
     check_targets,
@@ -20,6 +22,7 @@ from engine.quality import (
     ldc_settings,
     plan,
     predict,
+    spp_for_error,
 )
 
 PX = 256 * 256
@@ -186,3 +189,83 @@ def test_target_ranges(max_error, max_ms, fields) -> None:
     assert {f for f, _ in got} == fields
     for _, message in got:
         assert "(0, 1)" in message or "(0, 600000]" in message or "max_error, max_ms or both" in message
+
+
+# ------------------------------------------------------------------------------------ adaptive reference, margins
+
+
+def _adaptive_model(**changes) -> SceneModel:
+    # the reference at s^-0.5 from 40 % (1 spp), as _model; the adaptive reference: the contract's error is 1.5x
+    # the render's own estimate, and it takes 0.8x the spp model's time at the spp the target needs
+    return _model(**{"adaptive": AdaptiveFit(error_scale=1.5, time_ratio=0.8), **changes})
+
+
+def test_spp_for_error_inverts_the_reference_fit() -> None:
+    for fit in (CandidateFit("reference", 0.4, 0, 0), CandidateFit("reference", 0.3, 0, 0, exponent=0.75, knee_spp=16)):
+        for s in (1.0, 3.0, 16.0, 40.0, 1000.0):
+            e = fit.error * (s ** -fit.exponent if s <= fit.knee_spp
+                             else fit.knee_spp ** -fit.exponent * math.sqrt(fit.knee_spp / s))
+            assert spp_for_error(fit, e) == pytest.approx(s)
+    assert spp_for_error(CandidateFit("reference", 0.4, 0, 0), 0.9) == 1.0  # never below one sample
+
+
+def test_adaptive_reference_is_priced_at_the_spp_its_target_needs() -> None:
+    m = _adaptive_model(methods={}, excluded={})
+    # 3 % needs (0.4 / 0.03)^2 = 177.8 spp: 0.8 x (5 + 1e-3 x 177.8 x 65536) ms; the ladder's cheapest meeting it
+    # is 256 spp (2.5 %), 1.8x the samples
+    p = plan(m, PX, max_error=0.03)
+    assert p.met and p.choice is not None and p.choice.setting.adaptive
+    s = (0.4 / 0.03) ** 2
+    assert p.choice.ms == pytest.approx(0.8 * (5.0 + 1e-3 * s * PX)) and p.choice.error == pytest.approx(0.03)
+    # told the target over the error scale, capped at 4x the spp rounded up to a power of two
+    assert p.choice.setting.max_error == pytest.approx(0.03 / 1.5) and p.choice.setting.spp == 1024
+    assert m.setting_params(p.choice.setting) == {"max_depth": 4, "indirect_bounces": 3, "spp": 1024,
+                                                  "indirect_samples": 1024, "max_error": pytest.approx(0.02)}
+    # with a time budget it is told the budget too (the request's, not the margined one)
+    p = plan(m, PX, max_error=0.03, max_ms=200_000.0, time_margin=0.5)
+    assert p.choice is not None and p.choice.setting.max_ms == 200_000.0
+    # a time-only contract never gets it (nothing to stop at but the time); nor a model without its fit
+    assert not plan(m, PX, max_ms=5_000.0).choice.setting.adaptive  # type: ignore[union-attr]
+    assert not any(c.setting.adaptive for c in predict(_model(), PX, aim_error=0.03))
+    # beyond the reference's 4096 spp: no adaptive candidate either
+    assert not any(c.setting.adaptive for c in predict(m, PX, aim_error=0.001))
+
+
+def test_adaptive_reference_is_chosen_only_when_cheaper() -> None:
+    m = _adaptive_model()
+    # 5 %: ldc+llf (4 %, 43 ms) beats any reference
+    assert plan(m, PX, max_error=0.05).choice.setting.name == "ldc+llf"  # type: ignore[union-attr]
+    # exactly on a ladder step with a slow adaptive render (time ratio 3): the ladder's 64 spp
+    slow = _adaptive_model(adaptive=AdaptiveFit(error_scale=1.0, time_ratio=3.0), methods={})
+    assert plan(slow, PX, max_error=0.05).choice.setting.name == "reference@64spp"  # type: ignore[union-attr]
+
+
+def test_margins_plan_for_a_tighter_target_and_fall_back_without_them() -> None:
+    m = _model(methods={}, excluded={})
+    # 10 %: 16 spp without a margin; x 0.85 = 8.5 %: 32 spp (7.1 %)
+    assert plan(m, PX, max_error=0.1).choice.setting.spp == 16  # type: ignore[union-attr]
+    p = plan(m, PX, max_error=0.1, error_margin=0.85)
+    assert p.met and p.choice is not None and p.choice.setting.spp == 32
+    assert p.planned_for == {"max_error": pytest.approx(0.085)} and p.reason == ""
+    # a time budget: 1 s x 0.7 = 700 ms fits 8 spp (529 ms), not 16 (1054 ms)
+    p = plan(m, PX, max_ms=1100.0, time_margin=0.7)
+    assert p.choice is not None and p.choice.setting.spp == 8 and p.planned_for == {"max_ms": pytest.approx(770.0)}
+    # 0.7 %: only 4096 spp (0.625 %) meets it, not with the margin (0.595 %): chosen, and said
+    p = plan(m, PX, max_error=0.007, error_margin=0.85)
+    assert p.met and p.choice is not None and p.choice.setting.spp == 4096
+    assert "not with the safety margin" in p.reason and p.planned_for == {"max_error": 0.007}
+    # unmet either way: the plan for the request's targets, as without margins
+    assert plan(m, PX, max_error=0.001, error_margin=0.85) == replace(plan(m, PX, max_error=0.001),
+                                                                       planned_for={"max_error": 0.001})
+    with pytest.raises(ValueError, match="error_margin"):
+        plan(m, PX, max_error=0.1, error_margin=0.0)
+
+
+def test_adaptive_model_round_trips_and_older_models_load() -> None:
+    import json
+
+    m = _adaptive_model()
+    assert SceneModel.from_json(json.loads(json.dumps(m.to_json()))) == m
+    doc = _model().to_json()
+    del doc["adaptive"]  # a model stored before the adaptive fit existed
+    assert SceneModel.from_json(doc).adaptive is None

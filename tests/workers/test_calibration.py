@@ -18,7 +18,7 @@ from engine.newviews.effects import analyze
 from engine.newviews.ldc import bake_ldc
 from engine.newviews.llf import bake_llf
 from engine.newviews.renderer import LDCViewRenderer
-from engine.quality import plan
+from engine.quality import extra_candidates, plan
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams
@@ -102,6 +102,20 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     ldc_ms = [pt["ms"] for pt in model.methods["ldc"].points]
     assert model.methods["ldc"].b_ms > 0
     assert min(ldc_ms) / 3 <= model.methods["ldc"].ms_at(32 * 32, None) <= 3 * max(ldc_ms)
+
+    # the adaptive reference was measured on every probe; told a target through the planner, it meets it on the
+    # held-out view, and its own estimate (times the calibrated scale) is the measured error within the factor
+    fit = model.adaptive
+    assert fit is not None and fit.error_scale > 0 and fit.time_ratio > 0 and len(fit.points) == 2
+    assert model.probe["cost_breakdown_s"]["adaptive"] > 0
+    target = model.reference.error_at(8)
+    (cand,) = extra_candidates(model, px, target)
+    assert cand.setting.adaptive and cand.setting.max_error == pytest.approx(target / fit.error_scale)
+    out = ref.render(held, ReferenceParams(**model.setting_params(cand.setting)))
+    assert out.adaptive is not None
+    got, estimated = measured(out.radiance), fit.error_scale * out.adaptive["estimated_error"]
+    print("adaptive", round(target, 4), round(got, 4), round(estimated, 4), fit)
+    assert got <= target * FACTOR and estimated / FACTOR <= got <= estimated * FACTOR, (target, got, estimated)
 
 
 @pytest.mark.slow

@@ -24,6 +24,7 @@ PATHS = {
     "WALKTHROUGH_CHUNK_JOB": "workers.jobs.walkthrough.walkthrough_chunk_job",
     "WALKTHROUGH_VIDEO_JOB": "workers.jobs.walkthrough.walkthrough_video_job",
     "CALIBRATE_JOB": "workers.jobs.calibrate.calibrate_job",
+    "VERIFY_JOB": "workers.jobs.verify.verify_job",
 }
 
 

@@ -16,7 +16,11 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
    time_scale`` (the per-pixel part of their time). Each method renders once, untimed, on a tiny
    image first, so compile and lazy set-up never count as render time;
 4. fit (``engine.quality.fit_reference`` / ``fit_ldc``), exclude the methods that do not render what
-   the scene holds, and store the model beside the bake (``producer.calibrations``).
+   the scene holds;
+5. the adaptive reference (``engine/progressive.py``) on every probe, told to stop at the error the
+   fit predicts at :data:`ADAPTIVE_PROBE_SPP` spp (capped at ``truth_spp``): its contract error over
+   its own estimate and its time over the spp model's time at that error
+   (``engine.quality.AdaptiveFit``); then store the model beside the bake (``producer.calibrations``).
 
 What it costs is in the model (``cost_s`` and ``cost_breakdown_s``): mostly the ground truth
 (``truth_spp`` x probes x pixels reference samples).
@@ -44,11 +48,13 @@ from engine.newviews.renderer import LDCViewRenderer
 from engine.quality import (
     CALIBRATION_SPP,
     MAX_USEFUL_ERROR,
+    AdaptiveFit,
     SceneModel,
     fit_ldc,
     fit_reference,
     fit_time,
     ldc_settings,
+    spp_for_error,
 )
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams, RuntimeScene
@@ -59,13 +65,17 @@ from producer.payloads import CalibrateJobPayload, InvalidPayload, describe_vali
 from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
-__all__ = ["PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "contract_mask", "probe_cameras",
-           "turned_camera", "view_pivot"]
+__all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "contract_mask",
+           "probe_cameras", "turned_camera", "view_pivot"]
 
 PROBE_STEP_DEG = 8.0
 """Probe views turn the scene's camera by multiples of this angle (+8, -8, +16, -16, ...): near the
 views callers ask for (a closed room seen from 24 degrees off shows its unlit outside, which is
 not what a contract on the room is about)."""
+
+ADAPTIVE_PROBE_SPP = 64
+"""The adaptive reference is calibrated at the error the reference's fit predicts at this many spp
+(the middle of the errors contracts ask of it: a few per cent)."""
 
 TRUTH_SEED = 7_919
 """Seed of the ground truth (the candidates render with the service's default seed 0)."""
@@ -163,10 +173,10 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
                                   "indirect_bounces": indirect_bounces if gi else base.indirect_bounces,
                                   "indirect_per_spp": 1 if gi else 0}
 
-    def ref_at(spp: int, seed: int = 0) -> ReferenceParams:
+    def ref_at(spp: int, seed: int = 0, max_error: float | None = None) -> ReferenceParams:
         return ReferenceParams(spp=spp, max_depth=base.max_depth, glossy_samples=base.glossy_samples,
                                area_light_samples=base.area_light_samples, indirect_samples=spp if gi else 0,
-                               indirect_bounces=ref_params["indirect_bounces"], seed=seed)
+                               indirect_bounces=ref_params["indirect_bounces"], seed=seed, max_error=max_error)
 
     mirror = "mirror" in bake_plan.get("material_kinds", effects.material_kinds)
     has_llf = ldc_renderer.llf is not None
@@ -184,9 +194,11 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     pivot = view_pivot(camera, *scene.bounds)
     cams = probe_cameras(camera, params.probes, params.size, pivot)
     tiny = turned_camera(camera, PROBE_STEP_DEG, 8, pivot)
-    cost: dict[str, float] = {"truth": 0.0, "reference": 0.0, "ldc": 0.0, "warmup": 0.0}
+    cost: dict[str, float] = {"truth": 0.0, "reference": 0.0, "ldc": 0.0, "adaptive": 0.0, "warmup": 0.0}
 
     _, ms = _timed(ref.render, tiny, ref_at(1))  # compile / build once, untimed
+    cost["warmup"] += ms / 1000
+    _, ms = _timed(ref.render, tiny, ref_at(4, max_error=0.5))  # the progressive path too
     cost["warmup"] += ms / 1000
     for m in methods:
         _, ms = _timed(ldc_renderer.render, tiny, m)
@@ -194,7 +206,8 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
 
     ref_points: list[dict[str, Any]] = []
     ldc_points: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
-    steps = len(cams) * (1 + len(CALIBRATION_SPP) + len(methods)) + len(methods)
+    steps = len(cams) * (2 + len(CALIBRATION_SPP) + len(methods)) + len(methods)
+    truths: list[tuple[np.ndarray, np.ndarray]] = []
     done = 0
     for probe, cam in enumerate(cams):
         px = cam.width * cam.height
@@ -202,6 +215,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         cost["truth"] += ms / 1000
         ref_points.append({"spp": params.truth_spp, "pixels": px, "ms": ms, "error": None})  # a time point
         mask = contract_mask(scene, truth.object_id)
+        truths.append((truth.radiance, mask))
         done += 1
         report(done / steps, "ground truth")
         for spp in CALIBRATION_SPP:
@@ -245,6 +259,8 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         if fit.error > MAX_USEFUL_ERROR:
             excluded[m] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it does "
                            "not render what this scene holds")
+    adaptive_fit = _calibrate_adaptive(ref, cams, truths, reference_fit, truth_noise, params.truth_spp, ref_at,
+                                       cost, lambda i: report((done + i + 1) / steps, "adaptive reference"))
     cost_s = time.perf_counter() - t_start
     return SceneModel(
         scene_id=scene_id, bake_key=bake_key_, reference=reference_fit, methods=fits, excluded=excluded,
@@ -253,7 +269,38 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
                "angles_deg": [PROBE_STEP_DEG * (i // 2 + 1) * (1 if i % 2 == 0 else -1) for i in range(len(cams))],
                "truth_spp": params.truth_spp, "truth_seed": TRUTH_SEED, "calibration_spp": list(CALIBRATION_SPP),
                "time_scale": params.time_scale, "indirect": gi, "cost_breakdown_s": cost},
-        engine_version=ENGINE_VERSION, created_at=datetime.now(UTC).isoformat())
+        engine_version=ENGINE_VERSION, created_at=datetime.now(UTC).isoformat(), adaptive=adaptive_fit)
+
+
+def _calibrate_adaptive(ref: ReferenceRenderer, cams: list[CameraParams], truths: list[tuple[np.ndarray, np.ndarray]],
+                        reference_fit: Any, truth_noise: float, truth_spp: int,
+                        ref_at: Callable[..., ReferenceParams], cost: dict[str, float],
+                        report: Callable[[int], None]) -> AdaptiveFit | None:
+    """The adaptive reference's fit (step 5 of the module docstring); None when the reference's
+    fit is degenerate (no noise measured: nothing to stop at)."""
+    aim = reference_fit.error_at(ADAPTIVE_PROBE_SPP)
+    if not 0.0 < aim < 1.0:
+        return None
+    points: list[dict[str, Any]] = []
+    for i, (cam, (truth, mask)) in enumerate(zip(cams, truths, strict=True)):
+        out, ms = _timed(ref.render, cam, ref_at(max(2, truth_spp), max_error=aim))
+        cost["adaptive"] += ms / 1000
+        rep = out.adaptive or {}
+        est = float(rep.get("estimated_error", 0.0))
+        e = _error(out.radiance, truth, mask)
+        err = math.sqrt(max(e * e - truth_noise * truth_noise, 0.25 * e * e))  # as fit_ldc removes it
+        px = cam.width * cam.height
+        spp = spp_for_error(reference_fit, err)
+        model_ms = reference_fit.b_ms + reference_fit.c_ms * spp * px
+        points.append({"pixels": px, "ms": ms, "error": err, "estimated_error": est, "told": aim,
+                       "spp_mean": rep.get("spp_mean"), "stop_reason": rep.get("stop_reason"),
+                       "uniform_spp": spp, "uniform_ms": model_ms})
+        report(i)
+    scales = [p["error"] / p["estimated_error"] for p in points if p["estimated_error"] > 0]
+    ratios = [p["ms"] / p["uniform_ms"] for p in points if p["uniform_ms"] > 0]
+    if not scales or not ratios:
+        return None
+    return AdaptiveFit(error_scale=max(scales), time_ratio=max(ratios), points=points)
 
 
 def calibrate_job(payload: dict[str, Any]) -> dict[str, Any]:

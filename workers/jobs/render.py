@@ -238,7 +238,7 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     timings = {**out.timings, "render_wall": t_render, "load_scene": t_load, "encode": time.perf_counter() - t0}
     counts = {**out.counts, "scene_cache_hit": int(cache_hit), "width": camera.width, "height": camera.height}
     doc: dict[str, Any] = {"timings": timings, "counts": counts, "mesh_reports": loaded.mesh_reports,
-                           **_contract_result(contract, t_render)}
+                           **_contract_result(contract, t_render, out.adaptive)}
     if out.adaptive is not None:
         doc["adaptive"] = out.adaptive
     result = json_safe(doc)
@@ -286,9 +286,17 @@ def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> Ca
     return CachedBakeRenderer(loaded=loaded, renderer=renderer, bake_key=bkey, plan=plan)
 
 
-def _contract_result(contract: dict[str, Any] | None, t_render: float) -> dict[str, Any]:
-    """``{"contract": ...}`` with the achieved time for a request planned from a quality contract."""
-    return {} if contract is None else {"contract": {**contract, "achieved_ms": 1000.0 * t_render}}
+def _contract_result(contract: dict[str, Any] | None, t_render: float,
+                     adaptive: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``{"contract": ...}`` with the achieved time for a request planned from a quality contract, and
+    for the adaptive reference the estimated achieved error (its estimate times the calibrated scale)."""
+    if contract is None:
+        return {}
+    out = {**contract, "achieved_ms": 1000.0 * t_render}
+    scale = contract.get("error_scale")
+    if contract.get("estimated_error_source") == "render" and adaptive is not None and scale is not None:
+        out["estimated_error"] = float(scale) * float(adaptive["estimated_error"])
+    return {"contract": out}
 
 
 def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress: ProgressReporter,

@@ -22,7 +22,7 @@ from api_schemas.service import (
 )
 from producer.artifacts import get_scene, read_manifest
 from producer.bakes import bake_key, bake_status
-from producer.calibrations import plan_render
+from producer.calibrations import enqueue_verification, plan_render, verification_status
 from producer.render_memory import estimate_render_bytes
 from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
@@ -91,7 +91,18 @@ def achieved_ms(manifest: ArtifactManifest | None) -> float | None:
 def _with_contract(pub: RenderPublic, contract: ContractPublic | None) -> RenderPublic:
     if contract is None:
         return pub
-    return pub.model_copy(update={"contract": contract.model_copy(update={"achieved_ms": achieved_ms(pub.artifact)})})
+    return pub.model_copy(update={"contract": contract.model_copy(update=contract_outcome(contract, pub.artifact))})
+
+
+def contract_outcome(contract: ContractPublic, manifest: ArtifactManifest | None) -> dict[str, Any]:
+    """What the render achieved, from its artifact: ``achieved_ms`` and, for the adaptive reference,
+    ``estimated_error`` (its own estimate times the calibrated ``error_scale``)."""
+    out: dict[str, Any] = {"achieved_ms": achieved_ms(manifest)}
+    if contract.estimated_error_source == "render" and manifest is not None and contract.error_scale is not None:
+        est = (manifest.result.get("adaptive") or {}).get("estimated_error")
+        if isinstance(est, (int, float)):
+            out["estimated_error"] = contract.error_scale * float(est)
+    return out
 
 
 def _check_visible(req: RenderRequest, store: Any, owner: str | None) -> None:
@@ -159,8 +170,17 @@ async def request_render(
     contract: ContractPublic | None = None
     if req.quality is not None:
         await run_in_threadpool(_check_visible, req, store, owner)
-        req, contract = await run_in_threadpool(plan_render, redis, store, req, settings.max_render_bytes)  # 409/422
+        req, planned = await run_in_threadpool(partial(  # 409/422
+            plan_render, redis, store, req, settings.max_render_bytes, error_margin=settings.contract_error_margin,
+            time_margin=settings.contract_time_margin))
+        contract = planned
+        if planned.verify and req.outputs is not None and "radiance" not in req.outputs:  # the measurement reads it
+            req = RenderRequest.model_validate({**req.model_dump(mode="json"), "outputs": [*req.outputs, "radiance"]})
     pub = await _render(req, response, store, redis, owner, settings, metrics, wait, contract)
+    if contract is not None and contract.verify and pub.status not in ("failed", "canceled"):
+        await run_in_threadpool(enqueue_verification, redis, req, pub.artifact_key, contract, owner)
+        verification = await run_in_threadpool(verification_status, redis, pub.artifact_key)
+        contract = contract.model_copy(update={"verification": verification})
     return _with_contract(pub, contract)
 
 

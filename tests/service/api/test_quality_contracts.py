@@ -10,15 +10,16 @@ from a calibration the worker measured."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
 from api_schemas.service import BakeParams, RenderRequest
-from engine.quality import CandidateFit, SceneModel
+from engine.quality import AdaptiveFit, CandidateFit, SceneModel
 from producer.bakes import bake_key
-from producer.calibrations import calibration_key, write_calibration
+from producer.calibrations import calibration_key, read_calibration, write_calibration
 from producer.renders import render_artifact_key
 from producer.store import open_store
 from tests.service.api.conftest import small_scene
@@ -101,6 +102,7 @@ def test_plans_with_the_bake_missing(client: TestClient, store_dir: Any) -> None
     assert con["rule"] == "cheapest_meeting_error" and con["met"] and con["predicted_error"] == pytest.approx(0.05)
     assert con["predicted_ms"] == pytest.approx(2.0 + 0.01 * 16 * PX) and con["width"] == 32
     assert con["calibration"]["cost_s"] == 3.0 and con["achieved_ms"] is None
+    assert con["planned_for"] == {"max_error": pytest.approx(0.051)}
     # the plan's artifact is the explicit request's: one cache entry for both
     explicit = RenderRequest(scene_id=sid, method="reference", params=con["params"], bake=BAKE)
     assert r.json()["artifact_key"] == render_artifact_key(explicit)
@@ -109,13 +111,41 @@ def test_plans_with_the_bake_missing(client: TestClient, store_dir: Any) -> None
     r = _render(client, sid, {"max_error": 0.004, "max_ms": 35_000})
     assert r.status_code == 409 and r.json()["type"] == "urn:ibr:problem:bake-missing", r.text
     assert "ldc" in r.json()["detail"] and "missing_bake" in r.json()["detail"]
-    # missing_bake bake: 4 % by reference at 32 spp takes 0.33 s, by ldc 30 s of bake: the reference
+    # missing_bake bake: 4 %, planned for 4 % x 0.85 (the default error margin) = 3.4 %: reference at 64 spp
+    # (2.5 %; 32 spp is 3.5 %) takes 0.66 s, ldc 30 s of bake: the reference
     r = _render(client, sid, {"max_error": 0.04}, missing_bake="bake")
     assert r.status_code == 202 and r.json()["contract"]["method"] == "reference"
-    assert r.json()["contract"]["bake"] == "not_needed" and r.json()["contract"]["params"]["spp"] == 32
-    # 2 %: reference at 128 spp (1.3 s) still beats the bake
+    assert r.json()["contract"]["bake"] == "not_needed" and r.json()["contract"]["params"]["spp"] == 64
+    assert r.json()["contract"]["planned_for"] == {"max_error": pytest.approx(0.034)}
+    assert r.json()["contract"]["margins"] == {"error": 0.85, "time": 0.7}
+    # 2 % (1.7 %): reference at 256 spp (1.25 %, 2.6 s) still beats the bake
     r = _render(client, sid, {"max_error": 0.02}, missing_bake="bake")
-    assert r.json()["contract"]["params"]["spp"] == 128
+    assert r.json()["contract"]["params"]["spp"] == 256
+    assert r.json()["contract"]["estimated_error"] == 0.0125
+    assert r.json()["contract"]["estimated_error_source"] == "calibration"
+
+
+def test_the_adaptive_reference_is_planned_at_the_spp_its_target_needs(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    _store_model(store_dir, _model(sid, adaptive=AdaptiveFit(error_scale=1.5, time_ratio=0.8)))
+    # 4 %, planned for 3.4 %: the spp model needs (0.2 / 0.034)^2 = 34.6 spp, 0.8 x (2 + 0.01 x 34.6 x 1024) =
+    # 285 ms, against the ladder's 64 spp (657 ms) and ldc's 30 s bake: the adaptive reference, told 3.4 % / 1.5
+    # (its estimate covers the whole image), capped at 4 x 34.6 spp rounded up to a power of two
+    r = _render(client, sid, {"max_error": 0.04}, missing_bake="bake")
+    assert r.status_code == 202, r.text
+    con = r.json()["contract"]
+    spp = (0.2 / 0.034) ** 2
+    assert con["method"] == "reference" and con["params"]["spp"] == 256
+    assert con["params"]["max_error"] == pytest.approx(0.034 / 1.5) and "max_ms" not in con["params"]
+    assert con["predicted_ms"] == pytest.approx(0.8 * (2.0 + 0.01 * spp * PX))
+    assert con["predicted_error"] == pytest.approx(0.034) and con["met"]
+    # its error is estimated by the render once it has run; the scale travels with the contract
+    assert con["estimated_error_source"] == "render" and con["error_scale"] == 1.5 and con["estimated_error"] is None
+    explicit = RenderRequest(scene_id=sid, method="reference", params=con["params"], bake=BAKE)
+    assert r.json()["artifact_key"] == render_artifact_key(explicit)
+    # with a time budget too, the render is told to stop at it (the request's budget, not the margined one)
+    r = _render(client, sid, {"max_error": 0.04, "max_ms": 2000}, missing_bake="bake")
+    assert r.json()["contract"]["params"]["max_ms"] == 2000 and r.json()["contract"]["params"]["max_error"]
 
 
 def test_a_cheap_bake_is_waited_for(client: TestClient, store_dir: Any) -> None:
@@ -174,6 +204,8 @@ def test_cli_asks_by_error_and_states_the_plan(client: TestClient, store_dir: An
     assert r.exit_code == 0 and "DOES NOT meet max_error" in r.stderr, r.output
     r = ibr(api_url, "render", sid, "--quality-error", "0.05", "--method", "ldc")
     assert r.exit_code == 2 and "leave out --method" in r.stderr, r.output
+    r = ibr(api_url, "render", sid, "--verify", "--ldc-resolution", "16")
+    assert r.exit_code == 2 and "--quality-error" in r.stderr, r.output
     r = ibr(api_url, "render", sid, "--quality-error", "1.5")
     assert r.exit_code == 2 and "(0, 1)" in r.stderr, r.output
     r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--no-wait")  # the stored one: no work
@@ -194,7 +226,7 @@ def _poll(c: TestClient, url: str, done: tuple[str, ...], timeout: float) -> dic
 
 
 @pytest.mark.slow
-def test_calibrate_then_render_by_error_target(client: TestClient, worker_process: Any) -> None:
+def test_calibrate_then_render_by_error_target(client: TestClient, worker_process: Any, store_dir: Any) -> None:
     sid = _scene(client)
     bake_worker = worker_process("bake")
     render_worker = worker_process("render")
@@ -226,6 +258,46 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
                                           "outputs": ["preview", "radiance"]})
     assert r2.status_code == 200 and r2.json()["status"] == "cached"
     assert r2.json()["contract"]["method"] == con["method"]
+
+    # the adaptive reference through the worker: the measured model with its LDC methods left out and the adaptive
+    # render's time ratio made small (an input to the planner, so that it is the cheapest setting)
+    store = open_store(f"file://{store_dir}")
+    bkey = bake_key(sid, BakeParams.model_validate(BAKE))
+    doc = read_calibration(store, sid, bkey)
+    assert doc is not None
+    m = SceneModel.from_json(doc["model"])
+    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 1
+    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3))
+    write_calibration(store, sid, bkey, doc["key"], doc["params"], m)
+    r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "outputs": ["preview"],
+                                                 "quality": {"max_error": m.reference.error_at(8)}})
+    assert r.status_code == 200, (r.text, render_worker.log())
+    body = r.json()
+    con = body["contract"]
+    assert con["estimated_error_source"] == "render" and con["params"]["max_error"] > 0
+    adaptive = body["artifact"]["result"]["adaptive"]
+    assert con["estimated_error"] == pytest.approx(con["error_scale"] * adaptive["estimated_error"])
+    assert body["artifact"]["result"]["contract"]["estimated_error"] == pytest.approx(con["estimated_error"])
+
+    # verify: a follow-up job measures the image against a converged reference of the view, at the caller's cost;
+    # the radiance is made for it even when the request names only the preview
+    write_calibration(store, sid, bkey, doc["key"], doc["params"], SceneModel.from_json(doc["model"]))  # as measured
+    q = {"max_error": 0.5 * (ldc_err + model["reference"]["error"]), "verify": True}
+    r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "quality": q, "outputs": ["preview"]})
+    assert r.status_code == 200, (r.text, render_worker.log())
+    con = r.json()["contract"]
+    assert con["verify"] and con["verification"]["job_id"] == f"verify-{r.json()['artifact_key']}"
+    assert "image.exr" in r.json()["links"], r.json()["links"]
+    job = _poll(client, con["verification"]["url"], ("finished", "failed"), 300)
+    assert job["state"] == "finished", (job, render_worker.log())
+    res = job["result"]
+    # the measured error agrees with the calibrated prediction within the calibration's stated factor (2), and the
+    # converged reference's own noise is small against it
+    assert con["predicted_error"] / 2 <= res["measured_error"] <= con["predicted_error"] * 2, (res, con)
+    assert res["measured_error"] <= res["measured_error_raw"] and res["reference_error"] < 0.5 * res["measured_error"]
+    assert res["verify_ms"] > 0 and res["met"] == (res["measured_error"] <= q["max_error"])
+    again = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": q, "outputs": ["preview"]})
+    assert again.json()["contract"]["verification"]["measured_error"] == pytest.approx(res["measured_error"])
 
 
 def test_a_scenes_calibrations_go_with_it(client: TestClient, store_dir: Any) -> None:
