@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import zlib
 
 import numpy as np
 import pytest
@@ -42,7 +43,7 @@ def test_embree_agrees_with_reference_backend_on_random_rays(name):
     rt = _load(name).runtime
     lo, hi = rt.bounds
     c, r = 0.5 * (lo + hi), np.linalg.norm(hi - lo)
-    rng = np.random.default_rng(abs(hash(name)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(name.encode()))  # str hash() changes per process
     n = 400
     w = rng.normal(size=(n, 3))
     o = c + w / np.linalg.norm(w, axis=1, keepdims=True) * r
@@ -72,7 +73,7 @@ def _ray_triangle_t(o, d, tri):
     qv = np.cross(tv, e1)
     v = np.einsum("ij,ij->i", d, qv) / det
     t = np.einsum("ij,ij->i", qv, e2) / det
-    tol = 1e-6
+    tol = 1e-4  # a ray through a shared edge, tested in float32 by Embree, may land just outside in float64
     ok = (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol)
     return np.where(ok, t, np.inf)
 
