@@ -341,7 +341,7 @@ def _p99_ms(c: TestClient, url: str, headers: dict[str, str], n: int) -> tuple[f
 
 @pytest.mark.slow
 def test_listing_latency_with_10000_jobs_and_a_30_mib_scene(c: TestClient, redis_conn: Redis, store_dir: Path) -> None:
-    """Listings answer in well under 50 ms (p99) with 10,000 jobs in Redis and a 30 MiB scene in
+    """Listings answer in tens of milliseconds (p99) with 10,000 jobs in Redis and a 30 MiB scene in
     the store. (Reading every job and every scene document took seconds.) Run with ``-s`` to see
     the numbers docs/reliability.md records."""
     big = json.dumps({"scene": _big_scene(30.0)}).encode()
