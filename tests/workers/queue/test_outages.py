@@ -28,7 +28,7 @@ from rq import Retry, Worker
 
 from producer.embedded import EmbeddedRedis, start_embedded_redis
 from producer.queue import QueueName, fetch_job, get_queue, redis_from_url
-from tests.fixtures.redis import FAST_WORKER_ARGS, REPO_ROOT, WorkerProcess, wait_for
+from tests.fixtures.redis import REPO_ROOT, WorkerProcess, spawn_worker, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -82,15 +82,8 @@ def start_worker(own_redis: OwnRedis, tmp_path: Path) -> Iterator[Callable[..., 
     started: list[WorkerProcess] = []
 
     def start(queue: str, *args: str, fast: bool = True) -> WorkerProcess:
-        cmd = [sys.executable, "-m", "workers.runner", "--queue", queue, *(FAST_WORKER_ARGS if fast else ()), *args]
-        env = {**os.environ, "IBR_REDIS_URL": own_redis.url, "IBR_STORE_URL": f"file://{tmp_path / 'store'}",
-               "IBR_DATA_DIR": str(tmp_path / "data"), "PYTHONUNBUFFERED": "1",
-               "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
-        log = tmp_path / f"worker-{queue}-{len(started)}.log"
-        with open(log, "wb") as out:
-            proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL, stdout=out,
-                                    stderr=subprocess.STDOUT, start_new_session=True)
-        wp = WorkerProcess(proc, log, queue)
+        wp = spawn_worker(queue, *args, redis_url=own_redis.url, store_dir=tmp_path / "store",
+                          data_dir=tmp_path / "data", log_dir=tmp_path, fast=fast)
         started.append(wp)
         return wp
 
