@@ -179,13 +179,26 @@ def outcome(run: Run, job: dict[str, Any], t_fault: float, timeout: float, ids: 
     return out
 
 
+def start_pair(run: Run, args: argparse.Namespace, ids: dict[str, str], seed: int,
+               rng: random.Random) -> dict[str, Any] | None:
+    """Submit a render and a bake and return them once both run, a random 0.2-0.8 s into the jobs
+    (None when they never ran together)."""
+    job = submit(run, args, ids, seed)
+    if not wait(lambda: both_running(run, job, run.redis()), 120):
+        return None
+    time.sleep(rng.uniform(0.2, 0.8))
+    return job
+
+
+SKIPPED = "the render and a bake job were never running together"
+
+
 def kill_cycle(run: Run, args: argparse.Namespace, ids: dict[str, str], seed: int,
                rng: random.Random) -> dict[str, Any]:
     redis = run.redis()
-    job = submit(run, args, ids, seed)
-    if not wait(lambda: both_running(run, job, redis), 120):
-        return {"seed": seed, "skipped": "the render and a bake job were never running together"}
-    time.sleep(rng.uniform(0.2, 0.8))
+    job = start_pair(run, args, ids, seed, rng)
+    if job is None:
+        return {"seed": seed, "skipped": SKIPPED}
     victims = {name: run.stack.procs[name] for name in ("render-worker", "bake-worker")}
     children = {name: [c.pid for c in psutil.Process(p.pid).children(recursive=True)] for name, p in victims.items()}
     mid_job = both_running(run, job, redis)  # still running the instant before the kill
@@ -209,10 +222,9 @@ def kill_cycle(run: Run, args: argparse.Namespace, ids: dict[str, str], seed: in
 def redis_cycle(run: Run, args: argparse.Namespace, ids: dict[str, str], seed: int,
                 rng: random.Random) -> dict[str, Any]:
     redis = run.redis()
-    job = submit(run, args, ids, seed)
-    if not wait(lambda: both_running(run, job, redis), 120):
-        return {"seed": seed, "skipped": "the render and a bake job were never running together"}
-    time.sleep(rng.uniform(0.2, 0.8))
+    job = start_pair(run, args, ids, seed, rng)
+    if job is None:
+        return {"seed": seed, "skipped": SKIPPED}
     pids = {n: run.stack.procs[n].pid for n in ("render-worker", "bake-worker", "api")}
     mid_job = both_running(run, job, redis)
     server = run.stack.redis
