@@ -52,8 +52,11 @@ __all__ = [
     "model_path",
     "plan_render",
     "read_calibration",
+    "read_verification",
+    "verification_path",
     "verification_status",
     "write_calibration",
+    "write_verification",
 ]
 
 
@@ -241,12 +244,34 @@ VERIFY_TIMEOUT_S = 300
 (``workers.jobs.verify.VERIFY_MAX_MS``)."""
 
 
-def enqueue_verification(redis: Redis, planned: RenderRequest, key: str, contract: ContractPublic,
-                         owner: str | None) -> Job | None:
+def verification_path(scene_id: str, key: str) -> str:
+    """Where the measurement of artifact ``key`` is kept: with the scene's calibrations, so that it
+    goes with the scene (``producer.scene_outputs``) and outlives the job's result."""
+    return f"calibrations/{scene_id}/verified/{key}.json"
+
+
+def read_verification(store: ObjectStore, scene_id: str, key: str) -> dict[str, Any] | None:
+    """The stored measurement of artifact ``key`` (the verification job's result), or None."""
+    try:
+        doc = json.loads(store.get_bytes(verification_path(scene_id, key)))
+    except NotFound:
+        return None
+    return doc if isinstance(doc, dict) and doc.get("engine_version") == ENGINE_VERSION else None
+
+
+def write_verification(store: ObjectStore, scene_id: str, key: str, result: dict[str, Any]) -> None:
+    doc = {**result, "engine_version": ENGINE_VERSION}
+    store.put_bytes(verification_path(scene_id, key), json.dumps(doc, sort_keys=True).encode(), "application/json")
+
+
+def enqueue_verification(redis: Redis, store: ObjectStore, planned: RenderRequest, key: str,
+                         contract: ContractPublic, owner: str | None) -> Job | None:
     """Queue the measurement of artifact ``key`` (the render of ``planned``) against a converged
     reference of its view, after the render's job when it is still running. One job per artifact
-    (``verify-<key>``): the same contract asked again finds it, finished or not. None when a finished
-    one exists already (:func:`verification_status` reads it)."""
+    (``verify-<key>``): the same contract asked again finds it, running or finished. None when the
+    measurement exists already (stored by the job: :func:`verification_status` reads it)."""
+    if read_verification(store, planned.scene_id, key) is not None:
+        return None
     render = fetch_job(redis, render_job_id(key))
     depends_on = None
     if render is not None and render.get_status(refresh=False) in ACTIVE_STATUSES:
@@ -257,19 +282,30 @@ def enqueue_verification(redis: Redis, planned: RenderRequest, key: str, contrac
                                          "eta_s": None}}
     return enqueue_unique(redis, "render", VERIFY_JOB, payload, verify_job_id(key), timeout=VERIFY_TIMEOUT_S,
                           meta=meta, retry=job_retry(), description=f"verify render {key[:12]}", owner=owner,
-                          is_cached=lambda: True, depends_on=depends_on)
+                          is_cached=lambda: read_verification(store, planned.scene_id, key) is not None,
+                          depends_on=depends_on)
 
 
-def verification_status(redis: Redis, key: str) -> dict[str, Any] | None:
+def verification_status(redis: Redis, store: ObjectStore, scene_id: str, key: str) -> dict[str, Any] | None:
     """``contract.verification`` of artifact ``key``: its job's id, URL and state, and once finished
-    the measurement (the job's result); None when there is no such job."""
+    the measurement (kept in the store, so it outlives the job's result); None when there is
+    neither a job nor a measurement."""
     job = fetch_job(redis, verify_job_id(key))
-    if job is None:
+    stored = read_verification(store, scene_id, key)
+    if job is None and stored is None:
         return None
-    pub = job_public(job)
-    out: dict[str, Any] = {"job_id": job.id, "url": f"/v1/jobs/{job.id}", "state": pub.state}
-    if pub.state == "finished" and pub.result:
-        out.update({k: v for k, v in pub.result.items() if k != "artifact_key"})
-    elif pub.error:
-        out["error"] = pub.error
+    out: dict[str, Any] = {"job_id": verify_job_id(key), "url": f"/v1/jobs/{verify_job_id(key)}"}
+    pub = job_public(job) if job is not None else None
+    if stored is not None:
+        out["state"] = "finished"
+        out.update({k: v for k, v in stored.items() if k not in ("artifact_key", "engine_version")})
+        if pub is None:
+            out["url"] = None  # the job's record expired; the measurement is here
+    else:
+        assert pub is not None
+        out["state"] = pub.state
+        if pub.state == "finished" and pub.result:
+            out.update({k: v for k, v in pub.result.items() if k != "artifact_key"})
+        elif pub.error:
+            out["error"] = pub.error
     return out

@@ -14,7 +14,9 @@ same view (``quality.verify``, ``docs/quality-contracts.md``).
 
 Returns ``measured_error``, ``measured_error_raw``, ``reference_error``, ``met`` (against the
 contract's ``max_error``, None without one), ``verify_ms`` (the reference's render time: what the
-measurement cost) and the reference's ``adaptive`` report.
+measurement cost) and the reference's ``adaptive`` report; the same is stored with the scene's
+calibrations (``producer.calibrations.write_verification``), where answers read it after the job's
+result expires.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from engine.metrics import lrms
 from engine.quality import SceneModel
 from engine.reference import ReferenceParams
 from producer.artifacts import read_blob, read_manifest
-from producer.calibrations import read_calibration
+from producer.calibrations import read_calibration, write_verification
 from producer.payloads import InvalidPayload, VerifyJobPayload, describe_validation_error
 from workers.jobs.calibrate import contract_mask
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
@@ -90,4 +92,5 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
         "artifact_key": p.artifact_key, "measured_error": measured, "measured_error_raw": raw,
         "reference_error": ref_err, "met": None if con.max_error is None else measured <= con.max_error,
         "verify_ms": verify_ms, "reference": {"params": params.to_dict(), "adaptive": out.adaptive}})
+    write_verification(store, p.request.scene_id, p.artifact_key, result)
     return result

@@ -178,8 +178,8 @@ async def request_render(
             req = RenderRequest.model_validate({**req.model_dump(mode="json"), "outputs": [*req.outputs, "radiance"]})
     pub = await _render(req, response, store, redis, owner, settings, metrics, wait, contract)
     if contract is not None and contract.verify and pub.status not in ("failed", "canceled"):
-        await run_in_threadpool(enqueue_verification, redis, req, pub.artifact_key, contract, owner)
-        verification = await run_in_threadpool(verification_status, redis, pub.artifact_key)
+        await run_in_threadpool(enqueue_verification, redis, store, req, pub.artifact_key, contract, owner)
+        verification = await run_in_threadpool(verification_status, redis, store, req.scene_id, pub.artifact_key)
         contract = contract.model_copy(update={"verification": verification})
     return _with_contract(pub, contract)
 

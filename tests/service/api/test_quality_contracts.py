@@ -19,7 +19,15 @@ from fastapi.testclient import TestClient
 from api_schemas.service import BakeParams, RenderRequest
 from engine.quality import AdaptiveFit, CandidateFit, SceneModel
 from producer.bakes import bake_key
-from producer.calibrations import calibration_key, read_calibration, write_calibration
+from producer.calibrations import (
+    calibration_key,
+    read_calibration,
+    read_verification,
+    write_calibration,
+    write_verification,
+)
+from producer.names import verify_job_id
+from producer.queue import fetch_job
 from producer.renders import render_artifact_key
 from producer.store import open_store
 from tests.service.api.conftest import small_scene
@@ -298,12 +306,38 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     assert res["verify_ms"] > 0 and res["met"] == (res["measured_error"] <= q["max_error"])
     again = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": q, "outputs": ["preview"]})
     assert again.json()["contract"]["verification"]["measured_error"] == pytest.approx(res["measured_error"])
+    stored = read_verification(store, sid, r.json()["artifact_key"])
+    assert stored is not None and stored["measured_error"] == pytest.approx(res["measured_error"])
+
+
+def test_a_measurement_outlives_its_job_and_is_not_made_twice(client: TestClient, store_dir: Any,
+                                                             redis_conn: Any) -> None:
+    sid = _scene(client)
+    _store_model(store_dir, _model(sid))
+    q = {"max_error": 0.01, "verify": True}
+    r = _render(client, sid, q, outputs=["preview"])
+    assert r.status_code == 202, r.text  # no worker: the render and its verification wait
+    key = r.json()["artifact_key"]
+    con = r.json()["contract"]
+    assert con["verification"]["job_id"] == verify_job_id(key) and con["verification"]["state"] != "finished"
+    # the job measured and stored its result, then its record expired
+    write_verification(open_store(f"file://{store_dir}"), sid, key,
+                       {"artifact_key": key, "measured_error": 0.004, "met": True, "verify_ms": 1234.0})
+    job = fetch_job(redis_conn, verify_job_id(key))
+    assert job is not None
+    job.delete(remove_from_queue=True)
+    ver = _render(client, sid, q, outputs=["preview"]).json()["contract"]["verification"]
+    assert ver["state"] == "finished" and ver["measured_error"] == 0.004 and ver["met"] is True
+    assert ver["url"] is None and "engine_version" not in ver and "artifact_key" not in ver
+    assert fetch_job(redis_conn, verify_job_id(key)) is None  # measured already: no second job
+    assert open_store(f"file://{store_dir}").list(f"calibrations/{sid}/verified/")  # goes with the scene (below)
 
 
 def test_a_scenes_calibrations_go_with_it(client: TestClient, store_dir: Any) -> None:
     sid = _scene(client)
     model = _model(sid)
     _store_model(store_dir, model)
+    write_verification(open_store(f"file://{store_dir}"), sid, "k" * 64, {"measured_error": 0.01})
     url = f"/v1/scenes/{sid}/calibrations/{model.bake_key}"
     got = client.get(url)
     assert got.status_code == 200 and got.json()["state"] == "finished" and got.json()["model"]["cost_s"] == 3.0
