@@ -7,7 +7,8 @@ one), calibrate it with the service's defaults (``workers.jobs.calibrate.calibra
 probe views of 64 px, ground truth at 256 spp), then on held-out views (turned by angles the probes
 do not use, at another size) render a converged ground truth (two halves of different seeds: their
 spread is its noise, removed in quadrature from every measured error) and an exhaustive grid of
-settings: the reference at 1, 2, 4, ..., 256 spp and every LDC method of the bake, each timed.
+settings: the reference at every spp the planner offers up to 256 (1, 2, 3, 4, 6, ...) and every
+LDC method of the bake, each timed.
 Requests: error targets from 1 % to 20 % and time budgets from 20 ms to 5 s (log-spaced), and
 pairs of both, on each held-out view. Each is planned (``engine.quality.plan``) and checked against
 the grid's measurements (a reference above 256 spp is rendered and measured when planned):
@@ -47,7 +48,7 @@ from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
 from engine.newviews.llf import bake_llf
 from engine.newviews.renderer import LDCViewRenderer
-from engine.quality import SceneModel, Setting, plan
+from engine.quality import REFERENCE_SPP_LADDER, SceneModel, Setting, plan
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from producer.settings import Settings
@@ -58,7 +59,8 @@ from workers.scene_loader import directory_resolver, load_scene
 DOC = Path(__file__).resolve().parents[1] / "docs" / "accuracy" / "contracts.md"
 HELD_OUT_DEG = (4.0, -4.0, 12.0, -12.0, 20.0, -20.0)
 """Held-out views: angles the probes (+-8, +-16) never use."""
-GRID_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+GRID_SPP = tuple(s for s in REFERENCE_SPP_LADDER if s <= 256)
+"""The grid's reference settings: every spp the planner offers up to 256."""
 ERRORS = tuple(float(x) for x in np.geomspace(0.01, 0.2, 10))
 BUDGETS_MS = tuple(float(x) for x in np.geomspace(20.0, 5000.0, 8))
 

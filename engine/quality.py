@@ -4,8 +4,9 @@ to the converged image, and the planner that picks a setting for an error target
 Pure Python (no numba, no numpy): the API process imports it to plan a request when it arrives;
 the calibration job (``workers/jobs/calibrate.py``) measures what :func:`fit_model` fits.
 
-Candidates come from the render-method registry (:mod:`engine.methods`): ``reference`` at every
-power-of-two spp of its range, ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k`` for the calibrated k. The
+Candidates come from the render-method registry (:mod:`engine.methods`): ``reference`` at half-octave
+steps of spp over its range (1, 2, 3, 4, 6, 8, 12, ...: a safety margin that moves the plan
+past a power of two costs 1.5x, not 2x), ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k`` for the calibrated k. The
 model, per scene and bake:
 
 - reference at ``s`` spp: ``error(s) = a s^-p`` (LRMS against the converged image; ``p`` in
@@ -82,8 +83,9 @@ __all__ = [
 
 MODEL_VERSION = 1
 
-REFERENCE_SPP_LADDER: tuple[int, ...] = tuple(2 ** i for i in range(13) if 2 ** i <= REFERENCE.param("spp").high)
-"""The reference spp the planner offers: 1, 2, 4, ..., 4096."""
+REFERENCE_SPP_LADDER: tuple[int, ...] = tuple(sorted(
+    s for i in range(13) for s in {2 ** i, 3 * 2 ** i // 2} if s <= REFERENCE.param("spp").high))
+"""The reference spp the planner offers, half an octave apart: 1, 2, 3, 4, 6, 8, 12, ..., 3072, 4096."""
 
 CALIBRATION_SPP: tuple[int, ...] = (1, 4, 16)
 """The reference spp the calibration renders on each probe view (the ladder's error and time fit)."""
