@@ -152,6 +152,9 @@ def test_bake_render_host_loss_and_redis_restart_across_hosts(cluster: Cluster, 
         report["b_victim"] = victim.name
         report["b_victim_retries_left"] = int(job.get(b"retries_left", b"-1"))
         assert not c.hosts.pids(c.worker_hosts["w1"])
+        w2_log = c.procs["bake-w2"].log_path.read_text(errors="replace")
+        assert f"Job {victim.job_id}: scheduled for retry" in w2_log  # w2's abandoned-job handling
+        assert "on this host is gone" not in w2_log  # w1 is another host: no same-host shortcut
         assert workers_of(redis, "bake") >= {"bake-w2"}
 
         # (c) Redis restarted while a render waits for its bake ---------------------------------------
