@@ -195,7 +195,17 @@ def wait_registered(redis: Any, queue: str, n: int, timeout: float = 120.0) -> N
 
 
 def commandstats(redis: Any) -> dict[str, int]:
-    return {k.removeprefix("cmdstat_"): int(v["calls"]) for k, v in redis.info("commandstats").items()}
+    """Calls per command since the server started, plus ``_cpu_us``: the server's own CPU time."""
+    calls = {k.removeprefix("cmdstat_"): int(v["calls"]) for k, v in redis.info("commandstats").items()}
+    cpu = redis.info("cpu")
+    calls["_cpu_us"] = int(1e6 * (float(cpu["used_cpu_sys"]) + float(cpu["used_cpu_user"])))
+    return calls
+
+
+def split_cpu(stats: dict[str, int]) -> tuple[dict[str, int], float]:
+    """(command counts, Redis CPU seconds) of a commandstats delta."""
+    rest = dict(stats)
+    return rest, rest.pop("_cpu_us", 0) / 1e6
 
 
 def stats_delta(after: dict[str, int], before: dict[str, int], minus: dict[str, int] | None = None) -> dict[str, int]:
@@ -247,15 +257,17 @@ def queue_run(redis: Any, workers: Workers, queue: str, n_workers: int, n_jobs: 
     drain_s = (ended - started).total_seconds()
     workers.stop()
     s2 = commandstats(redis)
-    run = stats_delta(s2, s1, _OWN)
+    run, run_cpu = split_cpu(stats_delta(s2, s1, _OWN))
     # what the polling loop above sent is not the jobs' cost: llen / hmget are only sent by it
     for own in ("llen", "hmget"):
         run.pop(own, None)
-    enq = stats_delta(s1, s0, _OWN)
+    enq, enq_cpu = split_cpu(stats_delta(s1, s0, _OWN))
     return {"queue": queue, "workers": n_workers, "jobs": n_jobs, "states": {str(k): v for k, v in states.items()},
             "enqueue_s": enqueue_s, "enqueue_jobs_per_s": n_jobs / enqueue_s,
             "drain_s": drain_s, "jobs_per_s": n_jobs / drain_s,
             "redis_per_job_enqueue": sum(enq.values()) / n_jobs,
+            "redis_cpu_us_per_job_enqueue": 1e6 * enq_cpu / n_jobs,
+            "redis_cpu_us_per_job_run_incl_polls": 1e6 * run_cpu / n_jobs,
             "redis_per_job_run_incl_worker_idle_and_startup": sum(run.values()) / n_jobs,
             "redis_enqueue_by_command": {k: round(v / n_jobs, 2) for k, v in list(enq.items())[:10]},
             "redis_run_by_command": {k: round(v / n_jobs, 2) for k, v in list(run.items())[:12]}}
@@ -288,11 +300,12 @@ def measured(redis: Any, meter: S3Meter, action: Any) -> dict[str, Any]:
     time.sleep(1.5)  # workers record the job's end after the manifest lands
     mark()
     (r0, m0), (r1, m1), (r2, m2) = marks
-    api_redis, work_redis = stats_delta(r1, r0, _OWN), stats_delta(r2, r1, _OWN)
+    (api_redis, api_cpu), (work_redis, work_cpu) = (split_cpu(stats_delta(r1, r0, _OWN)),
+                                                    split_cpu(stats_delta(r2, r1, _OWN)))
     return {"wall_s": wall, "result": result,
-            "enqueue": {"redis": sum(api_redis.values()), "s3": meter_delta(m1, m0)},
-            "workers": {"redis": sum(work_redis.values()), "redis_by_command": dict(list(work_redis.items())[:10]),
-                        "s3": meter_delta(m2, m1)}}
+            "enqueue": {"redis": sum(api_redis.values()), "redis_cpu_ms": 1e3 * api_cpu, "s3": meter_delta(m1, m0)},
+            "workers": {"redis": sum(work_redis.values()), "redis_cpu_ms": 1e3 * work_cpu,
+                        "redis_by_command": dict(list(work_redis.items())[:10]), "s3": meter_delta(m2, m1)}}
 
 
 def part_bytes(direct: Any, prefix: str) -> int:
@@ -375,22 +388,24 @@ def report(data: dict[str, Any]) -> str:
              "**Queue throughput** (no-op jobs; drain = first job started to last job ended, worker start-up "
              "excluded; enqueue by one client through the API's de-duplicating `enqueue_unique`):", "",
              "| queue (job runs in) | workers | jobs | enqueued / s | drained / s "
-             "| Redis commands per job: enqueue | run |",
+             "| Redis commands per job: enqueue / run | Redis CPU per job: enqueue / run |",
              "|---|---|---|---|---|---|---|"]
     for r in data["queue"]:
         where = "the worker" if r["queue"] == "render" else "a forked horse"
         lines.append(f"| {r['queue']} ({where}) | {r['workers']} | {r['jobs']} | {r['enqueue_jobs_per_s']:.0f} | "
-                     f"{r['jobs_per_s']:.0f} | {r['redis_per_job_enqueue']:.1f} | "
-                     f"{r['redis_per_job_run_incl_worker_idle_and_startup']:.1f} |")
+                     f"{r['jobs_per_s']:.0f} | {r['redis_per_job_enqueue']:.1f} / "
+                     f"{r['redis_per_job_run_incl_worker_idle_and_startup']:.1f} | "
+                     f"{r['redis_cpu_us_per_job_enqueue']:.0f} / {r['redis_cpu_us_per_job_run_incl_polls']:.0f} µs |")
     lines += ["", "**Per bake and per render** (1 bake + 1 render worker; S3 bytes are HTTP bodies through the "
               "proxy; \"API side\" = the enqueueing calls the API makes, \"workers\" = everything after):", "",
-              "| work | jobs | wall | Redis cmds: API side / workers | S3 requests (workers) | "
-              "S3 written (workers) | S3 read (workers) |", "|---|---|---|---|---|---|---|"]
+              "| work | jobs | wall | Redis cmds: API side / workers | Redis CPU (all) | S3 requests (workers) | "
+              "S3 written (workers) | S3 read (workers) |", "|---|---|---|---|---|---|---|---|"]
     for name in ("bake_direct", "bake_indirect", "render_ldc_cold", "render_ldc_warm", "render_reference"):
         c = data["costs"][name]
         s3 = c["workers"]["s3"]["total"]
         lines.append(f"| {name.replace('_', ' ')} | {c.get('jobs', 1)} | {c['wall_s']:.1f} s | "
-                     f"{c['enqueue']['redis']} / {c['workers']['redis']} | {s3['requests']} | "
+                     f"{c['enqueue']['redis']} / {c['workers']['redis']} | "
+                     f"{c['enqueue']['redis_cpu_ms'] + c['workers']['redis_cpu_ms']:.0f} ms | {s3['requests']} | "
                      f"{_mib(s3['bytes_written'])} | {_mib(s3['bytes_read'])} |")
     for name in ("bake_direct", "bake_indirect"):
         pb = data["costs"][name]["result"]["part_bytes"]
@@ -450,7 +465,8 @@ def main(argv: list[str] | None = None) -> int:
                     queue_runs.append(r)
             costs = cost_runs(redis, store, direct, meter, workers)
             for name, c in costs.items():
-                print(f"{name}: {c['wall_s']:.1f} s, Redis {c['enqueue']['redis']} + {c['workers']['redis']}, "
+                print(f"{name}: {c['wall_s']:.1f} s, Redis {c['enqueue']['redis']} + {c['workers']['redis']} "
+                      f"({c['workers']['redis_cpu_ms']:.0f} ms CPU), "
                       f"S3 {c['workers']['s3']['total']}", flush=True)
         finally:
             workers.stop()
