@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 from redis import Redis
+from rq.scheduler import SCHEDULER_KEY_TEMPLATE, RQScheduler
 
 from producer.queue import redis_from_url
 from service.client import ApiError, Client
@@ -61,7 +62,7 @@ def cluster(netns_hosts: Hosts) -> Iterator[Cluster]:
     c.start_worker("w2", "render")
     redis = redis_from_url(c.redis_url)
     try:
-        wait_until(lambda: redis.get("rq:scheduler-lock:bake"), 60, "w2's bake scheduler", c.logs)
+        wait_until(lambda: scheduler_host(redis, "bake") == "w2", 60, "w2's bake scheduler", c.logs)
         c.start_worker("w1", "bake")
         wait_until(lambda: len(workers_of(redis, "bake")) == 2, 60, "both bake workers", c.logs)
         c.wait_api()
@@ -76,6 +77,13 @@ def workers_of(redis: Redis, queue: str) -> set[str]:
     from producer.queue import get_queue
 
     return {w.name for w in Worker.all(connection=redis, queue=get_queue(redis, queue))}  # type: ignore[arg-type]
+
+
+def scheduler_host(redis: Redis, queue: str) -> str | None:
+    """The hostname of the scheduler holding ``queue``'s scheduler lock (it enqueues due retries)."""
+    name = redis.get(RQScheduler.get_locking_key(queue))
+    host = redis.hget(SCHEDULER_KEY_TEMPLATE % name.decode(), "hostname") if name else None
+    return host.decode() if host else None
 
 
 def worker_of(redis: Redis, job_id: str) -> str | None:
