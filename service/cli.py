@@ -39,7 +39,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from api_schemas import format_validation_error, load_scene_file, scene_json_schema
 from api_schemas.datasets import DatasetManifest, FileUploadPublic, RelightPublic
 from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
-from api_schemas.service import ArtifactManifest, BakePublic, BatchPublic, JobPublic
+from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
 from api_schemas.walkthrough import WalkthroughPublic
 from samples import SAMPLES_DIR, sample_names, sample_path
 from service.client import ApiError, Client, InvalidId, JobFailed, read_dataset_dir, with_sha256s
@@ -659,8 +659,7 @@ def jobs_cancel(job_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt = No
 
 @app.command()
 def batch(
-    scenes: Annotated[list[str], typer.Argument(help="Scene JSON files or sample names (scenes with mesh files are "
-                                                     "uploaded first, one request each)")],
+    scenes: Annotated[list[str], typer.Argument(help="Scene JSON files (with their mesh files) or sample names")],
     render_them: Annotated[bool, typer.Option("--render/--no-render", help="Also request a render of each")] = True,
     spp: Annotated[int | None, typer.Option(help="Antialiasing samples per pixel for the renders")] = None,
     follow: Annotated[bool, typer.Option(help="Follow the batch until every job ended")] = False,
@@ -669,35 +668,15 @@ def batch(
 ) -> None:
     """Submit many scenes (and renders of them) in one call; prints the batch id.
 
-    A batch carries scene JSON only, so scenes with mesh files go to ``POST /v1/scenes`` first
-    (with their meshes) and the batch's renders name them by id. Every scene is validated locally
-    before anything is sent."""
-    docs: list[Mapping[str, Any]] = []
-    with_meshes: list[tuple[str, dict[str, Any], dict[str, Path]]] = []
-    for s in scenes:
-        doc, meshes = _scene_doc(s)
-        if meshes:
-            with_meshes.append((s, doc, meshes))
-        else:
-            docs.append(doc)
+    The scenes and their mesh files go in one batch; the renders follow in a second one that names
+    the stored scenes by id. Every scene is validated locally before anything is sent."""
+    loaded = [_scene_doc(s) for s in scenes]
     with _client(api_url, api_key) as c:
-        scene_ids: list[str] = []
-        for name, doc, meshes in with_meshes:
-            sid = _call(partial(c.create_scene, doc, meshes)).id
-            _say(f"scene {name}: {sid} (uploaded with its mesh files)")
-            scene_ids.append(sid)
-        b: BatchPublic | None = None
-        if docs:
-            b = _call(lambda: c.batch(scenes=docs))
-            scene_ids += b.scene_ids
+        b = _call(lambda: c.batch(scenes=[doc for doc, _ in loaded], meshes=[meshes for _, meshes in loaded]))
         if render_them:
             params = {"spp": spp} if spp else {}
-            renders: list[Mapping[str, Any]] = [{"scene_id": sid, "params": params} for sid in dict.fromkeys(scene_ids)]
+            renders: list[Mapping[str, Any]] = [{"scene_id": sid, "params": params} for sid in b.scene_ids]
             b = _call(lambda: c.batch(renders=renders))
-        if b is None:  # --no-render and every scene had mesh files: no batch, the scene ids are the result
-            for sid in scene_ids:
-                typer.echo(sid)
-            return
         typer.echo(b.id)
         batch_id = b.id
         while follow:

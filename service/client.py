@@ -346,9 +346,18 @@ class Client:
 
     # ------------------------------------------------------------------ batches
     def batch(self, scenes: list[Mapping[str, Any]] | None = None,
-              renders: list[Mapping[str, Any]] | None = None) -> BatchPublic:
+              renders: list[Mapping[str, Any]] | None = None,
+              meshes: Sequence[Mapping[str, FileData] | None] | None = None) -> BatchPublic:
+        """Store ``scenes`` and queue ``renders`` in one call. ``meshes[i]``: the mesh files of
+        ``scenes[i]`` by ``mesh_file`` path (bytes or a file); with any, the batch goes as multipart."""
         body = {"scenes": [{"scene": s} for s in (scenes or [])], "renders": list(renders or [])}
-        return BatchPublic.model_validate(self._request("POST", "/v1/batches", json=body).json())
+        files = [(f"scenes.{i}.{path}", (Path(path).name, _bytes(data), "application/octet-stream"))
+                 for i, scene_meshes in enumerate(meshes or []) for path, data in (scene_meshes or {}).items()]
+        if not files:
+            return BatchPublic.model_validate(self._request("POST", "/v1/batches", json=body).json())
+        parts: list[tuple[str, tuple[str | None, bytes, str]]] = [
+            ("batch", (None, json.dumps(body).encode(), "application/json")), *files]
+        return BatchPublic.model_validate(self._request("POST", "/v1/batches", files=parts).json())
 
     def get_batch(self, batch_id: str) -> BatchPublic:
         return BatchPublic.model_validate(self._request("GET", f"/v1/batches/{_id(batch_id, 'batch id')}").json())
