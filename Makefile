@@ -55,7 +55,7 @@ bench: install-dev
 	$(BIN)/python -m bench.mitsuba_crosscheck
 
 lint: install-dev
-	$(BIN)/python -m ruff check api_schemas engine producer workers service samples tests bench
+	$(BIN)/python -m ruff check api_schemas ibr_client engine producer workers service samples tests bench
 
 compose-check:
 	docker-compose -f docker-compose.yml config -q
