@@ -20,6 +20,7 @@ from redis import Redis
 from starlette.types import Scope
 
 from api_schemas.errors import FieldError
+from api_schemas.scene import MeshFileObject
 from api_schemas.service import BatchPublic, BatchRequest, JobId
 from producer.artifacts import mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.batches import batch_owner, batch_status, enqueue_batch
@@ -88,7 +89,9 @@ async def _multipart_batch(request: Request) -> Request:
 
 
 class BatchRoute(APIRoute):
-    """Routes that also take a batch as ``multipart/form-data`` (see the module docstring)."""
+    """Routes that also take a batch as ``multipart/form-data`` (see the module docstring). The form
+    is read before the route's dependencies run (API key, rate limit), as FastAPI reads a JSON body,
+    under the same body limit."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handle = super().get_route_handler()
@@ -138,7 +141,7 @@ def _mesh_errors(batch: BatchRequest, files: Mapping[int, Mapping[str, bytes]]) 
                                      message=f"file part 'scenes.{i}.{path}': scene {i} has no mesh_file {path!r}"))
         for path in needed:
             if path not in given:
-                k = next(k for k, o in enumerate(sc.scene.objects) if getattr(o, "path", None) == path)
+                k = next(k for k, o in enumerate(sc.scene.objects) if isinstance(o, MeshFileObject) and o.path == path)
                 errors.append(FieldError(
                     field=f"scenes.{i}.scene.objects.{k}.path", type="missing_file",
                     message=f"mesh file {path!r}: send the batch as multipart/form-data with the file as the "
