@@ -216,10 +216,10 @@ def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt 
 
 
 def render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict[str, Any],
-                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
-                      method: str | None = "reference", bake: dict[str, Any] | None = None,
-                      missing_bake: str | None = None, max_error: float | None = None,
-                      max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> None:
+                     output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
+                     method: str | None = "reference", bake: dict[str, Any] | None = None,
+                     missing_bake: str | None = None, max_error: float | None = None,
+                     max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> None:
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
@@ -331,14 +331,14 @@ def render(
     contract = quality_error is not None or quality_ms is not None
     if contract and (method is not None or params):
         fail("--quality-error/--quality-ms let the planner choose the method: leave out --method and "
-              "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
+             "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
     if verify and not contract:
         fail("--verify measures a quality contract's render: give --quality-error and / or --quality-ms")
     if method is None and not contract:
         method = "reference"
     if method not in (None, "reference") and params:
         fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
-              "the bake's settings")
+             "the bake's settings")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         scene_id = scene
     else:
@@ -349,8 +349,8 @@ def render(
     if output is not None and output.suffix.lower() not in (".png", ".exr"):
         fail(f"{output}: the service delivers .png or .exr")
     render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
-                      missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
-                      best_effort=best_effort, verify=verify)
+                     missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
+                     best_effort=best_effort, verify=verify)
 
 
 @app.command()
@@ -1098,7 +1098,7 @@ def walkthroughs_fetch(
         if w.status != "finished":
             if not wait:
                 fail(f"walkthrough {key} is {w.status} ({w.frames_done}/{w.frames} frames)", code=4
-                      if w.status == "failed" else 2)
+                     if w.status == "failed" else 2)
             w = _follow_walkthrough(c, w)
         _walkthrough_outputs(c, key, output, frames_dir, w.frames, fmt)
 

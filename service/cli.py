@@ -122,7 +122,7 @@ def up(
             if demo not in ids:
                 raise typer.Exit(fail_code(f"--demo {demo}: not a sample scene ({', '.join(sorted(ids))})", 2))
             render_and_fetch(stack.api_url, stack.env.get("IBR_API_KEY"), ids[demo], {}, demo_output, "png",
-                              wait=True)
+                             wait=True)
     except BaseException:
         stack.stop(timeout=10)
         raise
