@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import pkgutil
 import sys
 from collections.abc import Iterable, Mapping
 from typing import Any
@@ -23,9 +24,8 @@ from pydantic import BaseModel
 
 __all__ = ["CLIENT_MODELS", "client_models", "model_drift"]
 
-MODEL_MODULES = ("api_schemas.common", "api_schemas.scene", "api_schemas.service", "api_schemas.datasets",
-                 "api_schemas.walkthrough")
-"""The modules whose models the client carries (the wire format)."""
+MODEL_PACKAGE = "api_schemas"
+"""The package whose models the client carries (the wire format): every module of it."""
 
 CLIENT_MODULES = ("ibr_client.client", "ibr_client.cli")
 """The client's own modules: every model they import is one the client uses."""
@@ -35,11 +35,13 @@ _NOT_TYPES = frozenset({"title", "description", "examples", "example", "default"
 
 
 def client_models() -> dict[str, type[BaseModel]]:
-    """Every model of :data:`MODEL_MODULES`, by class name (a name two modules define is left out:
-    the server would document it under a longer name)."""
+    """Every model of :data:`MODEL_PACKAGE`'s modules, by class name (a name two modules define is
+    left out: the server would document it under a longer name)."""
     found: dict[str, type[BaseModel]] = {}
     twice: set[str] = set()
-    for module in MODEL_MODULES:
+    package = importlib.import_module(MODEL_PACKAGE)
+    for info in pkgutil.iter_modules(package.__path__):
+        module = f"{MODEL_PACKAGE}.{info.name}"
         for name, obj in vars(importlib.import_module(module)).items():
             if inspect.isclass(obj) and issubclass(obj, BaseModel) and obj.__module__ == module:
                 if name in found and found[name] is not obj:
