@@ -9,6 +9,8 @@ COPY producer producer
 COPY workers workers
 COPY service service
 COPY samples samples
+COPY ibr_client ibr_client
+# the runtime only: pyproject.toml's dev extras (tests, Mitsuba, Playwright, lint) stay out of the image
 RUN pip install --no-cache-dir .
 # numba's disk cache ships in the image: the warm-up (workers/warmup.py) runs every render-job
 # kernel (and the LDC / LLF / dataset bake kernels it needs) once at build time, so workers load

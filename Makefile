@@ -2,19 +2,30 @@
 PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+# Two installs, each remembered by a stamp: the runtime (what `make run` needs: the service, its
+# workers and the CLI) and, on top of it, the development extras of pyproject.toml's `dev`
+# (pytest, Mitsuba, Playwright, moto, mypy, ruff, ...) that the tests, benchmarks and lint need.
+# Both are redone when pyproject.toml changes; `make test` after `make run` only adds the extras.
+RUNTIME_STAMP := $(VENV)/.installed-runtime
+DEV_STAMP := $(VENV)/.installed-dev
 # Parallel test workers (2 cores here).
 PYTEST_WORKERS ?= 2
 
-.PHONY: install run demo render-local test test-fast bench lint compose-check clean
+.PHONY: install install-dev run demo render-local test test-fast bench lint compose-check clean
 
-$(STAMP): pyproject.toml
+$(RUNTIME_STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	touch $(STAMP)
+	$(BIN)/python -m pip install --quiet -e .
+	touch $(RUNTIME_STAMP)
 
-install: $(STAMP)
+$(DEV_STAMP): $(RUNTIME_STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(DEV_STAMP)
+
+install: $(RUNTIME_STAMP)
+
+install-dev: $(DEV_STAMP)
 
 # The main job: start the service with its embedded defaults (private Redis, local object
 # store under ./.ibr-data), load the sample scenes, render one through the queue into
@@ -31,20 +42,20 @@ render-local: install
 	$(BIN)/ibr render-local mirror_box -o out/mirror_box_local.png
 	$(BIN)/ibr render-local cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
 
-test: install
+test: install-dev
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q tests
 
 # The everyday lane: every test not marked slow (no browser, no live multi-process stacks, no
 # long convergence runs). CI runs everything (make test).
-test-fast: install
+test-fast: install-dev
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q -m "not slow" tests
 
-bench: install
+bench: install-dev
 	$(BIN)/python -m bench.raycast_throughput
 	$(BIN)/python -m bench.mitsuba_crosscheck
 
-lint: install
-	$(BIN)/python -m ruff check api_schemas engine producer workers service samples tests bench
+lint: install-dev
+	$(BIN)/python -m ruff check api_schemas ibr_client engine producer workers service samples tests bench
 
 compose-check:
 	docker-compose -f docker-compose.yml config -q

@@ -17,7 +17,7 @@ import json
 import math
 import os
 import re
-from typing import Annotated, Any, Literal, Self
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Self
 
 import numpy as np
 import numpy.typing as npt
@@ -29,7 +29,6 @@ from pydantic import (
     model_validator,
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
-from scipy.spatial.transform import Rotation
 
 from api_schemas.common import (
     RGB,
@@ -48,6 +47,9 @@ from api_schemas.common import (
     raise_errors,
     unit_vector,
 )
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 __all__ = [
     "MAX_IMAGE_PIXELS",
@@ -404,6 +406,9 @@ class Transform(FrozenModel):
 
     def rotation(self) -> Rotation | None:
         """The rotation part as a scipy Rotation, or None when no rotation is given."""
+        # deferred on purpose: only the workers build matrices; the models load without scipy (ibr-client)
+        from scipy.spatial.transform import Rotation
+
         if self.quaternion is not None:
             q = np.asarray(self.quaternion, dtype=np.float64)
             return Rotation.from_quat(q / np.abs(q).max())  # pre-scaled: tiny quaternions stay valid

@@ -6,15 +6,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import socket
-import threading
-import time
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
-import pytest
-import uvicorn
 from click.testing import Result
 from typer.testing import CliRunner
 
@@ -23,24 +16,6 @@ from tests.service.api.conftest import small_scene
 from tests.service.api.test_datasets import subset
 
 runner = CliRunner()
-
-
-@pytest.fixture
-def api_url(make_app: Any) -> Iterator[str]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(make_app(), host="127.0.0.1", port=port, log_level="warning",
-                                           lifespan="off"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert server.started
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=10)
 
 
 def ibr(api_url: str, *args: str) -> Result:

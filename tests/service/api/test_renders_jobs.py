@@ -105,7 +105,7 @@ def test_batches(client: TestClient, store_dir: Path) -> None:
     r = client.post("/v1/batches", json={"scenes": [{"scene": small_scene(name="three")}, {"scene": mesh}],
                                          "renders": [{"scene_id": "f" * 64}]})
     assert r.status_code == 422
-    assert {e["field"] for e in r.json()["errors"]} == {"scenes.1.scene", "renders.0.scene_id"}
+    assert {e["field"] for e in r.json()["errors"]} == {"scenes.1.scene.objects.2.path", "renders.0.scene_id"}
     assert len(client.get("/v1/scenes").json()["items"]) == scenes_before
     assert client.get("/v1/batches/nope").status_code == 404
 
