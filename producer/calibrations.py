@@ -34,12 +34,12 @@ from engine import ENGINE_VERSION
 from engine.quality import Plan, SceneModel, Setting, plan
 from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
+from producer.costs import estimate_render_bytes
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
 from producer.names import CALIBRATE_JOB, VERIFY_JOB, calibrate_job_id, render_job_id, scene_bake_job_id, verify_job_id
 from producer.payloads import VerifyJobPayload
 from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
-from producer.render_memory import estimate_render_bytes
 from producer.status import job_public
 from producer.store import NotFound, ObjectStore
 

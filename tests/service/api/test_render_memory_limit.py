@@ -1,5 +1,6 @@
-"""A render whose estimated peak memory exceeds ``IBR_MAX_RENDER_BYTES`` is refused with 422 naming
-the estimate and the limit, before anything is queued; one under the limit is queued."""
+"""A render whose estimated peak memory (``producer.costs.render_cost``: the image's buffers and the scene
+the worker builds) exceeds ``IBR_MAX_RENDER_BYTES`` is refused with 422 naming the estimate and the limit,
+before anything is queued; one under the limit is queued."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ from typing import Any
 from fastapi.testclient import TestClient
 from redis import Redis
 
+from api_schemas.scene import Scene
 from api_schemas.service import RenderRequest
-from producer.render_memory import estimate_render_bytes
+from producer.costs import estimate_render_bytes, render_cost, scene_triangles
 from tests.service.api.conftest import SMALL_SCENE, small_scene
 
 LIMIT = 1 << 30
@@ -34,7 +36,8 @@ def test_over_the_limit_is_refused_before_it_is_queued(make_app: Any, redis_conn
     with TestClient(make_app(max_render_bytes=LIMIT)) as c:
         sid = c.post("/v1/scenes", json={"scene": small_scene()}).json()["id"]
         side = 2000
-        need = estimate_render_bytes(RenderRequest(scene_id=sid, camera=_camera(side, side)), side, side)
+        triangles = scene_triangles(Scene.model_validate(small_scene()))
+        need = render_cost(RenderRequest(scene_id=sid, camera=_camera(side, side)), side, side, triangles).peak_bytes
         assert need > LIMIT
         r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(side, side)})
         assert r.status_code == 422, r.text

@@ -1,4 +1,4 @@
-"""The render-memory estimate that the API refuses renders by (``producer.render_memory``) bounds
+"""The render-memory estimate that the API refuses renders by (``producer.costs``) bounds
 what the real render job takes: a render sized so its estimate is the limit grows a warm worker's
 peak RSS by no more than the limit, and by a good part of it (the estimate is not vacuous)."""
 
@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from api_schemas.service import RenderRequest
-from producer.render_memory import estimate_render_bytes
+from producer.costs import estimate_render_bytes
 
 REPO = Path(__file__).resolve().parents[3]
 
