@@ -81,6 +81,7 @@ __all__ = [
     "generate_cost",
     "mesh_triangles",
     "object_triangles",
+    "reference_chunk_pixels",
     "relight_cost",
     "render_cost",
     "scene_bounds",
@@ -187,7 +188,8 @@ class Cost:
 @dataclass(frozen=True)
 class Limits:
     """What one job may cost on this server (``Settings``: ``max_scene_triangles``, ``max_render_bytes``
-    or ``max_bake_part_bytes``, ``max_render_cpu_s`` or ``max_bake_job_cpu_s``, ``max_bake_cpu_s``)."""
+    or ``max_bake_part_bytes``, ``max_render_cpu_s`` or ``max_bake_job_cpu_s``, ``max_bake_cpu_s`` for the
+    jobs of one request together)."""
 
     triangles: int
     peak_bytes: int
@@ -197,14 +199,16 @@ class Limits:
                                         "IBR_MAX_BAKE_CPU_S")
 
     @classmethod
-    def for_queue(cls, settings: Any, queue: str) -> Limits:
-        """The limits of a job on the ``render`` or the ``bake`` queue (``settings``: ``Settings``)."""
-        if queue == "render":
-            return cls(settings.max_scene_triangles, settings.max_render_bytes, settings.max_render_cpu_s,
-                       settings.max_bake_cpu_s)
-        return cls(settings.max_scene_triangles, settings.max_bake_part_bytes, settings.max_bake_job_cpu_s,
-                   settings.max_bake_cpu_s, ("IBR_MAX_SCENE_TRIANGLES", "IBR_MAX_BAKE_PART_BYTES",
-                                             "IBR_MAX_BAKE_JOB_CPU_S", "IBR_MAX_BAKE_CPU_S"))
+    def for_job(cls, settings: Any, queue: str, bake_part: bool = False) -> Limits:
+        """The limits of a job on the ``render`` or the ``bake`` queue (``settings``: ``Settings``): memory
+        ``max_render_bytes`` (``max_bake_part_bytes`` for the parts of a scene bake, which it splits
+        into jobs of that size), CPU ``max_render_cpu_s`` or ``max_bake_job_cpu_s`` by queue."""
+        mem, mem_name = ((settings.max_bake_part_bytes, "IBR_MAX_BAKE_PART_BYTES") if bake_part
+                         else (settings.max_render_bytes, "IBR_MAX_RENDER_BYTES"))
+        cpu, cpu_name = ((settings.max_render_cpu_s, "IBR_MAX_RENDER_CPU_S") if queue == "render"
+                         else (settings.max_bake_job_cpu_s, "IBR_MAX_BAKE_JOB_CPU_S"))
+        return cls(settings.max_scene_triangles, mem, cpu, settings.max_bake_cpu_s,
+                   ("IBR_MAX_SCENE_TRIANGLES", mem_name, cpu_name, "IBR_MAX_BAKE_CPU_S"))
 
 
 class CostOverLimit(ValueError):
@@ -456,8 +460,15 @@ def _plus_scene(kind: str, triangles: int, body_bytes: float, body_cpu_s: float,
 # --------------------------------------------------------------------------- renders
 
 
+def reference_chunk_pixels(pixels: int) -> int:
+    """Pixels per wavefront chunk of a reference render of ``pixels`` (``engine.reference``: an eighth of
+    the image, at least 1024 and at most ``REFERENCE_CHUNK_PIXELS``); its rays for every sample are traced
+    at once."""
+    return min(pixels, REFERENCE_CHUNK_PIXELS, max(1024, -(-pixels // 8)))
+
+
 def _reference_bytes(p: Any, pixels: int) -> float:
-    chunk = min(pixels, REFERENCE_CHUNK_PIXELS)
+    chunk = reference_chunk_pixels(pixels)
     per_sample = (REFERENCE_BYTES_PER_CHUNK_SAMPLE
                   + REFERENCE_BYTES_PER_GLOSSY_RAY * (p.glossy_samples - 1 + p.indirect_samples)
                   + REFERENCE_BYTES_PER_AREA_RAY * (p.area_light_samples - 1))
@@ -617,12 +628,15 @@ def generate_cost(req: GenerateRequest, width: int, height: int, triangles: int,
                        images=n)
 
 
+_REGION_SR = {"sphere": 4.0 * math.pi, "hemisphere": 2.0 * math.pi, "upper_front_quarter": math.pi}
+
+
 def light_count(req: GenerateRequest) -> int:
-    """Lights the placement puts in a generated dataset (``max_lights`` when it cannot be counted here)."""
-    try:
-        return min(req.max_lights, len(req.placement.directions(None)))  # type: ignore[attr-defined]
-    except Exception:  # noqa: BLE001 - the count is an estimate; the job validates the placement
-        return req.max_lights
+    """Lights the placement puts in a generated dataset: its region's solid angle over the spacing's
+    (``engine.relighting.generate`` places them; this count is within ~20 % of its grids), at most
+    ``max_lights``."""
+    spacing = math.radians(req.placement.spacing_deg)
+    return max(3, min(req.max_lights, math.ceil(_REGION_SR[req.placement.region] / (spacing * spacing))))
 
 
 def dataset_bake_cost(n_images: int, width: int, height: int, params: DatasetBakeParams) -> Cost:

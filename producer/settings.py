@@ -97,10 +97,11 @@ class Settings(BaseSettings):
     """Uploaded images the API process validates at once (each holds up to
     ``max_decoded_image_bytes``); further uploads wait for a slot, 503 after 30 s."""
     max_render_bytes: Annotated[int, Field(ge=_MIB)] = 6 << 30
-    """Largest estimated peak memory of one job on the render queue (a render, a relight, a composite,
-    a walkthrough frame chunk, a verification; ``producer.costs``, from the image size, the method, the
-    samples per pixel and the scene's triangles): a request over it is refused with 422 naming the
-    estimate and the limit before it is queued. 6 GiB: a reference render of about 4300 x 4300 at
+    """Largest estimated peak memory of one job (a render, a relight, a composite, a walkthrough bake or
+    frame chunk, a dataset generation or bake, a calibration, a verification: every job but the parts of
+    a scene bake; ``producer.costs``, from the image size, the method, the samples per pixel and the
+    scene's triangles): a request over it is refused with 422 naming the estimate and the limit before
+    it is queued. 6 GiB: a reference render of about 4300 x 4300 at
     the default samples, an LDC render of about 5300 x 5300."""
     max_render_cpu_s: Annotated[float, Field(gt=0)] = 1200.0
     """Largest estimated CPU time (seconds of one core, ``producer.costs``) of one job on the render
@@ -113,8 +114,8 @@ class Settings(BaseSettings):
     a scene over it is refused with 422 when it is stored, and every job of a stored scene over it
     (a limit lowered later) is refused. 8 M triangles: ~4.2 GiB for the built scene and its BVH."""
     max_bake_job_cpu_s: Annotated[float, Field(gt=0)] = 3600.0
-    """Largest estimated CPU time of one job on the bake queue (a scene bake part, a dataset
-    generation, a walkthrough bake, a calibration): the bake jobs' timeout (3600 s)."""
+    """Largest estimated CPU time (seconds of one core) of one job on the bake queue (a scene bake part,
+    a dataset generation or bake, a walkthrough bake, a calibration): the bake jobs' timeout (3600 s)."""
     contract_error_margin: Annotated[float, Field(gt=0, le=1)] = 0.85
     """Quality contracts are planned for ``max_error`` times this (``engine.quality.plan``): the
     calibration's error model holds for the probe views, and a view a little noisier than them (the
@@ -150,11 +151,10 @@ class Settings(BaseSettings):
     tiny built-in data, so numba compiles or loads its kernels) before taking jobs; ``--no-warmup``
     overrides. Bake workers never warm up (their parent must not run a kernel before forking)."""
     max_bake_part_bytes: Annotated[int, Field(ge=_MIB)] = 2 << 30
-    """Largest estimated memory of one bake-queue job (an LDC axis at its worst case, an indirect chunk
-    with its axis and path-tracing batch, an LLF chunk, a dataset generation, a walkthrough bake, a
-    calibration; the scene it builds included): the API refuses
-    a request over it (``producer.costs``), and the plan job checks a scene bake again on the built
-    scene, before anything is baked."""
+    """Largest estimated memory of one job of a scene bake (an LDC axis at its worst case, an indirect
+    chunk with its axis and path-tracing batch, an LLF chunk; the scene it builds included): the API
+    refuses a bake over it (``producer.costs.bake_cost``), and the plan job checks it again on the
+    built scene, before anything is baked."""
     max_bake_cpu_s: Annotated[float, Field(gt=0)] = 24 * 3600.0
     """Largest estimated CPU time of one bake (all its jobs on one core, dominated by the indirect
     pass): the plan job refuses a bake over it with the estimate and what to lower. 24 h."""

@@ -129,7 +129,7 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, settings: 
         )])
     cost = render_cost(req, cam.width, cam.height, triangles)
     lower = "render a smaller image" + ("" if method_needs_bake(req.method) else " or with fewer samples")
-    return check(cost, Limits.for_queue(settings, "render"), where, lower, "render_too_large")
+    return check(cost, Limits.for_job(settings, "render"), where, lower, "render_too_large")
 
 
 @router.post(
