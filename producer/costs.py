@@ -90,7 +90,6 @@ __all__ = [
     "stored_scene",
     "stored_scene_triangles",
     "remember_mesh_triangles",
-    "verify_cost",
     "walkthrough_costs",
 ]
 
@@ -498,13 +497,6 @@ def estimate_render_bytes(req: RenderRequest, width: int, height: int) -> int:
     """Estimated growth of a render worker's peak memory while it renders ``req`` at ``width`` x ``height``
     of a scene it holds already (the image part of :func:`render_cost`)."""
     return int(render_cost(req, width, height).detail["render_bytes"])
-
-
-def verify_cost(req: RenderRequest, width: int, height: int, triangles: int, truth_spp: int) -> Cost:
-    """A verification job: the reference at ``truth_spp`` of the rendered view (``producer.calibrations``)."""
-    p = req.params.model_copy(update={"spp": truth_spp})
-    return _plus_scene(f"verification of {width} x {height} at {truth_spp} spp", triangles,
-                       _reference_bytes(p, width * height), _reference_cpu_s(p, width * height))
 
 
 def batch_cost(costs: Iterable[Cost]) -> Cost:
