@@ -124,9 +124,9 @@ REFERENCE_CPU_S_PER_AREA_RAY = 0.4e-6
 LDC_BYTES_PER_PIXEL = 180
 """The LDC methods render the whole view at once (warp, candidate lists, provenance): ``ldc+llf``
 grew 74-90 bytes per pixel (1024 x 1024, 2048 x 2048); about twice that for ``ldc+ibrt:k``'s retracing."""
-LDC_CPU_S_PER_PIXEL = 1.0e-6
+LDC_CPU_S_PER_PIXEL = 0.6e-6
 """LDC methods: CPU seconds per pixel (0.42-0.46 us measured at 1024 x 1024 for ``ldc``, ``ldc+llf``
-and ``ldc+ibrt:1``; twice that for scenes busier than the measured one)."""
+and ``ldc+ibrt:1`` on the warm-up scene; a third more for busier scenes)."""
 FIXED_BYTES = 32 << 20
 """Per-job overhead that does not scale with the image (kernels' scratch, encoder state)."""
 MARGIN = 1.25
