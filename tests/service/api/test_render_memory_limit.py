@@ -14,7 +14,7 @@ from api_schemas.service import RenderRequest
 from producer.costs import estimate_render_bytes, render_cost, scene_triangles
 from tests.service.api.conftest import SMALL_SCENE, small_scene
 
-LIMIT = 1 << 30
+LIMIT = 3 << 29  # 1.5 GiB
 
 
 def _camera(width: int, height: int) -> dict[str, Any]:
@@ -43,7 +43,7 @@ def test_over_the_limit_is_refused_before_it_is_queued(make_app: Any, redis_conn
         assert r.status_code == 422, r.text
         (err,) = r.json()["errors"]
         assert err["field"] == "camera.height" and err["type"] == "render_too_large"
-        assert f"{need / (1 << 30):.2f} GiB" in err["message"] and "1.00 GiB" in err["message"], err
+        assert f"{need / (1 << 30):.2f} GiB" in err["message"] and "1.50 GiB" in err["message"], err
         assert f"IBR_MAX_RENDER_BYTES = {LIMIT}" in err["message"]
         # spp counts: the same view at 1 spp fits, at 64 spp it does not
         side = 600
@@ -52,9 +52,9 @@ def test_over_the_limit_is_refused_before_it_is_queued(make_app: Any, redis_conn
         heavy = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(side, side), "params": {"spp": 64}})
         assert heavy.status_code == 422 and "64 spp" in heavy.json()["errors"][0]["message"], heavy.text
         # the LDC methods are estimated too (and refused before any bake is asked for)
-        r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(2400, 2400), "method": "ldc",
+        r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(2600, 2600), "method": "ldc",
                                         "missing_bake": "bake"})
-        assert r.status_code == 422 and "a ldc render of 2400 x 2400" in r.json()["errors"][0]["message"], r.text
+        assert r.status_code == 422 and "a ldc render of 2600 x 2600" in r.json()["errors"][0]["message"], r.text
         # only the accepted render was queued
         assert [k.decode() for k in redis_conn.keys("rq:job:*")] == [f"rq:job:{ok.json()['job']['id']}"]
 
