@@ -101,8 +101,8 @@ class Settings(BaseSettings):
     frame chunk, a dataset generation or bake, a calibration, a verification: every job but the parts of
     a scene bake; ``producer.costs``, from the image size, the method, the samples per pixel and the
     scene's triangles): a request over it is refused with 422 naming the estimate and the limit before
-    it is queued. 6 GiB: a reference render of about 4300 x 4300 at
-    the default samples, an LDC render of about 5300 x 5300."""
+    it is queued. 6 GiB: a reference render of about 4200 x 4200 at
+    the default samples, an LDC render of about 5200 x 5200."""
     max_render_cpu_s: Annotated[float, Field(gt=0)] = 1200.0
     """Largest estimated CPU time (seconds of one core, ``producer.costs``) of one job on the render
     queue: over it the request is refused with 422 naming the estimate and the limit. 1200: the render
