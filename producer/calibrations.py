@@ -34,12 +34,12 @@ from engine import ENGINE_VERSION
 from engine.quality import Plan, SceneModel, Setting, plan
 from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
+from producer.costs import render_cost, stored_scene
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, UnknownScene
 from producer.names import CALIBRATE_JOB, VERIFY_JOB, calibrate_job_id, render_job_id, scene_bake_job_id, verify_job_id
 from producer.payloads import VerifyJobPayload
 from producer.queue import ACTIVE_STATUSES, BAKE_TIMEOUT_S, fetch_job, job_retry
-from producer.render_memory import estimate_render_bytes
 from producer.status import job_public
 from producer.store import NotFound, ObjectStore
 
@@ -166,7 +166,8 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
     calibrated; :class:`ContractUnmet` (422) when no setting meets the targets and
     ``on_miss`` is ``fail``; :class:`BakeMissing` (409, the ``missing_bake`` rule) when the bake is
     missing, ``missing_bake`` is ``fail`` and only a setting that needs the bake would meet them.
-    ``max_render_bytes``: settings whose estimated memory exceeds it are not candidates.
+    ``max_render_bytes``: settings whose estimated memory (``producer.costs.render_cost``, what the
+    render route refuses by) exceeds it are not candidates.
     ``error_margin`` / ``time_margin``: the safety margins of ``engine.quality.plan``."""
     q = req.quality
     assert q is not None
@@ -176,13 +177,14 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
         raise CalibrationMissing(req.scene_id, bkey)
     model = SceneModel.from_json(doc["model"])
     width, height = _pixels(store, req)
+    _, triangles = stored_scene(store, req.scene_id)
     ready = bake_complete(store, bkey)
     best_effort = q.on_miss == "best_effort"
     allow_bake = ready or req.missing_bake == "bake"
 
     def allowed(s: Setting) -> bool:
         return max_render_bytes is None or \
-            estimate_render_bytes(_request_for(req, model, s), width, height) <= max_render_bytes
+            render_cost(_request_for(req, model, s), width, height, triangles).peak_bytes <= max_render_bytes
 
     margins = {"error_margin": error_margin, "time_margin": time_margin}
     p = plan(model, width * height, max_error=q.max_error, max_ms=q.max_ms, best_effort=best_effort,

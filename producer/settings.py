@@ -97,10 +97,25 @@ class Settings(BaseSettings):
     """Uploaded images the API process validates at once (each holds up to
     ``max_decoded_image_bytes``); further uploads wait for a slot, 503 after 30 s."""
     max_render_bytes: Annotated[int, Field(ge=_MIB)] = 6 << 30
-    """Largest estimated peak memory of one render job (``producer.render_memory``, from the image
-    size, the method and the samples per pixel): a request over it is refused with 422 naming the
-    estimate and the limit before it is queued. 6 GiB: a reference render of about 4300 x 4300 at
-    the default samples, an LDC render of about 5300 x 5300."""
+    """Largest estimated peak memory of one job (a render, a relight, a composite, a walkthrough bake or
+    frame chunk, a dataset generation or bake, a calibration, a verification: every job but the parts of
+    a scene bake; ``producer.costs``, from the image size, the method, the samples per pixel and the
+    scene's triangles): a request over it is refused with 422 naming the estimate and the limit before
+    it is queued. 6 GiB: a reference render of about 4200 x 4200 at
+    the default samples, an LDC render of about 5200 x 5200."""
+    max_render_cpu_s: Annotated[float, Field(gt=0)] = 1200.0
+    """Largest estimated CPU time (seconds of one core, ``producer.costs``) of one job on the render
+    queue: over it the request is refused with 422 naming the estimate and the limit. 1200: the render
+    job's 600 s timeout with both cores of this project's machine busy for it; a job estimated above it
+    would most likely be killed by its timeout."""
+    max_scene_triangles: Annotated[int, Field(ge=1)] = 8_000_000
+    """Most triangles of one scene after tessellation (spheres, cylinders, planes, disks, inline meshes
+    and mesh files), counted from the document and the mesh files' headers before anything is built:
+    a scene over it is refused with 422 when it is stored, and every job of a stored scene over it
+    (a limit lowered later) is refused. 8 M triangles: ~4.2 GiB for the built scene and its BVH."""
+    max_bake_job_cpu_s: Annotated[float, Field(gt=0)] = 3600.0
+    """Largest estimated CPU time (seconds of one core) of one job on the bake queue (a scene bake part,
+    a dataset generation or bake, a walkthrough bake, a calibration): the bake jobs' timeout (3600 s)."""
     contract_error_margin: Annotated[float, Field(gt=0, le=1)] = 0.85
     """Quality contracts are planned for ``max_error`` times this (``engine.quality.plan``): the
     calibration's error model holds for the probe views, and a view a little noisier than them (the
@@ -136,9 +151,10 @@ class Settings(BaseSettings):
     tiny built-in data, so numba compiles or loads its kernels) before taking jobs; ``--no-warmup``
     overrides. Bake workers never warm up (their parent must not run a kernel before forking)."""
     max_bake_part_bytes: Annotated[int, Field(ge=_MIB)] = 2 << 30
-    """Largest estimated memory of one bake job (an LDC axis at its worst case, an indirect chunk
-    with its axis and path-tracing batch, an LLF chunk): the plan job refuses a bake over it with
-    the estimate, before anything is baked."""
+    """Largest estimated memory of one job of a scene bake (an LDC axis at its worst case, an indirect
+    chunk with its axis and path-tracing batch, an LLF chunk; the scene it builds included): the API
+    refuses a bake over it (``producer.costs.bake_cost``), and the plan job checks it again on the
+    built scene, before anything is baked."""
     max_bake_cpu_s: Annotated[float, Field(gt=0)] = 24 * 3600.0
     """Largest estimated CPU time of one bake (all its jobs on one core, dominated by the indirect
     pass): the plan job refuses a bake over it with the estimate and what to lower. 24 h."""

@@ -45,6 +45,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api_schemas.errors import FieldError, format_error_details
 from api_schemas.service import Problem, ProblemField
+from producer.costs import CostOverLimit
 from producer.errors import BakeMissing, CalibrationMissing, ContractUnmet, JobNotFound, UnknownScene
 from producer.store import ChecksumMismatch, NotFound, StoreError, StoreUnavailable
 from service.api.limits import BodyTooLarge, MultipartError
@@ -283,6 +284,11 @@ def install_exception_handlers(app: FastAPI) -> None:
                                 type_="urn:ibr:problem:contract-unmet",
                                 errors=[{"field": f"quality.{t}", "message": str(exc), "type": "contract_unmet"}
                                         for t in exc.unmet])
+
+    @app.exception_handler(CostOverLimit)
+    async def _over_limit(request: Request, exc: CostOverLimit) -> JSONResponse:
+        return problem_response(422, exc.message, title="Over this server's limits", type_="urn:ibr:problem:over-limit",
+                                errors=[{"field": exc.field, "message": exc.message, "type": exc.type}])
 
     @app.exception_handler(StoreError)
     async def _store_error(request: Request, exc: StoreError) -> JSONResponse:

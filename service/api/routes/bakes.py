@@ -27,6 +27,7 @@ from producer.bakes import (
     llf_direction_count,
     read_bake_record,
 )
+from producer.costs import Cost, Limits, bake_cost, check, stored_scene
 from producer.errors import BakeInUse
 from producer.names import scene_bake_job_id
 from producer.ownership import (
@@ -37,8 +38,9 @@ from producer.ownership import (
     remove_bake_owner,
 )
 from producer.queue import fetch_job
+from producer.settings import Settings
 from producer.store import NotFound
-from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
+from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["bakes"])
@@ -86,9 +88,20 @@ def _visible_scene(store: Any, scene_id: str, owner: str | None) -> int:
     return public.n_lights
 
 
-def _request(redis: Any, store: Any, scene_id: str, params: BakeParams, owner: str | None) -> BakePublic:
+def check_bake_cost(store: Any, scene_id: str, params: BakeParams, settings: Settings) -> Cost:
+    """The bake's estimated cost (``producer.costs.bake_cost``); 422 over this server's limits."""
+    scene, triangles = stored_scene(store, scene_id)
+    cost = bake_cost(scene, params, triangles, settings.bake_paths_per_s)
+    return check(cost, Limits.for_job(settings, "bake", bake_part=True), "ldc_resolution",
+                 "lower ldc_resolution, max_layers or the indirect paths (indirect.max_paths, indirect.min_paths), "
+                 "or raise indirect.chunks", "bake_too_large")
+
+
+def _request(redis: Any, store: Any, scene_id: str, params: BakeParams, owner: str | None,
+             settings: Settings) -> BakePublic:
     n_lights = _visible_scene(store, scene_id, owner)
     _check_size(params, n_lights)
+    check_bake_cost(store, scene_id, params, settings)
     key, job = enqueue_bake(redis, store, scene_id, params, owner)
     if owner is not None:
         add_bake_owner(store, key, owner, _recorded_owner(store, scene_id, key))
@@ -111,11 +124,12 @@ async def request_bake(
     store: StoreDep,
     redis: RedisDep,
     owner: OwnerDep,
+    settings: SettingsDep,
     params: Annotated[BakeParams, Body(openapi_examples={"default": {"summary": "A bake with the defaults",
                                                                      "value": BAKE_EXAMPLE}})] = DEFAULT_BAKE,
 ) -> BakePublic:
     """Bake a scene's layered depth cube (and light field when its materials need one)."""
-    pub = await run_in_threadpool(_request, redis, store, scene_id, params, owner)
+    pub = await run_in_threadpool(_request, redis, store, scene_id, params, owner, settings)
     if not pub.cached:
         response.status_code = 202
         response.headers["Location"] = f"/v1/scenes/{scene_id}/bakes/{pub.key}"

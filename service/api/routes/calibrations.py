@@ -15,9 +15,12 @@ from fastapi.concurrency import run_in_threadpool
 
 from api_schemas.service import CalibrationPublic, CalibrationRequest, Sha256
 from producer.calibrations import calibration_status, enqueue_calibration, read_calibration
+from producer.costs import Limits, calibration_cost, check, stored_scene
+from producer.settings import Settings
 from producer.store import NotFound
-from service.api.deps import OwnerDep, RedisDep, StoreDep, scene_visible
+from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import problem_responses
+from service.api.routes.bakes import check_bake_cost
 from service.api.routes.renders import BAKE_MISSING_409
 
 router = APIRouter(prefix="/v1/scenes", tags=["calibrations"])
@@ -30,9 +33,15 @@ CALIBRATION_EXAMPLE: dict[str, Any] = {"bake": {"ldc_resolution": 128}, "params"
 DEFAULT_REQUEST = CalibrationRequest()
 
 
-def _request(redis: Any, store: Any, scene_id: str, req: CalibrationRequest, owner: str | None) -> CalibrationPublic:
+def _request(redis: Any, store: Any, scene_id: str, req: CalibrationRequest, owner: str | None,
+             settings: Settings) -> CalibrationPublic:
     if not scene_visible(store, scene_id, owner):
         raise NotFound(scene_id)
+    scene, triangles = stored_scene(store, scene_id)
+    check(calibration_cost(scene, req.params, triangles), Limits.for_job(settings, "bake"), "params.truth_spp",
+          "lower truth_spp, size or probes", "calibration_too_large")
+    if req.missing_bake == "bake":
+        check_bake_cost(store, scene_id, req.bake, settings)
     key, bkey, job = enqueue_calibration(redis, store, scene_id, req, owner)  # BakeMissing: 409
     return calibration_status(redis, store, scene_id, bkey, key, cached=job is None)
 
@@ -54,12 +63,13 @@ async def request_calibration(
     store: StoreDep,
     redis: RedisDep,
     owner: OwnerDep,
+    settings: SettingsDep,
     req: Annotated[CalibrationRequest, Body(openapi_examples={"default": {"summary": "Calibrate a scene's bake",
                                                                           "value": CALIBRATION_EXAMPLE}})]
     = DEFAULT_REQUEST,
 ) -> CalibrationPublic:
     """Calibrate the render settings of a scene's bake: error and time per setting, for quality contracts."""
-    pub = await run_in_threadpool(_request, redis, store, scene_id, req, owner)
+    pub = await run_in_threadpool(_request, redis, store, scene_id, req, owner, settings)
     if not pub.cached:
         response.status_code = 202
         response.headers["Location"] = f"{pub.links['self']}?key={pub.key}"

@@ -12,6 +12,7 @@ with the artifact when cached or done within ``wait``, else 202 and the job.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, HTTPException, Path, Query, Request, Response
@@ -38,6 +39,17 @@ from api_schemas.datasets import (
 from api_schemas.errors import FieldError
 from api_schemas.service import ArtifactManifest, JobPublic, Sha256
 from producer.artifacts import put_blob_unless_intact, read_blob, read_manifest, sha256_hex
+from producer.costs import (
+    Cost,
+    Limits,
+    composite_cost,
+    dataset_bake_cost,
+    generate_cost,
+    light_count,
+    relight_cost,
+    stored_scene,
+)
+from producer.costs import check as within_limits
 from producer.datasets import (
     DatasetInvalid,
     FileProblem,
@@ -465,11 +477,14 @@ def _accepted(model: type[Any]) -> dict[int | str, dict[str, Any]]:
                **problem_responses(400, 401, 404, 413, 422, 429, 503)},
 )
 async def bake(dataset_id: DatasetId, response: Response, store: StoreDep, redis: RedisDep, owner: OwnerDep,
-               req: Annotated[BakeRequest | None, Body()] = None, wait: Wait = 0) -> DatasetBakePublic:
+               settings: SettingsDep, req: Annotated[BakeRequest | None, Body()] = None,
+               wait: Wait = 0) -> DatasetBakePublic:
     """Bake a dataset for relighting (bake queue): dedupe and triangulate the lights, build the
     lookup, reorganise the image stack. 200 when cached / done within ``wait``, else 202."""
-    await run_in_threadpool(_visible_dataset, store, dataset_id, owner)
+    public = await run_in_threadpool(_visible_dataset, store, dataset_id, owner)
     params = (req or BakeRequest()).params
+    within_limits(dataset_bake_cost(public.n_images, public.width, public.height, params),
+                  Limits.for_job(settings, "bake"), "params", "use a smaller dataset", "bake_too_large")
     key = bake_artifact_key(dataset_id, params)
     payload = DatasetBakeJobPayload(dataset_id=dataset_id, params=params, artifact_key=key).model_dump(mode="json")
     job, manifest, cached = await _run(response, redis, store, "bake", DATASET_BAKE_JOB, payload, DATASET_BAKE_KIND,
@@ -504,6 +519,12 @@ async def generate(req: GenerateRequest, response: Response, store: StoreDep, re
                    and owned_blob_info(store, light.image_sha256, owner) is None]
         if missing:
             raise ValidationProblem(missing)
+        scene, triangles = stored_scene(store, req.scene_id)
+        cam = req.camera if req.camera is not None else scene.camera
+        cost = generate_cost(req, cam.width, cam.height, triangles, light_count(req))
+        within_limits(cost, Limits.for_job(settings, "bake"), "params.spp",
+                      "lower the image size, the samples (params) or the lights (placement.spacing_deg, max_lights)",
+                      "bake_too_large")
 
     await run_in_threadpool(check)
     key = generate_artifact_key(req)
@@ -594,6 +615,15 @@ def _check_relight_inputs(store: ObjectStore, redis: Redis, owner: str | None, d
         raise ValidationProblem(problems, detail="bake the dataset first", status=409)
 
 
+def _check_relight_cost(store: ObjectStore, dataset_id: str, settings: Settings,
+                        cost: Callable[[int, int, int], Cost]) -> None:
+    """422 when the relight or composite of ``dataset_id`` (``cost(n_images, width, height)``) is over the
+    render queue's limits."""
+    _, public = get_dataset(store, dataset_id)
+    within_limits(cost(public.n_images, public.width, public.height), Limits.for_job(settings, "render"),
+                  "lights", "use a smaller dataset", "render_too_large")
+
+
 @router.post(
     "/v1/relights",
     response_model=RelightPublic,
@@ -601,10 +631,12 @@ def _check_relight_inputs(store: ObjectStore, redis: Redis, owner: str | None, d
                **problem_responses(400, 401, 404, 409, 413, 422, 429, 503)},
 )
 async def request_relight(req: RelightRequest, response: Response, store: StoreDep, redis: RedisDep,
-                          owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
+                          owner: OwnerDep, settings: SettingsDep, wait: Wait = 0) -> RelightPublic:
     """Relight a baked dataset under new lights (render queue). 200 with the artifact (relit EXR,
     PNG preview, coverage mask, counts, timings) when cached or done within ``wait``, else 202."""
     await run_in_threadpool(_check_relight_inputs, store, redis, owner, {"dataset_id": req.dataset_id}, req)
+    await run_in_threadpool(_check_relight_cost, store, req.dataset_id, settings,
+                            lambda n, w, h: relight_cost(req, n, w, h))
     key = relight_artifact_key(req)
     payload = RelightJobPayload(request=req, artifact_key=key).model_dump(mode="json")
     job, manifest, cached = await _run(response, redis, store, "render", RELIGHT_JOB, payload, RELIGHT_KIND, key,
@@ -620,11 +652,13 @@ async def request_relight(req: RelightRequest, response: Response, store: StoreD
                **problem_responses(400, 401, 404, 409, 413, 422, 429, 503)},
 )
 async def request_composite(req: CompositeRequest, response: Response, store: StoreDep, redis: RedisDep,
-                            owner: OwnerDep, wait: Wait = 0) -> RelightPublic:
+                            owner: OwnerDep, settings: SettingsDep, wait: Wait = 0) -> RelightPublic:
     """Composite a relit object into a background plate (render queue): object pixels from the relit
     object dataset, active-region pixels of the plate scaled by I_object / I_background."""
     datasets = {"object_dataset_id": req.object_dataset_id, "background_dataset_id": req.background_dataset_id}
     await run_in_threadpool(_check_relight_inputs, store, redis, owner, datasets, req)
+    await run_in_threadpool(_check_relight_cost, store, req.object_dataset_id, settings,
+                            lambda n, w, h: composite_cost(req, n, w, h))
     key = composite_artifact_key(req)
     payload = CompositeJobPayload(request=req, artifact_key=key).model_dump(mode="json")
     job, manifest, cached = await _run(response, redis, store, "render", COMPOSITE_JOB, payload, COMPOSITE_KIND, key,

@@ -20,10 +20,10 @@ from api_schemas.service import (
     RenderRequest,
     method_needs_bake,
 )
-from producer.artifacts import get_scene, read_manifest
+from producer.artifacts import read_manifest
 from producer.bakes import bake_key, bake_status
 from producer.calibrations import enqueue_verification, plan_render, verification_status
-from producer.render_memory import estimate_render_bytes
+from producer.costs import Cost, Limits, check, render_cost, stored_scene
 from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
 from producer.wait import wait_for_job
@@ -110,36 +110,26 @@ def _check_visible(req: RenderRequest, store: Any, owner: str | None) -> None:
         raise MissingResource("scene_id", req.scene_id)
 
 
-def _check_request(req: RenderRequest, store: Any, owner: str | None, max_pixels: int, max_bytes: int) -> None:
+def _check_request(req: RenderRequest, store: Any, owner: str | None, settings: Any) -> Cost:
+    """The render's estimated cost (``producer.costs``); 422 when the image or the estimate is over this
+    server's limits."""
     _check_visible(req, store, owner)
     try:
-        scene, _, _ = get_scene(store, req.scene_id)
+        scene, triangles = stored_scene(store, req.scene_id)
     except NotFound:
         raise MissingResource("scene_id", req.scene_id) from None
     cam = req.camera if req.camera is not None else scene.camera
-    if cam.width * cam.height > max_pixels:
-        where = "camera.height" if req.camera is not None else "scene_id"
+    where = "camera.height" if req.camera is not None else "scene_id"
+    if cam.width * cam.height > settings.max_image_pixels:
         raise ValidationProblem([FieldError(
             field=where,
             message=f"image of {cam.width} x {cam.height} = {cam.width * cam.height} pixels exceeds this "
-                    f"server's limit of {max_pixels}",
+                    f"server's limit of {settings.max_image_pixels}",
             type="image_too_large",
         )])
-    need = estimate_render_bytes(req, cam.width, cam.height)
-    if need > max_bytes:
-        where = "camera.height" if req.camera is not None else "scene_id"
-        raise ValidationProblem([FieldError(
-            field=where,
-            message=f"a {req.method} render of {cam.width} x {cam.height} pixels"
-                    f"{f' at {req.params.spp} spp' if not method_needs_bake(req.method) else ''} needs an estimated "
-                    f"{_gib(need)} of memory, over this server's limit of {_gib(max_bytes)} "
-                    f"(IBR_MAX_RENDER_BYTES = {max_bytes}); render a smaller image",
-            type="render_too_large",
-        )])
-
-
-def _gib(n: int) -> str:
-    return f"{n / (1 << 30):.2f} GiB" if n >= 1 << 30 else f"{n / (1 << 20):.0f} MiB"
+    cost = render_cost(req, cam.width, cam.height, triangles)
+    lower = "render a smaller image" + ("" if method_needs_bake(req.method) else " or with fewer samples")
+    return check(cost, Limits.for_job(settings, "render"), where, lower, "render_too_large")
 
 
 @router.post(
@@ -186,8 +176,7 @@ async def request_render(
 
 async def _render(req: RenderRequest, response: Response, store: Any, redis: Any, owner: str | None, settings: Any,
                   metrics: Any, wait: float, contract: ContractPublic | None) -> RenderPublic:
-    await run_in_threadpool(_check_request, req, store, owner, settings.max_image_pixels,
-                            settings.max_render_bytes)
+    await run_in_threadpool(_check_request, req, store, owner, settings)
     if req.outputs is not None:  # a subset of the images: the full artifact, when it exists, holds them
         full_key = render_artifact_key(req.model_copy(update={"outputs": None}))
         manifest = await run_in_threadpool(read_manifest, store, full_key)

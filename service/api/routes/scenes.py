@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping
 from pathlib import PurePosixPath
 from typing import Annotated, Any
 
@@ -18,6 +19,7 @@ from api_schemas.scene import MeshFileObject, Scene
 from api_schemas.service import SceneCreate, SceneImportPublic, SceneList, ScenePublic, Sha256
 from engine.geometry.meshio import DEFAULT_MAX_MESH_BYTES, SUPPORTED_MESH_TYPES
 from producer.artifacts import delete_scene, get_scene, mesh_paths, scene_id_for, sha256_hex, store_scene
+from producer.costs import mesh_triangles, remember_mesh_triangles, scene_cost, scene_triangles, size_text
 from producer.errors import SceneOutputsInUse
 from producer.listings import BadCursor, index_scene, list_scene_page, unindex_scene, unindex_scene_owner
 from producer.ownership import ANON_OWNER, remove_bake_owner
@@ -81,8 +83,23 @@ _IMPORT_BODY_SCHEMA: dict[str, Any] = {"type": "string", "format": "binary"}
 # ------------------------------------------------------------------------------ helpers
 
 
-def limit_errors(scene: Scene, settings: Settings, prefix: str = "scene") -> list[FieldError]:
+def limit_errors(scene: Scene, settings: Settings, prefix: str = "scene",
+                 meshes: Mapping[str, bytes] | None = None) -> list[FieldError]:
+    """What the scene breaks of this server's limits: the camera's pixels, mesh file types, the triangles
+    after tessellation (``meshes``: the uploaded mesh files by path, counted from their headers),
+    counted before anything is built."""
     errors: list[FieldError] = []
+    counts = {path: mesh_triangles(path, data) for path, data in (meshes or {}).items()}
+    triangles = scene_triangles(scene, counts)
+    if triangles > settings.max_scene_triangles:
+        errors.append(FieldError(
+            field=f"{prefix}.objects",
+            message=f"the scene has {triangles:,} triangles after tessellation, over this server's limit of "
+                    f"{settings.max_scene_triangles:,} (IBR_MAX_SCENE_TRIANGLES); building it would need an "
+                    f"estimated {size_text(scene_cost(triangles).peak_bytes)}. Use fewer objects or fewer "
+                    f"subdivisions / segments",
+            type="scene_too_large",
+        ))
     cam = scene.camera
     if cam.width * cam.height > settings.max_image_pixels:
         errors.append(FieldError(
@@ -136,6 +153,8 @@ def _parse_scene_json(raw: bytes, bare_allowed: bool) -> Scene:
 def _create(store: ObjectStore, scene: Scene, meshes: dict[str, bytes], owner: str | None) -> tuple[ScenePublic, bool]:
     """Store the scene; (public view, created for this owner?)."""
     shas = {p: sha256_hex(meshes[p]) for p in mesh_paths(scene)}
+    for path, sha in shas.items():  # the jobs' estimates count them without reading the blobs again
+        remember_mesh_triangles(sha, mesh_triangles(path, meshes[path]))
     scene_id = scene_id_for(scene, shas)
     had_marker = owner is not None and scene_visible(store, scene_id, owner)
     public, new_record = store_scene(store, scene, meshes, owner)
@@ -387,7 +406,7 @@ def _convert(fmt: str, data: bytes, files: dict[str, bytes], source: str, option
                                  for where, message in exc.errors]) from None
     named = set(referenced_files(fmt, data))
     extra = sorted(set(files) - named)
-    errors = limit_errors(imported.scene, settings)
+    errors = limit_errors(imported.scene, settings, meshes=imported.meshes)
     if extra:
         errors.append(FieldError(
             field="files", message="file parts the imported file does not name: "
@@ -494,7 +513,7 @@ async def create_scene(
             )])
         scene = await run_in_threadpool(_parse_scene_json, scene_parts[0].data, True)
         needed = mesh_paths(scene)
-        errors = limit_errors(scene, settings)
+        errors = []
         seen: set[str] = set()
         for part in parts:
             if part.name == "scene":
@@ -504,6 +523,7 @@ async def create_scene(
                                          type="duplicate_part"))
             seen.add(part.name)
             meshes[part.name] = part.data
+        errors = limit_errors(scene, settings, meshes={p: meshes[p] for p in needed if p in meshes}) + errors
         extra = sorted(set(meshes) - set(needed))
         if extra:
             errors.append(FieldError(

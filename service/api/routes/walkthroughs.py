@@ -20,8 +20,9 @@ from fastapi.concurrency import run_in_threadpool
 from api_schemas.errors import FieldError
 from api_schemas.service import Sha256
 from api_schemas.walkthrough import WalkthroughPublic, WalkthroughRequest
-from producer.artifacts import get_scene
+from producer.costs import Limits, check, stored_scene, walkthrough_costs
 from producer.errors import WalkthroughInUse
+from producer.settings import Settings
 from producer.store import NotFound
 from producer.walkthroughs import (
     check_against_scene,
@@ -55,10 +56,11 @@ WALKTHROUGH_EXAMPLE: dict[str, Any] = {
 }
 
 
-def _check(req: WalkthroughRequest, store: Any, owner: str | None, max_pixels: int) -> None:
+def _check(req: WalkthroughRequest, store: Any, owner: str | None, settings: Settings) -> None:
+    max_pixels = settings.max_image_pixels
     if not scene_visible(store, req.scene_id, owner):
         raise NotFound(req.scene_id)
-    scene, _, _ = get_scene(store, req.scene_id)  # NotFound -> 404
+    scene, triangles = stored_scene(store, req.scene_id)  # NotFound -> 404
     cam = req.frames[0].camera
     errors: list[FieldError] = []
     if cam.width * cam.height > max_pixels:
@@ -68,11 +70,16 @@ def _check(req: WalkthroughRequest, store: Any, owner: str | None, max_pixels: i
     errors += check_against_scene(scene, req)
     if errors:
         raise ValidationProblem(errors)
+    bake, frames = walkthrough_costs(req, triangles)
+    check(bake, Limits.for_job(settings, "bake"), "bake.face_res",
+          "lower face_res, max_views or max_time_samples", "bake_too_large")
+    check(frames, Limits.for_job(settings, "render"), "chunk_frames",
+          "lower chunk_frames, the frames' size or their number", "render_too_large")
 
 
 def _request(redis: Any, store: Any, req: WalkthroughRequest, owner: str | None,
-             max_pixels: int) -> WalkthroughPublic:
-    _check(req, store, owner, max_pixels)
+             settings: Settings) -> WalkthroughPublic:
+    _check(req, store, owner, settings)
     key, _finished = enqueue_walkthrough(redis, store, req, owner)
     pub = walkthrough_status(redis, store, key)
     assert pub is not None
@@ -99,7 +106,7 @@ async def request_walkthrough(
     settings: SettingsDep,
 ) -> WalkthroughPublic:
     """Render every frame of a camera path (with times) through a scene's view space."""
-    pub = await run_in_threadpool(_request, redis, store, req, owner, settings.max_image_pixels)
+    pub = await run_in_threadpool(_request, redis, store, req, owner, settings)
     if pub.status != "finished":
         response.status_code = 202
         response.headers["Location"] = f"/v1/walkthroughs/{pub.key}"

@@ -1,5 +1,6 @@
-"""A render whose estimated peak memory exceeds ``IBR_MAX_RENDER_BYTES`` is refused with 422 naming
-the estimate and the limit, before anything is queued; one under the limit is queued."""
+"""A render whose estimated peak memory (``producer.costs.render_cost``: the image's buffers and the scene
+the worker builds) exceeds ``IBR_MAX_RENDER_BYTES`` is refused with 422 naming the estimate and the limit,
+before anything is queued; one under the limit is queued."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ from typing import Any
 from fastapi.testclient import TestClient
 from redis import Redis
 
+from api_schemas.scene import Scene
 from api_schemas.service import RenderRequest
-from producer.render_memory import estimate_render_bytes
+from producer.costs import estimate_render_bytes, render_cost, scene_triangles
 from tests.service.api.conftest import SMALL_SCENE, small_scene
 
-LIMIT = 1 << 30
+LIMIT = 3 << 29  # 1.5 GiB
 
 
 def _camera(width: int, height: int) -> dict[str, Any]:
@@ -34,13 +36,14 @@ def test_over_the_limit_is_refused_before_it_is_queued(make_app: Any, redis_conn
     with TestClient(make_app(max_render_bytes=LIMIT)) as c:
         sid = c.post("/v1/scenes", json={"scene": small_scene()}).json()["id"]
         side = 2000
-        need = estimate_render_bytes(RenderRequest(scene_id=sid, camera=_camera(side, side)), side, side)
+        triangles = scene_triangles(Scene.model_validate(small_scene()))
+        need = render_cost(RenderRequest(scene_id=sid, camera=_camera(side, side)), side, side, triangles).peak_bytes
         assert need > LIMIT
         r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(side, side)})
         assert r.status_code == 422, r.text
         (err,) = r.json()["errors"]
         assert err["field"] == "camera.height" and err["type"] == "render_too_large"
-        assert f"{need / (1 << 30):.2f} GiB" in err["message"] and "1.00 GiB" in err["message"], err
+        assert f"{need / (1 << 30):.2f} GiB" in err["message"] and "1.50 GiB" in err["message"], err
         assert f"IBR_MAX_RENDER_BYTES = {LIMIT}" in err["message"]
         # spp counts: the same view at 1 spp fits, at 64 spp it does not
         side = 600
@@ -49,9 +52,9 @@ def test_over_the_limit_is_refused_before_it_is_queued(make_app: Any, redis_conn
         heavy = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(side, side), "params": {"spp": 64}})
         assert heavy.status_code == 422 and "64 spp" in heavy.json()["errors"][0]["message"], heavy.text
         # the LDC methods are estimated too (and refused before any bake is asked for)
-        r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(2400, 2400), "method": "ldc",
+        r = c.post("/v1/renders", json={"scene_id": sid, "camera": _camera(2600, 2600), "method": "ldc",
                                         "missing_bake": "bake"})
-        assert r.status_code == 422 and "a ldc render of 2400 x 2400" in r.json()["errors"][0]["message"], r.text
+        assert r.status_code == 422 and "a ldc render of 2600 x 2600" in r.json()["errors"][0]["message"], r.text
         # only the accepted render was queued
         assert [k.decode() for k in redis_conn.keys("rq:job:*")] == [f"rq:job:{ok.json()['job']['id']}"]
 

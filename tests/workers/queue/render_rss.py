@@ -1,8 +1,9 @@
-"""``python -m tests.workers.queue.render_rss METHOD WIDTH HEIGHT SPP [PARAMS_JSON]``: run the real render job (render,
-encode, publish) of the tiny scene at that size in this process, after a warm-up render at 16 x 16,
-and print as JSON how much the process's peak RSS grew during the big one. The peak is the kernel's
-VmHWM, reset after the warm-up (``/proc/self/clear_refs``): on a cold numba cache the warm-up compiles
-every kernel, and the compiler's own peak would otherwise hide the render's.
+"""``python -m tests.workers.queue.render_rss METHOD WIDTH HEIGHT SPP [PARAMS_JSON]``: run the real render
+job (render, encode, publish) of the tiny scene at that size in this process, after a warm-up render at
+64 x 64 (four wavefront chunks: the pipelined path), and print as JSON how much the process's peak RSS
+grew during the big one and its wall and CPU seconds. The peak is the kernel's VmHWM, reset after the
+warm-up (``/proc/self/clear_refs``): on a cold numba cache the warm-up compiles every kernel, and the
+compiler's own peak would otherwise hide the render's.
 
 For reference renders only the scene is needed; for the LDC methods a tiny bake is published first
 with the render worker's warm-up machinery (``workers.warmup``)."""
@@ -13,6 +14,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -46,11 +48,14 @@ def main() -> None:
         if method != "reference":
             run.ldc_bake()
             extra = {"method": method, "bake": run.bake_params.model_dump(mode="json")}
-        run.render(camera={**cam, "width": 16, "height": 16}, **extra)
+        run.render(camera={**cam, "width": 64, "height": 64}, **extra)
         _reset_peak()
         before = _status_kib("VmRSS") * 1024
+        t0, c0 = time.perf_counter(), time.process_time()
         run.render(camera={**cam, "width": w, "height": h}, **extra)
-        print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before}))
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before,
+                          "wall_s": wall, "cpu_s": cpu}))
 
 
 if __name__ == "__main__":
