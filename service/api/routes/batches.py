@@ -24,9 +24,20 @@ from api_schemas.scene import MeshFileObject
 from api_schemas.service import BatchPublic, BatchRequest, JobId
 from producer.artifacts import mesh_paths, scene_id_for, sha256_hex, store_scene
 from producer.batches import batch_owner, batch_status, enqueue_batch
+from producer.costs import (
+    Cost,
+    CostOverLimit,
+    Limits,
+    batch_cost,
+    check,
+    mesh_triangles,
+    render_cost,
+    scene_triangles,
+    stored_scene,
+)
 from producer.listings import index_scene
 from producer.settings import Settings
-from producer.store import ObjectStore
+from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, add_scene_owner, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import read_multipart
@@ -154,23 +165,44 @@ def _mesh_errors(batch: BatchRequest, files: Mapping[int, Mapping[str, bytes]]) 
     return errors
 
 
+def _pixels(req: Any, scene: Any) -> int:
+    cam = req.camera if req.camera is not None else scene.camera
+    return int(cam.width * cam.height)
+
+
 def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, files: SceneFiles, owner: str | None,
             settings: Settings) -> BatchPublic:
     # Validate everything before writing anything: a bad entry stores no scene and queues no job.
     errors: list[FieldError] = _mesh_errors(batch, files)
     new_ids: list[str] = []
+    scenes: dict[str, tuple[Any, int]] = {}  # scene id -> (scene, triangles after tessellation)
     for i, sc in enumerate(batch.scenes):
         errors += limit_errors(sc.scene, settings, prefix=f"scenes.{i}.scene")
         meshes = files.get(i, {})
         new_ids.append(scene_id_for(sc.scene, {p: sha256_hex(meshes[p]) for p in mesh_paths(sc.scene) if p in meshes}))
-    known = set(new_ids)
+        counts = {p: mesh_triangles(p, meshes[p]) for p in mesh_paths(sc.scene) if p in meshes}
+        scenes[new_ids[-1]] = (sc.scene, scene_triangles(sc.scene, counts))
+    costs: list[Cost] = []
     for j, req in enumerate(batch.renders):
-        if req.scene_id not in known:
-            if scene_visible(store, req.scene_id, owner) and store.exists(f"scenes/{req.scene_id}.json"):
-                known.add(req.scene_id)
-            else:
+        if req.scene_id not in scenes:
+            try:
+                if not scene_visible(store, req.scene_id, owner):
+                    raise NotFound(req.scene_id)
+                scenes[req.scene_id] = stored_scene(store, req.scene_id)
+            except NotFound:
                 errors.append(FieldError(field=f"renders.{j}.scene_id", message=f"no scene {req.scene_id}",
                                          type="unknown_scene"))
+        if req.scene_id in scenes and req.quality is None and _pixels(req, scenes[req.scene_id][0]) <= \
+                settings.max_image_pixels:
+            scene, triangles = scenes[req.scene_id]
+            cam = req.camera if req.camera is not None else scene.camera
+            cost = render_cost(req, cam.width, cam.height, triangles)
+            try:
+                costs.append(check(cost, Limits.for_job(settings, "render"),
+                                   "camera.height" if req.camera is not None else "scene_id",
+                                   "render a smaller image or with fewer samples", "render_too_large"))
+            except CostOverLimit as exc:
+                errors.append(FieldError(field=f"renders.{j}.{exc.field}", message=exc.message, type=exc.type))
         if req.quality is not None:
             errors.append(FieldError(
                 field=f"renders.{j}.quality",
@@ -184,6 +216,11 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, files: SceneF
                 message=f"width * height exceeds this server's limit of {settings.max_image_pixels} pixels",
                 type="image_too_large",
             ))
+    if costs and not errors:
+        try:  # every render's time together, as one request's
+            check(batch_cost(costs), Limits.for_job(settings, "render"), "renders", "split the batch")
+        except CostOverLimit as exc:
+            errors.append(FieldError(field="renders", message=exc.message, type=exc.type))
     if errors:
         raise ValidationProblem(errors)
     for i, sc in enumerate(batch.scenes):

@@ -64,3 +64,27 @@ def test_scenes_own_camera_is_estimated_too(make_app: Any) -> None:
         sid = c.post("/v1/scenes", json={"scene": small_scene(camera=_camera(1500, 1500))}).json()["id"]
         r = c.post("/v1/renders", json={"scene_id": sid})
         assert r.status_code == 422 and r.json()["errors"][0]["field"] == "scene_id", r.text
+
+
+def test_batches_are_estimated_render_by_render_and_as_a_whole(make_app: Any, redis_conn: Redis) -> None:
+    with TestClient(make_app(max_render_bytes=LIMIT, max_bake_cpu_s=60.0)) as c:
+        stored = c.post("/v1/scenes", json={"scene": small_scene()}).json()["id"]
+        new_scene = small_scene(camera=_camera(64, 48))
+        big = {"scene_id": stored, "camera": _camera(2000, 2000)}
+        r = c.post("/v1/batches", json={"scenes": [{"scene": new_scene}], "renders": [{"scene_id": stored}, big]})
+        assert r.status_code == 422, r.text
+        (err,) = r.json()["errors"]
+        assert err["field"] == "renders.1.camera.height" and err["type"] == "render_too_large", err
+        assert "IBR_MAX_RENDER_BYTES" in err["message"]
+        # each render fits, together their CPU time does not (IBR_MAX_BAKE_CPU_S bounds one request's jobs)
+        per = render_cost(RenderRequest(scene_id=stored, params={"spp": 16}), 64, 48,
+                          scene_triangles(Scene.model_validate(small_scene()))).total_cpu_s
+        n = int(60.0 / per) + 2
+        renders = [{"scene_id": stored, "params": {"spp": 16, "seed": i}, "camera": _camera(64, 48)} for i in range(n)]
+        r = c.post("/v1/batches", json={"renders": renders})
+        assert r.status_code == 422 and r.json()["errors"][0]["field"] == "renders", r.text
+        assert "IBR_MAX_BAKE_CPU_S" in r.json()["errors"][0]["message"]
+        # nothing was stored or queued by the refused batches; a fitting one is queued
+        assert not redis_conn.keys("rq:job:*")
+        ok = c.post("/v1/batches", json={"renders": renders[:2]})
+        assert ok.status_code == 202, ok.text
