@@ -156,11 +156,6 @@ def start_stack(data_dir: Path, host: str = "127.0.0.1", port: int = 8000,
     else:
         log(f"redis   {env['IBR_REDIS_URL']}")
     env.setdefault("IBR_STORE_URL", str(data_dir / "store"))
-    # One render worker on one machine: no start-up warm-up unless asked for. With an empty numba
-    # cache (a fresh install) the warm-up compiles every job kind first (10+ min on 2 cores), so
-    # the first request (the quick start's demo render) would wait past its time limit; without
-    # it each first request compiles only its own kernels (docs/service-design.md, warm-up).
-    env.setdefault("IBR_WORKER_WARMUP", "false")
     log(f"store   {env['IBR_STORE_URL']}")
     api_url = f"http://{host}:{port}"
     stack = Stack(data_dir, api_url, env, redis)
