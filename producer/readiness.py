@@ -2,10 +2,13 @@
 and job kind, whether its kernels are compiled (``workers.warmup_readiness`` writes, ``GET
 /v1/methods`` reads).
 
-One key per render worker, ``ibr:readiness:<worker name>``, holding a JSON document::
+One key per render worker and warm-up lane (a process of the warm-up: the kinds it compiles),
+``ibr:readiness:<worker name>:<lane>``, holding a JSON document::
 
     {"worker": name, "updated_at": unix seconds, "finished": bool,
      "methods": {"reference": {"state": "ready", "seconds_left": null}, "ldc": {...}, ...}}
+
+(``methods``: the kinds of that lane.)
 
 A reader counts only workers whose RQ registration (``rq:worker:<name>``) still exists, so a
 killed worker's last word is ignored at once; the key itself expires after :data:`TTL_S` (a
@@ -25,20 +28,24 @@ from producer.queue import KEY_PREFIX
 
 PREFIX = f"{KEY_PREFIX}readiness:"
 TTL_S = 7 * 86400
+MAX_LANES = 4
 _RANK = {"ready": 3, "compiling": 2, "failed": 1, "unknown": 0}
 
 
-def readiness_key(worker: str) -> str:
-    return f"{PREFIX}{worker}"
+def readiness_key(worker: str, lane: int = 0) -> str:
+    if not 0 <= lane < MAX_LANES:
+        raise ValueError(f"lane {lane} is not in [0, {MAX_LANES})")
+    return f"{PREFIX}{worker}:{lane}"
 
 
-def publish_readiness(redis: Redis, worker: str, doc: dict[str, Any]) -> None:
-    """Store ``doc`` (the module docstring's document) as ``worker``'s readiness."""
-    redis.set(readiness_key(worker), json.dumps(doc), ex=TTL_S)
+def publish_readiness(redis: Redis, worker: str, doc: dict[str, Any], lane: int = 0) -> None:
+    """Store ``doc`` (the module docstring's document) as the readiness of ``worker``'s lane ``lane``."""
+    redis.set(readiness_key(worker, lane), json.dumps(doc), ex=TTL_S)
 
 
 def clear_readiness(redis: Redis, worker: str) -> None:
-    redis.delete(readiness_key(worker))
+    """Withdraw every lane's readiness of ``worker``."""
+    redis.delete(*(readiness_key(worker, lane) for lane in range(MAX_LANES)))
 
 
 def _live_documents(redis: Redis) -> list[dict[str, Any]]:
@@ -80,7 +87,7 @@ def merge_readiness(docs: list[dict[str, Any]]) -> MethodsReadiness:
             if (_RANK[cand.state], -(cand.seconds_left or 0.0)) > (_RANK[best.state], -(best.seconds_left or 0.0)):
                 best = cand
         out.append(best)
-    return MethodsReadiness(methods=out, workers=len(docs))
+    return MethodsReadiness(methods=out, workers=len({d["worker"] for d in docs}))
 
 
 def read_readiness(redis: Redis) -> MethodsReadiness:

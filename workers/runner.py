@@ -116,7 +116,7 @@ from producer.settings import Settings
 from producer.status import cancel_requested, job_method, record_job_duration
 from producer.store import StoreUnavailable
 from workers.jobs.common import JobCanceled
-from workers.warmup_readiness import COLD_STEP_SECONDS, ReadinessTracker
+from workers.warmup_readiness import ReadinessTracker
 
 __all__ = [
     "TRANSIENT_ERRORS",
@@ -659,30 +659,41 @@ def build_worker(
     return worker
 
 
-def start_background_warm_up(worker_name: str, redis: Redis) -> subprocess.Popen[bytes] | None:
-    """Start ``python -m workers.warmup --publish worker_name`` (module docstring, "Warm-up"): a
-    process of its own, so the worker takes jobs at once; it dies with the worker (parent death
-    signal) and shares its log output. None (logged) when it cannot be started. Publishes the
-    readiness of a warm-up that has not started yet first: the process takes seconds to import
-    the engine before it publishes its own."""
-    with contextlib.suppress(RedisError, OSError):
-        publish_readiness(redis, worker_name, ReadinessTracker(list(COLD_STEP_SECONDS), worker_name).document())
-    cmd = [sys.executable, "-m", "workers.warmup", "--publish", worker_name]
-    try:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, preexec_fn=_set_parent_death_signal)  # noqa: PLW1509
-    except OSError as exc:
-        log.error("warm-up: could not start %s: %s; the first jobs compile their kernels", cmd, exc)
-        return None
-    log.info("warm-up: started in the background (pid %d): compiles or loads the render jobs' numba kernels "
-             "in the order reference, LDC methods, relighting, walkthroughs; jobs are taken meanwhile "
-             "(a job whose kernels are not ready yet compiles them itself)", proc.pid)
-    return proc
+def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.Popen[bytes]]:
+    """Start ``python -m workers.warmup --publish worker_name --lanes N --lane i``, one process per
+    lane (module docstring, "Warm-up"; ``workers.warmup.lanes_for``: two on two or more cores, as
+    numba compiles on one core per process), so the worker takes jobs at once; they die with the
+    worker (parent death signal) and share its log output. A lane that cannot be started is
+    logged (its kinds compile in their first jobs). Publishes the readiness of a warm-up that has
+    not started yet first: a process takes seconds to import the engine before it publishes."""
+    from workers.warmup import lanes_for  # deferred on purpose: render workers only (every job module)
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    lanes = lanes_for(cores)
+    procs = []
+    for i, steps in enumerate(lanes):
+        with contextlib.suppress(RedisError, OSError):
+            publish_readiness(redis, worker_name, ReadinessTracker(steps, worker_name).document(), lane=i)
+        cmd = [sys.executable, "-m", "workers.warmup", "--publish", worker_name, "--lanes", str(len(lanes)),
+               "--lane", str(i)]
+        try:
+            procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL,
+                                          preexec_fn=_set_parent_death_signal))  # noqa: PLW1509
+        except OSError as exc:
+            log.error("warm-up: could not start %s: %s; those kinds compile in their first jobs", cmd, exc)
+    log.info("warm-up: started in the background (%d processes, pids %s): compiles or loads the render jobs' "
+             "numba kernels, reference and LDC methods in one, relighting and walkthroughs in the other; jobs "
+             "are taken meanwhile (a job whose kernels are not ready yet compiles them itself)",
+             len(procs), ", ".join(str(p.pid) for p in procs))
+    return procs
 
 
-def stop_background_warm_up(proc: subprocess.Popen[bytes] | None, redis: Redis, worker_name: str) -> None:
-    """Stop the background warm-up if it still runs and withdraw the worker's readiness."""
-    if proc is not None and proc.poll() is None:
-        proc.terminate()
+def stop_background_warm_up(procs: list[subprocess.Popen[bytes]], redis: Redis, worker_name: str) -> None:
+    """Stop the background warm-up's processes that still run and withdraw the worker's readiness."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -755,7 +766,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         heartbeat_grace=args.heartbeat_grace or settings.heartbeat_grace_s,
         worker_ttl=args.worker_ttl or settings.worker_ttl_s,
     )
-    warm: subprocess.Popen[bytes] | None = None
+    warm: list[subprocess.Popen[bytes]] = []
     if args.queue == "render":
         # Compile / load the kernels in the background while taking jobs (module docstring, "Warm-up").
         if settings.worker_warmup and not args.no_warmup:

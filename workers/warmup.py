@@ -521,13 +521,27 @@ def _plan(run: _Run) -> list[tuple[str, Callable[[], None], tuple[str, ...]]]:
 STEPS: tuple[str, ...] = tuple(name for name, _, _ in _plan(_Run(None)))
 """Names of the warm-up steps, in the order they run."""
 
+LANES: tuple[tuple[str, ...], ...] = (
+    STEPS[:STEPS.index("relight-bake")],  # reference, then the LDC methods
+    STEPS[STEPS.index("relight-bake"):],  # relighting, compositing, walkthroughs
+)
+"""The steps split in two lanes that need no step of the other, for two processes (numba compiles
+on one core per process): the reference and LDC kernels in one, the relighting and walkthrough
+kernels in the other. Their cold compile costs are about equal (docs/performance.md)."""
+
+
+def lanes_for(cores: int) -> tuple[tuple[str, ...], ...]:
+    """:data:`LANES` on a machine with 2 or more cores, one lane of every step on a single core."""
+    return LANES if cores >= len(LANES) else (STEPS,)
+
 
 def warm_up(*, logger: logging.Logger | None = None, on_start: Callable[[str], None] | None = None,
-            on_end: Callable[[WarmupStep], None] | None = None) -> WarmupReport:
-    """Run every step (module docstring); a failing step is recorded with its traceback's last
-    line (and logged with the traceback) and the others still run (those that need it are
-    skipped). Never raises for a step's failure: the caller decides what a failed report means.
-    ``on_start(name)`` / ``on_end(step)`` are told when each step starts and ends (readiness)."""
+            on_end: Callable[[WarmupStep], None] | None = None, only: Sequence[str] | None = None) -> WarmupReport:
+    """Run every step (module docstring), or those named in ``only`` (a lane: the steps they need
+    must be in it); a failing step is recorded with its traceback's last line (and logged with the
+    traceback) and the others still run (those that need it are skipped). Never raises for a step's
+    failure: the caller decides what a failed report means. ``on_start(name)`` / ``on_end(step)``
+    are told when each step starts and ends (readiness)."""
     lg = logger or log
     t_start = time.perf_counter()
     steps: list[WarmupStep] = []
@@ -536,6 +550,8 @@ def warm_up(*, logger: logging.Logger | None = None, on_start: Callable[[str], N
         run = _Run(LocalStore(Path(tmp)))
         with _scratch_jobs(run.store):
             for name, fn, needs in _plan(run):
+                if only is not None and name not in only:
+                    continue
                 step = WarmupStep(name)
                 failed_needs = [n for n in needs if any(s.name == n and not s.ok for s in steps)]
                 if failed_needs:
@@ -566,10 +582,12 @@ PUBLISH_INTERVAL_S = 1.0
 """Seconds between readiness updates in Redis while a published warm-up runs (the estimates count down)."""
 
 
-def warm_up_published(worker: str, *, logger: logging.Logger | None = None) -> WarmupReport:
-    """:func:`warm_up`, publishing per-method readiness (``workers.warmup_readiness``) in Redis
-    (``IBR_REDIS_URL``) as render worker ``worker``'s every :data:`PUBLISH_INTERVAL_S` and after
-    each step. A Redis error is logged and the warm-up goes on (readiness is for display only)."""
+def warm_up_published(worker: str, lane: int = 0, lanes: int = 1, *,
+                      logger: logging.Logger | None = None) -> WarmupReport:
+    """:func:`warm_up` of lane ``lane`` of ``lanes_for(lanes)``, publishing its kinds' readiness
+    (``workers.warmup_readiness``) in Redis (``IBR_REDIS_URL``) as render worker ``worker``'s every
+    :data:`PUBLISH_INTERVAL_S` and after each step. A Redis error is logged and the warm-up goes on
+    (readiness is for display only)."""
     from producer.queue import redis_from_url  # deferred on purpose: only the published mode talks to Redis
     from producer.readiness import publish_readiness
     from producer.settings import Settings
@@ -577,12 +595,13 @@ def warm_up_published(worker: str, *, logger: logging.Logger | None = None) -> W
 
     lg = logger or log
     redis = redis_from_url(Settings().effective_redis_url)
-    tracker = ReadinessTracker(STEPS, worker)
+    steps = lanes_for(lanes)[lane]
+    tracker = ReadinessTracker(steps, worker)
     stop = threading.Event()
 
     def publish() -> None:
         try:
-            publish_readiness(redis, worker, tracker.document())
+            publish_readiness(redis, worker, tracker.document(), lane=lane)
         except Exception as exc:  # noqa: BLE001 - display only: the warm-up goes on
             lg.warning("warm-up readiness not published: %s", exc)
 
@@ -598,7 +617,7 @@ def warm_up_published(worker: str, *, logger: logging.Logger | None = None) -> W
     ticker = threading.Thread(target=loop, name="ibr-warmup-readiness", daemon=True)
     ticker.start()
     try:
-        report = warm_up(logger=lg, on_start=tracker.started, on_end=step_ended)
+        report = warm_up(logger=lg, on_start=tracker.started, on_end=step_ended, only=steps)
     finally:
         stop.set()
         ticker.join(timeout=5)
@@ -616,10 +635,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--publish", metavar="WORKER",
                    help="publish per-method readiness in Redis (IBR_REDIS_URL) as render worker WORKER's")
+    p.add_argument("--lanes", type=int, default=1, help="with --publish: the steps split for this many cores")
+    p.add_argument("--lane", type=int, default=0, help="with --publish: the lane this process runs")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    report = warm_up_published(args.publish) if args.publish else warm_up()
+    report = warm_up_published(args.publish, args.lane, args.lanes) if args.publish else warm_up()
     print(json.dumps(report.to_dict(), indent=1) if args.json else f"{report.table()}\n{report.summary()}")
     return 0 if report.ok else 1
 

@@ -120,12 +120,14 @@ class ReadinessTracker:
         return left
 
     def states(self) -> dict[str, dict[str, Any]]:
-        """Per kind ``{"state": ..., "seconds_left": ...}`` (module docstring)."""
+        """Per kind whose steps this run has ``{"state": ..., "seconds_left": ...}`` (module docstring)."""
         with self._lock:
             scale = self._scale()
             out: dict[str, dict[str, Any]] = {}
             for method in READINESS_METHODS:
-                needs = [s for s in METHOD_STEPS[method] if s in self.steps]
+                needs = list(METHOD_STEPS[method])
+                if not set(needs) <= set(self.steps):
+                    continue  # another lane's kind
                 if any(s in self._done and not self._done[s][1] for s in needs):
                     out[method] = {"state": "failed", "seconds_left": None}
                 elif all(s in self._done for s in needs):

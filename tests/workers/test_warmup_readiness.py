@@ -28,6 +28,19 @@ def test_every_step_has_a_cold_cost_and_every_kind_its_steps() -> None:
     assert last["reference"] < last["ldc"] < last["ldc+llf"] < last["ldc+ibrt"] < last["relight"] < last["walkthrough"]
 
 
+def test_lanes_split_the_steps_and_keep_each_kind_and_its_needs_together() -> None:
+    assert [s for lane in warmup.LANES for s in lane] == list(warmup.STEPS)
+    assert warmup.lanes_for(1) == (warmup.STEPS,) and warmup.lanes_for(2) == warmup.LANES
+    needs = {name: deps for name, _, deps in warmup._plan(warmup._Run(None))}
+    for lane in warmup.LANES:
+        assert all(set(needs[s]) <= set(lane) for s in lane)
+    for method, steps in METHOD_STEPS.items():
+        assert sum(set(steps) <= set(lane) for lane in warmup.LANES) == 1, method
+    kinds = [set(ReadinessTracker(lane, "w").states()) for lane in warmup.LANES]
+    assert kinds[0] | kinds[1] == set(READINESS_METHODS) and not kinds[0] & kinds[1]
+    assert "reference" in kinds[0] and "relight" in kinds[1]
+
+
 def test_states_and_estimates_follow_the_steps() -> None:
     clock = Clock()
     cold = {"a": 10.0, "b": 20.0, "c": 40.0}

@@ -48,6 +48,11 @@ def test_live_workers_merge_and_dead_ones_are_ignored(client: TestClient, redis_
     assert by["reference"] == {"method": "reference", "state": "ready", "seconds_left": None}
     assert by["ldc"]["state"] == "compiling"
 
+    # a worker's second lane (another warm-up process) counts as the same worker
+    lane1 = ReadinessTracker(list(warmup.LANES[1]), "render-later")
+    publish_readiness(redis_conn, "render-later", lane1.document(), lane=1)
+    doc = client.get("/v1/methods").json()
+    assert doc["workers"] == 2
     clear_readiness(redis_conn, "render-later")
     by = {m["method"]: m for m in client.get("/v1/methods").json()["methods"]}
     assert by["reference"]["state"] == "compiling"
