@@ -4,10 +4,12 @@ numba compiles a kernel the first time it is called with a new type signature (`
 writes the result to numba's disk cache, ``NUMBA_CACHE_DIR``). With an empty cache -- a fresh
 deployment, a new container image, a new CPU model -- the first LDC render of a render worker
 compiles for about a minute and the first relight of each store kind for ~30 s, inside the
-user's request. :func:`warm_up` moves that cost to worker start-up: ``python -m workers.runner
---queue render`` calls it before the worker registers with Redis (so it takes no job while it
-compiles; other workers keep serving). With a warm disk cache the warm-up only loads the
-kernels (a few seconds).
+user's request. :func:`warm_up` moves that cost out of the requests: ``python -m workers.runner
+--queue render`` starts ``python -m workers.warmup --publish <worker>`` in background processes
+(:data:`LANES`: two on two or more cores) as it starts taking jobs; they fill numba's disk cache,
+from which the worker's jobs load the kernels, and publish per-method readiness in Redis
+(:func:`warm_up_published`, ``workers.warmup_readiness``). With a warm disk cache the warm-up
+only loads the kernels (a few seconds).
 
 What it runs -- the render queue's own job functions, not look-alikes, so the compiled
 signatures are the ones the jobs need (same dtypes, array layouts, kernel variants, thread
@@ -26,13 +28,14 @@ settings):
   service can produce -- float16 / float32 x pixel-major / tiled, and low-rank -- each under a
   point, a directional, a rect and an environment light (interpolating kernel) and under a
   light exactly at a dataset light (the exact-hit kernel);
-- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``).
+- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``);
+- a walkthrough of the warm-up scene with a moving sphere: ``bake_walkthrough`` (the walkthrough
+  bake job's engine call) and ``WalkthroughRenderer.render`` with every fill mode (the chunk job's).
 
 The scene, the dataset and the images are made in code; everything is written to a scratch
 object store in a temporary directory (RAM-backed when ``/dev/shm`` is writable) that is
 deleted afterwards, and the job modules' store and caches are swapped for the warm-up and
-restored (the worker's own store sees no writes, its LRUs start empty). Not covered:
-walkthrough chunk jobs (``engine.walkthrough``), whose first frame still compiles on first use.
+restored (the warm-up process's own job modules; the worker's store sees no writes).
 
 Each step reports its wall time and how many numba signatures appeared in the engine's
 dispatchers, split into compiled (numba disk cache misses) and loaded from the disk cache.
