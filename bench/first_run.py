@@ -40,7 +40,7 @@ from service.up import free_port
 REPO = Path(__file__).resolve().parents[1]
 SCENE = "mirror_box"
 WALK_SCENE = "cornell_animated"
-CAMERA = {"width": 128, "height": 128}
+SIZE = {"width": 128, "height": 128}
 LDC_BAKE = {"ldc_resolution": 128, "max_layers": 8, "llf_resolution": 16, "llf_f": 1}
 
 
@@ -151,16 +151,18 @@ def first_renders(url: str) -> dict[str, float]:
     with Client(url, timeout=120) as c:
         ids = {s.name: s.id for s in c.iter_scenes()}
         sid = ids[SCENE]
-        out["reference"] = _timed(lambda: c.wait_render(c.render(sid, camera=CAMERA, params={"spp": 4})))
+        camera = {**c.get_scene_document(sid)["camera"], **SIZE}
+        small = {**camera, "width": 64, "height": 64}
+        out["reference"] = _timed(lambda: c.wait_render(c.render(sid, camera=camera, params={"spp": 4})))
         out["LDC bake (bake worker)"] = _timed(lambda: c.wait_bake(c.bake(sid, LDC_BAKE)))
         for method in ("ldc", "ldc+llf", "ldc+ibrt:1"):
-            out[method] = _timed(lambda m=method: c.wait_render(c.render(sid, camera=CAMERA, method=m,  # type: ignore[misc]
+            out[method] = _timed(lambda m=method: c.wait_render(c.render(sid, camera=camera, method=m,  # type: ignore[misc]
                                                                          bake=LDC_BAKE)))
         holder: dict[str, str] = {}
 
         def generate() -> None:
             g = c.generate_dataset(sid, placement={"region": "hemisphere", "spacing_deg": 30.0},
-                                   params={"spp": 1, "max_depth": 1}, camera={"width": 64, "height": 64})
+                                   params={"spp": 1, "max_depth": 1}, camera=small)
             holder["ds"] = c.wait_generation(g)
             c.wait_dataset_bake(c.bake_dataset(holder["ds"]))
 
