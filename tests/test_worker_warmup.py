@@ -6,9 +6,9 @@
   engine dispatcher: the warm-up compiled (or loaded) exactly what the jobs need.
 - The report lists every step with its time and counts; a failing step is reported, the steps that
   need it are skipped, the others run.
-- A real ``python -m workers.runner --queue render`` subprocess logs the warm-up (start, steps,
-  end) before it starts listening, then serves a job; ``--no-warmup`` / ``IBR_WORKER_WARMUP=false``
-  turn it off; an exception in the warm-up is logged and the worker starts anyway.
+- A real ``python -m workers.runner --queue render`` subprocess starts its warm-up in the
+  background and serves a job meanwhile; the warm-up publishes readiness until every kind is
+  ready; ``--no-warmup`` / ``IBR_WORKER_WARMUP=false`` turn it off.
 
 With a warm numba cache this file takes a few seconds plus two worker start-ups; with a cold one
 the first test compiles what the render jobs compile anyway (the subprocess test then loads it).
@@ -17,7 +17,6 @@ the first test compiles what the render jobs compile anyway (the subprocess test
 from __future__ import annotations
 
 import hashlib
-import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -48,7 +47,7 @@ def test_report_lists_every_step_with_its_numbers(report: warmup.WarmupReport) -
     assert [s.name for s in report.steps] == list(warmup.STEPS)
     for name in ("reference", "reference-pipelined", "ldc-bake", "ldc", "ldc+llf", "ldc+ibrt:1", "ldc-without-llf",
                  "relight-float16-pixel_major", "relight-float16-tiled", "relight-float32-pixel_major",
-                 "relight-float32-tiled", "relight-lowrank", "composite"):
+                 "relight-float32-tiled", "relight-lowrank", "composite", "walkthrough"):
         assert name in warmup.STEPS
     assert all(s.seconds >= 0 and s.new_signatures >= s.compiled >= 0 for s in report.steps)
     assert report.seconds >= sum(s.seconds for s in report.steps) * 0.99
@@ -176,42 +175,46 @@ def test_a_failing_step_is_reported_and_the_rest_still_runs(report: warmup.Warmu
     assert "FAILED steps: scene" in bad.summary()
 
 
-def test_runner_survives_a_warm_up_exception(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    from workers import runner
+def test_render_worker_serves_while_warming_up_in_the_background(report: warmup.WarmupReport, redis_conn: Any,
+                                                                  worker_store: Any,
+                                                                  worker_process: StartWorker) -> None:
+    """The worker takes a job while its warm-up process runs, the warm-up publishes readiness
+    until every kind is ready, and a stopped worker withdraws it."""
+    import signal
 
-    def explode(**_: Any) -> warmup.WarmupReport:
-        raise MemoryError("boom")
-
-    monkeypatch.setattr(warmup, "warm_up", explode)
-    with caplog.at_level(logging.INFO, logger="workers.runner"):
-        assert runner.warm_up_render_worker() is False
-    text = caplog.text
-    assert "warm-up: starting" in text and "warm-up failed" in text and "MemoryError: boom" in text
-
-
-def test_render_worker_warms_up_before_listening_then_serves(report: warmup.WarmupReport, redis_conn: Any,
-                                                               worker_store: Any, worker_process: StartWorker) -> None:
     from api_schemas.service import RenderRequest
     from producer.artifacts import put_scene, read_manifest
+    from producer.readiness import read_readiness, readiness_key
     from tests.workers.queue.jobs_for_tests import tiny_scene
 
     sid = put_scene(worker_store, tiny_scene(), {}, owner=None).id
     req = RenderRequest(scene_id=sid, params={"spp": 1})
     key, job = enqueue_render(redis_conn, req, None, store=worker_store)
     assert job is not None
-    w = worker_process("render", burst=True, env={"IBR_WORKER_WARMUP": "true"})  # tests/conftest.py turns it off
-    assert w.wait(600) == 0, w.log()
+    w = worker_process("render", "--name", "render-warm", env={"IBR_WORKER_WARMUP": "true"})  # conftest: off
+    deadline = time.monotonic() + 600
+    seen_compiling = False
+    while time.monotonic() < deadline:
+        states = {m.method: m.state for m in read_readiness(redis_conn).methods}
+        seen_compiling |= "compiling" in states.values()
+        if set(states.values()) == {"ready"}:
+            break
+        assert w.alive(), w.log()
+        time.sleep(0.2)
     log = w.log()
+    assert set(states.values()) == {"ready"}, (states, log)
     pub = job_public(fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
     assert pub.state == "finished", (pub.error, log)
     assert read_manifest(worker_store, key) is not None
-    start, done = log.index("warm-up: starting"), log.index("warm-up: done in")
+    assert log.index("warm-up: started in the background") < log.index("Listening on"), log
     for name in warmup.STEPS:
-        assert f"warm-up step {name} " in log[start:done], name
-    assert "with failures" not in log, log
-    # the warm-up ran before the worker registered and took the job, and wrote nothing to its store
-    assert done < log.index("Listening on") < log.index("Job OK"), log
+        assert f"warm-up step {name} " in log, name
+    assert "FAILED" not in log, log
+    # the warm-up wrote nothing to the worker's store
     assert worker_store.list("artifacts/") == sorted(worker_store.list(f"artifacts/{key}/"))
+    w.kill(signal.SIGTERM)
+    assert w.wait(60) == 0, w.log()
+    assert redis_conn.get(readiness_key("render-warm")) is None
 
 
 def test_no_warmup_flag_and_setting(redis_conn: Any, worker_process: StartWorker,

@@ -56,17 +56,18 @@ SIGKILLed worker's job is retried at the next pass rather than after its heartbe
 dead scheduler's lock (up to 30 + 61 s). ``--healthcheck`` answers 0 when a live worker of the
 queue on this host has beaten recently (the compose health check).
 
-Warm-up (render workers only). Before the worker registers with Redis -- so it takes no job
-while numba compiles; other workers keep serving -- :func:`warm_up_render_worker` runs
-``workers.warmup.warm_up``: every engine path of the render queue's jobs on tiny built-in data,
-so the kernels are compiled (empty numba disk cache: minutes) or loaded from the disk cache
-(a few seconds) before the first request instead of inside it. On by default
-(``IBR_WORKER_WARMUP``), off with ``--no-warmup``. A failed step is logged with its traceback
-and the worker starts anyway: the job that needs that kernel then compiles it itself, as without
-a warm-up (docs/service-design.md, "Worker start-up and warm-up"). The bake worker's parent
-never warms up: it must not run a kernel before forking (above); its horses load the kernels
-from the disk cache, which a render worker's warm-up on the same machine (or the image build)
-fills for the bake kernels too.
+Warm-up (render workers only). As the worker starts taking jobs, :func:`start_background_warm_up`
+starts ``python -m workers.warmup --publish <worker name>`` in a process of its own: every engine
+path of the render queue's jobs on tiny built-in data, in the order a user is likely to need them
+(reference, LDC methods, relighting, walkthroughs), so numba compiles the kernels (empty disk
+cache: minutes) or loads them (a few seconds) into its disk cache; the worker's jobs then load
+them from there. It publishes per-method readiness in Redis (``producer.readiness``, shown by
+``GET /v1/methods`` and the preview). A job whose kernels are not ready yet compiles them itself,
+as without a warm-up. On by default (``IBR_WORKER_WARMUP``), off with ``--no-warmup``; it dies
+with the worker. A failed step is logged with its traceback (docs/service-design.md, "Worker
+start-up and warm-up"). The bake worker's parent never warms up: it must not run a kernel before
+forking (above); its horses load the kernels from the disk cache, which a render worker's warm-up
+on the same machine (or the image build) fills for the bake kernels too.
 
 Retries: jobs are enqueued with ``Retry(max=2, interval=[5, 30])``; the exception handler
 :func:`retry_policy` keeps the retries only for transient failures (store unavailable, Redis
@@ -77,11 +78,13 @@ time limit exceeded, cancellation -- fails the job at once.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import logging
 import os
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -108,10 +111,12 @@ from rq.worker import BaseWorker, WorkerStatus
 
 from engine.memory import keep_freed_memory
 from producer.queue import QUEUE_NAMES, QueueName, get_queue, redis_from_url
+from producer.readiness import clear_readiness, publish_readiness
 from producer.settings import Settings
 from producer.status import cancel_requested, job_method, record_job_duration
 from producer.store import StoreUnavailable
 from workers.jobs.common import JobCanceled
+from workers.warmup_readiness import ReadinessTracker
 
 __all__ = [
     "TRANSIENT_ERRORS",
@@ -120,7 +125,8 @@ __all__ = [
     "build_worker",
     "main",
     "retry_policy",
-    "warm_up_render_worker",
+    "start_background_warm_up",
+    "stop_background_warm_up",
 ]
 
 log = logging.getLogger("workers.runner")
@@ -653,26 +659,48 @@ def build_worker(
     return worker
 
 
-def warm_up_render_worker() -> bool:
-    """Run the warm-up (``workers.warmup``) and log its start, its steps and its end; returns
-    whether every step succeeded. Never raises (other than KeyboardInterrupt / SystemExit): a
-    warm-up failure must not keep a render worker from serving."""
-    log.info("warm-up: starting (compiles or loads the render jobs' numba kernels; no jobs are taken meanwhile)")
-    t0 = time.perf_counter()
-    try:
-        from workers.warmup import warm_up  # deferred on purpose: render workers only (every job module)
+def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.Popen[bytes]]:
+    """Start ``python -m workers.warmup --publish worker_name --lanes N --lane i``, one process per
+    lane (module docstring, "Warm-up"; ``workers.warmup.lanes_for``: two on two or more cores, as
+    numba compiles on one core per process), so the worker takes jobs at once; they die with the
+    worker (parent death signal) and share its log output. A lane that cannot be started is
+    logged (its kinds compile in their first jobs). Publishes the readiness of a warm-up that has
+    not started yet first: a process takes seconds to import the engine before it publishes."""
+    from workers.warmup import lanes_for  # deferred on purpose: render workers only (every job module)
 
-        report = warm_up(logger=log)
-    except Exception:
-        log.exception("warm-up failed after %.1f s; starting anyway (the first jobs compile their kernels)",
-                      time.perf_counter() - t0)
-        return False
-    if report.ok:
-        log.info("warm-up: done in %.1f s: %s", report.seconds, report.summary())
-    else:
-        log.error("warm-up: done in %.1f s with failures: %s; starting anyway (those jobs compile their kernels "
-                  "on first use)", report.seconds, report.summary())
-    return report.ok
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    lanes = lanes_for(cores)
+    procs = []
+    for i, steps in enumerate(lanes):
+        with contextlib.suppress(RedisError, OSError):
+            publish_readiness(redis, worker_name, ReadinessTracker(steps, worker_name).document(), lane=i)
+        cmd = [sys.executable, "-m", "workers.warmup", "--publish", worker_name, "--lanes", str(len(lanes)),
+               "--lane", str(i)]
+        try:
+            procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL,
+                                          preexec_fn=_set_parent_death_signal))  # noqa: PLW1509
+        except OSError as exc:
+            log.error("warm-up: could not start %s: %s; those kinds compile in their first jobs", cmd, exc)
+    log.info("warm-up: started in the background (%d processes, pids %s): compiles or loads the render jobs' "
+             "numba kernels, reference and LDC methods in one, relighting and walkthroughs in the other; jobs "
+             "are taken meanwhile (a job whose kernels are not ready yet compiles them itself)",
+             len(procs), ", ".join(str(p.pid) for p in procs))
+    return procs
+
+
+def stop_background_warm_up(procs: list[subprocess.Popen[bytes]], redis: Redis, worker_name: str) -> None:
+    """Stop the background warm-up's processes that still run and withdraw the worker's readiness."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+    with contextlib.suppress(RedisError, OSError):
+        clear_readiness(redis, worker_name)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -690,7 +718,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--worker-ttl", type=int, default=None, metavar="S", help="worker registration TTL (default 420)")
     p.add_argument("--no-scheduler", action="store_true", help="do not run RQ's scheduler in this worker")
     p.add_argument("--no-warmup", action="store_true",
-                   help="render worker: skip the start-up warm-up of the numba kernels "
+                   help="render worker: skip the background warm-up of the numba kernels "
                         "(default: IBR_WORKER_WARMUP, on)")
     p.add_argument("--healthcheck", action="store_true",
                    help="exit 0 when a worker of --queue on this host is registered in Redis with a recent "
@@ -723,12 +751,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Import the job module (and the engine) now, so a broken install fails at start-up.
         import workers.jobs.render  # noqa: F401  # deferred on purpose: this queue's jobs only
 
-        # Compile / load the kernels before registering (module docstring, "Warm-up").
-        if settings.worker_warmup and not args.no_warmup:
-            warm_up_render_worker()
-        else:
-            log.info("warm-up: off (%s); the first jobs compile or load their kernels",
-                     "--no-warmup" if args.no_warmup else "IBR_WORKER_WARMUP=false")
     else:
         # Import only (no kernel runs in the parent, see the module docstring): forked horses
         # inherit the loaded modules instead of importing numba, Embree and the engine per job.
@@ -744,8 +766,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         heartbeat_grace=args.heartbeat_grace or settings.heartbeat_grace_s,
         worker_ttl=args.worker_ttl or settings.worker_ttl_s,
     )
-    worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
-                max_jobs=args.max_jobs)
+    warm: list[subprocess.Popen[bytes]] = []
+    if args.queue == "render":
+        # Compile / load the kernels in the background while taking jobs (module docstring, "Warm-up").
+        if settings.worker_warmup and not args.no_warmup:
+            warm = start_background_warm_up(worker.name, redis)
+        else:
+            log.info("warm-up: off (%s); the first jobs compile or load their kernels",
+                     "--no-warmup" if args.no_warmup else "IBR_WORKER_WARMUP=false")
+    try:
+        worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
+                    max_jobs=args.max_jobs)
+    finally:
+        if args.queue == "render":
+            stop_background_warm_up(warm, redis, worker.name)
     asked_to_stop = worker._shutdown_requested_date is not None or worker._stop_requested
     if not (args.burst or args.max_jobs is not None or asked_to_stop):
         # RQ's loop ends on an exception it does not handle (logged above with its traceback):

@@ -4,10 +4,12 @@ numba compiles a kernel the first time it is called with a new type signature (`
 writes the result to numba's disk cache, ``NUMBA_CACHE_DIR``). With an empty cache -- a fresh
 deployment, a new container image, a new CPU model -- the first LDC render of a render worker
 compiles for about a minute and the first relight of each store kind for ~30 s, inside the
-user's request. :func:`warm_up` moves that cost to worker start-up: ``python -m workers.runner
---queue render`` calls it before the worker registers with Redis (so it takes no job while it
-compiles; other workers keep serving). With a warm disk cache the warm-up only loads the
-kernels (a few seconds).
+user's request. :func:`warm_up` moves that cost out of the requests: ``python -m workers.runner
+--queue render`` starts ``python -m workers.warmup --publish <worker>`` in background processes
+(:data:`LANES`: two on two or more cores) as it starts taking jobs; they fill numba's disk cache,
+from which the worker's jobs load the kernels, and publish per-method readiness in Redis
+(:func:`warm_up_published`, ``workers.warmup_readiness``). With a warm disk cache the warm-up
+only loads the kernels (a few seconds).
 
 What it runs -- the render queue's own job functions, not look-alikes, so the compiled
 signatures are the ones the jobs need (same dtypes, array layouts, kernel variants, thread
@@ -26,13 +28,14 @@ settings):
   service can produce -- float16 / float32 x pixel-major / tiled, and low-rank -- each under a
   point, a directional, a rect and an environment light (interpolating kernel) and under a
   light exactly at a dataset light (the exact-hit kernel);
-- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``).
+- ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``);
+- a walkthrough of the warm-up scene with a moving sphere: ``bake_walkthrough`` (the walkthrough
+  bake job's engine call) and ``WalkthroughRenderer.render`` with every fill mode (the chunk job's).
 
 The scene, the dataset and the images are made in code; everything is written to a scratch
 object store in a temporary directory (RAM-backed when ``/dev/shm`` is writable) that is
 deleted afterwards, and the job modules' store and caches are swapped for the warm-up and
-restored (the worker's own store sees no writes, its LRUs start empty). Not covered:
-walkthrough chunk jobs (``engine.walkthrough``), whose first frame still compiles on first use.
+restored (the warm-up process's own job modules; the worker's store sees no writes).
 
 Each step reports its wall time and how many numba signatures appeared in the engine's
 dispatchers, split into compiled (numba disk cache misses) and loaded from the disk cache.
@@ -52,6 +55,7 @@ import math
 import os
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
@@ -70,6 +74,8 @@ from engine.imageio import encode_image
 from engine.newviews.effects import analyze
 from engine.relighting.bake import bake_dataset
 from engine.relighting.dataset import IlluminationDataset
+from engine.walkthrough.bake import WalkthroughRenderer, bake_walkthrough, walkthrough_preset
+from engine.walkthrough.reconstruct import FILL_MODES
 from producer.artifacts import put_scene, write_artifact
 from producer.bakes import bake_key, part_key, plan_parts
 from producer.datasets import bake_artifact_key, composite_artifact_key, relight_artifact_key, store_file
@@ -81,6 +87,8 @@ from workers.jobs.bake import bake_ldc_axis_job, bake_ldc_indirect_job, bake_llf
 from workers.jobs.common import json_safe, load_stored_scene, set_worker_store
 from workers.jobs.datasets import NPZ, baked_to_bytes, composite_job, relight_job, set_caches
 from workers.jobs.render import render_job, set_renderer_cache
+from workers.jobs.walkthrough import engine_space
+from workers.scene_loader import camera_params, load_animated_scene
 
 __all__ = [
     "STEPS",
@@ -251,6 +259,17 @@ WARMUP_SCENE: dict[str, Any] = {
 }
 """The warm-up scene: a glossy floor, a diffuse and a highlight box, a mirror and an emitting
 sphere, lit by a point, a directional and a rect light (every light kind of the scene format)."""
+
+WALKTHROUGH_SCENE: dict[str, Any] = {
+    **WARMUP_SCENE,
+    "objects": [*WARMUP_SCENE["objects"][:3], {**WARMUP_SCENE["objects"][3], "name": "ball"},
+                *WARMUP_SCENE["objects"][4:]],
+    "animation": {"start": 0.0, "end": 1.0,
+                  "objects": {"ball": [{"time": 0.0, "transform": {"translate": [0.0, 0.0, 0.0]}},
+                                       {"time": 1.0, "transform": {"translate": [-0.3, 0.0, 0.2]}}]}},
+    "view_space": {"type": "path", "points": [[-0.3, 1.3, 3.4], [0.3, 1.3, 3.4]]},
+}
+"""The warm-up scene with its mirror sphere moving and a camera path: a walkthrough's scene."""
 
 _BAKE = {"ldc_resolution": 8, "max_layers": 4, "area_light_samples": 4, "llf": "always", "llf_f": 1,
          "indirect": {"mode": "off"},
@@ -451,6 +470,21 @@ class _Run:
         exact = [float(x) for x in self.light_positions[0]]
         self.relight(suffix, [{"type": "point", "position": exact, "intensity": [1.0, 1.0, 1.0]}])  # exact-hit kernel
 
+    def walkthrough(self) -> None:
+        """A walkthrough of the animated warm-up scene: the bake (the bake queue's
+        ``engine.walkthrough.bake.bake_walkthrough``, as ``walkthrough_bake_job`` calls it) and
+        frames reconstructed as ``walkthrough_chunk_job`` does, with every fill mode."""
+
+        scene = Scene.model_validate(WALKTHROUGH_SCENE)
+        an = load_animated_scene(scene)
+        params = walkthrough_preset("low", face_res=16, probe_res=8, indirect_samples=2, indirect_res_div=2,
+                                    max_views=2, max_time_samples=2)
+        bake = bake_walkthrough(an, engine_space(scene), params)
+        renderer = WalkthroughRenderer(bake, an)
+        cam = camera_params(scene.camera)
+        for fill in FILL_MODES:
+            renderer.render(cam, 0.5, fill=fill, strict=False)
+
     def composite(self) -> None:
 
         obj, bp = self.datasets["float16-pixel_major"]
@@ -475,24 +509,42 @@ def _plan(run: _Run) -> list[tuple[str, Callable[[], None], tuple[str, ...]]]:
         ("reference-pipelined", run.reference_pipelined, ("scene",)),
         ("ldc-bake", run.ldc_bake, ("scene",)),
     ]
-    for method in ("ldc", "ldc+llf", "ldc+ibrt:1", "ldc+ibrt:2"):
-        steps.append((method, functools.partial(run.ldc_render, method, with_llf=True), ("ldc-bake",)))
+    steps.append(("ldc", functools.partial(run.ldc_render, "ldc", with_llf=True), ("ldc-bake",)))
     steps.append(("ldc-without-llf", functools.partial(run.ldc_render, "ldc", with_llf=False), ("ldc-bake",)))
+    for method in ("ldc+llf", "ldc+ibrt:1", "ldc+ibrt:2"):
+        steps.append((method, functools.partial(run.ldc_render, method, with_llf=True), ("ldc-bake",)))
     steps.append(("relight-bake", run.relight_bake, ()))
     for suffix, _, _ in _RELIGHT_STORES:
         steps.append((f"relight-{suffix}", functools.partial(run.relight_store, suffix), ("relight-bake",)))
     steps.append(("composite", run.composite, ("relight-bake",)))
+    steps.append(("walkthrough", run.walkthrough, ()))
     return steps
 
 
 STEPS: tuple[str, ...] = tuple(name for name, _, _ in _plan(_Run(None)))
 """Names of the warm-up steps, in the order they run."""
 
+LANES: tuple[tuple[str, ...], ...] = (
+    STEPS[:STEPS.index("relight-bake")],  # reference, then the LDC methods
+    STEPS[STEPS.index("relight-bake"):],  # relighting, compositing, walkthroughs
+)
+"""The steps split in two lanes that need no step of the other, for two processes (numba compiles
+on one core per process): the reference and LDC kernels in one, the relighting and walkthrough
+kernels in the other. Their cold compile costs are about equal (docs/performance.md)."""
 
-def warm_up(*, logger: logging.Logger | None = None) -> WarmupReport:
-    """Run every step (module docstring); a failing step is recorded with its traceback's last
-    line (and logged with the traceback) and the others still run (those that need it are
-    skipped). Never raises for a step's failure: the caller decides what a failed report means."""
+
+def lanes_for(cores: int) -> tuple[tuple[str, ...], ...]:
+    """:data:`LANES` on a machine with 2 or more cores, one lane of every step on a single core."""
+    return LANES if cores >= len(LANES) else (STEPS,)
+
+
+def warm_up(*, logger: logging.Logger | None = None, on_start: Callable[[str], None] | None = None,
+            on_end: Callable[[WarmupStep], None] | None = None, only: Sequence[str] | None = None) -> WarmupReport:
+    """Run every step (module docstring), or those named in ``only`` (a lane: the steps they need
+    must be in it); a failing step is recorded with its traceback's last line (and logged with the
+    traceback) and the others still run (those that need it are skipped). Never raises for a step's
+    failure: the caller decides what a failed report means. ``on_start(name)`` / ``on_end(step)``
+    are told when each step starts and ends (readiness)."""
     lg = logger or log
     t_start = time.perf_counter()
     steps: list[WarmupStep] = []
@@ -501,12 +553,18 @@ def warm_up(*, logger: logging.Logger | None = None) -> WarmupReport:
         run = _Run(LocalStore(Path(tmp)))
         with _scratch_jobs(run.store):
             for name, fn, needs in _plan(run):
+                if only is not None and name not in only:
+                    continue
                 step = WarmupStep(name)
                 failed_needs = [n for n in needs if any(s.name == n and not s.ok for s in steps)]
                 if failed_needs:
                     step.error = f"skipped: needs step {failed_needs[0]}, which failed"
                     steps.append(step)
+                    if on_end is not None:
+                        on_end(step)
                     continue
+                if on_start is not None:
+                    on_start(name)
                 meter.start()
                 try:
                     fn()
@@ -518,18 +576,74 @@ def warm_up(*, logger: logging.Logger | None = None) -> WarmupReport:
                         name, step.seconds, step.new_signatures, step.compiled, step.loaded,
                         "" if step.ok else f"  FAILED: {step.error}")
                 steps.append(step)
+                if on_end is not None:
+                    on_end(step)
     return WarmupReport(steps, time.perf_counter() - t_start)
 
 
+PUBLISH_INTERVAL_S = 1.0
+"""Seconds between readiness updates in Redis while a published warm-up runs (the estimates count down)."""
+
+
+def warm_up_published(worker: str, lane: int = 0, lanes: int = 1, *,
+                      logger: logging.Logger | None = None) -> WarmupReport:
+    """:func:`warm_up` of lane ``lane`` of ``lanes_for(lanes)``, publishing its kinds' readiness
+    (``workers.warmup_readiness``) in Redis (``IBR_REDIS_URL``) as render worker ``worker``'s every
+    :data:`PUBLISH_INTERVAL_S` and after each step. A Redis error is logged and the warm-up goes on
+    (readiness is for display only)."""
+    from producer.queue import redis_from_url  # deferred on purpose: only the published mode talks to Redis
+    from producer.readiness import publish_readiness
+    from producer.settings import Settings
+    from workers.warmup_readiness import ReadinessTracker
+
+    lg = logger or log
+    redis = redis_from_url(Settings().effective_redis_url)
+    steps = lanes_for(lanes)[lane]
+    tracker = ReadinessTracker(steps, worker)
+    stop = threading.Event()
+
+    def publish() -> None:
+        try:
+            publish_readiness(redis, worker, tracker.document(), lane=lane)
+        except Exception as exc:  # noqa: BLE001 - display only: the warm-up goes on
+            lg.warning("warm-up readiness not published: %s", exc)
+
+    def loop() -> None:
+        while not stop.wait(PUBLISH_INTERVAL_S):
+            publish()
+
+    def step_ended(step: WarmupStep) -> None:
+        tracker.finished(step.name, step.seconds, step.ok)
+        publish()
+
+    publish()
+    ticker = threading.Thread(target=loop, name="ibr-warmup-readiness", daemon=True)
+    ticker.start()
+    try:
+        report = warm_up(logger=lg, on_start=tracker.started, on_end=step_ended, only=steps)
+    finally:
+        stop.set()
+        ticker.join(timeout=5)
+        tracker.end()
+        publish()
+        redis.close()
+    return report
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m workers.warmup [--json]``: warm up this process (and numba's disk cache) and
-    print the report; exit status 1 when a step failed (e.g. an image build should stop)."""
+    """``python -m workers.warmup [--json] [--publish WORKER]``: warm up this process (and numba's
+    disk cache) and print the report; exit status 1 when a step failed (e.g. an image build should
+    stop). ``--publish``: the render worker's background warm-up (workers/runner.py)."""
     p = argparse.ArgumentParser(prog="python -m workers.warmup", description=main.__doc__)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--publish", metavar="WORKER",
+                   help="publish per-method readiness in Redis (IBR_REDIS_URL) as render worker WORKER's")
+    p.add_argument("--lanes", type=int, default=1, help="with --publish: the steps split for this many cores")
+    p.add_argument("--lane", type=int, default=0, help="with --publish: the lane this process runs")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    report = warm_up()
+    report = warm_up_published(args.publish, args.lane, args.lanes) if args.publish else warm_up()
     print(json.dumps(report.to_dict(), indent=1) if args.json else f"{report.table()}\n{report.summary()}")
     return 0 if report.ok else 1
 

@@ -539,12 +539,14 @@ def _view_pass_kernel(groups, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays
     c_2 = counters[2:3]
     c_r = counters[3:4]
     with_rc = rc.row.shape[0] > 0
+    # the axis as a run-time int64, not a literal: numba would compile the group once per literal value
+    # (four copies of the largest LDC kernel, three quarters of its cold compile; docs/performance.md)
     for _ in nb.prange(groups):
-        _view_pass_group(c_0, 0, ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_1, 1, ax1, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_2, 2, ax2, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_0, np.int64(0), ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_1, np.int64(1), ax1, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_2, np.int64(2), ax2, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
         if with_rc:  # the raycast fill's pixels (no LDC sample; axis 0's arrays are placeholders)
-            _view_pass_group(c_r, -1, ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+            _view_pass_group(c_r, np.int64(-1), ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1192,10 +1194,11 @@ def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, a
     c_1 = counters[2:3]
     c_2 = counters[3:4]
     for _ in nb.prange(groups):
-        _shade_group(c_m, -1, ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
-        _shade_group(c_0, 0, ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
-        _shade_group(c_1, 1, ax1, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
-        _shade_group(c_2, 2, ax2, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        # run-time axes: one compilation of the group, not one per literal (see _view_pass_kernel)
+        _shade_group(c_m, np.int64(-1), ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_0, np.int64(0), ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_1, np.int64(1), ax1, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+        _shade_group(c_2, np.int64(2), ax2, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
 
 
 def _ldc_axes(ldc: LDC) -> tuple[AxisArrays, AxisArrays, AxisArrays]:
