@@ -25,8 +25,9 @@ the mirror / glossy box at the Mitsuba cross-check's ``MIRROR_BOUNCES`` / ``MIRR
 traces the same bounce count.
 
 Equal error: for each image-based setting (LDC resolution, indirect noise target, method,
-supersampling and ``antialias``), its LRMS against the ground truth over the views
-(``comparison_mask``: covered pixels not next to an emitter), its render time; and the time our
+supersampling and ``antialias``; direct light at ``LDC_AREA_SAMPLES`` rect-light points per LDC
+sample), its LRMS against the ground truth over the views (``comparison_mask``: covered pixels not
+next to an emitter), its render time; and the time our
 reference (``spp`` = indirect paths per pixel raised along ``REF_LADDER``) and Mitsuba 3
 (multijitter, ``MI_LADDER``) each need to reach that LRMS, interpolated log-log on their ladders
 (measured on 2 of the views; beyond a ladder's end extrapolated with error ~ time^-1/2, marked).
@@ -77,6 +78,7 @@ REF_LADDER = [1, 4, 16, 64]  # spp, one indirect path per camera sample
 MI_LADDER = [1, 4, 16, 64]
 MI_CHECK_SPP = 256
 EDGES_SS = 4  # supersampling of the ``antialias="edges"`` rows
+LDC_AREA_SAMPLES = 64  # rect-light points per LDC sample (docs/accuracy/ldc.md, "Direct light: convergence")
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,8 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
     for res, noise in (QUICK_LDC if quick else spec.ldc):
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         c0, t0 = time.process_time(), time.perf_counter()
-        ldc = bake_ldc(sc, caster, res, plan=plan, indirect=IndirectParams(noise=noise, bounces=spec.bounces))
+        ldc = bake_ldc(sc, caster, res, plan=plan, area_light_samples=LDC_AREA_SAMPLES,
+                       indirect=IndirectParams(noise=noise, bounces=spec.bounces))
         t_bake, c_bake = time.perf_counter() - t0, time.process_time() - c0
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         state = ldc.plan["indirect"]
@@ -298,7 +301,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
                 f"{row['render_ms']:.1f} ms; reference {t_ref} s, mitsuba {t_mi} s")
     # the smallest bake without indirect light, for the record of what indirect light adds
     res0 = (QUICK_LDC if quick else spec.ldc)[0][0]
-    ldc0 = bake_ldc(sc, caster, res0, plan=plan)
+    ldc0 = bake_ldc(sc, caster, res0, plan=plan, area_light_samples=LDC_AREA_SAMPLES)
     r0 = LDCViewRenderer(sc, ldc0, llf, plan)
     v0 = [r0.render(c, spec.method) for c in cams[:2]]
     out["direct_only"] = [{
