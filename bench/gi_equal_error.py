@@ -27,7 +27,7 @@ traces the same bounce count.
 Equal error: for each image-based setting (LDC resolution, indirect noise target, method,
 supersampling and ``antialias``; direct light at ``LDC_AREA_SAMPLES`` rect-light points per LDC
 sample), its LRMS against the ground truth over the views (``comparison_mask``: covered pixels not
-next to an emitter), its render time; and the time our
+next to an emitter, nor showing a rect light directly or through mirrors), its render time; and the time our
 reference (``spp`` = indirect paths per pixel raised along ``REF_LADDER``) and Mitsuba 3
 (multijitter, ``MI_LADDER``) each need to reach that LRMS, interpolated log-log on their ladders
 (measured on 2 of the views; beyond a ladder's end extrapolated with error ~ time^-1/2, marked).
@@ -54,7 +54,13 @@ import numpy as np
 from bench.docs_writer import replace_block
 from bench.ldc_accuracy import scene_setup
 from bench.ldc_antialias import edge_classes
-from bench.mitsuba_crosscheck import MIRROR_BOUNCES, MIRROR_DEPTH, comparison_mask
+from bench.mitsuba_crosscheck import (
+    MIRROR_BOUNCES,
+    MIRROR_DEPTH,
+    comparison_mask,
+    mirrored_emitters,
+    sees_rect_light,
+)
 from engine.metrics import REC709_WEIGHTS, lrms
 from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
@@ -143,16 +149,16 @@ def converged_view(ren: ReferenceRenderer, name: str, cam: CameraParams, params:
     f = None if cache is None else cache / f"gi_{name}_{cam.width}_{key}.npz"
     if f is not None and f.exists():
         d = np.load(f)
-        return {"radiance": d["radiance"], "object_id": d["object_id"],
+        return {"radiance": d["radiance"], "object_id": d["object_id"], "depth": d["depth"],
                 "adaptive": json.loads(str(d["adaptive"])), "seconds": float(d["seconds"]), "cached": True}
     c0, t0 = time.process_time(), time.perf_counter()
     r = ren.render(cam, params)
-    out = {"radiance": r.radiance, "object_id": r.object_id, "adaptive": r.adaptive or {},
+    out = {"radiance": r.radiance, "object_id": r.object_id, "depth": r.depth, "adaptive": r.adaptive or {},
            "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0, "cached": False}
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(f, radiance=r.radiance, object_id=r.object_id, adaptive=np.array(json.dumps(out["adaptive"])),
-                 seconds=np.float64(out["seconds"]))
+        np.savez(f, radiance=r.radiance, object_id=r.object_id, depth=r.depth,
+                 adaptive=np.array(json.dumps(out["adaptive"])), seconds=np.float64(out["seconds"]))
     return out
 
 
@@ -201,7 +207,10 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
     gts = []
     for i, cam in enumerate(cams):
         g = converged_view(ren, scene_name, cam, gt_params(spec, GT_SEED, quick), cache)
-        g["mask"], _ = comparison_mask(sc, g["object_id"])
+        light_px = sees_rect_light(sc, cam, g["depth"])
+        if spec.max_depth > 0:
+            light_px |= mirrored_emitters(sc, cam, spec.max_depth)
+        g["mask"], _ = comparison_mask(sc, g["object_id"], light_px)
         gts.append(g)
         a = g["adaptive"]
         log(f"gt view {i}: {g['seconds']:.1f} s{' (cached)' if g['cached'] else ''}, estimated "
