@@ -108,13 +108,16 @@ SCENES = {
 QUICK_LDC = ((64, 0.05),)
 
 
+GT_BUDGET_SCALE = [1.0]  # ``--gt-budget-scale``: multiplies every scene's ``gt_ms``
+
+
 def gt_params(spec: SceneSpec, seed: int, quick: bool = False) -> ReferenceParams:
     """The ground truth's reference parameters (module docstring): one indirect path and one
     rect-light sample per camera sample, as Mitsuba's ``path``."""
     return ReferenceParams(spp=GT_CAP, max_depth=spec.max_depth, area_light_samples=1, glossy_samples=1,
                            indirect_samples=GT_CAP, indirect_bounces=spec.bounces, seed=seed,
                            chunk_pixels=max(256, (1 << 20) // GT_CAP), max_error=0.03 if quick else GT_ERROR,
-                           max_ms=10_000.0 if quick else spec.gt_ms)
+                           max_ms=10_000.0 if quick else spec.gt_ms * GT_BUDGET_SCALE[0])
 
 
 def ladder_params(spec: SceneSpec, spp: int) -> ReferenceParams:
@@ -561,7 +564,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", action="append", choices=sorted(SCENES), help="scene (repeatable; default all)")
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--gt-cache", type=Path, help="keep the ground truths in this directory (reruns reuse them)")
+    ap.add_argument("--gt-budget-scale", type=float, default=1.0,
+                    help="multiply the ground truths' time budgets (a shorter run, a noisier ground truth)")
     args = ap.parse_args(argv)
+    GT_BUDGET_SCALE[0] = args.gt_budget_scale
     t0 = time.perf_counter()
 
     def log(msg: str) -> None:
@@ -576,7 +582,8 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {"scenes": scenes}
     res["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}"
     res["command"] = "python -m bench.gi_equal_error" + (" --quick" if args.quick else "") + \
-        (" --gt-cache DIR" if args.gt_cache else "")
+        (" --gt-cache DIR" if args.gt_cache else "") + \
+        (f" --gt-budget-scale {args.gt_budget_scale:g}" if args.gt_budget_scale != 1.0 else "")
     res["total_s"] = time.perf_counter() - t0
     if args.quick:
         print(doc_block(res))
