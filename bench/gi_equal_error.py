@@ -101,9 +101,9 @@ class SceneSpec:
 
 
 SCENES = {
-    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02),), gt_ms=100_000.0),
+    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02),), gt_ms=140_000.0),
     "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.05),),
-                                       gt_ms=130_000.0, method="ldc+ibrt:1", llf=(4, 48)),
+                                       gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48)),
 }
 QUICK_LDC = ((64, 0.05),)
 
