@@ -5,7 +5,10 @@ pixels at an edge of the one-sample image), at the interactive size.
 ``python -m bench.ldc_antialias`` (512x512; cornell_box with method ``ldc``, mirror_box with
 ``ldc+ibrt:1``; ``--scene NAME`` for one scene, ``--quick`` for an iteration run). Writes the
 ``ldc_antialias`` block of ``docs/accuracy/ldc.md`` and ``docs/data/ldc_antialias.json`` (a run
-of one scene merges into the stored results of the others).
+of one scene merges into the stored results of the others). ``--direct-convergence LABEL``
+measures instead how the bake's direct light converges with its rect-light samples per LDC sample
+(``direct_convergence``; the ``ldc_direct_convergence`` block and
+``docs/data/ldc_direct_convergence.json``, one entry per sampler label).
 
 Direct light only (the bake without indirect light, the reference with ``indirect_samples=0``),
 so the error left is the views' own: ground truth = the reference renderer at 64 jittered
@@ -173,6 +176,97 @@ def write_doc(results: dict) -> None:
     replace_block(DOC, "ldc_antialias", "\n".join(lines))
 
 
+# ----------------------------------------------------------------------------- direct-light convergence
+
+CONV_DATA = ROOT / "docs" / "data" / "ldc_direct_convergence.json"
+CONV_LADDER = (4, 16, 64, 256)
+CONV_TRUTH = 4096  # 64 x 64 rect-light samples per LDC sample
+CONV_SEEDS = (1, 2, 3)
+
+
+def direct_convergence(name: str, ldc_res: int, n_points: int, log) -> dict:
+    """How the LDC's direct light converges with its rect-light samples per LDC sample: on
+    ``n_points`` LDC samples (a seeded random subset of the z axis at ``ldc_res``), the relative RMS
+    error of the direct light (luminance, both sides, rows lit in the converged value) at each count
+    of ``CONV_LADDER`` against ``CONV_TRUTH`` samples, mean over ``CONV_SEEDS``, the seconds of
+    shading (shadow rays included), and the error split between penumbra rows (the converged value
+    strictly between unoccluded and black) and the rest."""
+    from engine.newviews.ldc import bake_ldc_axis, shade_samples, surface_attributes
+
+    sc, caster, plan, _, _ = scene_setup(name, 64, 1)
+    ax = bake_ldc_axis(sc, caster, 2, ldc_res, plan=plan, area_light_samples=1)
+    pick = np.sort(np.random.default_rng(0).choice(ax.n_samples, min(n_points, ax.n_samples), replace=False))
+    p, ng, ns = surface_attributes(sc, ax.ldi.prim[pick], ax.ldi.u[pick], ax.ldi.v[pick])
+    mat = ax.material[pick]
+    occl = np.asarray(plan.occludable_lights, dtype=np.bool_)
+
+    def shade(n: int, seed: int, occludable=occl) -> tuple[np.ndarray, float]:
+        t0 = time.perf_counter()
+        d, _, _ = shade_samples(sc, caster, p, ng, ns, mat, occludable, store_bits=False, area_light_samples=n,
+                                seed=seed)
+        return luminance(d.astype(np.float64)), time.perf_counter() - t0
+
+    shade(4, 0)  # compile / warm
+    truth, t_truth = shade(CONV_TRUTH, 99)
+    free, _ = shade(CONV_TRUTH, 99, np.zeros_like(occl))
+    lit = truth > 0
+    frac = np.where(free > 0, truth / np.where(free > 0, free, 1.0), 0.0)
+    pen = lit & (frac < 0.999)
+    mean = float(truth[lit].mean())
+    log(f"{name}: {pick.size} samples, converged value {t_truth:.1f} s; penumbra rows {pen.sum() / lit.sum():.3f}")
+    rows = []
+    for n in CONV_LADDER:
+        se, se_pen, ts = [], [], []
+        for seed in CONV_SEEDS:
+            y, dt = shade(n, seed)
+            d2 = np.square(y - truth)
+            se.append(float(d2[lit].mean()))
+            se_pen.append(float(d2[pen].sum() / lit.sum()))
+            ts.append(dt)
+        row = {"samples": n, "rel_rms": math.sqrt(np.mean(se)) / mean,
+               "rel_rms_penumbra": math.sqrt(np.mean(se_pen)) / mean,
+               "rel_rms_rest": math.sqrt(max(np.mean(se) - np.mean(se_pen), 0.0)) / mean,
+               "seconds": float(np.median(ts))}
+        rows.append(row)
+        log(f"  {n} samples: rel RMS {row['rel_rms']:.5f} (penumbra {row['rel_rms_penumbra']:.5f}, "
+            f"rest {row['rel_rms_rest']:.5f}) {row['seconds']:.2f} s")
+    return {"scene": name, "ldc_res": ldc_res, "points": int(pick.size), "lit_rows": int(lit.sum()),
+            "penumbra_share": float(pen.sum() / lit.sum()), "truth_samples": CONV_TRUTH, "seeds": list(CONV_SEEDS),
+            "ladder": rows}
+
+
+def write_convergence_doc(results: dict) -> None:
+    lines = ["Relative RMS error of the LDC's direct light per LDC sample (luminance, every lit sample side) "
+             f"against {CONV_TRUTH} rect-light samples per LDC sample, mean square over seeds "
+             f"{', '.join(str(s) for s in CONV_SEEDS)}; seconds = shading with shadow rays of the subset, median "
+             "over the seeds. Penumbra: sample sides whose converged light is strictly between black and "
+             "unoccluded; the two split columns add in quadrature to the total.", ""]
+    for label, r in results.items():
+        lines += [f"**{label}** ({r['scene']}, LDC {r['ldc_res']}, z axis, {r['points']} samples, "
+                  f"{100 * r['penumbra_share']:.1f} % of the lit sides in penumbra; {r['date']}, load "
+                  f"{r['load']:.1f})", "",
+                  "| rect samples per LDC sample | rel. RMS | penumbra part | rest | s |", "|---|---|---|---|---|"]
+        for row in r["ladder"]:
+            lines.append(f"| {row['samples']} | {100 * row['rel_rms']:.3f} % | "
+                         f"{100 * row['rel_rms_penumbra']:.3f} % | {100 * row['rel_rms_rest']:.3f} % | "
+                         f"{row['seconds']:.2f} |")
+        lines.append("")
+    for label, r in results.items():  # what an allocation by class would give (from the rows above)
+        share, by_n = r["penumbra_share"], {row["samples"]: row for row in r["ladder"]}
+        lines += [f"Allocations by class, **{label}** (a model from the split columns above: the error of an "
+                  "allocation that gives the penumbra sides more samples than the rest, were they known in "
+                  "advance; an adaptive bake would also pay for finding them):", "",
+                  "| rest | penumbra | mean samples per side | rel. RMS |", "|---|---|---|---|"]
+        for n_rest in sorted(by_n):
+            for n_pen in sorted(by_n):
+                if n_pen > n_rest:
+                    err = math.hypot(by_n[n_rest]["rel_rms_rest"], by_n[n_pen]["rel_rms_penumbra"])
+                    lines.append(f"| {n_rest} | {n_pen} | {n_rest * (1 - share) + n_pen * share:.0f} | "
+                                 f"{100 * err:.3f} % |")
+        lines.append("")
+    replace_block(DOC, "ldc_direct_convergence", "\n".join(lines).rstrip())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", action="append", choices=sorted(SCENES), help="scene (repeatable; default all)")
@@ -181,7 +275,19 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="iteration run: 128x128, 1 view, no docs")
     ap.add_argument("--no-docs", action="store_true")
     ap.add_argument("--gt-cache", type=Path, help="keep the ground truths in this directory (reruns reuse them)")
+    ap.add_argument("--direct-convergence", metavar="LABEL",
+                    help="measure instead how the LDC's direct light converges with its rect-light samples "
+                         "(cornell_box, LDC 256) and file the result under LABEL (the sampler's name)")
     args = ap.parse_args(argv)
+    if args.direct_convergence:
+        res = direct_convergence("cornell_box", 256, 20000, lambda m: print(m, flush=True))
+        res.update(date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), load=os.getloadavg()[0])
+        stored = json.loads(CONV_DATA.read_text()) if CONV_DATA.exists() else {}
+        stored[args.direct_convergence] = res
+        CONV_DATA.parent.mkdir(parents=True, exist_ok=True)
+        CONV_DATA.write_text(json.dumps(stored, indent=1) + "\n")
+        write_convergence_doc(stored)
+        return 0
     size, n_views = (128, 1) if args.quick else (args.size, args.views)
     names = args.scene or list(SCENES)
 

@@ -24,4 +24,6 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # by mirror / glossy rays at chain hits and path vertices: caustic paths, visible lights).
 # 0.5.0: reference renders and everything baked from them (glossy lobes weigh light sampling and
 # their own rays by multiple importance sampling; Russian roulette on paths past 3 bounces).
-ENGINE_VERSION = "0.5.0"
+# 0.6.0: LDC bakes and the LDC views' highlights (a rect light's points per LDC sample or shaded
+# point are its own Owen-scrambled Sobol sequence over the light, engine/sampler.py).
+ENGINE_VERSION = "0.6.0"

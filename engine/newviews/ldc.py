@@ -11,9 +11,10 @@ side and is unoccluded from it; for a rect light: when any of its samples is). W
 effect plan finds no occludable light, W = 0: no bits are stored and no shadow rays cast.
 
 ``diffuse`` holds everything view-independent the reference renderer shows at a camera
-hit: direct diffuse ``kd/pi sum E cos`` over the lights (point and directional exact,
-rect lights on a g x g jittered grid from a fixed seeded counter-based pattern, g =
-round(sqrt(area_light_samples))) + ``kd * ambient`` + ``emission``. Light conventions
+hit: direct diffuse ``kd/pi sum E cos`` over the lights (point and directional exact, rect
+lights at g x g points, g = round(sqrt(area_light_samples)), each sample's points the first g*g
+of its own Owen-scrambled Sobol sequence over the light, ``rect_jitter``: deterministic per seed,
+the same however the bake is sliced or chunked) + ``kd * ambient`` + ``emission``. Light conventions
 (offset origins, shadow shortening, shading-normal fallback) copy ``engine/reference.py``.
 
 With ``indirect`` settings, ``diffuse`` also holds the indirect diffuse light (interreflections
@@ -52,13 +53,16 @@ from engine.newviews.indirect import (
 from engine.newviews.ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
 from engine.reference import ReferenceRenderer
-from engine.rng import stream_key, uniform
+from engine.sampler import derive_key, sample_2d, sample_key
 from engine.scene import RuntimeScene
 
 INV_PI = 1.0 / math.pi
 MAX_RESOLUTION = 8192
 # bytes per sample of the LDC attributes on top of the LDI (normals 24, facing 1, ids 8, diffuse 24)
 LDC_ATTR_BYTES = 57
+_DIRECT_STREAM = 7
+"""The sampler stream of the direct light's rect-light positions: sample_key(seed, 7, stream_id)
+(the indirect paths use ``engine.newviews.indirect``'s stream)."""
 
 
 @dataclass(frozen=True)
@@ -174,13 +178,28 @@ class LDC:
 # ----------------------------------------------------------------------------- kernels
 
 
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def rect_jitter(key, light, owner, s, r_g):
+    """The jitter (su, sv) that makes ``light_sample``'s cell ``s`` of rect light ``light`` land on
+    sample ``s`` of ``owner``'s stratified sequence over the light (engine/sampler.py, dimension
+    derive_key(key, light, 0)): the g*g samples of one owner are the first g*g points of an
+    Owen-scrambled Sobol sequence (a (0, m, 2)-net when g*g = 2^m), not one jittered point per cell.
+    ``light_sample`` places the point at ((s % g + su) / g, (s // g + sv) / g) on the light, so
+    su, sv are the net point less the cell's corner (they may leave [0, 1); the point does not)."""
+    x, y = sample_2d(derive_key(key, light, 0), owner, s)
+    return x * r_g - (s % r_g), y * r_g - (s // r_g)
+
+
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, row0, center, extent,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, key, first, center, extent,
                 o_out, d_out, tmax_out, c_out, side_out, state):
     """One row per (sample, light sample). The light lies in front of at most one side of
     the surface (the side whose geometric normal has cos > 0 to it): the row belongs to that
-    side. state: 0 = nothing, 1 = needs a shadow ray, 2 = visible without one."""
+    side. state: 0 = nothing, 1 = needs a shadow ray, 2 = visible without one.
+
+    Rect-light positions: sample ``first + i``'s ``rect_jitter`` in the sampler stream ``key``, so
+    a sample's light rows do not depend on the slice or chunk it is shaded in."""
     n = p.shape[0]
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
@@ -199,10 +218,10 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
             su = sv = 0.0
             li = j
-            if j >= npt + ndir:  # rect-light jitter from the counter-based stream
-                su = uniform(stream, row0 + row, 0)
-                sv = uniform(stream, row0 + row, 1)
-                li = npt + ndir + (j - npt - ndir) // gg
+            if j >= npt + ndir:  # rect light q's sample s, stratified over the light
+                q = (j - npt - ndir) // gg
+                su, sv = rect_jitter(key, q, first + i, (j - npt - ndir) % gg, r_g)
+                li = npt + ndir + q
             # the side the light is on, seen from the point itself
             ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, px, py, pz, 0.0, su, sv, pt_pos, pt_int, dir_dir,
                                                             dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
@@ -309,7 +328,7 @@ def shade_samples(scene: RuntimeScene, caster: RayCaster, p: np.ndarray, ng: np.
     occl = np.ascontiguousarray(np.asarray(occludable, dtype=np.bool_).reshape(-1))
     if occl.shape[0] != n_l:
         raise InvalidInputError(f"occludable must have one flag per light ({n_l}), got {occl.shape[0]}")
-    stream = stream_key(seed, stream_id, 7)
+    key = sample_key(seed, _DIRECT_STREAM, stream_id)
     t_shade = t_shadow = 0.0
     n_shadow = 0
     if per and n:
@@ -327,7 +346,7 @@ def shade_samples(scene: RuntimeScene, caster: RayCaster, p: np.ndarray, ng: np.
             state = np.empty(rows, np.int8)
             _light_rows(p[sl], ng[sl], ns[sl], mat[sl], mt.kd, occl, force_all, lt.point_position,
                         lt.point_intensity, lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u,
-                        lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, r_g, stream, s * per,
+                        lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, r_g, key, s,
                         scene.center, scene.extent, so, sd, tm, c, side, state)
             live = np.flatnonzero(state == 1)
             t_shade += time.perf_counter() - t0

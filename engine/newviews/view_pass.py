@@ -13,8 +13,9 @@ gated by the LDC's visibility bit of that light (bits ``(n, W)`` uint64; with ``
 the bake stored no bits because no light can be occluded, or was told not to - a light in
 front of the surface counts as visible). Light samples, offsets and cut-offs are the
 reference's (``engine/lights.py``); a rect light is gated by ONE bit (any of its samples
-visible), so a highlight in its penumbra is too bright by the blocked fraction; rect-light
-jitter is a fixed seeded counter-based pattern. Diffuse (LDC) + highlights equals the
+visible), so a highlight in its penumbra is too bright by the blocked fraction; a rect light's
+points are each shaded point's own stratified (Owen-scrambled Sobol) sequence over the light,
+deterministic per seed (``engine.newviews.ldc.rect_jitter``). Diffuse (LDC) + highlights equals the
 reference's direct lighting at the same point (tested to 1e-5 for point and directional
 lights).
 
@@ -56,9 +57,10 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import directional_light_sample, light_sample
+from engine.newviews.ldc import rect_jitter
 from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
-from engine.rng import stream_key, uniform
+from engine.sampler import sample_key
 from engine.scene import RuntimeScene
 from engine.shading import phong_pow as _phong_pow
 
@@ -97,8 +99,8 @@ class HighlightParams(NamedTuple):
     rect_area: np.ndarray  #: (n_rect,) float64 areas
     rect_radiance: np.ndarray  #: (n_rect, 3) float64 emitted radiances
     rect_two_sided: np.ndarray  #: (n_rect,) bool emit from both faces
-    rect_grid: int  #: g: a rect light is sampled on a g x g jittered grid (g^2 ~ area_light_samples)
-    stream: int  #: counter-based RNG stream of the rect-light jitter (``engine.rng``)
+    rect_grid: int  #: g: a rect light is sampled at g x g points (g^2 ~ area_light_samples)
+    stream: np.uint64  #: sampler key of the rect-light points (``engine.sampler``, ``rect_jitter``)
     center: np.ndarray  #: (3,) float64 the scene's centre, for the shadow-ray offset
     extent: float  #: the scene's extent, for the shadow-ray offset
 
@@ -113,7 +115,8 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     their ``HighlightParams`` ONCE per thread, by name. numba inlines at most 30 arguments,
     hence the scratch ``pt``.
 
-    key: the point's counter for the rect-light jitter (its row, pixel or ray index).
+    key: the point's number in the rect-light sampler stream (its row, pixel or ray index): its
+        g*g points on a rect light are the first of its own stratified sequence (``rect_jitter``).
     pt: (12,) float64 scratch holding the point: p, ng, ns, wo (3 floats each), as
         ``gather_point`` takes it.
     m: the point's material index.
@@ -146,9 +149,9 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
         li = j
         su = sv = 0.0
         if j >= npt + ndir:
-            li = npt + ndir + (j - npt - ndir) // gg
-            su = uniform(stream, key * per + j, 0)
-            sv = uniform(stream, key * per + j, 1)
+            q = (j - npt - ndir) // gg
+            li = npt + ndir + q
+            su, sv = rect_jitter(stream, q, key, (j - npt - ndir) % gg, r_g)
         if words > 0:
             if (bits[brow, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
                 continue
@@ -224,7 +227,7 @@ def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: in
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
     return HighlightParams(mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction,
                            lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
-                           lt.rect_radiance, lt.rect_two_sided, r_g, stream_key(seed, 11),
+                           lt.rect_radiance, lt.rect_two_sided, r_g, sample_key(seed, 11),
                            np.asarray(scene.center, np.float64), float(scene.extent))
 
 
