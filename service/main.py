@@ -159,7 +159,8 @@ def create_app(
     app.state.store = store
     app.state.redis = redis
     app.state.keyring = KeyRing(settings.api_keys)
-    app.state.limiter = RateLimiter(settings.rate_limit_per_minute, settings.rate_limit_burst)
+    app.state.limiter = RateLimiter(settings.rate_limit_per_minute, settings.rate_limit_burst,
+                                    redis=lambda: app.state.redis)
     metrics = ServiceMetrics(lambda: redis)
     app.state.metrics = metrics
 

@@ -33,7 +33,7 @@ from producer.ownership import (
 from producer.settings import Settings
 from producer.store import ObjectStore
 from service.core.metrics import ServiceMetrics
-from service.core.security import KeyRing, RateLimiter
+from service.core.security import AuthError, KeyRing, RateLimiter
 
 __all__ = [
     "MetricsDep",
@@ -83,11 +83,15 @@ def get_owner(
     """Authenticate (401) and rate-limit (429) the request; the owner id or None (auth off)."""
     keyring: KeyRing = request.app.state.keyring
     limiter: RateLimiter = request.app.state.limiter
+    address = f"addr:{request.client.host if request.client else '?'}"
     # The raw header, not the parsed credentials: a wrong scheme must be a 401, not "no key".
-    owner = keyring.authenticate(request.headers.get("authorization"))
+    try:
+        owner = keyring.authenticate(request.headers.get("authorization"))
+    except AuthError:
+        limiter.hit(address)  # guessing keys costs tokens too: 429 before 401
+        raise
     request.scope.setdefault("state", {})["owner"] = owner
-    client = owner if owner is not None else f"addr:{request.client.host if request.client else '?'}"
-    limiter.hit(client)
+    limiter.hit(owner if owner is not None else address)
     return owner
 
 

@@ -7,25 +7,30 @@ key is hashed and compared against every configured digest with
 matched how far). The owner of everything a key creates is the first 16 hex
 characters of its digest.
 
-The rate limiter is an in-process token bucket: exact for one API process (the
-default deployment); with N API replicas each enforces its own limit, so the
-effective limit is N times the setting (a Redis bucket would be needed to share it).
+The rate limiter is a token bucket per client kept in Redis (:class:`RateLimiter`), updated by
+one Lua script per request, so every API replica draws from the same bucket: N replicas allow
+the configured rate, not N times it. Requests with a missing or wrong key are limited too, by
+client address, before the 401.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import math
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from typing import Any
+
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
 
 __all__ = ["AuthError", "KeyRing", "RateLimited", "RateLimiter", "hash_key", "owner_of"]
 
 OWNER_HEX_CHARS = 16
+REDIS_ERRORS = (RedisConnectionError, RedisTimeoutError, OSError)
+log = logging.getLogger(__name__)
 
 
 class AuthError(Exception):
@@ -86,54 +91,65 @@ class KeyRing:
         return owner_of(match)
 
 
-@dataclass
-class _Bucket:
-    tokens: float
-    updated: float
+_TAKE_TOKEN = """
+local rate = tonumber(ARGV[1])
+local capacity = tonumber(ARGV[2])
+local now = tonumber(ARGV[3])
+local b = redis.call('HMGET', KEYS[1], 'tokens', 'updated')
+local tokens = tonumber(b[1]) or capacity
+local updated = tonumber(b[2]) or now
+tokens = math.min(capacity, tokens + math.max(0, now - updated) * rate)
+local wait = 0
+if tokens >= 1 then tokens = tokens - 1 else wait = (1 - tokens) / rate end
+redis.call('HSET', KEYS[1], 'tokens', tostring(tokens), 'updated', tostring(math.max(now, updated)))
+redis.call('EXPIRE', KEYS[1], math.ceil(capacity / rate) + 60)
+return tostring(wait)
+"""
+"""Refill by the time since the bucket's last update, take one token or say how long until there is
+one; atomic in Redis, so concurrent requests on any replica see one bucket. The key expires once it
+would be full again (an absent bucket is a full one)."""
 
 
 class RateLimiter:
-    """Token bucket per client id: ``per_minute`` tokens per minute, ``burst`` capacity.
+    """Token bucket per client id, shared through Redis: ``per_minute`` tokens per minute, ``burst``
+    capacity. ``redis``: a callable giving the connection (the app's), so that tests and the app build
+    it the same way; ``clock``: seconds (wall clock, comparable across replicas). Redis unreachable:
+    the request is let through (the limiter must not turn a Redis outage into 429s; ``/readyz``
+    reports the outage)."""
 
-    Memory is bounded: the least recently seen buckets beyond ``max_clients`` are
-    dropped (a dropped client simply starts with a full bucket)."""
+    KEY_PREFIX = "ibr:rate:"
 
     def __init__(
         self,
         per_minute: int,
         burst: int = 0,
-        clock: Callable[[], float] = time.monotonic,
-        max_clients: int = 100_000,
+        redis: Callable[[], Any] | None = None,
+        clock: Callable[[], float] = time.time,
     ) -> None:
         self.per_minute = per_minute
         self.capacity = float(burst or per_minute)
         self.rate = per_minute / 60.0
+        self._redis = redis
         self._clock = clock
-        self._max_clients = max_clients
-        self._buckets: OrderedDict[str, _Bucket] = OrderedDict()
-        self._lock = threading.Lock()
+        self._script: Any = None
 
     @property
     def enabled(self) -> bool:
-        return self.per_minute > 0
+        return self.per_minute > 0 and self._redis is not None
 
     def hit(self, client: str) -> None:
         """Take one token for ``client`` or raise RateLimited."""
         if not self.enabled:
             return
-        now = self._clock()
-        with self._lock:
-            bucket = self._buckets.pop(client, None)
-            if bucket is None:
-                bucket = _Bucket(self.capacity, now)
-            else:
-                bucket.tokens = min(self.capacity, bucket.tokens + (now - bucket.updated) * self.rate)
-                bucket.updated = now
-            self._buckets[client] = bucket
-            while len(self._buckets) > self._max_clients:
-                self._buckets.popitem(last=False)
-            if bucket.tokens >= 1.0:
-                bucket.tokens -= 1.0
-                return
-            wait = (1.0 - bucket.tokens) / self.rate
-        raise RateLimited(max(1.0, math.ceil(wait)))
+        assert self._redis is not None
+        conn = self._redis()
+        try:
+            if self._script is None:
+                self._script = conn.register_script(_TAKE_TOKEN)
+            wait = float(self._script(keys=[self.KEY_PREFIX + client],
+                                      args=[self.rate, self.capacity, self._clock()], client=conn))
+        except REDIS_ERRORS as exc:
+            log.warning("rate limit not applied, Redis unreachable: %s", exc)
+            return
+        if wait > 0:
+            raise RateLimited(max(1.0, math.ceil(wait)))

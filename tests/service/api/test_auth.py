@@ -110,16 +110,38 @@ def test_rate_limit_429_per_key(make_app: Any) -> None:
         assert c.get("/healthz").status_code == 200  # probes are not rate limited
 
 
-def test_rate_limiter_refills() -> None:
-    now = [0.0]
-    lim = RateLimiter(per_minute=60, burst=2, clock=lambda: now[0])
+def test_rate_limiter_refills_and_is_shared_through_redis(redis_conn: Any) -> None:
+    now = [1000.0]
+    lim = RateLimiter(per_minute=60, burst=2, redis=lambda: redis_conn, clock=lambda: now[0])
+    other_replica = RateLimiter(per_minute=60, burst=2, redis=lambda: redis_conn, clock=lambda: now[0])
     lim.hit("a")
-    lim.hit("a")
+    other_replica.hit("a")  # the same bucket: two tokens taken, none left
     with pytest.raises(RateLimited) as exc:
         lim.hit("a")
     assert exc.value.retry_after_s == 1
-    now[0] = 1.0
-    lim.hit("a")  # one token per second
+    other_replica.hit("b")  # another client's own bucket
+    now[0] += 1.0
+    other_replica.hit("a")  # one token per second
+    with pytest.raises(RateLimited):
+        lim.hit("a")
+    assert 0 < redis_conn.ttl(RateLimiter.KEY_PREFIX + "a") <= 62  # a full bucket needs no key
+
+
+def test_rate_limit_applies_to_wrong_keys_before_the_401(make_app: Any) -> None:
+    app = make_app(api_keys=[hash_key(KEY_A)], rate_limit_per_minute=2)
+    with TestClient(app) as c:
+        wrong = {"Authorization": "Bearer not-a-key"}
+        codes = [c.get("/v1/scenes", headers=wrong).status_code for _ in range(3)]
+        assert codes == [401, 401, 429]
+        assert c.get("/v1/scenes", headers=A).status_code == 200  # the key's bucket is its own
+
+
+def test_a_redis_outage_lets_requests_through() -> None:
+    from redis import Redis
+
+    down = Redis(unix_socket_path="/nonexistent/redis.sock", socket_connect_timeout=0.2)
+    RateLimiter(per_minute=1, redis=lambda: down).hit("a")
+    RateLimiter(per_minute=1, redis=lambda: down).hit("a")
 
 
 def test_keyring() -> None:
