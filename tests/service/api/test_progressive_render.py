@@ -17,10 +17,7 @@ from engine.imageio import read_image
 from producer.artifacts import artifact_key
 from producer.renders import render_artifact_key
 from tests.service.api.conftest import small_scene
-from tests.service.api.test_cli_api import api_url as cli_api_url
 from tests.service.api.test_cli_api import ibr
-
-api_url = cli_api_url  # the fixture: uvicorn in a thread on this test's app
 
 CAM = {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "width": 24, "height": 16}
 PARAMS = {"spp": 64, "max_depth": 1, "glossy_samples": 1, "area_light_samples": 1, "indirect_samples": 64,

@@ -31,7 +31,6 @@ from producer.queue import fetch_job
 from producer.renders import render_artifact_key
 from producer.store import open_store
 from tests.service.api.conftest import small_scene
-from tests.service.api.test_cli_api import api_url as api_url  # the uvicorn fixture
 
 BAKE = {"ldc_resolution": 16, "max_layers": 8, "area_light_samples": 1, "indirect": {"mode": "off"}}
 CAMERA = {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0.5, 0], "fov_y_deg": 40, "width": 32,
