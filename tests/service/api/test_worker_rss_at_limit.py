@@ -51,7 +51,9 @@ def _finish(c: TestClient, body: dict[str, Any], timeout: float, log: Any) -> No
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("side", "params"), [(1024, {"spp": 4}), (512, {"spp": 16})])
+# one case, the closest to its estimate (512 x 512 at 16 spp measured 0.69 of it, this one 0.72): the full
+# run has a time budget; the render-memory tests in tests/workers/queue cover more shapes in a bare process
+@pytest.mark.parametrize(("side", "params"), [(1024, {"spp": 4})])
 def test_a_render_at_the_limit_keeps_the_workers_rss_under_its_estimate(make_app: Any, worker_process: Any,
                                                                         side: int, params: dict[str, int]) -> None:
     triangles = scene_triangles(Scene.model_validate(WARMUP_SCENE))
