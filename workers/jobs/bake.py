@@ -71,6 +71,7 @@ from producer.bakes import (
     part_weight,
     plan_parts,
 )
+from producer.costs import duration_text
 from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
 from producer.payloads import InvalidPayload, SceneBakeJobPayload, SceneBakePartJobPayload, describe_validation_error
 from producer.queue import fetch_job, redis_from_url
@@ -307,14 +308,6 @@ def bake_estimates(scene: RuntimeScene, params: BakeParams, plan_doc: Mapping[st
     return est
 
 
-def _duration(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def check_estimates(params: BakeParams, est: Mapping[str, Any]) -> None:
     """Refuse a bake whose estimate is over the server's limits (``BakeTooLarge`` naming both)."""
     limit = int(est["part_limit_bytes"])
@@ -340,12 +333,12 @@ def check_estimates(params: BakeParams, est: Mapping[str, Any]) -> None:
     if cpu > cpu_limit:
         ind = est.get("indirect_paths_expected", 0)
         raise BakeTooLarge(
-            f"the bake's estimated CPU time is {_duration(cpu)} ({ind / 1e6:.0f} M indirect paths in the LDC: "
+            f"the bake's estimated CPU time is {duration_text(cpu)} ({ind / 1e6:.0f} M indirect paths in the LDC: "
             f"{sum(est['ldc_samples_expected']) / 1e3:.0f} k samples x 2 sides x "
             f"~{est.get('indirect_paths_per_side_expected', 0):.0f} paths, "
             f"{est.get('llf_indirect_paths_expected', 0) / 1e6:.0f} M in the light field, at "
             f"{est['paths_per_s'] / 1e3:.0f} k paths/s per core), over this server's limit of "
-            f"{_duration(cpu_limit)}; lower ldc_resolution, indirect.max_paths or indirect.bounces, raise "
+            f"{duration_text(cpu_limit)}; lower ldc_resolution, indirect.max_paths or indirect.bounces, raise "
             "indirect.noise, or set indirect.mode=off")
 
 
