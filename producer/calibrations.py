@@ -71,11 +71,17 @@ def model_path(scene_id: str, bkey: str) -> str:
 
 def read_calibration(store: ObjectStore, scene_id: str, bkey: str) -> dict[str, Any] | None:
     """The stored calibration document ``{"key", "params", "model"}`` of a scene's bake, or None."""
+    doc = _read_json(store, model_path(scene_id, bkey))
+    return doc if doc is not None and doc.get("model", {}).get("engine_version") == ENGINE_VERSION else None
+
+
+def _read_json(store: ObjectStore, key: str) -> dict[str, Any] | None:
+    """The JSON object stored at ``key``; None when there is none."""
     try:
-        doc = json.loads(store.get_bytes(model_path(scene_id, bkey)))
+        doc = json.loads(store.get_bytes(key))
     except NotFound:
         return None
-    return doc if isinstance(doc, dict) and doc.get("model", {}).get("engine_version") == ENGINE_VERSION else None
+    return doc if isinstance(doc, dict) else None
 
 
 def write_calibration(store: ObjectStore, scene_id: str, bkey: str, key: str, params: dict[str, Any],
@@ -254,11 +260,8 @@ def verification_path(scene_id: str, key: str) -> str:
 
 def read_verification(store: ObjectStore, scene_id: str, key: str) -> dict[str, Any] | None:
     """The stored measurement of artifact ``key`` (the verification job's result), or None."""
-    try:
-        doc = json.loads(store.get_bytes(verification_path(scene_id, key)))
-    except NotFound:
-        return None
-    return doc if isinstance(doc, dict) and doc.get("engine_version") == ENGINE_VERSION else None
+    doc = _read_json(store, verification_path(scene_id, key))
+    return doc if doc is not None and doc.get("engine_version") == ENGINE_VERSION else None
 
 
 def write_verification(store: ObjectStore, scene_id: str, key: str, result: dict[str, Any]) -> None:
