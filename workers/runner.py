@@ -53,7 +53,10 @@ reconnects with RQ's backoff, capped at 5 s. :class:`DyingScheduler` (RQ's forke
 with its worker and waits out outages instead of exiting. On each maintenance pass a worker also
 releases what a dead worker of the same host still holds (:meth:`reap_dead_local_peers`), so a
 SIGKILLed worker's job is retried at the next pass rather than after its heartbeat expiry and the
-dead scheduler's lock (up to 30 + 61 s). ``--healthcheck`` answers 0 when a live worker of the
+dead scheduler's lock (up to 30 + 61 s). A scheduler lock whose holder, on any host, has not
+refreshed it for its 1 s period plus ``heartbeat_grace`` is released for a live worker's scheduler
+(:meth:`take_over_silent_scheduler_locks`): a lost host's lock is free ~21 s after the loss instead
+of 61 s, so the retries of its abandoned jobs run on time. ``--healthcheck`` answers 0 when a live worker of the
 queue on this host has beaten recently (the compose health check).
 
 Warm-up (render workers only). As the worker starts taking jobs, :func:`start_background_warm_up`
@@ -81,6 +84,7 @@ import argparse
 import contextlib
 import ctypes
 import logging
+import math
 import os
 import signal
 import socket
@@ -107,6 +111,7 @@ from rq.queue import Queue
 from rq.scheduler import SCHEDULER_KEY_TEMPLATE, RQScheduler
 from rq.scripts import release_lock
 from rq.serializers import JSONSerializer
+from rq.utils import current_timestamp
 from rq.worker import BaseWorker, WorkerStatus
 
 from engine.memory import keep_freed_memory
@@ -399,6 +404,68 @@ class _TunedWorkerMixin:
         # Wake up for maintenance on time even when idle (stock RQ blocks worker_ttl - 15 s).
         return max(1, min(self.worker_ttl - 15, int(self.maintenance_interval)))
 
+    def dequeue_job_and_maintain_ttl(self, timeout: int | None, max_idle_time: int | None = None) -> Any:
+        # RQ blocks in its dequeue ``timeout`` s per round, and runs maintenance between rounds only
+        # once ``maintenance_interval`` has passed. Here a round also ends when something in this
+        # worker's queues falls due (:meth:`_seconds_to_due`), so a lost worker's job is retried
+        # within a second of its heartbeat expiry instead of up to ``maintenance_interval`` later.
+        # A round lasts at most the heartbeat expiry (interval + grace), so a job that starts
+        # elsewhere during a round expires after that round ends, and the next round sees it.
+        if timeout is None or max_idle_time is not None:
+            return super().dequeue_job_and_maintain_ttl(timeout, max_idle_time)  # type: ignore[misc]
+        timeout = max(1, min(timeout, int(self.job_monitoring_interval) + int(self.heartbeat_grace)))
+        while True:
+            due = self._seconds_to_due()
+            t = timeout if due is None else max(1, min(timeout, math.ceil(due)))
+            try:
+                result = super().dequeue_job_and_maintain_ttl(t, max_idle_time=t)  # type: ignore[misc]
+            except REDIS_DOWN as exc:
+                # RQ records the idle state before its reconnecting loop: an outage between rounds
+                # lands here; wait for Redis as that loop would
+                self.log.warning("Worker %s: Redis unreachable between dequeues: %s", self.name, exc)
+                if not wait_for_redis(self.connection, lambda: bool(getattr(self, "_stop_requested", False)),
+                                      f"worker {self.name}"):
+                    return None
+                continue
+            if result is not None:
+                return result
+
+    @property
+    def should_run_maintenance_tasks(self) -> bool:
+        if super().should_run_maintenance_tasks:  # type: ignore[misc]
+            return True
+        due = self._seconds_to_due()
+        return due is not None and due <= 0
+
+    def _seconds_to_due(self) -> float | None:
+        """Seconds until maintenance has something to do in this worker's queues (<= 0: now): the
+        earliest heartbeat expiry of a running execution, or the moment a scheduler lock that is no
+        longer refreshed becomes free to take (:meth:`take_over_silent_scheduler_locks`). None when
+        nothing is pending or Redis does not answer."""
+        conn = self.connection
+        full_ms = (SCHEDULER_INTERVAL_S + 60) * 1000
+        silent_ms = (SCHEDULER_INTERVAL_S + self.heartbeat_grace) * 1000
+        mine = self.scheduler.name if self.scheduler is not None else None
+        dues: list[float] = []
+        try:
+            clock = current_timestamp()  # the clock RQ's registry clean-up compares expiries with
+            for queue in self.queues:  # type: ignore[attr-defined]
+                first = conn.zrange(queue.started_job_registry.key, 0, 0, withscores=True)
+                score = float(first[0][1]) if first else math.inf
+                if math.isfinite(score):
+                    dues.append(score - clock)
+                lock_key = RQScheduler.get_locking_key(queue.name)
+                with conn.pipeline(transaction=False) as p:
+                    p.get(lock_key)
+                    p.pttl(lock_key)
+                    holder, left_ms = p.execute()
+                if holder is not None and _text(holder) != mine and left_ms >= 0 and \
+                        full_ms - left_ms > 2000 * SCHEDULER_INTERVAL_S:  # a live holder refreshes every second
+                    dues.append((silent_ms - (full_ms - left_ms)) / 1000)
+        except RedisError:
+            return None
+        return min(dues) if dues else None
+
     def run_maintenance_tasks(self) -> None:
         # RQ 3.0 restarts a stopped scheduler here even after a warm shutdown was requested
         # (SIGTERM stops the scheduler, the running job ends, maintenance starts a new one),
@@ -409,6 +476,7 @@ class _TunedWorkerMixin:
                 self.clean_group_registries()  # type: ignore[attr-defined]
                 return
             self.reap_dead_local_peers()
+            self.take_over_silent_scheduler_locks()
             self.requeue_stranded_jobs()
             super().run_maintenance_tasks()  # type: ignore[misc]
         except REDIS_DOWN as exc:
@@ -452,6 +520,37 @@ class _TunedWorkerMixin:
                     self.log.warning("Worker %s: job %s was taken from the %s queue but never started (its "
                                      "worker's host is gone?); queued again at the front", self.name, job_id,
                                      queue.name)
+
+    def take_over_silent_scheduler_locks(self) -> None:
+        """Release a queue's scheduler lock whose holder stopped refreshing it, wherever it ran; RQ's
+        maintenance that follows in the same pass starts this worker's scheduler on it (at start-up,
+        :meth:`_start_scheduler` takes it).
+
+        A live scheduler refreshes its lock every :data:`SCHEDULER_INTERVAL_S` (RQ sets its TTL to
+        ``interval + 60`` s each time), so the lock's remaining TTL tells how long its holder has
+        been silent, on Redis's clock alone (no clock skew between hosts). The rule is the one for
+        abandoned jobs: silent for its refresh period plus ``heartbeat_grace``. A lost host's
+        scheduler lock is thus free ~21 s after the loss instead of 61 s, and the retries of the
+        jobs it lost (found abandoned ~20-30 s after the loss) are enqueued on time. The check
+        and the release are one Lua script, so a holder that refreshes meanwhile keeps its lock; a
+        holder that was only silent (a Redis outage longer than the grace) finds its lock taken
+        at its next refresh and exits (:class:`DyingScheduler`)."""
+        conn = self.connection
+        silent_ms = int((SCHEDULER_INTERVAL_S + self.heartbeat_grace) * 1000)
+        full_ms = int((SCHEDULER_INTERVAL_S + 60) * 1000)
+        script = conn.register_script(_RELEASE_SILENT_LOCK)
+        for queue in self.queues:  # type: ignore[attr-defined]
+            lock_key = RQScheduler.get_locking_key(queue.name)
+            holder = _text(conn.get(lock_key))
+            if not holder or (self.scheduler is not None and holder == self.scheduler.name):
+                continue
+            left_ms = int(script(keys=[lock_key], args=[holder, full_ms, silent_ms]))
+            if left_ms != _RELEASED:
+                continue
+            where = _text(conn.hget(SCHEDULER_KEY_TEMPLATE % holder, "hostname")) or "an unknown host"
+            self.log.warning("Worker %s: released the %s scheduler lock of scheduler %s on %s, silent for more "
+                             "than %.0f s (host lost?), for a live scheduler to take", self.name, queue.name,
+                             holder, where, silent_ms / 1000)
 
     def reap_dead_local_peers(self) -> None:
         """Release what a worker of this host that no longer exists (SIGKILL, OOM) still holds,
@@ -516,6 +615,7 @@ class _TunedWorkerMixin:
         self.scheduler = scheduler
         try:
             self.reap_dead_local_peers()  # a killed predecessor's lock would keep this one idle
+            self.take_over_silent_scheduler_locks()  # and so would a lost host's
         except REDIS_DOWN as exc:
             self.log.warning("Worker %s: could not check for dead peers: %s", self.name, exc)
         scheduler.acquire_locks()  # type: ignore[no-untyped-call]
@@ -538,6 +638,23 @@ class _TunedWorkerMixin:
             interval = max(1, min(remaining, interval))
         return interval + int(self.heartbeat_grace)
 
+
+SCHEDULER_INTERVAL_S = 1
+"""RQ's scheduler loop period (``RQScheduler(interval=1)``, the default): it refreshes its locks
+(TTL ``interval + 60`` s) and enqueues due jobs that often."""
+
+_RELEASED = -1
+_RELEASE_SILENT_LOCK = """
+-- KEYS[1] = a scheduler lock; ARGV = holder, TTL when refreshed (ms), silence that frees it (ms)
+-- returns -1 when released, else the lock's remaining TTL (ms; -2 gone or another holder)
+if redis.call('GET', KEYS[1]) ~= ARGV[1] then return -2 end
+local left = redis.call('PTTL', KEYS[1])
+if left >= 0 and tonumber(ARGV[2]) - left >= tonumber(ARGV[3]) then
+    redis.call('DEL', KEYS[1])
+    return -1
+end
+return left
+"""
 
 STRANDED_AFTER_S = 5.0
 """How long a job may sit taken but not started before maintenance queues it again (a live worker
@@ -592,6 +709,17 @@ class DyingScheduler(RQScheduler):
     heartbeat) instead of exiting."""
 
     _parent_pid: int = 0
+
+    def heartbeat(self) -> None:
+        # RQ drops a lock another scheduler took over (ours was silent longer than the takeover
+        # rule allows, e.g. through a long Redis outage) and keeps looping without it until its
+        # 10-minute fallback; exiting instead lets the worker start a new scheduler as soon as
+        # the lock is free again (RQ's maintenance restarts a scheduler that is not alive).
+        had = bool(self._acquired_locks)
+        super().heartbeat()  # type: ignore[no-untyped-call]
+        if had and not self._acquired_locks:
+            self.log.warning("Scheduler %s: its lock was taken over by another scheduler; exiting", self.name)
+            self._stop_requested = True
 
     def start(self) -> Any:
         self._parent_pid = os.getpid()

@@ -207,6 +207,34 @@ def test_sigkilled_busy_worker_job_is_taken_over_at_the_next_maintenance(
     assert w2.alive()
 
 
+def test_an_idle_worker_wakes_for_maintenance_when_a_heartbeat_expires(
+    own_redis: OwnRedis, start_worker: Callable[..., WorkerProcess]
+) -> None:
+    """Maintenance every 60 s, heartbeat every 2 s with a 2 s grace: the idle worker ends its
+    blocking dequeue when the dead worker's job's heartbeat expires, so the job is retried seconds
+    after the expiry, not at the next 60 s maintenance pass (it was blocked before the job started:
+    its rounds last at most the 4 s heartbeat expiry)."""
+    r = own_redis.client()
+    args = ("--maintenance-interval", "60", "--job-monitoring-interval", "2", "--heartbeat-grace", "2")
+    w1 = start_worker("render", "--name", "e1", "--no-warmup", *args, fast=False)
+    wait_for(lambda: registered(r, "e1"), 60, "e1 to register")
+    w2 = start_worker("render", "--name", "e2", "--no-warmup", *args, fast=False)
+    wait_for(lambda: registered(r, "e2"), 60, "e2 to register")
+    time.sleep(1.0)  # e2 past its start-up maintenance pass, blocked in its dequeue
+    job = get_queue(r, "render").enqueue(SLEEPY, {"seconds": 30.0}, job_id="expires",
+                                         retry=Retry(max=2, interval=[1, 1]))
+    wait_for(lambda: r.hget("rq:job:expires", "worker_name") == b"e1" and status(r, job.id) == "started", 30,
+             "the job to start on e1")
+    os.kill(w1.pid, signal.SIGKILL)
+    w1.proc.wait(timeout=10)
+    t0 = time.monotonic()
+    wait_for(lambda: r.hget("rq:job:expires", "worker_name") == b"e2" and status(r, job.id) == "started", 40,
+             f"the job to be retried on e2; log:\n{w2.log()}")
+    took = time.monotonic() - t0
+    assert took < 15, f"retried {took:.1f} s after the kill (next maintenance pass: ~60 s); log:\n{w2.log()}"
+    assert w2.alive()
+
+
 def test_worker_healthcheck_answers_from_redis(own_redis: OwnRedis, start_worker: Callable[..., WorkerProcess],
                                                tmp_path: Path) -> None:
     """``python -m workers.runner --queue Q --healthcheck`` (the compose health check): 0 while a
