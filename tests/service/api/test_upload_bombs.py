@@ -186,3 +186,67 @@ def test_the_api_process_peak_memory_stays_bounded(embedded_redis: str, redis_co
     r = by_name["ok-2048x2048x3.exr"]
     assert r["status"] == 201, r
     assert r["grew_kib"] < 2048 * 2048 * 3 * 4 // 1024, r
+
+
+def test_bombs_against_an_api_process_under_a_1_gib_memory_ceiling(embedded_redis: str, redis_conn: Any,
+                                                                    store_dir: Path, tmp_path: Path,
+                                                                    bombs: dict[str, bytes]) -> None:
+    """The API as uvicorn runs it, in a memory cgroup limited to 1 GiB (the kernel's OOM killer ends
+    it beyond): every image bomb and a PLY declaring 2e9 faces are refused with a 422 naming the
+    problem, nothing is OOM-killed, the API stays ready and never maps numba
+    (bench/upload_bombs.py runs the full set and writes docs/reliability.md)."""
+    import hashlib
+    import socket
+    import time
+
+    import httpx
+
+    from bench.upload_bombs import MemoryCgroup, absurd_ply, maps_numba
+
+    try:
+        cg = MemoryCgroup(1 << 30)
+    except (OSError, SystemExit) as exc:
+        pytest.skip(f"no writable memory cgroup here: {exc}")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "IBR_REDIS_URL": embedded_redis, "IBR_STORE_URL": f"file://{store_dir}",
+           "IBR_DATA_DIR": str(tmp_path / "data"), "IBR_LOG_JSON": "false", "TMPDIR": str(tmp_path)}
+    env.pop("IBR_API_KEYS", None)
+    log = tmp_path / "api.log"
+    with open(log, "wb") as out:
+        api = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.main:create_app", "--factory", "--host",
+                                "127.0.0.1", "--port", str(port), "--no-access-log"], env=env, stdout=out,
+                               stderr=subprocess.STDOUT, preexec_fn=cg.enter)  # noqa: PLW1509
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as c:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    if c.get("/readyz").status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                assert time.monotonic() < deadline and api.poll() is None, log.read_text()[-3000:]
+                time.sleep(0.2)
+            for label, data in bombs.items():
+                r = c.put(f"/v1/datasets/uploads/{hashlib.sha256(data).hexdigest()}", content=data)
+                assert r.status_code == 422 and r.json()["errors"][0]["type"] == "image_too_large", (label, r.text)
+            scene = {"name": "b", "camera": {"type": "perspective", "eye": [0, 1, 4], "look_at": [0, 0, 0],
+                                             "width": 16, "height": 16},
+                     "materials": [{"name": "m", "kd": [0.5, 0.5, 0.5]}],
+                     "objects": [{"type": "mesh_file", "path": "b.ply", "material": "m"}],
+                     "lights": [{"type": "point", "position": [2, 3, 2], "intensity": [1, 1, 1]}]}
+            r = c.post("/v1/scenes", files={"scene": (None, json.dumps(scene)),
+                                            "b.ply": ("b.ply", absurd_ply(), "application/octet-stream")})
+            assert r.status_code == 422, r.text
+            err = r.json()["errors"][0]
+            assert err["type"] == "scene_too_large" and "2,000,000,000 triangles" in err["message"], err
+            assert c.get("/readyz").status_code == 200
+        assert api.poll() is None and cg.oom_kills() == 0
+        assert cg.peak() < 1 << 30
+        assert not maps_numba(api.pid)
+    finally:
+        api.kill()
+        api.wait(timeout=10)
+        cg.remove()
