@@ -20,6 +20,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -177,10 +178,12 @@ class Cluster:
 
         wait_until(ready, timeout, "the API to be ready", self.logs, interval=0.3)
 
-    def start_worker(self, host_name: str, queue: str) -> HostProcess:
+    def start_worker(self, host_name: str, queue: str, liveness: Sequence[str] = FAST_WORKER_ARGS) -> HostProcess:
+        """``python -m workers.runner --queue QUEUE`` on worker host ``host_name``, named
+        ``QUEUE-HOST``, with the ``liveness`` timing options (the fast test ones; ``()``: the defaults)."""
         host = self.worker_hosts[host_name]
         name = f"{queue}-{host_name}"
-        cmd = [sys.executable, "-m", "workers.runner", "--queue", queue, "--name", name, *FAST_WORKER_ARGS]
+        cmd = [sys.executable, "-m", "workers.runner", "--queue", queue, "--name", name, *liveness]
         if queue == "render":
             cmd.append("--no-warmup")
         p = self.hosts.run(host, name, cmd, self.env(host), cwd=REPO_ROOT)

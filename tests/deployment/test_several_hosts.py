@@ -3,8 +3,9 @@ API and two worker hosts, nothing on disk shared but the code and numba's kernel
 (tests/deployment/cluster.py). Through the API:
 
 (a) a bake spread over both worker hosts, then an LDC render of it;
-(b) a worker host taken away mid-bake (its link cut, its processes SIGKILLed): the bake finishes
-    on the other host, which reruns the lost part once its heartbeat expires;
+(b) a worker host taken away mid-bake (its link cut, its processes SIGKILLed) while its scheduler
+    holds the bake queue's scheduler lock: the bake finishes on the other host, which takes the
+    silent lock over and reruns the lost part once its heartbeat expires;
 (c) Redis SIGKILLed and started again mid-job: the job (a render waiting for its bake) completes.
 
 Liveness timings are the fast test ones (heartbeat every 1 s, 2 s grace, maintenance every 1 s), so
@@ -56,14 +57,14 @@ def cluster(netns_hosts: Hosts) -> Iterator[Cluster]:
     c.wait_redis()
     c.make_bucket()
     c.start_api()
-    # w2 first: its bake worker's scheduler holds the bake queue's scheduler lock, which the
-    # retry of a lost part needs (a lock held by a lost host would hold retries up to 61 s)
-    c.start_worker("w2", "bake")
-    c.start_worker("w2", "render")
+    # w1 first: its bake worker's scheduler holds the bake queue's scheduler lock, which the retry
+    # of the part lost with w1 in (b) needs: w2 must take over the lock of the lost host
+    c.start_worker("w1", "bake")
     redis = redis_from_url(c.redis_url)
     try:
-        wait_until(lambda: scheduler_host(redis, "bake") == "w2", 60, "w2's bake scheduler", c.logs)
-        c.start_worker("w1", "bake")
+        wait_until(lambda: scheduler_host(redis, "bake") == "w1", 60, "w1's bake scheduler", c.logs)
+        c.start_worker("w2", "bake")
+        c.start_worker("w2", "render")
         wait_until(lambda: len(workers_of(redis, "bake")) == 2, 60, "both bake workers", c.logs)
         c.wait_api()
     finally:
@@ -159,6 +160,9 @@ def test_bake_render_host_loss_and_redis_restart_across_hosts(cluster: Cluster, 
         w2_log = c.procs["bake-w2"].log_path.read_text(errors="replace")
         assert f"Job {victim.job_id}: scheduled for retry" in w2_log  # w2's abandoned-job handling
         assert "on this host is gone" not in w2_log  # w1 is another host: no same-host shortcut
+        # w1's scheduler held the bake queue's lock: w2 released it once silent 1 + 2 s and holds it now
+        assert "scheduler lock of scheduler" in w2_log and "on w1, silent for more than 3 s" in w2_log, w2_log
+        assert scheduler_host(redis, "bake") == "w2"
         assert workers_of(redis, "bake") >= {"bake-w2"}
 
         # (c) Redis restarted while a render waits for its bake ---------------------------------------
