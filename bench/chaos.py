@@ -371,7 +371,9 @@ def host_losses(args: argparse.Namespace) -> dict[str, Any]:
             if not wait(lambda: all(scheduler_host(redis, q) == live for q in LOSS_KINDS), 180):
                 raise SystemExit(f"the workers of {live} never held the scheduler locks:\n{c.logs()}")
             with Client(c.api_url, timeout=30) as client:
-                ids = {"render": client.create_scene(RENDER_SCENE).id, "bake": client.create_scene(BAKE_SCENE).id}
+                w, h = (int(v) for v in args.loss_size.split("x"))
+                big = {**RENDER_SCENE, "camera": {**RENDER_SCENE["camera"], "width": w, "height": h}}  # type: ignore[dict-item]
+                ids = {"render": client.create_scene(big).id, "bake": client.create_scene(BAKE_SCENE).id}
                 t0 = time.monotonic()
                 o = outcome(client, submit(client, args, ids, 0, long=True), t0, 1800, ids)
                 print(f"hosts warm-up: {o} in {time.monotonic() - t0:.0f} s", flush=True)
@@ -476,8 +478,10 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16, help="reference render samples per pixel (job length)")
     ap.add_argument("--light-samples", type=int, default=16, help="reference render area light samples (job length)")
     ap.add_argument("--ldc-resolution", type=int, default=128, help="bake LDC resolution (job length)")
-    ap.add_argument("--loss-spp", type=int, default=96,
-                    help="host losses: render spp (its job must outlast the start-up of the next host's workers)")
+    ap.add_argument("--loss-size", default="1024x768",
+                    help="host losses: the reference render's size, WxH (its job must outlast the start-up of the "
+                         "next host's workers)")
+    ap.add_argument("--loss-spp", type=int, default=16, help="host losses: reference render spp")
     ap.add_argument("--loss-ldc-resolution", type=int, default=512, help="host losses: bake LDC resolution")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-write", action="store_true")
@@ -489,7 +493,7 @@ def main() -> None:
     result: dict[str, Any] = {
         "settings": {"kills": args.kills, "redis_restarts": args.redis_restarts, "host_losses": args.host_losses,
                      "timeout_s": args.timeout, "spp": args.spp, "light_samples": args.light_samples,
-                     "ldc_resolution": args.ldc_resolution, "loss_spp": args.loss_spp,
+                     "ldc_resolution": args.ldc_resolution, "loss_size": args.loss_size, "loss_spp": args.loss_spp,
                      "loss_ldc_resolution": args.loss_ldc_resolution,
                      "render_scene": "384x288 reference render, one area light",
                      "liveness": "defaults (heartbeat every 10 s, 20 s grace, maintenance every 30 s)"},
@@ -562,7 +566,8 @@ def table(res: dict[str, Any]) -> str:
         n = hl["cycles"] - hl["skipped"]
         lines += [
             f"**Several hosts** (network namespaces as in `tests/deployment/`: Redis, S3, the API and worker "
-            f"hosts, each worker host a bake and a render worker): a render (spp {s['loss_spp']}) and a bake "
+            f"hosts, each worker host a bake and a render worker): a {s['loss_size']} reference render (spp "
+            f"{s['loss_spp']}, {s['light_samples']} light samples) and a bake "
             f"(LDC resolution {s['loss_ldc_resolution']}) run on the only worker host, whose schedulers hold both "
             "queues' scheduler locks; a new worker host joins, and once its workers are registered the first "
             "host is lost (its link cut, every process SIGKILLed). Without faults the render took "
