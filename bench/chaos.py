@@ -478,7 +478,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16, help="reference render samples per pixel (job length)")
     ap.add_argument("--light-samples", type=int, default=16, help="reference render area light samples (job length)")
     ap.add_argument("--ldc-resolution", type=int, default=128, help="bake LDC resolution (job length)")
-    ap.add_argument("--loss-size", default="1024x768",
+    ap.add_argument("--loss-size", default="640x480",
                     help="host losses: the reference render's size, WxH (its job must outlast the start-up of the "
                          "next host's workers)")
     ap.add_argument("--loss-spp", type=int, default=16, help="host losses: reference render spp")
