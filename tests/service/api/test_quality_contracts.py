@@ -23,6 +23,7 @@ from producer.calibrations import (
     calibration_key,
     read_calibration,
     read_verification,
+    record_served,
     write_calibration,
     write_verification,
 )
@@ -155,6 +156,27 @@ def test_the_adaptive_reference_is_planned_at_the_spp_its_target_needs(client: T
     assert r.json()["contract"]["params"]["max_ms"] == 2000 and r.json()["contract"]["params"]["max_error"]
 
 
+def test_served_render_times_correct_the_plan(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    model = _model(sid)
+    _store_model(store_dir, model)
+    store = open_store(f"file://{store_dir}")
+    key = read_calibration(store, sid, model.bake_key)["key"]  # type: ignore[index]
+    # 200 ms (planned for 140 ms) with the bake missing: the reference at 12 spp (125 ms) as calibrated
+    con = _render(client, sid, {"max_ms": 200}).json()["contract"]
+    assert con["params"]["spp"] == 12 and con["calibration"]["corrections"] == {"time": 1.0, "error": 1.0}
+    # two served renders took 4x their prediction: the reference's times are predicted 4x, so 3 spp (131 ms)
+    for _ in range(2):
+        record_served(store, sid, con, achieved_ms=4.0 * con["predicted_ms"])
+    con = _render(client, sid, {"max_ms": 200}).json()["contract"]
+    assert con["params"]["spp"] == 3 and con["predicted_ms"] == pytest.approx(4 * (2.0 + 0.01 * 3 * PX))
+    assert con["calibration"]["corrections"] == {"time": pytest.approx(4.0), "error": 1.0}
+    # a new calibration of the bake starts afresh
+    write_calibration(store, sid, model.bake_key, "n" * 64, {}, model)
+    assert _render(client, sid, {"max_ms": 200}).json()["contract"]["params"]["spp"] == 12
+    assert key != "n" * 64
+
+
 def test_a_cheap_bake_is_waited_for(client: TestClient, store_dir: Any) -> None:
     sid = _scene(client)
     _store_model(store_dir, _model(sid, bake_cost_s=0.5))
@@ -273,7 +295,7 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     doc = read_calibration(store, sid, bkey)
     assert doc is not None
     m = SceneModel.from_json(doc["model"])
-    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 1
+    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 2  # two levels
     m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3))
     write_calibration(store, sid, bkey, doc["key"], doc["params"], m)
     r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "outputs": ["preview"],
