@@ -9,6 +9,7 @@ from a calibration the worker measured."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 from typing import Any
@@ -22,6 +23,7 @@ from producer.bakes import bake_key
 from producer.calibrations import (
     calibration_key,
     read_calibration,
+    read_served,
     read_verification,
     record_served,
     write_calibration,
@@ -282,6 +284,11 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     assert con["bake"] in ("ready", "not_needed")
     assert body["artifact"]["result"]["contract"]["method"] == con["method"]
     assert body["artifact"]["result"]["contract"]["achieved_ms"] == pytest.approx(con["achieved_ms"])
+    # the worker folded the render's time into the calibration's corrections (achieved over predicted)
+    served = read_served(open_store(f"file://{store_dir}"), sid, con["calibration"]["bake_key"],
+                         con["calibration"]["key"])
+    entry = served["time"][con["method"]]
+    assert entry["n"] == 1 and entry["log"] == pytest.approx(math.log(con["achieved_ms"] / con["predicted_ms"]))
     # the same contract again: the cached artifact, the same plan
     r2 = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": {"max_error": target},
                                           "outputs": ["preview", "radiance"]})
@@ -296,7 +303,8 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     assert doc is not None
     m = SceneModel.from_json(doc["model"])
     assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 2  # two levels
-    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3))
+    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3,
+                                                levels=[{**lv, "time_ratio": 1e-3} for lv in m.adaptive.levels]))
     write_calibration(store, sid, bkey, doc["key"], doc["params"], m)
     r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "outputs": ["preview"],
                                                  "quality": {"max_error": m.reference.error_at(8)}})
