@@ -59,7 +59,13 @@ from engine.methods import IBRT_GENERATIONS, LDC, LDC_IBRT, LDC_LLF, REFERENCE, 
 __all__ = [
     "ADAPTIVE_CAP_FACTOR",
     "CALIBRATION_SPP",
+    "CORRECTION_MIN_OBSERVATIONS",
+    "CORRECTION_RANGE",
+    "CORRECTION_WINDOW",
     "DEFAULT_IBRT_KS",
+    "MARGIN_K",
+    "MARGIN_MIN_SPREAD",
+    "MARGIN_RANGE",
     "MAX_USEFUL_ERROR",
     "MODEL_VERSION",
     "REFERENCE_SPP_LADDER",
@@ -68,6 +74,12 @@ __all__ = [
     "Prediction",
     "AdaptiveFit",
     "Rule",
+    "adaptive_scale",
+    "apply_corrections",
+    "calibrated_margin",
+    "correction_factor",
+    "correction_key",
+    "fold_observation",
     "SceneModel",
     "Setting",
     "check_targets",
@@ -168,6 +180,9 @@ class CandidateFit:
     exponent: float = 0.5
     """Reference: the error falls as ``spp^-exponent`` up to ``knee_spp``, as ``spp^-0.5`` past it."""
     knee_spp: int = 1
+    margin: float | None = None
+    """The error margin calibrated from the spread of the probe views' measured over predicted errors
+    (:func:`calibrated_margin`); None (a model calibrated before margins were): the planner's flat one."""
 
     def error_at(self, spp: int | None) -> float:
         if self.method == REFERENCE.name:
@@ -210,7 +225,8 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
     ``p`` is the exponent in [0.5, 1] that fits the per-spp RMS over the probe views best (log
     residuals), and ``a`` the largest ratio over the spp (conservative: the planner then
     over-predicts rather than misses). Past the largest calibrated spp the fit continues at
-    ``p = 0.5`` (``knee_spp``): convergence is never assumed faster than measured."""
+    ``p = 0.5`` (``knee_spp``): convergence is never assumed faster than measured. ``margin``: from
+    every probe point's measured over modelled error (:func:`calibrated_margin`)."""
     by_spp: dict[int, list[float]] = {}
     for p in points:
         by_spp.setdefault(int(p["spp"]), []).append(float(p["error"]))
@@ -227,21 +243,26 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
             best = (resid, q, a)
     exponent, a = (0.5, 0.0) if best is None else (best[1], best[2])
     b, c = fit_time([float(p["spp"]) * float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
+    ratios = [e / (a * math.sqrt(s ** (-2 * exponent) + truth_spp ** (-2 * exponent)))
+              for s, errs in by_spp.items() for e in errs] if a > 0 else []
+    views = max((len(errs) for errs in by_spp.values()), default=1)
     return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points], exponent=exponent,
-                        knee_spp=max(rms) if rms else 1)
+                        knee_spp=max(rms) if rms else 1, margin=calibrated_margin(ratios, views) if ratios else None)
 
 
 def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
     """An LDC method's fit from ``points`` ``{"error", "pixels", "ms"}`` (``error`` measured on the
     probe views at the calibration size; time-only points, at other sizes, have ``error`` None). The
     error is the largest over the probe views with the ground truth's noise ``truth_noise`` removed
-    in quadrature."""
+    in quadrature; ``margin`` from each view's error over that (:func:`calibrated_margin`)."""
     errs = [float(p["error"]) for p in points if p.get("error") is not None]
     if not errs:
         raise ValueError(f"{method}: no error measured")
-    err = max(math.sqrt(max(e * e - truth_noise * truth_noise, 0.25 * e * e)) for e in errs)
+    clean = [math.sqrt(max(e * e - truth_noise * truth_noise, 0.25 * e * e)) for e in errs]
+    err = max(clean)
     b, c = fit_time([float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
-    return CandidateFit(method, err, b, c, [dict(p) for p in points])
+    margin = calibrated_margin([e / err for e in clean]) if err > 0 else None
+    return CandidateFit(method, err, b, c, [dict(p) for p in points], margin=margin)
 
 
 def spp_for_error(fit: CandidateFit, error: float) -> float:
@@ -263,12 +284,75 @@ class AdaptiveFit:
     """The adaptive reference on one scene, measured at calibration by adaptive renders of the probe
     views: ``error_scale``, the contract's error (against the ground truth, emitter pixels left out)
     over the render's own estimate (whole image), and ``time_ratio``, the render's time over what the
-    spp model predicts at the spp that reaches the same contract error; both the largest over the
-    probes (conservative). ``points`` keeps the measurements."""
+    spp model predicts at the spp that reaches the same contract error. ``points`` keeps the
+    measurements.
+
+    ``levels`` (one entry per error level the calibration told the render, ascending ``error``):
+    ``{"error", "scale", "time_ratio"}``, the geometric mean of the probes' scales and the largest
+    time ratio at that level. The scale depends on the level (told ~10 %, the first pass already
+    stops and the estimate reads low), so :meth:`scale_at` interpolates between the levels (in log
+    error, constant beyond them). ``margin``: the error margin from the spread of the probes'
+    scales around their level's (:func:`calibrated_margin`). A fit without ``levels`` (calibrated at
+    one level, before these existed) uses ``error_scale`` and ``time_ratio`` everywhere, the largest
+    over its probes."""
 
     error_scale: float
     time_ratio: float
     points: list[dict[str, Any]] = field(default_factory=list)
+    levels: list[dict[str, float]] = field(default_factory=list)
+    margin: float | None = None
+
+    def _at(self, error: float, key: str, default: float) -> float:
+        lv = sorted((lv for lv in self.levels if lv["error"] > 0 and lv[key] > 0), key=lambda lv: lv["error"])
+        if not lv or error <= 0:
+            return default
+        if error <= lv[0]["error"]:
+            return float(lv[0][key])
+        if error >= lv[-1]["error"]:
+            return float(lv[-1][key])
+        for lo, hi in zip(lv, lv[1:], strict=False):
+            if lo["error"] <= error <= hi["error"]:
+                t = math.log(error / lo["error"]) / math.log(hi["error"] / lo["error"])
+                return float(math.exp((1 - t) * math.log(lo[key]) + t * math.log(hi[key])))
+        return default  # pragma: no cover - the levels cover every error between their ends
+
+    def scale_at(self, error: float) -> float:
+        """The contract error over the render's estimate for a render told the contract error ``error``."""
+        return self._at(error, "scale", self.error_scale)
+
+    def time_ratio_at(self, error: float) -> float:
+        """The render's time over the spp model's at ``error``."""
+        return self._at(error, "time_ratio", self.time_ratio)
+
+
+MARGIN_K = 1.645
+"""One-sided 95 % quantile of a normal distribution: a calibrated margin covers this many standard
+deviations of the probe views' log measured-over-predicted error (times the prediction interval's
+``sqrt(1 + 1/n)`` for ``n`` probes' worth of points)."""
+MARGIN_MIN_SPREAD = 0.06
+"""The smallest spread (standard deviation of the log ratio) a calibrated margin assumes: a few
+probes that happen to agree say little about the next view (the reference's error varies by ~10 %
+from view to view)."""
+MARGIN_RANGE = (0.5, 1.0)
+"""A calibrated margin is clamped to this range."""
+
+
+def calibrated_margin(ratios: Sequence[float], views: int | None = None) -> float:
+    """The error margin for a setting whose measured over predicted errors on the probe views are
+    ``ratios``: ``exp(-(mean + k s))`` of their logs, with ``s`` their standard deviation (at least
+    :data:`MARGIN_MIN_SPREAD`) and ``k`` = :data:`MARGIN_K` x ``sqrt(1 + 1/views)`` (``views``: the
+    independent views behind them, default ``len(ratios)``), clamped to :data:`MARGIN_RANGE`. A model
+    that over-predicts every probe plans closer to the target, one whose probes scatter plans further
+    below it."""
+    logs = [math.log(r) for r in ratios if r > 0 and math.isfinite(r)]
+    if not logs:
+        return MARGIN_RANGE[0]
+    n = len(logs)
+    mean = sum(logs) / n
+    sd = math.sqrt(sum((x - mean) ** 2 for x in logs) / (n - 1)) if n > 1 else 0.0
+    k = MARGIN_K * math.sqrt(1.0 + 1.0 / max(1, views if views is not None else n))
+    m = math.exp(-(mean + k * max(sd, MARGIN_MIN_SPREAD)))
+    return min(MARGIN_RANGE[1], max(MARGIN_RANGE[0], m))
 
 
 # ------------------------------------------------------------------------------------ the model
@@ -335,58 +419,78 @@ class SceneModel:
 @dataclass(frozen=True)
 class Prediction:
     """A candidate's predicted error and time at one image size. ``ms`` is the render time plus
-    ``bake_ms`` (the bake's cost, when it is still to be made)."""
+    ``bake_ms`` (the bake's cost, when it is still to be made). ``margin``: the error margin it is
+    planned with (its predicted error must be at most the target times it)."""
 
     setting: Setting
     error: float
     render_ms: float
     bake_ms: float = 0.0
+    margin: float = 1.0
 
     @property
     def ms(self) -> float:
         return self.render_ms + self.bake_ms
 
 
+def _margin(fit: CandidateFit | AdaptiveFit | None, flat: float, calibrated: bool) -> float:
+    if calibrated and fit is not None and fit.margin is not None:
+        return fit.margin
+    return flat
+
+
+def adaptive_scale(model: SceneModel, aim_error: float) -> float:
+    """The adaptive reference's ``error_scale`` for a render aiming at the contract error ``aim_error``
+    (the model's scale at that level: :meth:`AdaptiveFit.scale_at`); 1 without an adaptive fit."""
+    return model.adaptive.scale_at(aim_error) if model.adaptive is not None else 1.0
+
+
 def extra_candidates(model: SceneModel, pixels: int, aim_error: float | None = None,
-                     max_ms: float | None = None) -> list[Prediction]:
-    """Candidates beyond the fitted ladder: the adaptive reference told to stop at ``aim_error``
-    (the contract's error target, times its margin), when the calibration measured it
+                     max_ms: float | None = None, margin: float = 1.0) -> list[Prediction]:
+    """Candidates beyond the fitted ladder: the adaptive reference told to stop at ``aim_error x
+    margin`` (the contract's error target times its margin), when the calibration measured it
     (``model.adaptive``) and the target is within the reference's reach. Predicted error: the aim
-    (the render then estimates what it reached); time: ``time_ratio`` x the spp model's time at the
-    spp the aim needs. Its cap is :data:`ADAPTIVE_CAP_FACTOR` x that spp; with a time budget
+    (the render then estimates what it reached); time: the time ratio at that level x the spp
+    model's time at the spp the aim needs. It is told the aim over the scale at that level
+    (:func:`adaptive_scale`). Its cap is :data:`ADAPTIVE_CAP_FACTOR` x that spp; with a time budget
     ``max_ms`` the render also stops there."""
     fit = model.adaptive
     if fit is None or aim_error is None or fit.error_scale <= 0:
         return []
+    aim = aim_error * margin
     high = REFERENCE.param("spp").high
-    s = spp_for_error(model.reference, aim_error)
+    s = spp_for_error(model.reference, aim)
     if not math.isfinite(s) or s > high:
         return []
     cap = int(min(high, max(2, 2 ** math.ceil(math.log2(ADAPTIVE_CAP_FACTOR * s)))))
-    render_error = min(aim_error / fit.error_scale, 0.99)
-    ms = fit.time_ratio * (model.reference.b_ms + model.reference.c_ms * s * pixels)
-    return [Prediction(Setting(REFERENCE.name, cap, render_error, max_ms), aim_error, ms)]
+    render_error = min(aim / fit.scale_at(aim), 0.99)
+    ms = fit.time_ratio_at(aim) * (model.reference.b_ms + model.reference.c_ms * s * pixels)
+    return [Prediction(Setting(REFERENCE.name, cap, render_error, max_ms), aim, ms, margin=margin)]
 
 
 def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_bake: bool = True,
             allowed: Callable[[Setting], bool] | None = None, aim_error: float | None = None,
-            max_ms: float | None = None) -> list[Prediction]:
+            max_ms: float | None = None, error_margin: float = 1.0,
+            calibrated_margins: bool = False) -> list[Prediction]:
     """Every candidate of ``model`` at an image of ``pixels`` pixels. A method needing the bake
     when it is not ready: priced with the bake's cost when ``allow_bake``, left out otherwise.
     ``allowed``: the settings this server accepts (e.g. under its render memory limit); the others
     are left out. ``aim_error`` / ``max_ms``: the targets the adaptive reference is told (with an
-    error target only: :func:`extra_candidates`)."""
+    error target only: :func:`extra_candidates`). Each candidate's ``margin`` is its fit's
+    calibrated one when ``calibrated_margins`` and the fit has one, else ``error_margin``."""
     if pixels < 1:
         raise ValueError("pixels must be >= 1")
-    out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s))
-           for s in REFERENCE_SPP_LADDER]
+    ref_m = _margin(model.reference, error_margin, calibrated_margins)
+    out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s),
+                      margin=ref_m) for s in REFERENCE_SPP_LADDER]
     if bake_ready or allow_bake:
         bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s
         for name, fit in model.methods.items():
             if name in model.excluded:
                 continue
-            out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms))
-    out += extra_candidates(model, pixels, aim_error, max_ms)
+            out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms,
+                                  margin=_margin(fit, error_margin, calibrated_margins)))
+    out += extra_candidates(model, pixels, aim_error, max_ms, _margin(model.adaptive, error_margin, calibrated_margins))
     return out if allowed is None else [p for p in out if allowed(p.setting)]
 
 
@@ -418,18 +522,19 @@ def _fmt(p: Prediction) -> str:
 def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_ms: float | None = None,
          best_effort: bool = False, bake_ready: bool = True, allow_bake: bool = True,
          allowed: Callable[[Setting], bool] | None = None, error_margin: float = 1.0,
-         time_margin: float = 1.0) -> Plan:
+         time_margin: float = 1.0, calibrated_margins: bool = True) -> Plan:
     """Pick a setting for ``max_error`` (LRMS against the converged image) and / or ``max_ms``
     (milliseconds) at an image of ``pixels`` pixels; see the module docstring for the rules.
     ``best_effort``: when the targets cannot all be met, still choose (the most accurate, within the
     time when there is a time budget, else the fastest) and mark the unmet target; otherwise
     ``choice`` is None and ``reason`` says what the scene can do.
 
-    ``error_margin`` / ``time_margin`` (in (0, 1]): plan for ``max_error x error_margin`` and
-    ``max_ms x time_margin``, so that a view a little worse than the probes or a worker a little
-    busier than at calibration still meets the contract. When nothing is predicted to meet the
-    margined targets, the plan for the targets themselves is returned (met or not; its ``reason``
-    says when the margin was not kept)."""
+    Safety margins, so that a view a little worse than the probes or a worker a little busier than
+    at calibration still meets the contract: each setting is planned for ``max_error`` times its
+    fit's calibrated margin (:func:`calibrated_margin`) when ``calibrated_margins`` and the fit has
+    one, else times ``error_margin``; and for ``max_ms x time_margin`` (both in (0, 1]). When
+    nothing is predicted to meet the margined targets, the plan for the targets themselves is
+    returned (met or not; its ``reason`` says when the margin was not kept)."""
     if max_error is None and max_ms is None:
         raise ValueError("plan needs max_error, max_ms or both")
     for name, m in (("error_margin", error_margin), ("time_margin", time_margin)):
@@ -437,27 +542,36 @@ def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_
             raise ValueError(f"{name} must be in (0, 1], got {m!r}")
     kw = dict(best_effort=best_effort, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed)
     raw = {k: v for k, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None}
-    if error_margin < 1.0 or time_margin < 1.0:
-        e = None if max_error is None else max_error * error_margin
-        t = None if max_ms is None else max_ms * time_margin
-        margined = _plan_once(model, pixels, e, t, max_ms, **kw)  # type: ignore[arg-type]
-        if margined.met:
-            return replace(margined, planned_for={k: v for k, v in (("max_error", e), ("max_ms", t)) if v is not None})
-    p = _plan_once(model, pixels, max_error, max_ms, max_ms, **kw)  # type: ignore[arg-type]
+    t = None if max_ms is None else max_ms * time_margin
+    margined = _plan_once(model, pixels, max_error, t, max_ms, error_margin=error_margin,  # type: ignore[arg-type]
+                          calibrated_margins=calibrated_margins, **kw)
+    if margined.met and margined.choice is not None:
+        e = None if max_error is None else max_error * margined.choice.margin
+        return replace(margined, planned_for={k: v for k, v in (("max_error", e), ("max_ms", t)) if v is not None})
+    p = _plan_once(model, pixels, max_error, max_ms, max_ms, error_margin=1.0, calibrated_margins=False,
+                   **kw)  # type: ignore[arg-type]
     p = replace(p, planned_for=raw)
-    if p.met and (error_margin < 1.0 or time_margin < 1.0):
+    if p.met:
         p = replace(p, reason=f"predicted to meet the targets, but not with the safety margin (error x "
-                              f"{error_margin:g}, time x {time_margin:g}): nothing does")
+                              f"{_margins_text(model, error_margin, calibrated_margins)}, time x {time_margin:g}): "
+                              "nothing does")
     return p
+
+
+def _margins_text(model: SceneModel, flat: float, calibrated: bool) -> str:
+    ms = {_margin(f, flat, calibrated) for f in [model.reference, *model.methods.values(), model.adaptive]
+          if f is not None}
+    return f"{min(ms):.3g}" if len(ms) == 1 else f"{min(ms):.3g}-{max(ms):.3g}"
 
 
 def _plan_once(model: SceneModel, pixels: int, max_error: float | None, max_ms: float | None,
                render_ms: float | None, *, best_effort: bool, bake_ready: bool, allow_bake: bool,
-               allowed: Callable[[Setting], bool] | None) -> Plan:
+               allowed: Callable[[Setting], bool] | None, error_margin: float, calibrated_margins: bool) -> Plan:
     """:func:`plan` for one pair of limits (``render_ms``: the time budget the adaptive reference is
-    told, the request's own)."""
+    told, the request's own), each candidate's error against ``max_error`` times its margin."""
     cands = predict(model, pixels, bake_ready=bake_ready, allow_bake=allow_bake, allowed=allowed,
-                    aim_error=max_error, max_ms=render_ms)
+                    aim_error=max_error, max_ms=render_ms, error_margin=error_margin,
+                    calibrated_margins=calibrated_margins)
     n = len(cands)
     if not cands:
         return Plan(None, None, tuple(t for t, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None),
@@ -465,7 +579,7 @@ def _plan_once(model: SceneModel, pixels: int, max_error: float | None, max_ms: 
     cheapest = min(cands, key=lambda p: (p.ms, p.error))
     most_accurate = min(cands, key=lambda p: (p.error, p.ms))
     in_time = [p for p in cands if max_ms is None or p.ms <= max_ms]
-    good = [p for p in in_time if max_error is None or p.error <= max_error]
+    good = [p for p in in_time if max_error is None or p.error <= max_error * p.margin]
     if good:
         if max_error is None:
             return Plan(min(good, key=lambda p: (p.error, p.ms)), "most_accurate_within_time", candidates=n)
@@ -508,3 +622,65 @@ def check_targets(max_error: float | None, max_ms: float | None, max_job_ms: flo
         errors.append(("quality.max_ms", f"max_ms must be in (0, {max_job_ms:g}] (milliseconds; the render job "
                                          f"timeout), got {max_ms!r}"))
     return errors
+
+
+# ------------------------------------------------------------------------------------ served renders
+
+CORRECTION_WINDOW = 8
+"""A correction factor is the running geometric mean of the last ~this many observations (each new one
+weighs ``1 / min(n, CORRECTION_WINDOW)``): it follows a worker whose load changed within a few renders."""
+CORRECTION_MIN_OBSERVATIONS = 2
+"""A correction is applied once it has this many observations (one render's time is noise)."""
+CORRECTION_RANGE: dict[str, tuple[float, float]] = {"time": (0.25, 4.0), "error": (0.5, 2.0)}
+"""A correction factor is clamped to this range per kind: a larger disagreement asks for a new
+calibration, not a correction."""
+
+
+def correction_key(method: str, params: Mapping[str, Any] | None) -> str:
+    """What a served render's observation corrects: ``reference@adaptive`` for the adaptive reference
+    (``params`` with ``max_error``), else the method (the whole ``reference`` ladder shares one)."""
+    if method == REFERENCE.name and params is not None and params.get("max_error") is not None:
+        return f"{REFERENCE.name}@adaptive"
+    return method
+
+
+def fold_observation(entry: Mapping[str, Any] | None, ratio: float) -> dict[str, Any]:
+    """``entry`` (``{"log", "n"}``: the running mean of log measured-over-uncorrected-prediction
+    ratios and how many were folded) with ``ratio`` folded in."""
+    if not (ratio > 0 and math.isfinite(ratio)):
+        raise ValueError(f"a correction observation must be a positive ratio, got {ratio!r}")
+    n = int(entry["n"]) + 1 if entry else 1
+    old = float(entry["log"]) if entry else 0.0
+    return {"log": old + (math.log(ratio) - old) / min(n, CORRECTION_WINDOW), "n": n}
+
+
+def correction_factor(corrections: Mapping[str, Any] | None, kind: str, key: str) -> float:
+    """The factor ``corrections[kind][key]`` applies to the model's prediction (1 until it has
+    :data:`CORRECTION_MIN_OBSERVATIONS`; clamped to :data:`CORRECTION_RANGE`)."""
+    entry = ((corrections or {}).get(kind) or {}).get(key)
+    if not entry or int(entry.get("n", 0)) < CORRECTION_MIN_OBSERVATIONS:
+        return 1.0
+    lo, hi = CORRECTION_RANGE[kind]
+    return min(hi, max(lo, math.exp(float(entry["log"]))))
+
+
+def apply_corrections(model: SceneModel, corrections: Mapping[str, Any] | None) -> SceneModel:
+    """``model`` with what served renders measured folded in: per setting (:func:`correction_key`),
+    its predicted time times the ``time`` factor and its predicted error (the adaptive reference: its
+    ``error_scale``) times the ``error`` factor (:func:`correction_factor`)."""
+    if not corrections:
+        return model
+
+    def fix(fit: CandidateFit) -> CandidateFit:
+        ft, fe = correction_factor(corrections, "time", fit.method), correction_factor(corrections, "error", fit.method)
+        return replace(fit, error=fit.error * fe, b_ms=fit.b_ms * ft, c_ms=fit.c_ms * ft)
+
+    adaptive = model.adaptive
+    if adaptive is not None:
+        key = f"{REFERENCE.name}@adaptive"
+        ft, fe = correction_factor(corrections, "time", key), correction_factor(corrections, "error", key)
+        adaptive = replace(adaptive, error_scale=adaptive.error_scale * fe, time_ratio=adaptive.time_ratio * ft,
+                           levels=[{**lv, "scale": lv["scale"] * fe, "time_ratio": lv["time_ratio"] * ft}
+                                   for lv in adaptive.levels])
+    return replace(model, reference=fix(model.reference), methods={k: fix(f) for k, f in model.methods.items()},
+                   adaptive=adaptive)

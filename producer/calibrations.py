@@ -7,7 +7,9 @@ against a converged image and its time, and fits the per-scene model of :mod:`en
 Store: ``calibrations/<scene_id>/<bake_key>.json`` holds the model of that scene and bake (the
 latest calibration of it: a new one replaces it), ``{"key", "params", "model"}``. It is removed with
 the scene. Job id ``calibrate-<key>``, ``key = artifact_key("calibration", {"scene", "bake"},
-params, ENGINE_VERSION)``: identical requests share one job.
+params, ENGINE_VERSION)``: identical requests share one job. ``calibrations/<scene_id>/served/<bake_key>.json``
+holds what renders planned from that calibration measured (their time; with ``verify``, their error):
+running correction factors per setting (:func:`record_served`), which :func:`plan_render` applies.
 
 :func:`plan_render` runs in the API when a request with ``quality`` arrives: it reads the model,
 plans (``engine.quality.plan``) and returns the request with the chosen method and params (its
@@ -31,7 +33,17 @@ from api_schemas.service import (
     RenderRequest,
 )
 from engine import ENGINE_VERSION
-from engine.quality import Plan, SceneModel, Setting, plan
+from engine.quality import (
+    Plan,
+    SceneModel,
+    Setting,
+    adaptive_scale,
+    apply_corrections,
+    correction_factor,
+    correction_key,
+    fold_observation,
+    plan,
+)
 from producer.artifacts import artifact_key, get_scene
 from producer.bakes import bake_complete, bake_key, enqueue_bake
 from producer.costs import render_cost, stored_scene
@@ -52,7 +64,10 @@ __all__ = [
     "model_path",
     "plan_render",
     "read_calibration",
+    "read_served",
     "read_verification",
+    "record_served",
+    "served_path",
     "verification_path",
     "verification_status",
     "write_calibration",
@@ -145,6 +160,58 @@ def calibration_status(redis: Redis, store: ObjectStore, scene_id: str, bkey: st
                              job=pub, links=links)
 
 
+# ------------------------------------------------------------------------------------ served renders
+
+
+def served_path(scene_id: str, bkey: str) -> str:
+    """Where what served renders measured is kept, beside the calibration it corrects."""
+    return f"calibrations/{scene_id}/served/{bkey}.json"
+
+
+def read_served(store: ObjectStore, scene_id: str, bkey: str, key: str) -> dict[str, Any]:
+    """The corrections served renders measured for the calibration ``key`` of a scene's bake:
+    ``{"time": {setting: {"log", "n"}}, "error": {...}}`` (``engine.quality.fold_observation``);
+    empty when there are none or they were measured against another calibration (a new one starts
+    afresh)."""
+    doc = _read_json(store, served_path(scene_id, bkey))
+    if doc is None or doc.get("key") != key or doc.get("engine_version") != ENGINE_VERSION:
+        return {}
+    return {k: doc.get(k) or {} for k in ("time", "error")}
+
+
+def record_served(store: ObjectStore, scene_id: str, contract: dict[str, Any], *, achieved_ms: float | None = None,
+                  measured_error: float | None = None) -> dict[str, Any] | None:
+    """Fold what a render planned from ``contract`` (``ContractPublic`` as JSON) measured into its
+    calibration's corrections: ``achieved_ms`` (the render's time) against ``predicted_ms``,
+    ``measured_error`` (``verify``) against the error the answer estimated (the adaptive reference:
+    its estimate times the scale; else the prediction), each made raw again with the factor the plan
+    applied (``contract.calibration.corrections``). The planner then multiplies its predictions by
+    the running factors (``engine.quality.apply_corrections``). Read, fold, write: two workers
+    folding at the same moment can lose one observation, which a running mean can afford. Returns
+    the document written, or None when there was nothing to fold."""
+    cal = contract.get("calibration") or {}
+    bkey, key = cal.get("bake_key"), cal.get("key")
+    if not bkey or not key:
+        return None
+    applied = cal.get("corrections") or {}
+    setting = correction_key(str(contract.get("method")), contract.get("params"))
+    obs: dict[str, float] = {}
+    if achieved_ms is not None and float(contract.get("predicted_ms") or 0) > 0 and achieved_ms > 0:
+        obs["time"] = achieved_ms / float(contract["predicted_ms"]) * float(applied.get("time", 1.0))
+    estimated = contract.get("estimated_error")
+    if measured_error is not None and estimated is not None and float(estimated) > 0 and measured_error > 0:
+        obs["error"] = measured_error / float(estimated) * float(applied.get("error", 1.0))
+    if not obs:
+        return None
+    doc: dict[str, Any] = {"key": key, "engine_version": ENGINE_VERSION, **read_served(store, scene_id, bkey, key)}
+    for kind, ratio in obs.items():
+        table = dict(doc.get(kind) or {})
+        table[setting] = fold_observation(table.get(setting), ratio)
+        doc[kind] = table
+    store.put_bytes(served_path(scene_id, bkey), json.dumps(doc, sort_keys=True).encode(), "application/json")
+    return doc
+
+
 # ------------------------------------------------------------------------------------ planning
 
 
@@ -181,7 +248,8 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
     doc = read_calibration(store, req.scene_id, bkey)
     if doc is None:
         raise CalibrationMissing(req.scene_id, bkey)
-    model = SceneModel.from_json(doc["model"])
+    served = read_served(store, req.scene_id, bkey, str(doc.get("key")))
+    model = apply_corrections(SceneModel.from_json(doc["model"]), served)
     width, height = _pixels(store, req)
     _, triangles = stored_scene(store, req.scene_id)
     ready = bake_complete(store, bkey)
@@ -207,7 +275,7 @@ def plan_render(redis: Redis, store: ObjectStore, req: RenderRequest, max_render
                                    f"(what renders now cannot: {p.reason})")
     if p.choice is None:
         raise ContractUnmet(p.unmet, p.reason + _excluded_note(model))
-    return _planned(req, model, doc, p, width, height, ready, allow_bake, margins)
+    return _planned(req, model, doc, p, width, height, ready, allow_bake, margins, served)
 
 
 def _excluded_note(model: SceneModel) -> str:
@@ -217,7 +285,8 @@ def _excluded_note(model: SceneModel) -> str:
 
 
 def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan, width: int, height: int,
-             ready: bool, allow_bake: bool, margins: dict[str, float]) -> tuple[RenderRequest, ContractPublic]:
+             ready: bool, allow_bake: bool, margins: dict[str, float],
+             served: dict[str, Any]) -> tuple[RenderRequest, ContractPublic]:
     q = req.quality
     choice = p.choice
     assert q is not None and choice is not None and p.rule is not None
@@ -225,7 +294,8 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
     params = model.setting_params(setting)
     if setting.adaptive:  # the render estimates its own error once it has run
         assert model.adaptive is not None
-        estimate: dict[str, Any] = {"estimated_error_source": "render", "error_scale": model.adaptive.error_scale}
+        estimate: dict[str, Any] = {"estimated_error_source": "render",
+                                    "error_scale": adaptive_scale(model, choice.error)}
     else:
         estimate = {"estimated_error": choice.error, "estimated_error_source": "calibration"}
     planned = _request_for(req, model, setting)
@@ -241,6 +311,8 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
         margins={"error": margins["error_margin"], "time": margins["time_margin"]}, verify=q.verify, **estimate,
         calibration={"key": doc["key"], "bake_key": model.bake_key, "created_at": model.created_at,
                      "cost_s": model.cost_s, "probes": model.probe.get("views"),
+                     "corrections": {kind: correction_factor(served, kind, correction_key(setting.method, params))
+                                     for kind in ("time", "error")},
                      "url": f"/v1/scenes/{req.scene_id}/calibrations/{model.bake_key}"})
     return planned, contract
 

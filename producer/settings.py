@@ -117,10 +117,11 @@ class Settings(BaseSettings):
     """Largest estimated CPU time (seconds of one core) of one job on the bake queue (a scene bake part,
     a dataset generation or bake, a walkthrough bake, a calibration): the bake jobs' timeout (3600 s)."""
     contract_error_margin: Annotated[float, Field(gt=0, le=1)] = 0.85
-    """Quality contracts are planned for ``max_error`` times this (``engine.quality.plan``): the
-    calibration's error model holds for the probe views, and a view a little noisier than them (the
-    reference's error varies by ~10 % from view to view) would otherwise miss a target that sits just
-    above a prediction. 1: no margin; lower: more contracts met, at a higher cost."""
+    """Quality contracts are planned for ``max_error`` times this (``engine.quality.plan``) for the
+    settings of a model calibrated before its fits carried their own margins (calibrated from the
+    probe views' spread: ``engine.quality.calibrated_margin``, used instead when present): the error
+    model holds for the probe views, and a view a little noisier than them would otherwise miss a
+    target that sits just above a prediction. 1: no margin; lower: more contracts met, at a higher cost."""
     contract_time_margin: Annotated[float, Field(gt=0, le=1)] = 0.7
     """Quality contracts are planned for ``max_ms`` times this: the time model is fitted when the
     calibration runs, and a worker busier than it was then renders slower (~1.6x measured on the shared

@@ -269,3 +269,94 @@ def test_adaptive_model_round_trips_and_older_models_load() -> None:
     doc = _model().to_json()
     del doc["adaptive"]  # a model stored before the adaptive fit existed
     assert SceneModel.from_json(doc).adaptive is None
+
+
+# ------------------------------------------------------------------------------------ calibrated margins
+
+
+def test_calibrated_margins_follow_the_probes_spread() -> None:
+    from engine.quality import MARGIN_RANGE, calibrated_margin
+
+    tight, loose = calibrated_margin([1.0, 0.98, 1.02, 1.0]), calibrated_margin([1.0, 0.7, 1.3, 1.0])
+    assert loose < tight < 1.0  # even probes that agree leave a margin (MARGIN_MIN_SPREAD)
+    # a model that over-predicts every probe plans closer to the target, never above it
+    assert calibrated_margin([0.8, 0.82, 0.79]) > tight and calibrated_margin([0.3, 0.31]) == MARGIN_RANGE[1]
+    assert calibrated_margin([1.0, 3.0, 0.3]) == MARGIN_RANGE[0]
+    # the LDC fit: the largest error over the probes, its margin from the others' ratio to it
+    fit = fit_ldc("ldc", [{"error": e, "pixels": 100, "ms": 1.0} for e in (0.1, 0.09, 0.05)], 0.0)
+    assert fit.margin == pytest.approx(calibrated_margin([1.0, 0.9, 0.5]))
+    ref = fit_reference([{"spp": s, "error": 0.4 * s ** -0.5 * f, "pixels": 100, "ms": 1.0}
+                         for s in (1, 4, 16) for f in (0.9, 1.1)], 1 << 20)
+    assert ref.margin is not None and ref.margin < calibrated_margin([1.0, 1.0])
+
+
+def test_the_planner_uses_each_fits_calibrated_margin_else_the_flat_one() -> None:
+    m = _model(methods={}, excluded={})
+    # 10 %: 16 spp exactly; the reference's calibrated margin 0.95 (9.5 %): 24 spp; the flat 0.7 (7 %): 48 spp
+    cal = replace(m, reference=replace(m.reference, margin=0.95))
+    p = plan(cal, PX, max_error=0.1, error_margin=0.7)
+    assert p.choice is not None and p.choice.setting.spp == 24 and p.planned_for == {"max_error": pytest.approx(0.095)}
+    assert plan(cal, PX, max_error=0.1, error_margin=0.7, calibrated_margins=False).choice.setting.spp == 48  # type: ignore[union-attr]
+    assert plan(m, PX, max_error=0.1, error_margin=0.7).choice.setting.spp == 48  # type: ignore[union-attr]
+    # per method: ldc (6 %) with its margin 0.8 plans for 4.8 % and so misses a 7 % target; the reference meets it
+    both = replace(cal, methods={"ldc": replace(_model().methods["ldc"], margin=0.8)})
+    assert plan(both, PX, max_error=0.07).choice.setting.method == "reference"  # type: ignore[union-attr]
+    assert plan(both, PX, max_error=0.08).choice.setting.method == "ldc"  # type: ignore[union-attr]
+
+
+def test_the_adaptive_scale_is_interpolated_between_its_calibrated_levels() -> None:
+    levels = [{"error": 0.04, "scale": 1.2, "time_ratio": 1.0}, {"error": 0.1, "scale": 1.8, "time_ratio": 2.0}]
+    fit = AdaptiveFit(error_scale=1.9, time_ratio=2.0, levels=levels, margin=0.8)
+    assert fit.scale_at(0.01) == 1.2 and fit.scale_at(0.2) == 1.8 and fit.scale_at(0.1) == pytest.approx(1.8)
+    assert fit.scale_at(math.sqrt(0.004)) == pytest.approx(math.sqrt(1.2 * 1.8))
+    assert fit.time_ratio_at(math.sqrt(0.004)) == pytest.approx(math.sqrt(2.0))
+    assert AdaptiveFit(error_scale=1.9, time_ratio=2.0).scale_at(0.05) == 1.9  # one level, before levels existed
+    m = _adaptive_model(adaptive=fit, methods={})
+    # 3 %: the adaptive margin 0.8 -> aims at 2.4 %, told 2.4 % / 1.2
+    p = plan(m, PX, max_error=0.03, error_margin=0.5)
+    assert p.choice is not None and p.choice.setting.adaptive and p.choice.error == pytest.approx(0.024)
+    assert p.choice.setting.max_error == pytest.approx(0.02) and p.planned_for == {"max_error": pytest.approx(0.024)}
+    s = (0.4 / 0.024) ** 2
+    assert p.choice.ms == pytest.approx(1.0 * (5.0 + 1e-3 * s * PX))
+
+
+# ------------------------------------------------------------------------------------ served renders
+
+
+def test_served_observations_correct_the_model_once_there_are_enough() -> None:
+    from engine.quality import (
+        CORRECTION_WINDOW,
+        apply_corrections,
+        correction_factor,
+        correction_key,
+        fold_observation,
+    )
+
+    assert correction_key("reference", {"spp": 4}) == "reference" and correction_key("ldc", None) == "ldc"
+    assert correction_key("reference", {"spp": 64, "max_error": 0.02}) == "reference@adaptive"
+    e = fold_observation(None, 2.0)
+    assert e == {"log": pytest.approx(math.log(2.0)), "n": 1}
+    assert correction_factor({"time": {"reference": e}}, "time", "reference") == 1.0  # one render is noise
+    e = fold_observation(e, 2.0)
+    assert correction_factor({"time": {"reference": e}}, "time", "reference") == pytest.approx(2.0)
+    # a running geometric mean that forgets: after many renders at 1x, the factor returns towards 1
+    for _ in range(4 * CORRECTION_WINDOW):
+        e = fold_observation(e, 1.0)
+    assert 1.0 <= correction_factor({"time": {"reference": e}}, "time", "reference") < 1.01
+    assert correction_factor({"error": {"ldc": {"log": 5.0, "n": 3}}}, "error", "ldc") == 2.0  # clamped
+    with pytest.raises(ValueError):
+        fold_observation(None, 0.0)
+
+    m = _adaptive_model(adaptive=AdaptiveFit(1.5, 0.8, levels=[{"error": 0.05, "scale": 1.5, "time_ratio": 0.8}]))
+    twice = {"log": math.log(2.0), "n": 5}
+    fixed = apply_corrections(m, {"time": {"reference": twice, "reference@adaptive": twice},
+                                  "error": {"ldc": twice, "reference@adaptive": twice}})
+    assert fixed.reference.ms_at(PX, 16) == pytest.approx(2 * m.reference.ms_at(PX, 16))
+    assert fixed.reference.error == m.reference.error and fixed.methods["ldc"].error == pytest.approx(0.12)
+    assert fixed.methods["ldc+llf"] == m.methods["ldc+llf"]
+    assert fixed.adaptive is not None and fixed.adaptive.scale_at(0.05) == pytest.approx(3.0)
+    assert fixed.adaptive.time_ratio_at(0.05) == pytest.approx(1.6)
+    # the plan follows: ldc measured at twice its calibrated error no longer meets 10 %, ldc+llf (4 %) does
+    assert plan(m, PX, max_error=0.1).choice.setting.method == "ldc"  # type: ignore[union-attr]
+    assert plan(fixed, PX, max_error=0.1).choice.setting.method == "ldc+llf"  # type: ignore[union-attr]
+    assert apply_corrections(m, {}) is m

@@ -106,14 +106,20 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     # the adaptive reference was measured on every probe; told a target through the planner, it meets it on the
     # held-out view, and its own estimate (times the calibrated scale) is the measured error within the factor
     fit = model.adaptive
-    assert fit is not None and fit.error_scale > 0 and fit.time_ratio > 0 and len(fit.points) == 2
+    # at two error levels (the fit's at 16 and 64 spp), each with its scale; the margin from their spread
+    assert fit is not None and fit.error_scale > 0 and fit.time_ratio > 0 and len(fit.points) == 4
+    assert [lv["error"] for lv in fit.levels] == pytest.approx([model.reference.error_at(64),
+                                                                model.reference.error_at(16)])
+    assert all(lv["scale"] > 0 and lv["time_ratio"] > 0 for lv in fit.levels)
+    assert fit.margin is not None and 0.5 <= fit.margin <= 1.0
+    assert model.reference.margin is not None and model.methods["ldc"].margin is not None
     assert model.probe["cost_breakdown_s"]["adaptive"] > 0
     target = model.reference.error_at(8)
     (cand,) = extra_candidates(model, px, target)
-    assert cand.setting.adaptive and cand.setting.max_error == pytest.approx(target / fit.error_scale)
+    assert cand.setting.adaptive and cand.setting.max_error == pytest.approx(target / fit.scale_at(target))
     out = ref.render(held, ReferenceParams(**model.setting_params(cand.setting)))
     assert out.adaptive is not None
-    got, estimated = measured(out.radiance), fit.error_scale * out.adaptive["estimated_error"]
+    got, estimated = measured(out.radiance), fit.scale_at(target) * out.adaptive["estimated_error"]
     print("adaptive", round(target, 4), round(got, 4), round(estimated, 4), fit)
     assert got <= target * FACTOR and estimated / FACTOR <= got <= estimated * FACTOR, (target, got, estimated)
 

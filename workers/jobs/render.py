@@ -35,6 +35,7 @@ by measurement (:data:`EXR_COMPRESSION`, PNG ``fast``); the 8-bit sRGB transform
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
 import time
@@ -57,6 +58,7 @@ from engine.newviews.renderer import LDCViewRenderer
 from engine.reference import ReferenceParams
 from producer.artifacts import read_manifest, write_artifact
 from producer.bakes import bake_complete, bake_key
+from producer.calibrations import record_served
 from producer.names import scene_bake_job_id
 from producer.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
 from producer.renders import render_artifact_key, render_params
@@ -247,6 +249,7 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
                    max_workers=STORE_WRITERS)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
+    _record_served(store, req.scene_id, result)
     progress.report(1.0, "done", force=True, check=False)  # committed: too late to cancel
     return {"artifact_key": key, **result}
 
@@ -284,6 +287,23 @@ def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> Ca
     renderer = LDCViewRenderer(loaded.runtime, ldc, llf, analyze(loaded.runtime),
                                area_light_samples=req.bake.area_light_samples, seed=req.bake.seed)
     return CachedBakeRenderer(loaded=loaded, renderer=renderer, bake_key=bkey, plan=plan)
+
+
+log = logging.getLogger("workers.jobs.render")
+
+
+def _record_served(store: ObjectStore, scene_id: str, result: Mapping[str, Any]) -> None:
+    """Fold a contract render's achieved time into its calibration's corrections
+    (``producer.calibrations.record_served``), unless an adaptive render was stopped by its time
+    budget (its time then says what it was told, not what the setting costs). A failure to store it
+    is logged, not raised: the image is published already."""
+    contract = result.get("contract")
+    if not contract or (result.get("adaptive") or {}).get("stop_reason") == "time":
+        return
+    try:
+        record_served(store, scene_id, dict(contract), achieved_ms=float(contract["achieved_ms"]))
+    except Exception:  # noqa: BLE001 - the render succeeded; a lost observation only slows the correction
+        log.warning("could not record the served render's time for scene %s", scene_id, exc_info=True)
 
 
 def _contract_result(contract: dict[str, Any] | None, t_render: float,
@@ -338,5 +358,6 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                    max_workers=STORE_WRITERS)
     result["timings"]["store"] = time.perf_counter() - t0
     result["timings"]["job_total"] = time.perf_counter() - t_start
+    _record_served(store, req.scene_id, result)
     progress.report(1.0, "done", force=True, check=False)
     return {"artifact_key": key, **result}

@@ -16,11 +16,13 @@ Returns ``measured_error``, ``measured_error_raw``, ``reference_error``, ``met``
 contract's ``max_error``, None without one), ``verify_ms`` (the reference's render time: what the
 measurement cost) and the reference's ``adaptive`` report; the same is stored with the scene's
 calibrations (``producer.calibrations.write_verification``), where answers read it after the job's
-result expires.
+result expires, and the measured error is folded into the calibration's corrections
+(``producer.calibrations.record_served``: the planner's error prediction for that setting follows it).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any
@@ -30,10 +32,10 @@ from rq import get_current_job
 
 from engine.imageio import decode_image
 from engine.metrics import lrms
-from engine.quality import SceneModel
+from engine.quality import SceneModel, adaptive_scale
 from engine.reference import ReferenceParams
 from producer.artifacts import read_blob, read_manifest
-from producer.calibrations import read_calibration, write_verification
+from producer.calibrations import read_calibration, record_served, write_verification
 from producer.payloads import InvalidPayload, VerifyJobPayload, describe_validation_error
 from workers.jobs.calibrate import contract_mask
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
@@ -52,6 +54,8 @@ VERIFY_MAX_MS = 240_000.0
 VERIFY_SEED = 104_729
 """The converged reference's seed (renders use 0, calibration ground truths 7919)."""
 
+log = logging.getLogger("workers.jobs.verify")
+
 
 def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Measure one contract's render (see the module docstring)."""
@@ -62,7 +66,8 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     store = worker_store()
     progress = ProgressReporter(get_current_job())
     progress.report(0.0, "reading the image", force=True)
-    if read_manifest(store, p.artifact_key) is None:
+    manifest = read_manifest(store, p.artifact_key)
+    if manifest is None:
         raise RuntimeError(f"artifact {p.artifact_key} does not exist (its render failed or was removed): "
                            "nothing to verify")
     image, _ = decode_image("radiance.exr", read_blob(store, p.artifact_key, "radiance.exr"))
@@ -71,7 +76,7 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     if doc is None:
         raise RuntimeError("the scene's calibration is gone: the converged reference's settings come from it")
     model = SceneModel.from_json(doc["model"])
-    scale = model.adaptive.error_scale if model.adaptive is not None else 1.0
+    scale = adaptive_scale(model, VERIFY_MAX_ERROR)
     entry, _ = renderer_cache().get_or_load(p.request.scene_id, lambda: load_stored_scene(store, p.request.scene_id))
     camera = camera_params(p.request.camera) if p.request.camera is not None else entry.loaded.camera
     params = ReferenceParams(**{**model.reference_request_params(VERIFY_CAP_SPP, min(0.99, VERIFY_MAX_ERROR / scale),
@@ -93,4 +98,11 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
         "reference_error": ref_err, "met": None if con.max_error is None else measured <= con.max_error,
         "verify_ms": verify_ms, "reference": {"params": params.to_dict(), "adaptive": out.adaptive}})
     write_verification(store, p.request.scene_id, p.artifact_key, result)
+    # the answer's estimate of this image's error (the adaptive reference's is in the render's result)
+    served = manifest.result.get("contract") or con.model_dump(mode="json")
+    try:
+        record_served(store, p.request.scene_id, dict(served), measured_error=measured)
+    except Exception:  # noqa: BLE001 - the measurement is stored; a lost observation only slows the correction
+        log.warning("could not fold the verified error into scene %s's corrections", p.request.scene_id,
+                    exc_info=True)
     return result

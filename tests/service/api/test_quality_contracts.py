@@ -9,6 +9,7 @@ from a calibration the worker measured."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 from typing import Any
@@ -22,7 +23,9 @@ from producer.bakes import bake_key
 from producer.calibrations import (
     calibration_key,
     read_calibration,
+    read_served,
     read_verification,
+    record_served,
     write_calibration,
     write_verification,
 )
@@ -155,6 +158,27 @@ def test_the_adaptive_reference_is_planned_at_the_spp_its_target_needs(client: T
     assert r.json()["contract"]["params"]["max_ms"] == 2000 and r.json()["contract"]["params"]["max_error"]
 
 
+def test_served_render_times_correct_the_plan(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    model = _model(sid)
+    _store_model(store_dir, model)
+    store = open_store(f"file://{store_dir}")
+    key = read_calibration(store, sid, model.bake_key)["key"]  # type: ignore[index]
+    # 200 ms (planned for 140 ms) with the bake missing: the reference at 12 spp (125 ms) as calibrated
+    con = _render(client, sid, {"max_ms": 200}).json()["contract"]
+    assert con["params"]["spp"] == 12 and con["calibration"]["corrections"] == {"time": 1.0, "error": 1.0}
+    # two served renders took 4x their prediction: the reference's times are predicted 4x, so 3 spp (131 ms)
+    for _ in range(2):
+        record_served(store, sid, con, achieved_ms=4.0 * con["predicted_ms"])
+    con = _render(client, sid, {"max_ms": 200}).json()["contract"]
+    assert con["params"]["spp"] == 3 and con["predicted_ms"] == pytest.approx(4 * (2.0 + 0.01 * 3 * PX))
+    assert con["calibration"]["corrections"] == {"time": pytest.approx(4.0), "error": 1.0}
+    # a new calibration of the bake starts afresh
+    write_calibration(store, sid, model.bake_key, "n" * 64, {}, model)
+    assert _render(client, sid, {"max_ms": 200}).json()["contract"]["params"]["spp"] == 12
+    assert key != "n" * 64
+
+
 def test_a_cheap_bake_is_waited_for(client: TestClient, store_dir: Any) -> None:
     sid = _scene(client)
     _store_model(store_dir, _model(sid, bake_cost_s=0.5))
@@ -260,6 +284,11 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     assert con["bake"] in ("ready", "not_needed")
     assert body["artifact"]["result"]["contract"]["method"] == con["method"]
     assert body["artifact"]["result"]["contract"]["achieved_ms"] == pytest.approx(con["achieved_ms"])
+    # the worker folded the render's time into the calibration's corrections (achieved over predicted)
+    served = read_served(open_store(f"file://{store_dir}"), sid, con["calibration"]["bake_key"],
+                         con["calibration"]["key"])
+    entry = served["time"][con["method"]]
+    assert entry["n"] == 1 and entry["log"] == pytest.approx(math.log(con["achieved_ms"] / con["predicted_ms"]))
     # the same contract again: the cached artifact, the same plan
     r2 = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": {"max_error": target},
                                           "outputs": ["preview", "radiance"]})
@@ -273,8 +302,9 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     doc = read_calibration(store, sid, bkey)
     assert doc is not None
     m = SceneModel.from_json(doc["model"])
-    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 1
-    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3))
+    assert m.adaptive is not None and m.adaptive.error_scale > 0 and len(m.adaptive.points) == 2  # two levels
+    m = replace(m, methods={}, adaptive=replace(m.adaptive, time_ratio=1e-3,
+                                                levels=[{**lv, "time_ratio": 1e-3} for lv in m.adaptive.levels]))
     write_calibration(store, sid, bkey, doc["key"], doc["params"], m)
     r = client.post("/v1/renders?wait=60", json={"scene_id": sid, "bake": BAKE, "outputs": ["preview"],
                                                  "quality": {"max_error": m.reference.error_at(8)}})
