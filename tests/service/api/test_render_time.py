@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
 
 from api_schemas.service import RenderRequest
@@ -96,3 +97,31 @@ def test_a_batch_checks_each_time_against_its_scene(client: TestClient) -> None:
     r = client.post("/v1/batches", json={"renders": [{"scene_id": moving, "time": 1}, {"scene_id": moving}]})
     assert r.status_code == 202, r.text
     assert len({rp["artifact_key"] for rp in r.json()["renders"]}) == 2
+
+
+def test_the_client_and_ibr_render_send_the_time(api_url: str) -> None:
+    from typer.testing import CliRunner
+
+    from ibr_client import ApiError, Client
+    from service.cli import app as cli_app
+
+    with Client(api_url) as c:
+        sid = c.create_scene(_animated()).id
+        at_1 = c.render(sid, camera=CAM, time=1.0)
+        assert at_1.artifact_key == render_artifact_key(RenderRequest(scene_id=sid, camera=CAM, time=1.0))  # type: ignore[arg-type]
+        with pytest.raises(ApiError, match=r"time: time 9 is outside the animation interval \[0, 2\]") as exc:
+            c.render(sid, time=9.0)
+        assert exc.value.status == 422
+
+    def ibr(*args: str) -> Any:
+        return CliRunner().invoke(cli_app, ["render", sid, "--no-wait", *args],
+                                  env={"IBR_API_URL": api_url, "IBR_API_KEY": ""})
+
+    r = ibr("--time", "1", "--spp", "1")
+    assert r.exit_code == 0, r.output
+    key = render_artifact_key(RenderRequest(scene_id=sid, time=1.0, params={"spp": 1}))  # type: ignore[arg-type]
+    assert r.stdout == f"render-{key}\n"
+    r = ibr("--time", "3")
+    assert r.exit_code == 2 and "time 3 is outside the animation interval [0, 2]" in r.stderr, r.output
+    r = ibr("--time", "1", "--method", "ldc")
+    assert r.exit_code != 0 and "--time" in r.stderr and r.stdout == "", r.output
