@@ -25,7 +25,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from api_schemas.common import FiniteFloat, FrozenModel
+from api_schemas.common import FiniteFloat, FrozenModel, error_at, raise_errors
 from api_schemas.scene import Camera, Scene
 from engine.errors import InvalidInputError
 from engine.methods import (
@@ -399,6 +399,35 @@ class RenderRequest(FrozenModel):
     ``contract`` says what was chosen and why. Explicit ``method`` or ``params`` with ``quality`` are
     422 (the planner chooses them); ``bake`` and ``missing_bake`` still say which bake the LDC
     methods may use and whether to wait for it."""
+    time: Annotated[FiniteFloat | None, Field(exclude_if=lambda v: v is None)] = None
+    """Animation time of an animated scene (one with ``animation``): the image is the scene at that
+    moment (objects and lights keyframed to it), inside ``[animation.start, animation.end]``, else 422
+    naming the interval. Method ``reference`` only: the LDC methods render from the bake of the scene
+    as stored and a quality contract plans from that bake's calibration, so ``time`` with either is
+    422; ``time`` on a scene without animation is 422 (there is no moment to choose). Leave it out to
+    render the scene as stored (each object at its own ``transform``, the lights as written): a
+    request without it has the artifact key it always had, one with it a key of its own per time."""
+
+    @field_validator("time")
+    @classmethod
+    def _time_without_sign_of_zero(cls, value: float | None) -> float | None:
+        return None if value is None else value + 0.0  # -0.0 -> 0.0: one moment, one artifact key
+
+    @model_validator(mode="after")
+    def _time_renders_the_scene(self) -> RenderRequest:
+        if self.time is None:
+            return self
+        if self.quality is not None:
+            raise_errors("RenderRequest", [error_at(
+                ("time",), "time_with_quality", "time renders an animated scene at that moment with method "
+                "'reference'; a quality contract plans from the calibration of the scene as stored: leave out time "
+                "or quality", self.time)])
+        if method_needs_bake(self.method):
+            raise_errors("RenderRequest", [error_at(
+                ("time",), "time_with_bake", f"time renders an animated scene at that moment, which method "
+                f"'{self.method}' cannot: it renders from the bake of the scene as stored; use method 'reference' "
+                "or leave out time", self.time)])
+        return self
 
     @model_validator(mode="after")
     def _quality_chooses_the_method(self) -> RenderRequest:

@@ -219,12 +219,14 @@ def render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: d
                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
                      method: str | None = "reference", bake: dict[str, Any] | None = None,
                      missing_bake: str | None = None, max_error: float | None = None,
-                     max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> None:
+                     max_ms: float | None = None, best_effort: bool = False, verify: bool = False,
+                     at_time: float | None = None) -> None:
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
                                    missing_bake="bake" if missing_bake == "bake" else None,
-                                   max_error=max_error, max_ms=max_ms, best_effort=best_effort, verify=verify))
+                                   max_error=max_error, max_ms=max_ms, best_effort=best_effort, verify=verify,
+                                   time=at_time))
         typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
         if r.contract is not None:
             typer.echo(_contract_line(r.contract), err=True)
@@ -320,6 +322,9 @@ def render(
     verify: Annotated[bool, typer.Option(
         "--verify", help="Quality contract: also measure the image against a converged reference of the view "
                          "(a follow-up job, at your cost)")] = False,
+    at_time: Annotated[float | None, typer.Option(
+        "--time", help="Animated scene: render it at this animation time, inside [animation.start, animation.end] "
+                       "(--method reference only)")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the job with a progress bar")] = True,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
@@ -336,6 +341,9 @@ def render(
         fail("--verify measures a quality contract's render: give --quality-error and / or --quality-ms")
     if method is None and not contract:
         method = "reference"
+    if at_time is not None and (contract or method not in (None, "reference")):
+        fail("--time renders an animated scene at that moment with --method reference; the LDC methods and "
+             "--quality-error/--quality-ms work from the bake of the scene as stored")
     if method not in (None, "reference") and params:
         fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
              "the bake's settings")
@@ -350,7 +358,7 @@ def render(
         fail(f"{output}: the service delivers .png or .exr")
     render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
                      missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
-                     best_effort=best_effort, verify=verify)
+                     best_effort=best_effort, verify=verify, at_time=at_time)
 
 
 @app.command()

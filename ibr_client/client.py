@@ -189,7 +189,8 @@ class Client:
     def render(self, scene_id: str, camera: Mapping[str, Any] | None = None, method: str | None = None,
                params: Mapping[str, Any] | None = None, wait: float = 0.0, bake: Mapping[str, Any] | None = None,
                missing_bake: Literal["fail", "bake"] | None = None, max_error: float | None = None,
-               max_ms: float | None = None, best_effort: bool = False, verify: bool = False) -> RenderPublic:
+               max_ms: float | None = None, best_effort: bool = False, verify: bool = False,
+               time: float | None = None) -> RenderPublic:
         """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``.
 
         ``method``: ``reference`` (the default), ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods
@@ -201,7 +202,10 @@ class Client:
         :meth:`calibrate`); the answer's ``contract`` states the plan. ``best_effort``: when no setting
         meets the targets, render the closest one, marked, instead of an ApiError (422). ``verify``: also
         measure the image against a converged reference of the view (a follow-up job, at the caller's
-        cost: ``contract.verification`` names it; its result holds ``measured_error``)."""
+        cost: ``contract.verification`` names it; its result holds ``measured_error``).
+
+        ``time``: an animated scene at that moment of its animation (method ``reference`` only; a time
+        outside the animation, or on a scene without one, is an ApiError 422 naming the interval)."""
         body: dict[str, Any] = {"scene_id": scene_id}
         if max_error is not None or max_ms is not None:
             if method is not None or params:
@@ -223,6 +227,8 @@ class Client:
             body["bake"] = dict(bake)
         if missing_bake is not None:
             body["missing_bake"] = missing_bake
+        if time is not None:
+            body["time"] = time
         r = self._request("POST", "/v1/renders", json=body, params={"wait": wait} if wait else None)
         return RenderPublic.model_validate(r.json())
 

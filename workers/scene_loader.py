@@ -170,10 +170,25 @@ def load_scene(scene: Scene, resolver: MeshResolver | None = None) -> LoadedScen
     return LoadedScene(runtime, camera_params(scene.camera), scene_hash(scene), reports)
 
 
-def load_animated_scene(scene: Scene, resolver: MeshResolver | None = None) -> AnimatedScene:
-    """The scene with its animation, as an engine ``AnimatedScene`` (``scene_at(t)`` gives the
-    runtime scene at time t). A scene without ``animation`` is static over [0, 0]."""
+def load_scene_at(scene: Scene, time: float, resolver: MeshResolver | None = None) -> LoadedScene:
+    """The runtime scene at animation time ``time`` (``AnimatedScene.scene_at``), with the scene's camera,
+    hash and mesh reports. InvalidInputError when the scene has no animation or ``time`` is outside
+    ``[animation.start, animation.end]`` (the message names ``time`` and the interval)."""
+    if scene.animation is None:
+        raise InvalidInputError("time: the scene has no animation, so there is no moment to render")
     loaded = load_scene(scene, resolver)
+    animated = load_animated_scene(scene, resolver, loaded=loaded)
+    t = animated.check_time(time)
+    return LoadedScene(animated.scene_at(t), loaded.camera, loaded.scene_hash, loaded.mesh_reports)
+
+
+def load_animated_scene(scene: Scene, resolver: MeshResolver | None = None, *,
+                        loaded: LoadedScene | None = None) -> AnimatedScene:
+    """The scene with its animation, as an engine ``AnimatedScene`` (``scene_at(t)`` gives the
+    runtime scene at time t). A scene without ``animation`` is static over [0, 0]. ``loaded``: the
+    scene as stored, when the caller has loaded it already (``load_scene`` of the same scene)."""
+    if loaded is None:
+        loaded = load_scene(scene, resolver)
     rt = loaded.runtime
     parts = [SceneObjectPart(name, _part_mesh(rt, i), int(_part_material(rt, i)))
              for i, name in enumerate(rt.object_names)]

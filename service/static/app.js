@@ -1710,13 +1710,6 @@ function scheduleWalkCompare() {
   $("wt-compare-view").hidden = mode === "off";
   if (mode === "off" || !walk.urls.length || !walk.request) return;
   $("wt-lrms").textContent = "";
-  if (walk.info && walk.info.animation) {
-    // a render request has no animation time: its image would be the scene as stored, not at this frame's time
-    $("wt-compare-caption").textContent = "no reference: this scene is animated, and a render request has no "
-      + "animation time to render the frame's moment";
-    $("wt-compare-img").removeAttribute("src");
-    return;
-  }
   if (walk.timer) { $("wt-compare-caption").textContent = "reference: pause to compare the shown frame"; return; }
   $("wt-compare-caption").textContent = "reference: waiting…";
   const index = walk.index;
@@ -1730,10 +1723,13 @@ async function runWalkCompare(index) {
   walkCmp = c;
   const { signal } = c.controller;
   const wkey = walk.key;
-  const cam = walk.request.frames[index].camera;
+  const frame = walk.request.frames[index];
   const sppText = $("spp").value.trim();
-  const body = { scene_id: walk.request.scene_id, camera: cam, method: "reference",
+  const body = { scene_id: walk.request.scene_id, camera: frame.camera, method: "reference",
     params: { spp: Number(sppText) || 4 }, outputs: ["preview", "radiance"] };
+  // an animated scene: the reference is the scene at the frame's moment (a static scene takes no time)
+  const animated = Boolean(walk.info && walk.info.animation);
+  if (animated) body.time = frame.time;
   const caption = $("wt-compare-caption");
   caption.textContent = "reference: rendering…";
   try {
@@ -1746,9 +1742,10 @@ async function runWalkCompare(index) {
       `/v1/artifacts/${ref.key}/image.png`, signal);
     if (walkCmp !== c) return;
     caption.textContent = `${mode === "diff" ? "difference vs reference" : "reference"} (${body.params.spp} spp) `
-      + `of frame ${index + 1},`;
+      + `of frame ${index + 1}${animated ? ` at time ${+frame.time.toFixed(4)}` : ""},`;
     walkComparePerf.runs += 1;
-    walkComparePerf.last = { ...result, mode, frame: index, walkthrough: wkey, ref: ref.key };
+    walkComparePerf.last = { ...result, mode, frame: index, walkthrough: wkey, ref: ref.key,
+      time: animated ? frame.time : null };
   } catch (err) {
     if (isAbort(err) || walkCmp !== c) return;
     caption.textContent = "reference: failed";

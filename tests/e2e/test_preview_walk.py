@@ -1,6 +1,7 @@
 """The preview page's Walkthroughs panel (on top of the walkthrough API): request a walkthrough of
 the animated sample scene along its view-space path at a quality level, watch the progress reach
-done, play the frames (mouse and keyboard); compare a static scene's frame with a reference render."""
+done, play the frames (mouse and keyboard); compare a paused frame with a reference render of its camera (an
+animated scene's at the frame's animation time, a static scene's as stored)."""
 
 from __future__ import annotations
 
@@ -30,6 +31,16 @@ def page(stack: Stack, browser: Browser, capabilities: dict[str, Any]) -> Iterat
     assert capabilities["walkthroughs"], capabilities  # the service routes walkthroughs: never a silent skip
     with new_page(browser, stack.api_url + URL.format(scene=SCENE)) as pg:
         yield pg
+
+
+def _exr_with_meta(url: str) -> tuple[np.ndarray, dict[str, Any]]:
+    r = httpx.get(url, timeout=30)
+    assert r.status_code == 200, (url, r.text)
+    return decode_image("x.exr", r.content)
+
+
+def _exr(url: str) -> np.ndarray:
+    return _exr_with_meta(url)[0]
 
 
 def test_walkthrough_renders_with_progress_and_plays(page: Page, capabilities: dict[str, Any]) -> None:
@@ -78,21 +89,48 @@ def test_walkthrough_frames_step_with_keyboard(page: Page) -> None:
     shot(page, "31-walkthrough-last-frame")
 
 
-def test_animated_frames_say_they_have_no_reference(page: Page) -> None:
+def test_animated_frame_compares_with_a_reference_render_at_its_time(page: Page, stack: Stack) -> None:
+    page.click("#wt-play")  # pause (the previous test left it playing)
+    expect(page.locator("#wt-play")).to_have_text("Play")
+    page.locator("#wt-slider").fill("5")
+    page.locator("#wt-slider").dispatch_event("input")
     page.select_option("#wt-compare", "diff")
-    expect(page.locator("#wt-compare-caption")).to_contain_text("no reference: this scene is animated")
-    assert page.evaluate("window.__walkCompare.runs") == 0
+    page.wait_for_function("window.__walkCompare.runs > 0 && window.__walkCompare.last.frame === 5", timeout=120_000)
+    last = page.evaluate("window.__walkCompare.last")
+    api = stack.api_url
+    frame, frame_meta = _exr_with_meta(f"{api}/v1/walkthroughs/{last['walkthrough']}/frames/5.exr")
+    ref, ref_meta = _exr_with_meta(f"{api}/v1/artifacts/{last['ref']}/image.exr")
+    manifest = httpx.get(f"{api}/v1/artifacts/{last['ref']}", timeout=30).json()
+    frame_time = frame_meta["time"]
+    assert frame_time == pytest.approx(4 * 5 / 7) and last["time"] == frame_time  # animation [0, 4], 8 frames
+    # the reference is a reference render of frame 5's camera at frame 5's time, at the frame's size
+    assert manifest["params"]["method"] == "reference" and manifest["params"]["time"] == frame_time
+    assert ref_meta["time"] == frame_time and ref_meta["camera"] == frame_meta["camera"]
+    assert frame.shape[:2] == ref.shape[:2] == (64, 64)  # the cornell camera is square
+    assert last["lrms"] == pytest.approx(lrms(frame, ref), rel=1e-9)
+    assert page.locator("#wt-lrms").inner_text() == f"LRMS {last['lrms']:.4f}"
+    expect(page.locator("#wt-compare-caption")).to_contain_text(
+        f"difference vs reference (4 spp) of frame 6 at time {round(frame_time, 4):g}")
+    # the reference is the scene at the frame's moment, not at the start: the lamp moved and changed colour,
+    # the ball and the cube moved (LRMS ~0.1 between the two 4 spp references)
+    body = {"scene_id": ref_meta["scene_id"], "camera": manifest["params"]["camera"], "method": "reference",
+            "params": {"spp": 4}, "time": 0.0}
+    start = httpx.post(f"{api}/v1/renders?wait=60", json=body, timeout=90).json()
+    assert start["status"] in ("cached", "finished"), start
+    assert start["artifact_key"] != last["ref"]
+    assert lrms(ref, _exr(f"{api}/v1/artifacts/{start['artifact_key']}/image.exr")) > 0.05
+    expect(page.locator("#error")).to_be_hidden()
+    shot(page, "32a-walkthrough-animated-frame-diff")
+    page.select_option("#wt-compare", "side")
+    page.wait_for_function("window.__walkCompare.runs > 1 && window.__walkCompare.last.mode === 'side'",
+                           timeout=120_000)
+    assert page.evaluate("window.__walkCompare.last.ref") == last["ref"]  # the same render, side by side
+    assert page.evaluate("document.querySelector('#wt-compare-img').naturalWidth") == 64
     page.select_option("#wt-compare", "off")
     expect(page.locator("#wt-compare-view")).to_be_hidden()
 
 
 STATIC = "static_room"
-
-
-def _exr(url: str) -> np.ndarray:
-    r = httpx.get(url, timeout=30)
-    assert r.status_code == 200, (url, r.text)
-    return decode_image("x.exr", r.content)[0]
 
 
 def test_static_scene_frame_compares_with_a_reference_render(stack: Stack, browser: Browser) -> None:

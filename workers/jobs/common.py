@@ -24,7 +24,7 @@ from producer.queue import fetch_job
 from producer.settings import open_settings_store
 from producer.status import cancel_key, job_public
 from producer.store import NotFound, ObjectStore
-from workers.scene_loader import LoadedScene, load_scene
+from workers.scene_loader import LoadedScene, load_scene, load_scene_at
 
 __all__ = [
     "LOAD_END",
@@ -102,12 +102,15 @@ def set_worker_store(store: ObjectStore | None) -> ObjectStore | None:
     return previous
 
 
-def load_stored_scene(store: ObjectStore, scene_id: str) -> LoadedScene:
-    """A stored scene and its meshes, loaded for the engine. :class:`SceneNotFound` when absent."""
+def load_stored_scene(store: ObjectStore, scene_id: str, time: float | None = None) -> LoadedScene:
+    """A stored scene and its meshes, loaded for the engine: as stored, or with ``time`` at that moment
+    of its animation (``workers.scene_loader.load_scene_at``). :class:`SceneNotFound` when absent."""
     try:
         scene, mesh_shas, _ = get_scene(store, scene_id)
     except NotFound as exc:
         raise SceneNotFound(f"scene {scene_id} is not in the store") from exc
+    if time is not None:
+        return load_scene_at(scene, time, blob_reader(store, mesh_shas))
     return load_scene(scene, blob_reader(store, mesh_shas))
 
 

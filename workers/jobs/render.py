@@ -8,7 +8,8 @@ scene cache below stays warm across jobs):
 2. if the artifact's manifest already exists (a retry after the commit, or a duplicate), return
    its result: jobs are at-least-once, artifacts are written once;
 3. load the scene from the store (``get_scene`` + ``blob_reader`` + ``load_scene``) through the
-   per-process :class:`RendererCache`, apply the request's camera;
+   per-process :class:`RendererCache`, apply the request's camera; with an animation ``time`` the
+   scene at that moment (``load_scene_at``: ``AnimatedScene.scene_at``, cached per scene and time);
 4. render with a progress callback that saves ``job.meta["progress"]`` a few times per second
    and raises :class:`JobCanceled` once cancellation was requested (flag key or RQ status);
 5. encode (:func:`encode_render_blobs`) ``preview.png`` (8-bit sRGB, exposure 0), ``radiance.exr``
@@ -86,6 +87,7 @@ __all__ = [
     "encode_render_blobs",
     "render_job",
     "renderer_cache",
+    "scene_cache_key",
 ]
 
 EXR = "image/x-exr"
@@ -210,7 +212,8 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
 
     req = p.request
     t0 = time.perf_counter()
-    entry, cache_hit = renderer_cache().get_or_load(req.scene_id, lambda: load_stored_scene(store, req.scene_id))
+    entry, cache_hit = renderer_cache().get_or_load(
+        scene_cache_key(req.scene_id, req.time), lambda: load_stored_scene(store, req.scene_id, req.time))
     t_load = time.perf_counter() - t0
     loaded = entry.loaded
     camera = camera_params(req.camera) if req.camera is not None else loaded.camera
@@ -232,6 +235,8 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
         "engine_version": ENGINE_VERSION,
         "artifact_key": key,
     }
+    if req.time is not None:  # an animated scene at that moment
+        meta["time"] = req.time
     if out.adaptive is not None:  # a progressive render: its estimated error travels with its images
         meta["adaptive"] = out.adaptive
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
@@ -252,6 +257,12 @@ def render_job(payload: dict[str, Any]) -> dict[str, Any]:
     _record_served(store, req.scene_id, result)
     progress.report(1.0, "done", force=True, check=False)  # committed: too late to cancel
     return {"artifact_key": key, **result}
+
+
+def scene_cache_key(scene_id: str, time: float | None) -> str:
+    """The renderer cache's key of a scene as stored (its id) or at animation time ``time`` (a runtime
+    scene, and an Embree BVH, of its own per moment)."""
+    return scene_id if time is None else f"{scene_id}@t={time!r}"
 
 
 # ------------------------------------------------------------------------------------ LDC methods

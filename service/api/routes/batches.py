@@ -41,7 +41,7 @@ from producer.store import NotFound, ObjectStore
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, add_scene_owner, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.limits import read_multipart
-from service.api.routes.renders import BAKE_MISSING_409
+from service.api.routes.renders import BAKE_MISSING_409, time_error
 from service.api.routes.scenes import SAMPLE_SCENE, limit_errors, mesh_problem
 
 BATCH_PART = "batch"
@@ -192,6 +192,10 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, files: SceneF
             except NotFound:
                 errors.append(FieldError(field=f"renders.{j}.scene_id", message=f"no scene {req.scene_id}",
                                          type="unknown_scene"))
+        if req.scene_id in scenes:
+            problem = time_error(req, scenes[req.scene_id][0], prefix=f"renders.{j}.")
+            if problem is not None:
+                errors.append(problem)
         if req.scene_id in scenes and req.quality is None and _pixels(req, scenes[req.scene_id][0]) <= \
                 settings.max_image_pixels:
             scene, triangles = scenes[req.scene_id]

@@ -11,6 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from rq.job import Job
 
 from api_schemas.errors import FieldError
+from api_schemas.scene import Scene
 from api_schemas.service import (
     ArtifactManifest,
     BakePublic,
@@ -110,6 +111,23 @@ def _check_visible(req: RenderRequest, store: Any, owner: str | None) -> None:
         raise MissingResource("scene_id", req.scene_id)
 
 
+def time_error(req: RenderRequest, scene: Scene, prefix: str = "") -> FieldError | None:
+    """The problem of the request's animation ``time`` against its scene: a scene without animation, or a
+    time outside ``[animation.start, animation.end]`` (the worker's ``AnimatedScene.check_time`` refuses
+    the same, this answers before anything is queued)."""
+    if req.time is None:
+        return None
+    anim = scene.animation
+    if anim is None:
+        return FieldError(field=prefix + "time", type="no_animation",
+                          message="the scene has no animation, so there is no moment to render: leave out time")
+    if not anim.start <= req.time <= anim.end:
+        return FieldError(field=prefix + "time", type="time_out_of_range",
+                          message=f"time {req.time:g} is outside the animation interval "
+                                  f"[{anim.start:g}, {anim.end:g}]")
+    return None
+
+
 def _check_request(req: RenderRequest, store: Any, owner: str | None, settings: Any) -> Cost:
     """The render's estimated cost (``producer.costs``); 422 when the image or the estimate is over this
     server's limits."""
@@ -118,6 +136,9 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, settings: 
         scene, triangles = stored_scene(store, req.scene_id)
     except NotFound:
         raise MissingResource("scene_id", req.scene_id) from None
+    problem = time_error(req, scene)
+    if problem is not None:
+        raise ValidationProblem([problem])
     cam = req.camera if req.camera is not None else scene.camera
     where = "camera.height" if req.camera is not None else "scene_id"
     if cam.width * cam.height > settings.max_image_pixels:
