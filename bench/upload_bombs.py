@@ -7,8 +7,9 @@ OOM killer ends the process), then sends each bomb once:
 
 - PNG of zeros, 4000x4000 and 8000x8000 RGB (tens to hundreds of KiB; 192 MB and 768 MB as floats);
 - a zip EXR of zeros, 8000x8000 with 16 half channels (4 GiB as floats);
-- a scene whose inline mesh makes a JSON body over the API's body limit (``IBR_MAX_BODY_BYTES``),
-  one just under it (about 0.8 M vertices and as many triangles inline) and one of half that;
+- scenes whose inline mesh makes a JSON body over the API's body limit (``IBR_MAX_BODY_BYTES``),
+  just under it (48 MiB, about 0.8 M vertices and as many triangles inline: over the JSON-document
+  limit ``IBR_MAX_JSON_BYTES``) and just under the JSON-document limit;
 - a PLY mesh upload whose header declares 2,000,000,000 vertices and faces (a few hundred bytes);
 - a scene of 10,000 spheres at subdivision 8 (13 billion triangles once tessellated).
 
@@ -39,6 +40,7 @@ from typing import Any
 import httpx
 
 from bench.docs_writer import replace_block
+from producer.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "reliability.md"
@@ -142,7 +144,7 @@ def spheres_body() -> bytes:
 Request = Callable[[httpx.Client], httpx.Response]
 
 
-def bombs(tmp: Path, body_limit: int) -> list[tuple[str, str, Request]]:
+def bombs(tmp: Path, body_limit: int, json_limit: int) -> list[tuple[str, str, Request]]:
     """(name, what it is, how it is sent)."""
     from tests.service.api.test_upload_bombs import exr_file, png_bomb
 
@@ -156,7 +158,7 @@ def bombs(tmp: Path, body_limit: int) -> list[tuple[str, str, Request]]:
     png4, png8 = png_bomb(4000, 4000, 3), png_bomb(8000, 8000, 3)
     exr = exr_file(tmp / "bomb.exr", 8000, 8000, 16)
     over, under = inline_mesh_body(body_limit + 16 * MIB), inline_mesh_body(body_limit - 8 * MIB)
-    half = inline_mesh_body(body_limit // 2 - 8 * MIB)
+    at_json_limit = inline_mesh_body(json_limit - MIB)
     ply = absurd_ply()
     ply_scene = json.dumps(_scene([{"type": "mesh_file", "path": "bomb.ply", "material": "m"}]))
     spheres = spheres_body()
@@ -171,8 +173,8 @@ def bombs(tmp: Path, body_limit: int) -> list[tuple[str, str, Request]]:
         ("inline-vertex scene over the body limit", f"{len(over) * mib:.0f} MiB JSON", post_json(over)),
         ("inline-vertex scene under the body limit", f"{len(under) * mib:.0f} MiB JSON, about "
          f"{len(under) // 60 / 1e6:.1f} M vertices and as many triangles", post_json(under)),
-        ("inline-vertex scene at half the body limit", f"{len(half) * mib:.0f} MiB JSON, about "
-         f"{len(half) // 60 / 1e6:.1f} M vertices and as many triangles", post_json(half)),
+        ("inline-vertex scene under the JSON-document limit", f"{len(at_json_limit) * mib:.0f} MiB JSON, about "
+         f"{len(at_json_limit) // 60 / 1e6:.2f} M vertices and as many triangles", post_json(at_json_limit)),
         ("PLY declaring 2e9 vertices and faces", f"{len(ply)} B mesh file in a multipart scene",
          lambda c: c.post("/v1/scenes", files={"scene": (None, ply_scene),
                                                "bomb.ply": ("bomb.ply", ply, "application/octet-stream")})),
@@ -209,9 +211,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="ibr-bombs-", dir="/tmp") as d:
         tmp = Path(d)
-        body_limit = 64 * MIB
+        body_limit, json_limit = Settings().max_body_bytes, Settings().max_json_bytes
         print("building the bombs...", flush=True)
-        plan = bombs(tmp, body_limit)
+        plan = bombs(tmp, body_limit, json_limit)
         server = start_embedded_redis(tmp / "redis")
         cg = MemoryCgroup(args.ceiling_mib * MIB)
         port = free_port()
@@ -286,7 +288,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             server.stop()
             cg.remove()
     return {"ceiling_mib": args.ceiling_mib, "cgroup": cg.kind, "body_limit_mib": body_limit // MIB,
-            "idle_mib": round(idle / MIB, 1), "api_mapped_numba": numba, "api_restarts": restarts, "bombs": rows}
+            "json_limit_mib": json_limit // MIB, "idle_mib": round(idle / MIB, 1), "api_mapped_numba": numba,
+            "api_restarts": restarts, "bombs": rows}
 
 
 def table(res: dict[str, Any]) -> str:
@@ -294,7 +297,8 @@ def table(res: dict[str, Any]) -> str:
     lines = [
         f"`flock /tmp/bench.lock python -m bench.upload_bombs --ceiling-mib {res['ceiling_mib']}` "
         f"(the API process, uvicorn, in a memory cgroup {res['cgroup']} of its own limited to "
-        f"{res['ceiling_mib']} MiB, swap included; body limit {res['body_limit_mib']} MiB; {res['idle_mib']:.0f} "
+        f"{res['ceiling_mib']} MiB, swap included; body limit {res['body_limit_mib']} MiB, JSON-document limit "
+        f"{res.get('json_limit_mib', res['body_limit_mib'])} MiB; {res['idle_mib']:.0f} "
         "MiB charged to the cgroup when idle, after a warm-up upload). Peak = the cgroup's peak memory during "
         "that request.",
         "",

@@ -83,6 +83,13 @@ class Settings(BaseSettings):
     """SHA-256 hex digests of the accepted API keys; empty turns authentication off."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 64 * _MIB
     """Largest request body, enforced while streaming (413 beyond it)."""
+    max_json_bytes: Annotated[int, Field(ge=1024)] = 8 * _MIB
+    """Largest JSON document in a request: a JSON body (a scene, a batch, a manifest, ...) or the
+    ``scene``, ``batch`` or ``manifest`` part of a multipart one, enforced while streaming (413 beyond
+    it; the smaller of this and ``max_body_bytes`` applies). Parsing holds about 25-30x the document's
+    size in Python objects (inline mesh vertices: a 20 MiB scene peaks at 552 MiB in the API, a
+    48 MiB one at 1.15 GiB, docs/reliability.md), so large meshes go as PLY/OBJ file parts, which
+    are parsed into compact arrays."""
     max_upload_bytes: Annotated[int, Field(ge=1)] = 32 * _MIB
     """Largest single uploaded file in a multipart request."""
     max_upload_files: Annotated[int, Field(ge=1, le=10_000)] = 256
@@ -237,6 +244,11 @@ class Settings(BaseSettings):
         return self
 
     # --- resolved values --------------------------------------------------------------------------
+    @property
+    def json_limit_bytes(self) -> int:
+        """The JSON-document limit in force: ``max_json_bytes``, capped by ``max_body_bytes``."""
+        return min(self.max_json_bytes, self.max_body_bytes)
+
     @property
     def auth_enabled(self) -> bool:
         return bool(self.api_keys)

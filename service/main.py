@@ -171,7 +171,8 @@ def create_app(
         app.include_router(module.router)
 
     # add_middleware wraps: the LAST added is the outermost.
-    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
+                       max_json_bytes=settings.max_json_bytes)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,

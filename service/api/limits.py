@@ -11,6 +11,9 @@ pure ASGI middleware that
   ``Content-Length`` that lies, is stopped after at most one extra chunk. Nothing is
   written to the store because every route reads the whole body before storing.
 
+JSON documents get a smaller limit than the body (``max_json_bytes``): a JSON body becomes Python
+objects of 25-30x its size when parsed, while a multipart body's files stay bytes.
+
 ``read_multipart`` parses ``multipart/form-data`` in memory with a per-part cap, so an
 upload of one oversized mesh is refused while it streams, not after it hit the disk.
 """
@@ -27,10 +30,12 @@ from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 __all__ = [
+    "JSON_ADVICE",
     "BodyLimitMiddleware",
     "BodyTooLarge",
     "MultipartError",
     "MultipartPart",
+    "is_json_document",
     "read_multipart",
 ]
 
@@ -53,29 +58,42 @@ def _problem_413(detail: str) -> bytes:
     ).encode()
 
 
-class BodyLimitMiddleware:
-    """413 for bodies over ``max_body_bytes``, with or without ``Content-Length``."""
+JSON_ADVICE = "; send large meshes as PLY or OBJ file parts of a multipart/form-data request (docs/api.md)"
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int) -> None:
+
+def is_json_document(content_type: str) -> bool:
+    """Whether a body of this Content-Type is parsed as one JSON document: ``application/json``,
+    ``application/*+json``, or none (the JSON routes take a body without a type as JSON)."""
+    ctype = content_type.split(";", 1)[0].strip().lower()
+    return ctype in ("", "application/json") or (ctype.startswith("application/") and ctype.endswith("+json"))
+
+
+class BodyLimitMiddleware:
+    """413 for bodies over ``max_body_bytes`` (JSON documents: over ``max_json_bytes``, when given
+    and smaller), with or without ``Content-Length``."""
+
+    def __init__(self, app: ASGIApp, max_body_bytes: int, max_json_bytes: int | None = None) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
+        self.max_json_bytes = max_body_bytes if max_json_bytes is None else min(max_json_bytes, max_body_bytes)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.max_body_bytes
-        for name, value in scope.get("headers", []):
-            if name == b"content-length":
-                try:
-                    declared = int(value)
-                except ValueError:
-                    await self._reject(send, "invalid Content-Length header", status=400)
-                    return
-                if declared > limit:
-                    await self._reject(send, f"body of {declared} bytes exceeds the {limit}-byte limit")
-                    return
-                break
+        headers = dict(scope.get("headers", []))
+        json_body = is_json_document(headers.get(b"content-type", b"").decode("latin-1"))
+        limit = self.max_json_bytes if json_body else self.max_body_bytes
+        what, advice = ("JSON body", JSON_ADVICE) if json_body and limit < self.max_body_bytes else ("body", "")
+        if b"content-length" in headers:
+            try:
+                declared = int(headers[b"content-length"])
+            except ValueError:
+                await self._reject(send, "invalid Content-Length header", status=400)
+                return
+            if declared > limit:
+                await self._reject(send, f"{what} of {declared} bytes exceeds the {limit}-byte limit{advice}")
+                return
 
         received = 0
         over = False
@@ -84,13 +102,13 @@ class BodyLimitMiddleware:
         async def limited_receive() -> Message:
             nonlocal received, over
             if over:  # never pull more from the client once over the limit
-                raise BodyTooLarge(f"request body exceeds the {limit}-byte limit")
+                raise BodyTooLarge(f"request {what} exceeds the {limit}-byte limit{advice}")
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
                     over = True
-                    raise BodyTooLarge(f"request body exceeds the {limit}-byte limit")
+                    raise BodyTooLarge(f"request {what} exceeds the {limit}-byte limit{advice}")
             return message
 
         async def tracking_send(message: Message) -> None:
@@ -185,6 +203,9 @@ class _Collector:
 
     def on_part_data(self, data: bytes, start: int, end: int) -> None:
         if len(self._data) + (end - start) > self._limit:
+            if self._name in self.field_limits:
+                raise BodyTooLarge(f"part {self._name!r} exceeds the {self._limit}-byte limit for JSON documents"
+                                   f"{JSON_ADVICE}", field=self._name)
             raise BodyTooLarge(f"part {self._name!r} exceeds the {self._limit}-byte limit per file", field=self._name)
         self._data += data[start:end]
 

@@ -67,7 +67,7 @@ async def _multipart_batch(request: Request) -> Request:
     settings: Settings = request.app.state.settings
     parts = await read_multipart(request, max_part_bytes=settings.max_upload_bytes,
                                  max_parts=settings.max_upload_files + 1,
-                                 field_limits={BATCH_PART: settings.max_body_bytes})
+                                 field_limits={BATCH_PART: settings.json_limit_bytes})
     batch_parts = [p for p in parts if p.name == BATCH_PART]
     errors: list[FieldError] = []
     if len(batch_parts) != 1:

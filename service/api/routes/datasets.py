@@ -291,7 +291,7 @@ async def create_dataset(request: Request, response: Response, store: StoreDep, 
     if ctype == "multipart/form-data":
         parts = await read_multipart(request, max_part_bytes=settings.max_upload_bytes,
                                      max_parts=settings.max_upload_files + 1,
-                                     field_limits={"manifest": settings.max_body_bytes})
+                                     field_limits={"manifest": settings.json_limit_bytes})
         manifests = [p for p in parts if p.name == "manifest"]
         if len(manifests) != 1:
             raise ValidationProblem([FieldError(

@@ -493,7 +493,7 @@ async def create_scene(
             request,
             max_part_bytes=settings.max_upload_bytes,
             max_parts=settings.max_upload_files + 1,
-            field_limits={"scene": settings.max_body_bytes},
+            field_limits={"scene": settings.json_limit_bytes},
         )
         scene_parts = [p for p in parts if p.name == "scene"]
         import_parts = [p for p in parts if p.name in IMPORT_FORMATS]

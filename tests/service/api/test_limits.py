@@ -53,6 +53,38 @@ def test_declared_content_length_over_limit(small_app: FastAPI, store_dir: Path)
     assert _store_files(store_dir) == set()
 
 
+def test_json_documents_have_their_own_smaller_limit(make_app: Any, store_dir: Path) -> None:
+    """A JSON scene over ``max_json_bytes`` (but under the body limit) is refused with 413 naming the
+    limit and the way out (mesh files), as a body with or without Content-Length and as the
+    multipart ``scene`` part; a mesh file part of the same size is not a JSON document."""
+    json_limit = 24 * 1024
+    app = make_app(max_body_bytes=4 * LIMIT, max_upload_bytes=2 * LIMIT, max_json_bytes=json_limit)
+    doc = json.dumps({"scene": small_scene(name="x" * 100)}).encode()
+    big_doc = doc[:-1] + b" " * (json_limit + 1) + b"}"
+    assert len(big_doc) < 4 * LIMIT
+    with TestClient(app) as c:
+        assert c.post("/v1/scenes", content=doc, headers={"content-type": "application/json"}).status_code == 201
+        r = c.post("/v1/scenes", content=big_doc, headers={"content-type": "application/json"})
+        assert r.status_code == 413, r.text
+        assert f"JSON body of {len(big_doc)} bytes exceeds the {json_limit}-byte limit" in r.json()["detail"]
+        assert "PLY or OBJ file parts" in r.json()["detail"]
+        r = c.post("/v1/scenes", content=iter([big_doc]), headers={"content-type": "application/json"})
+        assert r.status_code == 413, r.text
+        assert "PLY or OBJ file parts" in r.json()["detail"]
+        big_scene = json.dumps(teapot_scene()).encode() + b" " * (json_limit + 1)
+        ply = TEAPOT_PLY.read_bytes()
+        r = c.post("/v1/scenes", files=[("scene", (None, big_scene, "application/json")),
+                                        ("meshes/teapot.ply", ("teapot.ply", ply, "application/octet-stream"))])
+        assert r.status_code == 413, r.text
+        assert r.json()["errors"][0]["field"] == "scene"
+        assert "limit for JSON documents" in r.json()["detail"]
+    assert len(ply) > json_limit  # the mesh part is larger than a JSON document may be, and accepted below
+    with TestClient(app) as c:
+        r = c.post("/v1/scenes", files=[("scene", (None, json.dumps(teapot_scene()).encode(), "application/json")),
+                                        ("meshes/teapot.ply", ("teapot.ply", ply, "application/octet-stream"))])
+        assert r.status_code in (200, 201), r.text
+
+
 def test_chunked_body_over_limit_is_cut_while_streaming(small_app: FastAPI, store_dir: Path) -> None:
     pulled = 0
 
