@@ -206,6 +206,7 @@ def test_render_worker_serves_while_warming_up_in_the_background(report: warmup.
     pub = job_public(fetch_job(redis_conn, job.id))  # type: ignore[arg-type]
     assert pub.state == "finished", (pub.error, log)
     assert read_manifest(worker_store, key) is not None
+    assert "warm-up: started in the background" in log and "Listening on" in log, log
     assert log.index("warm-up: started in the background") < log.index("Listening on"), log
     for name in warmup.STEPS:
         assert f"warm-up step {name} " in log, name
