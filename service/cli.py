@@ -159,3 +159,7 @@ def worker(
 
     argv = ["--queue", queue] + (["--burst"] if burst else []) + (["--name", name] if name else [])
     raise typer.Exit(run_worker(argv))
+
+
+if __name__ == "__main__":  # python -m service.cli (bench.first_run starts the stack from a clone this way)
+    app()
