@@ -11,7 +11,7 @@ DEV_STAMP := $(VENV)/.installed-dev
 # Parallel test workers (2 cores here).
 PYTEST_WORKERS ?= 2
 
-.PHONY: install install-dev run demo render-local test test-fast bench lint compose-check clean
+.PHONY: install install-dev run demo render-local warm-cache test test-fast bench lint compose-check clean
 
 $(RUNTIME_STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -42,12 +42,24 @@ render-local: install
 	$(BIN)/ibr render-local mirror_box -o out/mirror_box_local.png
 	$(BIN)/ibr render-local cornell_box -o out/cornell_box.exr --indirect 16 --bounces 3
 
-test: install-dev
+# Fill numba's disk cache (engine/__pycache__/ibr-engine-<hash>) with the render kernels, the
+# warm-up's two lanes in two processes at once: with a cold cache (a fresh clone) both pytest
+# workers and the worker processes the tests start would compile the same kernels, each on one
+# core. A warm cache loads in seconds. A failed step is not fatal here: the tests name it.
+warm-cache: install
+	@t0=$$(date +%s); \
+	$(BIN)/python -m workers.warmup --lanes 2 --lane 0 --log-level WARNING >/dev/null & lane0=$$!; \
+	$(BIN)/python -m workers.warmup --lanes 2 --lane 1 --log-level WARNING >/dev/null; s1=$$?; \
+	wait $$lane0; s0=$$?; \
+	echo "numba cache warm-up: $$(( $$(date +%s) - t0 )) s"; \
+	[ $$s0 -eq 0 ] && [ $$s1 -eq 0 ] || echo "numba cache warm-up: a step failed (tests/test_worker_warmup.py names it)"
+
+test: install-dev warm-cache
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q tests
 
 # The everyday lane: every test not marked slow (no browser, no live multi-process stacks, no
 # long convergence runs). CI runs everything (make test).
-test-fast: install-dev
+test-fast: install-dev warm-cache
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q -m "not slow" tests
 
 bench: install-dev

@@ -631,19 +631,27 @@ def warm_up_published(worker: str, lane: int = 0, lanes: int = 1, *,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m workers.warmup [--json] [--publish WORKER]``: warm up this process (and numba's
-    disk cache) and print the report; exit status 1 when a step failed (e.g. an image build should
-    stop). ``--publish``: the render worker's background warm-up (workers/runner.py)."""
+    """``python -m workers.warmup [--json] [--publish WORKER] [--lanes N --lane I]``: warm up this
+    process (and numba's disk cache) and print the report; exit status 1 when a step failed (e.g. an
+    image build should stop). ``--publish``: the render worker's background warm-up
+    (workers/runner.py). ``--lanes N --lane I``: only lane I's steps, so N processes fill a cache
+    together (the test session does, tests/conftest.py)."""
     p = argparse.ArgumentParser(prog="python -m workers.warmup", description=main.__doc__)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--publish", metavar="WORKER",
                    help="publish per-method readiness in Redis (IBR_REDIS_URL) as render worker WORKER's")
-    p.add_argument("--lanes", type=int, default=1, help="with --publish: the steps split for this many cores")
-    p.add_argument("--lane", type=int, default=0, help="with --publish: the lane this process runs")
+    p.add_argument("--lanes", type=int, default=1, help="the steps split for this many cores (lanes_for)")
+    p.add_argument("--lane", type=int, default=0, help="the lane this process runs (with --lanes)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    report = warm_up_published(args.publish, args.lane, args.lanes) if args.publish else warm_up()
+    lanes = lanes_for(args.lanes)
+    if not 0 <= args.lane < len(lanes):
+        p.error(f"--lane must be in 0..{len(lanes) - 1} for --lanes {args.lanes}")
+    if args.publish:
+        report = warm_up_published(args.publish, args.lane, args.lanes)
+    else:
+        report = warm_up(only=lanes[args.lane] if len(lanes) > 1 else None)
     print(json.dumps(report.to_dict(), indent=1) if args.json else f"{report.table()}\n{report.summary()}")
     return 0 if report.ok else 1
 
