@@ -5,6 +5,7 @@ local stack (embedded Redis, real bake and render workers, uvicorn API): a tiny 
 from __future__ import annotations
 
 import json
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -81,17 +82,24 @@ def test_walkthrough_from_the_command_line(stack: Any, tmp_path: Path) -> None:
         assert c.download_walkthrough_video(key) == data
         assert c.download_walkthrough_frame(key, 0, "provenance")[:4] == b"\x89PNG"
 
-    # a walkthrough whose job is canceled: following it exits 4 naming the frames; then it can be deleted
-    res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), *TINY, "--chunk-frames", "2",
-                              "--fill", "none", "--face-res", "64", *api])  # a new, slower bake: chunks wait behind it
-    assert res.exit_code == 0, res.output
-    key2 = res.stdout.strip().splitlines()[-1]
-    jobs = json.loads(runner.invoke(app, ["walkthroughs", "show", key2, *api]).stdout)["jobs"]
-    chunk = next(j["id"] for j in jobs if j["id"].startswith("wtchunk-"))
-    res = runner.invoke(app, ["walkthroughs", "delete", key2, *api])  # its jobs are waiting: 409 -> exit 2
-    assert res.exit_code == 2 and "queued or running" in res.output
-    res = runner.invoke(app, ["jobs", "cancel", chunk, *api])
-    assert res.exit_code == 0 and "canceled" in res.stdout
+    # a walkthrough whose job is canceled: following it exits 4 naming the frames; then it can be deleted.
+    # The bake worker is paused meanwhile, so the new bake waits and its chunks wait behind it (with a
+    # warm numba cache a small bake ends before the chunk can be canceled).
+    bake_worker = stack.procs["bake-worker"]
+    bake_worker.send_signal(signal.SIGSTOP)
+    try:
+        res = runner.invoke(app, ["walkthrough", str(scene_file), "--path", str(path), *TINY, "--chunk-frames", "2",
+                                  "--fill", "none", "--face-res", "64", *api])  # a new bake: chunks wait behind it
+        assert res.exit_code == 0, res.output
+        key2 = res.stdout.strip().splitlines()[-1]
+        jobs = json.loads(runner.invoke(app, ["walkthroughs", "show", key2, *api]).stdout)["jobs"]
+        chunk = next(j["id"] for j in jobs if j["id"].startswith("wtchunk-"))
+        res = runner.invoke(app, ["walkthroughs", "delete", key2, *api])  # its jobs are waiting: 409 -> exit 2
+        assert res.exit_code == 2 and "queued or running" in res.output
+        res = runner.invoke(app, ["jobs", "cancel", chunk, *api])
+        assert res.exit_code == 0 and "canceled" in res.stdout, res.output
+    finally:
+        bake_worker.send_signal(signal.SIGCONT)
     res = runner.invoke(app, ["walkthroughs", "fetch", key2, "-o", str(tmp_path / "no.mp4"), *api])
     assert res.exit_code == 4 and "walkthrough failed" in res.output and "frames 0..1" in res.output
     assert not (tmp_path / "no.mp4").exists()
