@@ -8,8 +8,9 @@ BIN := $(VENV)/bin
 # Both are redone when pyproject.toml changes; `make test` after `make run` only adds the extras.
 RUNTIME_STAMP := $(VENV)/.installed-runtime
 DEV_STAMP := $(VENV)/.installed-dev
-# Parallel test workers, one per core here. Three were slower (902 s against 796 s of pytest on a
-# fresh clone): the kernels' numba threads and Mitsuba already use both cores.
+# Parallel test workers, one per core here. Three were no faster on a fresh clone (902 s of pytest,
+# against 796 s and 930 s with two in runs on either side of it): the kernels' numba threads and
+# Mitsuba already use both cores.
 PYTEST_WORKERS ?= 2
 
 .PHONY: install install-dev run demo render-local warm-cache test test-fast bench lint compose-check clean
