@@ -73,10 +73,11 @@ def main() -> None:
         server = start_embedded_redis(d / "redis")
         try:
             redis = redis_from_url(server.url)
+            defaults, scene_limit = Settings(), int((args.scene_mib + 1) * 2**20)  # the big scene must fit
             settings = Settings(redis_url=server.url, store_url=f"file://{d / 'store'}", data_dir=d / "data",
                                 api_keys=[hash_key("alice"), hash_key("bob")], log_level="WARNING",
-                                max_json_bytes=max(Settings().max_json_bytes, int((args.scene_mib + 1) * 2**20)),
-                                max_body_bytes=max(Settings().max_body_bytes, int((args.scene_mib + 1) * 2**20)))
+                                max_json_bytes=max(defaults.max_json_bytes, scene_limit),
+                                max_body_bytes=max(defaults.max_body_bytes, scene_limit))
             with TestClient(create_app(settings)) as c:
                 body = json.dumps({"scene": big_scene(args.scene_mib)}).encode()
                 t0 = time.perf_counter()

@@ -211,7 +211,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="ibr-bombs-", dir="/tmp") as d:
         tmp = Path(d)
-        body_limit, json_limit = Settings().max_body_bytes, Settings().max_json_bytes
+        defaults = Settings()
+        body_limit, json_limit = defaults.max_body_bytes, defaults.max_json_bytes
         print("building the bombs...", flush=True)
         plan = bombs(tmp, body_limit, json_limit)
         server = start_embedded_redis(tmp / "redis")

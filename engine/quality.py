@@ -58,6 +58,7 @@ from engine.methods import IBRT_GENERATIONS, LDC, LDC_IBRT, LDC_LLF, REFERENCE, 
 
 __all__ = [
     "ADAPTIVE_CAP_FACTOR",
+    "ADAPTIVE_CORRECTION_KEY",
     "CALIBRATION_SPP",
     "CORRECTION_MIN_OBSERVATIONS",
     "CORRECTION_RANGE",
@@ -636,11 +637,15 @@ CORRECTION_RANGE: dict[str, tuple[float, float]] = {"time": (0.25, 4.0), "error"
 calibration, not a correction."""
 
 
+ADAPTIVE_CORRECTION_KEY = f"{REFERENCE.name}@adaptive"
+"""The correction key of the adaptive reference (:func:`correction_key`)."""
+
+
 def correction_key(method: str, params: Mapping[str, Any] | None) -> str:
     """What a served render's observation corrects: ``reference@adaptive`` for the adaptive reference
     (``params`` with ``max_error``), else the method (the whole ``reference`` ladder shares one)."""
     if method == REFERENCE.name and params is not None and params.get("max_error") is not None:
-        return f"{REFERENCE.name}@adaptive"
+        return ADAPTIVE_CORRECTION_KEY
     return method
 
 
@@ -677,7 +682,7 @@ def apply_corrections(model: SceneModel, corrections: Mapping[str, Any] | None) 
 
     adaptive = model.adaptive
     if adaptive is not None:
-        key = f"{REFERENCE.name}@adaptive"
+        key = ADAPTIVE_CORRECTION_KEY
         ft, fe = correction_factor(corrections, "time", key), correction_factor(corrections, "error", key)
         adaptive = replace(adaptive, error_scale=adaptive.error_scale * fe, time_ratio=adaptive.time_ratio * ft,
                            levels=[{**lv, "scale": lv["scale"] * fe, "time_ratio": lv["time_ratio"] * ft}

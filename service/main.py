@@ -172,7 +172,7 @@ def create_app(
 
     # add_middleware wraps: the LAST added is the outermost.
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
-                       max_json_bytes=settings.max_json_bytes)
+                       max_json_bytes=settings.json_limit_bytes)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,

@@ -69,13 +69,13 @@ def is_json_document(content_type: str) -> bool:
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over ``max_body_bytes`` (JSON documents: over ``max_json_bytes``, when given
-    and smaller), with or without ``Content-Length``."""
+    """413 for bodies over ``max_body_bytes`` (JSON documents: over ``max_json_bytes``, at most
+    ``max_body_bytes``: ``Settings.json_limit_bytes``), with or without ``Content-Length``."""
 
     def __init__(self, app: ASGIApp, max_body_bytes: int, max_json_bytes: int | None = None) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
-        self.max_json_bytes = max_body_bytes if max_json_bytes is None else min(max_json_bytes, max_body_bytes)
+        self.max_json_bytes = max_body_bytes if max_json_bytes is None else max_json_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

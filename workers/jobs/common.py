@@ -9,6 +9,7 @@ other's helpers.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -20,6 +21,7 @@ from rq import get_current_job
 from rq.job import Job
 
 from producer.artifacts import blob_reader, get_scene
+from producer.calibrations import record_served
 from producer.queue import fetch_job
 from producer.settings import open_settings_store
 from producer.status import cancel_key, job_public
@@ -34,6 +36,7 @@ __all__ = [
     "SceneNotFound",
     "codes_png",
     "dependency_note",
+    "fold_served",
     "json_safe",
     "load_stored_scene",
     "set_worker_store",
@@ -45,6 +48,8 @@ LOAD_END = 0.05
 RENDER_END = 0.95
 
 _store: ObjectStore | None = None
+
+log = logging.getLogger("workers.jobs")
 
 
 class JobCanceled(Exception):
@@ -173,3 +178,15 @@ class ProgressReporter:
             job.meta["progress"] = {"fraction": round(self.fraction, 4), "stage": "canceled", "eta_s": None}
             job.save_meta()  # type: ignore[no-untyped-call]
             raise JobCanceled(f"job {job.id} was canceled on request")
+
+
+def fold_served(store: ObjectStore, scene_id: str, contract: Mapping[str, Any], *, achieved_ms: float | None = None,
+                measured_error: float | None = None) -> None:
+    """``producer.calibrations.record_served`` after a job's result is stored: a failure to fold the
+    observation is logged, not raised (the result is published already; a lost observation only
+    slows the correction)."""
+    try:
+        record_served(store, scene_id, dict(contract), achieved_ms=achieved_ms, measured_error=measured_error)
+    except Exception:  # noqa: BLE001 - see the docstring
+        log.warning("could not fold a served measurement into scene %s's contract corrections", scene_id,
+                    exc_info=True)

@@ -36,7 +36,6 @@ by measurement (:data:`EXR_COMPRESSION`, PNG ``fast``); the 8-bit sRGB transform
 from __future__ import annotations
 
 import json
-import logging
 import os
 import tempfile
 import time
@@ -59,7 +58,6 @@ from engine.newviews.renderer import LDCViewRenderer
 from engine.reference import ReferenceParams
 from producer.artifacts import read_manifest, write_artifact
 from producer.bakes import bake_complete, bake_key
-from producer.calibrations import record_served
 from producer.names import scene_bake_job_id
 from producer.payloads import InvalidPayload, RenderJobPayload, describe_validation_error
 from producer.renders import render_artifact_key, render_params
@@ -73,6 +71,7 @@ from workers.jobs.common import (
     ProgressReporter,
     codes_png,
     dependency_note,
+    fold_served,
     json_safe,
     load_stored_scene,
     worker_store,
@@ -300,21 +299,14 @@ def _load_bake_renderer(store: ObjectStore, req: RenderRequest, bkey: str) -> Ca
     return CachedBakeRenderer(loaded=loaded, renderer=renderer, bake_key=bkey, plan=plan)
 
 
-log = logging.getLogger("workers.jobs.render")
-
-
 def _record_served(store: ObjectStore, scene_id: str, result: Mapping[str, Any]) -> None:
     """Fold a contract render's achieved time into its calibration's corrections
-    (``producer.calibrations.record_served``), unless an adaptive render was stopped by its time
-    budget (its time then says what it was told, not what the setting costs). A failure to store it
-    is logged, not raised: the image is published already."""
+    (:func:`workers.jobs.common.fold_served`), unless an adaptive render was stopped by its time
+    budget (its time then says what it was told, not what the setting costs)."""
     contract = result.get("contract")
     if not contract or (result.get("adaptive") or {}).get("stop_reason") == "time":
         return
-    try:
-        record_served(store, scene_id, dict(contract), achieved_ms=float(contract["achieved_ms"]))
-    except Exception:  # noqa: BLE001 - the render succeeded; a lost observation only slows the correction
-        log.warning("could not record the served render's time for scene %s", scene_id, exc_info=True)
+    fold_served(store, scene_id, contract, achieved_ms=float(contract["achieved_ms"]))
 
 
 def _contract_result(contract: dict[str, Any] | None, t_render: float,

@@ -22,7 +22,6 @@ result expires, and the measured error is folded into the calibration's correcti
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from typing import Any
@@ -35,10 +34,10 @@ from engine.metrics import lrms
 from engine.quality import SceneModel, adaptive_scale
 from engine.reference import ReferenceParams
 from producer.artifacts import read_blob, read_manifest
-from producer.calibrations import read_calibration, record_served, write_verification
+from producer.calibrations import read_calibration, write_verification
 from producer.payloads import InvalidPayload, VerifyJobPayload, describe_validation_error
 from workers.jobs.calibrate import contract_mask
-from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
+from workers.jobs.common import ProgressReporter, fold_served, json_safe, load_stored_scene, worker_store
 from workers.jobs.render import renderer_cache
 from workers.scene_loader import camera_params
 
@@ -53,9 +52,6 @@ VERIFY_MAX_MS = 240_000.0
 ``producer.calibrations.VERIFY_TIMEOUT_S``); a reference stopped by it reports the error it reached."""
 VERIFY_SEED = 104_729
 """The converged reference's seed (renders use 0, calibration ground truths 7919)."""
-
-log = logging.getLogger("workers.jobs.verify")
-
 
 def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Measure one contract's render (see the module docstring)."""
@@ -100,9 +96,5 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     write_verification(store, p.request.scene_id, p.artifact_key, result)
     # the answer's estimate of this image's error (the adaptive reference's is in the render's result)
     served = manifest.result.get("contract") or con.model_dump(mode="json")
-    try:
-        record_served(store, p.request.scene_id, dict(served), measured_error=measured)
-    except Exception:  # noqa: BLE001 - the measurement is stored; a lost observation only slows the correction
-        log.warning("could not fold the verified error into scene %s's corrections", p.request.scene_id,
-                    exc_info=True)
+    fold_served(store, p.request.scene_id, served, measured_error=measured)
     return result
