@@ -86,13 +86,19 @@ class Stack:
         return proc
 
     def stop(self, timeout: float = 20.0) -> None:
-        """API first (no new work), then workers (warm shutdown), then the embedded Redis."""
-        for name in ("api", "render-worker", "bake-worker"):
-            p = self.procs.get(name)
-            if p is not None and p.poll() is None:
+        """API first (no new work), then both workers at once (warm shutdown: each finishes the
+        job it holds), then the embedded Redis. One deadline, ``timeout`` seconds from now, covers
+        every process; whatever still runs then is killed. So stopping takes at most about
+        ``timeout`` seconds, not that much per process, even while both workers are busy (e.g.
+        compiling kernels in the background after a start)."""
+        deadline = time.monotonic() + timeout
+        for group in (("api",), ("render-worker", "bake-worker")):
+            procs = [p for p in (self.procs.get(n) for n in group) if p is not None and p.poll() is None]
+            for p in procs:
                 p.send_signal(signal.SIGTERM)
+            for p in procs:
                 try:
-                    p.wait(timeout=timeout)
+                    p.wait(timeout=max(0.0, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait(timeout=5)

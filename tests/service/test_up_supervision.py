@@ -92,6 +92,30 @@ def test_an_api_that_crash_loops_stops_the_stack(tmp_path: Path) -> None:
             p.wait(timeout=10)
 
 
+def test_stopping_busy_processes_takes_one_deadline_not_one_per_process(tmp_path: Path) -> None:
+    """Workers busy with a long job (they finish it on SIGTERM: here they ignore it) are waited
+    for together under one deadline, then killed; the API, which exits on SIGTERM, goes first."""
+    busy = [PY, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                      "print('ready', flush=True); time.sleep(120)"]
+    st = _stack(tmp_path, {"api": [PY, "-c", "import time; time.sleep(120)"], "render-worker": busy,
+                           "bake-worker": busy})
+    try:
+        wait_for(lambda: all((st.logs / f"{n}.log").exists() and b"ready" in (st.logs / f"{n}.log").read_bytes()
+                             for n in ("render-worker", "bake-worker")), 30, "workers ready")
+        t0 = time.monotonic()
+        st.stop(timeout=3.0)
+        took = time.monotonic() - t0
+        assert st.procs["api"].returncode == -signal.SIGTERM
+        assert st.procs["render-worker"].returncode == -signal.SIGKILL
+        assert st.procs["bake-worker"].returncode == -signal.SIGKILL
+        assert 3.0 <= took < 5.5, took  # one 3 s deadline for all of them (it was 3 s per process)
+    finally:
+        for p in st.procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=10)
+
+
 @pytest.mark.slow
 def test_ibr_up_restarts_a_killed_worker_and_redis_while_the_api_stays_up() -> None:
     with own_stack() as st:
