@@ -142,11 +142,14 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
                                indirect_bounces=p["indirect_bounces"], seed=seed)
 
     requests: list[dict[str, Any]] = []
+    grids: dict[str, dict[str, dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-contracts-") as root:
         served = _Served(model, root, fold_served)
         for deg in HELD_OUT_DEG[:views]:
-            requests += _view(name, served, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp,
-                              log, margins, calibrated)
+            rows, grid = _view(name, served, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp,
+                               log, margins, calibrated)
+            requests += rows
+            grids[f"{deg:+g}"] = {k: {"error": e, "ms": ms} for k, (e, ms) in grid.items()}
         corrections = served.corrections()
         log(f"{name}: {served.folded} served renders folded; corrections {corrections}")
     return {"scene": name, "ldc_resolution": ldc_res, "bake_s": bake_s, "calibration_s": model.cost_s,
@@ -163,7 +166,7 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
             "corrections": {kind: {k: correction_factor(corrections, kind, k) for k in table}
                             for kind, table in corrections.items()},
             "reference_tail_exponent": model.reference.tail_exponent,
-            "model": model.to_json()}
+            "model": model.to_json(), "grids": grids}
 
 
 class _Served:
@@ -241,7 +244,9 @@ class _Grid:
 
 def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRenderer, cam: Any, deg: float,
           truth_spp: int, rp: Any, log: Any, margins: tuple[float, float] = MARGINS,
-          calibrated: bool = True) -> list[dict[str, Any]]:
+          calibrated: bool = True) -> tuple[list[dict[str, Any]], dict[str, tuple[float, float]]]:
+    """The requests on one held-out view (planned and measured), and the view's grid: error and time
+    of every setting measured on it."""
     px = cam.width * cam.height
     t0 = time.perf_counter()
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
@@ -292,7 +297,7 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
         else:
             row |= {"choice": None, "met": cheapest is None, "reason": p.reason}
         rows.append(row)
-    return rows
+    return rows, grid.m
 
 
 def _grid_names(model: SceneModel) -> set[str]:

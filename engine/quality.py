@@ -10,8 +10,9 @@ past a power of two costs 1.5x, not 2x), ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k``
 model, per scene and bake:
 
 - reference at ``s`` spp: ``error(s) = a s^-p`` (LRMS against the converged image; ``p`` in
-  [0.5, 1] fitted on the calibrated spp, 0.5 past the largest of them; ``a`` fitted
-  conservatively, the ground truth's own noise at ``S`` spp removed: :func:`fit_reference`),
+  [0.5, 1] fitted on the calibrated spp; past the largest of them the rate measured between the
+  two largest, at least 0.5 and at most ``p``; ``a`` fitted conservatively, the ground truth's own
+  noise at ``S`` spp removed: :func:`fit_reference`),
   ``ms(s, px) = b + c * s * px``;
 - an LDC method: ``error`` = its measured LRMS against the converged image (the largest over the
   probe views, the ground truth's noise removed in quadrature), taken as independent of the image
