@@ -37,7 +37,9 @@ folded). No request verifies, so no error is folded. ``--no-served`` plans from 
 alone.
 
 ``python -m bench.contracts`` (writes docs/accuracy/contracts.md and docs/img/contracts.png;
-``--json PATH`` also keeps every request and the calibrated models); ``--quick`` for a smoke run.
+``--json PATH`` also keeps every request, each view's grid and the calibrated models);
+``--quick`` for a smoke run; ``--replay-unserved PATH`` plans a kept run's requests again without
+the served renders' corrections, from that run's measurements (:func:`replay_unserved`).
 """
 
 from __future__ import annotations
@@ -300,6 +302,39 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
     return rows, grid.m
 
 
+def replay_unserved(results: list[dict[str, Any]], margins: tuple[float, float] = MARGINS) -> dict[str, Any]:
+    """The requests of a run (``--json`` output) planned again from the calibration alone (no served
+    render folded), each outcome taken from that run's own measurements of the view: its grid, or the
+    settings its requests chose (a setting measured neither way is counted as unknown). Separates what
+    the served-render corrections did from what the machine's load did between runs."""
+    out: dict[str, Any] = {}
+    for res in results:
+        model = SceneModel.from_json(res["model"])
+        px = int(model.probe["width"]) * int(model.probe["height"])  # the held-out views' size here
+        measured: dict[tuple[float, str], tuple[float, float]] = {
+            (r["view"], r["choice"]): (r["error"], r["ms"]) for r in res["requests"] if r.get("choice")}
+        for deg, grid in (res.get("grids") or {}).items():
+            measured |= {(float(deg), k): (v["error"], v["ms"]) for k, v in grid.items()}
+        met = unknown = changed = 0
+        for r in res["requests"]:
+            p = plan(model, px, max_error=r["max_error"], max_ms=r["max_ms"], error_margin=margins[0],
+                     time_margin=margins[1])
+            name = None if p.choice is None else p.choice.setting.name
+            if name is None:
+                ok = not r["grid_can"]
+            elif (r["view"], name) in measured:
+                e, ms = measured[(r["view"], name)]
+                ok = (r["max_error"] is None or e <= r["max_error"]) and (r["max_ms"] is None or ms <= r["max_ms"])
+            else:
+                unknown += 1
+                continue
+            met += ok
+            changed += name != r.get("choice")
+        out[res["scene"]] = {"requests": len(res["requests"]), "met": met, "unknown": unknown, "changed": changed,
+                             "met_served": sum(1 for r in res["requests"] if r["met"])}
+    return out
+
+
 def _grid_names(model: SceneModel) -> set[str]:
     return {f"reference@{s}spp" for s in GRID_SPP} | set(model.methods)
 
@@ -443,7 +478,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-served", action="store_true",
                     help="plan from the calibration alone (no served render's time folded into it)")
     ap.add_argument("--json", type=Path, default=None, help="also write every request and model here")
+    ap.add_argument("--replay-unserved", type=Path, default=None, metavar="JSON",
+                    help="render nothing: plan a run's requests (its --json output) again from the calibration "
+                         "alone and count the met ones from that run's measurements")
     a = ap.parse_args(argv)
+    if a.replay_unserved is not None:
+        print(json.dumps(replay_unserved(json.loads(a.replay_unserved.read_text()),
+                                         (a.error_margin, a.time_margin)), indent=1))
+        return 0
     margins = (a.error_margin, a.time_margin)
     cal = CalibrationParams()
     if a.quick:
