@@ -24,20 +24,32 @@ Plans use the service's safety margins: each fit's calibrated error margin
 ``producer.settings.Settings.contract_error_margin`` instead, ``--error-margin`` to change it) and
 the time margin ``contract_time_margin`` (``--time-margin``); they include the adaptive reference
 for error targets (rendered and measured when chosen; its estimated error, times the calibrated
-scale at its aim, is reported against the measured one). The bench plans from the calibration
-alone: the corrections served renders fold into it (``producer.calibrations.record_served``) are
-not exercised here.
+scale at its aim, is reported against the measured one).
 
-``python -m bench.contracts`` (writes docs/accuracy/contracts.md and docs/img/contracts.png);
-``--quick`` for a smoke run.
+Served renders refine the model as in the service: the requests of a scene are planned in order
+(view by view; on a view: the error targets, the time budgets, the pairs) from the calibration with
+the corrections folded so far (``engine.quality.apply_corrections`` of
+``producer.calibrations.read_served``, in a store of the run's own), and each request that renders a
+setting not yet rendered for its view folds that render's measured time into them
+(``producer.calibrations.record_served``, as the render job does; a repeated request is the
+service's cached artifact and renders nothing, an adaptive render stopped by its time budget is not
+folded). No request verifies, so no error is folded. ``--no-served`` plans from the calibration
+alone.
+
+``python -m bench.contracts`` (writes docs/accuracy/contracts.md and docs/img/contracts.png;
+``--json PATH`` also keeps every request, each view's grid and the calibrated models);
+``--quick`` for a smoke run; ``--replay-unserved PATH`` plans a kept run's requests again without
+the served renders' corrections, from that run's measurements (:func:`replay_unserved`).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -53,10 +65,21 @@ from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
 from engine.newviews.llf import bake_llf
 from engine.newviews.renderer import LDCViewRenderer
-from engine.quality import REFERENCE_SPP_LADDER, SceneModel, Setting, adaptive_scale, plan
+from engine.quality import (
+    REFERENCE_SPP_LADDER,
+    SceneModel,
+    Setting,
+    adaptive_scale,
+    apply_corrections,
+    correction_factor,
+    correction_key,
+    plan,
+)
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
+from producer.calibrations import read_served, record_served
 from producer.settings import Settings
+from producer.store.local import LocalStore
 from samples import SAMPLES_DIR, sample_path
 from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
 from workers.scene_loader import directory_resolver, load_scene
@@ -102,7 +125,8 @@ MARGINS = (float(Settings.model_fields["contract_error_margin"].default),
 
 
 def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, cal: CalibrationParams,
-              log: Any, margins: tuple[float, float] = MARGINS, calibrated: bool = True) -> dict[str, Any]:
+              log: Any, margins: tuple[float, float] = MARGINS, calibrated: bool = True,
+              fold_served: bool = True) -> dict[str, Any]:
     sc, cam0, ren, ref, bake_s = _setup(name, ldc_res, log)
     model: SceneModel = calibrate_scene(sc, cam0, ren, params=cal, bake_plan={}, indirect_bounces=3, reference=ref,
                                         bake_cost_s=bake_s)
@@ -120,9 +144,16 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
                                indirect_bounces=p["indirect_bounces"], seed=seed)
 
     requests: list[dict[str, Any]] = []
-    for deg in HELD_OUT_DEG[:views]:
-        requests += _view(name, model, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp, log,
-                          margins, calibrated)
+    grids: dict[str, dict[str, dict[str, float]]] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-contracts-") as root:
+        served = _Served(model, root, fold_served)
+        for deg in HELD_OUT_DEG[:views]:
+            rows, grid = _view(name, served, ref, ren, turned_camera(cam0, deg, size, pivot), deg, truth_spp, rp,
+                               log, margins, calibrated)
+            requests += rows
+            grids[f"{deg:+g}"] = {k: {"error": e, "ms": ms} for k, (e, ms) in grid.items()}
+        corrections = served.corrections()
+        log(f"{name}: {served.folded} served renders folded; corrections {corrections}")
     return {"scene": name, "ldc_resolution": ldc_res, "bake_s": bake_s, "calibration_s": model.cost_s,
             "calibration_breakdown_s": model.probe.get("cost_breakdown_s"),
             "model_reference_a": model.reference.error, "model_reference_p": model.reference.exponent,
@@ -133,7 +164,46 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
                                                              "margin": model.adaptive.margin},
             "margins": {"reference": model.reference.margin,
                         **{m: f.margin for m, f in model.methods.items() if m not in model.excluded}},
-            "requests": requests, "indirect": gi}
+            "requests": requests, "indirect": gi, "served_folded": served.folded,
+            "corrections": {kind: {k: correction_factor(corrections, kind, k) for k in table}
+                            for kind, table in corrections.items()},
+            "reference_tail_exponent": model.reference.tail_exponent,
+            "model": model.to_json(), "grids": grids}
+
+
+class _Served:
+    """The corrections served renders fold into a scene's calibration, kept as the service keeps them
+    (``producer.calibrations``, in a temporary store of this run): :meth:`model` is what the API plans
+    from, :meth:`fold` what the render job records after a render."""
+
+    KEY = "bench-calibration"
+
+    def __init__(self, model: SceneModel, root: str, enabled: bool = True):
+        self.base, self.store, self.enabled = model, LocalStore(root), enabled
+        self.folded = 0
+
+    def corrections(self) -> dict[str, Any]:
+        if not self.enabled:
+            return {}
+        return read_served(self.store, self.base.scene_id, self.base.bake_key, self.KEY)
+
+    def model(self) -> SceneModel:
+        return apply_corrections(self.base, self.corrections())
+
+    def fold(self, planned_from: dict[str, Any], model: SceneModel, s: Setting, predicted_ms: float,
+             achieved_ms: float) -> None:
+        """Fold one render of ``s`` (planned from the corrections ``planned_from`` with the corrected
+        ``model``, predicted ``predicted_ms``) that took ``achieved_ms``."""
+        if not self.enabled:
+            return
+        params = model.setting_params(s)
+        key = correction_key(s.method, params)
+        contract = {"method": s.method, "params": params, "predicted_ms": predicted_ms,
+                    "calibration": {"key": self.KEY, "bake_key": self.base.bake_key,
+                                    "corrections": {k: correction_factor(planned_from, k, key)
+                                                    for k in ("time", "error")}}}
+        if record_served(self.store, self.base.scene_id, contract, achieved_ms=achieved_ms) is not None:
+            self.folded += 1
 
 
 class _Grid:
@@ -143,6 +213,7 @@ class _Grid:
         self.ref, self.cam, self.truth, self.mask, self.noise, self.rp = ref, cam, truth, mask, noise, rp
         self.m: dict[str, tuple[float, float]] = {}
         self.estimated: dict[str, float] = {}
+        self.stopped_by_time: set[str] = set()
 
     def measure(self, key: str, img: Any, ms: float) -> None:
         e = lrms(img, self.truth, self.mask)
@@ -158,20 +229,26 @@ class _Grid:
 
     def adaptive(self, model: SceneModel, s: Setting, aim: float) -> tuple[float, float]:
         """The adaptive reference of setting ``s`` (aiming at the contract error ``aim``), measured;
-        ``estimated[name]``: its own estimate times the calibrated scale at that aim."""
+        ``estimated[name]``: its own estimate times the calibrated scale at that aim;
+        ``stopped_by_time``: the names of those its time budget stopped."""
         if s.name not in self.m:
             p = model.setting_params(s)
             assert p is not None and model.adaptive is not None
             t0 = time.perf_counter()
             out = self.ref.render(self.cam, ReferenceParams(**p))
             self.measure(s.name, out.radiance, 1000.0 * (time.perf_counter() - t0))
-            self.estimated[s.name] = adaptive_scale(model, aim) * float((out.adaptive or {})["estimated_error"])
+            rep = out.adaptive or {}
+            self.estimated[s.name] = adaptive_scale(model, aim) * float(rep["estimated_error"])
+            if rep.get("stop_reason") == "time":
+                self.stopped_by_time.add(s.name)
         return self.m[s.name]
 
 
-def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRenderer, cam: Any, deg: float,
+def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRenderer, cam: Any, deg: float,
           truth_spp: int, rp: Any, log: Any, margins: tuple[float, float] = MARGINS,
-          calibrated: bool = True) -> list[dict[str, Any]]:
+          calibrated: bool = True) -> tuple[list[dict[str, Any]], dict[str, tuple[float, float]]]:
+    """The requests on one held-out view (planned and measured), and the view's grid: error and time
+    of every setting measured on it."""
     px = cam.width * cam.height
     t0 = time.perf_counter()
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
@@ -183,14 +260,17 @@ def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRend
     grid = _Grid(ref, cam, 0.5 * (h1 + h2), mask, noise, rp)
     for spp in GRID_SPP:
         grid.reference(spp)
-    for m in model.methods:
+    for m in served.base.methods:
         out, ms = _best_ms(ren.render, cam, m)
         grid.measure(m, out.radiance, ms)
-    names = _grid_names(model)
+    names = _grid_names(served.base)
+    rendered: set[str] = set()  # the settings this view has served (an identical request is a cache hit)
     rows: list[dict[str, Any]] = []
     targets: list[tuple[float | None, float | None]] = [(e, None) for e in ERRORS] + \
         [(None, t) for t in BUDGETS_MS] + [(e, t) for e in ERRORS[::3] for t in BUDGETS_MS[2::2]]
     for max_error, max_ms in targets:
+        corrections = served.corrections()
+        model = apply_corrections(served.base, corrections)
         p = plan(model, px, max_error=max_error, max_ms=max_ms, error_margin=margins[0], time_margin=margins[1],
                  calibrated_margins=calibrated)
         ok_grid = [ms for k, (e, ms) in grid.m.items() if k in names
@@ -210,11 +290,49 @@ def _view(name: str, model: SceneModel, ref: ReferenceRenderer, ren: LDCViewRend
                     "margin": p.choice.margin,
                     "predicted_error": p.choice.error, "predicted_ms": p.choice.ms, "error": err,
                     "ms": ms, "met": met,
-                    "cost_ratio": ms / cheapest if cheapest and max_error is not None else None}
+                    "cost_ratio": ms / cheapest if cheapest and max_error is not None else None,
+                    "time_correction": correction_factor(corrections, "time", correction_key(s.method,
+                                                                                             model.setting_params(s)))}
+            if s.name not in rendered and s.name not in grid.stopped_by_time:
+                served.fold(corrections, model, s, p.choice.render_ms, ms)
+            rendered.add(s.name)
         else:
             row |= {"choice": None, "met": cheapest is None, "reason": p.reason}
         rows.append(row)
-    return rows
+    return rows, grid.m
+
+
+def replay_unserved(results: list[dict[str, Any]], margins: tuple[float, float] = MARGINS) -> dict[str, Any]:
+    """The requests of a run (``--json`` output) planned again from the calibration alone (no served
+    render folded), each outcome taken from that run's own measurements of the view: its grid, or the
+    settings its requests chose (a setting measured neither way is counted as unknown). Separates what
+    the served-render corrections did from what the machine's load did between runs."""
+    out: dict[str, Any] = {}
+    for res in results:
+        model = SceneModel.from_json(res["model"])
+        px = int(model.probe["width"]) * int(model.probe["height"])  # the held-out views' size here
+        measured: dict[tuple[float, str], tuple[float, float]] = {
+            (r["view"], r["choice"]): (r["error"], r["ms"]) for r in res["requests"] if r.get("choice")}
+        for deg, grid in (res.get("grids") or {}).items():
+            measured |= {(float(deg), k): (v["error"], v["ms"]) for k, v in grid.items()}
+        met = unknown = changed = 0
+        for r in res["requests"]:
+            p = plan(model, px, max_error=r["max_error"], max_ms=r["max_ms"], error_margin=margins[0],
+                     time_margin=margins[1])
+            name = None if p.choice is None else p.choice.setting.name
+            if name is None:
+                ok = not r["grid_can"]
+            elif (r["view"], name) in measured:
+                e, ms = measured[(r["view"], name)]
+                ok = (r["max_error"] is None or e <= r["max_error"]) and (r["max_ms"] is None or ms <= r["max_ms"])
+            else:
+                unknown += 1
+                continue
+            met += ok
+            changed += name != r.get("choice")
+        out[res["scene"]] = {"requests": len(res["requests"]), "met": met, "unknown": unknown, "changed": changed,
+                             "met_served": sum(1 for r in res["requests"] if r["met"])}
+    return out
 
 
 def _grid_names(model: SceneModel) -> set[str]:
@@ -222,7 +340,8 @@ def _grid_names(model: SceneModel) -> set[str]:
 
 
 def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int, views: int,
-              margins: tuple[float, float] = MARGINS, calibrated: bool = True, plot: str | None = None) -> str:
+              margins: tuple[float, float] = MARGINS, calibrated: bool = True, plot: str | None = None,
+              served: bool = True) -> str:
     reqs = [r for res in results for r in res["requests"]]
     n = len(reqs)
     met = sum(1 for r in reqs if r["met"])
@@ -234,7 +353,13 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
              f"probes: +-8, +-16); converged ground truth {truth_spp} spp in two halves (its noise removed in "
              f"quadrature). Safety margins: error x "
              f"{'each fit' + chr(39) + 's calibrated margin (below)' if calibrated else format(margins[0], 'g')}, "
-             f"time x {margins[1]:g}.",
+             f"time x {margins[1]:g}. "
+             + ("Served renders' measured times folded into the model in request order, as the service folds "
+                "them (" + ", ".join(f"{res['scene']}: {res.get('served_folded', 0)} renders, final time factors "
+                                     + (", ".join(f"{k} {v:.2f}" for k, v in (res.get('corrections') or {})
+                                                  .get('time', {}).items()) or "none")
+                                     for res in results) + ")."
+                if served else "Planned from the calibration alone (no served render folded)."),
              "",
              f"**{met} of {n} requests ({100.0 * met / max(n, 1):.1f} %) met their contract** (measured error and time "
              f"of the chosen setting on the held-out view; {len(refused)} refused with a reason, of which "
@@ -256,8 +381,8 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
                   f"The adaptive reference was chosen for {len(adaptive)} requests, {a_met} of them met.", ""]
     if plot:
         lines += [f"![measured over target error per contract, and the cost ratios]({plot})", ""]
-    lines += ["| scene | bake | calibration | reference a, p | LDC methods' error | adaptive scale (at error), time "
-              "ratio | error margins | excluded |",
+    lines += ["| scene | bake | calibration | reference a, p (past 16 spp) | LDC methods' error | adaptive scale (at "
+              "error), time ratio | error margins | excluded |",
               "|---|---|---|---|---|---|---|---|"]
     for res in results:
         br = res["calibration_breakdown_s"] or {}
@@ -277,7 +402,8 @@ def doc_block(results: list[dict[str, Any]], cmd: str, size: int, truth_spp: int
         mg_s = ", ".join(f"{k} {v:.2f}" for k, v in mg.items() if v is not None) or "-"
         methods = ", ".join(f"{m} {e:.3f}" for m, e in res["model_methods"].items())
         lines.append(f"| {res['scene']} | LDC {res['ldc_resolution']}, {res['bake_s']:.1f} s | {cal} | "
-                     f"{res['model_reference_a']:.3f}, {res['model_reference_p']:.2f} | {methods} | {ad_s} | {mg_s} | "
+                     f"{res['model_reference_a']:.3f}, {res['model_reference_p']:.2f} "
+                     f"({res.get('reference_tail_exponent', 0.5):.2f}) | {methods} | {ad_s} | {mg_s} | "
                      f"{'; '.join(res['excluded']) or 'none'} |")
     lines += ["", f"Requests that missed ({len(missed)}{', the first 30' if len(missed) > 30 else ''}):", "",
               "| scene | view | max_error | max_ms | chosen | predicted error, ms | measured error, ms |",
@@ -349,7 +475,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-margin", type=float, default=MARGINS[1])
     ap.add_argument("--flat-margin", action="store_true",
                     help="plan every setting with --error-margin instead of its fit's calibrated margin")
+    ap.add_argument("--no-served", action="store_true",
+                    help="plan from the calibration alone (no served render's time folded into it)")
+    ap.add_argument("--json", type=Path, default=None, help="also write every request and model here")
+    ap.add_argument("--replay-unserved", type=Path, default=None, metavar="JSON",
+                    help="render nothing: plan a run's requests (its --json output) again from the calibration "
+                         "alone and count the met ones from that run's measurements")
     a = ap.parse_args(argv)
+    if a.replay_unserved is not None:
+        print(json.dumps(replay_unserved(json.loads(a.replay_unserved.read_text()),
+                                         (a.error_margin, a.time_margin)), indent=1))
+        return 0
     margins = (a.error_margin, a.time_margin)
     cal = CalibrationParams()
     if a.quick:
@@ -359,14 +495,16 @@ def main(argv: list[str] | None = None) -> int:
     def log(msg: str) -> None:
         print(msg, flush=True)
 
-    results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log, margins, not a.flat_margin)
-               for s in a.scenes.split(",")]
+    results = [run_scene(s, a.ldc, a.views, a.size, a.truth_spp, cal, log, margins, not a.flat_margin,
+                         not a.no_served) for s in a.scenes.split(",")]
+    if a.json is not None:
+        a.json.write_text(json.dumps(results, indent=1, default=str))
     cmd = "python -m bench.contracts" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip()
     write_doc = not a.no_doc and not a.quick
     if write_doc:
         write_plot(results, PLOT)
     block = doc_block(results, cmd, a.size, a.truth_spp, a.views, margins, not a.flat_margin,
-                      plot=f"../img/{PLOT.name}" if write_doc else None)
+                      plot=f"../img/{PLOT.name}" if write_doc else None, served=not a.no_served)
     print(block)
     if write_doc:
         replace_block(DOC, "contracts", block, title="Quality contracts: met targets and their cost")

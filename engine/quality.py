@@ -10,8 +10,9 @@ past a power of two costs 1.5x, not 2x), ``ldc``, ``ldc+llf`` and ``ldc+ibrt:k``
 model, per scene and bake:
 
 - reference at ``s`` spp: ``error(s) = a s^-p`` (LRMS against the converged image; ``p`` in
-  [0.5, 1] fitted on the calibrated spp, 0.5 past the largest of them; ``a`` fitted
-  conservatively, the ground truth's own noise at ``S`` spp removed: :func:`fit_reference`),
+  [0.5, 1] fitted on the calibrated spp; past the largest of them the rate measured between the
+  two largest, at least 0.5 and at most ``p``; ``a`` fitted conservatively, the ground truth's own
+  noise at ``S`` spp removed: :func:`fit_reference`),
   ``ms(s, px) = b + c * s * px``;
 - an LDC method: ``error`` = its measured LRMS against the converged image (the largest over the
   probe views, the ground truth's noise removed in quadrature), taken as independent of the image
@@ -179,8 +180,13 @@ class CandidateFit:
     c_ms: float
     points: list[dict[str, Any]] = field(default_factory=list)
     exponent: float = 0.5
-    """Reference: the error falls as ``spp^-exponent`` up to ``knee_spp``, as ``spp^-0.5`` past it."""
+    """Reference: the error falls as ``spp^-exponent`` up to ``knee_spp``, as ``spp^-tail_exponent``
+    past it."""
     knee_spp: int = 1
+    tail_exponent: float = 0.5
+    """Reference: the exponent past ``knee_spp``: the convergence measured between the two largest
+    calibrated spp, within [0.5, ``exponent``] (:func:`fit_reference`); 0.5 for a model calibrated
+    before it was fitted."""
     margin: float | None = None
     """The error margin calibrated from the spread of the probe views' measured over predicted errors
     (:func:`calibrated_margin`); None (a model calibrated before margins were): the planner's flat one."""
@@ -191,7 +197,7 @@ class CandidateFit:
             knee = max(self.knee_spp, 1)
             if spp <= knee:
                 return self.error * spp ** -self.exponent
-            return self.error * knee ** -self.exponent * math.sqrt(knee / spp)
+            return self.error * knee ** -self.exponent * (knee / spp) ** self.tail_exponent
         return self.error
 
     def ms_at(self, pixels: int, spp: int | None) -> float:
@@ -225,8 +231,9 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
     where the image is smooth. Both images' noise adds in quadrature, ``e^2 = a^2 (s^-2p + S^-2p)``;
     ``p`` is the exponent in [0.5, 1] that fits the per-spp RMS over the probe views best (log
     residuals), and ``a`` the largest ratio over the spp (conservative: the planner then
-    over-predicts rather than misses). Past the largest calibrated spp the fit continues at
-    ``p = 0.5`` (``knee_spp``): convergence is never assumed faster than measured. ``margin``: from
+    over-predicts rather than misses). Past the largest calibrated spp (``knee_spp``) the fit
+    continues at the rate measured between the two largest (``tail_exponent``: :func:`_tail_exponent`,
+    at least 0.5, at most ``p``): convergence is never assumed faster than measured. ``margin``: from
     every probe point's measured over modelled error (:func:`calibrated_margin`)."""
     by_spp: dict[int, list[float]] = {}
     for p in points:
@@ -243,12 +250,37 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
         if best is None or resid < best[0] - 1e-12:
             best = (resid, q, a)
     exponent, a = (0.5, 0.0) if best is None else (best[1], best[2])
+    tail = _tail_exponent(rms, truth_spp, exponent)
     b, c = fit_time([float(p["spp"]) * float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
     ratios = [e / (a * math.sqrt(s ** (-2 * exponent) + truth_spp ** (-2 * exponent)))
               for s, errs in by_spp.items() for e in errs] if a > 0 else []
     views = max((len(errs) for errs in by_spp.values()), default=1)
     return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points], exponent=exponent,
-                        knee_spp=max(rms) if rms else 1, margin=calibrated_margin(ratios, views) if ratios else None)
+                        knee_spp=max(rms) if rms else 1, tail_exponent=tail,
+                        margin=calibrated_margin(ratios, views) if ratios else None)
+
+
+def _tail_exponent(rms: Mapping[int, float], truth_spp: int, exponent: float) -> float:
+    """The exponent the reference's error falls with past the calibrated spp: the one that fits the
+    two largest calibrated spp's RMS errors (``e^2 ~ s^-2q + S^-2q``, the ground truth's noise at
+    ``S`` = ``truth_spp`` in both), clamped to [0.5, ``exponent``]. Stratification's gain fades with
+    more samples (the edge and smooth pixels converge faster than the shading's many dimensions), so
+    the rate measured at the top of the calibrated range is the one to continue with, and never one
+    faster than the fit over the whole range."""
+    top = sorted(s for s, e in rms.items() if e > 0)[-2:]
+    if len(top) < 2:
+        return 0.5
+    lo, hi = top
+    target = math.log(rms[lo] / rms[hi])
+    best = 0.5
+    for i in range(51):
+        q = 0.5 + 0.01 * i
+        if q > exponent + 1e-9:
+            break
+        model = 0.5 * math.log((lo ** (-2 * q) + truth_spp ** (-2 * q)) / (hi ** (-2 * q) + truth_spp ** (-2 * q)))
+        if model <= target + 1e-12:
+            best = q  # the fastest rate the measured drop supports
+    return best
 
 
 def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
@@ -276,7 +308,7 @@ def spp_for_error(fit: CandidateFit, error: float) -> float:
     if error >= at_knee:
         s = (fit.error / error) ** (1.0 / fit.exponent) if fit.error > 0 else 1.0
     else:
-        s = knee * (at_knee / error) ** 2
+        s = knee * (at_knee / error) ** (1.0 / fit.tail_exponent)
     return max(1.0, s)
 
 

@@ -148,13 +148,28 @@ def test_fits_recover_known_coefficients() -> None:
            for s in (1, 4, 16)]
     fit = fit_reference(pts, s_truth)
     assert fit.error == pytest.approx(a) and fit.error_at(4) == pytest.approx(0.15) and fit.exponent == 0.5
-    # stratified sampling converging as s^-0.75: the exponent is found; past 16 spp the fit goes on at 0.5
+    assert fit.tail_exponent == 0.5 and fit.error_at(64) == pytest.approx(a / 8)
+    # stratified sampling converging as s^-0.75 all the way: the exponent is found, and past 16 spp the fit
+    # goes on at the rate measured between 4 and 16 spp
     pts = [{"spp": s, "pixels": 100, "ms": 1.0 + s, "error": a * math.sqrt(s ** -1.5 + s_truth ** -1.5)}
            for s in (1, 4, 16)]
     fit = fit_reference(pts, s_truth)
     assert fit.exponent == pytest.approx(0.75) and fit.error == pytest.approx(a) and fit.knee_spp == 16
-    assert fit.error_at(16) == pytest.approx(a / 8) and fit.error_at(64) == pytest.approx(a / 16)
+    assert fit.tail_exponent == pytest.approx(0.75)
+    assert fit.error_at(16) == pytest.approx(a / 8) and fit.error_at(64) == pytest.approx(a / 8 / 4 ** 0.75)
     assert fit.b_ms == pytest.approx(1.0) and fit.c_ms == pytest.approx(0.01)
+    # the gain of stratification fading: s^-0.8 up to 4 spp, s^-0.55 from there; the tail is the slower rate
+    e4 = a * 4 ** -0.8
+    slowing = [{"spp": 1, "error": a}, {"spp": 4, "error": e4}, {"spp": 16, "error": e4 * 4 ** -0.55}]
+    fit = fit_reference([{**p, "pixels": 100, "ms": 1.0} for p in slowing], 1 << 20)
+    assert 0.6 < fit.exponent < 0.8 and fit.tail_exponent == pytest.approx(0.55)
+    assert fit.error_at(64) == pytest.approx(fit.error_at(16) * 4 ** -0.55)
+    # a top octave dropping faster than the whole range (noise) does not make the tail faster than the fit;
+    # one slower than s^-0.5 (the ground truth's noise in it) does not make it slower than 0.5
+    for top, tail in ((4 ** -1.0, "exponent"), (4 ** -0.3, 0.5)):
+        pts = [{"spp": 1, "error": 0.4}, {"spp": 4, "error": 0.2}, {"spp": 16, "error": 0.2 * top}]
+        fit = fit_reference([{**p, "pixels": 100, "ms": 1.0} for p in pts], 1 << 20)
+        assert fit.tail_exponent == pytest.approx(fit.exponent if tail == "exponent" else tail)
     # an LDC method: the ground truth's noise removed in quadrature, the worst probe kept
     fit = fit_ldc("ldc", [{"pixels": 100, "ms": 3.0, "error": 0.05}, {"pixels": 100, "ms": 3.0, "error": 0.1},
                           {"pixels": 400, "ms": 6.0, "error": None}], truth_noise=0.06)
@@ -201,11 +216,14 @@ def _adaptive_model(**changes) -> SceneModel:
 
 
 def test_spp_for_error_inverts_the_reference_fit() -> None:
-    for fit in (CandidateFit("reference", 0.4, 0, 0), CandidateFit("reference", 0.3, 0, 0, exponent=0.75, knee_spp=16)):
+    for fit in (CandidateFit("reference", 0.4, 0, 0), CandidateFit("reference", 0.3, 0, 0, exponent=0.75, knee_spp=16),
+                CandidateFit("reference", 0.3, 0, 0, exponent=0.7, knee_spp=16, tail_exponent=0.6)):
         for s in (1.0, 3.0, 16.0, 40.0, 1000.0):
             e = fit.error * (s ** -fit.exponent if s <= fit.knee_spp
-                             else fit.knee_spp ** -fit.exponent * math.sqrt(fit.knee_spp / s))
+                             else fit.knee_spp ** -fit.exponent * (fit.knee_spp / s) ** fit.tail_exponent)
             assert spp_for_error(fit, e) == pytest.approx(s)
+            if s == int(s):
+                assert fit.error_at(int(s)) == pytest.approx(e)
     assert spp_for_error(CandidateFit("reference", 0.4, 0, 0), 0.9) == 1.0  # never below one sample
 
 
@@ -269,6 +287,8 @@ def test_adaptive_model_round_trips_and_older_models_load() -> None:
     doc = _model().to_json()
     del doc["adaptive"]  # a model stored before the adaptive fit existed
     assert SceneModel.from_json(doc).adaptive is None
+    del doc["reference"]["tail_exponent"]  # ... or the fitted tail: it goes on at s^-0.5 past its knee
+    assert SceneModel.from_json(doc).reference.tail_exponent == 0.5
 
 
 # ------------------------------------------------------------------------------------ calibrated margins
