@@ -5,8 +5,8 @@ For each of the first paper's three scenes and each LDC resolution, on three ray
 points, with no spawn offset and the surface normal passed as ``origin_normals``; random
 rays with origins in the scene bounds), measured in one run on one machine:
 
-- rays/s of ``engine.newviews.ibrt.trace`` with 1 and 2 threads, and of Embree (embreex ``run``,
-  which releases the GIL, split over the same number of Python threads) on the SAME rays;
+- rays/s of ``engine.newviews.ibrt.trace`` with 1 and 2 threads, and of Embree (engine/embree.py: the
+  engine's kernels calling ``rtcIntersect4`` on the same number of threads) on the SAME rays;
   the ratio IBRT / Embree is the number to quote (the machine is shared and noisy);
 - the quadtree's savings against ``trace_linear`` (same hits, no quadtree): cells visited,
   patch tests, time;
@@ -37,7 +37,6 @@ import os
 import platform
 import subprocess
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -45,6 +44,7 @@ import numpy as np
 
 from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
+from engine import embree
 from engine.camera import camera_rays, pixel_centers
 from engine.newviews.ibrt import build_accel, trace, trace_linear
 from engine.newviews.ldc import bake_ldc
@@ -59,18 +59,12 @@ SCENES = ["mirror_box", "teapot_glossy", "teapot_spheres"]
 THREADS = 2
 
 
-def _embree_once(caster: EmbreeCaster, o32: np.ndarray, d32: np.ndarray, pool: ThreadPoolExecutor,
-                 threads: int) -> tuple[float, float]:
-    """(wall, process CPU) seconds of one Embree pass; 1 thread runs in the calling thread."""
+def _embree_once(caster: EmbreeCaster, o32: np.ndarray, d32: np.ndarray, threads: int) -> tuple[float, float]:
+    """(wall, process CPU) seconds of one Embree pass (engine/embree.py) on 1 or all threads."""
     es = caster._get()
-    n = o32.shape[0]
-    cuts = [n * k // threads for k in range(threads + 1)]
+    assert es is not None
     t0, c0 = time.perf_counter(), time.process_time()
-    if threads == 1:
-        es.run(o32, d32, output=1)
-    else:
-        list(pool.map(lambda k: es.run(o32[cuts[k]:cuts[k + 1]], d32[cuts[k]:cuts[k + 1]], output=1),
-                      range(threads)))
+    embree.intersect(es, o32, d32, serial=threads == 1)
     return time.perf_counter() - t0, time.process_time() - c0
 
 
@@ -153,23 +147,22 @@ def measure(name: str, res: int, size: int, repeat: int) -> dict:
         rec: dict = {"rays": n}
         o32 = np.ascontiguousarray((o - sc.center).astype(np.float32))
         d32 = np.ascontiguousarray(d.astype(np.float32))
-        with ThreadPoolExecutor(THREADS) as pool:
-            for th in (1, THREADS):
-                best_i = best_e = cpu_i = cpu_e = float("inf")
-                for _ in range(repeat):  # interleaved, best of each: both see the same machine load
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    hits = trace(ldc, acc, o, d, threads=th, **kw)
-                    best_i = min(best_i, time.perf_counter() - t0)
-                    cpu_i = min(cpu_i, time.process_time() - c0)
-                    w, c = _embree_once(caster, o32, d32, pool, th)
-                    best_e, cpu_e = min(best_e, w), min(cpu_e, c)
-                rec[f"ibrt_rays_per_s_{th}"] = n / best_i
-                rec[f"embree_rays_per_s_{th}"] = n / best_e
-                rec[f"ratio_{th}"] = best_e / best_i
-                # CPU time: what each costs per ray regardless of how busy the machine is
-                rec[f"ibrt_rays_per_cpu_s_{th}"] = n / cpu_i
-                rec[f"embree_rays_per_cpu_s_{th}"] = n / cpu_e
-                rec[f"cpu_ratio_{th}"] = cpu_e / cpu_i
+        for th in (1, THREADS):
+            best_i = best_e = cpu_i = cpu_e = float("inf")
+            for _ in range(repeat):  # interleaved, best of each: both see the same machine load
+                t0, c0 = time.perf_counter(), time.process_time()
+                hits = trace(ldc, acc, o, d, threads=th, **kw)
+                best_i = min(best_i, time.perf_counter() - t0)
+                cpu_i = min(cpu_i, time.process_time() - c0)
+                w, c = _embree_once(caster, o32, d32, th)
+                best_e, cpu_e = min(best_e, w), min(cpu_e, c)
+            rec[f"ibrt_rays_per_s_{th}"] = n / best_i
+            rec[f"embree_rays_per_s_{th}"] = n / best_e
+            rec[f"ratio_{th}"] = best_e / best_i
+            # CPU time: what each costs per ray regardless of how busy the machine is
+            rec[f"ibrt_rays_per_cpu_s_{th}"] = n / cpu_i
+            rec[f"embree_rays_per_cpu_s_{th}"] = n / cpu_e
+            rec[f"cpu_ratio_{th}"] = cpu_e / cpu_i
         c0 = time.process_time()
         lin = trace_linear(ldc, acc, o, d, threads=1, **kw)
         t_lin = time.process_time() - c0

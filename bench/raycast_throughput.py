@@ -1,8 +1,8 @@
-"""Ray casting throughput: raw embreex vs the reference renderer, on every sample scene.
+"""Ray casting throughput: raw Embree vs the reference renderer, on every sample scene.
 
 Reports, from one run on one machine:
-- raw embreex throughput for the scene camera's primary rays (one ``EmbreeScene.run``
-  over pre-built float32 arrays: the ceiling for any renderer built on embreex);
+- raw Embree throughput for the scene camera's primary rays (one ``engine.embree.intersect``
+  over pre-built float32 arrays: the ceiling for any renderer built on it);
 - the reference renderer's effective throughput: every ray it traced (camera, shadow,
   reflection, indirect) per second of render time, shading included;
 - their ratio, and the fraction of render time spent inside Embree calls.
@@ -22,7 +22,6 @@ import json
 import os
 import platform
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from api_schemas import load_scene_file
 from bench.docs_writer import replace_block
+from engine import embree
 from engine.camera import camera_rays, pixel_centers
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
@@ -92,15 +92,8 @@ def measure(name: str, size: int, spp: int, repeat: int) -> dict:
 
 
 def _run_threads(es, o32, d32, threads: int) -> None:
-    """embreex releases the GIL inside ``run``, so a batch split over threads scales."""
-    if threads == 1:
-        es.run(o32, d32, output=1)
-        return
-    n = o32.shape[0]
-    cuts = [n * k // threads for k in range(threads + 1)]
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(lambda k: es.run(o32[cuts[k]:cuts[k + 1]], d32[cuts[k]:cuts[k + 1]], output=1),
-                      range(threads)))
+    """The engine's Embree kernels (engine/embree.py) on one thread or on all."""
+    embree.intersect(es, o32, d32, serial=threads == 1)
 
 
 def main() -> None:
@@ -125,12 +118,12 @@ def main() -> None:
         f"Measured with `python -m bench.raycast_throughput --size {args.size} --spp {args.spp} "
         f"--repeat {args.repeat}` ({date_str()}, {os.cpu_count()} cores, best of {args.repeat}; raw data in "
         "`docs/data/raycast_throughput.json`). Reference settings: direct light, mirror depth 4, 16 glossy "
-        "samples, 16 area-light samples, no indirect. `embreex` releases the GIL inside `run`, so both the "
-        f"raw rate and the renderer are measured with 1 thread and with {THREADS} (the renderer's "
+        "samples, 16 area-light samples, no indirect. Both the raw rate (engine/embree.py's "
+        f"kernels) and the renderer are measured with 1 thread and with {THREADS} (the renderer's "
         "`pipelines`: chunks in flight at once, each thread alternating Embree calls and serial numba "
         "kernels).",
         "",
-        f"| scene | triangles | lights | raw embreex primary, 1 / {THREADS} threads (Mrays/s) | "
+        f"| scene | triangles | lights | raw Embree primary, 1 / {THREADS} threads (Mrays/s) | "
         f"renderer, all rays incl. shading, 1 / {THREADS} pipelines (Mrays/s) | ratio at 1 | **ratio at {THREADS}** | "
         "rays traced (camera / shadow / reflection) |",
         "|---|---:|---:|---:|---:|---:|---:|---|",
@@ -148,7 +141,7 @@ def main() -> None:
     lines += [
         "",
         "Ratio = the renderer's rays per second (every camera, shadow and reflection ray, shading "
-        "included) / raw embreex primary-ray rate with the same number of threads. Target >= 0.5: "
+        "included) / raw Embree primary-ray rate with the same number of threads. Target >= 0.5: "
         "the renderer spends at most half its time outside Embree. Primary rays are the most coherent "
         "kind, so this is the strict reading. Speeds are only compared within one run.",
     ]

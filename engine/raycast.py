@@ -22,7 +22,10 @@ from typing import Protocol
 import numba as nb
 import numpy as np
 
-from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine import (
+    _numba_setup,  # noqa: F401  (numba's configuration before any kernel)
+    embree,
+)
 from engine.errors import InvalidInputError
 from engine.scene import RuntimeScene
 
@@ -77,9 +80,11 @@ class RayCaster(Protocol):
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits: ...
 
-    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray, serial: bool | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
-    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray: ...
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray, serial: bool | None = None
+                       ) -> np.ndarray: ...
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray: ...
 
@@ -155,12 +160,12 @@ _EMBREE_LOCK = threading.Lock()
 
 
 class EmbreeCaster:
-    """Embree (embreex) back end. Builds its Embree scene on first use in each process."""
+    """Embree back end (engine/embree.py). Builds its Embree scene on first use in each process."""
 
     def __init__(self, scene: RuntimeScene):
         self.scene = scene
         self._key = scene.geometry_hash() if scene.n_triangles else ""
-        self._embree = None
+        self._embree: embree.Scene | None = None
         self.embree_seconds = 0.0  # wall time inside Embree calls (benchmarks read it)
         self.embree_rays = 0
 
@@ -171,16 +176,12 @@ class EmbreeCaster:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
 
-    def _get(self):
+    def _get(self) -> embree.Scene | None:
         if self._embree is None and self.scene.n_triangles:
             with _EMBREE_LOCK:
                 es = _EMBREE_CACHE.get(self._key)
                 if es is None:
-                    from embreex import rtcore_scene as rtcs
-                    from embreex.mesh_construction import TriangleMesh
-
-                    es = rtcs.EmbreeScene()
-                    TriangleMesh(es, self.scene.tri_local32)
+                    es = embree.build_scene(self.scene.tri_local32)
                     if len(_EMBREE_CACHE) >= 8:  # small per-process bound; callers keep their own refs
                         _EMBREE_CACHE.pop(next(iter(_EMBREE_CACHE)))
                     _EMBREE_CACHE[self._key] = es
@@ -189,29 +190,32 @@ class EmbreeCaster:
 
     # Fast path for engine kernels that already hold float32 rays relative to scene.center.
     # No validation: callers are engine code that produced finite rays themselves.
-    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(prim int32, u float32, v float32) for local float32 rays (n, 3)."""
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray, serial: bool | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(prim int32, u float32, v float32) for local float32 rays (n, 3); ``serial`` as in
+        ``embree.intersect``."""
         n = o32.shape[0]
         es = self._get()
         if es is None or n == 0:
             return np.full(n, -1, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32)
         t0 = time.perf_counter()
-        r = es.run(o32, d32, output=1)
+        prim, u, v, _ = embree.intersect(es, o32, d32, serial)
         self.embree_seconds += time.perf_counter() - t0
         self.embree_rays += n
-        return r["primID"], r["u"], r["v"]
+        return prim, u, v
 
-    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray:
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray, serial: bool | None = None
+                       ) -> np.ndarray:
         """(n,) bool: something lies strictly between the origin and tmax32."""
         n = o32.shape[0]
         es = self._get()
         if es is None or n == 0:
             return np.zeros(n, dtype=np.bool_)
         t0 = time.perf_counter()
-        r = es.run(o32, d32, dists=tmax32, query="OCCLUDED")
+        occ = embree.occluded(es, o32, d32, tmax32, serial)
         self.embree_seconds += time.perf_counter() - t0
         self.embree_rays += n
-        return np.asarray(r) != -1
+        return occ
 
     def _local(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (np.ascontiguousarray((o - self.scene.center).astype(np.float32)),
@@ -224,16 +228,8 @@ class EmbreeCaster:
         if es is None or n == 0:
             return Hits(np.full(n, np.inf), np.full(n, -1, np.int32), np.zeros(n), np.zeros(n))
         ol, dl = self._local(o, d)
-        r = es.run(ol, dl, output=1)
-        prim = np.asarray(r["primID"], dtype=np.int32)
-        t = np.asarray(r["tfar"], dtype=np.float64)
-        miss = prim < 0
-        t[miss] = np.inf
-        u = np.asarray(r["u"], dtype=np.float64)
-        v = np.asarray(r["v"], dtype=np.float64)
-        u[miss] = 0.0
-        v[miss] = 0.0
-        return Hits(t, prim, u, v)
+        prim, u, v, t = embree.intersect(es, ol, dl)
+        return Hits(t.astype(np.float64), prim, u.astype(np.float64), v.astype(np.float64))
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tmax: np.ndarray) -> np.ndarray:
         o, d = check_rays(origins, directions)
@@ -244,8 +240,7 @@ class EmbreeCaster:
         tm = np.asarray(tmax, dtype=np.float64)
         tm = np.minimum(tm, 3.0e38).astype(np.float32)
         ol, dl = self._local(o, d)
-        r = es.run(ol, dl, dists=np.ascontiguousarray(tm), query="OCCLUDED")
-        return np.asarray(r) != -1
+        return embree.occluded(es, ol, dl, tm)
 
 
 # ----------------------------------------------------------------------------- reference
@@ -300,13 +295,15 @@ class ReferenceCaster:
         h = self.intersect(origins, directions)
         return h.t < np.asarray(tmax, dtype=np.float64)
 
-    def intersect_local(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def intersect_local(self, o32: np.ndarray, d32: np.ndarray, serial: bool | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         o = o32.astype(np.float64) + self.scene.center
         d = d32.astype(np.float64)
         h = self.intersect(o, d / np.linalg.norm(d, axis=1, keepdims=True))
         return h.prim, h.u.astype(np.float32), h.v.astype(np.float32)
 
-    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray) -> np.ndarray:
+    def occluded_local(self, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray, serial: bool | None = None
+                       ) -> np.ndarray:
         o = o32.astype(np.float64) + self.scene.center
         d = d32.astype(np.float64)
         return self.occluded(o, d / np.linalg.norm(d, axis=1, keepdims=True), tmax32.astype(np.float64))

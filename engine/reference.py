@@ -1221,7 +1221,7 @@ class ReferenceRenderer:
             if it == 1 and first_hits is not None:
                 prim, u, v = first_hits
             else:
-                prim, u, v = caster.intersect_local(o32, d32)
+                prim, u, v = caster.intersect_local(o32, d32, serial)
             timer.add("intersect", time.perf_counter() - t0)
             t0 = time.perf_counter()
             # rect lights seen by camera / mirror / glossy rays (a given first hit has no ray to test)
@@ -1364,7 +1364,7 @@ class ReferenceRenderer:
             _compact_shadow.pick(serial)(live, so, sd, tmax, so_l, sd_l, tm_l)
             timer.add("shading", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            occ = self.caster.occluded_local(so_l, sd_l, tm_l)
+            occ = self.caster.occluded_local(so_l, sd_l, tm_l, serial)
             timer.add("shadow", time.perf_counter() - t0)
             counts["shadow"] += int(live.size)
             t0 = time.perf_counter()

@@ -112,7 +112,6 @@ class BakeTooLarge(InvalidInputError):
 
 PRELOAD_MODULES = (
     "trimesh", "trimesh.exchange.ply", "trimesh.resolvers", "scipy.sparse.csgraph",
-    "embreex.rtcore_scene", "embreex.mesh_construction",
 )
 """Modules the engine and the scene loader import lazily (mesh loading, Embree), beyond what this
 module imports itself: imported once by the bake worker's parent so every forked horse has them
