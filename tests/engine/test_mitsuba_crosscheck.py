@@ -12,18 +12,18 @@ explains why that exclusion makes the check stricter, not looser. The full-size 
 ``docs/accuracy-reference.md`` (``python -m bench.mitsuba_crosscheck``).
 
 Sample counts are chosen so that Monte Carlo noise (which LRMS, a per-pixel RMS, does not average
-away) stays well below the thresholds: measured about 0.5 % (direct) and 1.5 % (path) on the
-Cornell box at this size. The caustics of the mirror scene are rare, bright path events in both
-renderers: per pixel, its LRMS is mostly noise (1.13 % at 65536 paths per pixel and Mitsuba 131072
-spp, 1.55-2.06 % at a quarter of both, three seeds). So that scene renders at 12 x 12 with 16384
-paths per pixel (Mitsuba 32768 spp) and is compared on 2 x 2 blocks (``BINNED``; each block's
-mean radiance, blocks whose four pixels are all compared): averaging four pixels divides the
-noise's variance by four as four times the paths would, and keeps any systematic difference
-(a wall, the glossy box, the light through the mirror off by a factor spans many blocks). Measured
-0.90 % for three seeds (both renderers seeded alike), 0.63 % with the four times larger budget;
-the limit there, 1.3 %, fails a uniform 1 % offset on top of that floor as the per-pixel 1.5 % at
-65536 paths did (sqrt(0.90^2 + 1^2) > 1.3, sqrt(1.13^2 + 1^2) > 1.5), at a quarter of the time
-(ours ~30 s, Mitsuba ~10 s on 2 busy cores, against ~145 s and ~70 s).
+away) stays well below the thresholds (the floors measured at these budgets are below). The caustics
+of the mirror scene are rare, bright path events in both renderers: per pixel, its LRMS is mostly
+noise (1.13 % at 65536 paths per pixel and Mitsuba 131072 spp, 1.55-2.06 % at a quarter of both,
+three seeds). So that scene renders at 12 x 12 with 16384 paths per pixel (Mitsuba 32768 spp) and is
+compared on 2 x 2 blocks (``BINNED``; each block's mean radiance, blocks whose four pixels are all
+compared): averaging four pixels divides the noise's variance by four as four times the paths would,
+and keeps any systematic difference (a wall, the glossy box, the light through the mirror off by a
+factor spans many blocks). Measured 0.90 % for three seeds (both renderers seeded alike), 0.63 %
+with the four times larger budget; the limit there, 1.3 %, fails a uniform 1 % offset on top of that
+floor as the per-pixel 1.5 % at 65536 paths did (sqrt(0.90^2 + 1^2) > 1.3, sqrt(1.13^2 + 1^2) >
+1.5), at a quarter of the time (ours ~30 s, Mitsuba ~10 s on 2 busy cores, against ~145 s and ~70
+s).
 
 The Cornell box and the spheres + box scene run at a quarter of the samples too (``QUARTER``: our
 64 spp for direct, 512 paths per pixel for path; Mitsuba 1024 spp), Mitsuba's share of the time
