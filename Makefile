@@ -12,6 +12,9 @@ DEV_STAMP := $(VENV)/.installed-dev
 # against 796 s and 930 s with two in runs on either side of it): the kernels' numba threads and
 # Mitsuba already use both cores.
 PYTEST_WORKERS ?= 2
+# Each worker takes whole test files (--dist loadfile) in the order tests/conftest.py sets: files
+# with slow tests first, so the run does not end with one worker alone on a long file.
+PYTEST_DIST := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: install install-dev run demo render-local warm-cache test test-fast bench lint compose-check clean
 
@@ -57,12 +60,12 @@ warm-cache: install
 	[ $$s0 -eq 0 ] && [ $$s1 -eq 0 ] || echo "numba cache warm-up: a step failed (tests/test_worker_warmup.py names it)"
 
 test: install-dev warm-cache
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q tests
+	$(BIN)/python -m pytest $(PYTEST_DIST) --timeout=900 -q tests
 
 # The everyday lane: every test not marked slow (no browser, no live multi-process stacks, no
 # long convergence runs). CI runs everything (make test).
 test-fast: install-dev warm-cache
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --timeout=900 -q -m "not slow" tests
+	$(BIN)/python -m pytest $(PYTEST_DIST) --timeout=900 -q -m "not slow" tests
 
 bench: install-dev
 	$(BIN)/python -m bench.raycast_throughput

@@ -6,13 +6,17 @@ thread): a scene file with its mesh, a sample scene, a batch, the job list, and 
 models checked against the live ``/openapi.json``.
 
 pip reads its usual configuration (the machine's wheel directory and index first); the
-environment is built once for the module."""
+environment is built once for the module, without a pip of its own: the test process's pip installs
+into it (``pip --python``), which skips bootstrapping a pip there (ensurepip). The installed files are
+byte-compiled as usual: with ``PYTHONDONTWRITEBYTECODE`` set, as it may be, every ``ibr`` the tests
+start would otherwise compile its imports from source again."""
 
 from __future__ import annotations
 
 import json
 import os
 import subprocess
+import sys
 import venv
 from email.parser import Parser
 from pathlib import Path
@@ -40,9 +44,10 @@ def _run(args: list[str | Path], cwd: Path, **env: str) -> subprocess.CompletedP
 @pytest.fixture(scope="module")
 def client_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("ibr-client")
-    venv.create(root / "venv", with_pip=True)
+    venv.create(root / "venv", with_pip=False)
     py = root / "venv" / "bin" / "python"
-    r = _run([py, "-m", "pip", "wheel", "--no-deps", "-q", "-w", root / "dist", CLIENT_DIR], cwd=root)
+    pip: list[str | Path] = [sys.executable, "-m", "pip", "--python", py]  # this process's pip, on the new env
+    r = _run([*pip, "wheel", "--no-deps", "-q", "-w", root / "dist", CLIENT_DIR], cwd=root)
     assert r.returncode == 0, r.stdout + r.stderr
     (wheel,) = (root / "dist").glob("ibr_client-*.whl")
     with ZipFile(wheel) as z:
@@ -50,9 +55,9 @@ def client_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     declared = meta.get_all("Requires-Dist") or []
     assert sorted(d.split(">")[0].split("=")[0].strip().lower() for d in declared) == [
         "httpx", "numpy", "pydantic", "rich", "typer"]
-    r = _run([py, "-m", "pip", "install", "-q", "--no-deps", wheel], cwd=root)
+    r = _run([*pip, "install", "-q", "--no-deps", wheel], cwd=root)
     assert r.returncode == 0, r.stdout + r.stderr
-    r = _run([py, "-m", "pip", "install", "-q", *declared], cwd=root)
+    r = _run([*pip, "install", "-q", *declared], cwd=root)
     assert r.returncode == 0, r.stdout + r.stderr
     return root / "venv"
 
