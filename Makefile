@@ -59,8 +59,9 @@ warm-cache: install
 	echo "numba cache warm-up: $$(( $$(date +%s) - t0 )) s"; \
 	[ $$s0 -eq 0 ] && [ $$s1 -eq 0 ] || echo "numba cache warm-up: a step failed (tests/test_worker_warmup.py names it)"
 
+# --durations: the slowest tests of every full run are in its log, for the suite's time budget.
 test: install-dev warm-cache
-	$(BIN)/python -m pytest $(PYTEST_DIST) --timeout=900 -q tests
+	$(BIN)/python -m pytest $(PYTEST_DIST) --timeout=900 --durations=30 -q tests
 
 # The everyday lane: every test not marked slow (no browser, no live multi-process stacks, no
 # long convergence runs). CI runs everything (make test).
