@@ -158,11 +158,20 @@ _occluded4 = nbt.ExternalFunction("rtcOccluded4", nbt.void(nbt.uint64, nbt.uint6
 
 
 @nb.njit(cache=True, inline="always")
-def _aligned_words(n_words):
-    """A float32 buffer of ``n_words`` starting on a 64-byte boundary."""
+def _packet(n_words):
+    """A packet buffer of ``n_words`` float32 words on a 64-byte boundary, its uint32 view and the
+    packet's lane mask: (buf, ib, valid)."""
     raw = np.empty(n_words + 16, np.float32)
     off = ((raw.ctypes.data + 63) // 64 * 64 - raw.ctypes.data) // 4
-    return raw[off:off + n_words]
+    buf = raw[off:off + n_words]
+    return buf, buf.view(np.uint32), np.empty(W, np.int32)
+
+
+@nb.njit(cache=True, inline="always")
+def _set_valid(valid, k):
+    """Lanes 0 .. k - 1 of the packet are traced, the rest are not."""
+    for j in range(W):
+        valid[j] = -1 if j < k else 0
 
 
 @nb.njit(cache=True, inline="always")
@@ -188,19 +197,15 @@ def _load_rays(buf, ib, o, d, tfar, a, k):
 def _intersect_kernel(scene, o, d, lo, hi, prim, u, v, t):
     """First hits of rays lo .. hi - 1, in packets of W."""
     no_tfar = np.empty(0, np.float32)
-    buf = _aligned_words(_RAYHIT_WORDS)
-    ib = buf.view(np.uint32)
-    valid = np.empty(W, np.int32)
-    vaddr = valid.ctypes.data
-    addr = buf.ctypes.data
+    buf, ib, valid = _packet(_RAYHIT_WORDS)
     for a in range(lo, hi, W):
         k = min(W, hi - a)
+        _set_valid(valid, k)
         for j in range(W):
-            valid[j] = -1 if j < k else 0
             ib[18 * W + j] = _INVALID  # geomID
             ib[19 * W + j] = _INVALID  # instID[0]
         _load_rays(buf, ib, o, d, no_tfar, a, k)
-        _intersect4(vaddr, scene, addr, 0)
+        _intersect4(valid.ctypes.data, scene, buf.ctypes.data, 0)
         for j in range(k):
             i = a + j
             if ib[18 * W + j] == _INVALID:
@@ -218,17 +223,12 @@ def _intersect_kernel(scene, o, d, lo, hi, prim, u, v, t):
 @nb.njit(cache=True, nogil=True)
 def _occluded_kernel(scene, o, d, tmax, lo, hi, occ):
     """Occlusion of rays lo .. hi - 1 up to ``tmax``, in packets of W."""
-    buf = _aligned_words(_RAY_WORDS)
-    ib = buf.view(np.uint32)
-    valid = np.empty(W, np.int32)
-    vaddr = valid.ctypes.data
-    addr = buf.ctypes.data
+    buf, ib, valid = _packet(_RAY_WORDS)
     for a in range(lo, hi, W):
         k = min(W, hi - a)
-        for j in range(W):
-            valid[j] = -1 if j < k else 0
+        _set_valid(valid, k)
         _load_rays(buf, ib, o, d, tmax, a, k)
-        _occluded4(vaddr, scene, addr, 0)
+        _occluded4(valid.ctypes.data, scene, buf.ctypes.data, 0)
         for j in range(k):
             occ[a + j] = buf[8 * W + j] < 0.0
 
