@@ -32,7 +32,6 @@ import os
 import threading
 import weakref
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import llvmlite.binding as llvm
 import numba as nb
@@ -41,6 +40,7 @@ from numba import types as nbt
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import EngineError
+from engine.sched import run_pieces_parallel
 
 W = 4  # rays per packet: measured fastest of 1, 4, 8 and 16 on this engine's incoherent batches
 _RAY_WORDS = 12 * W
@@ -233,36 +233,11 @@ def _occluded_kernel(scene, o, d, tmax, lo, hi, occ):
             occ[a + j] = buf[8 * W + j] < 0.0
 
 
-_POOL: tuple[int, ThreadPoolExecutor] | None = None
-_POOL_LOCK = threading.Lock()
-
-
-def _pool() -> ThreadPoolExecutor:
-    """This process's threads for parallel batches (made again after a fork: threads don't
-    survive one)."""
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None or _POOL[0] != os.getpid():
-            _POOL = (os.getpid(), ThreadPoolExecutor(max(1, nb.get_num_threads()), thread_name_prefix="ibr-embree"))
-        return _POOL[1]
-
-
 def _run(kernel: Callable[[int, int], None], n: int, serial: bool | None) -> None:
-    """``kernel(lo, hi)`` over 0 .. n - 1: in the calling thread, or in pieces on every core.
-
-    The kernels release the GIL, so plain Python threads run them in parallel; more pieces than
-    threads let a thread whose core is busy with other work take fewer of them (as
-    engine/sched.py does inside parallel kernels). Default (``serial`` None): parallel from the main
-    thread only, since other threads are usually pipelines (engine/reference.py, ``run_pieces``)
-    that already keep every core busy."""
-    threads = nb.get_num_threads()
-    parallel = (threading.current_thread() is threading.main_thread()) if serial is None else not serial
-    if not parallel or threads < 2 or n < 2 * _MIN_PIECE:
-        kernel(0, n)
-        return
-    pieces = min(4 * threads, n // _MIN_PIECE)
-    cuts = [n * k // pieces for k in range(pieces + 1)]
-    list(_pool().map(lambda k: kernel(cuts[k], cuts[k + 1]), range(pieces)))
+    """``kernel(lo, hi)`` over 0 .. n - 1, on every core from the main thread by default
+    (``engine.sched.run_pieces_parallel``; other threads are usually pipelines that already keep
+    every core busy)."""
+    run_pieces_parallel(kernel, n, _MIN_PIECE, serial)
 
 
 def intersect(scene: Scene, o32: np.ndarray, d32: np.ndarray, serial: bool | None = None

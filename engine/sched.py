@@ -1,4 +1,16 @@
-"""Dynamic block scheduling for the engine's parallel kernels.
+"""How the engine's kernels use both cores: serial ``nogil`` kernels split over a thread pool
+(:func:`run_pieces_parallel`, :func:`run_on_threads`), and dynamic block scheduling between
+those threads (:func:`next_block`).
+
+Why a thread pool and not numba's ``prange``: a ``parallel=True`` kernel compiles 2-5x slower
+than the same loop compiled serially (numba's parfor passes re-type and re-lower the loop body,
+and the kernels that offer both a serial and a parallel form compiled twice), and cold compile
+time is what a fresh machine's first render waits for (docs/performance.md, "First run"). A
+serial kernel that releases the GIL, called on a slice of its batch from plain Python threads,
+runs on both cores like ``prange`` does, compiles once, and is the same machine code a
+pipeline thread (engine/reference.py) calls on its own.
+
+Dynamic block scheduling, and why:
 
 numba's ``prange`` splits its range into one equal, contiguous chunk per thread, decided
 before the loop starts. Per-pixel work in the renderers is uneven (mirror and glossy pixels
@@ -28,6 +40,12 @@ any thread count and timing.
 
 from __future__ import annotations
 
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numba as nb
 from llvmlite import ir
 from numba import types as nbtypes
 from numba.core import cgutils
@@ -52,4 +70,61 @@ def next_block(typingctx, counter):
     return nbtypes.int64(counter), codegen
 
 
-__all__ = ["next_block"]
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool() -> ThreadPoolExecutor:
+    """This process's threads for parallel kernels, one per numba thread (made again after a fork:
+    threads don't survive one)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL[0] != os.getpid():
+            _POOL = (os.getpid(), ThreadPoolExecutor(max(1, nb.get_num_threads()), thread_name_prefix="ibr-kernel"))
+        return _POOL[1]
+
+
+def threads_for(serial: bool | None) -> int:
+    """How many threads a kernel call may use: 1 when ``serial``; by default (None) every numba
+    thread when called from the main thread and 1 from any other (those are pipelines,
+    engine/reference.py ``run_pieces``, or this module's own pool threads, which must not wait on
+    the pool they run in)."""
+    if serial is None:
+        serial = threading.current_thread() is not threading.main_thread()
+    return 1 if serial else max(1, nb.get_num_threads())
+
+
+def run_pieces_parallel(kernel: Callable[[int, int], None], n: int, min_piece: int = 1,
+                        serial: bool | None = None) -> None:
+    """``kernel(lo, hi)`` over 0 .. n - 1: in the calling thread (``threads_for(serial)`` is 1, or
+    fewer than two pieces of ``min_piece`` items), else in up to 4 pieces per thread on the pool.
+
+    ``kernel`` must release the GIL (``nogil=True``) to run in parallel, and each piece must write
+    only its own outputs, so the result does not depend on the split. More pieces than threads let
+    a thread whose core is busy with other work take fewer of them. Exceptions propagate."""
+    threads = threads_for(serial)
+    if threads < 2 or n < 2 * max(1, min_piece):
+        kernel(0, n)
+        return
+    pieces = min(4 * threads, n // max(1, min_piece))
+    cuts = [n * k // pieces for k in range(pieces + 1)]
+    list(_pool().map(lambda k: kernel(cuts[k], cuts[k + 1]), range(pieces)))
+
+
+def run_on_threads(group: Callable[[], None], serial: bool | None = None) -> None:
+    """``group()`` once per thread (``threads_for(serial)`` of them, the calling thread's call
+    included): for kernels whose groups take their blocks from a shared :func:`next_block`
+    counter. Exceptions propagate."""
+    threads = threads_for(serial)
+    if threads < 2:
+        group()
+        return
+    futures = [_pool().submit(group) for _ in range(threads - 1)]
+    try:
+        group()
+    finally:
+        for f in futures:
+            f.result()
+
+
+__all__ = ["next_block", "run_on_threads", "run_pieces_parallel", "threads_for"]
