@@ -87,8 +87,9 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def profile(top: int) -> tuple[str, Any, CompileRecorder]:
-    """Run the warm-up cold; return (markdown, the warm-up report, the recorder)."""
+def profile(top: int, steps: list[str] | None = None) -> tuple[str, Any, CompileRecorder]:
+    """Run the warm-up cold (only ``steps`` and what they need, when given); return (markdown, the
+    warm-up report, the recorder)."""
     from numba.core import event as ev
 
     t_import = time.perf_counter()
@@ -98,7 +99,7 @@ def profile(top: int) -> tuple[str, Any, CompileRecorder]:
     rec = CompileRecorder()
     cpu0 = _cpu()
     with ev.install_listener("numba:compile", _listener(rec)):
-        report = warm_up()
+        report = warm_up(only=steps)
     cpu = _cpu() - cpu0
     kernels = sorted(rec.kernels.values(), key=lambda k: -k.exclusive)
     total_excl = sum(k.exclusive for k in kernels)
@@ -122,6 +123,20 @@ def profile(top: int) -> tuple[str, Any, CompileRecorder]:
 _LOAD_BEFORE = ""
 
 
+def _with_needs(steps: list[str]) -> list[str]:
+    """``steps`` and, transitively, the warm-up steps they need."""
+    from workers.warmup import needs_of
+
+    out: list[str] = []
+    todo = list(steps)
+    while todo:
+        name = todo.pop()
+        if name not in out:
+            out.append(name)
+            todo.extend(needs_of(name))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     global _LOAD_BEFORE
     p = argparse.ArgumentParser(prog="python -m bench.compile_profile", description=__doc__)
@@ -130,13 +145,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--signatures", action="store_true", help="also print every compiled signature")
     p.add_argument("--write", action="store_true", help="write the tables into docs/performance.md")
     p.add_argument("--label", default="cold-compile")
+    p.add_argument("--steps", help="comma-separated warm-up steps to run (default: all); the steps they "
+                                   "need are added (workers.warmup)")
     args = p.parse_args(argv)
     if "numba" in sys.modules:
         raise SystemExit("import bench.compile_profile before numba (the cache directory is read at import)")
     _LOAD_BEFORE = f"{os.getloadavg()[0]:.2f}"
     with tempfile.TemporaryDirectory(prefix="ibr-numba-cold-") as tmp:
         os.environ["NUMBA_CACHE_DIR"] = args.cache_dir or tmp
-        text, report, rec = profile(args.top)
+        text, report, rec = profile(args.top, _with_needs(args.steps.split(",")) if args.steps else None)
     print(report.table())
     print(text)
     if args.signatures:

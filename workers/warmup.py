@@ -524,6 +524,14 @@ def _plan(run: _Run) -> list[tuple[str, Callable[[], None], tuple[str, ...]]]:
 STEPS: tuple[str, ...] = tuple(name for name, _, _ in _plan(_Run(None)))
 """Names of the warm-up steps, in the order they run."""
 
+NEEDS: dict[str, tuple[str, ...]] = {name: tuple(needs) for name, _, needs in _plan(_Run(None))}
+"""The steps each step needs run before it."""
+
+
+def needs_of(step: str) -> tuple[str, ...]:
+    """The warm-up steps ``step`` needs run before it (KeyError for an unknown step)."""
+    return NEEDS[step]
+
 LANES: tuple[tuple[str, ...], ...] = (
     STEPS[:STEPS.index("relight-bake")],  # reference, then the LDC methods
     STEPS[STEPS.index("relight-bake"):],  # relighting, compositing, walkthroughs
