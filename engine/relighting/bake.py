@@ -29,6 +29,7 @@ from engine.errors import InvalidInputError
 from engine.relighting.compress import LowRankStore, block_order, compress_store
 from engine.relighting.dataset import IlluminationDataset, checked_array
 from engine.relighting.grid import build_grid, dedupe_directions, triangulate
+from engine.sched import run_pieces_parallel
 
 HALF_MAX = 65504.0
 HALF_MIN_NORMAL = 6.103515625e-05
@@ -178,11 +179,11 @@ class KernelGeometry:
 
 
 
-@nb.njit(cache=True, parallel=True, nogil=True)
-def _light_stats(images, keep, pix, rel_floor, vmax, vmin):
-    """Per kept light j: max |v| and the smallest |v| > 0 that is >= rel_floor x max, over the
-    stored pixels. images (K, h*w, 3) float32."""
-    for j in nb.prange(keep.size):
+@nb.njit(cache=True, nogil=True)
+def _light_stats(images, keep, pix, rel_floor, vmax, vmin, j0, j1):
+    """Per kept light j in j0 .. j1 - 1: max |v| and the smallest |v| > 0 that is >= rel_floor x max,
+    over the stored pixels. images (K, h*w, 3) float32."""
+    for j in range(j0, j1):
         k = keep[j]
         m = 0.0
         for r in range(pix.size):
@@ -239,14 +240,16 @@ def _put_impl(out, r, j, c, v):
 
 
 _BLOCK = 2048
+_MIN_ITEMS = 4096  # values read per thread piece at least (engine.sched: a piece costs ~20-50 us to dispatch)
 
 
-def _gather_kernel(images, keep, pix, scale, out, out16, half):
-    """Pixel-major store: row r, light j = images[keep[j], pix[r], :] x scale[j], written as float32
-    (``out``) or as float16 bits (``out16``). Blocks of pixels keep the reads contiguous per light
-    and the writes inside one L2-sized block."""
+@nb.njit(cache=True, nogil=True)
+def _gather_pixel_major(images, keep, pix, scale, out, out16, half, b0, b1):
+    """Blocks b0 .. b1 - 1 of _BLOCK rows of the store: row r, light j = images[keep[j], pix[r], :] x
+    scale[j], written as float32 (``out``) or as float16 bits (``out16``), pixel-major or tiled. Blocks
+    of pixels keep the reads contiguous per light and the writes inside one L2-sized block."""
     n = pix.size
-    for bi in nb.prange((n + _BLOCK - 1) // _BLOCK):
+    for bi in range(b0, b1):
         r0 = bi * _BLOCK
         r1 = min(n, r0 + _BLOCK)
         for j in range(keep.size):
@@ -260,9 +263,6 @@ def _gather_kernel(images, keep, pix, scale, out, out16, half):
                         _put(out16, r, j, c, _f32_to_f16_bits(np.uint32(v.view(np.uint32))))
                     else:
                         _put(out, r, j, c, v)
-
-
-_gather_pixel_major = nb.njit(cache=True, parallel=True, nogil=True)(_gather_kernel)
 
 
 def _choose_dtype(vmax: np.ndarray, vmin: np.ndarray, half: bool, rel_floor: float
@@ -381,7 +381,8 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
     flat = ds.images.reshape(ds.images.shape[0], h * w, 3)
     vmax = np.empty(keep.size)
     vmin = np.empty(keep.size)
-    _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin)
+    run_pieces_parallel(lambda j0, j1: _light_stats(flat, keep, pix, float(half_rel_floor), vmax, vmin, j0, j1),
+                        keep.size, max(1, _MIN_ITEMS // max(1, 3 * pix.size)))
     dt, scale, why = _choose_dtype(vmax, vmin, half, half_rel_floor)
     is_half = dt is np.float16
     n_rows_plain = ((pix.size + TILE - 1) // TILE) * TILE if layout == "tiled" else pix.size  # tiles are padded
@@ -423,8 +424,9 @@ def bake_dataset(ds: IlluminationDataset, *, sphere_center=None, sphere_radius: 
         store = np.empty((pix.size, keep.size, 3), np.float16 if is_half else np.float32)
     dummy32 = np.empty((1,) * (store.ndim - 1) + (3,), np.float32)
     dummy16 = np.empty((1,) * (store.ndim - 1) + (3,), np.uint16)
-    _gather_pixel_major(flat, keep, pix, scale, dummy32 if is_half else store,
-                        store.view(np.uint16) if is_half else dummy16, is_half)
+    out32, out16 = (dummy32, store.view(np.uint16)) if is_half else (store, dummy16)
+    run_pieces_parallel(lambda b0, b1: _gather_pixel_major(flat, keep, pix, scale, out32, out16, is_half, b0, b1),
+                        (pix.size + _BLOCK - 1) // _BLOCK, 1)
     report.update(dtype=np.dtype(dt).name, dtype_reason=why, layout=layout,
                   store_bytes=int(store.nbytes), compression="none")
     report.setdefault("compression_reason", "not requested")

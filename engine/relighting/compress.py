@@ -31,6 +31,7 @@ import numba as nb
 import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
+from engine.sched import run_pieces_parallel
 
 BLOCK = 16  # image block side for the pixel order of a compressed store
 TILE = 256  # stored pixels per compressed tile (equal to engine.relighting.bake.TILE)
@@ -70,13 +71,15 @@ class LowRankStore:
     def light_values(self, k: int) -> np.ndarray:
         """(n_rows, 3) float32 reconstructed values of light k."""
         out = np.empty((self.rank.size * TILE, 3), np.float32)
-        _light_values(self.u, self.b, self.u_off, self.b_off, self.rank, int(k), out)
+        run_pieces_parallel(lambda t0, t1: _light_values(self.u, self.b, self.u_off, self.b_off, self.rank, int(k),
+                                                         out, t0, t1), self.rank.size, 4)
         return out[: self.n_rows]
 
 
-@nb.njit(cache=True, parallel=True, nogil=True)
-def _light_values(u, b, u_off, b_off, rank, k, out):
-    for t in nb.prange(rank.size):
+@nb.njit(cache=True, nogil=True)
+def _light_values(u, b, u_off, b_off, rank, k, out, t0, t1):
+    """Light k's reconstructed values of tiles t0 .. t1 - 1 (TILE x 3 dot products of rank length each)."""
+    for t in range(t0, t1):
         r = rank[t]
         b0 = b_off[t] + k * r
         for q in range(TILE * 3):

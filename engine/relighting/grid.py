@@ -22,6 +22,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
 from engine.relighting.dataset import checked_array
+from engine.sched import run_pieces_parallel
 
 
 class LocatedGrid(Protocol):
@@ -226,9 +227,9 @@ def locate(x, y, z, inv, grid_n, grid_start, grid_items):
     return -1, 0.0, 0.0, 0.0
 
 
-@nb.njit(cache=True, parallel=True, nogil=True)
-def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out):
-    for i in nb.prange(dirs.shape[0]):
+@nb.njit(cache=True, nogil=True)
+def _locate_many(dirs, inv, grid_n, grid_start, grid_items, tri_out, w_out, i0, i1):
+    for i in range(i0, i1):
         t, w0, w1, w2 = locate(dirs[i, 0], dirs[i, 1], dirs[i, 2], inv, grid_n, grid_start, grid_items)
         tri_out[i] = t
         w_out[i, 0], w_out[i, 1], w_out[i, 2] = w0, w1, w2
@@ -244,5 +245,6 @@ def locate_directions(baked: LocatedGrid, dirs) -> tuple[np.ndarray, np.ndarray]
     d = np.ascontiguousarray(d)
     tri = np.empty(d.shape[0], np.int64)
     w = np.zeros((d.shape[0], 3))
-    _locate_many(d, baked.tri_inverse, baked.grid_n, baked.grid_start, baked.grid_items, tri, w)
+    run_pieces_parallel(lambda i0, i1: _locate_many(d, baked.tri_inverse, baked.grid_n, baked.grid_start,
+                                                    baked.grid_items, tri, w, i0, i1), d.shape[0], 4096)
     return tri, w

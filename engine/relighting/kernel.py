@@ -7,9 +7,10 @@ Owns the numba code that runs on every relight:
   16-pixel RGB output run written with non-temporal stores, the store fence, 512-bit vectors;
 - the store accessors (``_fetch``, ``_run``, ``_run_value``, ...), overloaded per store kind
   (tiled / pixel-major, float16 / float32, low-rank factors);
-- :data:`RELIGHT_KERNEL` (``_relight_kernel``: its parameters are documented one by one there)
-  and :data:`EXACT_KERNEL` (lights exactly at dataset lights: the stored images, scaled), each
-  compiled parallel and serial (``engine.shading.DualKernel``), and :func:`zero_pixels`.
+- :func:`relight_kernel` (its parameters are documented one by one there) and :func:`exact_kernel`
+  (lights exactly at dataset lights: the stored images, scaled): Python functions that run the
+  serial ``nogil`` kernels ``_relight_group`` and ``_exact_chunks`` on the threads of
+  ``engine.sched`` (each compiled once per store kind, no ``prange``), and :func:`zero_pixels`.
 
 The kernels do no validation: ``engine.relighting.relight.relight`` checks and prepares every
 argument. The kernel's design (passes A, B2, B3, the float32 geometry and its error bound) is
@@ -31,8 +32,7 @@ from numba.extending import intrinsic, overload
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.relighting.bake import CHUNK, TILE, TILE_SHIFT
 from engine.relighting.grid import CONE_EPS, locate
-from engine.sched import next_block
-from engine.shading import DualKernel
+from engine.sched import next_block, run_on_threads, run_pieces_parallel
 
 _MAX_PASSES = 4  # triangles per chunk and light in the SIMD pass B (the rest: scalar pass B3)
 _F32_BAND = 512.0  # the float32 cone test's border, in units of its error bound's 2^-24 N |s| (see the kernel)
@@ -313,16 +313,15 @@ def _sphere_point(kd, distant_ds, lx, ly, lz, nx, ny, nz, ox, oy, oz, r2):
     return d2, den, d2 * ox + t * dx, d2 * oy + t * dy, d2 * oz + t * dz
 
 
-def _relight_kernel(workers, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
-                    grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
-                    outside, singular, touched, flagged):
+def relight_kernel(kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
+                   grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
+                   outside, singular, touched, flagged, serial=None):
     """Per store row (pixel): sum over lights of interpolated normalised response x irradiance.
 
     Kernel frame: every position is relative to ``origin`` (the sphere centre; for a distant dataset the
     centre of the points' bounding box). M = the expanded lights (``lights.expand_lights``), K = the kept
     dataset lights, n = the store rows, T = the triangles. Parameters, in order:
 
-    - workers: scratch groups to run (the thread count; 1 for the serial compilation).
     - kpts (n_chunks, 3, CHUNK) float32: the surface points in the kernel frame, one contiguous row per
       axis and chunk, zero padded (``KernelGeometry.points``).
     - points64 (n, 3) float64: the baked points (world frame), for the rows whose light is within
@@ -356,14 +355,16 @@ def _relight_kernel(workers, kpts, points64, origin, store, lpos32, inv_int, dis
       store 1).
     - flagged (1,) uint8: set to 1 when any outside or singular flag was set (so the caller counts the
       masks only then).
+    - serial: one thread (``engine.sched.threads_for``; None: every numba thread from the main thread).
 
     The parameters stay positional on purpose: bundled in five NamedTuples (rows, dataset, grid, lights,
     output) the images were bit-identical but every call cost ~85 us more (a per-call cost: numba's dispatcher
     types tuple arguments more slowly than arrays), 8 % of a one-light relight of 250k pixels (paired A/B).
 
     Fixed chunks of CHUNK consecutive rows (one tile of the tiled store; the same chunks for any
-    thread count and schedule, so results do not depend on them). ``workers`` scratch groups (one per
-    thread) take units of _UNIT consecutive chunks from a shared counter (``engine.sched``: a thread
+    thread count and schedule, so results do not depend on them). One scratch group per thread
+    (``_relight_group``, the only compiled code: run on the threads of ``engine.sched.run_on_threads``)
+    takes units of _UNIT consecutive chunks from a shared counter (``engine.sched.next_block``: a thread
     that loses its core for a while takes fewer units instead of the other waiting for it).
     Light by light:
     - pass A (SIMD): every row's sphere direction s (a positive multiple of the sphere point: one
@@ -380,20 +381,18 @@ def _relight_kernel(workers, kpts, points64, origin, store, lpos32, inv_int, dis
     the current triangle's lights are prefetched.
     """
     counter = np.zeros(1, np.int64)
-    for _ in nb.prange(workers):
-        _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
-                       grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs,
-                       run_pix, out, outside, singular, touched, flagged)
+    run_on_threads(lambda: _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius,
+                                          fscale, tris, inv, grid_n, grid_start, grid_items, kinds, lp, lint, lnorm,
+                                          min_dist2, near2, pix, runs, run_pix, out, outside, singular, touched,
+                                          flagged), serial)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, distant_ds, radius, fscale, tris, inv,
                    grid_n, grid_start, grid_items, kinds, lp, lint, lnorm, min_dist2, near2, pix, runs, run_pix, out,
                    outside, singular, touched, flagged):
-    """One scratch group of ``_relight_kernel`` (its units taken from ``counter``), in its own function:
-    the parallel kernel is a thin prange over the groups, so numba's parfor passes see a few lines instead of the
-    whole kernel (cold compile of a float32 / float16 store 36 / 33 s -> 32 / 27 s on the loaded
-    machine; the images bit-identical, kernel time unchanged: bench.relight_speed --ab)."""
+    """One scratch group of :func:`relight_kernel` (its units taken from ``counter``; parameters as
+    documented there), serial and ``nogil``: each thread of the call runs one."""
     _wide_vectors()
     n = points64.shape[0]
     m = kinds.shape[0]
@@ -831,15 +830,11 @@ def _relight_group(counter, kpts, points64, origin, store, lpos32, inv_int, dist
     _fence()
 
 
-RELIGHT_KERNEL = DualKernel(_relight_kernel)
-"""``_relight_kernel`` compiled parallel (``.par``) and serial (``.ser``)."""
-
-
-def _exact_kernel(store, pix, ks, scales, ratios, out):
-    """out[pix[i]] = sum_j (stored value of light ks[j] / scales[j]) x ratios[j], in float32; a ratio
-    of exactly 1 adds the value unscaled (so one light at its own intensity is the stored image)."""
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _exact_chunks(store, pix, ks, scales, ratios, out, c0, c1):
+    """Chunks c0 .. c1 - 1 of :func:`exact_kernel`."""
     n = pix.size
-    for ci in nb.prange((n + CHUNK - 1) // CHUNK):
+    for ci in range(c0, c1):
         for i in range(ci * CHUNK, min(n, (ci + 1) * CHUNK)):
             q = pix[i]
             for c in range(3):
@@ -853,8 +848,17 @@ def _exact_kernel(store, pix, ks, scales, ratios, out):
                 out[q, c] = acc
 
 
-EXACT_KERNEL = DualKernel(_exact_kernel)
-"""``_exact_kernel`` compiled parallel (``.par``) and serial (``.ser``)."""
+_EXACT_MIN_CHUNKS = 8  # 2048 rows x lights x 3 channels per piece at least
+
+
+def exact_kernel(store, pix, ks, scales, ratios, out, serial=None):
+    """out[pix[i]] = sum_j (stored value of light ks[j] / scales[j]) x ratios[j], in float32; a ratio
+    of exactly 1 adds the value unscaled (so one light at its own intensity is the stored image).
+    Chunks of CHUNK rows split over the threads (``engine.sched.run_pieces_parallel``; ``serial`` as
+    there)."""
+    n_chunks = (pix.size + CHUNK - 1) // CHUNK
+    run_pieces_parallel(lambda c0, c1: _exact_chunks(store, pix, ks, scales, ratios, out, c0, c1), n_chunks,
+                        _EXACT_MIN_CHUNKS, serial)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -33,7 +33,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
 from engine.relighting.bake import BakedDataset
-from engine.relighting.kernel import EXACT_KERNEL, RELIGHT_KERNEL, zero_pixels
+from engine.relighting.kernel import exact_kernel, relight_kernel, zero_pixels
 from engine.relighting.lights import K_DIRECTIONAL, K_POINT, expand_lights
 
 
@@ -82,8 +82,8 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
 
     lights: a light spec or a list of them (:class:`PointLight`, :class:`DirectionalLight`,
         :class:`RectLight`, :class:`EnvironmentLight`, or their ``{"type": ...}`` dicts).
-    threads: numba threads for the parallel kernel (None = numba's current setting);
-        serial=True runs the serial nogil kernel (for callers with their own threads).
+    threads: threads the kernel runs on (None = numba's current setting, ``nb.get_num_threads()``);
+        serial=True runs it in the calling thread only (for callers with their own threads).
     min_light_distance: a point light nearer than this to a surface point contributes 0 there
         and the pixel is marked singular; default 1e-6 x the sphere radius (x the scene extent
         for distant datasets).
@@ -114,8 +114,8 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         # light(s) exactly at dataset lights: the stored images, scaled, no interpolation; float32
         # arithmetic in the order of ``sum_j light_values(k_j) * ratio_j`` (bit-identical to it)
         ratios = np.ascontiguousarray((li / baked.intensities[exact]).astype(np.float32))
-        EXACT_KERNEL.pick(serial)(baked.kernel_store(), geom.pixel_index, exact,
-                            baked.store_scale[exact].astype(np.float32), ratios, img)
+        exact_kernel(baked.kernel_store(), geom.pixel_index, exact, baked.store_scale[exact].astype(np.float32),
+                     ratios, img, serial=serial)
         timings["kernel_s"] = time.perf_counter() - t1
         used = np.unique(exact)
         n_tri_used = 0
@@ -125,7 +125,6 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         flagged = np.zeros(1, np.uint8)
         inv_int = np.ascontiguousarray(1.0 / (baked.intensities * baked.store_scale[:, None]))
         radius = baked.sphere_radius if math.isfinite(baked.sphere_radius) else 1.0
-        kern = RELIGHT_KERNEL.pick(serial)
         prev = nb.get_num_threads()
         if threads is not None and not serial:
             if not (1 <= int(threads) <= nb.config.NUMBA_NUM_THREADS):
@@ -142,12 +141,12 @@ def relight(baked: BakedDataset, lights, *, threads: int | None = None, serial: 
         near2 = (float(min_light_distance) + 4.0 * geom.rounding) ** 2
         # the power of two that brings the radius into [1, 2) for the float32 geometry (exact scaling)
         fscale = math.ldexp(1.0, -math.frexp(radius)[1] + 1)
-        workers = 1 if serial else max(1, nb.get_num_threads())  # after set_num_threads
         try:
-            kern(workers, geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int,
-                 baked.distant, radius, fscale, baked.triangles, baked.tri_inverse, baked.grid_n, baked.grid_start,
-                 baked.grid_items, kinds, lp_k, li, ln, float(min_light_distance) ** 2, near2, geom.pixel_index,
-                 geom.runs, geom.run_pixels, img, outside, singular, touched, flagged)
+            relight_kernel(geom.points, baked.points, geom.origin, baked.kernel_store(), lpos_k, inv_int,
+                           baked.distant, radius, fscale, baked.triangles, baked.tri_inverse, baked.grid_n,
+                           baked.grid_start, baked.grid_items, kinds, lp_k, li, ln, float(min_light_distance) ** 2,
+                           near2, geom.pixel_index, geom.runs, geom.run_pixels, img, outside, singular, touched,
+                           flagged, serial=serial)
         finally:
             if threads is not None and not serial:
                 nb.set_num_threads(prev)
