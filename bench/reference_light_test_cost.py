@@ -2,7 +2,8 @@
 a scene without mirrors or glossy surfaces: the diffuse Cornell box, one rect light in view.
 
 Wraps ``engine.reference._rect_hits`` with a timer and prints, per render, the render's wall time,
-the time spent in the test and the rays it tested. Run under the benchmark lock:
+the time spent in the test (summed over the threads that ran it: the pipelines, or the pieces of a
+batch split over the thread pool) and the rays it tested. Run under the benchmark lock:
 
     flock /tmp/bench.lock python -m bench.reference_light_test_cost
 """
@@ -10,6 +11,7 @@ the time spent in the test and the rays it tested. Run under the benchmark lock:
 from __future__ import annotations
 
 import argparse
+import threading
 import time
 from dataclasses import replace
 
@@ -33,19 +35,16 @@ def main(argv: list[str] | None = None) -> None:
     r.render(replace(cam, width=32, height=32), p)  # warm-up (numba, BVH)
     orig = R._rect_hits
     spent = [0.0, 0]
+    lock = threading.Lock()
 
-    class Timed:
-        def pick(self, serial: bool):
-            f = orig.pick(serial)
+    def timed(lo: int, hi: int, *a: object) -> None:
+        t0 = time.perf_counter()
+        orig(lo, hi, *a)
+        with lock:
+            spent[0] += time.perf_counter() - t0
+            spent[1] += hi - lo
 
-            def g(*a):
-                t0 = time.perf_counter()
-                f(*a)
-                spent[0] += time.perf_counter() - t0
-                spent[1] += a[2].shape[0]
-            return g
-
-    R._rect_hits = Timed()  # type: ignore[assignment]
+    R._rect_hits = timed  # type: ignore[assignment]
     try:
         for _ in range(args.repeat):
             spent[:] = [0.0, 0]

@@ -28,6 +28,7 @@ from engine import (
 )
 from engine.errors import InvalidInputError
 from engine.scene import RuntimeScene
+from engine.sched import run_pieces_parallel
 
 # Self-intersection offset = OFFSET_REL * (max |p - center|_inf + OFFSET_EXTENT * extent).
 # float32 has 2^-24 relative rounding; Embree's watertight test and the cast of the
@@ -113,9 +114,13 @@ def _offset_magnitude(p: np.ndarray, center: np.ndarray, extent: float) -> float
     return OFFSET_REL * (m + OFFSET_EXTENT * extent)
 
 
-@nb.njit(cache=True, parallel=True)
-def _spawn_kernel(p, ng, d, center, extent, out):
-    for i in nb.prange(p.shape[0]):
+_SPAWN_MIN_PIECE = 16384  # a few loads and stores per point: smaller pieces cost more to dispatch than they save
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _spawn_kernel(lo, hi, p, ng, d, center, extent, out):
+    """Points lo .. hi - 1 of ``spawn_origins``."""
+    for i in range(lo, hi):
         mag = _offset_magnitude(p[i], center, extent)
         s = ng[i, 0] * d[i, 0] + ng[i, 1] * d[i, 1] + ng[i, 2] * d[i, 2]
         sign = 1.0 if s >= 0.0 else -1.0
@@ -129,9 +134,12 @@ def spawn_origins(scene: RuntimeScene, p: np.ndarray, ng: np.ndarray, d: np.ndar
     Moves each point off its triangle's plane by a scale-aware distance, to the side
     the ray travels toward (so transmission-side and reflection-side both work).
     """
-    out = np.empty_like(p, dtype=np.float64)
-    _spawn_kernel(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(ng, dtype=np.float64),
-                  np.ascontiguousarray(d, dtype=np.float64), scene.center, scene.extent, out)
+    p64 = np.ascontiguousarray(p, dtype=np.float64)
+    ng64 = np.ascontiguousarray(ng, dtype=np.float64)
+    d64 = np.ascontiguousarray(d, dtype=np.float64)
+    out = np.empty_like(p64)
+    run_pieces_parallel(lambda lo, hi: _spawn_kernel(lo, hi, p64, ng64, d64, scene.center, scene.extent, out),
+                        p64.shape[0], _SPAWN_MIN_PIECE)
     return out
 
 

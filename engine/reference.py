@@ -74,7 +74,8 @@ from engine.progressive import pass_pieces, run_progressive
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
-from engine.shading import DualKernel, phong_pow
+from engine.sched import run_pieces_parallel
+from engine.shading import phong_pow
 
 INV_PI = 1.0 / math.pi
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
@@ -139,9 +140,9 @@ class ReferenceParams:
     seed: random seed; equal seeds give identical images.
     chunk_pixels: upper bound on pixels per wavefront chunk (memory bound and progress
         granularity); images are split into at least 8 chunks of >= 1024 pixels.
-    pipelines: chunks rendered concurrently in threads (serial kernels that release the
-        GIL overlap with Embree calls); 1 = one chunk at a time with parallel kernels.
-        The image does not depend on it.
+    pipelines: chunks rendered concurrently in threads (kernels that release the GIL
+        overlap with Embree calls); 1 = one chunk at a time, each kernel split over the
+        thread pool (engine/sched.py). The image does not depend on it.
     max_error: progressive, adaptive rendering (engine/progressive.py) until the estimated LRMS
         against the converged image is at most this, in (0, 1); ``spp`` is then the cap on any
         pixel's samples. None (the default): a plain render of ``spp`` samples per pixel.
@@ -232,6 +233,24 @@ class _Timer:
 
 
 # ============================================================================ kernels
+#
+# Every kernel below is compiled once, serially, and releases the GIL; the batch kernels take the
+# range ``lo .. hi - 1`` of their items and write only those items' outputs (rows of the output
+# arrays that no other item writes), so :func:`_split` can run them on slices of a batch from the
+# thread pool of engine/sched.py and the image does not depend on the split. A pipeline thread
+# (``pipelines`` >= 2) calls them on the whole batch.
+
+# fewest items per piece when a kernel is split over threads (a piece costs ~20-50 us to dispatch):
+_MIN_HEAVY = 512  # per item: light samples or secondary rays (_light_rays, _spawn)
+_MIN_ITEMS = 4096  # per item: a surface frame, a ray's rect-light test, a camera ray or a few
+_MIN_COPY = 16384  # per item: a few loads and stores (_plan, compactions)
+
+
+def _split(kernel: Callable[..., None], n: int, min_piece: int, serial: bool | None, *args: Any) -> None:
+    """``kernel(lo, hi, *args)`` over items 0 .. n - 1: one call when ``serial`` (a pipeline's
+    thread), else in slices over the thread pool (``engine.sched.run_pieces_parallel``)."""
+    run_pieces_parallel(lambda lo, hi: kernel(lo, hi, *args), n, min_piece, serial)
+
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -270,10 +289,10 @@ def _surface_frame(t, uu, vv, dx, dy, dz, tri_n, tri_ng):
     return g0, g1, g2, s0, s1, s2
 
 
-@nb.njit(cache=True, parallel=True)
-def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _surface(lo, hi, d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
     """Hit point, and geometric / shading normals flipped to face the incoming ray."""
-    for i in nb.prange(prim.shape[0]):
+    for i in range(lo, hi):
         t = prim[i]
         w0 = 1.0 - u[i] - v[i]
         for k in range(3):
@@ -284,8 +303,8 @@ def _surface(d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
 
-@DualKernel
-def _light_rays(p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, spec_cut, kr, kg, gexp,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, spec_cut, kr, kg, gexp,
                 max_depth, glossy_samples, mis,
                 pt_pos, pt_int, dir_dir, dir_irr,
                 rc, ru, rv, r_n, r_area, rL, r2s, r_g, pix, sidx, skey, vertex,
@@ -305,13 +324,12 @@ def _light_rays(p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, s
     hits, the lobe's choice probability at path vertices). A hit that sends no glossy ray (a chain
     at max_depth) gets no kg light from either strategy, as before.
     """
-    n = p.shape[0]
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
     nrect = rc.shape[0]
     gg = r_g * r_g
     per = npt + ndir + nrect * gg
-    for i in nb.prange(n):
+    for i in range(lo, hi):
         m = mat[i]
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
@@ -401,8 +419,8 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
     return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
 
 
-@DualKernel
-def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit, rect_lights,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _plan(lo, hi, mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit, rect_lights,
           n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
     glossy rays and K' indirect rays; path hits continue with one ray while bounces remain.
@@ -410,7 +428,7 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
     that lobe when the scene has rect lights (``rect_lights``): the light it meets completes the
     vertex's direct light, as next-event estimation does for its kd / ks lobes; whatever else it
     meets is dropped (its bounces are -1)."""
-    for i in nb.prange(mat.shape[0]):
+    for i in range(lo, hi):
         m = mat[i]
         has_kr = kr[m, 0] > 0 or kr[m, 1] > 0 or kr[m, 2] > 0
         has_kg = kg[m, 0] > 0 or kg[m, 1] > 0 or kg[m, 2] > 0
@@ -441,8 +459,8 @@ def _plan(mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_sampl
         count[i] = nm + ngl + nin + npath
 
 
-@DualKernel
-def _spawn(p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy,
            n_ind, count, vertex, total_bounces, rr_min, kd, kr, kg, gexp, center, extent,
            o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out, bpdf_out,
            wref_out, alive):
@@ -460,7 +478,7 @@ def _spawn(p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, ske
     (RR_MIN_BOUNCES; larger: no roulette) of its ``total_bounces`` bounces or more continues with probability
     q = min(1, max(new weight) / wref), decided by dimension DIM_RR, and a survivor's weight is
     divided by q (so its expected contribution is unchanged)."""
-    for i in nb.prange(p.shape[0]):
+    for i in range(lo, hi):
         if count[i] == 0:
             continue
         m = mat[i]
@@ -573,15 +591,15 @@ def _spawn(p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, ske
 
 
 
-@DualKernel
-def _diffuse_starts(p, ng, ns, mat, pix, sidx, key, kd, center, extent, o_out, d_out, d32_out, w_out, alive):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _diffuse_starts(lo, hi, p, ng, ns, mat, pix, sidx, key, kd, center, extent, o_out, d_out, d32_out, w_out, alive):
     """One cosine-distributed diffuse ray per row leaving point ``p`` on the side ``ng`` points to
     (``ns`` is that side's shading normal): its weight is kd (BRDF kd/pi times cos over the pdf
     cos/pi), zero when the direction dips below the geometric surface. Its direction is sample
     ``sidx`` of pixel ``pix`` in dimension derive_key(key, 0, DIM_DIR), so the rows of one pixel
     are one stratified sequence. Origins are written float32 relative to ``center``."""
     dkey = derive_key(key, 0, DIM_DIR)
-    for i in nb.prange(p.shape[0]):
+    for i in range(lo, hi):
         m = mat[i]
         g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
         n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
@@ -600,12 +618,12 @@ def _diffuse_starts(p, ng, ns, mat, pix, sidx, key, kd, center, extent, o_out, d
             w_out[i, k] = kd[m, k] if ok else 0.0
         alive[i] = ok and (kd[m, 0] > 0.0 or kd[m, 1] > 0.0 or kd[m, 2] > 0.0)
 
-@DualKernel
-def _gather_hits(idx, prim, u, v, d, w, wref, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _gather_hits(lo, hi, idx, prim, u, v, d, w, wref, kind, depth, bounces, pix, sidx, skey, tri_p, tri_n, tri_ng,
                  tri_mat, p_out, ng_out, ns_out, mat_out, d_out, w_out, wref_out, kind_out, depth_out, bounces_out,
                  pix_out, sidx_out, skey_out):
     """Compact the rays that hit something and compute their surface frames."""
-    for j in nb.prange(idx.shape[0]):
+    for j in range(lo, hi):
         i = idx[j]
         t = prim[i]
         uu = np.float64(u[i])
@@ -628,8 +646,8 @@ def _gather_hits(idx, prim, u, v, d, w, wref, kind, depth, bounces, pix, sidx, s
         skey_out[j] = skey[i]
 
 
-@DualKernel
-def _rect_hits(o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s,
                lit, c_out):
     """Rect lights seen by the rays that see lights: camera rays and mirror / glossy continuations
     (``kind`` KIND_CHAIN or KIND_SPEC; diffuse path rays never do, next-event estimation covers
@@ -645,7 +663,7 @@ def _rect_hits(o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, r
     the gg light samples next-event estimation takes (``_light_rays`` weighs the other side);
     camera and mirror rays (``bpdf`` 0) with weight 1."""
     nrect = rc.shape[0]
-    for i in nb.prange(prim.shape[0]):
+    for i in range(lo, hi):
         lit[i] = False
         if kind[i] == KIND_PATH:
             continue
@@ -738,11 +756,11 @@ def _accumulate_shadow(acc, live, occ, contrib, pix_h, per):
             acc[q, 2] += contrib[row, 2]
 
 
-@DualKernel
-def _compact_rays(idx, o, d, w, bpdf, wref, kind, depth, bounces, pix, sidx, skey,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _compact_rays(lo, hi, idx, o, d, w, bpdf, wref, kind, depth, bounces, pix, sidx, skey,
                   o_out, d_out, d32_out, w_out, bpdf_out, wref_out, kind_out, depth_out, bounces_out, pix_out,
                   sidx_out, skey_out):
-    for j in nb.prange(idx.shape[0]):
+    for j in range(lo, hi):
         i = idx[j]
         for k in range(3):
             o_out[j, k] = o[i, k]
@@ -806,8 +824,8 @@ def _pixel_ray(r, x, y, width, height, ortho, eye, right, up, fwd, sx_scale, sy_
     d32_out[r, 0], d32_out[r, 1], d32_out[r, 2] = dx, dy, dz
 
 
-@DualKernel
-def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key, center,
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _camera_batch(lo, hi, ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key, center,
                   o_out, d_out, d32_out, pix_out, sidx_out, skey_out, jitter=True):
     """spp camera rays per pixel (box filter): sample j of pixel q is at sample j of q in the
     dimension derive_key(key, 0, DIM_PIXEL) (stratified: engine/sampler.py), independent of
@@ -815,7 +833,7 @@ def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_sc
     The rays start paths with sample index j and key ``key``.
     Perspective: sx_scale = tan(fov/2) * aspect, sy_scale = tan(fov/2); orthographic: half extents."""
     pkey = derive_key(key, 0, DIM_PIXEL)
-    for a in nb.prange(ids.shape[0]):
+    for a in range(lo, hi):
         q = ids[a]
         qx = q % width
         qy = q // width
@@ -832,16 +850,16 @@ def _camera_batch(ids, spp, gx, width, height, ortho, eye, right, up, fwd, sx_sc
             skey_out[r] = key
 
 
-@DualKernel
-def _camera_rows(rid, start, cnt, first, npix, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale, key,
-                 center, o_out, d_out, d32_out, pix_out, sidx_out, skey_out):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _camera_rows(lo, hi, rid, start, cnt, first, npix, width, height, ortho, eye, right, up, fwd, sx_scale, sy_scale,
+                 key, center, o_out, d_out, d32_out, pix_out, sidx_out, skey_out):
     """Camera rays of one pass of a progressive render (engine/progressive.py): row a is the
     (virtual) pixel ``rid[a]``, samples ``start[a] .. start[a] + cnt[a] - 1``, written from ray
     ``first[a]``. A virtual pixel v is image pixel v % npix; v < npix is its half buffer A, whose
     samples are those ``_camera_batch`` gives the pixel, v >= npix its half buffer B, an
     independent sequence (every sample value is keyed by the pixel number, engine/sampler.py)."""
     pkey = derive_key(key, 0, DIM_PIXEL)
-    for a in nb.prange(rid.shape[0]):
+    for a in range(lo, hi):
         v = rid[a]
         q = v % npix
         qx = q % width
@@ -857,9 +875,9 @@ def _camera_rows(rid, start, cnt, first, npix, width, height, ortho, eye, right,
             skey_out[r] = key
 
 
-@DualKernel
-def _compact_shadow(live, so, sd, tmax, so_out, sd_out, tm_out):
-    for j in nb.prange(live.shape[0]):
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _compact_shadow(lo, hi, live, so, sd, tmax, so_out, sd_out, tm_out):
+    for j in range(lo, hi):
         i = live[j]
         for k in range(3):
             so_out[j, k] = so[i, k]
@@ -883,9 +901,10 @@ def _camera_frame(camera: CameraParams):
 def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n_pieces: int, pipelines: int,
                timer: _Timer, counts: dict[str, int], done: Callable[[float], None] | None = None) -> None:
     """Run pieces 0 .. n_pieces - 1 of a render, which accumulate into disjoint rows (so no locks):
-    ``run_piece(i, timer, counts, serial)``. ``pipelines`` <= 1: one piece at a time with parallel
-    kernels; else that many in flight, one per thread, with serial nogil kernels: while one
-    pipeline holds the GIL inside Embree the others shade. ``done(fraction of pieces finished)``
+    ``run_piece(i, timer, counts, serial)``. ``pipelines`` <= 1: one piece at a time, each kernel
+    split over the thread pool (``serial`` False, ``_split``); else that many in flight, one per
+    thread, each calling the nogil kernels on its whole batch (``serial`` True): while one
+    pipeline holds the GIL the others shade or trace. ``done(fraction of pieces finished)``
     after each piece (it may raise to cancel: in-flight pieces finish, no more start)."""
     if pipelines <= 1:
         for i in range(n_pieces):
@@ -1101,9 +1120,10 @@ class ReferenceRenderer:
         alive = np.empty(n, np.bool_)
         pix = np.ascontiguousarray(pix, dtype=np.int64)
         sidx = np.ascontiguousarray(sidx, dtype=np.int64)
-        _diffuse_starts.par(np.ascontiguousarray(p, np.float64), np.ascontiguousarray(ng, np.float64),
-                            np.ascontiguousarray(ns, np.float64), np.ascontiguousarray(mat, np.int32), pix, sidx,
-                            np.uint64(key), sc.materials.kd, sc.center, sc.extent, o32, d, d32, w, alive)
+        _split(_diffuse_starts, n, _MIN_ITEMS, False, np.ascontiguousarray(p, np.float64),
+               np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64),
+               np.ascontiguousarray(mat, np.int32), pix, sidx, np.uint64(key), sc.materials.kd, sc.center, sc.extent,
+               o32, d, d32, w, alive)
         live = np.flatnonzero(alive)
         k = live.size
         timer.add("shading", time.perf_counter() - t0)
@@ -1141,8 +1161,8 @@ class ReferenceRenderer:
             p = np.empty((idx.size, 3))
             ng = np.empty((idx.size, 3))
             ns = np.empty((idx.size, 3))
-            _surface(d[idx], hits.prim[idx], hits.u[idx], hits.v[idx], sc.tri_p, sc.tri_n, sc.tri_ng,
-                     p, ng, ns)
+            _split(_surface, idx.size, _MIN_ITEMS, None, d[idx], hits.prim[idx], hits.u[idx], hits.v[idx], sc.tri_p,
+                   sc.tri_n, sc.tri_ng, p, ng, ns)
             normal[idx] = ns
         timer.add("aov", time.perf_counter() - t0)
         return depth, normal.reshape(h, w, 3).astype(np.float32), oid, mid
@@ -1153,10 +1173,10 @@ class ReferenceRenderer:
         gx = int(math.ceil(math.sqrt(params.spp)))
 
         def fill(o32, d, d32, pix, sidx, skey):
-            _camera_batch.pick(serial)(ids, params.spp, gx, camera.width, camera.height,
-                                       camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up,
-                                       fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix,
-                                       sidx, skey, bool(params.pixel_jitter))
+            _split(_camera_batch, ids.shape[0], _MIN_ITEMS // max(1, params.spp), serial, ids, params.spp, gx,
+                   camera.width, camera.height, camera.kind == "orthographic", np.asarray(camera.eye, np.float64),
+                   right, up, fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix,
+                   sidx, skey, bool(params.pixel_jitter))
 
         self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial)
 
@@ -1169,10 +1189,10 @@ class ReferenceRenderer:
         right, up, fwd, sxs, sys_ = _camera_frame(camera)
 
         def fill(o32, d, d32, pix, sidx, skey):
-            _camera_rows.pick(serial)(rid, start, cnt, first, camera.width * camera.height, camera.width,
-                                      camera.height, camera.kind == "orthographic", np.asarray(camera.eye, np.float64),
-                                      right, up, fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32,
-                                      d, d32, pix, sidx, skey)
+            _split(_camera_rows, rid.shape[0], _MIN_ITEMS // max(1, params.spp), serial, rid, start, cnt, first,
+                   camera.width * camera.height, camera.width, camera.height, camera.kind == "orthographic",
+                   np.asarray(camera.eye, np.float64), right, up, fwd, sxs, sys_, sample_key(params.seed, 0),
+                   self.scene.center, o32, d, d32, pix, sidx, skey)
 
         self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial)
 
@@ -1230,10 +1250,9 @@ class ReferenceRenderer:
             if lt.n_rect and not (it == 1 and first_hits is not None) and np.any(kind != KIND_PATH):
                 lit = np.empty(n, np.bool_)
                 lit_c = np.empty((n, 3))
-                _rect_hits.pick(serial)(o32, d, prim, u, v, kind, weight, bpdf, r_g * r_g, self._mis, sc.tri_p,
-                                        sc.center, lt.rect_corner,
-                                        lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
-                                        lt.rect_radiance, lt.rect_two_sided, lit, lit_c)
+                _split(_rect_hits, n, _MIN_ITEMS, serial, o32, d, prim, u, v, kind, weight, bpdf, r_g * r_g,
+                       self._mis, sc.tri_p, sc.center, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n,
+                       self._rect_area, lt.rect_radiance, lt.rect_two_sided, lit, lit_c)
                 # a ray that ends on a light hits nothing; a last vertex's light-seeking ray (bounces
                 # -1, see _plan) only counts the light it meets
                 idx = np.flatnonzero((prim >= 0) & ~lit & (bounces >= 0))
@@ -1253,9 +1272,9 @@ class ReferenceRenderer:
             pix_h = np.empty(m, np.int64)
             sidx_h = np.empty(m, np.int64)
             skey_h = np.empty(m, np.uint64)
-            _gather_hits.pick(serial)(idx, prim, u, v, d, weight, wref, kind, depth, bounces, pix, sidx, skey,
-                                      sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h,
-                                      wref_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
+            _split(_gather_hits, m, _MIN_ITEMS, serial, idx, prim, u, v, d, weight, wref, kind, depth, bounces, pix,
+                   sidx, skey, sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h, wref_h, kind_h,
+                   depth_h, bnc_h, pix_h, sidx_h, skey_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
                                             idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
                                             mt.emission, mt.kd, sc.ambient, lit, lit_c)
@@ -1274,8 +1293,8 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            _plan.pick(serial)(mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg, params.max_depth,
-                               params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy, n_ind, count)
+            _split(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg,
+                   params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
             tot = int(first[-1] + count[-1])
@@ -1295,10 +1314,10 @@ class ReferenceRenderer:
             wref2 = np.empty(tot)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _spawn.pick(serial)(p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h,
-                                first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min, mt.kd, mt.kr, mt.kg,
-                                mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2,
-                                pix2, sidx2, skey2, bpdf2, wref2, alive)
+            _split(_spawn, m, _MIN_HEAVY, serial, p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h, pix_h,
+                   sidx_h, skey_h, first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min, mt.kd, mt.kr,
+                   mt.kg, mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2,
+                   sidx2, skey2, bpdf2, wref2, alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
                 # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy
@@ -1320,8 +1339,8 @@ class ReferenceRenderer:
                 skey = np.empty(n, np.uint64)
                 bpdf = np.empty(n)
                 wref = np.empty(n)
-                _compact_rays.pick(serial)(live, o2, d2, w2, bpdf2, wref2, kind2, depth2, bnc2, pix2, sidx2, skey2,
-                                           o32, d, d32, weight, bpdf, wref, kind, depth, bounces, pix, sidx, skey)
+                _split(_compact_rays, n, _MIN_COPY, serial, live, o2, d2, w2, bpdf2, wref2, kind2, depth2, bnc2, pix2,
+                       sidx2, skey2, o32, d, d32, weight, bpdf, wref, kind, depth, bounces, pix, sidx, skey)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path
@@ -1345,14 +1364,12 @@ class ReferenceRenderer:
             tmax = np.empty(rows, np.float32)
             contrib = np.empty((rows, 3))
             alive = np.empty(rows, np.bool_)
-            _light_rays.pick(serial)(p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], kind_h[sl], depth_h[sl],
-                        bnc_h[sl], mt.kd, mt.ks, mt.shininess, self._spec_cut, mt.kr, mt.kg, mt.gloss_exponent,
-                        params.max_depth, params.glossy_samples, self._mis, lt.point_position, lt.point_intensity,
-                        lt.dir_direction, lt.dir_irradiance,
-                        lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
-                        lt.rect_radiance, lt.rect_two_sided,
-                        r_g, pix_h[sl], sidx_h[sl], skey_h[sl], it, sc.center, sc.extent, so, sd, tmax,
-                        contrib, alive)
+            _split(_light_rays, k, _MIN_HEAVY, serial, p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], kind_h[sl],
+                   depth_h[sl], bnc_h[sl], mt.kd, mt.ks, mt.shininess, self._spec_cut, mt.kr, mt.kg,
+                   mt.gloss_exponent, params.max_depth, params.glossy_samples, self._mis, lt.point_position,
+                   lt.point_intensity, lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u,
+                   lt.rect_edge_v, self._rect_n, self._rect_area, lt.rect_radiance, lt.rect_two_sided, r_g, pix_h[sl],
+                   sidx_h[sl], skey_h[sl], it, sc.center, sc.extent, so, sd, tmax, contrib, alive)
             live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)
             if live.size == 0:
@@ -1361,7 +1378,7 @@ class ReferenceRenderer:
             so_l = np.empty((live.size, 3), np.float32)
             sd_l = np.empty((live.size, 3), np.float32)
             tm_l = np.empty(live.size, np.float32)
-            _compact_shadow.pick(serial)(live, so, sd, tmax, so_l, sd_l, tm_l)
+            _split(_compact_shadow, live.size, _MIN_COPY, serial, live, so, sd, tmax, so_l, sd_l, tm_l)
             timer.add("shading", time.perf_counter() - t0)
             t0 = time.perf_counter()
             occ = self.caster.occluded_local(so_l, sd_l, tm_l, serial)
