@@ -15,9 +15,9 @@ What it runs -- the render queue's own job functions, not look-alikes, so the co
 signatures are the ones the jobs need (same dtypes, array layouts, kernel variants, thread
 settings):
 
-- ``workers.jobs.render.render_job`` for ``reference`` (a 1-chunk image: the parallel kernels,
-  and a 2-chunk image: the serial kernels the pipelined renderer runs in threads, with mirror,
-  glossy and indirect paths), and for ``ldc``, ``ldc+llf``, ``ldc+ibrt:1``, ``ldc+ibrt:2`` from a
+- ``workers.jobs.render.render_job`` for ``reference`` (a 1-chunk image, its kernels split over
+  the cores, and a 2-chunk image, two pipelines in threads, with mirror, glossy and indirect
+  paths: the same kernels, each compiled once), and for ``ldc``, ``ldc+llf``, ``ldc+ibrt:1``, ``ldc+ibrt:2`` from a
   bake with a light field, plus ``ldc`` from a bake without one (the highlight pass then takes
   other parameter types); every output encoder (preview PNG, EXRs, provenance PNG);
 - the bake those renders read: the bake queue's part jobs (``bake_ldc_axis_job``,
@@ -107,21 +107,16 @@ log = logging.getLogger("workers.warmup")
 
 
 def engine_dispatchers() -> dict[str, Any]:
-    """Every numba dispatcher of the imported engine modules by ``module.name`` (``engine.shading.DualKernel``
-    objects contribute their ``.par`` and ``.ser`` compilations), each dispatcher once."""
+    """Every numba dispatcher of the imported engine modules by ``module.name``, each dispatcher once."""
     found: dict[str, Any] = {}
     seen: set[int] = set()
     for mod_name, mod in sorted(sys.modules.items()):
         if mod is None or not (mod_name == "engine" or mod_name.startswith("engine.")):
             continue
         for attr, value in sorted(vars(mod).items()):
-            candidates: list[tuple[str, Any]] = [(attr, value)]
-            if not isinstance(value, Dispatcher):
-                candidates = [(f"{attr}.{sub}", getattr(value, sub, None)) for sub in ("par", "ser")]
-            for name, disp in candidates:
-                if isinstance(disp, Dispatcher) and id(disp) not in seen:
-                    seen.add(id(disp))
-                    found[f"{mod_name}.{name}"] = disp
+            if isinstance(value, Dispatcher) and id(value) not in seen:
+                seen.add(id(value))
+                found[f"{mod_name}.{attr}"] = value
     return found
 
 
@@ -388,11 +383,11 @@ class _Run:
         self.scene_id = put_scene(self.store, Scene.model_validate(WARMUP_SCENE), {}, owner=None).id
 
     def reference(self) -> None:
-        # 24 x 24 = one wavefront chunk: the renderer runs its parallel kernels
+        # 24 x 24 = one wavefront chunk: each kernel's batch split over the cores
         self.render(params={"spp": 1, "max_depth": 2, "glossy_samples": 2, "area_light_samples": 4})
 
     def reference_pipelined(self) -> None:
-        # 40 x 32 = two chunks: two pipelines in threads with the serial kernels; indirect paths too
+        # 40 x 32 = two chunks: two pipelines in threads, each kernel's batch in one call; indirect paths too
         self.render(params={"spp": 1, "max_depth": 2, "glossy_samples": 2, "area_light_samples": 4,
                             "indirect_samples": 1, "indirect_bounces": 1},
                     camera={**WARMUP_SCENE["camera"], "width": 40, "height": 32})
