@@ -31,7 +31,6 @@ import glob
 import os
 import threading
 import weakref
-from collections.abc import Callable
 
 import llvmlite.binding as llvm
 import numba as nb
@@ -233,13 +232,6 @@ def _occluded_kernel(scene, o, d, tmax, lo, hi, occ):
             occ[a + j] = buf[8 * W + j] < 0.0
 
 
-def _run(kernel: Callable[[int, int], None], n: int, serial: bool | None) -> None:
-    """``kernel(lo, hi)`` over 0 .. n - 1, on every core from the main thread by default
-    (``engine.sched.run_pieces_parallel``; other threads are usually pipelines that already keep
-    every core busy)."""
-    run_pieces_parallel(kernel, n, _MIN_PIECE, serial)
-
-
 def intersect(scene: Scene, o32: np.ndarray, d32: np.ndarray, serial: bool | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """First hits of float32 rays (n, 3) relative to the scene's centre: (prim int32, -1 on a miss;
@@ -253,7 +245,8 @@ def intersect(scene: Scene, o32: np.ndarray, d32: np.ndarray, serial: bool | Non
     if n:
         o = np.ascontiguousarray(o32, dtype=np.float32)
         d = np.ascontiguousarray(d32, dtype=np.float32)
-        _run(lambda lo, hi: _intersect_kernel(scene.ptr, o, d, lo, hi, prim, u, v, t), n, serial)
+        run_pieces_parallel(lambda lo, hi: _intersect_kernel(scene.ptr, o, d, lo, hi, prim, u, v, t), n, _MIN_PIECE,
+                            serial)
     return prim, u, v, t
 
 
@@ -267,7 +260,7 @@ def occluded(scene: Scene, o32: np.ndarray, d32: np.ndarray, tmax32: np.ndarray,
         o = np.ascontiguousarray(o32, dtype=np.float32)
         d = np.ascontiguousarray(d32, dtype=np.float32)
         tm = np.ascontiguousarray(tmax32, dtype=np.float32)
-        _run(lambda lo, hi: _occluded_kernel(scene.ptr, o, d, tm, lo, hi, occ), n, serial)
+        run_pieces_parallel(lambda lo, hi: _occluded_kernel(scene.ptr, o, d, tm, lo, hi, occ), n, _MIN_PIECE, serial)
     return occ
 
 

@@ -236,21 +236,14 @@ class _Timer:
 #
 # Every kernel below is compiled once, serially, and releases the GIL; the batch kernels take the
 # range ``lo .. hi - 1`` of their items and write only those items' outputs (rows of the output
-# arrays that no other item writes), so :func:`_split` can run them on slices of a batch from the
-# thread pool of engine/sched.py and the image does not depend on the split. A pipeline thread
+# arrays that no other item writes), so ``engine.sched.run_pieces_parallel`` can run them on slices of
+# a batch from its thread pool and the image does not depend on the split. A pipeline thread
 # (``pipelines`` >= 2) calls them on the whole batch.
 
 # fewest items per piece when a kernel is split over threads (a piece costs ~20-50 us to dispatch):
 _MIN_HEAVY = 512  # per item: light samples or secondary rays (_light_rays, _spawn)
 _MIN_ITEMS = 4096  # per item: a surface frame, a ray's rect-light test, a camera ray or a few
 _MIN_COPY = 16384  # per item: a few loads and stores (_plan, compactions)
-
-
-def _split(kernel: Callable[..., None], n: int, min_piece: int, serial: bool | None, *args: Any) -> None:
-    """``kernel(lo, hi, *args)`` over items 0 .. n - 1: one call when ``serial`` (a pipeline's
-    thread), else in slices over the thread pool (``engine.sched.run_pieces_parallel``)."""
-    run_pieces_parallel(lambda lo, hi: kernel(lo, hi, *args), n, min_piece, serial)
-
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
@@ -902,9 +895,9 @@ def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n
                timer: _Timer, counts: dict[str, int], done: Callable[[float], None] | None = None) -> None:
     """Run pieces 0 .. n_pieces - 1 of a render, which accumulate into disjoint rows (so no locks):
     ``run_piece(i, timer, counts, serial)``. ``pipelines`` <= 1: one piece at a time, each kernel
-    split over the thread pool (``serial`` False, ``_split``); else that many in flight, one per
-    thread, each calling the nogil kernels on its whole batch (``serial`` True): while one
-    pipeline holds the GIL the others shade or trace. ``done(fraction of pieces finished)``
+    split over the thread pool (``serial`` False, ``engine.sched.run_pieces_parallel``); else that
+    many in flight, one per thread, each calling the nogil kernels on its whole batch (``serial``
+    True): while one pipeline holds the GIL the others shade or trace. ``done(fraction of pieces finished)``
     after each piece (it may raise to cancel: in-flight pieces finish, no more start)."""
     if pipelines <= 1:
         for i in range(n_pieces):
@@ -1120,10 +1113,10 @@ class ReferenceRenderer:
         alive = np.empty(n, np.bool_)
         pix = np.ascontiguousarray(pix, dtype=np.int64)
         sidx = np.ascontiguousarray(sidx, dtype=np.int64)
-        _split(_diffuse_starts, n, _MIN_ITEMS, False, np.ascontiguousarray(p, np.float64),
-               np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64),
-               np.ascontiguousarray(mat, np.int32), pix, sidx, np.uint64(key), sc.materials.kd, sc.center, sc.extent,
-               o32, d, d32, w, alive)
+        run_pieces_parallel(_diffuse_starts, n, _MIN_ITEMS, False, np.ascontiguousarray(p, np.float64),
+                            np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64),
+                            np.ascontiguousarray(mat, np.int32), pix, sidx, np.uint64(key), sc.materials.kd, sc.center,
+                            sc.extent, o32, d, d32, w, alive)
         live = np.flatnonzero(alive)
         k = live.size
         timer.add("shading", time.perf_counter() - t0)
@@ -1161,8 +1154,8 @@ class ReferenceRenderer:
             p = np.empty((idx.size, 3))
             ng = np.empty((idx.size, 3))
             ns = np.empty((idx.size, 3))
-            _split(_surface, idx.size, _MIN_ITEMS, None, d[idx], hits.prim[idx], hits.u[idx], hits.v[idx], sc.tri_p,
-                   sc.tri_n, sc.tri_ng, p, ng, ns)
+            run_pieces_parallel(_surface, idx.size, _MIN_ITEMS, None, d[idx], hits.prim[idx], hits.u[idx], hits.v[idx],
+                                sc.tri_p, sc.tri_n, sc.tri_ng, p, ng, ns)
             normal[idx] = ns
         timer.add("aov", time.perf_counter() - t0)
         return depth, normal.reshape(h, w, 3).astype(np.float32), oid, mid
@@ -1173,10 +1166,11 @@ class ReferenceRenderer:
         gx = int(math.ceil(math.sqrt(params.spp)))
 
         def fill(o32, d, d32, pix, sidx, skey):
-            _split(_camera_batch, ids.shape[0], _MIN_ITEMS // max(1, params.spp), serial, ids, params.spp, gx,
-                   camera.width, camera.height, camera.kind == "orthographic", np.asarray(camera.eye, np.float64),
-                   right, up, fwd, sxs, sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix,
-                   sidx, skey, bool(params.pixel_jitter))
+            run_pieces_parallel(_camera_batch, ids.shape[0], _MIN_ITEMS // max(1, params.spp), serial, ids, params.spp,
+                                gx, camera.width, camera.height, camera.kind == "orthographic",
+                                np.asarray(camera.eye, np.float64), right, up, fwd, sxs, sys_,
+                                sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix, sidx, skey,
+                                bool(params.pixel_jitter))
 
         self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial)
 
@@ -1189,10 +1183,10 @@ class ReferenceRenderer:
         right, up, fwd, sxs, sys_ = _camera_frame(camera)
 
         def fill(o32, d, d32, pix, sidx, skey):
-            _split(_camera_rows, rid.shape[0], _MIN_ITEMS // max(1, params.spp), serial, rid, start, cnt, first,
-                   camera.width * camera.height, camera.width, camera.height, camera.kind == "orthographic",
-                   np.asarray(camera.eye, np.float64), right, up, fwd, sxs, sys_, sample_key(params.seed, 0),
-                   self.scene.center, o32, d, d32, pix, sidx, skey)
+            run_pieces_parallel(_camera_rows, rid.shape[0], _MIN_ITEMS // max(1, params.spp), serial, rid, start, cnt,
+                                first, camera.width * camera.height, camera.width, camera.height,
+                                camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd, sxs,
+                                sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix, sidx, skey)
 
         self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial)
 
@@ -1250,9 +1244,10 @@ class ReferenceRenderer:
             if lt.n_rect and not (it == 1 and first_hits is not None) and np.any(kind != KIND_PATH):
                 lit = np.empty(n, np.bool_)
                 lit_c = np.empty((n, 3))
-                _split(_rect_hits, n, _MIN_ITEMS, serial, o32, d, prim, u, v, kind, weight, bpdf, r_g * r_g,
-                       self._mis, sc.tri_p, sc.center, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n,
-                       self._rect_area, lt.rect_radiance, lt.rect_two_sided, lit, lit_c)
+                run_pieces_parallel(_rect_hits, n, _MIN_ITEMS, serial, o32, d, prim, u, v, kind, weight, bpdf,
+                                    r_g * r_g, self._mis, sc.tri_p, sc.center, lt.rect_corner, lt.rect_edge_u,
+                                    lt.rect_edge_v, self._rect_n, self._rect_area, lt.rect_radiance, lt.rect_two_sided,
+                                    lit, lit_c)
                 # a ray that ends on a light hits nothing; a last vertex's light-seeking ray (bounces
                 # -1, see _plan) only counts the light it meets
                 idx = np.flatnonzero((prim >= 0) & ~lit & (bounces >= 0))
@@ -1272,9 +1267,9 @@ class ReferenceRenderer:
             pix_h = np.empty(m, np.int64)
             sidx_h = np.empty(m, np.int64)
             skey_h = np.empty(m, np.uint64)
-            _split(_gather_hits, m, _MIN_ITEMS, serial, idx, prim, u, v, d, weight, wref, kind, depth, bounces, pix,
-                   sidx, skey, sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns, mat, d_h, w_h, wref_h, kind_h,
-                   depth_h, bnc_h, pix_h, sidx_h, skey_h)
+            run_pieces_parallel(_gather_hits, m, _MIN_ITEMS, serial, idx, prim, u, v, d, weight, wref, kind, depth,
+                                bounces, pix, sidx, skey, sc.tri_p, sc.tri_n, sc.tri_ng, sc.tri_material, p, ng, ns,
+                                mat, d_h, w_h, wref_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h)
             _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
                                             idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
                                             mt.emission, mt.kd, sc.ambient, lit, lit_c)
@@ -1293,8 +1288,9 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            _split(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg,
-                   params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy, n_ind, count)
+            run_pieces_parallel(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg,
+                                params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy,
+                                n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
             tot = int(first[-1] + count[-1])
@@ -1314,10 +1310,10 @@ class ReferenceRenderer:
             wref2 = np.empty(tot)
             alive = np.empty(tot, np.bool_)
             d2_32 = np.empty((tot, 3), np.float32)
-            _split(_spawn, m, _MIN_HEAVY, serial, p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h, pix_h,
-                   sidx_h, skey_h, first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min, mt.kd, mt.kr,
-                   mt.kg, mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2, depth2, bnc2, pix2,
-                   sidx2, skey2, bpdf2, wref2, alive)
+            run_pieces_parallel(_spawn, m, _MIN_HEAVY, serial, p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h,
+                                pix_h, sidx_h, skey_h, first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min,
+                                mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2,
+                                depth2, bnc2, pix2, sidx2, skey2, bpdf2, wref2, alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
                 # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy
@@ -1339,8 +1335,9 @@ class ReferenceRenderer:
                 skey = np.empty(n, np.uint64)
                 bpdf = np.empty(n)
                 wref = np.empty(n)
-                _split(_compact_rays, n, _MIN_COPY, serial, live, o2, d2, w2, bpdf2, wref2, kind2, depth2, bnc2, pix2,
-                       sidx2, skey2, o32, d, d32, weight, bpdf, wref, kind, depth, bounces, pix, sidx, skey)
+                run_pieces_parallel(_compact_rays, n, _MIN_COPY, serial, live, o2, d2, w2, bpdf2, wref2, kind2, depth2,
+                                    bnc2, pix2, sidx2, skey2, o32, d, d32, weight, bpdf, wref, kind, depth, bounces,
+                                    pix, sidx, skey)
             n_path = int(np.count_nonzero(kind))
             counts["indirect"] += n_path
             counts["reflection"] += n - n_path
@@ -1364,12 +1361,13 @@ class ReferenceRenderer:
             tmax = np.empty(rows, np.float32)
             contrib = np.empty((rows, 3))
             alive = np.empty(rows, np.bool_)
-            _split(_light_rays, k, _MIN_HEAVY, serial, p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl], kind_h[sl],
-                   depth_h[sl], bnc_h[sl], mt.kd, mt.ks, mt.shininess, self._spec_cut, mt.kr, mt.kg,
-                   mt.gloss_exponent, params.max_depth, params.glossy_samples, self._mis, lt.point_position,
-                   lt.point_intensity, lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u,
-                   lt.rect_edge_v, self._rect_n, self._rect_area, lt.rect_radiance, lt.rect_two_sided, r_g, pix_h[sl],
-                   sidx_h[sl], skey_h[sl], it, sc.center, sc.extent, so, sd, tmax, contrib, alive)
+            run_pieces_parallel(_light_rays, k, _MIN_HEAVY, serial, p[sl], ng[sl], ns[sl], d_h[sl], mat[sl], w_h[sl],
+                                kind_h[sl], depth_h[sl], bnc_h[sl], mt.kd, mt.ks, mt.shininess, self._spec_cut, mt.kr,
+                                mt.kg, mt.gloss_exponent, params.max_depth, params.glossy_samples, self._mis,
+                                lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
+                                lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
+                                lt.rect_radiance, lt.rect_two_sided, r_g, pix_h[sl], sidx_h[sl], skey_h[sl], it,
+                                sc.center, sc.extent, so, sd, tmax, contrib, alive)
             live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)
             if live.size == 0:
@@ -1378,7 +1376,7 @@ class ReferenceRenderer:
             so_l = np.empty((live.size, 3), np.float32)
             sd_l = np.empty((live.size, 3), np.float32)
             tm_l = np.empty(live.size, np.float32)
-            _split(_compact_shadow, live.size, _MIN_COPY, serial, live, so, sd, tmax, so_l, sd_l, tm_l)
+            run_pieces_parallel(_compact_shadow, live.size, _MIN_COPY, serial, live, so, sd, tmax, so_l, sd_l, tm_l)
             timer.add("shading", time.perf_counter() - t0)
             t0 = time.perf_counter()
             occ = self.caster.occluded_local(so_l, sd_l, tm_l, serial)

@@ -44,6 +44,7 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numba as nb
 from llvmlite import ir
@@ -72,43 +73,53 @@ def next_block(typingctx, counter):
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None
 _POOL_LOCK = threading.Lock()
+_IN_POOL = threading.local()
+
+
+def _mark_pool_thread() -> None:
+    _IN_POOL.yes = True
 
 
 def _pool() -> ThreadPoolExecutor:
-    """This process's threads for parallel kernels, one per numba thread (made again after a fork:
-    threads don't survive one)."""
+    """This process's threads for parallel kernels: as many as numba may use (``NUMBA_NUM_THREADS``;
+    a call uses ``nb.get_num_threads()`` of them, which a caller may lower). Made again after a
+    fork: threads don't survive one."""
     global _POOL
     with _POOL_LOCK:
         if _POOL is None or _POOL[0] != os.getpid():
-            _POOL = (os.getpid(), ThreadPoolExecutor(max(1, nb.get_num_threads()), thread_name_prefix="ibr-kernel"))
+            pool = ThreadPoolExecutor(max(1, nb.config.NUMBA_NUM_THREADS), thread_name_prefix="ibr-kernel",
+                                      initializer=_mark_pool_thread)
+            _POOL = (os.getpid(), pool)
         return _POOL[1]
 
 
 def threads_for(serial: bool | None) -> int:
-    """How many threads a kernel call may use: 1 when ``serial``; by default (None) every numba
+    """How many threads a kernel call may use: 1 when ``serial`` or when called from one of the
+    pool's own threads (which must not wait on the pool they run in); by default (None) every numba
     thread when called from the main thread and 1 from any other (those are pipelines,
-    engine/reference.py ``run_pieces``, or this module's own pool threads, which must not wait on
-    the pool they run in)."""
+    engine/reference.py ``run_pieces``)."""
+    if getattr(_IN_POOL, "yes", False):
+        return 1
     if serial is None:
         serial = threading.current_thread() is not threading.main_thread()
     return 1 if serial else max(1, nb.get_num_threads())
 
 
-def run_pieces_parallel(kernel: Callable[[int, int], None], n: int, min_piece: int = 1,
-                        serial: bool | None = None) -> None:
-    """``kernel(lo, hi)`` over 0 .. n - 1: in the calling thread (``threads_for(serial)`` is 1, or
-    fewer than two pieces of ``min_piece`` items), else in up to 4 pieces per thread on the pool.
+def run_pieces_parallel(kernel: Callable[..., None], n: int, min_piece: int = 1, serial: bool | None = None,
+                        *args: Any) -> None:
+    """``kernel(lo, hi, *args)`` over 0 .. n - 1: in the calling thread (``threads_for(serial)`` is
+    1, or fewer than two pieces of ``min_piece`` items), else in up to 4 pieces per thread on the pool.
 
     ``kernel`` must release the GIL (``nogil=True``) to run in parallel, and each piece must write
     only its own outputs, so the result does not depend on the split. More pieces than threads let
     a thread whose core is busy with other work take fewer of them. Exceptions propagate."""
     threads = threads_for(serial)
     if threads < 2 or n < 2 * max(1, min_piece):
-        kernel(0, n)
+        kernel(0, n, *args)
         return
     pieces = min(4 * threads, n // max(1, min_piece))
     cuts = [n * k // pieces for k in range(pieces + 1)]
-    list(_pool().map(lambda k: kernel(cuts[k], cuts[k + 1]), range(pieces)))
+    list(_pool().map(lambda k: kernel(cuts[k], cuts[k + 1], *args), range(pieces)))
 
 
 def run_on_threads(group: Callable[[], None], serial: bool | None = None) -> None:

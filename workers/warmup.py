@@ -516,11 +516,11 @@ def _plan(run: _Run) -> list[tuple[str, Callable[[], None], tuple[str, ...]]]:
     return steps
 
 
-STEPS: tuple[str, ...] = tuple(name for name, _, _ in _plan(_Run(None)))
-"""Names of the warm-up steps, in the order they run."""
-
 NEEDS: dict[str, tuple[str, ...]] = {name: tuple(needs) for name, _, needs in _plan(_Run(None))}
-"""The steps each step needs run before it."""
+"""The steps each step needs run before it, by step name, in the order the steps run."""
+
+STEPS: tuple[str, ...] = tuple(NEEDS)
+"""Names of the warm-up steps, in the order they run."""
 
 
 def needs_of(step: str) -> tuple[str, ...]:

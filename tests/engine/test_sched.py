@@ -4,7 +4,7 @@ import numba as nb
 import numpy as np
 import pytest
 
-from engine.sched import next_block
+from engine.sched import next_block, run_on_threads, run_pieces_parallel, threads_for
 
 
 @nb.njit(parallel=True, cache=False)
@@ -54,3 +54,27 @@ def test_every_block_is_taken_exactly_once(n_threads):
     assert owner.min() >= 0 and owner.max() < n_threads
     # every thread's last fetch overshoots by one: the counter ends at n_blocks + n_threads
     assert int(counter[0]) == 20_000 + n_threads
+
+
+def test_pieces_cover_the_range_once_and_get_the_extra_arguments():
+    seen = np.zeros(10_000, np.int64)
+
+    def piece(lo, hi, out, step):
+        out[lo:hi] += step
+
+    run_pieces_parallel(piece, seen.size, 100, False, seen, 1)
+    assert np.all(seen == 1)
+
+
+def test_a_pool_thread_runs_nested_calls_in_itself_instead_of_waiting_on_the_pool():
+    """A kernel piece that itself asks for every thread (serial=False) gets one: waiting on the
+    pool it runs in could deadlock."""
+    asked: list[int] = []
+
+    def piece(lo, hi):
+        asked.append(threads_for(False))
+        run_on_threads(lambda: None, serial=False)  # returns instead of waiting on the busy pool
+
+    run_pieces_parallel(piece, 8, 1, False)
+    if nb.get_num_threads() > 1:
+        assert asked and set(asked) == {1}
