@@ -39,6 +39,31 @@ def directional_light_sample(d0, d1, d2, e0, e1, e2):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
+def rect_light_sample(ox, oy, oz, mag, sx, sy, c0, c1, c2, u0, u1, u2, v0, v1, v2, n0, n1, n2, area, L0, L1, L2,
+                      two_sided, gg):
+    """``light_sample`` of the point ``c + sx u + sy v`` (sx, sy in [0, 1]) of a rectangular light
+    with corner c, edges u and v, unit normal n, area and radiance L, one of ``gg`` samples of
+    the light at this origin, in scalars (see ``point_light_sample``)."""
+    lx = c0 + sx * u0 + sy * v0 - ox
+    ly = c1 + sx * u1 + sy * v1 - oy
+    lz = c2 + sx * u2 + sy * v2 - oz
+    dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+    if dist <= 0.0 or area <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inv = 1.0 / dist
+    lx *= inv
+    ly *= inv
+    lz *= inv
+    cos_l = -(n0 * lx + n1 * ly + n2 * lz)
+    if two_sided:
+        cos_l = abs(cos_l)
+    if cos_l <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    geo = cos_l * area / (dist * dist * gg)
+    return True, lx, ly, lz, L0 * geo, L1 * geo, L2 * geo, dist * (1.0 - SHADOW_SHORTEN) - mag
+
+
+@nb.njit(cache=True, inline="always", error_model="numpy")
 def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL,
                  r2s, r_g):
     """Light sample ``j`` seen from the origin o (a surface point moved off its surface by ``mag``).
@@ -49,6 +74,10 @@ def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, r
     irradiance it delivers on a surface facing it (before the receiver's cosine) and the
     shadow ray's length, stopping short of the light; ok is False when the sample cannot
     light o (zero distance, or o behind a one-sided rect light).
+
+    Inlined with its array arguments, it costs two atomic reference-count operations per array
+    and call; a hot loop calls the scalar functions above instead (``_light_rays`` in
+    engine/reference.py).
     """
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
@@ -64,21 +93,6 @@ def light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir, dir_irr, r
     s = (j - npt - ndir) % gg
     sx = (s % r_g + su) / r_g
     sy = (s // r_g + sv) / r_g
-    lx = rc[q, 0] + sx * ru[q, 0] + sy * rv[q, 0] - ox
-    ly = rc[q, 1] + sx * ru[q, 1] + sy * rv[q, 1] - oy
-    lz = rc[q, 2] + sx * ru[q, 2] + sy * rv[q, 2] - oz
-    dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-    area = r_area[q]
-    if dist <= 0.0 or area <= 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    inv = 1.0 / dist
-    lx *= inv
-    ly *= inv
-    lz *= inv
-    cos_l = -(r_n[q, 0] * lx + r_n[q, 1] * ly + r_n[q, 2] * lz)
-    if r2s[q]:
-        cos_l = abs(cos_l)
-    if cos_l <= 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    geo = cos_l * area / (dist * dist * gg)
-    return True, lx, ly, lz, rL[q, 0] * geo, rL[q, 1] * geo, rL[q, 2] * geo, dist * (1.0 - SHADOW_SHORTEN) - mag
+    return rect_light_sample(ox, oy, oz, mag, sx, sy, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2],
+                             rv[q, 0], rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], rL[q, 0],
+                             rL[q, 1], rL[q, 2], r2s[q], gg)
