@@ -13,7 +13,9 @@ DEV_STAMP := $(VENV)/.installed-dev
 # Mitsuba already use both cores.
 PYTEST_WORKERS ?= 2
 # Each worker takes whole test files (--dist loadfile) in the order tests/conftest.py sets: files
-# with slow tests first, so the run does not end with one worker alone on a long file.
+# with slow tests first, so the run does not end with one worker alone on a long file. The files
+# that share a live stack (tests/e2e/, the *_cli_live.py CLI tests) go to one worker as one unit
+# (tests/conftest.py's scheduler), which starts that stack once.
 PYTEST_DIST := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: install install-dev run demo render-local warm-cache test test-fast bench lint compose-check clean

@@ -6,7 +6,8 @@ chromium driven by Playwright, and a page per test module. Screenshots go to tes
 Each module's tests build on each other (open a scene, then orbit it, ...), so a module must run
 in one process in file order: ``make test`` runs xdist with ``--dist loadfile`` (``loadgroup``
 cannot be used: pytest-xdist 3.8 groups by rewriting ``item._nodeid``, which pytest 9.2 ignores).
-Each xdist worker that gets a module here starts its own stack."""
+``make test``'s scheduler (tests/conftest.py) gives every module here to the same worker, one after
+another, so one stack and one browser serve them all."""
 
 from __future__ import annotations
 

@@ -1,7 +1,13 @@
 """docs/hard-cases.md #19: property-based tests of every operation against the app's own OpenAPI
 document, with valid and invalid (negative) data: no 5xx, and status codes, content types,
-headers and bodies as documented. ``IBR_SCHEMATHESIS_EXAMPLES`` (default 20 per operation
+headers and bodies as documented. ``IBR_SCHEMATHESIS_EXAMPLES`` (default 10 per operation
 and mode) and ``IBR_SCHEMATHESIS_RANDOM=1`` (a new random draw, not the fixed one) widen it.
+
+Why 10: every operation is still drawn in both modes (positive and negative data, up to ~1,100
+requests in all), and the draw is the fixed one (derandomized), so each run replays the same cases;
+more examples only widen that fixed sample, at ~1 s per operation for 20 per mode (~90 s in all,
+among the full run's largest costs). ``IBR_SCHEMATHESIS_EXAMPLES=100 IBR_SCHEMATHESIS_RANDOM=1`` is
+the wide search.
 
 The operations are driven by hand (``as_strategy`` + ``given``) rather than with
 ``schemathesis.pytest.from_fixture``, whose lazy fixture support does not work with
@@ -36,7 +42,7 @@ CHECKS = [
     response_headers_conformance,
     response_schema_conformance,
 ]
-MAX_EXAMPLES = int(os.environ.get("IBR_SCHEMATHESIS_EXAMPLES", "20"))
+MAX_EXAMPLES = int(os.environ.get("IBR_SCHEMATHESIS_EXAMPLES", "10"))
 DERANDOMIZE = os.environ.get("IBR_SCHEMATHESIS_RANDOM", "") != "1"
 
 
