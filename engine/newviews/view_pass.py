@@ -199,11 +199,14 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     return a0, a1, a2
 
 
-@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+# ``highlights``, ``gather_reflections`` and ``gather_incoming`` are the per-point entry points for
+# callers outside the renderer (its fused kernels in renderer.py are the hot path): their kernels are
+# serial, since a ``parallel=True`` kernel compiles 2-5x slower and these are rarely worth it.
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
     """``highlights``' kernel: ``highlight_point_u`` for every point, in blocks of 64."""
     n = p.shape[0]
-    for b in nb.prange((n + _BLOCK - 1) // _BLOCK):
+    for b in range((n + _BLOCK - 1) // _BLOCK):
         ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
         pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
         rc, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
@@ -579,13 +582,13 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, gp):
     return r0, r1, r2, lookups
 
 
-@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
     """``gather_reflections``' kernel: ``gather_point`` for every point, in blocks of 64."""
     n = p.shape[0]
     nd = gp.directions.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
-    for blk in nb.prange(nblk):
+    for blk in range(nblk):
         cand, best_c, pt = gather_scratch(nd)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             for c in range(3):
@@ -636,7 +639,7 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
     return out, int(lookups.sum())
 
 
-@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def _incoming(p, ng, d, exponent, gp, out):
     """``gather_incoming``'s kernel: per point, the lobe (``exponent`` > 0) or the mirror cone
     around d, from the LLF of ``gp`` (a ``GatherParams``; its material tables are not read)."""
@@ -647,7 +650,7 @@ def _incoming(p, ng, d, exponent, gp, out):
     c_off, c_idx, c_xyz, n_c, k_dirs = gp.cone_offsets, gp.cone_index, gp.cone_xyz, gp.n_c, gp.cone_directions
     nd = dirs.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
-    for blk in nb.prange(nblk):
+    for blk in range(nblk):
         cand, best_c, _ = gather_scratch(nd)
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
