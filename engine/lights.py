@@ -16,10 +16,10 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.raycast import SHADOW_SHORTEN
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def point_light_sample(ox, oy, oz, mag, qx, qy, qz, i0, i1, i2):
-    """``light_sample`` of a point light at q with intensity i, in scalars: inlined into a
-    loop it costs no reference counting (an inlined function's array arguments are increfed
+    """``light_sample`` of a point light at q with intensity i, in scalars: called in a loop it
+    costs no reference counting (an inlined function's array arguments are increfed
     and decrefed at every call: measured at ~5 % of an LDC render's CPU time in the
     highlight loop)."""
     lx, ly, lz = qx - ox, qy - oy, qz - oz
@@ -31,14 +31,14 @@ def point_light_sample(ox, oy, oz, mag, qx, qy, qz, i0, i1, i2):
             dist * (1.0 - SHADOW_SHORTEN) - mag)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def directional_light_sample(d0, d1, d2, e0, e1, e2):
     """``light_sample`` of a directional light travelling along d with irradiance e, in scalars
     (see ``point_light_sample``)."""
     return True, -d0, -d1, -d2, e0, e1, e2, 3.0e38
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def rect_light_sample(ox, oy, oz, mag, sx, sy, c0, c1, c2, u0, u1, u2, v0, v1, v2, n0, n1, n2, area, L0, L1, L2,
                       two_sided, gg):
     """``light_sample`` of the point ``c + sx u + sy v`` (sx, sy in [0, 1]) of a rectangular light

@@ -104,7 +104,7 @@ MIS_MODES = {"power": 0, "balance": 1, "light": 2, "bsdf": 3}
 RR_MIN_BOUNCES = 3
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _mis_weight(mode, a, b):
     """Weight of strategy a (density x sample count ``a``) against strategy b (``b``): power
     heuristic (mode 0), balance heuristic (1); mode 2: light sampling alone (a = the light),
@@ -246,7 +246,7 @@ _MIN_ITEMS = 4096  # per item: a surface frame, a ray's rect-light test, a camer
 _MIN_COPY = 16384  # per item: a few loads and stores (_plan, compactions)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
@@ -783,7 +783,7 @@ def _compact_rays(lo, hi, idx, o, d, w, bpdf, wref, kind, depth, bounces, pix, s
         skey_out[j] = skey[i]
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _cell_centre(j, spp, gx):
     """Centre of cell j of spp equal-area cells tiling the unit square: gy = ceil(spp / gx) rows,
     the first spp % gy rows with one cell more than the others, each row as tall as its share

@@ -23,14 +23,14 @@ _S11 = np.uint64(11)
 _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def mix64(z):
     z = (z ^ (z >> _S30)) * _M1
     z = (z ^ (z >> _S27)) * _M2
     return z ^ (z >> _S31)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def uniform(stream, index, dim):
     """A float64 in [0, 1) for (stream: uint64, index: int, dim: int)."""
     z = mix64(stream ^ mix64(np.uint64(index) * _GOLDEN + np.uint64(dim)))

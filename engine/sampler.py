@@ -64,7 +64,7 @@ _PIX = np.uint64(0xD1B54A32D192ED03)
 _INV53 = 1.0 / 9007199254740992.0  # 2^-53
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _reverse32(x):
     """The 32 low bits of x in reverse order (x < 2^32)."""
     x = ((x >> _S1) & _B1) | ((x & _B1) << _S1)
@@ -74,7 +74,7 @@ def _reverse32(x):
     return ((x >> _S16) & _B16) | ((x & _B16) << _S16)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _lk_permute(x, seed):
     """A seeded permutation of 32-bit integers in which every output bit depends only on the
     input bits at and below it (Laine-Karras, with Vegdahl's constants): applied to reversed
@@ -87,13 +87,13 @@ def _lk_permute(x, seed):
     return x
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _owen(x, seed):
     """Nested uniform scramble of a 32-bit binary fraction x (bit 31 is the first digit)."""
     return _reverse32(_lk_permute(_reverse32(x), seed))
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _sobol1_reversed(i):
     """Second coordinate of the 2-D Sobol sequence at 32-bit index i, bits reversed (bit r is
     digit r + 1 of the binary fraction); the first coordinate reversed is i itself.
@@ -109,13 +109,13 @@ def _sobol1_reversed(i):
     return i ^ ((i >> _S16) & _B16)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _to_unit(x, h):
     """A float64 in [0, 1) whose first 32 binary digits are x, the next 21 the top bits of h."""
     return np.float64((x << _S21) | (h >> _S43)) * _INV53
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def sample_2d(key, pixel, index):
     """(u, v) in [0, 1)^2: sample ``index`` (int64 >= 0) of ``pixel`` (int64) in the dimension
     pair ``key`` (uint64)."""
@@ -131,7 +131,7 @@ def sample_2d(key, pixel, index):
     return _to_unit(x, h), _to_unit(y, h << _S21)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def sample_1d(key, pixel, index):
     """The first coordinate of ``sample_2d(key, pixel, index)`` (a stratified 1-D sample)."""
     idx = np.uint64(index)
@@ -141,7 +141,7 @@ def sample_1d(key, pixel, index):
     return _to_unit(_reverse32(_lk_permute(i, s >> _S32)), h)
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def derive_key(key, a, b):
     """The key of a sub-dimension of ``key`` named by two integers (e.g. a path vertex and a
     purpose): keys derived from different (a, b) give independent sequences."""

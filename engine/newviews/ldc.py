@@ -178,7 +178,7 @@ class LDC:
 # ----------------------------------------------------------------------------- kernels
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def rect_jitter(key, light, owner, s, r_g):
     """The jitter (su, sv) that makes ``light_sample``'s cell ``s`` of rect light ``light`` land on
     sample ``s`` of ``owner``'s stratified sequence over the light (engine/sampler.py, dimension

@@ -113,7 +113,7 @@ def lattice_index_table(f: int) -> np.ndarray:
     return tab
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, nogil=True, error_model="numpy")
 def direction_to_lattice(dx, dy, dz, f):
     """Continuous lattice coordinates (A, B) and hemisphere (0: z >= 0, 1: z < 0) of a unit direction."""
     az = abs(dz)

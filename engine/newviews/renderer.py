@@ -292,7 +292,7 @@ def _sample_point(org, fu, fv, fw, h, nu, k, dep):
             org[2] + aa * fu[2] + bb * fv[2] + dep * fw[2])
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _sample_normals(a0, a1, a2, b0, b1, b2, sd):
     """Geometric (a) and shading normal (b) of a sample flipped to side sd (the shading normal
     falls back to the geometric one when it is on the other side); scalars in and out."""

@@ -212,7 +212,7 @@ def _quad_flags(views, tg, res, depth, oid, state, quad_ratio, qok):
             qok[s] = 1
 
 
-@nb.njit(cache=True, inline="always", error_model="numpy")
+@nb.njit(cache=True, error_model="numpy")
 def _edge(ax, ay, bx, by, px, py):
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
