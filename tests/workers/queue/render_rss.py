@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -33,29 +34,32 @@ def _reset_peak() -> None:
 def main() -> None:
     method, w, h, spp = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
     tmp = tempfile.mkdtemp(prefix="ibr-render-rss-")
-    os.environ["IBR_STORE_URL"] = tmp
+    try:
+        os.environ["IBR_STORE_URL"] = tmp
 
-    from producer.store import open_store
-    from workers import warmup
+        from producer.store import open_store
+        from workers import warmup
 
-    store = open_store(tmp)
-    run = warmup._Run(store)
-    cam = dict(warmup.WARMUP_SCENE["camera"])
-    with warmup._scratch_jobs(store):
-        run.scene()
-        params = json.loads(sys.argv[5]) if len(sys.argv) > 5 else {}
-        extra: dict[str, Any] = {"params": {**params, "spp": spp}}
-        if method != "reference":
-            run.ldc_bake()
-            extra = {"method": method, "bake": run.bake_params.model_dump(mode="json")}
-        run.render(camera={**cam, "width": 64, "height": 64}, **extra)
-        _reset_peak()
-        before = _status_kib("VmRSS") * 1024
-        t0, c0 = time.perf_counter(), time.process_time()
-        run.render(camera={**cam, "width": w, "height": h}, **extra)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before,
-                          "wall_s": wall, "cpu_s": cpu}))
+        store = open_store(tmp)
+        run = warmup._Run(store)
+        cam = dict(warmup.WARMUP_SCENE["camera"])
+        with warmup._scratch_jobs(store):
+            run.scene()
+            params = json.loads(sys.argv[5]) if len(sys.argv) > 5 else {}
+            extra: dict[str, Any] = {"params": {**params, "spp": spp}}
+            if method != "reference":
+                run.ldc_bake()
+                extra = {"method": method, "bake": run.bake_params.model_dump(mode="json")}
+            run.render(camera={**cam, "width": 64, "height": 64}, **extra)
+            _reset_peak()
+            before = _status_kib("VmRSS") * 1024
+            t0, c0 = time.perf_counter(), time.process_time()
+            run.render(camera={**cam, "width": w, "height": h}, **extra)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before,
+                              "wall_s": wall, "cpu_s": cpu}))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 if __name__ == "__main__":
