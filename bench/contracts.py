@@ -59,6 +59,7 @@ import numpy as np
 from api_schemas import load_scene_file
 from api_schemas.service import CalibrationParams
 from bench.docs_writer import replace_block
+from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
 from engine.newviews.indirect import IndirectParams
@@ -482,6 +483,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="render nothing: plan a run's requests (its --json output) again from the calibration "
                          "alone and count the met ones from that run's measurements")
     a = ap.parse_args(argv)
+    keep_freed_memory()  # renders are timed as a render worker runs them (its malloc policy, engine.memory)
     if a.replay_unserved is not None:
         print(json.dumps(replay_unserved(json.loads(a.replay_unserved.read_text()),
                                          (a.error_margin, a.time_margin)), indent=1))

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from engine import ENGINE_VERSION
+from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.reference import ReferenceParams, ReferenceRenderer
 
@@ -67,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", default="/tmp/ibr_progressive_reference", help="ground truths are kept here")
     ap.add_argument("--write", action="store_true", help="write the tables into docs/reference-renderer.md")
     a = ap.parse_args(argv)
+    keep_freed_memory()  # renders are timed as a render worker runs them (its malloc policy, engine.memory)
 
     import samples
     from api_schemas.scene import load_scene_file
