@@ -215,6 +215,16 @@ def scenes_delete(scene_id: str, api_url: ApiOpt = DEFAULT_API, api_key: KeyOpt 
         _call(lambda: c.delete_scene(scene_id))
 
 
+def _bake_choice(ldc_resolution: int | None, llf_f: int | None, indirect_noise: float | None) -> dict[str, Any]:
+    """The bake an LDC render or a calibration names (the service's defaults for what is not given):
+    the same options pick the same bake as ``ibr bake`` with them."""
+    bake: dict[str, Any] = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items()
+                            if v is not None}
+    if indirect_noise is not None:
+        bake["indirect"] = {"noise": indirect_noise}
+    return bake
+
+
 def render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: dict[str, Any],
                      output: Path | None, fmt: str, wait: bool, camera: dict[str, Any] | None = None,
                      method: str | None = "reference", bake: dict[str, Any] | None = None,
@@ -309,6 +319,8 @@ def render(
                       ] = None,
     ldc_resolution: Annotated[int | None, typer.Option(help="LDC methods: the bake's LDC resolution")] = None,
     llf_f: Annotated[int | None, typer.Option(help="LDC methods: the bake's LLF subdivision f")] = None,
+    indirect_noise: Annotated[float | None, typer.Option(
+        help="LDC methods: the bake's noise target for indirect light, relative per sample (default 0.02)")] = None,
     bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
                                                help="LDC methods: bake first when the bake is missing")] = False,
     quality_error: Annotated[float | None, typer.Option(
@@ -332,7 +344,7 @@ def render(
     """Request a render from the service, follow it with a progress bar and fetch the image."""
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
                                 "seed": seed, "max_error": max_error, "max_ms": max_ms}.items() if v is not None}
-    bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
+    bake = _bake_choice(ldc_resolution, llf_f, indirect_noise)
     contract = quality_error is not None or quality_ms is not None
     if contract and (method is not None or params):
         fail("--quality-error/--quality-ms let the planner choose the method: leave out --method and "
@@ -366,6 +378,8 @@ def calibrate(
     scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (uploaded first)")],
     ldc_resolution: Annotated[int | None, typer.Option(help="The bake's LDC resolution")] = None,
     llf_f: Annotated[int | None, typer.Option(help="The bake's LLF subdivision f")] = None,
+    indirect_noise: Annotated[float | None, typer.Option(
+        help="The bake's noise target for indirect light, relative per sample (default 0.02)")] = None,
     probes: Annotated[int | None, typer.Option(help="Probe views (1..8)")] = None,
     size: Annotated[int | None, typer.Option(help="Probe images' longest side, pixels")] = None,
     truth_spp: Annotated[int | None, typer.Option(help="Ground truth samples per pixel")] = None,
@@ -376,7 +390,7 @@ def calibrate(
     api_key: KeyOpt = None,
 ) -> None:
     """Calibrate a scene's render settings for quality contracts (render --quality-error / --quality-ms)."""
-    bake = {k: v for k, v in {"ldc_resolution": ldc_resolution, "llf_f": llf_f}.items() if v is not None}
+    bake = _bake_choice(ldc_resolution, llf_f, indirect_noise)
     params = {k: v for k, v in {"probes": probes, "size": size, "truth_spp": truth_spp}.items() if v is not None}
     scene_id = _scene_id_of(scene, api_url, api_key)
     with _client(api_url, api_key) as c:
@@ -421,7 +435,8 @@ def bake(
     llf_resolution: Annotated[int | None, typer.Option(help="LLF view resolution")] = None,
     llf_chunk: Annotated[int | None, typer.Option(help="LLF directions per bake job")] = None,
     indirect: Annotated[str | None, typer.Option(help="Indirect light: auto (when it can arrive) or off")] = None,
-    noise: Annotated[float | None, typer.Option(help="Indirect light: relative noise target per sample")] = None,
+    noise: Annotated[float | None, typer.Option(
+        "--noise", "--indirect-noise", help="Indirect light: relative noise target per sample")] = None,
     max_paths: Annotated[int | None, typer.Option(help="Indirect light: most paths per sample side")] = None,
     bounces: Annotated[int | None, typer.Option(help="Indirect light: diffuse bounces per path")] = None,
     indirect_chunks: Annotated[int | None, typer.Option(help="Indirect light: jobs per LDC axis")] = None,

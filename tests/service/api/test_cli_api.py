@@ -95,3 +95,28 @@ def test_scenes_list_and_the_client_follow_every_page(api_url: str, tmp_path: Pa
     r = ibr(api_url, "scenes", "list")
     assert r.exit_code == 0, r.output
     assert [line.split()[0] for line in r.stdout.splitlines()] == ids
+
+
+def test_render_and_calibrate_name_the_bake_ibr_bake_makes(api_url: str, tmp_path: Path) -> None:
+    """``--ldc-resolution`` and ``--indirect-noise`` of ``ibr render`` / ``ibr calibrate`` pick the
+    bake that ``ibr bake`` makes with ``--ldc-resolution`` and ``--noise``: the one key."""
+    from service.client import Client
+
+    (tmp_path / "scene.json").write_text(json.dumps(small_scene(name="bake options")))
+    sid = ibr(api_url, "scenes", "add", str(tmp_path / "scene.json")).stdout.strip()
+    r = ibr(api_url, "bake", sid, "--ldc-resolution", "16", "--noise", "0.1")
+    assert r.exit_code == 0, r.output
+    key = r.stdout.strip()
+    r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--indirect-noise", "0.1", "--bake-missing",
+            "--no-wait")
+    assert r.exit_code == 0, r.output
+    r = ibr(api_url, "render", sid, "--method", "ldc", "--ldc-resolution", "16", "--indirect-noise", "0.1",
+            "--bake-missing", "--no-wait")
+    assert r.exit_code == 0, r.output
+    with Client(api_url) as c:
+        bakes = c.list_bakes(sid).items
+        assert [b.key for b in bakes] == [key], bakes  # no second bake queued: the same parameters
+        assert bakes[0].params.ldc_resolution == 16 and bakes[0].params.indirect.noise == 0.1
+    # another noise is another bake; the flag's range is the API's
+    r = ibr(api_url, "calibrate", sid, "--ldc-resolution", "16", "--indirect-noise", "0.9", "--no-wait")
+    assert r.exit_code == 2 and "noise" in r.stderr, r.output
