@@ -68,7 +68,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.camera import camera_rays, pixel_centers
 from engine.errors import InvalidInputError, NonFiniteOutputError
-from engine.lights import directional_light_sample, point_light_sample, rect_light_sample
+from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.methods import REFERENCE
 from engine.progressive import pass_pieces, run_progressive
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
@@ -353,8 +353,9 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
             row = base + j
             alive[row] = False
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-            # the scalar light functions, not light_sample: its inlined array arguments would cost
-            # atomic reference counts on arrays both cores share, per row
+            # the scalar light functions, called with this row's light read out of the tables: a
+            # function inlined with the table arrays as arguments would cost atomic reference counts
+            # on arrays both cores share, per row
             if j < npt:
                 ok, lx, ly, lz, e0, e1, e2, tmax = point_light_sample(
                     ox, oy, oz, mag, pt_pos[j, 0], pt_pos[j, 1], pt_pos[j, 2], pt_int[j, 0], pt_int[j, 1],
@@ -368,10 +369,11 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
                 q = js // gg
                 s = js % gg
                 su, sv = sample_2d(derive_key(lkey, q, s), pix[i], sidx[i])
+                sx, sy = rect_cell_point(s, r_g, su, sv)
                 ok, lx, ly, lz, e0, e1, e2, tmax = rect_light_sample(
-                    ox, oy, oz, mag, (s % r_g + su) / r_g, (s // r_g + sv) / r_g, rc[q, 0], rc[q, 1], rc[q, 2],
-                    ru[q, 0], ru[q, 1], ru[q, 2], rv[q, 0], rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2],
-                    r_area[q], rL[q, 0], rL[q, 1], rL[q, 2], r2s[q], gg)
+                    ox, oy, oz, mag, sx, sy, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2], rv[q, 0],
+                    rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], rL[q, 0], rL[q, 1], rL[q, 2],
+                    r2s[q], gg)
             if not ok:
                 continue
             cos_g = _dot(g0, g1, g2, lx, ly, lz)

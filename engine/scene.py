@@ -71,8 +71,8 @@ class MaterialTable:
 
 @dataclass(frozen=True)
 class LightTable:
-    """All lights of a scene as arrays, for the renderers' shading kernels (``engine.lights.light_sample``).
-    Directions are unit vectors (the way light travels).
+    """All lights of a scene as arrays, for the renderers' shading kernels, which read a light's row and
+    pass it to ``engine.lights``' scalar samplers. Directions are unit vectors (the way light travels).
 
     Built from rows (:meth:`from_rows`): dicts with the scene format's light fields
     (``api_schemas.scene``'s point, directional and rect lights; ``workers.scene_loader`` converts a

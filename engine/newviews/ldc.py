@@ -40,7 +40,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
-from engine.lights import light_sample
+from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.newviews.effects import EffectPlan, analyze
 from engine.newviews.indirect import (
     IndirectParams,
@@ -180,12 +180,13 @@ class LDC:
 
 @nb.njit(cache=True, error_model="numpy")
 def rect_jitter(key, light, owner, s, r_g):
-    """The jitter (su, sv) that makes ``light_sample``'s cell ``s`` of rect light ``light`` land on
-    sample ``s`` of ``owner``'s stratified sequence over the light (engine/sampler.py, dimension
+    """The jitter (su, sv) that makes cell ``s`` of rect light ``light`` land on sample ``s`` of
+    ``owner``'s stratified sequence over the light (engine/sampler.py, dimension
     derive_key(key, light, 0)): the g*g samples of one owner are the first g*g points of an
     Owen-scrambled Sobol sequence (a (0, m, 2)-net when g*g = 2^m), not one jittered point per cell.
-    ``light_sample`` places the point at ((s % g + su) / g, (s // g + sv) / g) on the light, so
-    su, sv are the net point less the cell's corner (they may leave [0, 1); the point does not)."""
+    ``engine.lights.rect_cell_point`` places the point at ((s % g + su) / g, (s // g + sv) / g) on
+    the light, so su, sv are the net point less the cell's corner (they may leave [0, 1); the point
+    does not)."""
     x, y = sample_2d(derive_key(key, light, 0), owner, s)
     return x * r_g - (s % r_g), y * r_g - (s // r_g)
 
@@ -216,15 +217,32 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             state[row] = 0
             side_out[row] = 0
             c_out[row, 0] = c_out[row, 1] = c_out[row, 2] = 0.0
-            su = sv = 0.0
+            # the scalar light functions, called with this row's light read out of the tables: a
+            # function inlined with the table arrays as arguments would cost atomic reference counts
+            # per row
             li = j
+            q = 0
+            sx = sy = 0.0
             if j >= npt + ndir:  # rect light q's sample s, stratified over the light
                 q = (j - npt - ndir) // gg
-                su, sv = rect_jitter(key, q, first + i, (j - npt - ndir) % gg, r_g)
+                s = (j - npt - ndir) % gg
+                su, sv = rect_jitter(key, q, first + i, s, r_g)
+                sx, sy = rect_cell_point(s, r_g, su, sv)
                 li = npt + ndir + q
             # the side the light is on, seen from the point itself
-            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, px, py, pz, 0.0, su, sv, pt_pos, pt_int, dir_dir,
-                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if j < npt:
+                ok, lx, ly, lz, e0, e1, e2, tmax = point_light_sample(
+                    px, py, pz, 0.0, pt_pos[j, 0], pt_pos[j, 1], pt_pos[j, 2], pt_int[j, 0], pt_int[j, 1],
+                    pt_int[j, 2])
+            elif j < npt + ndir:  # the same from any origin: not sampled again below
+                ok, lx, ly, lz, e0, e1, e2, tmax = directional_light_sample(
+                    dir_dir[j - npt, 0], dir_dir[j - npt, 1], dir_dir[j - npt, 2], dir_irr[j - npt, 0],
+                    dir_irr[j - npt, 1], dir_irr[j - npt, 2])
+            else:
+                ok, lx, ly, lz, e0, e1, e2, tmax = rect_light_sample(
+                    px, py, pz, 0.0, sx, sy, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2], rv[q, 0],
+                    rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], rL[q, 0], rL[q, 1], rL[q, 2],
+                    r2s[q], gg)
             if not ok:
                 continue
             g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
@@ -238,8 +256,15 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             if s0 * g0 + s1 * g1 + s2 * g2 <= 0.0:
                 s0, s1, s2 = g0, g1, g2
             ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
-            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
-                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            if j < npt:
+                ok, lx, ly, lz, e0, e1, e2, tmax = point_light_sample(
+                    ox, oy, oz, mag, pt_pos[j, 0], pt_pos[j, 1], pt_pos[j, 2], pt_int[j, 0], pt_int[j, 1],
+                    pt_int[j, 2])
+            elif j >= npt + ndir:
+                ok, lx, ly, lz, e0, e1, e2, tmax = rect_light_sample(
+                    ox, oy, oz, mag, sx, sy, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2], rv[q, 0],
+                    rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], rL[q, 0], rL[q, 1], rL[q, 2],
+                    r2s[q], gg)
             if not ok:
                 continue
             cos_g = g0 * lx + g1 * ly + g2 * lz

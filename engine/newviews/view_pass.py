@@ -56,7 +56,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
-from engine.lights import directional_light_sample, light_sample
+from engine.lights import directional_light_sample, rect_cell_point, rect_light_sample
 from engine.newviews.ldc import rect_jitter
 from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
@@ -147,15 +147,18 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     a0 = a1 = a2 = 0.0
     for j in range(per):
         li = j
-        su = sv = 0.0
-        if j >= npt + ndir:
+        q = 0
+        sx = sy = 0.0
+        if j >= npt + ndir:  # rect light q's cell s
             q = (j - npt - ndir) // gg
+            s = (j - npt - ndir) % gg
             li = npt + ndir + q
-            su, sv = rect_jitter(stream, q, key, (j - npt - ndir) % gg, r_g)
+            su, sv = rect_jitter(stream, q, key, s, r_g)
+            sx, sy = rect_cell_point(s, r_g, su, sv)
         if words > 0:
             if (bits[brow, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
                 continue
-        # point and directional lights through the scalar samplers: no reference counting per light
+        # every light through the scalar samplers (engine/lights.py): no reference counting per light
         if j < npt:
             # A point light: the tests on the unnormalised direction first (no square root for
             # lights behind the surface, no division for lights outside the lobe), one division
@@ -181,8 +184,10 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
             ok, lx, ly, lz, e0, e1, e2, tmax = directional_light_sample(dir_dir[q, 0], dir_dir[q, 1], dir_dir[q, 2],
                                                                         dir_irr[q, 0], dir_irr[q, 1], dir_irr[q, 2])
         else:
-            ok, lx, ly, lz, e0, e1, e2, tmax = light_sample(j, ox, oy, oz, mag, su, sv, pt_pos, pt_int, dir_dir,
-                                                            dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g)
+            ok, lx, ly, lz, e0, e1, e2, tmax = rect_light_sample(
+                ox, oy, oz, mag, sx, sy, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2], rv[q, 0],
+                rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], rL[q, 0], rL[q, 1], rL[q, 2],
+                r2s[q], gg)
         if not ok:
             continue
         cos_g = g0 * lx + g1 * ly + g2 * lz

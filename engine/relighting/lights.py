@@ -9,7 +9,7 @@ point samples, an environment map ``n_lights`` directional lights (:func:`enviro
 
 How they relate to ``engine.scene.LightTable``: the renderers (reference, LDC) shade with a
 ``LightTable`` (point, directional and rect lights as arrays; rect lights sampled per shading point
-by ``engine.lights.light_sample``); the relight kernel interpolates a dataset per expanded light. The
+by ``engine.lights.rect_light_sample``); the relight kernel interpolates a dataset per expanded light. The
 same light described to both is built once, as a spec here: :func:`light_table` makes the
 ``LightTable`` of a list of specs (environment maps as the same directional lights the relighting
 uses), so a dataset's ground truth is rendered under exactly the lights a relight uses. The service
