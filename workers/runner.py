@@ -96,6 +96,7 @@ from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from types import TracebackType
 from typing import Any, Literal
+from uuid import uuid4
 
 from pydantic import ValidationError
 from redis import Redis
@@ -122,6 +123,7 @@ from producer.status import cancel_requested, job_method, record_job_duration
 from producer.store import StoreUnavailable
 from workers.jobs.common import JobCanceled
 from workers.warmup_readiness import ReadinessTracker
+from workers.warmup_steps import lanes_for
 
 __all__ = [
     "TRANSIENT_ERRORS",
@@ -833,13 +835,11 @@ def build_worker(
 
 def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.Popen[bytes]]:
     """Start ``python -m workers.warmup --publish worker_name --lanes N --lane i``, one process per
-    lane (module docstring, "Warm-up"; ``workers.warmup.lanes_for``: two on two or more cores, as
+    lane (module docstring, "Warm-up"; ``workers.warmup_steps.lanes_for``: two on two or more cores, as
     numba compiles on one core per process), so the worker takes jobs at once; they die with the
     worker (parent death signal) and share its log output. A lane that cannot be started is
     logged (its kinds compile in their first jobs). Publishes the readiness of a warm-up that has
     not started yet first: a process takes seconds to import the engine before it publishes."""
-    from workers.warmup import lanes_for  # deferred on purpose: render workers only (every job module)
-
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     lanes = lanes_for(cores)
     procs = []
@@ -919,7 +919,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if keep_freed_memory(settings.malloc_keep_mib << 20):
         log.info("malloc: blocks up to 32 MiB from the heap, up to %d MiB of freed memory kept for the next job",
                  settings.malloc_keep_mib)
+    name = args.name or uuid4().hex  # RQ's default name, chosen here: the warm-up publishes under it
+    warm: list[subprocess.Popen[bytes]] = []
     if args.queue == "render":
+        # Compile / load the kernels in the background while taking jobs (module docstring, "Warm-up"),
+        # started before this process imports the engine, so their own imports overlap it.
+        if settings.worker_warmup and not args.no_warmup:
+            warm = start_background_warm_up(name, redis)
+        else:
+            log.info("warm-up: off (%s); the first jobs compile or load their kernels",
+                     "--no-warmup" if args.no_warmup else "IBR_WORKER_WARMUP=false")
         # Import the job module (and the engine) now, so a broken install fails at start-up.
         import workers.jobs.render  # noqa: F401  # deferred on purpose: this queue's jobs only
 
@@ -932,20 +941,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     worker = build_worker(
         args.queue,
         redis,
-        name=args.name,
+        name=name,
         maintenance_interval=args.maintenance_interval or settings.maintenance_interval_s,
         job_monitoring_interval=args.job_monitoring_interval or settings.job_monitoring_interval_s,
         heartbeat_grace=args.heartbeat_grace or settings.heartbeat_grace_s,
         worker_ttl=args.worker_ttl or settings.worker_ttl_s,
     )
-    warm: list[subprocess.Popen[bytes]] = []
-    if args.queue == "render":
-        # Compile / load the kernels in the background while taking jobs (module docstring, "Warm-up").
-        if settings.worker_warmup and not args.no_warmup:
-            warm = start_background_warm_up(worker.name, redis)
-        else:
-            log.info("warm-up: off (%s); the first jobs compile or load their kernels",
-                     "--no-warmup" if args.no_warmup else "IBR_WORKER_WARMUP=false")
     try:
         worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
                     max_jobs=args.max_jobs)

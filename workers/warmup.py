@@ -89,14 +89,19 @@ from workers.jobs.datasets import NPZ, baked_to_bytes, composite_job, relight_jo
 from workers.jobs.render import render_job, set_renderer_cache
 from workers.jobs.walkthrough import engine_space
 from workers.scene_loader import camera_params, load_animated_scene
+from workers.warmup_steps import LANES, NEEDS, STEPS, lanes_for, needs_of
 
 __all__ = [
+    "LANES",
+    "NEEDS",
     "STEPS",
     "WarmupReport",
     "WarmupStep",
     "compile_stats",
     "engine_dispatchers",
+    "lanes_for",
     "main",
+    "needs_of",
     "signature_counts",
     "warm_up",
 ]
@@ -497,48 +502,21 @@ class _Run:
 
 
 def _plan(run: _Run) -> list[tuple[str, Callable[[], None], tuple[str, ...]]]:
-    """(step name, function, steps it needs) in order."""
-    steps: list[tuple[str, Callable[[], None], tuple[str, ...]]] = [
-        ("scene", run.scene, ()),
-        ("reference", run.reference, ("scene",)),
-        ("reference-pipelined", run.reference_pipelined, ("scene",)),
-        ("ldc-bake", run.ldc_bake, ("scene",)),
-    ]
-    steps.append(("ldc", functools.partial(run.ldc_render, "ldc", with_llf=True), ("ldc-bake",)))
-    steps.append(("ldc-without-llf", functools.partial(run.ldc_render, "ldc", with_llf=False), ("ldc-bake",)))
-    for method in ("ldc+llf", "ldc+ibrt:1", "ldc+ibrt:2"):
-        steps.append((method, functools.partial(run.ldc_render, method, with_llf=True), ("ldc-bake",)))
-    steps.append(("relight-bake", run.relight_bake, ()))
-    for suffix, _, _ in _RELIGHT_STORES:
-        steps.append((f"relight-{suffix}", functools.partial(run.relight_store, suffix), ("relight-bake",)))
-    steps.append(("composite", run.composite, ("relight-bake",)))
-    steps.append(("walkthrough", run.walkthrough, ()))
-    return steps
-
-
-NEEDS: dict[str, tuple[str, ...]] = {name: tuple(needs) for name, _, needs in _plan(_Run(None))}
-"""The steps each step needs run before it, by step name, in the order the steps run."""
-
-STEPS: tuple[str, ...] = tuple(NEEDS)
-"""Names of the warm-up steps, in the order they run."""
-
-
-def needs_of(step: str) -> tuple[str, ...]:
-    """The warm-up steps ``step`` needs run before it (KeyError for an unknown step)."""
-    return NEEDS[step]
-
-LANES: tuple[tuple[str, ...], ...] = (
-    STEPS[:STEPS.index("relight-bake")],  # reference, then the LDC methods
-    STEPS[STEPS.index("relight-bake"):],  # relighting, compositing, walkthroughs
-)
-"""The steps split in two lanes that need no step of the other, for two processes (numba compiles
-on one core per process): the reference and LDC kernels in one, the relighting and walkthrough
-kernels in the other. Their cold compile costs are about equal (docs/performance.md)."""
-
-
-def lanes_for(cores: int) -> tuple[tuple[str, ...], ...]:
-    """:data:`LANES` on a machine with 2 or more cores, one lane of every step on a single core."""
-    return LANES if cores >= len(LANES) else (STEPS,)
+    """(step name, function, steps it needs) in order (``workers.warmup_steps``)."""
+    fns: dict[str, Callable[[], None]] = {
+        "scene": run.scene,
+        "reference": run.reference,
+        "reference-pipelined": run.reference_pipelined,
+        "ldc-bake": run.ldc_bake,
+        "ldc": functools.partial(run.ldc_render, "ldc", with_llf=True),
+        "ldc-without-llf": functools.partial(run.ldc_render, "ldc", with_llf=False),
+        **{m: functools.partial(run.ldc_render, m, with_llf=True) for m in ("ldc+llf", "ldc+ibrt:1", "ldc+ibrt:2")},
+        "relight-bake": run.relight_bake,
+        **{f"relight-{suffix}": functools.partial(run.relight_store, suffix) for suffix, _, _ in _RELIGHT_STORES},
+        "composite": run.composite,
+        "walkthrough": run.walkthrough,
+    }
+    return [(name, fns[name], NEEDS[name]) for name in STEPS]
 
 
 def warm_up(*, logger: logging.Logger | None = None, on_start: Callable[[str], None] | None = None,

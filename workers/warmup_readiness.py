@@ -22,14 +22,14 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from api_schemas.readiness import READINESS_METHODS
+from workers.warmup_steps import RELIGHT_STORE_STEPS
 
 METHOD_STEPS: dict[str, tuple[str, ...]] = {
     "reference": ("scene", "reference", "reference-pipelined"),
     "ldc": ("scene", "ldc-bake", "ldc", "ldc-without-llf"),
     "ldc+llf": ("scene", "ldc-bake", "ldc+llf"),
     "ldc+ibrt": ("scene", "ldc-bake", "ldc+ibrt:1", "ldc+ibrt:2"),
-    "relight": ("relight-bake", "relight-float16-pixel_major", "relight-float16-tiled",
-                "relight-float32-pixel_major", "relight-float32-tiled", "relight-lowrank"),
+    "relight": ("relight-bake", *RELIGHT_STORE_STEPS),
     "composite": ("relight-bake", "relight-float16-pixel_major", "composite"),
     "walkthrough": ("walkthrough",),
 }

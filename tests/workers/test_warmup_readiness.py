@@ -84,3 +84,17 @@ def test_document_per_kind() -> None:
     tr.end()
     assert tr.document()["finished"] is True
     assert tr.document()["methods"]["walkthrough"]["state"] == "failed"
+
+
+def test_the_step_graph_is_engine_free_and_names_every_relight_store() -> None:
+    """``workers.warmup_steps`` lets the render worker start its warm-up before importing the engine:
+    it imports no numba; its relight steps are the warm-up's store kinds, one each."""
+    import subprocess
+    import sys
+
+    code = "import sys, workers.warmup_steps, workers.warmup_readiness; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    from workers.warmup_steps import RELIGHT_STORE_STEPS
+
+    assert [f"relight-{suffix}" for suffix, _, _ in warmup._RELIGHT_STORES] == list(RELIGHT_STORE_STEPS)
