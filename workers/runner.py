@@ -83,6 +83,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import functools
 import logging
 import math
 import os
@@ -833,6 +834,19 @@ def build_worker(
     return worker
 
 
+LATER_LANE_NICENESS = 10
+"""Niceness of the warm-up lanes after the first: the first lane compiles the reference renderer
+and then the LDC methods, the kinds a user is likely to ask for first; the others give it the CPU
+when both want it (at start-up the API, the workers' imports and both lanes share the cores)."""
+
+
+def _warm_up_lane_setup(lane: int) -> None:
+    _set_parent_death_signal()
+    if lane > 0:
+        with contextlib.suppress(OSError):
+            os.nice(LATER_LANE_NICENESS)
+
+
 def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.Popen[bytes]]:
     """Start ``python -m workers.warmup --publish worker_name --lanes N --lane i``, one process per
     lane (module docstring, "Warm-up"; ``workers.warmup_steps.lanes_for``: two on two or more cores, as
@@ -850,7 +864,7 @@ def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.
                "--lane", str(i)]
         try:
             procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL,
-                                          preexec_fn=_set_parent_death_signal))  # noqa: PLW1509
+                                          preexec_fn=functools.partial(_warm_up_lane_setup, i)))  # noqa: PLW1509
         except OSError as exc:
             log.error("warm-up: could not start %s: %s; those kinds compile in their first jobs", cmd, exc)
     log.info("warm-up: started in the background (%d processes, pids %s): compiles or loads the render jobs' "
