@@ -588,8 +588,10 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, gp):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
-    """``gather_reflections``' kernel: ``gather_point`` for every point, in blocks of 64."""
+def _gather(p, ng, ns, wo, mat, do_mirror, force, gp, out, lookups):
+    """``gather_reflections``' kernel: ``gather_point`` for every point, in blocks of 64. It passes
+    ``do_glossy`` as the constant True, as the renderer's kernels do: the same compiled ``gather_point``
+    (a runtime bool there compiled a second one, ~12 s on a cold cache)."""
     n = p.shape[0]
     nd = gp.directions.shape[0]
     nblk = (n + _BLOCK - 1) // _BLOCK
@@ -598,7 +600,7 @@ def _gather(p, ng, ns, wo, mat, do_mirror, do_glossy, force, gp, out, lookups):
         for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             for c in range(3):
                 pt[c], pt[3 + c], pt[6 + c], pt[9 + c] = p[i, c], ng[i, c], ns[i, c], wo[i, c]
-            out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(pt, mat[i], do_mirror, do_glossy, force, cand,
+            out[i, 0], out[i, 1], out[i, 2], lookups[i] = gather_point(pt, mat[i], do_mirror, True, force, cand,
                                                                        best_c, gp)
 
 
@@ -626,11 +628,12 @@ def llf_arrays(llf: LLF) -> LLFArrays:
 
 
 def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mirror: bool = True,
-                       glossy: bool = True, cone_directions: int = CONE_DIRECTIONS,
-                       background=None, force: bool = False) -> tuple[np.ndarray, int]:
+                       cone_directions: int = CONE_DIRECTIONS, background=None,
+                       force: bool = False) -> tuple[np.ndarray, int]:
     """Reflected radiance (n, 3) float64 toward wo by light-field gather (mirror cone and
-    glossy lobe, see module docstring) and the number of LLF lookups made. ``force``: gather
-    for every point even where kr / kg are 0 (adds exact zeros there)."""
+    glossy lobe, see module docstring) and the number of LLF lookups made. ``mirror=False``
+    leaves out the mirror term (the glossy lobe is always gathered, as in the renderer).
+    ``force``: gather for every point even where kr / kg are 0 (adds exact zeros there)."""
     p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
     gp = gather_params(scene, llf, cone_directions, background)
     n = p.shape[0]
@@ -638,7 +641,7 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
     lookups = np.zeros(n, np.int64)
     if n == 0:
         return out, 0
-    _gather(p, ng, ns, wo, mat, mirror, glossy, bool(force), gp, out, lookups)
+    _gather(p, ng, ns, wo, mat, mirror, bool(force), gp, out, lookups)
     if not np.all(np.isfinite(out)):
         raise NonFiniteOutputError("light-field gather produced non-finite radiance")
     return out, int(lookups.sum())
