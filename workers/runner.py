@@ -118,12 +118,8 @@ from rq.worker import BaseWorker, WorkerStatus
 
 from engine.memory import keep_freed_memory
 from producer.queue import QUEUE_NAMES, QueueName, get_queue, redis_from_url
-from producer.readiness import clear_readiness, publish_readiness
 from producer.settings import Settings
-from producer.status import cancel_requested, job_method, record_job_duration
 from producer.store import StoreUnavailable
-from workers.jobs.common import JobCanceled
-from workers.warmup_readiness import ReadinessTracker
 from workers.warmup_steps import lanes_for
 
 __all__ = [
@@ -207,6 +203,11 @@ class _DemoteToInfo(logging.Filter):
 
 
 def _was_canceled(job: Job, exc_type: type[BaseException] | None) -> bool:
+    # deferred (api_schemas, numba, the engine: seconds of imports): loaded by the job modules by then, and
+    # ``--healthcheck`` (a container health check, run every few seconds) never needs them
+    from producer.status import cancel_requested
+    from workers.jobs.common import JobCanceled
+
     if exc_type is not None and issubclass(exc_type, JobCanceled):
         return True
     try:
@@ -217,6 +218,8 @@ def _was_canceled(job: Job, exc_type: type[BaseException] | None) -> bool:
 
 def _observe(job: Job, queue: str, outcome: Literal["finished", "failed", "canceled"], seconds: float) -> None:
     """The job's run time into the shared duration histogram; a metrics write never fails a job."""
+    from producer.status import job_method, record_job_duration  # deferred, as in ``_was_canceled``
+
     try:
         record_job_duration(job.connection, queue, job_method(job), outcome, seconds)
     except RedisError as exc:
@@ -854,6 +857,9 @@ def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.
     worker (parent death signal) and share its log output. A lane that cannot be started is
     logged (its kinds compile in their first jobs). Publishes the readiness of a warm-up that has
     not started yet first: a process takes seconds to import the engine before it publishes."""
+    from producer.readiness import publish_readiness  # deferred: not needed by ``--healthcheck``
+    from workers.warmup_readiness import ReadinessTracker
+
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     lanes = lanes_for(cores)
     procs = []
@@ -876,6 +882,8 @@ def start_background_warm_up(worker_name: str, redis: Redis) -> list[subprocess.
 
 def stop_background_warm_up(procs: list[subprocess.Popen[bytes]], redis: Redis, worker_name: str) -> None:
     """Stop the background warm-up's processes that still run and withdraw the worker's readiness."""
+    from producer.readiness import clear_readiness  # deferred: not needed by ``--healthcheck``
+
     for proc in procs:
         if proc.poll() is None:
             proc.terminate()
