@@ -35,6 +35,12 @@ def _diffuse_scene(lights=LIGHTS):
                  lights, ambient=(0.02, 0.02, 0.02))
 
 
+def _warp(ldc, camera, **options):
+    """``warp_ldc`` with float64 radiance, as the renderer calls it (``LDCViewRenderer``): its kernels'
+    compiled specialization, which the render warm-up caches (the values are the same as float32's)."""
+    return warp_ldc(ldc, camera, radiance_dtype=np.float64, **options)
+
+
 @pytest.fixture(scope="module")
 def mirror_box():
     ls = load_scene(load_scene_file(sample_path("mirror_box")), directory_resolver(SAMPLES_DIR))
@@ -48,7 +54,7 @@ def test_axis_view_reproduces_reference_visibility_and_diffuse():
     # orthographic camera looking along -z, one camera pixel per LDC pixel
     cam = CameraParams("orthographic", (0.0, 0.0, 10.0), (0.0, 0.0, 0.0), (0, 1, 0), 96, 96,
                        ortho_height=96 * ldc.h)
-    w = warp_ldc(ldc, cam)
+    w = _warp(ldc, cam)
     ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0), backend="embree")
     cov = ref.object_id >= 0
     agree = (w.object_id == ref.object_id)[cov].mean()
@@ -87,7 +93,7 @@ def test_parallel_surfaces_and_thin_wall_hard_case_4():
     assert (ldc.axes[2].object == 0).sum() > 0 and (ldc.axes[0].object == 0).sum() == 0
     for eye in ((1.2, 0.7, 3.0), (-2.0, -0.4, 2.0), (-0.4, 1.5, 1.5)):
         cam = CameraParams("perspective", eye, (0, 0, -0.2), (0, 1, 0), 128, 128, 50.0)
-        w = warp_ldc(ldc, cam)
+        w = _warp(ldc, cam)
         ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
         wall = ref.object_id == 1
         assert wall.sum() > 500
@@ -100,7 +106,7 @@ def test_mirror_box_holes_below_two_percent(mirror_box):
     caster = EmbreeCaster(sc)
     ldc = bake_ldc(sc, caster, 256)
     cam = CameraParams("perspective", (1.3, 2.0, 4.6), (0.1, 0.5, -0.3), (0, 1, 0), 256, 256, 45.0)
-    w = warp_ldc(ldc, cam)
+    w = _warp(ldc, cam)
     ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
     cov = ref.object_id >= 0
     frac = (w.hole_mask & cov).sum() / cov.sum()
@@ -108,7 +114,7 @@ def test_mirror_box_holes_below_two_percent(mirror_box):
           f"(all flagged incl. background: {w.n_holes / w.hole_mask.size:.4f})")
     assert frac < 0.02
     assert (w.object_id == ref.object_id)[cov].mean() >= 0.98
-    wf = warp_ldc(ldc, cam, fill="raycast", caster=caster)
+    wf = _warp(ldc, cam, fill="raycast", caster=caster)
     assert wf.n_holes == w.n_holes
     assert not ((wf.object_id < 0) & cov).any()
     assert np.all(wf.provenance[wf.provenance == PROV_FILLED] == PROV_FILLED)
@@ -121,13 +127,13 @@ def test_degenerate_cameras_hard_case_11():
     cams = degenerate_cameras(ldc.axes[2].ldi.frame.origin, 40, 30)
     for cam in cams:
         for fill in ("none", "raycast"):
-            w = warp_ldc(ldc, cam, fill=fill, caster=caster)
+            w = _warp(ldc, cam, fill=fill, caster=caster)
             assert np.all(np.isfinite(w.radiance)) and np.all(np.isfinite(w.depth))
             assert np.all(np.isfinite(w.normal))
             assert w.radiance.shape == (cam.height, cam.width, 3)
     # along -x with fill: matches reference visibility almost everywhere
     cam = CameraParams("perspective", (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0, 1, 0), 96, 72, 45.0)
-    w = warp_ldc(ldc, cam, fill="raycast", caster=caster)
+    w = _warp(ldc, cam, fill="raycast", caster=caster)
     ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
     assert (w.object_id == ref.object_id).mean() >= 0.95
 
@@ -187,7 +193,7 @@ def test_split_bake_merge_and_limits():
     with pytest.raises(InvalidInputError, match="MiB"):
         bake_ldc(sc, caster, 32, max_bytes=est // 2)
     with pytest.raises(InvalidInputError):
-        warp_ldc(ldc, CameraParams("perspective", (0, 0, 5), (0, 0, 0), (0, 1, 0), 8, 8), fill="raycast")
+        _warp(ldc, CameraParams("perspective", (0, 0, 5), (0, 0, 0), (0, 1, 0), 8, 8), fill="raycast")
 
 
 def test_cracks_are_detected_and_filled():
@@ -201,15 +207,15 @@ def test_cracks_are_detected_and_filled():
     front = ref.object_id == 1
     inner = binary_erosion(front, iterations=2)
     # splats capped just below the sample spacing (~24 px here): one-pixel cracks
-    w = warp_ldc(ldc, cam, max_footprint=11.0)
+    w = _warp(ldc, cam, max_footprint=11.0)
     through = inner & (w.object_id == 0)
     assert through.sum() > 100  # the cracks exist
     # and nearly all are flagged (missed: where two cracks cross, too few nearer neighbours)
     assert (w.hole_mask & through).sum() >= 0.85 * through.sum()
-    wf = warp_ldc(ldc, cam, max_footprint=11.0, fill="raycast", caster=caster)
+    wf = _warp(ldc, cam, max_footprint=11.0, fill="raycast", caster=caster)
     assert wf.n_filled > 0 and (wf.object_id[through & w.hole_mask] == 1).all()
     # with the default footprint cap there are no cracks at all
-    wn = warp_ldc(ldc, cam)
+    wn = _warp(ldc, cam)
     assert not (wn.hole_mask & front).any() and (wn.object_id[inner] == 1).all()
 
 
@@ -222,7 +228,7 @@ def test_close_layers_far_away_warp_hard_case_6():
     for cam in (CameraParams("orthographic", tuple(base + [0, 0, 10.0]), tuple(base), (0, 1, 0), 48, 48,
                              ortho_height=1.2),
                 CameraParams("perspective", tuple(base + [0.1, 0.05, 3.0]), tuple(base), (0, 1, 0), 48, 48, 30.0)):
-        w = warp_ldc(ldc, cam)
+        w = _warp(ldc, cam)
         ref = render_reference(sc, cam, ReferenceParams(spp=1, max_depth=0))
         cov = ref.object_id >= 0
         assert np.all(ref.object_id[cov] == 1)
@@ -236,7 +242,7 @@ def test_rect_light_and_no_lights_perspective():
     caster = EmbreeCaster(sc)
     ldc = bake_ldc(sc, caster, 96, area_light_samples=64)
     cam = CameraParams("perspective", (2.0, 2.5, 3.5), (0.0, -0.2, 0.0), (0, 1, 0), 96, 96, 45.0)
-    w = warp_ldc(ldc, cam)
+    w = _warp(ldc, cam)
     ref = render_reference(sc, cam, ReferenceParams(spp=16, max_depth=0, area_light_samples=64))
     same = (w.object_id == ref.object_id) & (ref.object_id >= 0)
     inner = np.zeros_like(same)
@@ -253,7 +259,7 @@ def test_rect_light_and_no_lights_perspective():
     sc0 = _diffuse_scene([])
     l0 = bake_ldc(sc0, EmbreeCaster(sc0), 16)
     assert l0.visibility_words == 0 and all(a.timings["shadow_rays"] == 0 for a in l0.axes)
-    w0 = warp_ldc(l0, cam)
+    w0 = _warp(l0, cam)
     assert np.allclose(w0.radiance[w0.material_id == 0], 0.02 * np.array([0.6, 0.6, 0.55]), rtol=1e-5)
 
 
@@ -293,9 +299,9 @@ def test_parallel_zbuffer_writes_equal_the_serial_pass(mirror_box):
     before = nb.get_num_threads()
     try:
         nb.set_num_threads(1)
-        w1 = warp_ldc(ldc, cam)
+        w1 = _warp(ldc, cam)
         nb.set_num_threads(min(2, nb.config.NUMBA_NUM_THREADS))
-        w2 = warp_ldc(ldc, cam)
+        w2 = _warp(ldc, cam)
     finally:
         nb.set_num_threads(before)
     for key in ("radiance", "depth", "normal", "object_id", "sample_index", "hole_mask"):
