@@ -74,7 +74,8 @@ def rect_light_sample(ox, oy, oz, mag, sx, sy, c0, c1, c2, u0, u1, u2, v0, v1, v
 @nb.njit(cache=True, error_model="numpy")
 def rect_cell_point(s, r_g, su, sv):
     """(sx, sy) for ``rect_light_sample``: the point of cell ``s`` (of the r_g x r_g grid over a rect
-    light, row-major) jittered by (su, sv), in cell widths. Rect-light row j (after the point and
-    directional lights) is light q = (j - n_point - n_directional) // (r_g * r_g), cell s = the
-    remainder."""
+    light, row-major) jittered by (su, sv), in cell widths: the reference renderer's cell-stratified
+    points (the LDC's are whole sequences over the light, ``engine.newviews.ldc.rect_net_point``).
+    Rect-light row j (after the point and directional lights) is light
+    q = (j - n_point - n_directional) // (r_g * r_g), cell s = the remainder."""
     return (s % r_g + su) / r_g, (s // r_g + sv) / r_g

@@ -13,7 +13,7 @@ effect plan finds no occludable light, W = 0: no bits are stored and no shadow r
 ``diffuse`` holds everything view-independent the reference renderer shows at a camera
 hit: direct diffuse ``kd/pi sum E cos`` over the lights (point and directional exact, rect
 lights at g x g points, g = round(sqrt(area_light_samples)), each sample's points the first g*g
-of its own Owen-scrambled Sobol sequence over the light, ``rect_jitter``: deterministic per seed,
+of its own Owen-scrambled Sobol sequence over the light, ``rect_net_point``: deterministic per seed,
 the same however the bake is sliced or chunked) + ``kd * ambient`` + ``emission``. Light conventions
 (offset origins, shadow shortening, shading-normal fallback) copy ``engine/reference.py``.
 
@@ -40,7 +40,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
-from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
+from engine.lights import directional_light_sample, point_light_sample, rect_light_sample
 from engine.newviews.effects import EffectPlan, analyze
 from engine.newviews.indirect import (
     IndirectParams,
@@ -179,16 +179,13 @@ class LDC:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def rect_jitter(key, light, owner, s, r_g):
-    """The jitter (su, sv) that makes cell ``s`` of rect light ``light`` land on sample ``s`` of
-    ``owner``'s stratified sequence over the light (engine/sampler.py, dimension
-    derive_key(key, light, 0)): the g*g samples of one owner are the first g*g points of an
-    Owen-scrambled Sobol sequence (a (0, m, 2)-net when g*g = 2^m), not one jittered point per cell.
-    ``engine.lights.rect_cell_point`` places the point at ((s % g + su) / g, (s // g + sv) / g) on
-    the light, so su, sv are the net point less the cell's corner (they may leave [0, 1); the point
-    does not)."""
-    x, y = sample_2d(derive_key(key, light, 0), owner, s)
-    return x * r_g - (s % r_g), y * r_g - (s // r_g)
+def rect_net_point(key, light, owner, s):
+    """The point (sx, sy) in [0, 1)^2 of rect light ``light`` (for ``engine.lights.rect_light_sample``)
+    that is ``owner``'s sample ``s``: sample ``s`` of ``owner``'s stratified sequence over the light
+    (engine/sampler.py, dimension derive_key(key, light, 0)). The g*g samples of one owner are the
+    first g*g points of an Owen-scrambled Sobol sequence (a (0, m, 2)-net when g*g = 2^m), not one
+    jittered point per grid cell."""
+    return sample_2d(derive_key(key, light, 0), owner, s)
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -199,7 +196,7 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
     the surface (the side whose geometric normal has cos > 0 to it): the row belongs to that
     side. state: 0 = nothing, 1 = needs a shadow ray, 2 = visible without one.
 
-    Rect-light positions: sample ``first + i``'s ``rect_jitter`` in the sampler stream ``key``, so
+    Rect-light positions: sample ``first + i``'s ``rect_net_point`` in the sampler stream ``key``, so
     a sample's light rows do not depend on the slice or chunk it is shaded in."""
     n = p.shape[0]
     npt = pt_pos.shape[0]
@@ -226,8 +223,7 @@ def _light_rows(p, ng, ns, mat, kd, occl, force_all, pt_pos, pt_int, dir_dir, di
             if j >= npt + ndir:  # rect light q's sample s, stratified over the light
                 q = (j - npt - ndir) // gg
                 s = (j - npt - ndir) % gg
-                su, sv = rect_jitter(key, q, first + i, s, r_g)
-                sx, sy = rect_cell_point(s, r_g, su, sv)
+                sx, sy = rect_net_point(key, q, first + i, s)
                 li = npt + ndir + q
             # the side the light is on, seen from the point itself
             if j < npt:

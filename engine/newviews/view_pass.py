@@ -15,7 +15,7 @@ front of the surface counts as visible). Light samples, offsets and cut-offs are
 reference's (``engine/lights.py``); a rect light is gated by ONE bit (any of its samples
 visible), so a highlight in its penumbra is too bright by the blocked fraction; a rect light's
 points are each shaded point's own stratified (Owen-scrambled Sobol) sequence over the light,
-deterministic per seed (``engine.newviews.ldc.rect_jitter``). Diffuse (LDC) + highlights equals the
+deterministic per seed (``engine.newviews.ldc.rect_net_point``). Diffuse (LDC) + highlights equals the
 reference's direct lighting at the same point (tested to 1e-5 for point and directional
 lights).
 
@@ -56,8 +56,8 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
-from engine.lights import directional_light_sample, rect_cell_point, rect_light_sample
-from engine.newviews.ldc import rect_jitter
+from engine.lights import directional_light_sample, rect_light_sample
+from engine.newviews.ldc import rect_net_point
 from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
 from engine.sampler import sample_key
@@ -100,7 +100,7 @@ class HighlightParams(NamedTuple):
     rect_radiance: np.ndarray  #: (n_rect, 3) float64 emitted radiances
     rect_two_sided: np.ndarray  #: (n_rect,) bool emit from both faces
     rect_grid: int  #: g: a rect light is sampled at g x g points (g^2 ~ area_light_samples)
-    stream: np.uint64  #: sampler key of the rect-light points (``engine.sampler``, ``rect_jitter``)
+    stream: np.uint64  #: sampler key of the rect-light points (``engine.sampler``, ``rect_net_point``)
     center: np.ndarray  #: (3,) float64 the scene's centre, for the shadow-ray offset
     extent: float  #: the scene's extent, for the shadow-ray offset
 
@@ -116,7 +116,7 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     hence the scratch ``pt``.
 
     key: the point's number in the rect-light sampler stream (its row, pixel or ray index): its
-        g*g points on a rect light are the first of its own stratified sequence (``rect_jitter``).
+        g*g points on a rect light are the first of its own stratified sequence (``rect_net_point``).
     pt: (12,) float64 scratch holding the point: p, ng, ns, wo (3 floats each), as
         ``gather_point`` takes it.
     m: the point's material index.
@@ -153,8 +153,7 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
             q = (j - npt - ndir) // gg
             s = (j - npt - ndir) % gg
             li = npt + ndir + q
-            su, sv = rect_jitter(stream, q, key, s, r_g)
-            sx, sy = rect_cell_point(s, r_g, su, sv)
+            sx, sy = rect_net_point(stream, q, key, s)
         if words > 0:
             if (bits[brow, li // 64] >> np.uint64(li % 64)) & np.uint64(1) == 0:
                 continue
