@@ -48,10 +48,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     single-test files (live stacks, the README tour, schemathesis, the deployment tests) came last,
     and one worker idled while the other finished them. Items of a file stay together and in their
     order, and the files of a group in theirs (the sort is stable)."""
-    counts = Counter(group_of(_rel(item)) for item in items)
-    slow = {group_of(_rel(item)) for item in items if item.get_closest_marker("slow") is not None}
-    items.sort(key=lambda item: (group_of(_rel(item)) not in slow, -counts[group_of(_rel(item))],
-                                 group_of(_rel(item))))
+    unit = {item.nodeid: group_of(_rel(item)) for item in items}
+    counts = Counter(unit.values())
+    slow = {unit[item.nodeid] for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: (unit[item.nodeid] not in slow, -counts[unit[item.nodeid]], unit[item.nodeid]))
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
 import tempfile
 import time
@@ -33,8 +32,7 @@ def _reset_peak() -> None:
 
 def main() -> None:
     method, w, h, spp = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
-    tmp = tempfile.mkdtemp(prefix="ibr-render-rss-")
-    try:
+    with tempfile.TemporaryDirectory(prefix="ibr-render-rss-") as tmp:
         os.environ["IBR_STORE_URL"] = tmp
 
         from producer.store import open_store
@@ -58,8 +56,6 @@ def main() -> None:
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             print(json.dumps({"grew_bytes": _status_kib("VmHWM") * 1024 - before, "base_bytes": before,
                               "wall_s": wall, "cpu_s": cpu}))
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 if __name__ == "__main__":
