@@ -246,12 +246,16 @@ class IndirectBakeParams(FrozenModel):
     not otherwise, and nothing is paid); ``off``: direct light only."""
     noise: Annotated[float, _in_range("noise"), _range_doc("noise", "relative standard error per side")] = 0.02
     """Target relative standard error of each sample side's radiance (luminance): 0.02 = 2 % of its
-    brightness; a side stops tracing paths when its estimate reaches it (or at ``max_paths``)."""
-    min_paths: Annotated[int, _in_range("min_paths"), _range_doc("min_paths", "paths before the test")] = 64
-    """Paths every sample side traces before the noise test (a multiple of ``round_paths``, at
-    least two rounds: the error is estimated from the spread of the round means)."""
+    brightness. A pilot of ``min_paths`` paths measures each side's spread and sizes its estimate for
+    the target (``max_paths`` at most)."""
+    min_paths: Annotated[int, _in_range("min_paths"), _range_doc("min_paths", "pilot paths per side")] = 64
+    """Paths of each sample side's pilot, which sizes its estimate (a multiple of ``round_paths``, at
+    least two rounds: the error is estimated from the spread of the round means). The estimate is
+    a fresh set of at least as many paths: a side never stops on the paths it reports, which would
+    bias it low where bright paths are rare (light reaching it through mirrors)."""
     max_paths: Annotated[int, _in_range("max_paths"), _range_doc("max_paths", "most paths per side")] = 1024
-    """Most paths one sample side traces (the cost bound, >= ``min_paths``)."""
+    """Most paths one sample side traces, pilot included (the cost bound, >= ``min_paths``; equal to
+    it: a fixed count, no pilot)."""
     bounces: Annotated[int, _in_range("bounces"), _range_doc("bounces", "diffuse bounces per path")] = 3
     """Diffuse vertices per path (1: one bounce, the colour bleeding; more: higher interreflection)."""
     round_paths: Annotated[int, _in_range("round_paths"), _range_doc("round_paths", "paths per round")] = 8

@@ -53,7 +53,8 @@ def test_open_quad_under_a_uniform_sky_is_kd_times_the_sky_exactly():
     ax = bake_ldc_axis(sc, caster, 1, 8)
     res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(bounces=2))
     np.testing.assert_allclose(res.radiance, np.broadcast_to(kd * sky, res.radiance.shape), rtol=1e-6)
-    assert np.all(res.stderr < 1e-6) and np.all(res.paths == 64)  # no spread: stops at min_paths
+    # no spread: the pilot's 64 paths size the estimate to its floor, as many again
+    assert np.all(res.stderr < 1e-6) and np.all(res.paths == 128)
 
 
 def _box_room():
@@ -115,6 +116,36 @@ def test_reported_error_is_honest_across_seeds():
     assert tight.stats["paths_total"] > 2 * runs[0].stats["paths_total"]
     assert tight.stats["rel_stderr_p95"] < runs[0].stats["rel_stderr_p95"]
     assert tight.stats["met_target"] > 0.8
+
+
+@pytest.mark.slow
+def test_rare_bright_paths_through_a_mirror_are_not_stopped_away():
+    # The back wall of the mirror / glossy Cornell box gets part of its indirect light along paths
+    # that reach the light through the mirror sphere or a glossy object: rare, bright samples. A side
+    # that stopped on its own paths stopped early exactly when its first paths missed them, and came
+    # out low: 6.4 % below the reference renderer's fixed-count estimate at the default settings
+    # (bench/indirect_bias.py). The pass's estimate must agree with it.
+    from api_schemas import load_scene_file
+    from samples import SAMPLES_DIR, sample_path
+    from workers.scene_loader import directory_resolver, load_scene
+
+    sc = load_scene(load_scene_file(sample_path("cornell_mirror_glossy")), directory_resolver(SAMPLES_DIR)).runtime
+    caster = EmbreeCaster(sc)
+    ren = ReferenceRenderer(sc, caster)
+    ax = bake_ldc_axis(sc, caster, 2, 24, plan=analyze(sc))
+    mt = sc.materials
+    local = ~np.any((mt.kr > 0) | (mt.kg > 0), axis=1) & np.any(mt.kd > 0, axis=1)
+    sel = np.flatnonzero(local[ax.material])
+    assert sel.size > 400
+    _, ng, _ = surface_attributes(sc, ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel])
+    hits = (ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel], -ng)  # arriving on side 0
+    base = dict(spp=1, max_depth=4, glossy_samples=8, area_light_samples=4, seed=3, indirect_bounces=3)
+    full = ren.shade_hits(*hits, ReferenceParams(indirect_samples=256, **base))
+    direct = ren.shade_hits(*hits, ReferenceParams(indirect_samples=0, **base))
+    want = float(((full - direct) @ LUMA).mean())
+    res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.02, bounces=3), renderer=ren)
+    got = float((res.radiance[sel, 0] @ LUMA).mean())
+    assert abs(got / want - 1.0) < 0.025, got / want
 
 
 def test_chunks_give_the_same_bits_as_one_pass_and_must_tile_the_axis():
