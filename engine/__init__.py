@@ -26,4 +26,7 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # their own rays by multiple importance sampling; Russian roulette on paths past 3 bounces).
 # 0.6.0: LDC bakes and the LDC views' highlights (a rect light's points per LDC sample or shaded
 # point are its own Owen-scrambled Sobol sequence over the light, engine/sampler.py).
-ENGINE_VERSION = "0.6.0"
+# 0.7.0: LDC bakes and walkthrough bases (the indirect pass sizes each sample side's estimate from a
+# pilot and traces it on fresh paths) and reference renders and LLF bakes with more indirect paths
+# than camera samples (the hits of a first glossy bounce's rays share one hit's paths).
+ENGINE_VERSION = "0.7.0"

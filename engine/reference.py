@@ -135,7 +135,8 @@ class ReferenceParams:
     area_light_samples: samples per rectangular light per shading point, on a g x g
         jittered grid with g = round(sqrt(value)); the jitter in each cell is stratified over the
         pixel's samples.
-    indirect_samples: K indirect paths per pixel (0 = direct lighting only).
+    indirect_samples: K indirect paths per pixel (0 = direct lighting only); the hits of the
+        M rays of a first glossy bounce share one hit's paths (``_plan``).
     indirect_bounces: diffuse bounces per indirect path (>= 1).
     seed: random seed; equal seeds give identical images.
     chunk_pixels: upper bound on pixels per wavefront chunk (memory bound and progress
@@ -428,10 +429,13 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _plan(lo, hi, mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glossy_samples, k_per_hit, rect_lights,
-          n_mirror, n_glossy, n_ind, count):
+def _plan(lo, hi, mat, weight, kind, depth, bounces, split, kd, kr, kg, max_depth, glossy_samples, k_per_hit,
+          rect_lights, n_mirror, n_glossy, n_ind, count):
     """Secondary rays per hit: chain hits spawn a mirror ray, M (first glossy bounce) or 1
     glossy rays and K' indirect rays; path hits continue with one ray while bounces remain.
+    A chain hit reached by one of the M glossy rays of a first glossy bounce (``split``) shares
+    the K' indirect paths with its M - 1 siblings: ceil(K' / M) each, so a glossy pixel's
+    reflected surfaces get about the paths a diffuse pixel's surface gets, not M times as many.
     A path's last vertex (no bounce left) with a mirror or glossy lobe still sends one ray of
     that lobe when the scene has rect lights (``rect_lights``): the light it meets completes the
     vertex's direct light, as next-event estimation does for its kd / ks lobes; whatever else it
@@ -457,6 +461,8 @@ def _plan(lo, hi, mat, weight, kind, depth, bounces, kd, kr, kg, max_depth, glos
                     ngl = glossy_samples if depth[i] == 0 else 1
             if has_kd:
                 nin = k_per_hit
+                if split[i]:
+                    nin = (k_per_hit + glossy_samples - 1) // glossy_samples
         elif bounces[i] > 0 and (has_kd or has_kr or has_kg):
             npath = 1
         elif bounces[i] == 0 and rect_lights and (has_kr or has_kg):
@@ -1303,9 +1309,11 @@ class ReferenceRenderer:
             n_glossy = np.empty(m, np.int64)
             n_ind = np.empty(m, np.int64)
             count = np.empty(m, np.int64)
-            run_pieces_parallel(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, mt.kd, mt.kr, mt.kg,
-                                params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror, n_glossy,
-                                n_ind, count)
+            # hits of the glossy rays of a first glossy bounce: depth 1, arrived by a glossy ray (bpdf > 0)
+            split = (depth_h == 1) & (bpdf[idx] > 0.0) if k_per_hit > 1 else np.zeros(m, np.bool_)
+            run_pieces_parallel(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, split, mt.kd, mt.kr,
+                                mt.kg, params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror,
+                                n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
             tot = int(first[-1] + count[-1])

@@ -327,3 +327,24 @@ def test_progress_is_reported_and_cancellation_stops_the_render():
     for pipelines in (1, 2):
         with pytest.raises(Cancelled):
             render_reference(sc, cam, ReferenceParams(spp=1, pipelines=pipelines), progress=cancel)
+
+
+def test_the_glossy_rays_of_a_first_bounce_share_their_hits_indirect_paths():
+    # A chain hit plans K' indirect paths; the M glossy rays of a first glossy bounce would give the
+    # surfaces they reach M K' between them, M times a diffuse pixel's. Their hits share K' instead:
+    # ceil(K' / M) each, while a mirror ray's hit (one ray, no split) keeps K'.
+    from engine.reference import KIND_CHAIN, _plan
+
+    kd = np.array([[0.5, 0.5, 0.5]])
+    zero = np.zeros((1, 3))
+    n = 3
+    split = np.array([True, False, True])
+    k_per_hit, m_glossy = 64, 8
+    out = [np.zeros(n, np.int64) for _ in range(4)]
+    _plan(0, n, np.zeros(n, np.int32), np.ones((n, 3)), np.full(n, KIND_CHAIN, np.int8), np.ones(n, np.int32),
+          np.full(n, 2, np.int32), split, kd, zero, zero, 4, m_glossy, k_per_hit, False, *out)
+    n_ind = out[2]
+    assert list(n_ind) == [8, 64, 8]
+    _plan(0, n, np.zeros(n, np.int32), np.ones((n, 3)), np.full(n, KIND_CHAIN, np.int8), np.ones(n, np.int32),
+          np.full(n, 2, np.int32), split, kd, zero, zero, 4, 5, 12, False, *out)
+    assert list(out[2]) == [3, 12, 3]  # rounded up: no hit goes without a path
