@@ -59,6 +59,7 @@ import numpy as np
 from api_schemas import load_scene_file
 from api_schemas.service import CalibrationParams
 from bench.docs_writer import replace_block
+from engine.error_region import error_region
 from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
@@ -82,7 +83,7 @@ from producer.calibrations import read_served, record_served
 from producer.settings import Settings
 from producer.store.local import LocalStore
 from samples import SAMPLES_DIR, sample_path
-from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
+from workers.jobs.calibrate import calibrate_scene, turned_camera, view_pivot
 from workers.scene_loader import directory_resolver, load_scene
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "accuracy" / "contracts.md"
@@ -254,7 +255,8 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
     t0 = time.perf_counter()
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
     h2 = ref.render(cam, rp(truth_spp // 2, 2002)).radiance
-    mask = contract_mask(ref.scene, ref.render(cam, ReferenceParams(spp=1, max_depth=0)).object_id)
+    aov = ref.render(cam, ReferenceParams(spp=1, max_depth=0))
+    mask = error_region(ref.scene, cam, aov.object_id, aov.depth)
     noise = lrms(h1, h2, mask) / 2.0  # the mean of two halves: half their difference's spread
     log(f"{name} view {deg:+.0f} deg {cam.width}x{cam.height}: truth {time.perf_counter() - t0:.1f} s, "
         f"its noise {noise:.4f}")

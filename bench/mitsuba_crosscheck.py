@@ -41,11 +41,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import binary_dilation
 
 from api_schemas.scene import load_scene_file, load_scene_json
 from bench import mitsuba_bridge as mb
-from engine.camera import camera_rays, pixel_centers
+from engine.error_region import emissive_objects, region_around, sees_rect_light
 from engine.metrics import ErrorReport, compare, error_heatmap, lrms, luminance
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams, RuntimeScene
@@ -226,55 +225,20 @@ def mirrored_emitters(runtime: RuntimeScene, camera: CameraParams, max_depth: in
     return np.any(out.radiance > 0, axis=2)
 
 
-def sees_rect_light(runtime: RuntimeScene, camera: CameraParams, depth: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the pixel-centre ray meets a rect light's emitting side before its first
-    surface (``depth``, 0 = none), i.e. the pixel shows the light."""
-    lt = runtime.lights
-    o, d = camera_rays(camera, *pixel_centers(camera))
-    t_surf = np.where(depth.reshape(-1) > 0, depth.reshape(-1), np.inf)
-    seen = np.zeros(o.shape[0], dtype=bool)
-    for q in range(lt.n_rect):
-        u, v, c = lt.rect_edge_u[q], lt.rect_edge_v[q], lt.rect_corner[q]
-        n = np.cross(u, v)
-        area = float(np.linalg.norm(n))
-        n = n / area
-        den = d @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((c - o) @ n) / den
-        p = o + t[:, None] * d - c
-        a = np.cross(p, v) @ n / area
-        b = np.cross(u, p) @ n / area
-        front = (den != 0) if lt.rect_two_sided[q] else (den < 0)
-        seen |= front & (t > 0) & (t <= t_surf * (1 + 1e-5)) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
-    return seen.reshape(depth.shape)
-
-
 def comparison_mask(runtime: RuntimeScene, object_id: np.ndarray,
                     light_pixels: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Pixels compared: covered in our render (centre ray hits geometry), minus every pixel
     whose 3 x 3 neighbourhood sees an emissive material or (``light_pixels``, from
-    :func:`sees_rect_light`) a rect light. Returns (mask, pixels excluded).
-
-    Why the emitter pixels go: the Cornell box luminaire is ~100 x brighter than anything
-    it lights, so (1) its pixels would inflate ``mean(Y_ref)``, the LRMS denominator, and make
-    the criterion laxer (at 64 px the luminaire's ~40 pixels more than double the mean), and
-    (2) the pixels on its outline hold a coverage fraction times that radiance, whose Monte
-    Carlo noise (anti-aliasing of a x100 step) alone exceeds 1 % LRMS at any affordable
-    sample count. Its radiance is a constant both renderers copy from the same file; the
-    lighting it stands for (our rect light, Mitsuba's area emitter) is what the comparison
-    measures. Excluding it makes the check stricter, not looser."""
+    :func:`sees_rect_light`, or an emitter seen through a mirror: :func:`mirrored_emitters`) a
+    light. Returns (mask, pixels excluded). Why the emitter pixels go: ``engine/error_region.py``
+    (the Cornell box luminaire is ~100 x brighter than anything it lights; excluding it makes the
+    check stricter, not looser)."""
     covered = object_id >= 0
-    emissive_mat = np.any(runtime.materials.emission > 0, axis=1)
-    emissive_obj = np.zeros(len(runtime.object_names), dtype=bool)
-    for oid in range(len(runtime.object_names)):
-        mats = runtime.tri_material[runtime.tri_object == oid]
-        emissive_obj[oid] = mats.size > 0 and bool(np.any(emissive_mat[mats]))
-    sees_emitter = covered & emissive_obj[np.clip(object_id, 0, None)]
+    sees_emitter = covered & emissive_objects(runtime)[np.clip(object_id, 0, None)]
     if light_pixels is not None:
         sees_emitter |= light_pixels
-    near = binary_dilation(sees_emitter, np.ones((3, 3), dtype=bool))
-    mask = covered & ~near
-    return mask, int(np.count_nonzero(covered & near))
+    mask = region_around(covered, sees_emitter)
+    return mask, int(np.count_nonzero(covered & ~mask))
 
 
 @dataclass

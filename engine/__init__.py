@@ -29,4 +29,6 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # 0.7.0: LDC bakes and walkthrough bases (the indirect pass sizes each sample side's estimate from a
 # pilot and traces it on fresh paths) and reference renders and LLF bakes with more indirect paths
 # than camera samples (the hits of a first glossy bounce's rays share one hit's paths).
-ENGINE_VERSION = "0.7.0"
+# 0.8.0: progressive reference renders (max_error / max_ms): the error is estimated and the samples
+# planned over the pixels errors are measured on (engine/error_region.py), not the whole image.
+ENGINE_VERSION = "0.8.0"

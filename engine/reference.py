@@ -67,6 +67,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.camera import camera_rays, pixel_centers
+from engine.error_region import error_region
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.methods import REFERENCE
@@ -1044,8 +1045,9 @@ class ReferenceRenderer:
 
             run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
 
+        region = error_region(self.scene, camera, oid, depth)
         radiance, rep = run_progressive(render_rows, camera.width, camera.height, params.spp, params.max_error,
-                                        params.max_ms, t_start, timer.add, progress)
+                                        params.max_ms, t_start, timer.add, progress, region)
         timer.add("total", time.perf_counter() - t_start)
         if progress is not None:
             progress(1.0, "render")

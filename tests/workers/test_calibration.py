@@ -13,6 +13,7 @@ import math
 import pytest
 
 from api_schemas.service import CalibrationParams
+from engine.error_region import error_region
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
 from engine.newviews.ldc import bake_ldc
@@ -23,7 +24,7 @@ from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
-from workers.jobs.calibrate import calibrate_scene, contract_mask, turned_camera, view_pivot
+from workers.jobs.calibrate import calibrate_scene, turned_camera, view_pivot
 
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
           dict(type="directional", direction=(0.2, -1.0, -0.5), irradiance=(0.5, 0.4, 0.3))]
@@ -69,7 +70,7 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     held = turned_camera(CAMERA, 4.0, 32, view_pivot(CAMERA, *sc.bounds))
     truth = _truth(ref, held, 64, 101, gi, 2)
     other = _truth(ref, held, 64, 202, gi, 2)
-    mask = contract_mask(sc, truth.object_id)
+    mask = error_region(sc, held, truth.object_id, truth.depth)
     truth_noise = lrms(other.radiance, truth.radiance, mask) / math.sqrt(2.0)  # one ground truth's noise
 
     def measured(img) -> float:

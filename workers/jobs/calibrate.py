@@ -11,7 +11,7 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
    independent of the candidates';
 3. every candidate on every probe: the reference at ``CALIBRATION_SPP`` spp and each LDC method of
    the bake (``engine.quality.ldc_settings``), LRMS against the ground truth (over the pixels it
-   covers, minus those on or next to an emitter: :func:`contract_mask`), wall time of the
+   covers, minus those on or next to an emitter: ``engine.error_region``), wall time of the
    renderer's call (the LDC methods: the fastest of three); they are also timed at ``size x
    time_scale`` (the per-pixel part of their time). Each method renders once, untimed, on a tiny
    image first, so compile and lazy set-up never count as render time;
@@ -39,10 +39,10 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 from rq import get_current_job
-from scipy.ndimage import binary_dilation
 
 from api_schemas.service import CalibrationParams, CalibrationRequest
 from engine import ENGINE_VERSION
+from engine.error_region import error_region
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
 from engine.newviews.renderer import LDCViewRenderer
@@ -67,7 +67,7 @@ from producer.payloads import CalibrateJobPayload, InvalidPayload, describe_vali
 from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
-__all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene", "contract_mask",
+__all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene",
            "probe_cameras", "turned_camera", "view_pivot"]
 
 PROBE_STEP_DEG = 8.0
@@ -140,24 +140,6 @@ def _timed_best(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     return runs[0][0], min(ms for _, ms in runs)
 
 
-def contract_mask(scene: RuntimeScene, object_id: np.ndarray) -> np.ndarray:
-    """The pixels a contract's LRMS is measured on: those the ground truth covers, minus every pixel
-    whose 3 x 3 neighbourhood sees an emissive surface. An emitter is ~100x brighter than what it
-    lights: its pixels would set the LRMS denominator, and its outline (a coverage fraction of that
-    radiance) has more Monte Carlo noise than any affordable sample count removes, so every method's
-    error would be the emitter's edge. Its radiance is a constant every method copies; what it
-    lights is what the contract is about."""
-    covered = object_id >= 0
-    emissive_mat = np.any(scene.materials.emission > 0, axis=1)
-    emissive_obj = np.zeros(len(scene.object_names), dtype=bool)
-    for oid in range(len(scene.object_names)):
-        mats = scene.tri_material[scene.tri_object == oid]
-        emissive_obj[oid] = mats.size > 0 and bool(np.any(emissive_mat[mats]))
-    sees = covered & emissive_obj[np.clip(object_id, 0, None)]
-    mask: np.ndarray = covered & ~binary_dilation(sees, np.ones((3, 3), dtype=bool))
-    return mask
-
-
 def _error(img: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
     return float(lrms(img, truth, mask if mask.any() else None))
 
@@ -220,7 +202,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         truth, ms = _timed(ref.render, cam, ref_at(params.truth_spp, TRUTH_SEED))
         cost["truth"] += ms / 1000
         ref_points.append({"spp": params.truth_spp, "pixels": px, "ms": ms, "error": None})  # a time point
-        mask = contract_mask(scene, truth.object_id)
+        mask = error_region(scene, cam, truth.object_id, truth.depth)
         truths.append((truth.radiance, mask))
         done += 1
         report(done / steps, "ground truth")

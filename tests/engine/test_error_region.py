@@ -1,0 +1,62 @@
+"""The pixels errors are measured on (engine/error_region.py): covered, not showing an emitter or
+next to one, on an orthographic view where each pixel's footprint is known in closed form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.error_region import emitter_pixels, error_region
+from engine.reference import ReferenceParams, ReferenceRenderer
+from engine.scene import CameraParams
+from tests.engine.scenes import mat, quad, scene
+
+# 20 x 20 pixels over x, z in [-1, 1] (pixel size 0.1), looking down at a floor of side 1.6: the
+# outer two pixel rings see nothing.
+TOP = CameraParams("orthographic", (0, 5, 0), (0, 0, 0), (0, 0, -1), 20, 20, ortho_height=2.0)
+
+
+def _aov(sc):
+    out = ReferenceRenderer(sc).render(TOP, ReferenceParams(spp=1, max_depth=0, pixel_jitter=False))
+    return out.object_id, out.depth
+
+
+def _cells(x0: float, x1: float, z0: float, z1: float) -> np.ndarray:
+    """(h, w) bool: the pixels whose centre lies in [x0, x1] x [z0, z1] (row 0 at z = -1: up is -z)."""
+    c = -1.0 + 0.1 * (np.arange(20) + 0.5)
+    zz, xx = np.meshgrid(c, c, indexing="ij")
+    return (xx >= x0) & (xx <= x1) & (zz >= z0) & (zz <= z1)
+
+
+def test_the_background_is_not_in_the_region():
+    sc = scene([(quad((0, 0, 0), 1.6), mat())])
+    oid, depth = _aov(sc)
+    region = error_region(sc, TOP, oid, depth)
+    assert np.array_equal(region, _cells(-0.8, 0.8, -0.8, 0.8))
+    assert not emitter_pixels(sc, TOP, oid, depth).any()
+
+
+def test_an_emissive_surface_and_its_neighbours_are_left_out():
+    sc = scene([(quad((0, 0, 0), 1.6), mat()), (quad((0.3, 0.5, 0.3), 0.4), mat("lamp", kd=(0, 0, 0),
+                                                                                 emission=(20, 20, 20)))])
+    oid, depth = _aov(sc)
+    lamp = _cells(0.1, 0.5, 0.1, 0.5)  # 4 x 4 pixels
+    assert lamp.sum() == 16 and np.array_equal(emitter_pixels(sc, TOP, oid, depth), lamp)
+    near = _cells(0.0, 0.6, 0.0, 0.6)  # and one pixel around them
+    assert np.array_equal(error_region(sc, TOP, oid, depth), _cells(-0.8, 0.8, -0.8, 0.8) & ~near)
+
+
+@pytest.mark.parametrize(("faces_up", "two_sided", "seen"), [(True, False, True), (False, False, False),
+                                                             (False, True, True)])
+def test_a_rect_light_counts_where_its_emitting_side_faces_the_camera(faces_up, two_sided, seen):
+    """A 0.4-wide rect light above the floor facing up (toward the camera), down (away) or both."""
+    corner, eu, ev = (-0.6, 0.5, -0.6), (0.4, 0, 0), (0, 0, 0.4)  # normal edge_u x edge_v: down
+    if faces_up:
+        eu, ev = ev, eu
+    light = dict(type="rect", corner=corner, edge_u=eu, edge_v=ev, radiance=(5, 5, 5), two_sided=two_sided)
+    sc = scene([(quad((0, 0, 0), 1.6), mat())], [light])
+    oid, depth = _aov(sc)
+    want = _cells(-0.6, -0.2, -0.6, -0.2) if seen else np.zeros((20, 20), bool)
+    assert np.array_equal(emitter_pixels(sc, TOP, oid, depth), want)
+    region = error_region(sc, TOP, oid, depth)
+    assert region.sum() == 16 * 16 - (36 if seen else 0)
