@@ -1,4 +1,5 @@
-"""Small hand-built runtime scenes for engine tests (no schema, no files)."""
+"""Small hand-built runtime scenes for engine tests (no schema, no files), and the sample scenes
+loaded as the service loads them (:func:`sample_scene`)."""
 
 from __future__ import annotations
 
@@ -87,3 +88,13 @@ def degenerate_cameras(frame_origin, width: int, height: int) -> list[CameraPara
         CameraParams("perspective", (2.0, 1.0, 3.0), (0.0, 0.0, 0.0), (0, 1, 0), width, height, 179.99),
         CameraParams("perspective", o, (0.0, 0.0, 0.0), (0, 1, 0), 16, 16, 90.0),
     ]
+
+
+def sample_scene(name: str):
+    """The sample scene ``samples/scenes/NAME.json`` loaded as the workers load it
+    (``workers.scene_loader.LoadedScene``: ``.runtime``, ``.camera``)."""
+    from api_schemas import load_scene_file
+    from samples import SAMPLES_DIR, sample_path
+    from workers.scene_loader import directory_resolver, load_scene
+
+    return load_scene(load_scene_file(sample_path(name)), directory_resolver(SAMPLES_DIR))

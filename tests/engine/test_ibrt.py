@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from api_schemas import load_scene_file
 from bench.ibrt_throughput import camera_and_reflection_rays, embree_objects, ldc_objects, random_rays
 from engine.errors import InvalidInputError
 from engine.newviews.ibrt import (
@@ -34,20 +33,14 @@ from engine.newviews.ibrt import (
 )
 from engine.newviews.ldc import bake_ldc
 from engine.raycast import EmbreeCaster
-from samples import SAMPLES_DIR, sample_path
-from tests.engine.scenes import from_trimesh, mat, quad, scene, sphere_mesh
-from workers.scene_loader import directory_resolver, load_scene
+from tests.engine.scenes import from_trimesh, mat, quad, sample_scene, scene, sphere_mesh
 
 LIGHT = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0))]
 
 
-def _sample_scene(name):
-    return load_scene(load_scene_file(sample_path(name)), directory_resolver(SAMPLES_DIR))
-
-
 @pytest.fixture(scope="module", params=["mirror_box", "teapot_spheres"])
 def baked(request):
-    ls = _sample_scene(request.param)
+    ls = sample_scene(request.param)
     sc = ls.runtime
     caster = EmbreeCaster(sc)
     ldc = bake_ldc(sc, caster, 128)

@@ -7,7 +7,6 @@ import pytest
 import trimesh
 from scipy.ndimage import binary_erosion
 
-from api_schemas import load_scene_file
 from engine.errors import InvalidInputError
 from engine.metrics import lrms
 from engine.newviews.ldc import bake_ldc, bake_ldc_axis, estimate_ldc_bytes, ldc_pixel_size, merge_ldc
@@ -15,9 +14,7 @@ from engine.newviews.warp import PROV_FILLED, warp_ldc
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, EmbreeCaster
 from engine.reference import ReferenceParams, render_reference
 from engine.scene import CameraParams
-from samples import SAMPLES_DIR, sample_path
-from tests.engine.scenes import degenerate_cameras, from_trimesh, mat, quad, scene, sphere_mesh
-from workers.scene_loader import directory_resolver, load_scene
+from tests.engine.scenes import degenerate_cameras, from_trimesh, mat, quad, sample_scene, scene, sphere_mesh
 
 LIGHTS = [dict(type="point", position=(1.5, 2.5, 2.0), intensity=(4.0, 4.0, 4.0)),
           dict(type="point", position=(-2.0, 1.5, 1.0), intensity=(1.0, 2.0, 3.0)),
@@ -43,8 +40,7 @@ def _warp(ldc, camera, **options):
 
 @pytest.fixture(scope="module")
 def mirror_box():
-    ls = load_scene(load_scene_file(sample_path("mirror_box")), directory_resolver(SAMPLES_DIR))
-    return ls.runtime
+    return sample_scene("mirror_box").runtime
 
 
 def test_axis_view_reproduces_reference_visibility_and_diffuse():
