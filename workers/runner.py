@@ -83,6 +83,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import faulthandler
 import functools
 import logging
 import math
@@ -114,7 +115,7 @@ from rq.scheduler import SCHEDULER_KEY_TEMPLATE, RQScheduler
 from rq.scripts import release_lock
 from rq.serializers import JSONSerializer
 from rq.utils import current_timestamp
-from rq.worker import BaseWorker, WorkerStatus
+from rq.worker import WorkerStatus
 
 from engine.memory import keep_freed_memory
 from producer.queue import QUEUE_NAMES, QueueName, get_queue, redis_from_url
@@ -149,6 +150,11 @@ REDIS_DOWN: tuple[type[BaseException], ...] = (RedisConnectionError, RedisTimeou
 
 OUTAGE_BACKOFF_FIRST_S = 0.5
 OUTAGE_BACKOFF_CAP_S = 5.0
+
+EXIT_DEADLINE_S = 30.0
+"""Seconds a worker may take from the end of its work loop to its exit: the scheduler's stop (its
+1 s loop), the warm-up's stop (at most 15 s) and the interpreter's clean-up. Past it, the worker
+logs every thread's stack and exits anyway (:func:`exit_within`)."""
 
 
 def wait_for_redis(redis: Redis, should_stop: Callable[[], bool], what: str,
@@ -224,6 +230,29 @@ def _observe(job: Job, queue: str, outcome: Literal["finished", "failed", "cance
         record_job_duration(job.connection, queue, job_method(job), outcome, seconds)
     except RedisError as exc:
         log.warning("job %s: duration not recorded: %s", job.id, exc)
+
+
+def exit_within(seconds: float, status: Callable[[], int]) -> threading.Timer:
+    """Make sure this process ends within ``seconds``: if it is still alive then, log it, write
+    every thread's stack to stderr (to find what held it) and leave with ``os._exit(status())``.
+
+    A worker whose work is done and whose registration is withdrawn must not stay alive: its
+    supervisor (``ibr up``, the container runtime, a rollout) waits for the exit before it starts
+    the next one. A daemon thread, so a normal exit does not wait for it."""
+    def expire() -> None:
+        code = status()
+        log.warning("still running %.0f s after the work loop ended; every thread's stack follows, "
+                    "then the process exits with status %d", seconds, code)
+        for handler in logging.getLogger().handlers:
+            handler.flush()
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(code)
+
+    timer = threading.Timer(seconds, expire)
+    timer.name = "ibr-exit-deadline"
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 class _TunedWorkerMixin:
@@ -388,7 +417,21 @@ class _TunedWorkerMixin:
         except REDIS_DOWN as exc:
             self.log.warning("Worker %s: shutdown request not recorded in Redis: %s", self.name, exc)
 
+    ends_by_itself = False
+    """True for ``--burst`` / ``--max-jobs``: the loop's end is then a normal exit (status 0)."""
+
+    def exit_status(self) -> int:
+        """0 when the loop ended as asked (burst, job limit, a stop request), else 1."""
+        asked = getattr(self, "_shutdown_requested_date", None) is not None or self._stop_requested
+        return 0 if self.ends_by_itself or asked else 1
+
+    exit_deadline_s: float | None = None
+    """Set by :func:`main` (the worker owns its process): the process then ends within this many
+    seconds of the loop's end (:func:`exit_within`). None for a worker run inside another program."""
+
     def teardown(self) -> None:
+        if self.exit_deadline_s is not None and not getattr(self, "is_horse", False):
+            exit_within(self.exit_deadline_s, self.exit_status)
         try:
             super().teardown()  # type: ignore[misc]
         except REDIS_DOWN as exc:
@@ -817,12 +860,12 @@ def build_worker(
     job_monitoring_interval: int = 10,
     heartbeat_grace: int = 20,
     worker_ttl: int = 420,
-) -> BaseWorker:
+) -> RenderWorker | BakeWorker:
     """The worker for ``queue`` ('render' -> RenderWorker, 'bake' -> BakeWorker), with the
     JSON serializer and :func:`retry_policy` installed."""
     if queue not in QUEUE_NAMES:
         raise ValueError(f"unknown queue {queue!r}; queues are {QUEUE_NAMES}")
-    cls: type[BaseWorker] = RenderWorker if queue == "render" else BakeWorker
+    cls: type[RenderWorker | BakeWorker] = RenderWorker if queue == "render" else BakeWorker
     worker = cls(
         [get_queue(redis, queue)],
         name=name,
@@ -833,7 +876,7 @@ def build_worker(
         job_monitoring_interval=job_monitoring_interval,
         worker_ttl=worker_ttl,
     )
-    worker.heartbeat_grace = heartbeat_grace  # type: ignore[attr-defined]
+    worker.heartbeat_grace = heartbeat_grace
     return worker
 
 
@@ -903,6 +946,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--burst", action="store_true", help="exit when the queue is empty")
     p.add_argument("--name", default=None, help="worker name (unique among live workers; default: random)")
     p.add_argument("--max-jobs", type=int, default=None, help="exit after this many jobs")
+    p.add_argument("--exit-deadline", type=float, default=EXIT_DEADLINE_S, metavar="S",
+                   help="seconds from the end of the work loop to the exit, past which the worker logs "
+                        f"its threads' stacks and exits anyway (default {EXIT_DEADLINE_S:.0f})")
     p.add_argument("--maintenance-interval", type=int, default=None, metavar="S",
                    help="seconds between registry clean-ups (default: IBR_MAINTENANCE_INTERVAL_S or 30)")
     p.add_argument("--job-monitoring-interval", type=int, default=None, metavar="S",
@@ -969,14 +1015,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         heartbeat_grace=args.heartbeat_grace or settings.heartbeat_grace_s,
         worker_ttl=args.worker_ttl or settings.worker_ttl_s,
     )
+    worker.ends_by_itself = args.burst or args.max_jobs is not None
+    worker.exit_deadline_s = args.exit_deadline
     try:
         worker.work(burst=args.burst, with_scheduler=not args.no_scheduler, logging_level=args.log_level,
                     max_jobs=args.max_jobs)
     finally:
         if args.queue == "render":
             stop_background_warm_up(warm, redis, worker.name)
-    asked_to_stop = worker._shutdown_requested_date is not None or worker._stop_requested
-    if not (args.burst or args.max_jobs is not None or asked_to_stop):
+    if worker.exit_status() != 0:
         # RQ's loop ends on an exception it does not handle (logged above with its traceback):
         # a non-zero status, so the supervisor (ibr up, the container's restart policy) starts
         # a fresh worker instead of taking the exit for a requested stop.

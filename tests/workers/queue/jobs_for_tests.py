@@ -59,6 +59,18 @@ def quick(payload: dict[str, Any]) -> dict[str, Any]:
     return {"echo": payload}
 
 
+def leave_a_thread_running(payload: dict[str, Any]) -> dict[str, Any]:
+    """Finish, but leave behind a (non-daemon) thread that never ends: the interpreter's exit
+    joins it forever, as a library's stuck thread would."""
+    import threading
+
+    def never_ending_thread() -> None:
+        threading.Event().wait()
+
+    threading.Thread(target=never_ending_thread, name="never-ending", daemon=False).start()
+    return {"echo": payload}
+
+
 def slow_artifact(payload: dict[str, Any]) -> dict[str, Any]:
     """A stand-in bake: ``steps`` x ``dt`` seconds of work, then a deterministic artifact
     published through producer.artifacts with the worker's own store (blobs, manifest last)."""
