@@ -35,20 +35,33 @@ DOC = ROOT / "docs" / "accuracy" / "gi.md"
 LUMA = np.asarray(REC709_WEIGHTS)
 
 
+def diffuse_samples(sc, ax) -> np.ndarray:
+    """Indices of ``ax``'s samples on materials with a diffuse and no mirror or glossy lobe (where
+    the reference's radiance toward any direction is the same diffuse light the pass bakes)."""
+    mt = sc.materials
+    local = ~np.any((mt.kr > 0) | (mt.kg > 0), axis=1) & np.any(mt.kd > 0, axis=1)
+    return np.flatnonzero(local[ax.material])
+
+
+def reference_indirect(ren: ReferenceRenderer, sc, ax, sel: np.ndarray, paths: int, seed: int = 0) -> float:
+    """Mean luminance of the indirect light leaving the front sides (side 0) of samples ``sel`` of
+    ``ax``, as the reference renderer's ``shade_hits`` estimates it with ``paths`` paths per point
+    (3 bounces): its full radiance minus its direct-only radiance, both from one fixed count."""
+    _, ng, _ = surface_attributes(sc, ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel])
+    base = dict(spp=1, max_depth=4, glossy_samples=8, area_light_samples=4, seed=seed, indirect_bounces=3)
+    hits = (ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel], -ng)  # rays arriving on the front side
+    full = ren.shade_hits(*hits, ReferenceParams(indirect_samples=paths, **base))
+    direct = ren.shade_hits(*hits, ReferenceParams(indirect_samples=0, **base))
+    return float(((full - direct) @ LUMA).mean())
+
+
 def run_scene(name: str, res: int, paths: list[tuple[int, int]], ref_paths: int, log) -> list[dict]:
     sc, _cam = load_sample(name)
     caster = EmbreeCaster(sc)
     ren = ReferenceRenderer(sc, caster)
     ax = bake_ldc_axis(sc, caster, 2, res, plan=analyze(sc))
-    mt = sc.materials
-    local = ~np.any((mt.kr > 0) | (mt.kg > 0), axis=1) & np.any(mt.kd > 0, axis=1)
-    sel = np.flatnonzero(local[ax.material])
-    p, ng, _ = surface_attributes(sc, ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel])
-    base = dict(spp=1, max_depth=4, glossy_samples=8, area_light_samples=4, seed=0, indirect_bounces=3)
-    hits = (ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel], -ng)  # rays arriving on the front side (side 0)
-    full = ren.shade_hits(*hits, ReferenceParams(indirect_samples=ref_paths, **base))
-    direct = ren.shade_hits(*hits, ReferenceParams(indirect_samples=0, **base))
-    ref = float(((full - direct) @ LUMA).mean())
+    sel = diffuse_samples(sc, ax)
+    ref = reference_indirect(ren, sc, ax, sel, ref_paths)
     rows = []
     for lo, hi in paths:
         t0 = time.perf_counter()

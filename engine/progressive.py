@@ -173,9 +173,10 @@ def _plan(n_half: np.ndarray, v: np.ndarray, shape: tuple[int, int], cap_half: i
     room = cap_half - n_half
     vn = (v * n).reshape(shape)
     inside = region.reshape(shape)
+    partial = not bool(region.all())
     # a pixel's noise is read from its neighbours of its own kind (in or out of the region)
     sigma2 = _ring_mean(vn, inside).ravel()
-    if not np.all(region):
+    if partial:
         sigma2 = np.where(region, sigma2, _ring_mean(vn, ~inside).ravel())
     sigma = np.sqrt(sigma2)
     total_sigma = float(sigma[region].sum())
@@ -186,7 +187,7 @@ def _plan(n_half: np.ndarray, v: np.ndarray, shape: tuple[int, int], cap_half: i
         else:
             want = sigma * 2.0 * float(n[region].sum()) / total_sigma
         target = np.minimum(np.maximum(want, n), GROWTH * n)
-        if not np.all(region):
+        if partial:
             cap_out = np.maximum(float(np.mean(target[region])), n)
             target = np.where(region, target, np.minimum(target, cap_out))
         add = np.minimum(np.ceil((target - n) / 2.0).astype(np.int64), room)

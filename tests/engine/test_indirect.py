@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench.indirect_bias import diffuse_samples, reference_indirect
 from engine.errors import InvalidInputError
 from engine.newviews.effects import analyze
 from engine.newviews.indirect import IndirectParams, side_frames, trace_indirect_points
@@ -133,16 +134,9 @@ def test_rare_bright_paths_through_a_mirror_are_not_stopped_away():
     caster = EmbreeCaster(sc)
     ren = ReferenceRenderer(sc, caster)
     ax = bake_ldc_axis(sc, caster, 2, 24, plan=analyze(sc))
-    mt = sc.materials
-    local = ~np.any((mt.kr > 0) | (mt.kg > 0), axis=1) & np.any(mt.kd > 0, axis=1)
-    sel = np.flatnonzero(local[ax.material])
+    sel = diffuse_samples(sc, ax)
     assert sel.size > 400
-    _, ng, _ = surface_attributes(sc, ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel])
-    hits = (ax.ldi.prim[sel], ax.ldi.u[sel], ax.ldi.v[sel], -ng)  # arriving on side 0
-    base = dict(spp=1, max_depth=4, glossy_samples=8, area_light_samples=4, seed=3, indirect_bounces=3)
-    full = ren.shade_hits(*hits, ReferenceParams(indirect_samples=256, **base))
-    direct = ren.shade_hits(*hits, ReferenceParams(indirect_samples=0, **base))
-    want = float(((full - direct) @ LUMA).mean())
+    want = reference_indirect(ren, sc, ax, sel, paths=256, seed=3)
     res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.02, bounces=3), renderer=ren)
     got = float((res.radiance[sel, 0] @ LUMA).mean())
     assert abs(got / want - 1.0) < 0.025, got / want
