@@ -61,7 +61,7 @@ from bench.mitsuba_crosscheck import (
     mirrored_emitters,
     sees_rect_light,
 )
-from engine import ENGINE_VERSION
+from engine import REFERENCE_VERSION
 from engine.metrics import REC709_WEIGHTS, lrms
 from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
@@ -148,9 +148,9 @@ def orbit_views(target, eye, fov: float, size: int, n: int) -> list[CameraParams
 
 def converged_view(ren: ReferenceRenderer, name: str, cam: CameraParams, params: ReferenceParams,
                    cache: Path | None) -> dict:
-    """The ground truth of one view (module docstring), from ``cache`` when it holds it (an engine of
-    another version renders it again)."""
-    key = hashlib.sha256(repr((name, cam, params.to_dict(), ENGINE_VERSION)).encode()).hexdigest()[:16]
+    """The ground truth of one view (module docstring), from ``cache`` when it holds it (a reference
+    renderer of another version, ``engine.REFERENCE_VERSION``, renders it again)."""
+    key = hashlib.sha256(repr((name, cam, params.to_dict(), REFERENCE_VERSION)).encode()).hexdigest()[:16]
     f = None if cache is None else cache / f"gi_{name}_{cam.width}_{key}.npz"
     if f is not None and f.exists():
         d = np.load(f)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine import ENGINE_VERSION
+from engine import REFERENCE_VERSION
 from engine.error_region import error_region
 from engine.memory import keep_freed_memory
 from engine.metrics import lrms
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     ren = ReferenceRenderer(ls.runtime)
     load0 = os.getloadavg()[0]
     Path(a.cache).mkdir(parents=True, exist_ok=True)
-    f = Path(a.cache) / f"truth_{a.res}_{a.truth_spp}_{BOUNCES}_{ENGINE_VERSION}.npz"
+    f = Path(a.cache) / f"truth_{a.res}_{a.truth_spp}_{BOUNCES}_{REFERENCE_VERSION}.npz"
     if f.exists():
         z = np.load(f)
         ta, tb = z["a"], z["b"]

@@ -31,4 +31,10 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # than camera samples (the hits of a first glossy bounce's rays share one hit's paths).
 # 0.8.0: progressive reference renders (max_error / max_ms): the error is estimated and the samples
 # planned over the pixels errors are measured on (engine/error_region.py), not the whole image.
-ENGINE_VERSION = "0.8.0"
+# 0.9.0: LDC renders (a pixel's diffuse radiance is interpolated between the LDC's samples on its
+# surface, not the nearest sample's).
+ENGINE_VERSION = "0.9.0"
+
+# The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
+# truths they cache on it, so a change elsewhere in the engine does not throw them away.
+REFERENCE_VERSION = "0.8.0"

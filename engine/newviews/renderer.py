@@ -21,6 +21,15 @@
    LRMS 0.060 -> 0.033, ~10 % more render time; ``docs/ldc.md``). Their provenance is 2 like
    the holes'; counts ``silhouette_rays``, ``silhouette_changed`` (pixels whose object
    changed) and ``silhouette_mesh_hits``.
+2b. **Diffuse reconstruction** (``diffuse_filter="bilinear"``, the default): a pixel's
+   view-independent radiance is interpolated bilinearly between the samples of its LDI's 2 x 2
+   pixels around the point where the pixel ray meets the shown sample's tangent plane, among
+   the samples on the same surface (same object, normals within ``SAME_SURFACE_COS``, within half
+   a sample spacing of the plane); missing neighbours (a crease, a border, another object)
+   drop out of the weights. A sample stands for a cell of its LDI; read whole
+   (``diffuse_filter="nearest"``) it turns smooth shading into steps at the sample spacing and
+   each sample's noise into a blotch, both beating against the camera's pixels. Timed as
+   ``diffuse``; count ``diffuse_interpolated``.
 3. **View-dependent pass**, only on the visible pixels whose material needs it (the effect
    plan; ``force_all_passes=True`` runs every pass of the method on every covered pixel,
    for the test that skipping changes nothing): Phong highlights gated by the LDC's
@@ -178,6 +187,7 @@ class AxisArrays(NamedTuple):
     diffuse: np.ndarray  #: (n, 2, 3) float32 view-independent radiance per side
     visibility: np.ndarray  #: (2 n, W) uint64 light-visibility words, row 2 s + side
     prim: np.ndarray  #: (n,) int32 triangle the sample lies on
+    offsets: np.ndarray  #: (nu nv + 1,) int64 the LDI's CSR: pixel k owns samples offsets[k] .. offsets[k + 1] - 1
 
 
 class PixelSamples(NamedTuple):
@@ -372,6 +382,120 @@ def _refine_point(ox, oy, oz, dx, dy, dz, t, mesh, max_move, px, py, pz, g0, g1,
     if not ok:
         return px, py, pz, n0, n1, n2
     return qx, qy, qz, m0, m1, m2
+
+
+DIFFUSE_FILTERS = ("bilinear", "nearest")
+"""How a pixel's view-independent radiance is read from the LDC (``LDCViewRenderer._smooth_diffuse``)."""
+
+SAME_SURFACE_COS = 0.9
+"""Two samples of one object whose geometric normals are closer than this (cosine) and whose
+points are within half an LDI pixel of one tangent plane are on the same surface (the bilinear
+diffuse reconstruction's neighbours)."""
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _bilinear_diffuse(r, i, sd, cam, ax, radiance):
+    """The diffuse radiance of camera pixel ``r`` (showing sample ``i``, side ``sd`` of ``ax``),
+    interpolated bilinearly between the samples of the LDI's 2 x 2 pixels around where the pixel
+    ray meets the sample's tangent plane, among those on the same surface (object, normal
+    within ``SAME_SURFACE_COS``, within half a pixel of the plane); the weights of missing
+    neighbours are left out (a crease, a border, another object). Written to ``radiance[r]``;
+    False (nothing written: the sample's own value stays) when the ray runs along the plane or
+    meets it more than a pixel and a half from the sample."""
+    h, nu = ax.h, ax.nu
+    nv = (ax.offsets.shape[0] - 1) // nu
+    k = np.int64(ax.sample_pixel[i])
+    ci, cj = k % nu, k // nu
+    o0, o1, o2 = ax.origin[0], ax.origin[1], ax.origin[2]
+    u0, u1, u2 = ax.u[0], ax.u[1], ax.u[2]
+    v0, v1, v2 = ax.v[0], ax.v[1], ax.v[2]
+    w0, w1, w2 = ax.w[0], ax.w[1], ax.w[2]
+    a, b, dep = (ci + 0.5) * h, (cj + 0.5) * h, ax.depth[i]
+    p0 = o0 + a * u0 + b * v0 + dep * w0
+    p1 = o1 + a * u1 + b * v1 + dep * w1
+    p2 = o2 + a * u2 + b * v2 + dep * w2
+    g0, g1, g2 = np.float64(ax.geo_normal[i, 0]), np.float64(ax.geo_normal[i, 1]), np.float64(ax.geo_normal[i, 2])
+    ox, oy, oz, dx, dy, dz = _pixel_ray(r, cam)
+    den = dx * g0 + dy * g1 + dz * g2
+    if abs(den) < 1e-6:
+        return False
+    t = ((p0 - ox) * g0 + (p1 - oy) * g1 + (p2 - oz) * g2) / den
+    q0, q1, q2 = ox + t * dx - o0, oy + t * dy - o1, oz + t * dz - o2
+    fx = (q0 * u0 + q1 * u1 + q2 * u2) / h - 0.5
+    fy = (q0 * v0 + q1 * v1 + q2 * v2) / h - 0.5
+    if not (abs(fx - ci) <= 1.5 and abs(fy - cj) <= 1.5):
+        return False
+    x0, y0 = math.floor(fx), math.floor(fy)
+    tx, ty = fx - x0, fy - y0
+    tol = 0.5 * h
+    obj = ax.object[i]
+    acc0 = acc1 = acc2 = 0.0
+    wsum = 0.0
+    for cy in range(2):
+        yj = np.int64(y0) + cy
+        wy = ty if cy == 1 else 1.0 - ty
+        if yj < 0 or yj >= nv or wy <= 0.0:
+            continue
+        for cx in range(2):
+            xi = np.int64(x0) + cx
+            wx = tx if cx == 1 else 1.0 - tx
+            if xi < 0 or xi >= nu or wx <= 0.0:
+                continue
+            kk = yj * nu + xi
+            a, b = (xi + 0.5) * h, (yj + 0.5) * h
+            best = -1
+            best_d = tol
+            for j in range(ax.offsets[kk], ax.offsets[kk + 1]):
+                if ax.object[j] != obj:
+                    continue
+                if ax.geo_normal[j, 0] * g0 + ax.geo_normal[j, 1] * g1 + ax.geo_normal[j, 2] * g2 < SAME_SURFACE_COS:
+                    continue
+                dj = ax.depth[j]
+                e0 = o0 + a * u0 + b * v0 + dj * w0 - p0
+                e1 = o1 + a * u1 + b * v1 + dj * w1 - p1
+                e2 = o2 + a * u2 + b * v2 + dj * w2 - p2
+                dist = abs(e0 * g0 + e1 * g1 + e2 * g2)
+                if dist < best_d:
+                    best, best_d = j, dist
+            if best >= 0:
+                wgt = wx * wy
+                acc0 += wgt * ax.diffuse[best, sd, 0]
+                acc1 += wgt * ax.diffuse[best, sd, 1]
+                acc2 += wgt * ax.diffuse[best, sd, 2]
+                wsum += wgt
+    if wsum < 1e-3:
+        return False
+    radiance[r, 0] = acc0 / wsum
+    radiance[r, 1] = acc1 / wsum
+    radiance[r, 2] = acc2 / wsum
+    return True
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _bilinear_diffuse_kernel(pix, samples, cam, ax0, ax1, ax2, radiance):
+    """``_bilinear_diffuse`` for every pixel of ``pix`` that shows an LDC sample (``samples``);
+    the others keep their radiance. Returns how many pixels were interpolated."""
+    n = pix.shape[0]
+    blocks = (n + 1023) // 1024
+    done = np.zeros(blocks, np.int64)
+    for blk in nb.prange(blocks):
+        c = 0
+        for q in range(blk * 1024, min(n, blk * 1024 + 1024)):
+            r = pix[q]
+            a = samples.axis[r]
+            if a < 0:
+                continue
+            i, sd = samples.index[r], samples.side[r]
+            if a == 0:
+                ok = _bilinear_diffuse(r, i, sd, cam, ax0, radiance)
+            elif a == 1:
+                ok = _bilinear_diffuse(r, i, sd, cam, ax1, radiance)
+            else:
+                ok = _bilinear_diffuse(r, i, sd, cam, ax2, radiance)
+            if ok:
+                c += 1
+        done[blk] = c
+    return done.sum()
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1212,7 +1336,8 @@ def _ldc_axes(ldc: LDC) -> tuple[AxisArrays, AxisArrays, AxisArrays]:
                               float(f.h), int(f.nu), ax.ldi.sample_pixels().astype(np.int32),
                               c(ax.ldi.depth, np.float64), c(ax.geo_normal, np.float32), c(ax.normal, np.float32),
                               c(ax.material, np.int32), c(ax.object, np.int32), c(ax.diffuse, np.float32),
-                              vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32)))
+                              vis.reshape(vis.shape[0] * 2, vis.shape[2]), c(ax.ldi.prim, np.int32),
+                              c(ax.ldi.offsets, np.int64)))
     return out[0], out[1], out[2]
 
 
@@ -1301,7 +1426,7 @@ class LDCViewRenderer:
                  caster: RayCaster | None = None, area_light_samples: int = 16, seed: int = 0,
                  warp_options: dict | None = None, hole_search_px: int | None = 3, refine_surface: bool = True,
                  refine_walk: bool = True, silhouette_mesh_test: bool = True, silhouette_rays: bool = True,
-                 silhouette_rel_depth: float = 0.1):
+                 silhouette_rel_depth: float = 0.1, diffuse_filter: str = "bilinear"):
         if not isinstance(ldc, LDC):
             raise InvalidInputError("LDCViewRenderer needs an LDC")
         if ldc.n_lights != scene.lights.count:
@@ -1334,6 +1459,9 @@ class LDCViewRenderer:
         if not (isinstance(silhouette_rel_depth, (int, float)) and 0.0 < float(silhouette_rel_depth) <= 10.0):
             raise InvalidInputError("silhouette_rel_depth must be a number in (0, 10]")
         self.silhouette_rel_depth = float(silhouette_rel_depth)
+        if diffuse_filter not in DIFFUSE_FILTERS:
+            raise InvalidInputError(f"diffuse_filter must be one of {list(DIFFUSE_FILTERS)}, got {diffuse_filter!r}")
+        self.diffuse_filter = diffuse_filter
         self.warp_options = dict(warp_options or {})
         bad = set(self.warp_options) - {"min_cos", "max_footprint", "footprint_scale", "hole_rel_depth",
                                          "hole_neighbors"}
@@ -1464,6 +1592,7 @@ class LDCViewRenderer:
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
         rc = self._fill(fr, fill)
+        self._smooth_diffuse(fr, None)
         vp = self._view_pass(fr, spec, force, rc)
         self._mirrors(fr, vp, spec, force)
         return fr, self._result(fr, spec, fill, force, t_start)
@@ -1504,6 +1633,8 @@ class LDCViewRenderer:
             big = replace(camera, width=W * s, height=H * s)
             fr = self._subpixel_frame(fr1, big, pix, s, counts)
             timings["edge_rays"] = time.perf_counter() - t0
+            self._smooth_diffuse(fr, np.flatnonzero(fr.obj_id >= 0))
+            timings["edge_diffuse"] = fr.timings["diffuse"]
             vp = self._view_pass(fr, spec, force, None)
             self._mirrors(fr, vp, spec, force)
             timings["edge_surfaces"] = fr.timings["surfaces"]
@@ -1578,6 +1709,24 @@ class LDCViewRenderer:
         fr.counts["hole_pixels"] = w.n_holes
         fr.report(0.3, "warp")
         return fr
+
+    def _smooth_diffuse(self, fr: _Frame, pix: np.ndarray | None) -> None:
+        """Stage 2b, timed as "diffuse": with ``diffuse_filter="bilinear"``, the view-independent
+        radiance of every pixel of ``pix`` (None: all) that shows an LDC sample is interpolated
+        between that surface's samples around the pixel's point (``_bilinear_diffuse``) instead
+        of being the nearest sample's. A sample's value stands for a cell of the LDI; taken whole,
+        it turns smooth shading into steps at the sample spacing and every sample's own noise
+        into a blotch, which beat against the camera's pixels (module docstring, *Diffuse
+        reconstruction*)."""
+        t0 = time.perf_counter()
+        n = 0
+        if self.diffuse_filter == "bilinear":
+            if pix is None:
+                pix = np.arange(fr.height * fr.width, dtype=np.int64)
+            ax0, ax1, ax2 = self._axes
+            n = int(_bilinear_diffuse_kernel(pix, fr.samples, fr.cam, ax0, ax1, ax2, fr.radiance))
+        fr.timings["diffuse"] = time.perf_counter() - t0
+        fr.counts["diffuse_interpolated"] = n
 
     def _fill(self, fr: _Frame, fill: str) -> RaycastRecords | None:
         """Stage 2, timed as "fill": the hole pixels worth a ray and the silhouette pixels take
