@@ -102,7 +102,7 @@ class SceneSpec:
 
 
 SCENES = {
-    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02),), gt_ms=140_000.0),
+    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02), (256, 0.01)), gt_ms=140_000.0),
     "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.05),),
                                        gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48)),
 }
@@ -238,6 +238,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
     ladder_views = [0, n_views // 2]
     # ---- our reference, raising spp (one indirect path per camera sample)
     ref_ladder = []
+    ren.render(cams[ladder_views[0]], ladder_params(spec, 1))  # warm: a fresh numba cache compiles here
     for spp in REF_LADDER:
         errs, ts, cpus = [], [], []
         for vi in ladder_views:
