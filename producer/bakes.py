@@ -413,9 +413,12 @@ def bake_status(redis: Redis, store: ObjectStore, scene_id: str, key: str, param
                 *, cached: bool = False) -> BakePublic:
     """The bake's state, plan, parts (each with state and progress) and aggregated progress."""
     links = {"self": f"/v1/scenes/{scene_id}/bakes/{key}", "job": f"/v1/jobs/{scene_bake_job_id(key)}"}
-    manifest = read_manifest(store, key)
+    # The jobs before the manifest: the merge job publishes the manifest, then RQ records it as
+    # finished. Read the other way round, a merge that ends between the two reads shows a finished
+    # job and no manifest, which means "the artifact has gone" (state "missing", seen on CI).
     merge = fetch_job(redis, scene_bake_job_id(key))
     plan_job = fetch_job(redis, scene_bake_plan_job_id(key))
+    manifest = read_manifest(store, key)
     merge_pub = job_public(merge) if merge is not None else None
     plan_pub = job_public(plan_job) if plan_job is not None else None
     plan = _plan_from(manifest.result if manifest is not None else None, plan_job)

@@ -248,3 +248,35 @@ def test_a_canceled_part_cancels_the_bake_and_a_new_request_redoes_it(
     assert st.state == "finished", w.log()
     planned: dict[str, Any] = fetch_job(redis_conn, scene_bake_plan_job_id(key)).return_value()  # type: ignore[union-attr,assignment]
     assert planned["enqueued"] == [victim.name]
+
+
+def test_a_bake_whose_merge_ends_while_its_status_is_read_is_finished_not_missing(
+    redis_conn: Redis, worker_store: ObjectStore, worker_process: StartWorker, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The merge job writes the manifest, then RQ marks the job finished. Here the merge "ends"
+    # at the moment the status reads its job: the manifest appears and the job turns finished
+    # right then, and the status must see a finished bake (it said "missing" when it read the
+    # manifest before the job).
+    pub = put_scene(worker_store, diffuse_scene(), {}, None)
+    key, _ = bakes.enqueue_bake(redis_conn, worker_store, pub.id, SMALL, owner=None)
+    w = worker_process("bake")
+    assert wait_bake(redis_conn, worker_store, pub.id, key, SMALL, 120, w).state == "finished", w.log()
+    from producer.artifacts import manifest_key
+
+    mkey = manifest_key(key)
+    saved = worker_store.get_bytes(mkey)
+    worker_store.delete(mkey)
+    merge = fetch_job(redis_conn, scene_bake_job_id(key))
+    assert merge is not None
+    merge.set_status("started")
+    real_fetch = bakes.fetch_job
+
+    def fetch_as_the_merge_ends(redis: Redis, job_id: str) -> Any:
+        if job_id == scene_bake_job_id(key) and not worker_store.exists(mkey):
+            worker_store.put_bytes(mkey, saved, "application/json")
+            real_fetch(redis, job_id).set_status("finished")
+        return real_fetch(redis, job_id)
+
+    monkeypatch.setattr(bakes, "fetch_job", fetch_as_the_merge_ends)
+    st = bakes.bake_status(redis_conn, worker_store, pub.id, key, SMALL)
+    assert st.state == "finished", st
