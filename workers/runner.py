@@ -85,6 +85,7 @@ import contextlib
 import ctypes
 import faulthandler
 import functools
+import inspect
 import logging
 import math
 import os
@@ -155,6 +156,9 @@ EXIT_DEADLINE_S = 30.0
 """Seconds a worker may take from the end of its work loop to its exit: the scheduler's stop (its
 1 s loop), the warm-up's stop (at most 15 s) and the interpreter's clean-up. Past it, the worker
 logs every thread's stack and exits anyway (:func:`exit_within`)."""
+
+LISTENER_STOP_S = 1.0
+"""How long a stopping worker waits for RQ's pub/sub listener (a daemon thread) to end."""
 
 
 def wait_for_redis(redis: Redis, should_stop: Callable[[], bool], what: str,
@@ -272,6 +276,9 @@ class _TunedWorkerMixin:
     serializer: Any
     scheduler: RQScheduler | None
     _stop_requested: bool
+    pubsub: Any
+    pubsub_thread: Any
+    pubsub_channel_name: str
 
     def perform_job(self, job: Job, queue: Queue, execution: Any) -> bool:
         # Runs where the job runs (the render worker itself, a bake worker's forked horse).
@@ -428,6 +435,23 @@ class _TunedWorkerMixin:
     exit_deadline_s: float | None = None
     """Set by :func:`main` (the worker owns its process): the process then ends within this many
     seconds of the loop's end (:func:`exit_within`). None for a worker run inside another program."""
+
+    def unsubscribe(self) -> None:
+        # RQ's unsubscribe stops its pub/sub listener with PubSubWorkerThread.stop(), which from
+        # redis-py 8.2 waits for the listener to end; a listener that has read the UNSUBSCRIBE
+        # reply waits a whole poll interval (60 s) for a new subscription first, so workers took
+        # a minute to exit. The listener is a daemon thread: stop it, wait a second, move on.
+        listener = self.pubsub_thread
+        if listener is None:
+            return
+        self.log.info("Worker %s: unsubscribing from channel %s", self.name, self.pubsub_channel_name)
+        self.pubsub.unsubscribe()
+        if "timeout" in inspect.signature(listener.stop).parameters:
+            listener.stop(timeout=LISTENER_STOP_S)
+        else:
+            listener.stop()
+            listener.join(timeout=LISTENER_STOP_S)
+        self.pubsub.close()
 
     def teardown(self) -> None:
         if self.exit_deadline_s is not None and not getattr(self, "is_horse", False):
