@@ -206,7 +206,7 @@ IndirectMode = Literal["auto", "off"]
 
 INDIRECT_RANGES: dict[str, tuple[float, float]] = {
     "noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
-    "round_paths": (1, 256)}
+    "round_paths": (1, 256), "stride": (1, 8)}
 """Allowed ranges of the indirect settings: those of ``engine.newviews.indirect.IndirectParams.RANGES``
 (the API process imports no numba, so they are repeated here; tests/workers/test_indirect_parts.py
 checks that they agree, and the worker re-validates with the engine's own class)."""
@@ -260,6 +260,13 @@ class IndirectBakeParams(FrozenModel):
     """Diffuse vertices per path (1: one bounce, the colour bleeding; more: higher interreflection)."""
     round_paths: Annotated[int, _in_range("round_paths"), _range_doc("round_paths", "paths per round")] = 8
     """Paths per side per round, a power of two (a stratified block of the side's sample sequence)."""
+    stride: Annotated[int, _in_range("stride"), _range_doc("stride", "LDC pixels between traced samples")] = 1
+    """Path-trace every ``stride``-th LDC pixel in each direction and give the samples in between the
+    interpolation of their traced neighbours on the same surface (a sample with none is traced):
+    about 1 / stride^2 of the indirect pass's cost, the direct light (shadow borders) still at the
+    LDC's full resolution. Indirect light varies slowly over a surface, so a fine LDC at stride 2
+    costs about what the LDC at half its resolution costs at stride 1
+    (docs/accuracy/gi.md)."""
     chunks: Annotated[int, Field(ge=1, le=MAX_INDIRECT_CHUNKS)] = 4
     """Jobs per LDC axis for the indirect pass (the unit of parallelism across bake workers)."""
 

@@ -55,6 +55,7 @@ from rq.serializers import JSONSerializer
 from api_schemas.service import BakeParams, BakePart, BakePartState, BakePublic, BakeState, JobProgress
 from engine import ENGINE_VERSION
 from producer.artifacts import artifact_key, delete_artifact, manifest_key, read_manifest
+from producer.costs import expected_paths
 from producer.enqueue import enqueue_unique
 from producer.errors import BakeInUse, UnknownScene
 from producer.names import (
@@ -179,8 +180,7 @@ def part_weight(params: BakeParams, spec: PartSpec) -> float:
         # ~2 samples per pixel, 2 sides, ~ (min_paths + a share of the rest) paths of ~(bounces + 1)
         # segments and as many shadow rays each, split over the axis's chunks
         ip = params.indirect
-        paths = ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)
-        return float(params.ldc_resolution ** 2) * 4.0 * paths * 2.0 * (ip.bounces + 1) / ip.chunks
+        return float(params.ldc_resolution ** 2) * 4.0 * expected_paths(params) * 2.0 * (ip.bounces + 1) / ip.chunks
     n = int(spec["stop"]) - int(spec["start"])
     lp = params.llf_params
     per_sample = lp.spp * (1.0 + min(lp.max_depth, 1) * lp.glossy_samples * 0.25)

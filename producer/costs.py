@@ -527,9 +527,11 @@ def _ldi_bytes(pixels: int, max_layers: int, sample_bytes: int) -> int:
 
 
 def expected_paths(params: BakeParams) -> float:
-    """Expected indirect paths per LDC sample side (the adaptive bake stops between min_paths and max_paths)."""
+    """Expected indirect paths per LDC sample side, over all sides: a traced side stops between
+    ``min_paths`` and ``max_paths``, and at ``stride`` s about one side in s^2 is traced (the others
+    are interpolated, ``engine/newviews/sparse_indirect.py``)."""
     ip = params.indirect
-    return ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)
+    return (ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)) / ip.stride ** 2
 
 
 def _axis_grids(scene: Scene, resolution: int) -> list[int]:

@@ -97,6 +97,8 @@ class IndirectParams:
     seed: sampler seed; equal seeds give identical bakes.
     area_light_samples / max_depth: light sampling and mirror / glossy depth at path vertices,
         as in ``engine.reference.ReferenceParams``.
+    stride: trace every ``stride``-th LDI pixel in each direction and interpolate the samples in
+        between on the same surface (``engine.newviews.sparse_indirect``); 1 traces every sample.
     """
 
     noise: float = 0.02
@@ -108,9 +110,11 @@ class IndirectParams:
     seed: int = 0
     area_light_samples: int = 4
     max_depth: int = 4
+    stride: int = 1
 
     RANGES = {"noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
-              "round_paths": (1, 256), "floor": (0.0, 1.0), "area_light_samples": (1, 1024), "max_depth": (0, 16)}
+              "round_paths": (1, 256), "floor": (0.0, 1.0), "area_light_samples": (1, 1024), "max_depth": (0, 16),
+              "stride": (1, 8)}
 
     def __post_init__(self) -> None:
         for name, (lo, hi) in self.RANGES.items():

@@ -51,6 +51,7 @@ from engine.newviews.indirect import (
     trace_indirect,
 )
 from engine.newviews.ldi import DEFAULT_MAX_BYTES, LDI, LDI_SAMPLE_BYTES, axis_frame, build_ldi, estimate_ldi_bytes
+from engine.newviews.sparse_indirect import interpolate_untraced, traced_samples
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, RayCaster
 from engine.reference import ReferenceRenderer
 from engine.sampler import derive_key, sample_2d, sample_key
@@ -507,18 +508,30 @@ def indirect_chunk(scene: RuntimeScene, caster: RayCaster, axis: LDCAxis, start:
     """Indirect diffuse light of samples ``start .. stop - 1`` of a direct-lit LDC axis (one job's
     share of an axis; ``with_indirect`` adds the chunks to the axis). The result does not depend
     on how the axis is split: each sample side draws its own sample sequence, and the noise floor
-    comes from the whole axis."""
+    comes from the whole axis. At ``params.stride`` > 1 only the traced samples
+    (``engine.newviews.sparse_indirect``) get paths; the others stay 0 until ``with_indirect``
+    interpolates them."""
     n = axis.n_samples
     if not (isinstance(start, (int, np.integer)) and isinstance(stop, (int, np.integer)) and 0 <= start <= stop <= n):
         raise InvalidInputError(f"indirect chunk [{start}, {stop}) is outside the axis's {n} samples")
     ldi = axis.ldi
-    sl = slice(int(start), int(stop))
-    p, ng, ns = surface_attributes(scene, ldi.prim[sl], ldi.u[sl], ldi.v[sl])
+    traced = traced_samples(ldi, axis.geo_normal, axis.object, axis.material, params.stride)
+    rows = np.flatnonzero(traced[start:stop]) + int(start)
+    p, ng, ns = surface_attributes(scene, ldi.prim[rows], ldi.u[rows], ldi.v[rows])
     receives = np.any(scene.materials.kd[axis.material] > 0.0, axis=1)
     brightness = axis_brightness(axis.diffuse, receives)
     renderer = renderer if renderer is not None else ReferenceRenderer(scene, caster)
-    return trace_indirect(renderer, p, ng, ns, axis.material[sl], axis.diffuse[sl], params, stream_id=axis.axis,
-                          first=int(start), brightness=brightness, progress=progress)
+    # the traced samples are numbered along the axis (each draws the sampler's sequence of its
+    # number), so the result does not depend on the split
+    got = trace_indirect(renderer, p, ng, ns, axis.material[rows], axis.diffuse[rows], params, stream_id=axis.axis,
+                         first=int(np.count_nonzero(traced[:start])), brightness=brightness, progress=progress)
+    if rows.size == stop - start:
+        return IndirectResult(first=int(start), radiance=got.radiance, stderr=got.stderr, paths=got.paths,
+                              stats=got.stats)
+    m = int(stop - start)
+    radiance, stderr, paths = np.zeros((m, 2, 3), np.float32), np.zeros((m, 2), np.float32), np.zeros((m, 2), np.int32)
+    radiance[rows - start], stderr[rows - start], paths[rows - start] = got.radiance, got.stderr, got.paths
+    return IndirectResult(first=int(start), radiance=radiance, stderr=stderr, paths=paths, stats=got.stats)
 
 
 def with_indirect(axis: LDCAxis, chunks: list[IndirectResult], params: IndirectParams) -> LDCAxis:
@@ -535,9 +548,16 @@ def with_indirect(axis: LDCAxis, chunks: list[IndirectResult], params: IndirectP
     if at != n:
         raise InvalidInputError(f"indirect chunks of axis {axis.axis} cover {at} samples, the axis has {n}")
     radiance = np.concatenate([c.radiance for c in order]) if order else np.zeros((0, 2, 3), np.float32)
+    if params.stride > 1:
+        traced = traced_samples(axis.ldi, axis.geo_normal, axis.object, axis.material, params.stride)
+        radiance = interpolate_untraced(axis.ldi, axis.geo_normal, axis.object, axis.material, params.stride,
+                                        traced, radiance)
     diffuse = (axis.diffuse.astype(np.float64) + radiance).astype(np.float32)
     timings = dict(axis.timings)
     timings["indirect"] = merge_summaries([c.stats for c in order], params)
+    if params.stride > 1:
+        timings["indirect"]["stride"] = params.stride
+        timings["indirect"]["interpolated_samples"] = int(n - np.count_nonzero(traced))
     if "time" in timings["indirect"]:
         timings["total"] = float(timings.get("total", 0.0)) + timings["indirect"]["time"]
     return LDCAxis(axis=axis.axis, ldi=axis.ldi, normal=axis.normal, geo_normal=axis.geo_normal, facing=axis.facing,

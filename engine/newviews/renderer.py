@@ -71,6 +71,7 @@ from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
 from engine.newviews.llf import LLF
+from engine.newviews.sparse_indirect import SAME_SURFACE_COS
 from engine.newviews.view_pass import (
     GatherParams,
     gather_params,
@@ -387,10 +388,6 @@ def _refine_point(ox, oy, oz, dx, dy, dz, t, mesh, max_move, px, py, pz, g0, g1,
 DIFFUSE_FILTERS = ("bilinear", "nearest")
 """How a pixel's view-independent radiance is read from the LDC (``LDCViewRenderer._smooth_diffuse``)."""
 
-SAME_SURFACE_COS = 0.9
-"""Two samples of one object whose geometric normals are closer than this (cosine) and whose
-points are within half an LDI pixel of one tangent plane are on the same surface (the bilinear
-diffuse reconstruction's neighbours)."""
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")

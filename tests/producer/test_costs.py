@@ -86,7 +86,7 @@ def test_mirrored_engine_constants_agree() -> None:
     from engine.newviews.llf import LLF_SAMPLE_BYTES
     from engine.quality import CALIBRATION_SPP
     from engine.reference import ReferenceParams
-    from workers.jobs.bake import INDIRECT_RAY_BYTES, PATHS_RATE_BOUNCES, expected_paths
+    from workers.jobs.bake import INDIRECT_RAY_BYTES, PATHS_RATE_BOUNCES
     from workers.jobs.calibrate import LDC_REPEATS
 
     assert (costs.MAX_RAYS_PER_BATCH, costs.LDC_ATTR_BYTES, costs.LDI_SAMPLE_BYTES, costs.LLF_SAMPLE_BYTES) == (
@@ -94,7 +94,6 @@ def test_mirrored_engine_constants_agree() -> None:
     assert (costs.INDIRECT_RAY_BYTES, costs.PATHS_RATE_BOUNCES) == (INDIRECT_RAY_BYTES, PATHS_RATE_BOUNCES)
     assert costs.REFERENCE_CHUNK_PIXELS == ReferenceParams().chunk_pixels
     assert costs.CALIBRATION_SPP_TOTAL == sum(CALIBRATION_SPP) and costs.CALIBRATION_LDC_RUNS == LDC_REPEATS
-    assert costs.expected_paths(BakeParams()) == expected_paths(BakeParams())
 
 
 def _sample(name: str) -> Scene:
@@ -157,3 +156,11 @@ def test_limits_name_the_estimate_the_limit_and_the_setting() -> None:
     with pytest.raises(costs.CostOverLimit) as err:
         costs.check(tris, limits, "scene_id", "")
     assert err.value.type == "scene_too_large" and "IBR_MAX_SCENE_TRIANGLES" in err.value.message
+
+
+def test_a_stride_prices_only_the_traced_share_of_the_indirect_pass() -> None:
+    scene = _sample("samples/scenes/static_room.json")
+    tri = costs.scene_triangles(scene)
+    one, two = (costs.bake_cost(scene, BakeParams(ldc_resolution=128, indirect={"stride": s}), tri, 4.0e5)
+                for s in (1, 2))
+    assert two.detail["indirect_cpu_s"] == pytest.approx(one.detail["indirect_cpu_s"] / 4, rel=0.01)

@@ -26,7 +26,8 @@ def test_ranges_and_defaults_are_the_engines() -> None:
 
 
 @pytest.mark.parametrize(("field", "value"), [("noise", 0.0005), ("noise", 0.6), ("bounces", 0), ("bounces", 17),
-                                              ("max_paths", 70000), ("round_paths", 512)])
+                                              ("max_paths", 70000), ("round_paths", 512),
+                                              ("stride", 0), ("stride", 9)])
 def test_out_of_range_names_the_range(field: str, value: float) -> None:
     lo, hi = INDIRECT_RANGES[field]
     with pytest.raises(ValidationError) as e:
@@ -45,10 +46,10 @@ def test_combinations_the_engine_refuses_are_refused_up_front() -> None:
         with pytest.raises(ValidationError, match=words):
             BakeParams.model_validate({"indirect": bad})
     ok = BakeParams.model_validate({"seed": 7, "indirect": {"noise": 0.01, "min_paths": 4, "max_paths": 4,
-                                                            "round_paths": 2, "bounces": 5}})
+                                                            "round_paths": 2, "bounces": 5, "stride": 2}})
     ip = indirect_params(ok)
-    assert ip is not None and (ip.noise, ip.min_paths, ip.max_paths, ip.round_paths, ip.bounces, ip.seed) == (
-        0.01, 4, 4, 2, 5, 7)
+    assert ip is not None and (ip.noise, ip.min_paths, ip.max_paths, ip.round_paths, ip.bounces, ip.stride,
+                               ip.seed) == (0.01, 4, 4, 2, 5, 2, 7)
     assert indirect_params(BakeParams.model_validate({"indirect": {"mode": "off"}})) is None
 
 

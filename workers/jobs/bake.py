@@ -21,7 +21,8 @@ Estimates (the plan job, before anything is baked; refused over ``Settings.max_b
 - CPU time, dominated by the indirect pass: expected LDC samples (each triangle's area projected on
   the axis / pixel area: the rays of an axis's grid that cross it, capped at ``max_layers`` per
   pixel) x 2 sides x expected paths per side (``min_paths + 20 %`` of the way to ``max_paths``:
-  118-122 measured on the Cornell box at the defaults) / ``Settings.bake_paths_per_s`` (scaled by
+  118-122 measured on the Cornell box at the defaults; divided by ``stride^2``, the share of sides
+  traced) / ``Settings.bake_paths_per_s`` (scaled by
   ``4 / (bounces + 1)``, the rate being measured at 3 bounces), plus the light field's indirect
   paths when it has them.
 """
@@ -71,7 +72,7 @@ from producer.bakes import (
     part_weight,
     plan_parts,
 )
-from producer.costs import duration_text
+from producer.costs import duration_text, expected_paths
 from producer.names import scene_bake_part_job_id, scene_bake_plan_job_id
 from producer.payloads import InvalidPayload, SceneBakeJobPayload, SceneBakePartJobPayload, describe_validation_error
 from producer.queue import fetch_job, redis_from_url
@@ -191,18 +192,12 @@ def indirect_params(params: BakeParams) -> IndirectParams | None:
     if ip.mode == "off":
         return None
     return IndirectParams(noise=ip.noise, min_paths=ip.min_paths, max_paths=ip.max_paths, bounces=ip.bounces,
-                          round_paths=ip.round_paths, seed=params.seed)
+                          round_paths=ip.round_paths, stride=ip.stride, seed=params.seed)
 
 
 def bakes_indirect(params: BakeParams, plan: EffectPlan) -> bool:
     """Does this bake path-trace indirect light? ``auto``: when the effect plan says it can arrive."""
     return params.indirect.mode == "auto" and not plan.indirect_skip
-
-
-def expected_paths(params: BakeParams) -> float:
-    """Expected paths per sample side (the adaptive bake stops between min_paths and max_paths)."""
-    ip = params.indirect
-    return ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)
 
 
 def llf_indirect_samples(params: BakeParams, plan_doc: Mapping[str, Any]) -> int:
@@ -232,7 +227,7 @@ def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> 
         indirect = {"state": "skipped", "reason": plan.indirect_skip}
     indirect |= {"mode": ip.mode, "chunks_per_axis": ip.chunks if indirect["state"] == "planned" else 0,
                  "noise_target": ip.noise, "min_paths": ip.min_paths, "max_paths": ip.max_paths,
-                 "bounces": ip.bounces,
+                 "bounces": ip.bounces, "stride": ip.stride,
                  "llf_indirect_samples": ip.min_paths if indirect["state"] == "planned" and with_llf else 0}
     return {**plan.to_dict(), "indirect": indirect, "bake_llf": with_llf, "llf_mode": params.llf,
             "llf_directions": llf_direction_count(params.llf_f) if with_llf else 0,
