@@ -84,6 +84,7 @@ GT_SEED = 101
 REF_LADDER = [1, 4, 16, 64]  # spp, one indirect path per camera sample
 MI_LADDER = [1, 4, 16, 64]
 MI_CHECK_SPP = 256
+LDC_MAX_BYTES = 8 << 30  # the worst-case bound of an LDC 512 (32 layers) is 2.2 GiB; it holds ~160 MiB
 EDGES_SS = 4  # supersampling of the ``antialias="edges"`` rows
 LDC_AREA_SAMPLES = 64  # rect-light points per LDC sample (docs/accuracy/ldc.md, "Direct light: convergence")
 
@@ -91,22 +92,23 @@ LDC_AREA_SAMPLES = 64  # rect-light points per LDC sample (docs/accuracy/ldc.md,
 @dataclass(frozen=True)
 class SceneSpec:
     """How one scene is measured: bounce counts, mirror / glossy depth, the LDC settings (resolution,
-    indirect noise target), the view method and an LLF for it (f, resolution, or None)."""
+    indirect noise target, indirect stride), the view method and an LLF for it (f, resolution, or None)."""
 
     bounces: int
     max_depth: int
-    ldc: tuple[tuple[int, float], ...]
+    ldc: tuple[tuple[int, float, int], ...]
     gt_ms: float  # the ground truth's time budget per view
     method: str = "ldc"
     llf: tuple[int, int] | None = None
 
 
 SCENES = {
-    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02), (256, 0.01)), gt_ms=140_000.0),
-    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.05),),
+    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02, 1), (256, 0.01, 1),
+                                                                             (512, 0.01, 2)), gt_ms=140_000.0),
+    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.05, 1),),
                                        gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48)),
 }
-QUICK_LDC = ((64, 0.05),)
+QUICK_LDC = ((64, 0.05, 1), (128, 0.05, 2))
 
 
 GT_BUDGET_SCALE = [1.0]  # ``--gt-budget-scale``: multiplies every scene's ``gt_ms``
@@ -165,6 +167,12 @@ def converged_view(ren: ReferenceRenderer, name: str, cam: CameraParams, params:
         np.savez(f, radiance=r.radiance, object_id=r.object_id, depth=r.depth,
                  adaptive=np.array(json.dumps(out["adaptive"])), seconds=np.float64(out["seconds"]))
     return out
+
+
+def _ldc_label(row: dict) -> str:
+    """The LDC column: its resolution, and the indirect pass's stride when it is not 1."""
+    stride = row.get("stride", 1)
+    return f"{row['ldc_resolution']}" + (f", indirect every {stride}" if stride > 1 else "")
 
 
 def corrected(err: float, floor: float) -> float:
@@ -265,15 +273,17 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
                       "mib": llf.nbytes / 2**20}
         log(f"bake LLF f={spec.llf[0]} res {spec.llf[1]}: {out['llf']['bake_s']:.1f} s")
     settings = []
-    for res, noise in (QUICK_LDC if quick else spec.ldc):
+    for res, noise, stride in (QUICK_LDC if quick else spec.ldc):
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         c0, t0 = time.process_time(), time.perf_counter()
         ldc = bake_ldc(sc, caster, res, plan=plan, area_light_samples=LDC_AREA_SAMPLES,
-                       indirect=IndirectParams(noise=noise, bounces=spec.bounces))
+                       indirect=IndirectParams(noise=noise, bounces=spec.bounces, stride=stride),
+                       max_bytes=LDC_MAX_BYTES)
         t_bake, c_bake = time.perf_counter() - t0, time.process_time() - c0
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         state = ldc.plan["indirect"]
-        log(f"bake LDC {res} noise {noise}: {t_bake:.1f} s, {ldc.n_samples} samples, {ldc.nbytes / 2**20:.1f} MiB")
+        log(f"bake LDC {res} noise {noise} stride {stride}: {t_bake:.1f} s, {ldc.n_samples} samples, "
+            f"{ldc.nbytes / 2**20:.1f} MiB")
         r = LDCViewRenderer(sc, ldc, llf, plan)
         classes = [edge_classes(r.render(cam, spec.method), r.silhouette_rel_depth, ldc.background) for cam in cams]
         for ss, aa in ((1, "uniform"), (2, "uniform"), (EDGES_SS, "edges")):
@@ -291,7 +301,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
                 errs.append(lrms(v.radiance, g["radiance"], g["mask"]))
                 breakdown.append(error_breakdown(v.radiance, g["radiance"], g["mask"], cls))
                 ratios.append(_mean_y(v.radiance, g["mask"]) / _mean_y(g["radiance"], g["mask"]))
-            row = {"ldc_resolution": res, "noise": noise, "supersample": ss, "antialias": aa,
+            row = {"ldc_resolution": res, "noise": noise, "stride": stride, "supersample": ss, "antialias": aa,
                    "lrms": float(np.mean(errs)),
                    "lrms_max": float(np.max(errs)), "render_ms": 1000 * float(np.median(ts)),
                    "render_cpu_ms": 1000 * float(np.median(cpus)), "bake_s": t_bake, "bake_cpu_s": c_bake,
@@ -476,7 +486,7 @@ def scene_block(res: dict) -> list[str]:
         xr = r["ref_s_at_error"] / t_view if r["ref_s_at_error"] else None
         xm = r["mitsuba_s_at_error"] / t_view if r["mitsuba_s_at_error"] else None
         lines.append(
-            f"| {r['ldc_resolution']} | {r['noise']:.3f} | {r['supersample']} | "
+            f"| {_ldc_label(r)} | {r['noise']:.3f} | {r['supersample']} | "
             f"{r['antialias'] if r['supersample'] > 1 else '-'} | {100 * r['lrms']:.2f} % "
             f"({100 * r['lrms_max']:.2f} %) | {100 * r['lrms_corrected']:.2f} % | "
             f"{r['render_ms']:.1f} ({r['render_cpu_ms']:.1f}) | "
@@ -496,7 +506,7 @@ def scene_block(res: dict) -> list[str]:
               "|---|---|---|---|---|---|---|"]
     for r in res["settings"]:
         g = r["regions"]
-        lines.append(f"| {r['ldc_resolution']} | {r['noise']:.3f} | {r['supersample']} | "
+        lines.append(f"| {_ldc_label(r)} | {r['noise']:.3f} | {r['supersample']} | "
                      f"{r['antialias'] if r['supersample'] > 1 else '-'} | "
                      f"{100 * g['geometric_share']:.0f} % / {100 * g['geometric_lrms']:.2f} % "
                      f"({100 * g['geometric_pixels']:.1f} %) | {100 * g['shading_share']:.0f} % / "
@@ -546,7 +556,7 @@ def plot(res: dict) -> Path:
     for r in res["settings"]:
         aa = f" {r['antialias']}" if r["supersample"] > 1 else ""
         ax.loglog([r["render_ms"] / 1000], [r["lrms"]], "*", markersize=12,
-                  label=f"LDC {r['ldc_resolution']} noise {r['noise']} ss{r['supersample']}{aa} "
+                  label=f"LDC {_ldc_label(r)} noise {r['noise']} ss{r['supersample']}{aa} "
                         f"(bake {r['bake_s']:.0f} s)")
     ax.axhline(res["ground_truth"]["noise_lrms_seed_to_seed"], color="grey", ls=":", label="ground truth noise")
     ax.set_xlabel("seconds per view")
