@@ -60,3 +60,49 @@ def test_a_rect_light_counts_where_its_emitting_side_faces_the_camera(faces_up, 
     assert np.array_equal(emitter_pixels(sc, TOP, oid, depth), want)
     region = error_region(sc, TOP, oid, depth)
     assert region.sum() == 16 * 16 - (36 if seen else 0)
+
+
+def test_a_light_smaller_than_a_pixel_between_pixel_centres_still_counts():
+    # 0.03 x 0.03 inside pixel (row 10, col 10) = [0, 0.1]^2, away from its centre (0.05, 0.05):
+    # no pixel-centre ray meets it, yet the pixel holds ~9 % of its radiance
+    light = dict(type="rect", corner=(0.06, 0.5, 0.06), edge_u=(0, 0, 0.03), edge_v=(0.03, 0, 0),
+                 radiance=(500, 500, 500))
+    sc = scene([(quad((0, 0, 0), 1.6), mat())], [light])
+    oid, depth = _aov(sc)
+    want = np.zeros((20, 20), bool)
+    want[10, 10] = True
+    assert np.array_equal(emitter_pixels(sc, TOP, oid, depth), want)
+    # hidden under the floor, it counts nowhere
+    sc2 = scene([(quad((0, 0, 0), 1.6), mat())], [dict(light, corner=(0.06, -0.5, 0.06))])
+    oid2, depth2 = _aov(sc2)
+    assert not emitter_pixels(sc2, TOP, oid2, depth2).any()
+
+
+def test_a_sliver_of_a_light_seen_at_a_grazing_angle_counts_wherever_it_covers_a_pixel():
+    """Perspective, a long thin light tilted almost edge-on: every pixel that any of 16 x 16 rays
+    through its square sees the light through is counted, and nothing farther than a pixel from one."""
+    from engine.camera import camera_rays
+
+    cam = CameraParams("perspective", (0.0, 0.3, 3.0), (0.0, 0.55, 0.0), (0, 1, 0), 64, 48, 30.0)
+    light = dict(type="rect", corner=(-0.7, 0.6, -0.2), edge_u=(1.4, 0.0, 0.0), edge_v=(0.0, -0.01, 0.3),
+                 radiance=(50, 50, 50), two_sided=True)
+    sc = scene([(quad((0, 0, 0), 1.6), mat())], [light])
+    out = ReferenceRenderer(sc).render(cam, ReferenceParams(spp=1, max_depth=0, pixel_jitter=False))
+    got = emitter_pixels(sc, cam, out.object_id, out.depth)
+    k = 16
+    ys, xs, sy, sx = np.meshgrid(np.arange(48), np.arange(64), (np.arange(k) + 0.5) / k, (np.arange(k) + 0.5) / k,
+                                 indexing="ij")
+    o, d = camera_rays(cam, (xs + sx).ravel(), (ys + sy).ravel())
+    lt = sc.lights
+    u, v, c = lt.rect_edge_u[0], lt.rect_edge_v[0], lt.rect_corner[0]
+    n = np.cross(u, v)
+    t = ((c - o) @ n) / (d @ n)
+    p = o + t[:, None] * d - c
+    a = np.cross(p, v) @ n / (n @ n)
+    b = np.cross(u, p) @ n / (n @ n)
+    # the floor is below the light: nothing occludes it from this eye
+    brute = ((t > 0) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)).reshape(48, 64, k * k).any(axis=2)
+    assert brute.sum() > 20
+    assert not (brute & ~got).any()
+    from scipy.ndimage import binary_dilation
+    assert not (got & ~binary_dilation(brute, np.ones((3, 3), bool))).any()
