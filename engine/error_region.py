@@ -3,8 +3,8 @@ touch one.
 
 Every error this project quotes (a quality contract's LRMS, a calibration's fit, a benchmark's
 comparison with a converged image or with Mitsuba) leaves out the pixels whose 3 x 3
-neighbourhood shows an emitter, an emissive surface or a rect light's emitting side, seen along
-the pixel-centre ray:
+neighbourhood shows an emitter: an emissive surface along the pixel-centre ray, or a rect light's
+emitting side anywhere in the pixel's square (``sees_rect_light``):
 
 - an emitter is 50-100x brighter than the room it lights, so its pixels would set the LRMS
   denominator (the image's mean luminance; on a Cornell box view the luminaire's 2 % of the
