@@ -525,9 +525,6 @@ def indirect_chunk(scene: RuntimeScene, caster: RayCaster, axis: LDCAxis, start:
     # number), so the result does not depend on the split
     got = trace_indirect(renderer, p, ng, ns, axis.material[rows], axis.diffuse[rows], params, stream_id=axis.axis,
                          first=int(np.count_nonzero(traced[:start])), brightness=brightness, progress=progress)
-    if rows.size == stop - start:
-        return IndirectResult(first=int(start), radiance=got.radiance, stderr=got.stderr, paths=got.paths,
-                              stats=got.stats)
     m = int(stop - start)
     radiance, stderr, paths = np.zeros((m, 2, 3), np.float32), np.zeros((m, 2), np.float32), np.zeros((m, 2), np.int32)
     radiance[rows - start], stderr[rows - start], paths[rows - start] = got.radiance, got.stderr, got.paths

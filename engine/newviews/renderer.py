@@ -389,7 +389,6 @@ DIFFUSE_FILTERS = ("bilinear", "nearest")
 """How a pixel's view-independent radiance is read from the LDC (``LDCViewRenderer._smooth_diffuse``)."""
 
 
-
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _bilinear_diffuse(r, i, sd, cam, ax, radiance):
     """The diffuse radiance of camera pixel ``r`` (showing sample ``i``, side ``sd`` of ``ax``),

@@ -48,19 +48,17 @@ def _lattice_neighbours(j, stride, nu, nv, pix, offsets, depth, gn, obj, mat, or
     p2 = origin[2] + a * u[2] + b * v[2] + d * w[2]
     tol = 0.5 * h
     fx, fy = rx / stride, ry / stride
+    # on the lattice along an axis: one neighbour there (weight 1); off it: the two around
+    n_x, n_y = 1 if rx == 0 else 2, 1 if ry == 0 else 2
     m = 0
-    for cy in range(2):
-        if ry == 0 and cy == 1:
-            break
+    for cy in range(n_y):
         yj = cj - ry + cy * stride
-        wy = 1.0 if ry == 0 else (fy if cy == 1 else 1.0 - fy)
+        wy = 1.0 if n_y == 1 else (fy if cy == 1 else 1.0 - fy)
         if yj < 0 or yj >= nv:
             continue
-        for cx in range(2):
-            if rx == 0 and cx == 1:
-                break
+        for cx in range(n_x):
             xi = ci - rx + cx * stride
-            wx = 1.0 if rx == 0 else (fx if cx == 1 else 1.0 - fx)
+            wx = 1.0 if n_x == 1 else (fx if cx == 1 else 1.0 - fx)
             if xi < 0 or xi >= nu:
                 continue
             kk = yj * nu + xi
