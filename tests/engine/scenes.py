@@ -64,6 +64,14 @@ def scene(parts: list[tuple[TriMesh, dict]], lights: list[dict] | None = None, a
                                ambient=ambient, background=background)
 
 
+def box_room():
+    """Two facing coloured walls, a floor and a point light: colour bleeds between them."""
+    return scene([(quad((0, 0, 0), 2.0, 1), mat("floor", kd=(0.7, 0.7, 0.7))),
+                  (quad((-1, 1, 0), 2.0, 0), mat("red", kd=(0.8, 0.1, 0.1))),
+                  (quad((1, 1, 0), 2.0, 0, flip=True), mat("green", kd=(0.1, 0.8, 0.1)))],
+                 [dict(type="point", position=(0.0, 1.5, 0.3), intensity=(3.0, 3.0, 3.0))])
+
+
 def sphere_mesh(center=(0, 0, 0), radius=1.0, subdivisions=4, jitter=0.0, seed=0) -> TriMesh:
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     if jitter:

@@ -14,7 +14,7 @@ from engine.newviews.ldc import bake_ldc, bake_ldc_axis, indirect_chunk, surface
 from engine.raycast import EmbreeCaster
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
-from tests.engine.scenes import mat, quad, scene, sphere_mesh
+from tests.engine.scenes import box_room, mat, quad, scene, sphere_mesh
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -58,18 +58,10 @@ def test_open_quad_under_a_uniform_sky_is_kd_times_the_sky_exactly():
     assert np.all(res.stderr < 1e-6) and np.all(res.paths == 128)
 
 
-def _box_room():
-    """Two facing coloured walls, a floor and a point light: colour bleeds between them."""
-    return scene([(quad((0, 0, 0), 2.0, 1), mat("floor", kd=(0.7, 0.7, 0.7))),
-                  (quad((-1, 1, 0), 2.0, 0), mat("red", kd=(0.8, 0.1, 0.1))),
-                  (quad((1, 1, 0), 2.0, 0, flip=True), mat("green", kd=(0.1, 0.8, 0.1)))],
-                 [dict(type="point", position=(0.0, 1.5, 0.3), intensity=(3.0, 3.0, 3.0))])
-
-
 def test_estimator_agrees_with_the_reference_renderers_indirect_paths():
     # trace_diffuse_paths must be the reference's own estimator: at the same hits, the reference
     # with indirect paths minus the reference without is the indirect light.
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     ren = ReferenceRenderer(sc, caster)
     rng = np.random.default_rng(3)
@@ -101,7 +93,7 @@ def test_estimator_agrees_with_the_reference_renderers_indirect_paths():
 
 def test_reported_error_is_honest_across_seeds():
     # two seeds' estimates differ by about sqrt(se1^2 + se2^2): the batch-means error is not optimistic
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 1, 12)
     runs = [indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.03, seed=s, bounces=2))
@@ -143,7 +135,7 @@ def test_rare_bright_paths_through_a_mirror_are_not_stopped_away():
 
 
 def test_chunks_give_the_same_bits_as_one_pass_and_must_tile_the_axis():
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 0, 12)
     params = IndirectParams(noise=0.05, bounces=2, seed=7)
@@ -172,7 +164,7 @@ def test_a_scene_where_indirect_light_cannot_arrive_pays_nothing_and_forcing_it_
     without = bake_ldc(sc, caster, 16)
     assert with_req.plan["indirect"]["state"] == "skipped" and "convex" in with_req.plan["indirect"]["reason"]
     assert without.plan["indirect"]["state"] == "skipped"  # whether asked for or not, it cannot arrive
-    lit_room = bake_ldc(_box_room(), EmbreeCaster(_box_room()), 8)
+    lit_room = bake_ldc(box_room(), EmbreeCaster(box_room()), 8)
     assert lit_room.plan["indirect"]["state"] == "off"  # it could arrive, and nobody asked for it
     for a, b in zip(with_req.axes, without.axes, strict=True):
         assert np.array_equal(a.diffuse, b.diffuse)
@@ -189,7 +181,7 @@ def test_a_scene_where_indirect_light_cannot_arrive_pays_nothing_and_forcing_it_
 
 
 def test_baked_axis_reports_the_achieved_noise_level():
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     ldc = bake_ldc(sc, caster, 12, indirect=IndirectParams(noise=0.05, bounces=2))
     state = ldc.plan["indirect"]
@@ -219,7 +211,7 @@ def test_a_view_says_what_indirect_light_its_bake_holds():
     from engine.newviews.renderer import LDCViewRenderer
     from engine.scene import CameraParams
 
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     cam = CameraParams("perspective", (0.3, 1.2, 3.0), (0.0, 0.6, 0.0), (0.0, 1.0, 0.0), 24, 24, 50.0)
     baked = LDCViewRenderer(sc, bake_ldc(sc, caster, 12, indirect=IndirectParams(noise=0.05, bounces=2)), None)

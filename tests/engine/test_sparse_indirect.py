@@ -11,17 +11,9 @@ from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc_axis, indirect_chunk, with_indirect
 from engine.newviews.sparse_indirect import interpolate_untraced, traced_samples
 from engine.raycast import EmbreeCaster
-from tests.engine.scenes import mat, quad, scene
+from tests.engine.scenes import box_room, mat, quad, scene
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
-def _box_room():
-    """Two facing coloured walls, a floor and a point light: colour bleeds between them."""
-    return scene([(quad((0, 0, 0), 2.0, 1), mat("floor", kd=(0.7, 0.7, 0.7))),
-                  (quad((-1, 1, 0), 2.0, 0), mat("red", kd=(0.8, 0.1, 0.1))),
-                  (quad((1, 1, 0), 2.0, 0, flip=True), mat("green", kd=(0.1, 0.8, 0.1)))],
-                 [dict(type="point", position=(0.0, 1.5, 0.3), intensity=(3.0, 3.0, 3.0))])
 
 
 def _pixels(ax):
@@ -84,7 +76,7 @@ def test_samples_without_a_traced_neighbour_on_their_surface_are_traced_themselv
 
 
 def test_a_stride_two_bake_is_split_invariant_and_agrees_with_stride_one_on_average():
-    sc = _box_room()
+    sc = box_room()
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 0, 24)
     n = ax.n_samples
