@@ -298,6 +298,55 @@ def _surface(lo, hi, d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out)
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
 
+# Per-vertex physics shared by the wavefront's stages and the path kernel (``_trace_paths``). They
+# take scalars only: a jitted function called with arrays pays atomic reference counts on them at
+# every call (on counters both cores share), and a call with more than 30 arguments compiles as a
+# call with *args, which numba neither inlines nor passes cheaply.
+
+@nb.njit(cache=True, error_model="numpy")
+def _mean_albedos(kd0, kd1, kd2, kr0, kr1, kr2, kg0, kg1, kg2):
+    """The diffuse, mirror and glossy lobes' mean albedos (ad, ar, ag)."""
+    return (kd0 + kd1 + kd2) / 3.0, (kr0 + kr1 + kr2) / 3.0, (kg0 + kg1 + kg2) / 3.0
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _glossy_rays_sent(ad, ar, ag, kind, depth, bounces, max_depth, glossy_samples):
+    """c_b: the glossy rays a hit sends (as ``_plan`` / ``_spawn`` decide), in expected count: M or 1
+    at chain hits below ``max_depth``, the lobe's choice probability at path vertices, 0 without
+    a glossy lobe (ag = 0)."""
+    if not ag > 0.0:
+        return 0.0
+    if kind == KIND_CHAIN:
+        if depth < max_depth:
+            return np.float64(glossy_samples) if depth == 0 else 1.0
+        return 0.0
+    if not bounces > 0:
+        ad = 0.0
+    return ag / (ad + ar + ag)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _row_lobes(ca, has_spec, spec_cut, shin, rect, c_b, ge, tmax, mag, cos_l, area, gg, mis):
+    """The Phong (ks) and glossy (kg) lobes' values toward one light sample, (fs, fg), with
+    ``ca`` the cosine to the mirror direction. The kg lobe takes rect lights only (``rect``), weighted
+    by multiple importance sampling against the glossy rays the hit sends (``c_b``,
+    ``_glossy_rays_sent``; ``mis``: MIS_MODES): the light strategy's density is g*g / (pdf of a point
+    of the light in solid angle: distance^2 / (cos_l area)), the BSDF strategy's
+    c_b (g+1)/(2 pi) cos^g(alpha)."""
+    fs = 0.0
+    if has_spec and ca > spec_cut:  # below spec_cut cos^s < e^-40: skip the exp/log
+        fs = (shin + 2.0) * 0.5 * INV_PI * phong_pow(ca, shin)
+    fg = 0.0
+    if c_b > 0.0 and ca > 0.0 and rect:
+        lobe = phong_pow(ca, ge)
+        dist = (tmax + mag) / (1.0 - SHADOW_SHORTEN)
+        if lobe > 0.0 and cos_l > 0.0:
+            n_l = gg * dist * dist / (cos_l * area)
+            n_b = c_b * (ge + 1.0) * 0.5 * INV_PI * lobe
+            fg = (ge + 2.0) * 0.5 * INV_PI * lobe * _mis_weight(mis, n_l, n_b)
+    return fs, fg
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, spec_cut, kr, kg, gexp,
                 max_depth, glossy_samples, mis,
@@ -334,20 +383,10 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
         wr0, wr1, wr2 = 2 * c * n0 - wo0, 2 * c * n1 - wo1, 2 * c * n2 - wo2
         mag = _offset_mag(px, py, pz, center, extent)
         ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
-        spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
         has_spec = ks[m, 0] > 0 or ks[m, 1] > 0 or ks[m, 2] > 0
-        has_kg = kg[m, 0] > 0 or kg[m, 1] > 0 or kg[m, 2] > 0
-        # c_b: the glossy rays this hit sends (as _plan / _spawn decide), in expected count
-        c_b = 0.0
-        if has_kg:
-            if kind[i] == KIND_CHAIN:
-                if depth[i] < max_depth:
-                    c_b = glossy_samples if depth[i] == 0 else 1.0
-            else:
-                ag = (kg[m, 0] + kg[m, 1] + kg[m, 2]) / 3.0
-                ar = (kr[m, 0] + kr[m, 1] + kr[m, 2]) / 3.0
-                ad = (kd[m, 0] + kd[m, 1] + kd[m, 2]) / 3.0 if bounces[i] > 0 else 0.0
-                c_b = ag / (ad + ar + ag)
+        ad, ar, ag = _mean_albedos(kd[m, 0], kd[m, 1], kd[m, 2], kr[m, 0], kr[m, 1], kr[m, 2], kg[m, 0], kg[m, 1],
+                                   kg[m, 2])
+        c_b = _glossy_rays_sent(ad, ar, ag, kind[i], depth[i], bounces[i], max_depth, glossy_samples)
         ge = gexp[m]
         base = i * per
         lkey = derive_key(skey[i], vertex, DIM_LIGHT)
@@ -382,21 +421,11 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
             cos_s = _dot(n0, n1, n2, lx, ly, lz)
             if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
                 continue
-            fs = 0.0
-            ca = _dot(wr0, wr1, wr2, lx, ly, lz)
-            if has_spec:
-                if ca > spec_cut[m]:  # below it cos^s < e^-40: skip the exp/log
-                    fs = spec_norm * phong_pow(ca, shin[m])
-            fg = 0.0
-            if c_b > 0.0 and ca > 0.0 and j >= npt + ndir:
-                q = (j - npt - ndir) // gg
-                lobe = phong_pow(ca, ge)
-                dist = (tmax + mag) / (1.0 - SHADOW_SHORTEN)
-                cos_l = abs(_dot(r_n[q, 0], r_n[q, 1], r_n[q, 2], lx, ly, lz))
-                if lobe > 0.0 and cos_l > 0.0:
-                    n_l = gg * dist * dist / (cos_l * r_area[q])
-                    n_b = c_b * (ge + 1.0) * 0.5 * INV_PI * lobe
-                    fg = (ge + 2.0) * 0.5 * INV_PI * lobe * _mis_weight(mis, n_l, n_b)
+            rect = j >= npt + ndir
+            q = (j - npt - ndir) // gg if rect else 0
+            cos_l = abs(_dot(r_n[q, 0], r_n[q, 1], r_n[q, 2], lx, ly, lz)) if rect else 0.0
+            fs, fg = _row_lobes(_dot(wr0, wr1, wr2, lx, ly, lz), has_spec, spec_cut[m], shin[m], rect, c_b, ge, tmax,
+                                mag, cos_l, r_area[q] if rect else 0.0, gg, mis)
             c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs + kg[m, 0] * fg) * e0 * cos_s
             c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs + kg[m, 1] * fg) * e1 * cos_s
             c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs + kg[m, 2] * fg) * e2 * cos_s
@@ -427,6 +456,60 @@ def _lobe_dir(a0, a1, a2, cos_t, phi):
     x = sin_t * math.cos(phi)
     y = sin_t * math.sin(phi)
     return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _path_lobe(ad, ar, ag, bounces, key, vertex, pix, cidx):
+    """The lobe a path vertex continues with, (lobe, scale): 0 mirror, 1 glossy, 2 diffuse, picked
+    with probability proportional to the lobes' mean albedos (dimension DIM_LOBE); ``scale`` is the
+    inverse of that probability. A last vertex (no bounce left) looks for lights through its mirror
+    / glossy lobes only."""
+    if not bounces > 0:
+        ad = 0.0
+    tot = ad + ar + ag
+    u = 0.0  # one lobe (e.g. diffuse only): u = 0 picks it, as any u would
+    if (ad > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
+        u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix, cidx) * tot
+    if u < ad:
+        return 2, tot / ad
+    if u < ad + ar:
+        return 0, tot / ar
+    return 1, tot / ag
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lobe_direction(lb, ckey, vertex, pix, cidx, scale, wr0, wr1, wr2, n0, n1, n2, ge):
+    """A direction from lobe ``lb`` (0 mirror: the unit mirror direction wr itself, 1 glossy: cos^g
+    around wr, 2 diffuse: cosine-weighted around the shading normal n; dimension DIM_DIR of
+    ``ckey``), not normalised, with ``fk``, the factor of the lobe's albedo in the ray's weight (the
+    BSDF times cos over the density: 1, or (g+2)/(g+1) cos_i for the glossy lobe, 0 below n), and
+    ``bp``, a glossy ray's density over ``scale`` (the BSDF strategy of multiple importance
+    sampling, 0 for the other lobes): (x0, x1, x2, fk, bp)."""
+    if lb == 0:
+        return wr0, wr1, wr2, 1.0, 0.0
+    u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix, cidx)
+    if lb == 1:
+        cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
+        x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * u1)
+        bp = (ge + 1.0) * 0.5 * INV_PI * phong_pow(cos_a, ge) / scale
+        cos_i = _dot(n0, n1, n2, x0, x1, x2)
+        return x0, x1, x2, (ge + 2.0) / (ge + 1.0) * cos_i if cos_i > 0.0 else 0.0, bp
+    x0, x1, x2 = _lobe_dir(n0, n1, n2, math.sqrt(u0), 2.0 * math.pi * u1)
+    return x0, x1, x2, 1.0, 0.0
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _roulette(w0, w1, w2, wref, bounces, total_bounces, rr_min, key, vertex, pix, cidx):
+    """Russian roulette of a path vertex's continuation of weight w: past ``rr_min`` used bounces it
+    survives with probability q = min(1, max(w) / wref) (dimension DIM_RR) and a survivor's weight
+    is divided by q, so its expected contribution is unchanged; otherwise w is zero."""
+    if bounces > 0 and total_bounces - bounces >= rr_min and wref > 0.0:
+        qs = min(1.0, max(w0, w1, w2) / wref)
+        if qs < 1.0:
+            if sample_1d(derive_key(key, vertex, DIM_RR), pix, cidx) < qs:
+                return w0 / qs, w1 / qs, w2 / qs
+            return 0.0, 0.0, 0.0
+    return w0, w1, w2
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -510,9 +593,8 @@ def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, s
         ox = p[i, 0] + mag * g0 - center[0]
         oy = p[i, 1] + mag * g1 - center[1]
         oz = p[i, 2] + mag * g2 - center[2]
-        ad = (kd[m, 0] + kd[m, 1] + kd[m, 2]) / 3.0
-        ar = (kr[m, 0] + kr[m, 1] + kr[m, 2]) / 3.0
-        ag = (kg[m, 0] + kg[m, 1] + kg[m, 2]) / 3.0
+        ad, ar, ag = _mean_albedos(kd[m, 0], kd[m, 1], kd[m, 2], kr[m, 0], kr[m, 1], kr[m, 2], kg[m, 0], kg[m, 1],
+                                   kg[m, 2])
         key = skey[i]
         for r in range(first[i], first[i] + count[i]):
             local = r - first[i]
@@ -532,37 +614,14 @@ def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, s
             else:
                 ckey = key
                 cidx = sidx[i]
-                # a last vertex (no bounce left) looks for lights through its mirror / glossy lobes only
-                ad_v = ad if bounces[i] > 0 else 0.0
-                tot = ad_v + ar + ag
-                u = 0.0  # one lobe (e.g. diffuse only): u = 0 picks it, as any u would
-                if (ad_v > 0.0) + (ar > 0.0) + (ag > 0.0) > 1:
-                    u = sample_1d(derive_key(key, vertex, DIM_LOBE), pix[i], cidx) * tot
-                if u < ad_v:
-                    lb, scale = 2, tot / ad_v
-                elif u < ad_v + ar:
-                    lb, scale = 0, tot / ar
-                else:
-                    lb, scale = 1, tot / ag
-            f0 = f1 = f2 = 0.0
-            x0, x1, x2 = wr0, wr1, wr2
-            bp = 0.0
+                lb, scale = _path_lobe(ad, ar, ag, bounces[i], key, vertex, pix[i], cidx)
+            x0, x1, x2, fk, bp = _lobe_direction(lb, ckey, vertex, pix[i], cidx, scale, wr0, wr1, wr2, n0, n1, n2,
+                                                 gexp[m])
             if lb == 0:
                 f0, f1, f2 = kr[m, 0], kr[m, 1], kr[m, 2]
             elif lb == 1:
-                ge = gexp[m]
-                u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix[i], cidx)
-                cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
-                x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * u1)
-                bp = (ge + 1.0) * 0.5 * INV_PI * phong_pow(cos_a, ge) / scale
-                cos_i = _dot(n0, n1, n2, x0, x1, x2)
-                if cos_i > 0.0:
-                    k = (ge + 2.0) / (ge + 1.0) * cos_i
-                    f0, f1, f2 = kg[m, 0] * k, kg[m, 1] * k, kg[m, 2] * k
+                f0, f1, f2 = kg[m, 0] * fk, kg[m, 1] * fk, kg[m, 2] * fk
             else:
-                u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix[i], cidx)
-                cos_t = math.sqrt(u0)
-                x0, x1, x2 = _lobe_dir(n0, n1, n2, cos_t, 2.0 * math.pi * u1)
                 f0, f1, f2 = kd[m, 0], kd[m, 1], kd[m, 2]
             if _dot(g0, g1, g2, x0, x1, x2) <= 0.0:  # below the geometric surface
                 f0 = f1 = f2 = 0.0
@@ -577,13 +636,8 @@ def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, s
             wr_ = wref[i]
             if kind[i] == KIND_CHAIN:
                 wr_ = max(w0, w1, w2) if lb == 2 else 0.0
-            elif bounces[i] > 0 and total_bounces - bounces[i] >= rr_min and wr_ > 0.0:
-                qs = min(1.0, max(w0, w1, w2) / wr_)
-                if qs < 1.0:
-                    if sample_1d(derive_key(key, vertex, DIM_RR), pix[i], cidx) < qs:
-                        w0, w1, w2 = w0 / qs, w1 / qs, w2 / qs
-                    else:
-                        w0 = w1 = w2 = 0.0
+            else:
+                w0, w1, w2 = _roulette(w0, w1, w2, wr_, bounces[i], total_bounces, rr_min, key, vertex, pix[i], cidx)
             w_out[r, 0], w_out[r, 1], w_out[r, 2] = w0, w1, w2
             bpdf_out[r] = bp
             wref_out[r] = wr_
@@ -661,6 +715,41 @@ def _gather_hits(lo, hi, idx, prim, u, v, d, w, wref, kind, depth, bounces, pix,
         skey_out[j] = skey[i]
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _rect_light_t(ox, oy, oz, dx, dy, dz, c0, c1, c2, u0, u1, u2, v0, v1, v2, n0, n1, n2, area, two_sided):
+    """Distance along a ray (float64 origin, unit direction) to a rect light (corner c, edges u and
+    v, unit normal n) where it meets the light's emitting side (either side if ``two_sided``); inf
+    where it does not."""
+    if area <= 0.0:
+        return np.inf
+    den = _dot(dx, dy, dz, n0, n1, n2)
+    if not (den < 0.0 or (two_sided and den > 0.0)):
+        return np.inf  # parallel, or the back of a one-sided light
+    wx, wy, wz = c0 - ox, c1 - oy, c2 - oz
+    tq = _dot(wx, wy, wz, n0, n1, n2) / den
+    if not tq > 0.0:
+        return np.inf
+    # the hit point's coordinates along the edges: x - corner = a edge_u + b edge_v
+    px, py, pz = tq * dx - wx, tq * dy - wy, tq * dz - wz
+    a = _dot(py * v2 - pz * v1, pz * v0 - px * v2, px * v1 - py * v0, n0, n1, n2) / area
+    b = _dot(u1 * pz - u2 * py, u2 * px - u0 * pz, u0 * py - u1 * px, n0, n1, n2) / area
+    if 0.0 <= a <= 1.0 and 0.0 <= b <= 1.0:
+        return tq
+    return np.inf
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _emitter_mis(bpdf, dist, cos_l, area, gg, mis):
+    """The weight of a rect light met by a ray at distance ``dist`` (cos_l: the cosine at the
+    light): 1 for camera and mirror rays (``bpdf`` 0); for a glossy ray (``bpdf``: its density times
+    its expected count) the BSDF strategy's multiple importance sampling weight against the gg
+    light samples next-event estimation takes (``_row_lobes`` weighs the other side)."""
+    if not bpdf > 0.0:
+        return 1.0
+    n_l = gg * dist * dist / (cos_l * area) if cos_l > 0.0 else np.inf
+    return 1.0 - _mis_weight(mis, n_l, bpdf) if n_l < np.inf else 1.0
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s,
                lit, c_out):
@@ -699,32 +788,15 @@ def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, c
         best = np.inf
         hit = -1
         for q in range(nrect):
-            if r_area[q] <= 0.0:
-                continue
-            n0, n1, n2 = r_n[q, 0], r_n[q, 1], r_n[q, 2]
-            den = _dot(dx, dy, dz, n0, n1, n2)
-            if not (den < 0.0 or (r2s[q] and den > 0.0)):
-                continue  # parallel, or the back of a one-sided light
-            wx, wy, wz = rc[q, 0] - ox, rc[q, 1] - oy, rc[q, 2] - oz
-            tq = _dot(wx, wy, wz, n0, n1, n2) / den
-            if not (tq > 0.0 and tq < best):
-                continue
-            # the hit point's coordinates along the edges: x - corner = a edge_u + b edge_v
-            px, py, pz = tq * dx - wx, tq * dy - wy, tq * dz - wz
-            ux, uy, uz = ru[q, 0], ru[q, 1], ru[q, 2]
-            vx, vy, vz = rv[q, 0], rv[q, 1], rv[q, 2]
-            a = _dot(py * vz - pz * vy, pz * vx - px * vz, px * vy - py * vx, n0, n1, n2) / r_area[q]
-            b = _dot(uy * pz - uz * py, uz * px - ux * pz, ux * py - uy * px, n0, n1, n2) / r_area[q]
-            if 0.0 <= a <= 1.0 and 0.0 <= b <= 1.0:
+            tq = _rect_light_t(ox, oy, oz, dx, dy, dz, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2],
+                               rv[q, 0], rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], r2s[q])
+            if tq < best:
                 best = tq
                 hit = q
         if hit >= 0 and not (t_tri < best * (1.0 - SHADOW_SHORTEN)):
             lit[i] = True
-            wm = 1.0
-            if bpdf[i] > 0.0:
-                cos_l = abs(_dot(dx, dy, dz, r_n[hit, 0], r_n[hit, 1], r_n[hit, 2]))
-                n_l = gg * best * best / (cos_l * r_area[hit]) if cos_l > 0.0 else np.inf
-                wm = 1.0 - _mis_weight(mis, n_l, bpdf[i]) if n_l < np.inf else 1.0
+            wm = _emitter_mis(bpdf[i], best, abs(_dot(dx, dy, dz, r_n[hit, 0], r_n[hit, 1], r_n[hit, 2])),
+                              r_area[hit], gg, mis)
             c_out[i, 0] = weight[i, 0] * rL[hit, 0] * wm
             c_out[i, 1] = weight[i, 1] * rL[hit, 1] * wm
             c_out[i, 2] = weight[i, 2] * rL[hit, 2] * wm
