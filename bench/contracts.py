@@ -59,7 +59,6 @@ import numpy as np
 from api_schemas import load_scene_file
 from api_schemas.service import CalibrationParams
 from bench.docs_writer import replace_block
-from engine.error_region import error_region
 from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
@@ -256,7 +255,7 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
     h1 = ref.render(cam, rp(truth_spp // 2, 1001)).radiance
     h2 = ref.render(cam, rp(truth_spp // 2, 2002)).radiance
     aov = ref.render(cam, ReferenceParams(spp=1, max_depth=0))
-    mask = error_region(ref.scene, cam, aov.object_id, aov.depth)
+    mask = ref.error_region(cam, aov.object_id, aov.depth, rp(1).max_depth)
     noise = lrms(h1, h2, mask) / 2.0  # the mean of two halves: half their difference's spread
     log(f"{name} view {deg:+.0f} deg {cam.width}x{cam.height}: truth {time.perf_counter() - t0:.1f} s, "
         f"its noise {noise:.4f}")

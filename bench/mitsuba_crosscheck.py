@@ -213,16 +213,10 @@ def prepare(name: str, res: int, workdir: str | Path) -> Prepared:
 
 def mirrored_emitters(runtime: RuntimeScene, camera: CameraParams, max_depth: int, spp: int = 64) -> np.ndarray:
     """(h, w) bool: some of the pixel's ``spp`` samples see an emitter (a rect light or an emissive
-    surface) through mirrors (``kr``, up to ``max_depth`` reflections): our renderer on a copy of
-    the scene whose materials keep only their mirror lobe and emission, with no light reaching
-    any surface. A mirror sphere shows the light as a tiny image ~100 x brighter than the room."""
-    mt = runtime.materials
-    zero = np.zeros_like(mt.kd)
-    mats = replace(mt, kd=zero, ks=zero, kg=zero)
-    stripped = replace(runtime, materials=mats, ambient=np.zeros(3))
-    out = ReferenceRenderer(stripped).render(camera, ReferenceParams(spp=spp, max_depth=max_depth,
-                                                                     area_light_samples=1))
-    return np.any(out.radiance > 0, axis=2)
+    surface) through mirrors (``kr``, up to ``max_depth`` reflections):
+    ``ReferenceRenderer.emitters_in_mirrors`` with more samples than the engine's region takes. A
+    mirror sphere shows the light as a tiny image ~100 x brighter than the room."""
+    return ReferenceRenderer(runtime).emitters_in_mirrors(camera, max_depth, spp)
 
 
 def comparison_mask(runtime: RuntimeScene, object_id: np.ndarray,

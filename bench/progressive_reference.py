@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from engine import REFERENCE_VERSION
-from engine.error_region import error_region
 from engine.memory import keep_freed_memory
 from engine.metrics import lrms
 from engine.reference import ReferenceParams, ReferenceRenderer
@@ -94,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ground truth 2 x {a.truth_spp} spp in {time.perf_counter() - t0:.0f} s")
     truth = 0.5 * (ta.astype(np.float64) + tb.astype(np.float64))
     aov = ren.render(cam, _params(1, 0))
-    region = error_region(ls.runtime, cam, aov.object_id, aov.depth)
+    region = ren.error_region(cam, aov.object_id, aov.depth, 0)
     e_truth = lrms(ta, tb, region) / 2.0
 
     def true_err(img: np.ndarray) -> float:

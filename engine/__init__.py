@@ -33,10 +33,14 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # planned over the pixels errors are measured on (engine/error_region.py), not the whole image.
 # 0.9.0: LDC renders (a pixel's diffuse radiance is interpolated between the LDC's samples on its
 # surface, not the nearest sample's).
-ENGINE_VERSION = "0.10.0"
+# 0.10.0: progressive reference renders (the error region counts the pixels a rect light's
+# corner covers, not only those whose centre ray sees it).
+# 0.11.0: progressive reference renders of scenes with mirrors and emitters (the error region
+# leaves out the pixels around an emitter seen in a mirror).
+ENGINE_VERSION = "0.11.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0
-# counts a luminaire's corner pixels in the error region, which moves an adaptive render's samples
-# between a handful of pixels; the cached ground truths stay as converged, so it keeps 0.8.0.)
+# and 0.11.0 change the error region, which moves an adaptive render's samples between a few
+# pixels near emitters; the cached ground truths stay as converged, so it keeps 0.8.0.)
 REFERENCE_VERSION = "0.8.0"

@@ -14,10 +14,13 @@ emitting side anywhere in the pixel's square (``sees_rect_light``):
   method's error would be that outline.
 
 The emitter's radiance is a constant every renderer copies from the scene; what it lights is what
-the comparison is about. The progressive reference (engine/progressive.py) estimates its error
-over the same region, so an adaptive render told ``max_error`` meets it on the metric the
-contracts and the benchmarks measure, and spends its samples where that metric needs them, not on
-the luminaire's outline.
+the comparison is about. The same holds for an emitter's image in a mirror (a luminaire seen in a
+mirror sphere): finding those needs rays through the mirrors, so ``ReferenceRenderer.error_region``
+(engine/reference.py) adds them to this module's region; it is the region every error is measured
+on, and this module's functions are its ray-free part. The progressive reference
+(engine/progressive.py) estimates its error over that region, so an adaptive render told
+``max_error`` meets it on the metric the contracts and the benchmarks measure, and spends its
+samples where that metric needs them, not on the luminaire's outline.
 
 Pure NumPy and SciPy (no numba): the API process may import it.
 """

@@ -67,7 +67,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.camera import camera_rays, pixel_centers
-from engine.error_region import error_region
+from engine.error_region import emitter_pixels, region_around
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.methods import REFERENCE
@@ -103,6 +103,8 @@ MIS_MODES = {"power": 0, "balance": 1, "light": 2, "bsdf": 3}
 # Russian roulette: a path vertex that has used RR_MIN_BOUNCES bounces or more continues with
 # probability min(1, max(throughput) / max(throughput at the path's first ray))
 RR_MIN_BOUNCES = 3
+# jittered samples per pixel that look for emitters seen through mirrors (ReferenceRenderer.error_region)
+MIRROR_EMITTER_SPP = 16
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -1117,13 +1119,46 @@ class ReferenceRenderer:
 
             run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
 
-        region = error_region(self.scene, camera, oid, depth)
+        t0 = time.perf_counter()
+        region = self.error_region(camera, oid, depth, params.max_depth)
+        timer.add("error_region", time.perf_counter() - t0)
         radiance, rep = run_progressive(render_rows, camera.width, camera.height, params.spp, params.max_error,
                                         params.max_ms, t_start, timer.add, progress, region)
         timer.add("total", time.perf_counter() - t_start)
         if progress is not None:
             progress(1.0, "render")
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
+
+    def error_region(self, camera: CameraParams, object_id: np.ndarray, depth: np.ndarray,
+                     max_depth: int) -> np.ndarray:
+        """(h, w) bool: the pixels an error of this view is measured on: covered and not next to an
+        emitter (``engine.error_region``; ``object_id`` and ``depth`` are the pixel-centre ray's) nor
+        to an emitter seen through mirrors within ``max_depth`` reflections
+        (:meth:`emitters_in_mirrors`). Adaptive renders estimate their error here, and every error
+        the project quotes is measured here: a luminaire's image in a mirror sphere is as bright as
+        the luminaire, and its outline as noisy."""
+        seen = emitter_pixels(self.scene, camera, object_id, depth)
+        seen |= self.emitters_in_mirrors(camera, max_depth)
+        return region_around(object_id >= 0, seen)
+
+    def emitters_in_mirrors(self, camera: CameraParams, max_depth: int, spp: int = MIRROR_EMITTER_SPP) -> np.ndarray:
+        """(h, w) bool: some of the pixel's ``spp`` jittered samples see an emitter (a rect light or
+        an emissive surface), directly or through up to ``max_depth`` mirror reflections (``kr``):
+        this renderer on a copy of the scene whose materials keep only their mirror lobe and
+        emission, with no ambient light and a black background. All False, at no cost, when no
+        mirror can show one (no mirror, no emitter, or ``max_depth`` 0)."""
+        sc = self.scene
+        mt = sc.materials
+        mirrors = bool(np.any(mt.kr > 0))
+        emitters = bool(np.any(self._rect_area > 0)) or bool(np.any(mt.emission > 0))
+        if max_depth <= 0 or not mirrors or not emitters:
+            return np.zeros((camera.height, camera.width), np.bool_)
+        zero = np.zeros_like(mt.kd)
+        stripped = replace(sc, materials=replace(mt, kd=zero, ks=zero, kg=zero), ambient=np.zeros(3),
+                           background=np.zeros(3))
+        out = ReferenceRenderer(stripped, self.caster).render(
+            camera, ReferenceParams(spp=spp, max_depth=max_depth, area_light_samples=1))
+        return np.any(out.radiance > 0, axis=2)
 
     def shade_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions: np.ndarray,
                    params: ReferenceParams | None = None, *, stream_id: int = 0, chunk: int = 1 << 15,

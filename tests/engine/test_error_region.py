@@ -106,3 +106,25 @@ def test_a_sliver_of_a_light_seen_at_a_grazing_angle_counts_wherever_it_covers_a
     assert not (brute & ~got).any()
     from scipy.ndimage import binary_dilation
     assert not (got & ~binary_dilation(brute, np.ones((3, 3), bool))).any()
+
+
+def test_an_emitter_seen_in_a_mirror_is_left_out_by_the_renderers_region():
+    """A rect light facing down over a mirror floor: the camera above sees its back (nothing) and,
+    in the mirror, its emitting side; the renderer's region leaves those pixels out (with their
+    ring), the pure-NumPy region cannot see through mirrors."""
+    light = dict(type="rect", corner=(-0.6, 0.5, -0.6), edge_u=(0.4, 0, 0), edge_v=(0, 0, 0.4), radiance=(5, 5, 5))
+    sc = scene([(quad((0, 0, 0), 1.6), mat("mirror", kd=(0, 0, 0), kr=(0.9, 0.9, 0.9)))], [light])
+    oid, depth = _aov(sc)
+    ren = ReferenceRenderer(sc)
+    floor = _cells(-0.8, 0.8, -0.8, 0.8)
+    assert np.array_equal(error_region(sc, TOP, oid, depth), floor)
+    in_mirror = ren.emitters_in_mirrors(TOP, max_depth=1)
+    assert np.array_equal(in_mirror, _cells(-0.6, -0.2, -0.6, -0.2))
+    assert np.array_equal(ren.error_region(TOP, oid, depth, max_depth=1), floor & ~_cells(-0.7, -0.1, -0.7, -0.1))
+    # no reflection asked for, or no mirror: nothing more is left out
+    assert not ren.emitters_in_mirrors(TOP, max_depth=0).any()
+    matte = scene([(quad((0, 0, 0), 1.6), mat())], [light])
+    assert not ReferenceRenderer(matte).emitters_in_mirrors(TOP, max_depth=4).any()
+    # an adaptive render estimates its error over the same pixels
+    out = ren.render(TOP, ReferenceParams(spp=16, max_depth=1, area_light_samples=1, max_error=0.5))
+    assert out.adaptive["region_pixels"] == int((floor & ~_cells(-0.7, -0.1, -0.7, -0.1)).sum())

@@ -11,7 +11,7 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
    independent of the candidates';
 3. every candidate on every probe: the reference at ``CALIBRATION_SPP`` spp and each LDC method of
    the bake (``engine.quality.ldc_settings``), LRMS against the ground truth (over the pixels it
-   covers, minus those on or next to an emitter: ``engine.error_region``), wall time of the
+   covers, minus those on or next to an emitter: ``ReferenceRenderer.error_region``), wall time of the
    renderer's call (the LDC methods: the fastest of three); they are also timed at ``size x
    time_scale`` (the per-pixel part of their time). Each method renders once, untimed, on a tiny
    image first, so compile and lazy set-up never count as render time;
@@ -42,7 +42,6 @@ from rq import get_current_job
 
 from api_schemas.service import CalibrationParams, CalibrationRequest
 from engine import ENGINE_VERSION
-from engine.error_region import error_region
 from engine.metrics import lrms
 from engine.newviews.effects import analyze
 from engine.newviews.renderer import LDCViewRenderer
@@ -202,7 +201,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         truth, ms = _timed(ref.render, cam, ref_at(params.truth_spp, TRUTH_SEED))
         cost["truth"] += ms / 1000
         ref_points.append({"spp": params.truth_spp, "pixels": px, "ms": ms, "error": None})  # a time point
-        mask = error_region(scene, cam, truth.object_id, truth.depth)
+        mask = ref.error_region(cam, truth.object_id, truth.depth, base.max_depth)
         truths.append((truth.radiance, mask))
         done += 1
         report(done / steps, "ground truth")

@@ -9,7 +9,7 @@ same view (``quality.verify``, ``docs/quality-contracts.md``).
    contract's metric, through the calibrated ``error_scale``), capped at :data:`VERIFY_CAP_SPP`
    samples per pixel and :data:`VERIFY_MAX_MS` milliseconds, with a seed of its own so its noise is
    independent of the image's;
-3. the LRMS of the image against it over the contract's pixels (``engine.error_region``),
+3. the LRMS of the image against it over the contract's pixels (``ReferenceRenderer.error_region``),
    with the reference's own estimated error removed in quadrature.
 
 Returns ``measured_error``, ``measured_error_raw``, ``reference_error``, ``met`` (against the
@@ -29,7 +29,6 @@ from typing import Any
 from pydantic import ValidationError
 from rq import get_current_job
 
-from engine.error_region import error_region
 from engine.imageio import decode_image
 from engine.metrics import lrms
 from engine.quality import SceneModel, adaptive_scale
@@ -84,7 +83,7 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     if image.shape[:2] != out.radiance.shape[:2]:
         raise RuntimeError(f"the image is {image.shape[1]} x {image.shape[0]}, the view {camera.width} x "
                            f"{camera.height}")
-    mask = error_region(entry.loaded.runtime, camera, out.object_id, out.depth)
+    mask = entry.renderer.error_region(camera, out.object_id, out.depth, params.max_depth)
     raw = float(lrms(image[..., :3], out.radiance, mask if mask.any() else None))
     ref_err = scale * float((out.adaptive or {}).get("estimated_error", 0.0))
     measured = math.sqrt(max(raw * raw - ref_err * ref_err, 0.0))
