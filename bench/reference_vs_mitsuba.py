@@ -61,6 +61,7 @@ PLOT = ROOT / "docs" / "img" / "reference_vs_mitsuba.png"
 TARGETS = (0.10, 0.05, 0.03, 0.02, 0.01)
 SCENES = ("cornell_box", "spheres_box", "cornell_mirror_glossy")
 MIN_SPEED_SPP = 64
+NOT_REACHED = "n/r"  # the adaptive renders all stopped above the target (at the spp cap)
 CONTESTANTS = ("ours", "ours_adaptive", "mi_multijitter", "mi_independent")
 LABEL = {"ours": "ours, uniform", "ours_adaptive": "ours, adaptive (max_error)",
          "mi_multijitter": "Mitsuba multijitter", "mi_independent": "Mitsuba independent"}
@@ -181,7 +182,8 @@ def measure(name: str, a) -> dict:
 def seconds_for(rows: list, target: float, uniform: bool, cpu: bool = False) -> tuple[float, str]:
     """Seconds (CPU seconds) a contestant needs for ``target`` LRMS (see the module docstring) and
     a mark: "~" extrapolated below its lowest error, "<=" reached already by its cheapest render
-    (the time of the cheapest render that reaches it: an upper bound)."""
+    (the time of the cheapest render that reaches it: an upper bound), NOT_REACHED (nan seconds)
+    when the adaptive renders all stopped at one error above the target."""
     col = 3 if cpu else 2
     es = [max(r[1], 1e-9) for r in rows]
     if target >= max(es):
@@ -194,18 +196,25 @@ def seconds_for(rows: list, target: float, uniform: bool, cpu: bool = False) -> 
         return spp / speed, "~" if extra else ""
     order = sorted(range(len(rows)), key=lambda i: -es[i])
     xs, ys = [rows[i][col] for i in order], [es[i] for i in order]
-    keep = [0] + [k for k in range(1, len(ys)) if ys[k] < ys[k - 1]]  # equal errors: keep the first
+    same = [k for k in range(1, len(ys)) if ys[k] >= ys[k - 1] * (1.0 - 1e-6)]  # the same image again
+    if target < ys[-1] and len(ys) - 1 in same:
+        # renders asked for different errors stopped at the same image: the spp cap, not a target
+        return math.nan, NOT_REACHED
+    keep = [k for k in range(len(ys)) if k not in same]  # equal errors: keep the first
     t, extra = _interp(target, [xs[k] for k in keep], [ys[k] for k in keep])
     return t, "~" if extra else ""
 
 
 def _ratio(a: tuple[float, str], b: tuple[float, str]) -> str:
-    """a / b, "-" when either is only a bound (both reached the target with their cheapest render)."""
-    return "-" if "<=" in (a[1], b[1]) else f"{a[0] / b[0]:.2f}x"
+    """a / b, "-" when either is only a bound (both reached the target with their cheapest render)
+    or was not reached."""
+    return "-" if {"<=", NOT_REACHED} & {a[1], b[1]} else f"{a[0] / b[0]:.2f}x"
 
 
 def _fmt(v: tuple[float, str]) -> str:
     s, mark = v
+    if mark == NOT_REACHED:
+        return "not reached"
     return f"{mark}{s:.2f}" if s < 100 else f"{mark}{s:.0f}"
 
 
