@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,13 +27,12 @@ import pytest
 from producer.queue import fetch_job
 from producer.renders import enqueue_render
 from producer.status import job_public
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import StartWorker
 from workers import warmup
 
 # Everyday runs skip this file (make test-fast): worker processes that compile and run the warm-up.
 pytestmark = pytest.mark.slow
 
-StartWorker = Callable[..., WorkerProcess]
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import signal
 import time
-from collections.abc import Callable
 from typing import Any
 
 import psutil
@@ -23,11 +22,9 @@ from producer.names import scene_bake_plan_job_id
 from producer.queue import fetch_job
 from producer.status import job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess, wait_for
+from tests.fixtures.redis import StartWorker, WorkerProcess, wait_for
 from tests.workers.queue.bake_waits import wait_bake, wait_parts
 from tests.workers.queue.jobs_for_tests import tiny_scene
-
-StartWorker = Callable[..., WorkerProcess]
 
 PARAMS = BakeParams.model_validate({
     "ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1, "seed": 11,

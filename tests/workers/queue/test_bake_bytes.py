@@ -8,7 +8,6 @@ from __future__ import annotations
 import io
 import re
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -18,12 +17,11 @@ from api_schemas.service import BakeParams
 from producer import bakes
 from producer.artifacts import delete_artifact, put_scene, read_blob, read_manifest
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import StartWorker, WorkerProcess
 from tests.workers.queue.bake_waits import wait_bake
 from tests.workers.queue.test_bake_jobs import SMALL, mirror_scene
 from workers.jobs.bake import npz_bytes, read_npz
 
-StartWorker = Callable[..., WorkerProcess]
 PARAMS = BakeParams.model_validate({
     **SMALL.model_dump(), "ldc_resolution": 16, "seed": 3, "llf_f": 1, "llf_resolution": 8, "llf_chunk": 6,
     "llf_params": {"spp": 1, "max_depth": 1, "glossy_samples": 1, "area_light_samples": 1},

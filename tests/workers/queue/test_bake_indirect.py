@@ -7,7 +7,6 @@ with its estimate."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,11 +20,9 @@ from producer.artifacts import artifact_prefix, delete_artifact, put_scene, read
 from producer.names import scene_bake_plan_job_id
 from producer.queue import fetch_job
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import StartWorker
 from tests.workers.queue.bake_waits import wait_bake, wait_parts
 from tests.workers.queue.jobs_for_tests import tiny_scene
-
-StartWorker = Callable[..., WorkerProcess]
 
 CHEAP = {"noise": 0.05, "min_paths": 4, "max_paths": 8, "round_paths": 2, "bounces": 2, "chunks": 3}
 """A few paths per sample side: the mechanism, not the converged light, is under test."""

@@ -5,7 +5,6 @@ aggregated progress reaches 1; a deleted part is redone alone; a diffuse scene b
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -22,11 +21,10 @@ from producer.queue import fetch_job
 from producer.renders import enqueue_render
 from producer.status import job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess
+from tests.fixtures.redis import StartWorker
 from tests.workers.queue.bake_waits import wait_bake, wait_parts
 from tests.workers.queue.jobs_for_tests import tiny_scene
 
-StartWorker = Callable[..., WorkerProcess]
 SMALL = BakeParams.model_validate({"ldc_resolution": 24, "max_layers": 8, "area_light_samples": 1,
                                     "indirect": {"mode": "off"}})
 """Direct light only: these tests are about the part / job mechanism (test_indirect_parts.py bakes

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import signal
 import time
-from collections.abc import Callable
 
 import psutil
 import pytest
@@ -18,10 +17,9 @@ from producer.cancel import cancel
 from producer.queue import QueueName, fetch_job, get_queue
 from producer.status import job_duration_histograms, job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess, wait_for
+from tests.fixtures.redis import StartWorker, wait_for
 from tests.workers.queue.jobs_for_tests import slow_artifact_key
 
-StartWorker = Callable[..., WorkerProcess]
 SLOW = "tests.workers.queue.jobs_for_tests.slow_artifact"
 
 

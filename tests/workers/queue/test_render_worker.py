@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import tempfile
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,10 +23,8 @@ from producer.queue import fetch_job, get_queue, redis_from_url
 from producer.renders import enqueue_render, render_artifact_key
 from producer.status import job_public
 from producer.store import ObjectStore
-from tests.fixtures.redis import WorkerProcess, wait_for
+from tests.fixtures.redis import StartWorker, wait_for
 from tests.workers.queue.jobs_for_tests import overflow_scene, tiny_scene
-
-StartWorker = Callable[..., WorkerProcess]
 
 
 def public(redis: Redis, job_id: str) -> Any:
