@@ -180,5 +180,7 @@ def test_many_waiting_requests_leave_the_default_threads_to_other_endpoints(clie
         r = client.get("/v1/jobs", params={"state": "queued", "limit": 5})  # a sync (threadpool) endpoint
         took = time.monotonic() - t0
         assert r.status_code == 200 and not any(f.done() for f in futures)
-    assert took < 0.5, took
+    # starved, it would answer only when the first waits end, 1.5 s after t0; the bound leaves room
+    # for a loaded CI machine (0.6 s seen with another test worker busy)
+    assert took < 1.0, took
     assert [f.result() for f in futures] == [202] * n_waiting
