@@ -78,7 +78,7 @@ LUMA = np.asarray(REC709_WEIGHTS)
 LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 
 BOUNCES = 3
-GT_ERROR = 0.01  # the adaptive ground truth's target (estimated LRMS over the error region, engine/error_region.py)
+GT_ERROR = 0.01  # the adaptive ground truth's target (estimated LRMS over ReferenceRenderer.error_region)
 GT_CAP = 4096  # spp cap of any pixel
 GT_SEED = 101
 REF_LADDER = [1, 4, 16, 64]  # spp, one indirect path per camera sample

@@ -2,7 +2,7 @@
 
 The Cornell box sample scene (``samples/scenes/cornell_box.json``) at ``--res`` pixels with path
 tracing (one path of ``BOUNCES`` bounces and one rect-light sample per camera sample), LRMS over
-the error region (``engine/error_region.py``: the pixels the progressive render estimates its
+the error region (``ReferenceRenderer.error_region``: the pixels the progressive render estimates its
 error over, and every contract and benchmark measures on) against the mean of two
 ``--truth-spp`` renders of other seeds; the ground truth's own noise (``lrms(a, b) / 2``) is taken
 out of every measured error in quadrature (the errors are independent).

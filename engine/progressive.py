@@ -23,7 +23,8 @@ sequence of ``n``: the two halves are not stratified against each other.
 
 Image error. The estimated LRMS against the converged image (the metric of engine/metrics.py,
 RMS of the luminance difference over the mean luminance) over the pixels R an error is measured
-on (engine/error_region.py: covered, not next to an emitter; the whole image when R is empty) is
+on (``ReferenceRenderer.error_region``: covered, not next to an emitter, directly or in a mirror; the
+whole image when R is empty) is
 
     E = sqrt(mean_{q in R} v_q) / mean_{q in R} Y_q.
 
@@ -108,7 +109,7 @@ class AdaptiveReport:
     passes: rounds of samples taken; spp_mean / spp_min / spp_max: samples per pixel (both halves);
     spp_cap: the cap (the request's ``spp``, rounded down to even); samples: camera samples in all;
     elapsed_ms: render time, from the start of the render to the image; region_pixels: the pixels
-    the error is estimated over (engine/error_region.py)."""
+    the error is estimated over (``ReferenceRenderer.error_region``)."""
 
     estimated_error: float
     target_met: bool | None
@@ -225,7 +226,7 @@ def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, 
                     region: np.ndarray | None = None) -> tuple[np.ndarray, AdaptiveReport]:
     """The passes of a progressive render (see the module docstring) of a ``width`` x ``height``
     image with at most ``spp`` samples per pixel, until ``max_error`` (estimated LRMS over
-    ``region`` (h, w) bool, engine/error_region.py; None or empty: the whole image) or
+    ``region`` (h, w) bool, ``ReferenceRenderer.error_region``; None or empty: the whole image) or
     ``max_ms`` after ``t_start`` (``time.perf_counter()``) is reached, or every pixel that could
     improve is at the cap. Returns the radiance (h, w, 3) float64 and the report;
     ``add_time(stage, seconds)`` collects the estimate's time. The renderer
