@@ -300,10 +300,10 @@ def _surface(lo, hi, d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out)
         ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = s0, s1, s2
 
 
-# Per-vertex physics shared by the wavefront's stages and the path kernel (``_trace_paths``). They
-# take scalars only: a jitted function called with arrays pays atomic reference counts on them at
-# every call (on counters both cores share), and a call with more than 30 arguments compiles as a
-# call with *args, which numba neither inlines nor passes cheaply.
+# Per-vertex physics of the stages, one function per piece. They take scalars only: a jitted
+# function called with arrays pays atomic reference counts on them at every call (on counters both
+# cores share), and a call with more than 30 arguments compiles as a call with *args, which numba
+# neither inlines nor passes cheaply.
 
 @nb.njit(cache=True, error_model="numpy")
 def _mean_albedos(kd0, kd1, kd2, kr0, kr1, kr2, kg0, kg1, kg2):
@@ -424,10 +424,12 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
             if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
                 continue
             rect = j >= npt + ndir
-            q = (j - npt - ndir) // gg if rect else 0
-            cos_l = abs(_dot(r_n[q, 0], r_n[q, 1], r_n[q, 2], lx, ly, lz)) if rect else 0.0
+            cos_l = area = 0.0
+            if rect:  # q: the rect light this row sampled
+                cos_l = abs(_dot(r_n[q, 0], r_n[q, 1], r_n[q, 2], lx, ly, lz))
+                area = r_area[q]
             fs, fg = _row_lobes(_dot(wr0, wr1, wr2, lx, ly, lz), has_spec, spec_cut[m], shin[m], rect, c_b, ge, tmax,
-                                mag, cos_l, r_area[q] if rect else 0.0, gg, mis)
+                                mag, cos_l, area, gg, mis)
             c0 = weight[i, 0] * (kd[m, 0] * INV_PI + ks[m, 0] * fs + kg[m, 0] * fg) * e0 * cos_s
             c1 = weight[i, 1] * (kd[m, 1] * INV_PI + ks[m, 1] * fs + kg[m, 1] * fg) * e1 * cos_s
             c2 = weight[i, 2] * (kd[m, 2] * INV_PI + ks[m, 2] * fs + kg[m, 2] * fg) * e2 * cos_s
