@@ -104,6 +104,14 @@ REFERENCE_SPP_LADDER: tuple[int, ...] = tuple(sorted(
 CALIBRATION_SPP: tuple[int, ...] = (1, 4, 16)
 """The reference spp the calibration renders on each probe view (the ladder's error and time fit)."""
 
+CALIBRATION_SEEDS: tuple[int, ...] = (0, 1, 2, 3)
+"""The seeds the calibration renders the reference with at each of :data:`CALIBRATION_SPP` (0 first:
+the service's default). A render at a few spp is one draw of a random error: on a scene whose light
+arrives along rare bright paths (a mirror reflecting the light) one seed's error at 2 spp ranges over
+0.7-1.9x another's on the same view, so the margin that covers the next view must see that spread,
+not only the spread between views of one seed. Four seeds cost four times the ladder's 1 + 4 + 16
+spp, a fraction of the ground truth's ``truth_spp``."""
+
 DEFAULT_IBRT_KS: tuple[int, ...] = (1, 2, 4)
 """The ``ldc+ibrt:k`` generations calibrated by default (on mirror scenes only: elsewhere every k
 renders the ``ldc+llf`` image)."""
@@ -190,6 +198,25 @@ class CandidateFit:
     margin: float | None = None
     """The error margin calibrated from the spread of the probe views' measured over predicted errors
     (:func:`calibrated_margin`); None (a model calibrated before margins were): the planner's flat one."""
+    margins_by_spp: list[list[float]] = field(default_factory=list)
+    """Reference: ``[spp, margin]`` per calibrated spp, each from the probes' ratios at that spp
+    alone (every probe and seed): a render's error scatters more at a few samples per pixel than
+    at many, so one margin for the whole ladder would be too loose at 1-4 spp or too tight at 16.
+    Empty (an LDC method, or a model calibrated before them): ``margin`` at every spp."""
+
+    def margin_at(self, spp: int | None) -> float | None:
+        """The calibrated error margin at ``spp``: :attr:`margins_by_spp` interpolated linearly in
+        log spp between the calibrated spp, the nearest one's beyond them; else :attr:`margin`."""
+        pts = sorted((float(s), float(m)) for s, m in self.margins_by_spp)
+        if spp is None or not pts:
+            return self.margin
+        if spp <= pts[0][0]:
+            return pts[0][1]
+        for (s0, m0), (s1, m1) in zip(pts, pts[1:], strict=False):
+            if spp <= s1:
+                t = math.log(spp / s0) / math.log(s1 / s0)
+                return m0 + t * (m1 - m0)
+        return pts[-1][1]
 
     def error_at(self, spp: int | None) -> float:
         if self.method == REFERENCE.name:
@@ -234,7 +261,9 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
     over-predicts rather than misses). Past the largest calibrated spp (``knee_spp``) the fit
     continues at the rate measured between the two largest (``tail_exponent``: :func:`_tail_exponent`,
     at least 0.5, at most ``p``): convergence is never assumed faster than measured. ``margin``: from
-    every probe point's measured over modelled error (:func:`calibrated_margin`)."""
+    every probe point's measured over modelled error (:func:`calibrated_margin`); ``margins_by_spp``:
+    the same from each spp's points alone (points with a ``probe`` index, e.g. several seeds per
+    probe, count their distinct probes as the views behind the bound)."""
     by_spp: dict[int, list[float]] = {}
     for p in points:
         by_spp.setdefault(int(p["spp"]), []).append(float(p["error"]))
@@ -252,12 +281,15 @@ def fit_reference(points: Sequence[Mapping[str, Any]], truth_spp: int) -> Candid
     exponent, a = (0.5, 0.0) if best is None else (best[1], best[2])
     tail = _tail_exponent(rms, truth_spp, exponent)
     b, c = fit_time([float(p["spp"]) * float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
-    ratios = [e / (a * math.sqrt(s ** (-2 * exponent) + truth_spp ** (-2 * exponent)))
-              for s, errs in by_spp.items() for e in errs] if a > 0 else []
-    views = max((len(errs) for errs in by_spp.values()), default=1)
+    ratios = {s: [e / (a * math.sqrt(s ** (-2 * exponent) + truth_spp ** (-2 * exponent))) for e in errs]
+              for s, errs in by_spp.items()} if a > 0 else {}
+    probes = {p["probe"] for p in points if "probe" in p}
+    views = len(probes) if probes else max((len(errs) for errs in by_spp.values()), default=1)
+    pooled = [r for rs in ratios.values() for r in rs]
     return CandidateFit(REFERENCE.name, a, b, c, [dict(p) for p in points], exponent=exponent,
                         knee_spp=max(rms) if rms else 1, tail_exponent=tail,
-                        margin=calibrated_margin(ratios, views) if ratios else None)
+                        margin=calibrated_margin(pooled, views) if pooled else None,
+                        margins_by_spp=[[s, calibrated_margin(rs, views)] for s, rs in sorted(ratios.items())])
 
 
 def _tail_exponent(rms: Mapping[int, float], truth_spp: int, exponent: float) -> float:
@@ -472,6 +504,11 @@ def _margin(fit: CandidateFit | AdaptiveFit | None, flat: float, calibrated: boo
     return flat
 
 
+def _reference_margin(fit: CandidateFit, spp: int, flat: float, calibrated: bool) -> float:
+    m = fit.margin_at(spp) if calibrated else None
+    return flat if m is None else m
+
+
 def adaptive_scale(model: SceneModel, aim_error: float) -> float:
     """The adaptive reference's ``error_scale`` for a render aiming at the contract error ``aim_error``
     (the model's scale at that level: :meth:`AdaptiveFit.scale_at`); 1 without an adaptive fit."""
@@ -513,9 +550,9 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
     calibrated one when ``calibrated_margins`` and the fit has one, else ``error_margin``."""
     if pixels < 1:
         raise ValueError("pixels must be >= 1")
-    ref_m = _margin(model.reference, error_margin, calibrated_margins)
     out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s),
-                      margin=ref_m) for s in REFERENCE_SPP_LADDER]
+                      margin=_reference_margin(model.reference, s, error_margin, calibrated_margins))
+           for s in REFERENCE_SPP_LADDER]
     if bake_ready or allow_bake:
         bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s
         for name, fit in model.methods.items():
@@ -594,6 +631,8 @@ def plan(model: SceneModel, pixels: int, *, max_error: float | None = None, max_
 def _margins_text(model: SceneModel, flat: float, calibrated: bool) -> str:
     ms = {_margin(f, flat, calibrated) for f in [model.reference, *model.methods.values(), model.adaptive]
           if f is not None}
+    if calibrated:
+        ms |= {float(m) for _, m in model.reference.margins_by_spp}
     return f"{min(ms):.3g}" if len(ms) == 1 else f"{min(ms):.3g}-{max(ms):.3g}"
 
 

@@ -310,6 +310,33 @@ def test_calibrated_margins_follow_the_probes_spread() -> None:
     assert ref.margin is not None and ref.margin < calibrated_margin([1.0, 1.0])
 
 
+def test_the_reference_margin_follows_each_spps_spread_over_probes_and_seeds() -> None:
+    from engine.quality import calibrated_margin
+
+    # two probes, four seeds each: the error at 1 spp scatters by +-40 % over seeds, at 16 spp by +-5 %
+    spread = {1: (0.6, 1.4, 0.8, 1.2), 4: (0.8, 1.2, 0.9, 1.1), 16: (0.95, 1.05, 1.0, 1.0)}
+    pts = [{"spp": s, "error": 0.4 * s ** -0.5 * f, "pixels": 100, "ms": 1.0, "probe": probe, "seed": seed}
+           for s, fs in spread.items() for probe in (0, 1) for seed, f in enumerate(fs)]
+    ref = fit_reference(pts, 1 << 20)
+    by = {int(s): m for s, m in ref.margins_by_spp}
+    assert set(by) == {1, 4, 16} and by[1] < by[4] < by[16]
+    ratios_16 = [0.4 * 16 ** -0.5 * f / ref.error_at(16) for f in spread[16] * 2]
+    assert by[16] == pytest.approx(calibrated_margin(ratios_16, 2), rel=1e-4)  # two probes behind the bound
+    assert ref.margin_at(1) == by[1] and ref.margin_at(2) == pytest.approx(0.5 * (by[1] + by[4]))
+    assert ref.margin_at(256) == by[16] and ref.margin is not None and by[1] < ref.margin < by[16]
+    # the planner takes each ladder step's own margin: 20 % at 1-4 spp gets a lower aim than at 16
+    m = _model(methods={}, excluded={}, reference=replace(_model().reference, margins_by_spp=ref.margins_by_spp,
+                                                          margin=ref.margin))
+    preds = {p.setting.spp: p for p in predict(m, PX, calibrated_margins=True)}
+    assert preds[1].margin == by[1] and preds[16].margin == by[16] and preds[64].margin == by[16]
+    assert preds[2].margin == pytest.approx(0.5 * (by[1] + by[4]))
+    p = plan(m, PX, max_error=0.1)  # 16 spp is 10 % exactly: its margin asks for the next step
+    assert p.choice is not None and p.choice.setting.spp == 24 and p.choice.margin == by[16]
+    # a model without them plans with its one margin, and round-trips through JSON either way
+    assert SceneModel.from_json(m.to_json()).reference.margins_by_spp == ref.margins_by_spp
+    assert replace(m.reference, margins_by_spp=[]).margin_at(2) == ref.margin
+
+
 def test_the_planner_uses_each_fits_calibrated_margin_else_the_flat_one() -> None:
     m = _model(methods={}, excluded={})
     # 10 %: 16 spp exactly; the reference's calibrated margin 0.95 (9.5 %): 24 spp; the flat 0.7 (7 %): 48 spp

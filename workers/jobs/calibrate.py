@@ -9,9 +9,11 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
 2. a ground truth per probe: the reference at ``truth_spp`` spp with a seed of its own (and as
    many indirect paths per pixel when indirect light can arrive in the scene), so its noise is
    independent of the candidates';
-3. every candidate on every probe: the reference at ``CALIBRATION_SPP`` spp and each LDC method of
-   the bake (``engine.quality.ldc_settings``), LRMS against the ground truth (over the pixels it
-   covers, minus those on or next to an emitter: ``ReferenceRenderer.error_region``), wall time of the
+3. every candidate on every probe: the reference at ``CALIBRATION_SPP`` spp, each with every seed of
+   ``CALIBRATION_SEEDS`` (the error of a render at a few spp is a random draw: its spread over
+   seeds sets the margin at each spp), and each LDC method of the bake
+   (``engine.quality.ldc_settings``), LRMS against the ground truth (over the pixels it covers,
+   minus those on or next to an emitter: ``ReferenceRenderer.error_region``), wall time of the
    renderer's call (the LDC methods: the fastest of three); they are also timed at ``size x
    time_scale`` (the per-pixel part of their time). Each method renders once, untimed, on a tiny
    image first, so compile and lazy set-up never count as render time;
@@ -46,6 +48,7 @@ from engine.metrics import lrms
 from engine.newviews.effects import analyze
 from engine.newviews.renderer import LDCViewRenderer
 from engine.quality import (
+    CALIBRATION_SEEDS,
     CALIBRATION_SPP,
     MAX_USEFUL_ERROR,
     AdaptiveFit,
@@ -206,9 +209,11 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         done += 1
         report(done / steps, "ground truth")
         for spp in CALIBRATION_SPP:
-            out, ms = _timed(ref.render, cam, ref_at(spp))
-            cost["reference"] += ms / 1000
-            ref_points.append({"spp": spp, "pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask)})
+            for seed in CALIBRATION_SEEDS:
+                out, ms = _timed(ref.render, cam, ref_at(spp, seed))
+                cost["reference"] += ms / 1000
+                ref_points.append({"spp": spp, "pixels": px, "ms": ms, "probe": probe, "seed": seed,
+                                   "error": _error(out.radiance, truth.radiance, mask)})
             done += 1
             report(done / steps, f"reference {spp} spp")
         for m in methods:
