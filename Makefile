@@ -5,7 +5,8 @@ BIN := $(VENV)/bin
 # Two installs, each remembered by a stamp: the runtime (what `make run` needs: the service, its
 # workers and the CLI) and, on top of it, the development extras of pyproject.toml's `dev`
 # (pytest, Mitsuba, Playwright, moto, mypy, ruff, ...) that the tests, benchmarks and lint need.
-# Both are redone when pyproject.toml changes; `make test` after `make run` only adds the extras.
+# Both are redone when pyproject.toml or constraints.txt (the versions the tests passed with, which
+# every install keeps to) changes; `make test` after `make run` only adds the extras.
 RUNTIME_STAMP := $(VENV)/.installed-runtime
 DEV_STAMP := $(VENV)/.installed-dev
 # Parallel test workers, one per core here. Three were no faster on a fresh clone (902 s of pytest,
@@ -20,14 +21,14 @@ PYTEST_DIST := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: install install-dev run demo render-local warm-cache test test-fast bench lint compose-check clean
 
-$(RUNTIME_STAMP): pyproject.toml
+$(RUNTIME_STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e .
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e .
 	touch $(RUNTIME_STAMP)
 
 $(DEV_STAMP): $(RUNTIME_STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $(DEV_STAMP)
 
 install: $(RUNTIME_STAMP)
