@@ -222,6 +222,10 @@ class RenderOutput:
     adaptive: dict[str, Any] | None = None
     """Progressive renders only (``max_error`` / ``max_ms``): the estimated error and how it was
     reached (``engine.progressive.AdaptiveReport`` as a dict); None for a plain render."""
+    error_region: np.ndarray | None = None
+    """Progressive renders only: (h, w) bool, the pixels the estimated error is over
+    (:meth:`ReferenceRenderer.error_region`), for a caller that measures an error on them too;
+    None for a plain render."""
 
     @property
     def coverage(self) -> np.ndarray:
@@ -1129,7 +1133,8 @@ class ReferenceRenderer:
         timer.add("total", time.perf_counter() - t_start)
         if progress is not None:
             progress(1.0, "render")
-        return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict())
+        return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict(),
+                            region)
 
     def error_region(self, camera: CameraParams, object_id: np.ndarray, depth: np.ndarray,
                      max_depth: int) -> np.ndarray:

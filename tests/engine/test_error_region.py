@@ -128,3 +128,5 @@ def test_an_emitter_seen_in_a_mirror_is_left_out_by_the_renderers_region():
     # an adaptive render estimates its error over the same pixels
     out = ren.render(TOP, ReferenceParams(spp=16, max_depth=1, area_light_samples=1, max_error=0.5))
     assert out.adaptive["region_pixels"] == int((floor & ~_cells(-0.7, -0.1, -0.7, -0.1)).sum())
+    assert out.error_region is not None and np.array_equal(out.error_region, floor & ~_cells(-0.7, -0.1, -0.7, -0.1))
+    assert ren.render(TOP, ReferenceParams(spp=1, max_depth=1)).error_region is None  # a plain render has none

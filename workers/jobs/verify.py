@@ -83,7 +83,9 @@ def verify_job(payload: dict[str, Any]) -> dict[str, Any]:
     if image.shape[:2] != out.radiance.shape[:2]:
         raise RuntimeError(f"the image is {image.shape[1]} x {image.shape[0]}, the view {camera.width} x "
                            f"{camera.height}")
-    mask = entry.renderer.error_region(camera, out.object_id, out.depth, params.max_depth)
+    mask = out.error_region  # the progressive render's own: its estimate and this LRMS share the pixels
+    if mask is None:
+        mask = entry.renderer.error_region(camera, out.object_id, out.depth, params.max_depth)
     raw = float(lrms(image[..., :3], out.radiance, mask if mask.any() else None))
     ref_err = scale * float((out.adaptive or {}).get("estimated_error", 0.0))
     measured = math.sqrt(max(raw * raw - ref_err * ref_err, 0.0))
