@@ -32,6 +32,7 @@ from engine.methods import (
     IBRT_GENERATIONS,
     METHODS,
     REFERENCE,
+    SUPERSAMPLE,
     Param,
     allowed_forms,
     method_pattern,
@@ -188,6 +189,21 @@ class ReferenceRenderParams(FrozenModel):
     seed: Annotated[int, _bounds(_ref("seed"))] = _int_default("seed")
     max_error: Annotated[FiniteFloat | None, _number_in(_ref("max_error")), _number_doc(_ref("max_error"))] = None
     max_ms: Annotated[FiniteFloat | None, _number_in(_ref("max_ms")), _number_doc(_ref("max_ms"))] = None
+
+
+Antialias = Literal["edges", "uniform"]
+"""Where an LDC view supersamples (``engine.methods.ANTIALIAS_MODES``)."""
+
+
+class LDCViewParams(FrozenModel):
+    """How an LDC method (``ldc``, ``ldc+llf``, ``ldc+ibrt:k``) renders the view from its bake: its
+    antialiasing (docs/ldc.md, *Antialiasing*). The defaults render one sample per pixel."""
+
+    supersample: Annotated[int, _bounds(SUPERSAMPLE)] = int(SUPERSAMPLE.default or 1)
+    antialias: Antialias = "edges"
+    """``edges``: the s x s sub-pixel samples only in the pixels at an edge of the one-sample image
+    (silhouettes, depth jumps, shadow and light borders; the other pixels are the one-sample image's);
+    ``uniform``: in every pixel (s^2 the work). No effect at ``supersample`` 1."""
 
 
 class LLFRenderParams(FrozenModel):
@@ -395,6 +411,8 @@ class RenderRequest(FrozenModel):
     and use its settings)."""
     bake: BakeParams = BakeParams()
     """Which bake of the scene an LDC method renders from (ignored by ``reference``)."""
+    view: LDCViewParams = LDCViewParams()
+    """How an LDC method renders the view (antialiasing); methods that render from a bake only."""
     missing_bake: MissingBake = "fail"
     """When the bake does not exist yet: ``fail`` answers 409 naming the bake to request;
     ``bake`` requests it and queues the render to run when it is done (the answer says so)."""
@@ -441,10 +459,21 @@ class RenderRequest(FrozenModel):
         return self
 
     @model_validator(mode="after")
+    def _view_is_for_the_ldc_methods(self) -> RenderRequest:
+        # a view at the default is no request (a job payload carries every field): only another one is refused
+        if self.view != LDCViewParams() and self.quality is None and not method_needs_bake(self.method):
+            raise_errors("RenderRequest", [error_at(
+                ("view",), "view_with_reference", f"view sets how the LDC methods render from a bake; method "
+                f"'{self.method}' takes its settings in params: leave out view", self.view.model_dump())])
+        return self
+
+    @model_validator(mode="after")
     def _quality_chooses_the_method(self) -> RenderRequest:
         if self.quality is None:
             return self
         explicit = sorted({"method", "params"} & self.model_fields_set)
+        if self.view != LDCViewParams():
+            explicit.append("view")
         if explicit:
             raise PydanticCustomError(
                 "quality_with_method",

@@ -20,6 +20,11 @@ wire form          parameters          bake         renders
                                                     the LDC for k generations (k = 0 is ``ldc+llf``)
 =================  ==================  ===========  ==============================================
 
+The LDC methods share the view settings :data:`LDC_VIEW_PARAMS` (the request's ``view``):
+``supersample`` s in 1..4 and ``antialias`` (:data:`ANTIALIAS_MODES`): ``edges`` traces s x s
+sub-pixel rays only in the pixels at an edge of the one-sample image (silhouettes, depth jumps,
+shadow and light borders), ``uniform`` in every pixel (s^2 the work).
+
 The LLF is baked only for scenes with glossy or mirror materials (the effect analysis decides,
 ``BakeParams.llf`` overrides); a scene without them renders ``ldc+llf`` from the LDC alone.
 
@@ -48,6 +53,9 @@ __all__ = [
     "METHODS",
     "REFERENCE",
     "IBRT_GENERATIONS",
+    "ANTIALIAS_MODES",
+    "LDC_VIEW_PARAMS",
+    "SUPERSAMPLE",
     "BakePart",
     "Method",
     "MethodSpec",
@@ -281,6 +289,19 @@ LDC_IBRT = Method(
     arg=IBRT_GENERATIONS,
     gathers=True,
 )
+
+SUPERSAMPLE = Param("supersample", 1, 1, 4, "s: s x s samples per pixel on a regular sub-pixel grid, box-filtered "
+                    "(1: one sample per pixel, no antialiasing)")
+"""The LDC methods' antialiasing factor (``engine.newviews.renderer.LDCViewRenderer.render``)."""
+
+ANTIALIAS_MODES: tuple[str, ...] = ("edges", "uniform")
+"""Where the LDC methods supersample: ``edges`` only the pixels at an edge of the one-sample image
+(the default: on the sample scenes it reaches uniform supersampling's error at a fraction of its
+time, docs/ldc.md), ``uniform`` every pixel."""
+
+LDC_VIEW_PARAMS: tuple[Param, ...] = (SUPERSAMPLE,)
+"""The numeric view settings every LDC method takes (besides ``antialias``, one of
+:data:`ANTIALIAS_MODES`)."""
 
 METHODS: tuple[Method, ...] = (REFERENCE, LDC, LDC_LLF, LDC_IBRT)
 """Every render method, in the order they are offered (``reference`` is the request's default)."""

@@ -230,13 +230,13 @@ def render_and_fetch(api_url: str, api_key: str | None, scene_id: str, params: d
                      method: str | None = "reference", bake: dict[str, Any] | None = None,
                      missing_bake: str | None = None, max_error: float | None = None,
                      max_ms: float | None = None, best_effort: bool = False, verify: bool = False,
-                     at_time: float | None = None) -> None:
+                     at_time: float | None = None, view: dict[str, Any] | None = None) -> None:
     with _client(api_url, api_key) as c:
         r = _call(lambda: c.render(scene_id, camera=camera, params=params or None, wait=2.0 if wait else 0.0,
                                    method=method, bake=bake or None,
                                    missing_bake="bake" if missing_bake == "bake" else None,
                                    max_error=max_error, max_ms=max_ms, best_effort=best_effort, verify=verify,
-                                   time=at_time))
+                                   time=at_time, view=view or None))
         typer.echo(f"artifact {r.artifact_key} ({r.status})", err=True)
         if r.contract is not None:
             typer.echo(_contract_line(r.contract), err=True)
@@ -323,6 +323,11 @@ def render(
         help="LDC methods: the bake's noise target for indirect light, relative per sample (default 0.02)")] = None,
     bake_missing: Annotated[bool, typer.Option("--bake-missing/--fail-missing",
                                                help="LDC methods: bake first when the bake is missing")] = False,
+    supersample: Annotated[int | None, typer.Option(
+        help="LDC methods: s x s samples per pixel, box-filtered (1..4; default 1)")] = None,
+    antialias: Annotated[str | None, typer.Option(
+        help="LDC methods: where --supersample applies: edges (default: pixels at an edge of the one-sample "
+             "image) or uniform (every pixel)")] = None,
     quality_error: Annotated[float | None, typer.Option(
         help="Quality contract: largest LRMS against the converged image, in (0, 1); the planner picks the "
              "method (needs 'ibr calibrate' of the scene first)")] = None,
@@ -359,6 +364,10 @@ def render(
     if method not in (None, "reference") and params:
         fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
              "the bake's settings")
+    view = {k: v for k, v in {"supersample": supersample, "antialias": antialias}.items() if v is not None}
+    if view and (contract or method in (None, "reference")):
+        fail("--supersample/--antialias set how an LDC method (--method ldc, ldc+llf or ldc+ibrt:k) renders; "
+             "--method reference takes --spp, and --quality-error/--quality-ms plan the method")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         scene_id = scene
     else:
@@ -370,7 +379,7 @@ def render(
         fail(f"{output}: the service delivers .png or .exr")
     render_and_fetch(api_url, api_key, scene_id, params, output, fmt, wait, method=method, bake=bake,
                      missing_bake="bake" if bake_missing else None, max_error=quality_error, max_ms=quality_ms,
-                     best_effort=best_effort, verify=verify, at_time=at_time)
+                     best_effort=best_effort, verify=verify, at_time=at_time, view=view)
 
 
 @app.command()

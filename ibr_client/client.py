@@ -190,12 +190,14 @@ class Client:
                params: Mapping[str, Any] | None = None, wait: float = 0.0, bake: Mapping[str, Any] | None = None,
                missing_bake: Literal["fail", "bake"] | None = None, max_error: float | None = None,
                max_ms: float | None = None, best_effort: bool = False, verify: bool = False,
-               time: float | None = None) -> RenderPublic:
+               time: float | None = None, view: Mapping[str, Any] | None = None) -> RenderPublic:
         """Request a render; the answer says ``cached``, ``finished``, ``queued``, ``running`` or ``failed``.
 
         ``method``: ``reference`` (the default), ``ldc``, ``ldc+llf`` or ``ldc+ibrt:k``; the LDC methods
         render from the bake named by ``bake`` (its params; default params when None). Without that bake
         the API answers 409 (ApiError), unless ``missing_bake="bake"`` queues the render after the bake.
+        ``view``: how an LDC method renders the view, e.g. ``{"supersample": 4, "antialias": "edges"}``
+        (default: one sample per pixel).
 
         ``max_error`` (LRMS against the converged image) and / or ``max_ms`` (render time in the worker)
         instead of a method: a quality contract, planned from the scene's calibration (see
@@ -225,6 +227,8 @@ class Client:
             body["params"] = dict(params)
         if bake:
             body["bake"] = dict(bake)
+        if view:
+            body["view"] = dict(view)
         if missing_bake is not None:
             body["missing_bake"] = missing_bake
         if time is not None:

@@ -13,7 +13,7 @@ from typing import Any
 from redis import Redis
 from rq.job import Dependency, Job
 
-from api_schemas.service import ContractPublic, RenderRequest, method_needs_bake
+from api_schemas.service import ContractPublic, LDCViewParams, RenderRequest, method_needs_bake
 from engine import ENGINE_VERSION
 from producer.artifacts import artifact_key, read_manifest
 from producer.bakes import bake_complete, bake_key, enqueue_bake
@@ -30,7 +30,8 @@ __all__ = ["enqueue_render", "render_artifact_key", "render_params"]
 def render_params(req: RenderRequest) -> dict[str, Any]:
     """The artifact parameters of a render: the request without its scene id and without
     ``missing_bake`` (what to do when the bake is missing does not change the image); the bake
-    params for the methods that read a bake, the reference params for ``reference`` (JSON types)."""
+    params (and the view params, when not the default) for the methods that read a bake, the
+    reference params for ``reference`` (JSON types)."""
     params = req.model_dump(mode="json", exclude={"scene_id", "missing_bake"})
     if params.get("outputs") is None:  # every image (the default): the key of a full artifact stays as it was
         params.pop("outputs", None)
@@ -38,8 +39,11 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
         params.pop("quality", None)
     if method_needs_bake(req.method):
         params.pop("params")  # the LDC methods shade with the bake's settings
+        if req.view == LDCViewParams():  # one sample per pixel (the default): keys as before
+            params.pop("view")
     else:
         params.pop("bake")
+        params.pop("view")
     return params
 
 

@@ -66,7 +66,7 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.geometry.adjacency import locate_on_mesh, triangle_neighbours
-from engine.methods import IBRT_GENERATIONS, LDC_IBRT, MethodSpec, allowed_forms
+from engine.methods import ANTIALIAS_MODES, IBRT_GENERATIONS, LDC_IBRT, MethodSpec, allowed_forms
 from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
@@ -92,7 +92,7 @@ PROV_GATHERED = 3
 PROV_TRACED = 4
 
 FILLS = ("ibrt", "raycast", "none")
-ANTIALIAS = ("uniform", "edges")
+ANTIALIAS = ANTIALIAS_MODES  #: where ``supersample`` > 1 traces sub-pixel rays (``engine.methods``)
 EDGE_CONTRAST = 0.05  #: ``antialias="edges"``: the luminance step (relative) that makes an edge pixel
 SAME_FACE_COS = 0.9  #: ``antialias="edges"``: a sample is on the crossed face if its normal is this close
 

@@ -29,7 +29,7 @@ def test_out_of_range_targets_name_the_range(quality: dict, needle: str) -> None
 
 
 def test_quality_with_an_explicit_method_or_params_is_refused() -> None:
-    for extra in ({"method": "ldc"}, {"method": "reference"}, {"params": {"spp": 8}}):
+    for extra in ({"method": "ldc"}, {"method": "reference"}, {"params": {"spp": 8}}, {"view": {"supersample": 2}}):
         with pytest.raises(ValidationError, match="leave out"):
             RenderRequest.model_validate({"scene_id": SID, "quality": {"max_error": 0.05}, **extra})
     with pytest.raises(ValidationError, match="provenance"):
@@ -45,5 +45,6 @@ def test_keys_of_plain_requests_are_unchanged_by_the_quality_field() -> None:
     from engine import ENGINE_VERSION
     from producer.artifacts import artifact_key
 
-    params = plain.model_dump(mode="json", exclude={"scene_id", "missing_bake", "quality", "outputs", "params"})
+    params = plain.model_dump(mode="json", exclude={"scene_id", "missing_bake", "quality", "outputs", "params",
+                                                    "view"})
     assert render_artifact_key(plain) == artifact_key("render", {"scene": SID}, params, ENGINE_VERSION)

@@ -91,3 +91,12 @@ def test_dataset_and_walkthrough_commands_check_their_input_before_calling(tmp_p
     assert r.exit_code == 2 and "frames.0" in r.output and "camera" in r.output
     r = runner.invoke(app, ["walkthroughs", "fetch", ds, "--frame-format", "gif"], env=env)
     assert r.exit_code == 2 and "png, exr or provenance" in r.output
+
+
+def test_render_refuses_ldc_view_options_where_they_mean_nothing():
+    # checked before any request: no service needed (the API would answer the same with a 422)
+    for args in (["--supersample", "2"], ["--method", "reference", "--antialias", "uniform"],
+                 ["--quality-error", "0.05", "--supersample", "4"]):
+        r = runner.invoke(app, ["render", "mirror_box", *args, "--api", "http://127.0.0.1:9"])
+        assert r.exit_code == 2, r.output
+        assert "--supersample/--antialias set how an LDC method" in r.stderr

@@ -337,14 +337,15 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
                               f"(baked with llf={req.bake.llf!r}); bake with llf 'auto' or 'always'")
     progress.report(LOAD_END, "render", force=True)
     t0 = time.perf_counter()
-    out = entry.renderer.render(camera, req.method, progress=progress)
+    out = entry.renderer.render(camera, req.method, progress=progress, supersample=req.view.supersample,
+                                antialias=req.view.antialias)
     t_render = time.perf_counter() - t0
     renderer_cache().resize(f"bake:{bkey}", runtime_scene_bytes(loaded.runtime) + int(entry.renderer.nbytes))
     progress.report(RENDER_END, "writing", force=True)
     t0 = time.perf_counter()
     meta: dict[str, Any] = {"camera": camera.to_dict(), "scene_id": req.scene_id, "scene_hash": loaded.scene_hash,
-                            "method": req.method, "bake_key": bkey, "engine_version": ENGINE_VERSION,
-                            "artifact_key": key}
+                            "method": req.method, "view": req.view.model_dump(mode="json"), "bake_key": bkey,
+                            "engine_version": ENGINE_VERSION, "artifact_key": key}
     blobs = encode_render_blobs({"radiance": out.radiance, "depth": out.depth, "normal": out.normal,
                                  "object_id": out.object_id, "material_id": out.material_id,
                                  "provenance": out.provenance}, meta, req.outputs)

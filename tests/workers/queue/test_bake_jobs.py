@@ -140,8 +140,11 @@ def test_mirror_scene_bakes_light_field_chunks(
     from api_schemas.service import RenderRequest
 
     results = {}
-    for method in ("ldc+llf", "ldc+ibrt:2"):
-        req = RenderRequest(scene_id=pub.id, method=method, bake=params)
+    keys = {}
+    for method, view in (("ldc+llf", None), ("ldc+ibrt:2", None), ("ldc+llf", {"supersample": 2})):
+        req = RenderRequest.model_validate({"scene_id": pub.id, "method": method, "bake": params.model_dump(),
+                                            **({"view": view} if view else {})})
+        name = method + (" edges x2" if view else "")
         rkey, rjob = enqueue_render(redis_conn, req, owner=None, store=worker_store)
         assert rjob is not None
         deadline = time.monotonic() + 90
@@ -152,7 +155,11 @@ def test_mirror_scene_bakes_light_field_chunks(
         assert state == "finished", rw.log()
         m = read_manifest(worker_store, rkey)
         assert m is not None and "provenance.png" in {b.name for b in m.blobs}
-        results[method] = m.result
+        results[name], keys[name] = m.result, rkey
+    # the request's view reaches the renderer: 2 x 2 sub-pixels in the edge pixels, an artifact of its own
+    aa = results["ldc+llf edges x2"]
+    assert aa["counts"]["supersample"] == 2 and aa["counts"]["edge_pixels"] > 0 and "edges" in aa["timings"]
+    assert "supersample" not in results["ldc+llf"]["counts"] and keys["ldc+llf edges x2"] != keys["ldc+llf"]
     assert results["ldc+llf"]["counts"]["provenance"]["gathered"] > 0
     assert results["ldc+ibrt:2"]["counts"]["provenance"]["traced"] > 0
     assert "gather" in results["ldc+llf"]["timings"] and "ibrt" in results["ldc+ibrt:2"]["timings"]
