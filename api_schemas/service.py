@@ -537,6 +537,9 @@ class ContractPublic(FrozenModel):
     method: str
     params: dict[str, Any] | None = None
     """The reference renderer's settings when the method is ``reference``."""
+    view: dict[str, Any] | None = None
+    """An LDC method's antialiasing when the plan chose one (``RenderRequest.view``: ``supersample``,
+    ``antialias``); None: one sample per pixel, or the reference."""
     width: int
     height: int
     predicted_error: float

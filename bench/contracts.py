@@ -175,7 +175,7 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
                                                              "levels": model.adaptive.levels,
                                                              "margin": model.adaptive.margin},
             "margins": {"reference": model.reference.margin,
-                        **{m: f.margin for m, f in model.methods.items() if m not in model.excluded}},
+                        **{m: f.margin for m, f in model.methods.items() if f.method not in model.excluded}},
             "requests": requests, "indirect": gi, "served_folded": served.folded,
             "corrections": {kind: {k: correction_factor(corrections, kind, k) for k in table}
                             for kind, table in corrections.items()},
@@ -209,8 +209,8 @@ class _Served:
         if not self.enabled:
             return
         params = model.setting_params(s)
-        key = correction_key(s.method, params)
-        contract = {"method": s.method, "params": params, "predicted_ms": predicted_ms,
+        key = correction_key(s.method, params, s.view)
+        contract = {"method": s.method, "params": params, "view": s.view, "predicted_ms": predicted_ms,
                     "calibration": {"key": self.KEY, "bake_key": self.base.bake_key,
                                     "corrections": {k: correction_factor(planned_from, k, key)
                                                     for k in ("time", "error")}}}
@@ -272,9 +272,10 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
     grid = _Grid(ref, cam, 0.5 * (h1 + h2), mask, noise, rp)
     for spp in GRID_SPP:
         grid.reference(spp)
-    for m in served.base.methods:
-        out, ms = _typical_ms(ren.render, cam, m)
-        grid.measure(m, out.radiance, ms)
+    for name, fit in served.base.methods.items():
+        out, ms = _typical_ms(lambda c, f=fit: ren.render(c, f.method, supersample=f.supersample, antialias="edges"),
+                              cam)
+        grid.measure(name, out.radiance, ms)
     names = _grid_names(served.base)
     rendered: set[str] = set()  # the settings this view has served (an identical request is a cache hit)
     rows: list[dict[str, Any]] = []
@@ -303,8 +304,8 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
                     "predicted_error": p.choice.error, "predicted_ms": p.choice.ms, "error": err,
                     "ms": ms, "met": met,
                     "cost_ratio": ms / cheapest if cheapest and max_error is not None else None,
-                    "time_correction": correction_factor(corrections, "time", correction_key(s.method,
-                                                                                             model.setting_params(s)))}
+                    "time_correction": correction_factor(corrections, "time", correction_key(
+                        s.method, model.setting_params(s), s.view))}
             if s.name not in rendered and s.name not in grid.stopped_by_time:
                 served.fold(corrections, model, s, p.choice.render_ms, ms)
             rendered.add(s.name)

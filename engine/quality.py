@@ -65,6 +65,7 @@ __all__ = [
     "CORRECTION_RANGE",
     "CORRECTION_WINDOW",
     "DEFAULT_IBRT_KS",
+    "LDC_SUPERSAMPLE",
     "MARGIN_K",
     "MARGIN_MIN_SPREAD",
     "MARGIN_RANGE",
@@ -89,7 +90,9 @@ __all__ = [
     "fit_ldc",
     "fit_reference",
     "fit_time",
+    "ldc_setting_name",
     "ldc_settings",
+    "ldc_view",
     "plan",
     "predict",
     "spp_for_error",
@@ -111,6 +114,11 @@ arrives along rare bright paths (a mirror reflecting the light) one seed's error
 0.7-1.9x another's on the same view, so the margin that covers the next view must see that spread,
 not only the spread between views of one seed. Four seeds cost four times the ladder's 1 + 4 + 16
 spp, a fraction of the ground truth's ``truth_spp``."""
+
+LDC_SUPERSAMPLE: tuple[int, ...] = (1, 2, 4)
+"""The antialiasing levels each LDC method is calibrated at (``supersample`` s with ``antialias``
+"edges": s x s sub-pixel samples in the pixels at an edge of the one-sample image): each is a
+candidate of its own, ``ldc@2x2``, ``ldc+llf@4x4``, ... (:attr:`Setting.name`)."""
 
 DEFAULT_IBRT_KS: tuple[int, ...] = (1, 2, 4)
 """The ``ldc+ibrt:k`` generations calibrated by default (on mirror scenes only: elsewhere every k
@@ -141,6 +149,8 @@ class Setting:
     spp: int | None = None
     max_error: float | None = None
     max_ms: float | None = None
+    supersample: int = 1
+    """LDC methods: s x s sub-pixel samples in the edge pixels (``antialias`` "edges"); 1: none."""
 
     @property
     def adaptive(self) -> bool:
@@ -151,11 +161,28 @@ class Setting:
         if self.adaptive:
             budget = "" if self.max_ms is None else f", max_ms {self.max_ms:g}"
             return f"{self.method}@adaptive(max_error {self.max_error:.3g}{budget}, cap {self.spp}spp)"
-        return f"{self.method}@{self.spp}spp" if self.spp is not None else self.method
+        if self.spp is not None:
+            return f"{self.method}@{self.spp}spp"
+        return ldc_setting_name(self.method, self.supersample)
+
+    @property
+    def view(self) -> dict[str, Any] | None:
+        """The render request's ``view`` of an antialiased LDC setting, else None (the default view)."""
+        return ldc_view(self.supersample)
 
     @property
     def needs_bake(self) -> bool:
         return parse_method(self.method).needs_bake
+
+
+def ldc_setting_name(method: str, supersample: int) -> str:
+    """``ldc+llf`` at one sample per pixel, ``ldc+llf@4x4`` with 4 x 4 samples in the edge pixels."""
+    return method if supersample <= 1 else f"{method}@{supersample}x{supersample}"
+
+
+def ldc_view(supersample: int) -> dict[str, Any] | None:
+    """The request ``view`` of an LDC setting antialiased at ``supersample`` (None: the default)."""
+    return None if supersample <= 1 else {"supersample": int(supersample), "antialias": "edges"}
 
 
 def ldc_settings(has_llf: bool, mirror: bool, ibrt_ks: Iterable[int] = DEFAULT_IBRT_KS) -> list[Setting]:
@@ -198,11 +225,18 @@ class CandidateFit:
     margin: float | None = None
     """The error margin calibrated from the spread of the probe views' measured over predicted errors
     (:func:`calibrated_margin`); None (a model calibrated before margins were): the planner's flat one."""
+    supersample: int = 1
+    """LDC methods: the antialiasing level it was measured at (:data:`LDC_SUPERSAMPLE`)."""
     margins_by_spp: list[list[float]] = field(default_factory=list)
     """Reference: ``[spp, margin]`` per calibrated spp, each from the probes' ratios at that spp
     alone (every probe and seed): a render's error scatters more at a few samples per pixel than
     at many, so one margin for the whole ladder would be too loose at 1-4 spp or too tight at 16.
     Empty (an LDC method, or a model calibrated before them): ``margin`` at every spp."""
+
+    @property
+    def key(self) -> str:
+        """The name of its setting (``SceneModel.methods``' key, the served corrections' key)."""
+        return ldc_setting_name(self.method, self.supersample) if self.method != REFERENCE.name else self.method
 
     def margin_at(self, spp: int | None) -> float | None:
         """The calibrated error margin at ``spp``: :attr:`margins_by_spp` interpolated linearly in
@@ -315,11 +349,13 @@ def _tail_exponent(rms: Mapping[int, float], truth_spp: int, exponent: float) ->
     return best
 
 
-def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
+def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float,
+            supersample: int = 1) -> CandidateFit:
     """An LDC method's fit from ``points`` ``{"error", "pixels", "ms"}`` (``error`` measured on the
-    probe views at the calibration size; time-only points, at other sizes, have ``error`` None). The
-    error is the largest over the probe views with the ground truth's noise ``truth_noise`` removed
-    in quadrature; ``margin`` from each view's error over that (:func:`calibrated_margin`)."""
+    probe views at the calibration size; time-only points, at other sizes, have ``error`` None), at
+    the antialiasing level ``supersample``. The error is the largest over the probe views with the
+    ground truth's noise ``truth_noise`` removed in quadrature; ``margin`` from each view's error over
+    that (:func:`calibrated_margin`)."""
     errs = [float(p["error"]) for p in points if p.get("error") is not None]
     if not errs:
         raise ValueError(f"{method}: no error measured")
@@ -327,7 +363,7 @@ def fit_ldc(method: str, points: Sequence[Mapping[str, Any]], truth_noise: float
     err = max(clean)
     b, c = fit_time([float(p["pixels"]) for p in points], [float(p["ms"]) for p in points])
     margin = calibrated_margin([e / err for e in clean]) if err > 0 else None
-    return CandidateFit(method, err, b, c, [dict(p) for p in points], margin=margin)
+    return CandidateFit(method, err, b, c, [dict(p) for p in points], margin=margin, supersample=supersample)
 
 
 def spp_for_error(fit: CandidateFit, error: float) -> float:
@@ -556,10 +592,10 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
     if bake_ready or allow_bake:
         bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s
         for name, fit in model.methods.items():
-            if name in model.excluded:
+            if name in model.excluded or fit.method in model.excluded:
                 continue
-            out.append(Prediction(Setting(name), fit.error, fit.ms_at(pixels, None), bake_ms,
-                                  margin=_margin(fit, error_margin, calibrated_margins)))
+            out.append(Prediction(Setting(fit.method, supersample=fit.supersample), fit.error, fit.ms_at(pixels, None),
+                                  bake_ms, margin=_margin(fit, error_margin, calibrated_margins)))
     out += extra_candidates(model, pixels, aim_error, max_ms, _margin(model.adaptive, error_margin, calibrated_margins))
     return out if allowed is None else [p for p in out if allowed(p.setting)]
 
@@ -712,11 +748,14 @@ ADAPTIVE_CORRECTION_KEY = f"{REFERENCE.name}@adaptive"
 """The correction key of the adaptive reference (:func:`correction_key`)."""
 
 
-def correction_key(method: str, params: Mapping[str, Any] | None) -> str:
+def correction_key(method: str, params: Mapping[str, Any] | None, view: Mapping[str, Any] | None = None) -> str:
     """What a served render's observation corrects: ``reference@adaptive`` for the adaptive reference
-    (``params`` with ``max_error``), else the method (the whole ``reference`` ladder shares one)."""
+    (``params`` with ``max_error``), an antialiased LDC setting's name (``view`` with ``supersample``
+    above 1: ``ldc+llf@4x4``), else the method (the whole ``reference`` ladder shares one)."""
     if method == REFERENCE.name and params is not None and params.get("max_error") is not None:
         return ADAPTIVE_CORRECTION_KEY
+    if method != REFERENCE.name and view:
+        return ldc_setting_name(method, int(view.get("supersample", 1)))
     return method
 
 
@@ -748,7 +787,7 @@ def apply_corrections(model: SceneModel, corrections: Mapping[str, Any] | None) 
         return model
 
     def fix(fit: CandidateFit) -> CandidateFit:
-        ft, fe = correction_factor(corrections, "time", fit.method), correction_factor(corrections, "error", fit.method)
+        ft, fe = correction_factor(corrections, "time", fit.key), correction_factor(corrections, "error", fit.key)
         return replace(fit, error=fit.error * fe, b_ms=fit.b_ms * ft, c_ms=fit.c_ms * ft)
 
     adaptive = model.adaptive

@@ -295,6 +295,9 @@ def _contract_line(con: Any) -> str:
         setting = f"{con.method} adaptive (told {con.params['max_error']:.4g}, cap {con.params['spp']} spp)"
     else:
         setting = con.method + (f" at {con.params['spp']} spp" if con.params else "")
+    if con.view and con.view.get("supersample", 1) > 1:
+        s = con.view["supersample"]
+        setting += f", {s} x {s} samples per {'' if con.view.get('antialias') == 'uniform' else 'edge '}pixel"
     met = "meets the contract" if con.met else f"DOES NOT meet {', '.join(con.unmet)}: {con.reason}"
     bake = {"waited": ", after its bake", "best_available_now": ", the best available now (bake missing)"}.get(
         con.bake, "")

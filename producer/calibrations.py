@@ -29,6 +29,7 @@ from api_schemas.service import (
     CalibrationPublic,
     CalibrationRequest,
     ContractPublic,
+    LDCViewParams,
     ReferenceRenderParams,
     RenderRequest,
 )
@@ -194,7 +195,7 @@ def record_served(store: ObjectStore, scene_id: str, contract: dict[str, Any], *
     if not bkey or not key:
         return None
     applied = cal.get("corrections") or {}
-    setting = correction_key(str(contract.get("method")), contract.get("params"))
+    setting = correction_key(str(contract.get("method")), contract.get("params"), contract.get("view"))
     obs: dict[str, float] = {}
     if achieved_ms is not None and float(contract.get("predicted_ms") or 0) > 0 and achieved_ms > 0:
         obs["time"] = achieved_ms / float(contract["predicted_ms"]) * float(applied.get("time", 1.0))
@@ -228,6 +229,8 @@ def _request_for(req: RenderRequest, model: SceneModel, setting: Setting) -> Ren
     params = model.setting_params(setting)
     if params is not None:
         update["params"] = ReferenceRenderParams(**params)
+    if setting.view is not None:
+        update["view"] = LDCViewParams(**setting.view)
     return req.model_copy(update=update)
 
 
@@ -305,13 +308,14 @@ def _planned(req: RenderRequest, model: SceneModel, doc: dict[str, Any], p: Plan
         bake = "not_needed" if ready or allow_bake else "best_available_now"
     contract = ContractPublic(
         max_error=q.max_error, max_ms=q.max_ms, on_miss=q.on_miss, rule=p.rule, met=p.met, unmet=list(p.unmet),
-        reason=p.reason, method=setting.method, params=params, width=width, height=height,
+        reason=p.reason, method=setting.method, params=params, view=setting.view, width=width, height=height,
         predicted_error=choice.error, predicted_ms=choice.render_ms, predicted_bake_ms=choice.bake_ms,
         bake=bake, excluded=dict(model.excluded), planned_for=dict(p.planned_for),  # type: ignore[arg-type]
         margins={"error": margins["error_margin"], "time": margins["time_margin"]}, verify=q.verify, **estimate,
         calibration={"key": doc["key"], "bake_key": model.bake_key, "created_at": model.created_at,
                      "cost_s": model.cost_s, "probes": model.probe.get("views"),
-                     "corrections": {kind: correction_factor(served, kind, correction_key(setting.method, params))
+                     "corrections": {kind: correction_factor(served, kind,
+                                                             correction_key(setting.method, params, setting.view))
                                      for kind in ("time", "error")},
                      "url": f"/v1/scenes/{req.scene_id}/calibrations/{model.bake_key}"})
     return planned, contract

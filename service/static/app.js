@@ -628,8 +628,10 @@ function showContract(con, manifest) {
     estimated = con.error_scale * res.adaptive.estimated_error;
   }
   const p = con.params || {};
+  const v = con.view || {};
   const plan = p.max_error != null ? `${con.method} adaptive (cap ${p.spp} spp)`
-    : `${con.method}${p.spp != null ? ` at ${p.spp} spp` : ""}`;
+    : `${con.method}${p.spp != null ? ` at ${p.spp} spp` : ""}`
+      + (v.supersample > 1 ? `, ${v.supersample}×${v.supersample} samples per ${v.antialias === "uniform" ? "" : "edge "}pixel` : "");
   const pct = (x) => (typeof x === "number" ? `${(x * 100).toFixed(2)} %` : "–");
   const ms = (x) => (typeof x === "number" ? `${x.toFixed(1)} ms` : "–");
   const target = [con.max_error != null ? `error ≤ ${pct(con.max_error)}` : null,

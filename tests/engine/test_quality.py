@@ -407,3 +407,28 @@ def test_served_observations_correct_the_model_once_there_are_enough() -> None:
     assert plan(m, PX, max_error=0.1).choice.setting.method == "ldc"  # type: ignore[union-attr]
     assert plan(fixed, PX, max_error=0.1).choice.setting.method == "ldc+llf"  # type: ignore[union-attr]
     assert apply_corrections(m, {}) is m
+
+
+def test_antialiased_ldc_settings_are_candidates_of_their_own() -> None:
+    from engine.quality import Setting, correction_key, ldc_setting_name
+
+    # ldc: 6 % at one sample per pixel; its 4 x 4 edge supersampling: 3 % at 3x the time
+    aa = CandidateFit("ldc", 0.03, 60.0, 3e-4, supersample=4)
+    m = _model(methods={"ldc": _model().methods["ldc"], aa.key: aa})
+    assert aa.key == "ldc@4x4" == ldc_setting_name("ldc", 4) and ldc_setting_name("ldc", 1) == "ldc"
+    preds = {p.setting.name: p for p in predict(m, PX)}
+    assert preds["ldc@4x4"].setting == Setting("ldc", supersample=4) and preds["ldc@4x4"].error == 0.03
+    assert preds["ldc@4x4"].setting.view == {"supersample": 4, "antialias": "edges"} and preds["ldc"].setting.view is None
+    # 4 %: the antialiased view (~80 ms) beats the reference at 100 spp (~6.5 s); 8 %: plain ldc
+    p = plan(m, PX, max_error=0.04)
+    assert p.choice is not None and p.choice.setting.name == "ldc@4x4"
+    assert plan(m, PX, max_error=0.08).choice.setting.name == "ldc"  # type: ignore[union-attr]
+    # excluding the method excludes its antialiased settings; each has its own served corrections
+    assert not any(p.setting.method == "ldc" for p in predict(replace(m, excluded={"ldc": "no"}), PX))
+    assert correction_key("ldc", None, {"supersample": 4, "antialias": "edges"}) == "ldc@4x4"
+    assert correction_key("ldc", None, None) == "ldc" and correction_key("ldc", None, {"supersample": 1}) == "ldc"
+    from engine.quality import apply_corrections
+    slow = {"time": {"ldc@4x4": {"log": math.log(2.0), "n": 3}}}
+    fixed = apply_corrections(m, slow)
+    assert fixed.methods["ldc@4x4"].b_ms == 120.0 and fixed.methods["ldc"].b_ms == 20.0
+    assert SceneModel.from_json(m.to_json()).methods["ldc@4x4"].supersample == 4

@@ -62,7 +62,10 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     ref = ReferenceRenderer(sc, caster)
     model = calibrate_scene(sc, CAMERA, renderer, params=PARAMS, bake_plan={}, indirect_bounces=2, reference=ref,
                             bake_cost_s=12.0)
-    assert set(model.methods) == {"ldc"} and not model.excluded  # diffuse: no light field, no IBRT
+    # diffuse: no light field, no IBRT; ldc at each antialiasing level
+    assert set(model.methods) == {"ldc", "ldc@2x2", "ldc@4x4"} and not model.excluded
+    assert [model.methods[k].supersample for k in ("ldc", "ldc@2x2", "ldc@4x4")] == [1, 2, 4]
+    assert model.methods["ldc@4x4"].error < model.methods["ldc"].error  # the edges' sub-pixels pay on the probes
     assert model.cost_s > 0 and model.probe["views"] == 2 and model.probe["width"] == 32
     assert model.reference.b_ms >= 0 and model.reference.c_ms > 0
     gi = bool(model.reference_params["indirect_per_spp"])
@@ -92,13 +95,15 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
     assert p.met and p.choice is not None
     s = p.choice.setting
     got = measured(ref.render(held, ReferenceParams(**model.reference_request_params(s.spp))).radiance
-                   if s.spp is not None else renderer.render(held, s.method).radiance)
+                   if s.spp is not None else renderer.render(held, s.method, supersample=s.supersample,
+                                                              antialias="edges").radiance)
     assert got <= target * FACTOR, (s, got, target)
-    # the reference's time fit reproduces its measurements (on a shared machine: within 3x) and grows with the
-    # samples; the LDC views' few milliseconds at these sizes are mostly their fixed part
+    # the reference's time fit reproduces its measurements (on a shared machine: within 3x, give or take the
+    # 2 ms a busy scheduler adds to a 1-spp render of ~1 ms) and grows with the samples; the LDC views' few
+    # milliseconds at these sizes are mostly their fixed part
     for pt in model.reference.points:
         predicted = model.reference.ms_at(int(pt["pixels"]), int(pt["spp"]))
-        assert pt["ms"] / 3 <= predicted <= pt["ms"] * 3, (pt, predicted)
+        assert pt["ms"] / 3 - 2.0 <= predicted <= pt["ms"] * 3 + 2.0, (pt, predicted)
     assert model.reference.ms_at(64 * 64, 64) > 4 * model.reference.ms_at(64 * 64, 1)
     ldc_ms = [pt["ms"] for pt in model.methods["ldc"].points]
     assert model.methods["ldc"].b_ms > 0
@@ -137,6 +142,6 @@ def test_ldc_is_excluded_on_a_mirror_scene_and_the_gathering_methods_are_calibra
     model = calibrate_scene(sc, CAMERA, renderer, params=PARAMS, bake_plan={"material_kinds": ["diffuse", "mirror"]},
                             indirect_bounces=2)
     assert "mirror" in model.excluded["ldc"] and "ldc" not in model.methods
-    assert set(model.methods) == {"ldc+llf", "ldc+ibrt:1"}
+    assert set(model.methods) == {f"{m}{aa}" for m in ("ldc+llf", "ldc+ibrt:1") for aa in ("", "@2x2", "@4x4")}
     p = plan(model, 32 * 32, max_error=0.999, best_effort=True)
     assert p.choice is not None and p.choice.setting.method != "ldc"

@@ -11,7 +11,8 @@ fit the per-scene model of quality contracts (``engine.quality``, ``docs/quality
    independent of the candidates';
 3. every candidate on every probe: the reference at ``CALIBRATION_SPP`` spp, each with every seed of
    ``CALIBRATION_SEEDS`` (the error of a render at a few spp is a random draw: its spread over
-   seeds sets the margin at each spp), and each LDC method of the bake
+   seeds sets the margin at each spp), and each LDC method of the bake at each antialiasing level of
+   ``LDC_SUPERSAMPLE`` (edge supersampling: ``ldc``, ``ldc@2x2``, ``ldc@4x4``, ...)
    (``engine.quality.ldc_settings``), LRMS against the ground truth (over the pixels it covers,
    minus those on or next to an emitter: ``ReferenceRenderer.error_region``), wall time of the
    renderer's call (the LDC methods: the fastest of three); they are also timed at ``size x
@@ -50,6 +51,7 @@ from engine.newviews.renderer import LDCViewRenderer
 from engine.quality import (
     CALIBRATION_SEEDS,
     CALIBRATION_SPP,
+    LDC_SUPERSAMPLE,
     MAX_USEFUL_ERROR,
     AdaptiveFit,
     SceneModel,
@@ -57,6 +59,7 @@ from engine.quality import (
     fit_ldc,
     fit_reference,
     fit_time,
+    ldc_setting_name,
     ldc_settings,
     spp_for_error,
 )
@@ -181,6 +184,12 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         for k in (params.ibrt_ks if mirror else []):
             excluded[f"ldc+ibrt:{k}"] = why
     methods = [s.method for s in settings if s.method not in excluded]
+    # each LDC method at each antialiasing level: (setting name, method, supersample)
+    variants = [(ldc_setting_name(m, ss), m, ss) for m in methods for ss in LDC_SUPERSAMPLE]
+
+    def render_ldc(cam: CameraParams, m: str, ss: int) -> Any:
+        return ldc_renderer.render(cam, m, supersample=ss, antialias="edges")
+
     pivot = view_pivot(camera, *scene.bounds)
     cams = probe_cameras(camera, params.probes, params.size, pivot)
     tiny = turned_camera(camera, PROBE_STEP_DEG, 8, pivot)
@@ -190,13 +199,13 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     cost["warmup"] += ms / 1000
     _, ms = _timed(ref.render, tiny, ref_at(4, max_error=0.5))  # the progressive path too
     cost["warmup"] += ms / 1000
-    for m in methods:
-        _, ms = _timed(ldc_renderer.render, tiny, m)
+    for _, m, ss in variants:
+        _, ms = _timed(render_ldc, tiny, m, ss)
         cost["warmup"] += ms / 1000
 
     ref_points: list[dict[str, Any]] = []
-    ldc_points: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
-    steps = len(cams) * (2 + len(CALIBRATION_SPP) + len(methods)) + len(methods)
+    ldc_points: dict[str, list[dict[str, Any]]] = {name: [] for name, _, _ in variants}
+    steps = len(cams) * (2 + len(CALIBRATION_SPP) + len(variants)) + len(variants)
     truths: list[tuple[np.ndarray, np.ndarray]] = []
     done = 0
     for probe, cam in enumerate(cams):
@@ -216,20 +225,20 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
                                    "error": _error(out.radiance, truth.radiance, mask)})
             done += 1
             report(done / steps, f"reference {spp} spp")
-        for m in methods:
-            out, ms = _timed_best(ldc_renderer.render, cam, m)
+        for name, m, ss in variants:
+            out, ms = _timed_best(render_ldc, cam, m, ss)
             cost["ldc"] += ms / 1000
-            ldc_points[m].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask),
-                                  "probe": probe})
+            ldc_points[name].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask),
+                                     "probe": probe})
             done += 1
-            report(done / steps, m)
+            report(done / steps, name)
     big = turned_camera(camera, PROBE_STEP_DEG, params.size * params.time_scale, pivot)
-    for m in methods:
-        _, ms = _timed_best(ldc_renderer.render, big, m)
+    for name, m, ss in variants:
+        _, ms = _timed_best(render_ldc, big, m, ss)
         cost["ldc"] += ms / 1000
-        ldc_points[m].append({"pixels": big.width * big.height, "ms": ms, "error": None, "probe": 0})
+        ldc_points[name].append({"pixels": big.width * big.height, "ms": ms, "error": None, "probe": 0})
         done += 1
-        report(done / steps, f"{m} at {big.width} x {big.height}")
+        report(done / steps, f"{name} at {big.width} x {big.height}")
 
     ref_err = [p for p in ref_points if p["error"] is not None]
     reference_fit = fit_reference(ref_err, params.truth_spp)
@@ -238,8 +247,9 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     reference_fit = replace(reference_fit, b_ms=b_ms, c_ms=c_ms, points=ref_points)
     truth_noise = reference_fit.error * params.truth_spp ** -reference_fit.exponent  # as the fit models it
     fits = {}
-    for m, pts in ldc_points.items():
-        fit = fit_ldc(m, pts, truth_noise)
+    for name, m, ss in variants:
+        pts = ldc_points[name]
+        fit = fit_ldc(m, pts, truth_noise, ss)
         # the time's per-pixel part from one view at two sizes (views differ in cost more than sizes do
         # at probe sizes), the fixed part as the mean over the probes' time at their size
         same_view = [p for p in pts if p["probe"] == 0]
@@ -247,9 +257,9 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         at_size = [p for p in pts if p["error"] is not None]
         b = max(0.0, sum(float(p["ms"]) for p in at_size) / len(at_size) - c * float(at_size[0]["pixels"]))
         fit = replace(fit, b_ms=b, c_ms=c)
-        fits[m] = fit
+        fits[name] = fit
         if fit.error > MAX_USEFUL_ERROR:
-            excluded[m] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it does "
+            excluded[name] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it does "
                            "not render what this scene holds")
     adaptive_fit = _calibrate_adaptive(ref, cams, truths, reference_fit, truth_noise, params.truth_spp, ref_at,
                                        cost, lambda i: report((done + i + 1) / steps, "adaptive reference"))

@@ -135,6 +135,31 @@ def test_plans_with_the_bake_missing(client: TestClient, store_dir: Any) -> None
     assert r.json()["contract"]["estimated_error_source"] == "calibration"
 
 
+def test_an_antialiased_ldc_setting_is_planned_with_its_view(client: TestClient, store_dir: Any) -> None:
+    sid = _scene(client)
+    # ldc 12 %, its 4 x 4 edge supersampling 3 %; a slow reference (20 % at 1 spp, 40 ms per sample: 41 s)
+    aa = CandidateFit("ldc", 0.03, 9.0, 0.004, supersample=4)
+    _store_model(store_dir, _model(sid, reference=CandidateFit("reference", 0.2, 2.0, 40.0),
+                                   methods={"ldc": CandidateFit("ldc", 0.12, 5.0, 0.001), aa.key: aa}))
+    r = _render(client, sid, {"max_error": 0.05}, missing_bake="bake")
+    assert r.status_code == 202, r.text
+    con = r.json()["contract"]
+    assert con["method"] == "ldc" and con["view"] == {"supersample": 4, "antialias": "edges"}
+    assert con["predicted_error"] == pytest.approx(0.03) and con["bake"] == "waited"
+    explicit = RenderRequest.model_validate({"scene_id": sid, "method": "ldc", "bake": BAKE,
+                                             "view": {"supersample": 4}})
+    assert r.json()["artifact_key"] == render_artifact_key(explicit)
+    # 20 %: plain ldc, no view
+    r = _render(client, sid, {"max_error": 0.2}, missing_bake="bake")
+    assert r.json()["contract"]["method"] == "ldc" and r.json()["contract"]["view"] is None
+    # a served render of the antialiased setting corrects that setting alone
+    store = open_store(f"file://{store_dir}")
+    for _ in range(2):
+        record_served(store, sid, con, achieved_ms=3 * con["predicted_ms"])
+    served = read_served(store, sid, con["calibration"]["bake_key"], con["calibration"]["key"])
+    assert set(served["time"]) == {"ldc@4x4"}
+
+
 def test_the_adaptive_reference_is_planned_at_the_spp_its_target_needs(client: TestClient, store_dir: Any) -> None:
     sid = _scene(client)
     _store_model(store_dir, _model(sid, adaptive=AdaptiveFit(error_scale=1.5, time_ratio=0.8)))
