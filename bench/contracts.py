@@ -272,10 +272,10 @@ def _view(name: str, served: _Served, ref: ReferenceRenderer, ren: LDCViewRender
     grid = _Grid(ref, cam, 0.5 * (h1 + h2), mask, noise, rp)
     for spp in GRID_SPP:
         grid.reference(spp)
-    for name, fit in served.base.methods.items():
+    for setting, fit in served.base.methods.items():
         out, ms = _typical_ms(lambda c, f=fit: ren.render(c, f.method, supersample=f.supersample, antialias="edges"),
                               cam)
-        grid.measure(name, out.radiance, ms)
+        grid.measure(setting, out.radiance, ms)
     names = _grid_names(served.base)
     rendered: set[str] = set()  # the settings this view has served (an identical request is a cache hit)
     rows: list[dict[str, Any]] = []

@@ -246,6 +246,7 @@ function currentMethod() {
 function methodChanged(render = true) {
   const m = currentMethod();
   $("k-label").hidden = !m.hasK || $("ask").value !== "method";
+  $("aa-label").hidden = !m.needsBake || $("ask").value !== "method";
   $("provenance-label").hidden = !m.needsBake;
   if (!m.needsBake) $("provenance").checked = false;
   updateProvenanceView();
@@ -450,6 +451,7 @@ function askChanged(render = true) {
   $("spp-label").hidden = !byMethod;
   if (!byMethod) {
     $("k-label").hidden = true;
+    $("aa-label").hidden = true;
     $("target-unit").textContent = ask === "error" ? "max error %" : "max ms";
     if (ask === "time" && Number($("target").value) < 20) $("target").value = "200";
     if (ask === "error" && Number($("target").value) > 50) $("target").value = "5";
@@ -481,7 +483,11 @@ function requestBody(explicit = null) {
   // the radiance (exposure and compare read it) and, for the LDC methods, the provenance overlay.
   const outputs = method.needsBake ? ["preview", "radiance", "provenance"] : ["preview", "radiance"];
   const body = { scene_id: view.scene.id, camera: cam, method: method.name, params: p, outputs };
-  if (method.needsBake) body.bake = bakeParams();
+  if (method.needsBake) {
+    body.bake = bakeParams();
+    const [s, mode] = $("aa").value.split("-");
+    if (Number(s) > 1) body.view = { supersample: Number(s), antialias: mode };
+  }
   return body;
 }
 
@@ -1929,6 +1935,7 @@ function bindControls() {
   $("ask").addEventListener("change", () => askChanged());
   $("target").addEventListener("change", () => changed());
   $("ibrt-k").addEventListener("change", () => changed());
+  $("aa").addEventListener("change", () => changed());
   $("spp").addEventListener("change", () => changed());
   $("size").addEventListener("change", () => { sizeViewport(); changed(); });
   $("reset-camera").addEventListener("click", () => { if (view.base) { setCamera(view.base); changed(); } });

@@ -125,6 +125,32 @@ def test_the_page_asks_only_for_the_images_it_shows(page: Page, stack: Stack) ->
     assert manifest["params"]["outputs"] == ["preview", "radiance", "provenance"]
 
 
+def test_antialiasing_an_ldc_view(page: Page, stack: Stack) -> None:
+    """The Antialias control (LDC methods only) sends the request's ``view``: 4 x 4 at the edges is a
+    render of its own, whose sub-pixels the worker traced; off returns to the one-sample artifact."""
+    expect(page.locator("#aa-label")).to_be_visible()
+    key_plain = page.locator("#view").get_attribute("data-key")
+    loads = page.evaluate("window.__preview.loads")
+    page.select_option("#aa", "4-edges")
+    wait_for_load(page, loads)
+    page.wait_for_function(SETTLED, timeout=60_000)
+    key_aa = page.locator("#view").get_attribute("data-key")
+    assert key_aa != key_plain
+    manifest = httpx.get(f"{stack.api_url}/v1/artifacts/{key_aa}", timeout=30).json()
+    assert manifest["params"]["view"] == {"supersample": 4, "antialias": "edges"}
+    assert manifest["result"]["counts"]["supersample"] == 4 and manifest["result"]["counts"]["edge_pixels"] > 0
+    shot(page, "13b-ldc-antialiased")
+    page.select_option("#aa", "1")
+    page.wait_for_function(f"({SETTLED}) && document.querySelector('#view').dataset.key === {key_plain!r}",
+                           timeout=60_000)
+    page.select_option("#method", "reference")
+    expect(page.locator("#aa-label")).to_be_hidden()
+    loads = page.evaluate("window.__preview.loads")
+    page.select_option("#method", "ldc")
+    wait_for_load(page, loads)
+    page.wait_for_function(SETTLED, timeout=60_000)
+
+
 def test_provenance_view(page: Page, capabilities: dict[str, Any]) -> None:
     page.check("#provenance")
     img = page.locator("#provenance-img")
