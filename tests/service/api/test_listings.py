@@ -386,7 +386,8 @@ def test_listing_latency_with_3000_jobs_and_a_scene_at_the_json_limit(c: TestCli
                              ("GET /v1/scenes?limit=100 (21 scenes, one of 7.3 MiB)", scenes)):
         print(f"{what}: p50 {p50:.1f} ms, p99 {p99:.1f} ms over {n} requests")
     # Reading every job or scene document took 1.6-2.9 s a request here; an index read takes ~10 ms
-    # on a quiet machine. The bound leaves room for a loaded CI machine (timings are the benchmark's
-    # business: bench.listings) and still fails any listing that reads everything.
-    for _, p99 in (jobs_first, jobs_deep, jobs_bob, scenes):
-        assert p99 < 250.0
+    # on a quiet machine. The bounds leave room for a loaded CI machine, where one request in a hundred
+    # can wait a quarter of a second for a core (p50 14.5 ms, p99 274 ms in one such run; timings are
+    # the benchmark's business: bench.listings), and still fail any listing that reads everything.
+    for p50, p99 in (jobs_first, jobs_deep, jobs_bob, scenes):
+        assert p50 < 250.0 and p99 < 1000.0
