@@ -263,8 +263,11 @@ def measure_scene(c: httpx.Client, scene_id: str, cam: dict[str, Any], size: int
         for i in range(warmup + views):
             order = variants if i % 2 == 0 else list(reversed(variants))
             for v in order:  # a camera per request: a subset request would be served from a full artifact
-                body: dict[str, Any] = {"scene_id": scene_id, "method": m, "camera": orbit_camera(cam, size, rng),
+                wire, _, aa = m.partition("@")  # "ldc@4x4": ldc with 4 x 4 samples in the edge pixels
+                body: dict[str, Any] = {"scene_id": scene_id, "method": wire, "camera": orbit_camera(cam, size, rng),
                                         "bake": {"ldc_resolution": ldc, "llf": "auto"}}
+                if aa:
+                    body["view"] = {"supersample": int(aa.split("x")[0]), "antialias": "edges"}
                 if VARIANTS[v] is not None:
                     body["outputs"] = VARIANTS[v]
                 row = one_request(c, body, warmup=i < warmup)
@@ -555,7 +558,8 @@ def main() -> None:
                     help="measured random views per scene, method and outputs variant")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--ldc", type=int, default=256, help="LDC resolution of the bakes")
-    ap.add_argument("--methods", default="ldc,ldc+llf,ldc+ibrt:1")
+    ap.add_argument("--methods", default="ldc,ldc+llf,ldc+ibrt:1",
+                    help="comma-separated; METHOD@SxS asks for S x S samples in the edge pixels (the request's view)")
     ap.add_argument("--outputs", default="all,preview", help=f"variants, comma-separated: {', '.join(VARIANTS)}")
     ap.add_argument("--encode-runs", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
