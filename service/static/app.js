@@ -247,6 +247,7 @@ function methodChanged(render = true) {
   const m = currentMethod();
   $("k-label").hidden = !m.hasK || $("ask").value !== "method";
   $("aa-label").hidden = !m.needsBake || $("ask").value !== "method";
+  $("spp-label").hidden = m.needsBake || $("ask").value !== "method"; // the LDC methods render from the bake
   $("provenance-label").hidden = !m.needsBake;
   if (!m.needsBake) $("provenance").checked = false;
   updateProvenanceView();
@@ -482,7 +483,8 @@ function requestBody(explicit = null) {
   // Ask only for the images this page shows (the job then skips encoding the AOV EXRs): the preview,
   // the radiance (exposure and compare read it) and, for the LDC methods, the provenance overlay.
   const outputs = method.needsBake ? ["preview", "radiance", "provenance"] : ["preview", "radiance"];
-  const body = { scene_id: view.scene.id, camera: cam, method: method.name, params: p, outputs };
+  const body = { scene_id: view.scene.id, camera: cam, method: method.name, outputs };
+  if (!method.needsBake) body.params = p;
   if (method.needsBake) {
     body.bake = bakeParams();
     const [s, mode] = $("aa").value.split("-");

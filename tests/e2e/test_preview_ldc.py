@@ -129,6 +129,7 @@ def test_antialiasing_an_ldc_view(page: Page, stack: Stack) -> None:
     """The Antialias control (LDC methods only) sends the request's ``view``: 4 x 4 at the edges is a
     render of its own, whose sub-pixels the worker traced; off returns to the one-sample artifact."""
     expect(page.locator("#aa-label")).to_be_visible()
+    expect(page.locator("#spp-label")).to_be_hidden()  # the LDC methods take no spp
     key_plain = page.locator("#view").get_attribute("data-key")
     loads = page.evaluate("window.__preview.loads")
     page.select_option("#aa", "4-edges")
@@ -145,6 +146,7 @@ def test_antialiasing_an_ldc_view(page: Page, stack: Stack) -> None:
                            timeout=60_000)
     page.select_option("#method", "reference")
     expect(page.locator("#aa-label")).to_be_hidden()
+    expect(page.locator("#spp-label")).to_be_visible()
     loads = page.evaluate("window.__preview.loads")
     page.select_option("#method", "ldc")
     wait_for_load(page, loads)
