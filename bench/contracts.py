@@ -175,7 +175,7 @@ def run_scene(name: str, ldc_res: int, views: int, size: int, truth_spp: int, ca
                                                              "levels": model.adaptive.levels,
                                                              "margin": model.adaptive.margin},
             "margins": {"reference": model.reference.margin,
-                        **{m: f.margin for m, f in model.methods.items() if f.method not in model.excluded}},
+                        **{m: f.margin for m, f in model.methods.items() if m not in model.excluded}},
             "requests": requests, "indirect": gi, "served_folded": served.folded,
             "corrections": {kind: {k: correction_factor(corrections, kind, k) for k in table}
                             for kind, table in corrections.items()},

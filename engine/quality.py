@@ -592,7 +592,9 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
     if bake_ready or allow_bake:
         bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s
         for name, fit in model.methods.items():
-            if name in model.excluded or fit.method in model.excluded:
+            # a setting measured too far off is excluded by its own name; a method excluded before it
+            # was measured (no fit under its name: e.g. ``ldc`` on a mirror scene) takes its settings along
+            if name in model.excluded or (fit.method in model.excluded and fit.method not in model.methods):
                 continue
             out.append(Prediction(Setting(fit.method, supersample=fit.supersample), fit.error, fit.ms_at(pixels, None),
                                   bake_ms, margin=_margin(fit, error_margin, calibrated_margins)))

@@ -424,8 +424,13 @@ def test_antialiased_ldc_settings_are_candidates_of_their_own() -> None:
     p = plan(m, PX, max_error=0.04)
     assert p.choice is not None and p.choice.setting.name == "ldc@4x4"
     assert plan(m, PX, max_error=0.08).choice.setting.name == "ldc"  # type: ignore[union-attr]
-    # excluding the method excludes its antialiased settings; each has its own served corrections
-    assert not any(p.setting.method == "ldc" for p in predict(replace(m, excluded={"ldc": "no"}), PX))
+    # a method excluded before it was measured takes its antialiased settings along; a one-sample view
+    # excluded for its error leaves the antialiased ones (aliasing, not missing content); each setting
+    # has its own served corrections
+    unmeasured = replace(m, methods={aa.key: aa}, excluded={"ldc": "mirror materials"})
+    assert not any(p.setting.method == "ldc" for p in predict(unmeasured, PX))
+    aliased = {p.setting.name for p in predict(replace(m, excluded={"ldc": "measured LRMS 0.9"}), PX)}
+    assert "ldc@4x4" in aliased and "ldc" not in aliased
     assert correction_key("ldc", None, {"supersample": 4, "antialias": "edges"}) == "ldc@4x4"
     assert correction_key("ldc", None, None) == "ldc" and correction_key("ldc", None, {"supersample": 1}) == "ldc"
     from engine.quality import apply_corrections
