@@ -9,6 +9,7 @@ truth has a seed of its own; measured errors have that ground truth's noise remo
 from __future__ import annotations
 
 import math
+import statistics
 
 import pytest
 
@@ -98,12 +99,17 @@ def test_calibrated_model_predicts_a_held_out_view_within_a_factor_of_two() -> N
                    if s.spp is not None else renderer.render(held, s.method, supersample=s.supersample,
                                                               antialias="edges").radiance)
     assert got <= target * FACTOR, (s, got, target)
-    # the reference's time fit reproduces its measurements (on a shared machine: within 3x, give or take the
-    # 2 ms a busy scheduler adds to a 1-spp render of ~1 ms) and grows with the samples; the LDC views' few
-    # milliseconds at these sizes are mostly their fixed part
+    # the reference's time fit reproduces its measurements and grows with the samples: per spp and size,
+    # the median of its renders (probes x seeds; on a shared machine one render now and then waits for a
+    # core, 41 ms for a predicted 9 ms in one CI run) within 3x, give or take the 2 ms a busy scheduler
+    # adds to a 1-spp render of ~1 ms; the LDC views' few milliseconds at these sizes are mostly their
+    # fixed part
+    by_setting: dict[tuple[int, int], list[float]] = {}
     for pt in model.reference.points:
-        predicted = model.reference.ms_at(int(pt["pixels"]), int(pt["spp"]))
-        assert pt["ms"] / 3 - 2.0 <= predicted <= pt["ms"] * 3 + 2.0, (pt, predicted)
+        by_setting.setdefault((int(pt["pixels"]), int(pt["spp"])), []).append(float(pt["ms"]))
+    for (pixels, spp), times in by_setting.items():
+        measured_ms, predicted = statistics.median(times), model.reference.ms_at(pixels, spp)
+        assert measured_ms / 3 - 2.0 <= predicted <= measured_ms * 3 + 2.0, (pixels, spp, times, predicted)
     assert model.reference.ms_at(64 * 64, 64) > 4 * model.reference.ms_at(64 * 64, 1)
     ldc_ms = [pt["ms"] for pt in model.methods["ldc"].points]
     assert model.methods["ldc"].b_ms > 0
