@@ -20,8 +20,8 @@ wire form          parameters          bake         renders
                                                     the LDC for k generations (k = 0 is ``ldc+llf``)
 =================  ==================  ===========  ==============================================
 
-The LDC methods share the view settings :data:`LDC_VIEW_PARAMS` (the request's ``view``):
-``supersample`` s in 1..4 and ``antialias`` (:data:`ANTIALIAS_MODES`): ``edges`` traces s x s
+The LDC methods share the view settings of the request's ``view``: ``supersample`` s in 1..4
+(:data:`SUPERSAMPLE`) and ``antialias`` (:data:`ANTIALIAS_MODES`): ``edges`` traces s x s
 sub-pixel rays only in the pixels at an edge of the one-sample image (silhouettes, depth jumps,
 shadow and light borders), ``uniform`` in every pixel (s^2 the work).
 
@@ -54,7 +54,6 @@ __all__ = [
     "REFERENCE",
     "IBRT_GENERATIONS",
     "ANTIALIAS_MODES",
-    "LDC_VIEW_PARAMS",
     "SUPERSAMPLE",
     "BakePart",
     "Method",
@@ -298,10 +297,6 @@ ANTIALIAS_MODES: tuple[str, ...] = ("edges", "uniform")
 """Where the LDC methods supersample: ``edges`` only the pixels at an edge of the one-sample image
 (the default: on the sample scenes it reaches uniform supersampling's error at a fraction of its
 time, docs/ldc.md), ``uniform`` every pixel."""
-
-LDC_VIEW_PARAMS: tuple[Param, ...] = (SUPERSAMPLE,)
-"""The numeric view settings every LDC method takes (besides ``antialias``, one of
-:data:`ANTIALIAS_MODES`)."""
 
 METHODS: tuple[Method, ...] = (REFERENCE, LDC, LDC_LLF, LDC_IBRT)
 """Every render method, in the order they are offered (``reference`` is the request's default)."""

@@ -236,7 +236,7 @@ class CandidateFit:
     @property
     def key(self) -> str:
         """The name of its setting (``SceneModel.methods``' key, the served corrections' key)."""
-        return ldc_setting_name(self.method, self.supersample) if self.method != REFERENCE.name else self.method
+        return ldc_setting_name(self.method, self.supersample)
 
     def margin_at(self, spp: int | None) -> float | None:
         """The calibrated error margin at ``spp``: :attr:`margins_by_spp` interpolated linearly in
@@ -534,14 +534,12 @@ class Prediction:
         return self.render_ms + self.bake_ms
 
 
-def _margin(fit: CandidateFit | AdaptiveFit | None, flat: float, calibrated: bool) -> float:
-    if calibrated and fit is not None and fit.margin is not None:
-        return fit.margin
-    return flat
-
-
-def _reference_margin(fit: CandidateFit, spp: int, flat: float, calibrated: bool) -> float:
-    m = fit.margin_at(spp) if calibrated else None
+def _margin(fit: CandidateFit | AdaptiveFit | None, flat: float, calibrated: bool, spp: int | None = None) -> float:
+    """The fit's calibrated margin (the reference's at ``spp``: :meth:`CandidateFit.margin_at`) when
+    ``calibrated`` and it has one, else ``flat``."""
+    if not calibrated or fit is None:
+        return flat
+    m = fit.margin_at(spp) if isinstance(fit, CandidateFit) else fit.margin
     return flat if m is None else m
 
 
@@ -587,7 +585,7 @@ def predict(model: SceneModel, pixels: int, *, bake_ready: bool = True, allow_ba
     if pixels < 1:
         raise ValueError("pixels must be >= 1")
     out = [Prediction(Setting(REFERENCE.name, s), model.reference.error_at(s), model.reference.ms_at(pixels, s),
-                      margin=_reference_margin(model.reference, s, error_margin, calibrated_margins))
+                      margin=_margin(model.reference, error_margin, calibrated_margins, s))
            for s in REFERENCE_SPP_LADDER]
     if bake_ready or allow_bake:
         bake_ms = 0.0 if bake_ready else 1000.0 * model.bake_cost_s

@@ -495,13 +495,13 @@ def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0)
     pixels = width * height
     if method_needs_bake(req.method):
         # supersampling renders s x s sub-pixels: in every pixel (uniform) or, at most, in every pixel at an edge
-        sub = pixels * req.view.supersample ** 2
-        body, cpu = float(LDC_BYTES_PER_PIXEL * sub), LDC_CPU_S_PER_PIXEL * sub
+        s = req.view.supersample
+        body, cpu = float(LDC_BYTES_PER_PIXEL * pixels * s * s), LDC_CPU_S_PER_PIXEL * pixels * s * s
+        where = "edge pixel" if req.view.antialias == "edges" else "pixel"
+        spp = f" at {s} x {s} samples per {where}" if s > 1 else ""
     else:
         body, cpu = _reference_bytes(req.params, pixels), _reference_cpu_s(req.params, pixels)
-    s = req.view.supersample
-    spp = (f" at {s} x {s} samples per {'edge ' if req.view.antialias == 'edges' else ''}pixel" if s > 1 else "") \
-        if method_needs_bake(req.method) else f" at {req.params.spp} spp"
+        spp = f" at {req.params.spp} spp"
     return _plus_scene(f"{req.method} render of {width} x {height}{spp}", triangles, body, cpu,
                        render_bytes=int(MARGIN * (body + FIXED_BYTES)))
 

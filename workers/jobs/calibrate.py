@@ -259,8 +259,8 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         fit = replace(fit, b_ms=b, c_ms=c)
         fits[name] = fit
         if fit.error > MAX_USEFUL_ERROR:
-            excluded[name] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it does "
-                           "not render what this scene holds")
+            excluded[name] = (f"measured LRMS {fit.error:.2f} on the probe views (over {MAX_USEFUL_ERROR:g}): it "
+                              "does not render what this scene holds")
     adaptive_fit = _calibrate_adaptive(ref, cams, truths, reference_fit, truth_noise, params.truth_spp, ref_at,
                                        cost, lambda i: report((done + i + 1) / steps, "adaptive reference"))
     cost_s = time.perf_counter() - t_start
