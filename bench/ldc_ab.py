@@ -3,6 +3,7 @@
 Run from the repository root::
 
     python -m bench.ldc_ab HEAD --ldc 128 --method ldc+ibrt:2 --rounds 6 [--scene mirror_box] [--size 512]
+        [--supersample 4 --antialias edges]
 
 The old ``engine/newviews/renderer.py``, ``warp.py``, ``ibrt.py`` and ``view_pass.py`` are loaded from
 ``REV`` next to the current ones (``bench.ab_module.module_at``; the old renderer uses the old
@@ -51,6 +52,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ldc", type=int, default=256, help="LDC resolution")
     ap.add_argument("--llf-f", type=int, default=8, help="LLF frequency (4 f^2 + 2 directions)")
     ap.add_argument("--method", default="ldc+ibrt:1")
+    ap.add_argument("--supersample", type=int, default=1, help="render(..., supersample=S)")
+    ap.add_argument("--antialias", default="uniform", help="render(..., antialias=...) with --supersample > 1")
     ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--threads", default="2,1", help="numba thread counts to time, in order")
     args = ap.parse_args(argv)
@@ -60,8 +63,9 @@ def main(argv=None) -> int:
     ldc = bake_ldc(sc, caster, args.ldc, plan=plan)
     a_r = old.LDCViewRenderer(sc, ldc, llf, plan)
     b_r = LDCViewRenderer(sc, ldc, llf, plan)
+    view = {"supersample": args.supersample, "antialias": args.antialias}
     for i, cam in enumerate(cams):
-        a, b = a_r.render(cam, args.method), b_r.render(cam, args.method)
+        a, b = a_r.render(cam, args.method, **view), b_r.render(cam, args.method, **view)
         same = np.array_equal(a.radiance, b.radiance) and np.array_equal(a.provenance, b.provenance)
         print(f"view {i}: {'same' if same else 'DIFF'} max|diff| {float(np.abs(a.radiance - b.radiance).max()):.3g}, "
               f"provenance differs in {int((a.provenance != b.provenance).sum())} pixels", flush=True)
@@ -75,13 +79,14 @@ def main(argv=None) -> int:
                 for i, cam in enumerate(cams):
                     for lab, ren in order:
                         t0 = time.perf_counter()
-                        o = ren.render(cam, args.method)
+                        o = ren.render(cam, args.method, **view)
                         dt = time.perf_counter() - t0
                         times[lab].setdefault("TOTAL", {}).setdefault(i, []).append(dt)
                         for k, v in o.timings.items():
                             times[lab].setdefault(k, {}).setdefault(i, []).append(v)
             print(f"threads {th}: {sha} -> working tree, {args.scene} {args.size}x{args.size} LDC {args.ldc} "
-                  f"{args.method}; ms, per-view min summed / per-view median averaged", flush=True)
+                  f"{args.method} supersample {args.supersample} {args.antialias}; ms, per-view min summed / "
+                  "per-view median averaged", flush=True)
             for k, per_view in times["old"].items():
                 new = times["new"][k]
                 mn_a = 1000 * sum(min(v) for v in per_view.values()) / len(cams)

@@ -390,8 +390,8 @@ DIFFUSE_FILTERS = ("bilinear", "nearest")
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _bilinear_diffuse(r, i, sd, cam, ax, radiance):
-    """The diffuse radiance of camera pixel ``r`` (showing sample ``i``, side ``sd`` of ``ax``),
+def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
+    """The diffuse radiance of frame row ``r``, camera pixel ``key`` (showing sample ``i``, side ``sd`` of ``ax``),
     interpolated bilinearly between the samples of the LDI's 2 x 2 pixels around where the pixel
     ray meets the sample's tangent plane, among those on the same surface (object, normal
     within ``SAME_SURFACE_COS``, within half a pixel of the plane); the weights of missing
@@ -411,7 +411,7 @@ def _bilinear_diffuse(r, i, sd, cam, ax, radiance):
     p1 = o1 + a * u1 + b * v1 + dep * w1
     p2 = o2 + a * u2 + b * v2 + dep * w2
     g0, g1, g2 = np.float64(ax.geo_normal[i, 0]), np.float64(ax.geo_normal[i, 1]), np.float64(ax.geo_normal[i, 2])
-    ox, oy, oz, dx, dy, dz = _pixel_ray(r, cam)
+    ox, oy, oz, dx, dy, dz = _pixel_ray(key, cam)
     den = dx * g0 + dy * g1 + dz * g2
     if abs(den) < 1e-6:
         return False
@@ -468,9 +468,10 @@ def _bilinear_diffuse(r, i, sd, cam, ax, radiance):
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _bilinear_diffuse_kernel(pix, samples, cam, ax0, ax1, ax2, radiance):
-    """``_bilinear_diffuse`` for every pixel of ``pix`` that shows an LDC sample (``samples``);
-    the others keep their radiance. Returns how many pixels were interpolated."""
+def _bilinear_diffuse_kernel(pix, cam_pix, samples, cam, ax0, ax1, ax2, radiance):
+    """``_bilinear_diffuse`` for every frame row of ``pix`` (camera pixel ``cam_pix``: see
+    ``_view_pass_group``) that shows an LDC sample (``samples``); the others keep their
+    radiance. Returns how many pixels were interpolated."""
     n = pix.shape[0]
     blocks = (n + 1023) // 1024
     done = np.zeros(blocks, np.int64)
@@ -483,11 +484,11 @@ def _bilinear_diffuse_kernel(pix, samples, cam, ax0, ax1, ax2, radiance):
                 continue
             i, sd = samples.index[r], samples.side[r]
             if a == 0:
-                ok = _bilinear_diffuse(r, i, sd, cam, ax0, radiance)
+                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax0, radiance)
             elif a == 1:
-                ok = _bilinear_diffuse(r, i, sd, cam, ax1, radiance)
+                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax1, radiance)
             else:
-                ok = _bilinear_diffuse(r, i, sd, cam, ax2, radiance)
+                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax2, radiance)
             if ok:
                 c += 1
         done[blk] = c
@@ -518,7 +519,7 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays):
+def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays):
     """One parallel group of ``_view_pass_kernel``: the whole view-dependent pass of the camera
     pixels ``pix`` whose sample is on LDC axis ``axis`` (-1: the raycast fill's records), in one
     pass: surface record, refinement onto the sample's triangle, direction to the eye,
@@ -529,7 +530,9 @@ def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp,
     counter: (1,) int64 this part's block counter, shared by the threads.
     axis: the LDC axis whose pixels this call shades (0, 1, 2), or -1 for the raycast fill's.
     ax: that axis' ``AxisArrays`` (axis -1: any axis', unused).
-    pix: (n_pix,) int64 the view pass's flat pixels (row-major).
+    pix: (n_pix,) int64 the view pass's pixels: rows of the frame's arrays (row-major).
+    cam_pix: (n_pix,) int64 the camera pixel of each (its eye ray, its highlight samples): ``pix``
+        itself, or in a compact frame (``LDCViewRenderer._subpixel_frame``) the sub-pixel's.
     samples: ``PixelSamples``, the sample each pixel shows.
     rc: ``RaycastRecords`` of the raycast fill's pixels.
     cam: ``KernelCamera``.
@@ -580,7 +583,7 @@ def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp,
                 m = mat_a[s]
                 brow = 2 * s + sd
                 if refine:
-                    ox, oy, oz, dx, dy, dz = _pixel_ray(r, cam)
+                    ox, oy, oz, dx, dy, dz = _pixel_ray(cam_pix[i], cam)
                     if ortho:
                         reach = ortho_px
                     else:
@@ -610,8 +613,9 @@ def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp,
             pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
             pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
             if want_hl and (force or hl_mat[m]):
-                h0, h1, h2 = highlight_point_u(r, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos, pt_int, dir_dir,
-                                               dir_irr, rc_, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent)
+                h0, h1, h2 = highlight_point_u(cam_pix[i], pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
+                                               pt_int, dir_dir, dir_irr, rc_, ru, rv, r_n, r_area, rL, r2s, r_g,
+                                               stream, center, extent)
                 radiance[r, 0] += h0
                 radiance[r, 1] += h1
                 radiance[r, 2] += h2
@@ -645,7 +649,7 @@ def _view_pass_group(counter, axis, ax, pix, samples, rc, cam, mesh, sw, hp, gp,
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _view_pass_kernel(groups, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, ax0, ax1, ax2):
+def _view_pass_kernel(groups, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, ax0, ax1, ax2):
     """The view-dependent pass of every pixel in ``pix`` in ONE parallel launch: the pixels whose
     sample is on LDC axis 0, 1, 2 (``AxisArrays`` ``ax0``, ``ax1``, ``ax2``) and, when ``rc`` has
     records, those of the raycast fill (axis -1). Each part has its own block counter and a thread
@@ -662,11 +666,11 @@ def _view_pass_kernel(groups, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays
     # the axis as a run-time int64, not a literal: numba would compile the group once per literal value
     # (four copies of the largest LDC kernel, three quarters of its cold compile; docs/performance.md)
     for _ in nb.prange(groups):
-        _view_pass_group(c_0, np.int64(0), ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_1, np.int64(1), ax1, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_2, np.int64(2), ax2, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_0, np.int64(0), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_1, np.int64(1), ax1, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_2, np.int64(2), ax2, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
         if with_rc:  # the raycast fill's pixels (no LDC sample; axis 0's arrays are placeholders)
-            _view_pass_group(c_r, np.int64(-1), ax0, pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+            _view_pass_group(c_r, np.int64(-1), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1013,14 +1017,14 @@ def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, t
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _fill_subpixels(q, hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radiance, depth, normal, obj_id, mat_id, prov,
+def _fill_subpixels(hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radiance, depth, normal, obj_id, mat_id, prov,
                     s_axis, s_idx, s_side):
-    """Sub-pixels ``q`` show their hit sample as ``_fill_from_hits`` shows a hole's (the
-    sample's diffuse radiance, distance, shading normal, ids; provenance 2), or the background
-    as ``_clear_pixels`` leaves a pixel (``hit_axis`` -1); one parallel pass over the three axes."""
-    for i in nb.prange(q.shape[0]):
-        r = q[i]
-        a = hit_axis[i]
+    """Row i of a compact frame of sub-pixels (``_subpixel_frame``) shows its hit sample as
+    ``_fill_from_hits`` shows a hole's (the sample's diffuse radiance, distance, shading normal,
+    ids; provenance 2), or the background as ``_clear_pixels`` leaves a pixel (``hit_axis``
+    -1); one parallel pass over the three axes."""
+    for r in nb.prange(hit_axis.shape[0]):
+        a = hit_axis[r]
         if a < 0:
             for c in range(3):
                 radiance[r, c] = bg[c]
@@ -1031,15 +1035,16 @@ def _fill_subpixels(q, hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radian
             prov[r] = 0
             s_axis[r] = -1
             s_idx[r] = -1
+            s_side[r] = 0
             continue
         ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
         geo, nrm, diff = ax.geo_normal, ax.normal, ax.diffuse
-        sm = hit_sample[i]
-        sd = 1 if geo[sm, 0] * d[i, 0] + geo[sm, 1] * d[i, 1] + geo[sm, 2] * d[i, 2] > 0.0 else 0
+        sm = hit_sample[r]
+        sd = 1 if geo[sm, 0] * d[r, 0] + geo[sm, 1] * d[r, 1] + geo[sm, 2] * d[r, 2] > 0.0 else 0
         _, _, _, n0, n1, n2 = _sample_normals(geo[sm, 0], geo[sm, 1], geo[sm, 2], nrm[sm, 0], nrm[sm, 1], nrm[sm, 2],
                                               sd)
         radiance[r, 0], radiance[r, 1], radiance[r, 2] = diff[sm, sd, 0], diff[sm, sd, 1], diff[sm, sd, 2]
-        depth[r] = hit_t[i]
+        depth[r] = hit_t[r]
         normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
         obj_id[r] = ax.object[sm]
         mat_id[r] = ax.material[sm]
@@ -1050,28 +1055,23 @@ def _fill_subpixels(q, hit_axis, hit_sample, hit_t, d, bg, ax0, ax1, ax2, radian
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _box_filter_pixels(pix, fine, W, s, out):
-    """out[p] (float32) = the mean of the s x s sub-pixels of flat pixel ``pix[i]`` of a W-wide
-    image in ``fine`` ((s h) (s w), 3) float64, each rounded to float32 first (uniform
-    supersampling's arithmetic: the float32 image of the fine frame, averaged in float64).
-    Returns how many sub-pixel values are not finite."""
+def _box_filter_pixels(pix, fine, n_sub, out):
+    """out[pix[i]] (float32) = the mean of rows i n_sub .. (i + 1) n_sub - 1 of ``fine`` (n, 3)
+    float64: pixel ``pix[i]``'s sub-pixels in a compact frame (``_subpixel_frame``), each
+    rounded to float32 first (uniform supersampling's arithmetic: the float32 image of the fine
+    frame, averaged in float64). Returns how many sub-pixel values are not finite."""
     n = pix.shape[0]
-    Ws = W * s
     bad = 0
     for i in nb.prange(n):
         p = pix[i]
-        y = p // W
-        x = p % W
         for c in range(3):
             acc = 0.0
-            for a in range(s):
-                row = (y * s + a) * Ws + x * s
-                for b in range(s):
-                    v = fine[row + b, c]
-                    if not np.isfinite(v):
-                        bad += 1
-                    acc += np.float64(np.float32(v))
-            out[p, c] = acc / (s * s)
+            for k in range(i * n_sub, (i + 1) * n_sub):
+                v = fine[k, c]
+                if not np.isfinite(v):
+                    bad += 1
+                acc += np.float64(np.float32(v))
+            out[p, c] = acc / n_sub
     return bad
 
 
@@ -1374,6 +1374,9 @@ class _Frame:
     prov: np.ndarray  #: (h w,) uint8
     samples: PixelSamples
     progress: Callable[[float, str], None] | None
+    #: None: row = flat camera pixel; a compact frame (``LDCViewRenderer._subpixel_frame``):
+    #: (n,) int64 the camera pixel of each row
+    pixels: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     passes: dict[str, dict] = field(default_factory=dict)
@@ -1385,6 +1388,10 @@ class _Frame:
     @property
     def height(self) -> int:
         return self.camera.height
+
+    def camera_pixels(self, rows: np.ndarray) -> np.ndarray:
+        """The camera pixel of each of the frame's ``rows``."""
+        return rows if self.pixels is None else self.pixels[rows]
 
     def report(self, frac: float, stage: str) -> None:
         if self.progress is not None:
@@ -1638,7 +1645,7 @@ class LDCViewRenderer:
             for k in ("view_pass_pixels", "traced_rays", "gather_lookups"):
                 counts["edge_" + k] = int(fr.counts.get(k, 0))
             rad = r1.radiance.copy()
-            if _box_filter_pixels(pix, fr.radiance, W, s, rad.reshape(-1, 3)):
+            if _box_filter_pixels(pix, fr.radiance, s * s, rad.reshape(-1, 3)):
                 raise NonFiniteOutputError("LDC render produced non-finite values")
         timings["total"] = time.perf_counter() - t_start
         plan = dict(r1.plan)
@@ -1652,18 +1659,20 @@ class LDCViewRenderer:
                                timings=timings, counts=counts, plan=plan)
 
     def _subpixel_frame(self, fr1: _Frame, big: CameraParams, pix: np.ndarray, s: int, counts: dict) -> _Frame:
-        """The frame of the s-times finer camera ``big`` in which only the sub-pixels of the
-        one-sample frame's pixels ``pix`` are set (``_render_edges``): each shows its sample
-        (``_subpixel_samples``, else an image-based ray's hit, whatever the ``fill``: the
-        sub-pixels are no holes of a warp), or the background. The other
-        sub-pixels are never read (the arrays are allocated, not filled; ``obj_id`` is -1
-        there, so the view pass skips them)."""
+        """A compact frame of the s x s sub-pixels of the one-sample frame's pixels ``pix``
+        (``_render_edges``): row i s^2 + a s + b is sub-pixel (a, b) of ``pix[i]``, i.e. pixel
+        (y s + a, x s + b) of the s-times finer camera ``big`` (``_Frame.pixels``: the kernels
+        trace that pixel's ray). Each shows its sample (``_subpixel_samples``, else an
+        image-based ray's hit, whatever the ``fill``: the sub-pixels are no holes of a warp), or
+        the background. Compact, because the edge pixels are a few per cent of the image: a
+        frame of all of ``big``'s pixels (16x the image at 4 x 4) cost more to allocate and
+        fault in than its sub-pixels cost to render (docs/accuracy/gi.md)."""
         W = fr1.width
-        n_f = big.width * big.height
         a = np.arange(s)
         y, x = pix // W, pix % W
         q = (((y[:, None, None] * s + a[None, :, None]) * (W * s)) + (x[:, None, None] * s + a[None, None, :]))
         q = q.reshape(-1)
+        n = q.size
         coarse = np.repeat(pix, s * s)
         cam = kernel_camera(big)
         o, d = _pixel_rays(q, cam)
@@ -1672,19 +1681,18 @@ class LDCViewRenderer:
                                                   ax0, ax1, ax2, self.scene.tri_p, self.scene.tri_ng, self._tri_obj,
                                                   self._nbr, 2.0 * float(self.ldc.h), SAME_FACE_COS)
         ray = np.flatnonzero(h_axis < 0)
-        counts["edge_subpixels"] = int(q.size)
+        counts["edge_subpixels"] = int(n)
         counts["edge_ibrt_rays"] = int(ray.size)
         if ray.size:
             r_axis, r_sample, r_t, _, _ = self._trace(o[ray], d[ray])
             h_axis[ray], h_sample[ray], h_t[ray] = r_axis, r_sample, r_t
-        obj_id = np.full(n_f, -1, np.int32)
-        fr = _Frame(camera=big, cam=cam, warp=fr1.warp, radiance=np.empty((n_f, 3)), depth=np.empty(n_f, np.float32),
-                    normal=np.empty((n_f, 3), np.float32), obj_id=obj_id, mat_id=np.empty(n_f, np.int32),
-                    prov=np.empty(n_f, np.uint8),
-                    samples=PixelSamples(np.empty(n_f, np.int8), np.empty(n_f, np.int64), np.empty(n_f, np.int8)),
-                    progress=None)
+        fr = _Frame(camera=big, cam=cam, warp=fr1.warp, radiance=np.empty((n, 3)), depth=np.empty(n, np.float32),
+                    normal=np.empty((n, 3), np.float32), obj_id=np.empty(n, np.int32), mat_id=np.empty(n, np.int32),
+                    prov=np.empty(n, np.uint8),
+                    samples=PixelSamples(np.empty(n, np.int8), np.empty(n, np.int64), np.empty(n, np.int8)),
+                    progress=None, pixels=q)
         sm = fr.samples
-        _fill_subpixels(q, h_axis, h_sample, h_t, d, np.asarray(self.ldc.background, np.float64), ax0, ax1, ax2,
+        _fill_subpixels(h_axis, h_sample, h_t, d, np.asarray(self.ldc.background, np.float64), ax0, ax1, ax2,
                         fr.radiance, fr.depth, fr.normal, fr.obj_id, fr.mat_id, fr.prov, sm.axis, sm.index, sm.side)
         return fr
 
@@ -1720,7 +1728,8 @@ class LDCViewRenderer:
             if pix is None:
                 pix = np.arange(fr.height * fr.width, dtype=np.int64)
             ax0, ax1, ax2 = self._axes
-            n = int(_bilinear_diffuse_kernel(pix, fr.samples, fr.cam, ax0, ax1, ax2, fr.radiance))
+            n = int(_bilinear_diffuse_kernel(pix, fr.camera_pixels(pix), fr.samples, fr.cam, ax0, ax1, ax2,
+                                             fr.radiance))
         fr.timings["diffuse"] = time.perf_counter() - t0
         fr.counts["diffuse_interpolated"] = n
 
@@ -1895,7 +1904,7 @@ class LDCViewRenderer:
                                   gathered_mat=self._has_kg if trace_mirror else refl_mat, want_hl=bool(want_vp),
                                   want_rf=bool(want_rf), force=force, mirror=not trace_mirror,
                                   trace=rays.live.size > 0, refine=self.refine_surface)
-            _view_pass_kernel(_groups(), vp_pix, fr.samples,
+            _view_pass_kernel(_groups(), vp_pix, fr.camera_pixels(vp_pix), fr.samples,
                               rc if rc is not None else _no_raycast_records(self.ldc.visibility_words), fr.cam,
                               self._mesh, sw, self._hp, self._gp,
                               ViewPassImage(fr.radiance, fr.normal, fr.prov, lookups), rays, *self._axes)
@@ -1925,7 +1934,7 @@ class LDCViewRenderer:
         fr.counts["ibrt_steps"] = 0
         if rays.live.size:
             live = np.flatnonzero(rays.live)
-            live = live[_tile_order(vp.pix[live], fr.width, _RAY_TILE)]
+            live = live[_tile_order(fr.camera_pixels(vp.pix[live]), fr.width, _RAY_TILE)]
             traced = vp.pix[live]
             self._trace_mirrors(traced, rays.o[live], rays.d[live], rays.ng[live], rays.thr[live], k, fr.radiance,
                                 fr.counts, force)
