@@ -389,29 +389,27 @@ DIFFUSE_FILTERS = ("bilinear", "nearest")
 """How a pixel's view-independent radiance is read from the LDC (``LDCViewRenderer._smooth_diffuse``)."""
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
-    """The diffuse radiance of frame row ``r``, camera pixel ``key`` (showing sample ``i``, side ``sd`` of ``ax``),
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bilinear_diffuse(r, i, sd, ray, frm, h, nu, spix, depth, geo, obj_a, diff, offsets, radiance):
+    """The diffuse radiance of frame row ``r`` (eye ray ``ray`` = (ox, oy, oz, dx, dy, dz),
+    showing sample ``i``, side ``sd``, of an LDC axis: its frame ``frm`` = (origin, u, v, w),
+    pixel size ``h``, ``nu`` pixels per row, and the ``AxisArrays`` fields named alike),
     interpolated bilinearly between the samples of the LDI's 2 x 2 pixels around where the pixel
     ray meets the sample's tangent plane, among those on the same surface (object, normal
     within ``SAME_SURFACE_COS``, within half a pixel of the plane); the weights of missing
     neighbours are left out (a crease, a border, another object). Written to ``radiance[r]``;
     False (nothing written: the sample's own value stays) when the ray runs along the plane or
     meets it more than a pixel and a half from the sample."""
-    h, nu = ax.h, ax.nu
-    nv = (ax.offsets.shape[0] - 1) // nu
-    k = np.int64(ax.sample_pixel[i])
+    nv = (offsets.shape[0] - 1) // nu
+    k = np.int64(spix[i])
     ci, cj = k % nu, k // nu
-    o0, o1, o2 = ax.origin[0], ax.origin[1], ax.origin[2]
-    u0, u1, u2 = ax.u[0], ax.u[1], ax.u[2]
-    v0, v1, v2 = ax.v[0], ax.v[1], ax.v[2]
-    w0, w1, w2 = ax.w[0], ax.w[1], ax.w[2]
-    a, b, dep = (ci + 0.5) * h, (cj + 0.5) * h, ax.depth[i]
+    o0, o1, o2, u0, u1, u2, v0, v1, v2, w0, w1, w2 = frm
+    a, b, dep = (ci + 0.5) * h, (cj + 0.5) * h, depth[i]
     p0 = o0 + a * u0 + b * v0 + dep * w0
     p1 = o1 + a * u1 + b * v1 + dep * w1
     p2 = o2 + a * u2 + b * v2 + dep * w2
-    g0, g1, g2 = np.float64(ax.geo_normal[i, 0]), np.float64(ax.geo_normal[i, 1]), np.float64(ax.geo_normal[i, 2])
-    ox, oy, oz, dx, dy, dz = _pixel_ray(key, cam)
+    g0, g1, g2 = np.float64(geo[i, 0]), np.float64(geo[i, 1]), np.float64(geo[i, 2])
+    ox, oy, oz, dx, dy, dz = ray
     den = dx * g0 + dy * g1 + dz * g2
     if abs(den) < 1e-6:
         return False
@@ -424,7 +422,7 @@ def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
     x0, y0 = math.floor(fx), math.floor(fy)
     tx, ty = fx - x0, fy - y0
     tol = 0.5 * h
-    obj = ax.object[i]
+    obj = obj_a[i]
     acc0 = acc1 = acc2 = 0.0
     wsum = 0.0
     for cy in range(2):
@@ -441,12 +439,12 @@ def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
             a, b = (xi + 0.5) * h, (yj + 0.5) * h
             best = -1
             best_d = tol
-            for j in range(ax.offsets[kk], ax.offsets[kk + 1]):
-                if ax.object[j] != obj:
+            for j in range(offsets[kk], offsets[kk + 1]):
+                if obj_a[j] != obj:
                     continue
-                if ax.geo_normal[j, 0] * g0 + ax.geo_normal[j, 1] * g1 + ax.geo_normal[j, 2] * g2 < SAME_SURFACE_COS:
+                if geo[j, 0] * g0 + geo[j, 1] * g1 + geo[j, 2] * g2 < SAME_SURFACE_COS:
                     continue
-                dj = ax.depth[j]
+                dj = depth[j]
                 e0 = o0 + a * u0 + b * v0 + dj * w0 - p0
                 e1 = o1 + a * u1 + b * v1 + dj * w1 - p1
                 e2 = o2 + a * u2 + b * v2 + dj * w2 - p2
@@ -455,9 +453,9 @@ def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
                     best, best_d = j, dist
             if best >= 0:
                 wgt = wx * wy
-                acc0 += wgt * ax.diffuse[best, sd, 0]
-                acc1 += wgt * ax.diffuse[best, sd, 1]
-                acc2 += wgt * ax.diffuse[best, sd, 2]
+                acc0 += wgt * diff[best, sd, 0]
+                acc1 += wgt * diff[best, sd, 1]
+                acc2 += wgt * diff[best, sd, 2]
                 wsum += wgt
     if wsum < 1e-3:
         return False
@@ -465,6 +463,30 @@ def _bilinear_diffuse(r, key, i, sd, cam, ax, radiance):
     radiance[r, 1] = acc1 / wsum
     radiance[r, 2] = acc2 / wsum
     return True
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _bilinear_diffuse_block(lo, hi, axis, ax, pix, cam_pix, samples, cam, radiance):
+    """``_bilinear_diffuse`` for the rows ``pix[lo:hi]`` whose sample is on LDC axis ``axis``
+    (``AxisArrays`` ``ax``). One call per block and axis, the bundles unpacked once and the
+    per-pixel function inlined into this loop: called per pixel with the bundles, it paid
+    atomic reference counts on their arrays at every call (1.3-1.6x the time); inlined into
+    the kernel's per-axis branches, it was compiled three times (+11 s of cold compile)."""
+    # everything a pixel reads, taken out of the bundles once (``_view_pass_group``)
+    s_axis, s_idx, s_side = samples.axis, samples.index, samples.side
+    frm = (ax.origin[0], ax.origin[1], ax.origin[2], ax.u[0], ax.u[1], ax.u[2], ax.v[0], ax.v[1], ax.v[2],
+           ax.w[0], ax.w[1], ax.w[2])
+    h, nu = ax.h, ax.nu
+    spix, depth, geo, obj_a, diff, offsets = ax.sample_pixel, ax.depth, ax.geo_normal, ax.object, ax.diffuse, ax.offsets
+    c = 0
+    for q in range(lo, hi):
+        r = pix[q]
+        if s_axis[r] != axis:
+            continue
+        if _bilinear_diffuse(r, s_idx[r], s_side[r], _pixel_ray(cam_pix[q], cam), frm, h, nu, spix, depth, geo, obj_a,
+                             diff, offsets, radiance):
+            c += 1
+    return c
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -476,22 +498,11 @@ def _bilinear_diffuse_kernel(pix, cam_pix, samples, cam, ax0, ax1, ax2, radiance
     blocks = (n + 1023) // 1024
     done = np.zeros(blocks, np.int64)
     for blk in nb.prange(blocks):
-        c = 0
-        for q in range(blk * 1024, min(n, blk * 1024 + 1024)):
-            r = pix[q]
-            a = samples.axis[r]
-            if a < 0:
-                continue
-            i, sd = samples.index[r], samples.side[r]
-            if a == 0:
-                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax0, radiance)
-            elif a == 1:
-                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax1, radiance)
-            else:
-                ok = _bilinear_diffuse(r, cam_pix[q], i, sd, cam, ax2, radiance)
-            if ok:
-                c += 1
-        done[blk] = c
+        lo, hi = blk * 1024, min(n, blk * 1024 + 1024)
+        # the axis as a run-time int64 (one compiled block function, not one per literal)
+        done[blk] = (_bilinear_diffuse_block(lo, hi, np.int64(0), ax0, pix, cam_pix, samples, cam, radiance) +
+                     _bilinear_diffuse_block(lo, hi, np.int64(1), ax1, pix, cam_pix, samples, cam, radiance) +
+                     _bilinear_diffuse_block(lo, hi, np.int64(2), ax2, pix, cam_pix, samples, cam, radiance))
     return done.sum()
 
 
@@ -887,12 +898,16 @@ def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
     a texture's; below ``y_mean`` the step is measured against the image's mean luminance, as
     the LRMS measures errors)."""
     H, W = obj_id.shape
+    lum = np.empty((H, W))
+    for y in nb.prange(H):
+        for x in range(W):
+            lum[y, x] = 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
     flag = np.zeros(H * W, np.bool_)
     for y in nb.prange(H):
         for x in range(W):
             o = obj_id[y, x]
             d = depth[y, x]
-            yl = 0.2126 * radiance[y, x, 0] + 0.7152 * radiance[y, x, 1] + 0.0722 * radiance[y, x, 2]
+            yl = lum[y, x]
             edge = False
             for yy in range(max(0, y - 1), min(H, y + 2)):
                 for xx in range(max(0, x - 1), min(W, x + 2)):
@@ -901,51 +916,58 @@ def _edge_pixels(obj_id, depth, radiance, rel_jump, contrast, y_mean):
                     elif o >= 0 and abs(depth[yy, xx] - d) > rel_jump * min(d, depth[yy, xx]):
                         edge = True
                     else:
-                        yn = (0.2126 * radiance[yy, xx, 0] + 0.7152 * radiance[yy, xx, 1] +
-                              0.0722 * radiance[yy, xx, 2])
+                        yn = lum[yy, xx]
                         if abs(yn - yl) > contrast * max(yn, yl, y_mean):
                             edge = True
+                    if edge:
+                        break
+                if edge:
+                    break
             flag[y * W + x] = edge
     return flag
 
 
 @nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol, face_cos):
-    """The LDC sample each sub-pixel ray (o, d: of flat pixel ``coarse[i]`` of the W x H
-    one-sample image) shows, from the samples of that pixel's 3 x 3 neighbourhood (``s_axis``,
-    ``s_idx``: the one-sample render's, after its fill): each one's triangle is walked along
-    the ray (``locate_on_mesh``, as in the silhouette mesh test); the nearest crossing decides
-    the surface, and of the candidates on that surface (the same object, crossed within
-    ``tol``) the one whose sample point lies nearest the crossing gives the radiance (the
-    sample whose splat a finer warp would most likely show there: across a shadow's edge the
-    sub-pixels pick different samples), preferring the samples whose geometric normal is
-    within ``face_cos`` of the crossed triangle's (the same face: at a box's edge the nearest
-    sample may lie on the other face, lit differently). Returns (axis (n,) int8, -1 where the ray crosses no
-    candidate; sample (n,) int64; t (n,) float64)."""
-    n = coarse.shape[0]
+def _subpixel_samples(pix, n_sub, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, tri_ng, tri_obj, nbr, tol, face_cos):
+    """The LDC sample each sub-pixel ray shows (rays o, d: rows i n_sub .. (i + 1) n_sub - 1 are
+    the sub-pixels of flat pixel ``pix[i]`` of the W x H one-sample image), from the samples of
+    that pixel's 3 x 3 neighbourhood (``s_axis``, ``s_idx``: the one-sample render's, after its
+    fill): each one's triangle is walked along the ray (``locate_on_mesh``, as in the
+    silhouette mesh test); the nearest crossing decides the surface, and of the candidates on
+    that surface (the same object, crossed within ``tol``) the one whose sample point lies
+    nearest the crossing gives the radiance (the sample whose splat a finer warp would most
+    likely show there: across a shadow's edge the sub-pixels pick different samples),
+    preferring the samples whose geometric normal is within ``face_cos`` of the crossed
+    triangle's (the same face: at a box's edge the nearest sample may lie on the other face,
+    lit differently). The candidates, their points and normals are gathered once per pixel,
+    each distinct triangle walked once per sub-pixel. Returns (axis (n,) int8, -1 where the ray
+    crosses no candidate; sample (n,) int64; t (n,) float64)."""
+    n = o.shape[0]
     out_a = np.full(n, -1, np.int8)
     out_s = np.full(n, -1, np.int64)
     out_t = np.full(n, np.inf)
-    nblk = (n + 63) // 64
+    n_pix = pix.shape[0]
+    nblk = (n_pix + 3) // 4
     for b in nb.prange(nblk):
-        ca = np.empty(9, np.int64)
+        ca = np.empty(9, np.int64)  # candidate k: its axis (-1: none), sample, object, point, normal
         cs = np.empty(9, np.int64)
+        cu = np.empty(9, np.int64)  # the candidate's triangle, as an index into ut
+        cq = np.empty((9, 3))
+        cg = np.empty((9, 3))
+        ut = np.empty(9, np.int64)  # the distinct triangles
+        uok = np.empty(9, np.bool_)  # per distinct triangle, this sub-pixel's walk: crossed, where, at t
+        ut2 = np.empty(9, np.int64)
+        us2 = np.empty(9)
         ct = np.empty(9)
         co = np.empty(9, np.int64)
-        wt = np.empty(9, np.int64)
-        wok = np.empty(9, np.bool_)
-        wt2 = np.empty(9, np.int64)
-        ws2 = np.empty(9)
-        for i in range(b * 64, min(n, b * 64 + 64)):
-            r = coarse[i]
+        good = np.empty(9, np.bool_)
+        for p in range(b * 4, min(n_pix, b * 4 + 4)):
+            r = pix[p]
             x = r % W
             y = r // W
-            ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
-            best_t = np.inf
-            best_o = -1
+            nu = 0
             for k in range(9):
                 ca[k] = -1
-                wt[k] = -1
                 xx = x + k % 3 - 1
                 yy = y + k // 3 - 1
                 if xx < 0 or yy < 0 or xx >= W or yy >= H:
@@ -955,65 +977,84 @@ def _subpixel_samples(coarse, o, d, s_axis, s_idx, W, H, ax0, ax1, ax2, tri_p, t
                 sm = s_idx[j]
                 if a < 0:
                     continue
-                t = ax0.prim[sm] if a == 0 else (ax1.prim[sm] if a == 1 else ax2.prim[sm])
-                kk = -1
-                for q in range(k):
-                    if wt[q] == t:
-                        kk = q
-                        break
-                if kk >= 0:
-                    good = wok[kk]
-                    t2 = wt2[kk]
-                    s2 = ws2[kk]
+                if a == 0:
+                    t = ax0.prim[sm]
+                    qx, qy, qz = _axis_sample_point(ax0, sm)
+                    g0, g1, g2 = ax0.geo_normal[sm, 0], ax0.geo_normal[sm, 1], ax0.geo_normal[sm, 2]
+                elif a == 1:
+                    t = ax1.prim[sm]
+                    qx, qy, qz = _axis_sample_point(ax1, sm)
+                    g0, g1, g2 = ax1.geo_normal[sm, 0], ax1.geo_normal[sm, 1], ax1.geo_normal[sm, 2]
                 else:
-                    ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, t, tri_p, tri_ng, nbr, 8)
-                    good = ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0
-                wt[k] = t
-                wok[k] = good
-                wt2[k] = t2
-                ws2[k] = s2
-                if good:
-                    ca[k] = a
-                    cs[k] = sm
-                    ct[k] = s2
-                    co[k] = tri_obj[t2]
-                    if s2 < best_t:
-                        best_t = s2
-                        best_o = co[k]
-            if best_t == np.inf:
-                continue
-            tb = -1
-            for k in range(9):
-                if ca[k] >= 0 and ct[k] == best_t:
-                    tb = wt2[k]
-                    break
-            px, py, pz = ox + best_t * dx, oy + best_t * dy, oz + best_t * dz
-            pick = -1
-            for same_face in (True, False):
-                best_d = np.inf
+                    t = ax2.prim[sm]
+                    qx, qy, qz = _axis_sample_point(ax2, sm)
+                    g0, g1, g2 = ax2.geo_normal[sm, 0], ax2.geo_normal[sm, 1], ax2.geo_normal[sm, 2]
+                ca[k] = a
+                cs[k] = sm
+                cq[k, 0], cq[k, 1], cq[k, 2] = qx, qy, qz
+                cg[k, 0], cg[k, 1], cg[k, 2] = g0, g1, g2
+                u = -1
+                for q in range(nu):
+                    if ut[q] == t:
+                        u = q
+                        break
+                if u < 0:
+                    u = nu
+                    ut[nu] = t
+                    nu += 1
+                cu[k] = u
+            for i in range(p * n_sub, (p + 1) * n_sub):
+                ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
+                for u in range(nu):
+                    ok, t2, s2, bw, bu, bv = locate_on_mesh(ox, oy, oz, dx, dy, dz, ut[u], tri_p, tri_ng, nbr, 8)
+                    uok[u] = ok and min(bw, min(bu, bv)) >= -1e-6 and s2 > 0.0
+                    ut2[u] = t2
+                    us2[u] = s2
+                best_t = np.inf
+                best_o = -1
                 for k in range(9):
-                    if ca[k] < 0 or co[k] != best_o or ct[k] > best_t + tol:
-                        continue
-                    a = ca[k]
-                    ax = ax0 if a == 0 else (ax1 if a == 1 else ax2)
-                    sm = cs[k]
-                    if same_face and abs(ax.geo_normal[sm, 0] * tri_ng[tb, 0] + ax.geo_normal[sm, 1] * tri_ng[tb, 1] +
-                                         ax.geo_normal[sm, 2] * tri_ng[tb, 2]) < face_cos:
-                        continue
-                    qx, qy, qz = _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]),
-                                               (ax.u[0], ax.u[1], ax.u[2]), (ax.v[0], ax.v[1], ax.v[2]),
-                                               (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu, np.int64(ax.sample_pixel[sm]),
-                                               ax.depth[sm])
-                    dd = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
-                    if dd < best_d:
-                        best_d = dd
-                        pick = k
-                if pick >= 0:
-                    break
-            out_a[i] = ca[pick]
-            out_s[i] = cs[pick]
-            out_t[i] = best_t
+                    good[k] = ca[k] >= 0 and uok[cu[k]]
+                    if good[k]:
+                        ct[k] = us2[cu[k]]
+                        co[k] = tri_obj[ut2[cu[k]]]
+                        if ct[k] < best_t:
+                            best_t = ct[k]
+                            best_o = co[k]
+                if best_t == np.inf:
+                    continue
+                tb = -1
+                for k in range(9):
+                    if good[k] and ct[k] == best_t:
+                        tb = ut2[cu[k]]
+                        break
+                px, py, pz = ox + best_t * dx, oy + best_t * dy, oz + best_t * dz
+                pick = -1
+                for same_face in (True, False):
+                    best_d = np.inf
+                    for k in range(9):
+                        if not good[k] or co[k] != best_o or ct[k] > best_t + tol:
+                            continue
+                        if same_face and abs(cg[k, 0] * tri_ng[tb, 0] + cg[k, 1] * tri_ng[tb, 1] +
+                                             cg[k, 2] * tri_ng[tb, 2]) < face_cos:
+                            continue
+                        dd = (cq[k, 0] - px) ** 2 + (cq[k, 1] - py) ** 2 + (cq[k, 2] - pz) ** 2
+                        if dd < best_d:
+                            best_d = dd
+                            pick = k
+                    if pick >= 0:
+                        break
+                out_a[i] = ca[pick]
+                out_s[i] = cs[pick]
+                out_t[i] = best_t
     return out_a, out_s, out_t
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _axis_sample_point(ax, s):
+    """The point of sample ``s`` of LDC axis ``ax`` (``AxisArrays``; ``_sample_point``)."""
+    return _sample_point((ax.origin[0], ax.origin[1], ax.origin[2]), (ax.u[0], ax.u[1], ax.u[2]),
+                         (ax.v[0], ax.v[1], ax.v[2]), (ax.w[0], ax.w[1], ax.w[2]), ax.h, ax.nu,
+                         np.int64(ax.sample_pixel[s]), ax.depth[s])
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -1673,11 +1714,10 @@ class LDCViewRenderer:
         q = (((y[:, None, None] * s + a[None, :, None]) * (W * s)) + (x[:, None, None] * s + a[None, None, :]))
         q = q.reshape(-1)
         n = q.size
-        coarse = np.repeat(pix, s * s)
         cam = kernel_camera(big)
         o, d = _pixel_rays(q, cam)
         ax0, ax1, ax2 = self._axes
-        h_axis, h_sample, h_t = _subpixel_samples(coarse, o, d, fr1.samples.axis, fr1.samples.index, W, fr1.height,
+        h_axis, h_sample, h_t = _subpixel_samples(pix, s * s, o, d, fr1.samples.axis, fr1.samples.index, W, fr1.height,
                                                   ax0, ax1, ax2, self.scene.tri_p, self.scene.tri_ng, self._tri_obj,
                                                   self._nbr, 2.0 * float(self.ldc.h), SAME_FACE_COS)
         ray = np.flatnonzero(h_axis < 0)
