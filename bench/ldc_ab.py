@@ -13,7 +13,9 @@ timed on 2 and on 1 numba threads, old and new alternating per view (the order f
 round) so both see the same machine load. Printed per stage: the sum over the views of each
 view's minimum and the mean of each view's median, old -> new, and the ratio. Nothing is written:
 a quick, noisy-machine-proof check of an engine change (this machine's speed drifts 20 % within
-minutes; compare only within one run).
+minutes; compare only within one run). The harness has a bias of its own: an A/A run (``HEAD``
+against a clean tree; cornell_box, LDC 128, ``ldc``) put the unchanged stages at 0.88-1.0x, fill
+and diffuse lowest, so read a stage's ratio against that, or run the A/A beside the A/B.
 
 numba's disk cache is keyed by the whole engine source (engine/_numba_setup.py), so the working
 tree's kernels are always the current code; the old modules are cached under the temp directory.
