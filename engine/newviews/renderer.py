@@ -1653,7 +1653,7 @@ class LDCViewRenderer:
         ``_mirrors``; a sub-pixel's highlight samples are uniform supersampling's), and each
         edge pixel's radiance is the box filter of its sub-pixels. Timings: the one-sample
         render's stages plus ``edges`` (detection), ``edge_rays`` (picking the sub-pixels'
-        samples), ``edge_surfaces``, ``edge_ibrt`` and ``total``."""
+        samples), ``edge_diffuse``, ``edge_surfaces``, ``edge_ibrt`` and ``total``."""
         t_start = time.perf_counter()
 
         def part(lo: float, hi: float):
