@@ -50,6 +50,7 @@ import httpx
 import numpy as np
 
 from bench.docs_writer import replace_block
+from engine.quality import ldc_view
 from service.up import free_port, load_samples, start_stack
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -267,7 +268,7 @@ def measure_scene(c: httpx.Client, scene_id: str, cam: dict[str, Any], size: int
                 body: dict[str, Any] = {"scene_id": scene_id, "method": wire, "camera": orbit_camera(cam, size, rng),
                                         "bake": {"ldc_resolution": ldc, "llf": "auto"}}
                 if aa:
-                    body["view"] = {"supersample": int(aa.split("x")[0]), "antialias": "edges"}
+                    body["view"] = ldc_view(int(aa.split("x")[0]))
                 if VARIANTS[v] is not None:
                     body["outputs"] = VARIANTS[v]
                 row = one_request(c, body, warmup=i < warmup)
