@@ -15,6 +15,13 @@ this checkout) into a temporary directory and starts ``ibr up`` from the clone (
 3. warm restart: ``ibr up`` stopped and started again on the same data and numba cache: seconds to
    ``/healthz`` and until every kind is ready.
 
+``--at-healthz`` measures instead what a user who does not wait for readiness gets: at the moment
+``/healthz`` first answers (empty numba cache, the warm-up just started), a direct-light LDC bake of
+the diffuse Cornell box (:data:`DIFFUSE_BAKE`) and an ``ldc`` render of it, then a ``reference``
+render, each timed from ``/healthz``; a job whose kernels the warm-up has not compiled yet compiles
+them itself, and loads those the warm-up has already written to the disk cache. Prints; writes
+nothing.
+
 Run it under the shared benchmark lock (``flock /tmp/bench.lock``): the cold warm-up keeps both
 cores busy for minutes.
 """
@@ -42,6 +49,8 @@ SCENE = "mirror_box"
 WALK_SCENE = "cornell_animated"
 SIZE = {"width": 128, "height": 128}
 LDC_BAKE = {"ldc_resolution": 128, "max_layers": 8, "llf_resolution": 16, "llf_f": 1}
+DIFFUSE_SCENE = "cornell_box"
+DIFFUSE_BAKE = {"ldc_resolution": 128, "max_layers": 8, "indirect": {"mode": "off"}}
 
 
 def _tree_cpu(pid: int) -> float:
@@ -176,11 +185,33 @@ def first_renders(url: str) -> dict[str, float]:
     return out
 
 
+def requests_at_healthz(url: str) -> dict[str, float]:
+    """Seconds from ``/healthz`` answering to each result of ``--at-healthz`` (module docstring)."""
+    t0 = time.perf_counter()
+    out: dict[str, float] = {}
+    with Client(url, timeout=600) as c:
+        ids: dict[str, str] = {}
+        _wait(lambda: DIFFUSE_SCENE in ids or bool(ids.update({s.name: s.id for s in c.iter_scenes()})),
+              120, f"{DIFFUSE_SCENE} among the samples `ibr up` loads", poll=0.2)
+        sid = ids[DIFFUSE_SCENE]
+        out["sample scenes loaded"] = time.perf_counter() - t0
+        camera = {**c.get_scene_document(sid)["camera"], **SIZE}
+        c.wait_bake(c.bake(sid, DIFFUSE_BAKE))
+        out[f"{DIFFUSE_SCENE} LDC bake, direct light (bake worker)"] = time.perf_counter() - t0
+        c.wait_render(c.render(sid, camera=camera, method="ldc", bake=DIFFUSE_BAKE))
+        out[f"{DIFFUSE_SCENE} ldc render after it"] = time.perf_counter() - t0
+        c.wait_render(c.render(sid, camera=camera, params={"spp": 4}))
+        out[f"{DIFFUSE_SCENE} reference render after them"] = time.perf_counter() - t0
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.first_run", description=__doc__)
     p.add_argument("--repo", type=Path, default=REPO, help="repository to clone (default: this checkout)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for every kind to be ready")
     p.add_argument("--write", action="store_true", help="write the results into docs/performance.md")
+    p.add_argument("--at-healthz", action="store_true",
+                   help="time a bake and the first renders requested the moment /healthz answers (prints only)")
     args = p.parse_args(argv)
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="ibr-first-run-", dir="/tmp") as tmp_s:
@@ -192,6 +223,18 @@ def main(argv: list[str] | None = None) -> int:
         commit = subprocess.run(["git", "-C", str(clone), "rev-parse", "--short", "HEAD"], check=True,
                                 capture_output=True, text=True).stdout.strip()
         st = Stack(clone, data, cache, free_port(), log)
+        if args.at_healthz:
+            try:
+                _wait(lambda: _healthy(st.url), 300, "/healthz", poll=0.05)
+                print(f"cold: /healthz {st.since_start():.1f} s after start", flush=True)
+                for k, v in requests_at_healthz(st.url).items():
+                    print(f"  {k}: {v:.1f} s after /healthz", flush=True)
+            except BaseException:
+                print(log.read_text()[-5000:], file=sys.stderr)
+                raise
+            finally:
+                st.stop()
+            return 0
         try:
             health, ready, cpu = wait_ready(st, args.timeout)
             print(f"cold: /healthz {health:.1f} s after start; ready after /healthz: {ready}; CPU {cpu:.0f} s",
