@@ -29,13 +29,14 @@ cores busy for minutes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,18 @@ def _wait(cond: Callable[[], bool], timeout: float, what: str, poll: float = 0.2
         time.sleep(poll)
 
 
+@contextlib.contextmanager
+def _running(st: Stack, log: Path) -> Iterator[None]:
+    """Stop the stack ``st`` on leaving; on an error, print the tail of its log ``log`` first."""
+    try:
+        yield
+    except BaseException:
+        print(log.read_text()[-5000:], file=sys.stderr)
+        raise
+    finally:
+        st.stop()
+
+
 def _healthy(url: str) -> bool:
     try:
         return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
@@ -191,8 +204,12 @@ def requests_at_healthz(url: str) -> dict[str, float]:
     out: dict[str, float] = {}
     with Client(url, timeout=600) as c:
         ids: dict[str, str] = {}
-        _wait(lambda: DIFFUSE_SCENE in ids or bool(ids.update({s.name: s.id for s in c.iter_scenes()})),
-              120, f"{DIFFUSE_SCENE} among the samples `ibr up` loads", poll=0.2)
+
+        def loaded() -> bool:
+            ids.update({s.name: s.id for s in c.iter_scenes()})
+            return DIFFUSE_SCENE in ids
+
+        _wait(loaded, 120, f"{DIFFUSE_SCENE} among the samples `ibr up` loads", poll=0.2)
         sid = ids[DIFFUSE_SCENE]
         out["sample scenes loaded"] = time.perf_counter() - t0
         camera = {**c.get_scene_document(sid)["camera"], **SIZE}
@@ -224,28 +241,18 @@ def main(argv: list[str] | None = None) -> int:
                                 capture_output=True, text=True).stdout.strip()
         st = Stack(clone, data, cache, free_port(), log)
         if args.at_healthz:
-            try:
+            with _running(st, log):
                 _wait(lambda: _healthy(st.url), 300, "/healthz", poll=0.05)
                 print(f"cold: /healthz {st.since_start():.1f} s after start", flush=True)
                 for k, v in requests_at_healthz(st.url).items():
                     print(f"  {k}: {v:.1f} s after /healthz", flush=True)
-            except BaseException:
-                print(log.read_text()[-5000:], file=sys.stderr)
-                raise
-            finally:
-                st.stop()
             return 0
-        try:
+        with _running(st, log):
             health, ready, cpu = wait_ready(st, args.timeout)
             print(f"cold: /healthz {health:.1f} s after start; ready after /healthz: {ready}; CPU {cpu:.0f} s",
                   flush=True)
             renders = first_renders(st.url)
             print(f"first renders: {renders}", flush=True)
-        except BaseException:
-            print(log.read_text()[-5000:], file=sys.stderr)
-            raise
-        finally:
-            st.stop()
         st = Stack(clone, data, cache, free_port(), log)
         try:
             w_health, w_ready, w_cpu = wait_ready(st, 300)
