@@ -33,11 +33,13 @@ import numpy as np
 from bench.contracts import _setup
 from engine.metrics import lrms
 from engine.reference import ReferenceParams
-from workers.jobs.calibrate import turned_camera, view_pivot
+from workers.jobs.calibrate import probe_reference_params, turned_camera, view_pivot
 
 ANGLES = tuple(float(a) for a in range(-20, 21, 2))
 SUPERSAMPLE = (1, 2, 4)
 TARGETS = (0.05, 0.075, 0.10, 0.14, 0.20)
+INDIRECT_BOUNCES = 3
+"""The bake's and the calibration's bounces in ``bench/contracts.py``."""
 
 
 def measure(scene: str, methods: list[str], truth_spp: int, log: Callable[[str], None]) -> list[dict[str, Any]]:
@@ -47,9 +49,7 @@ def measure(scene: str, methods: list[str], truth_spp: int, log: Callable[[str],
     gi = ren.plan.indirect_skip == ""
 
     def rp(spp: int, seed: int) -> ReferenceParams:
-        return ReferenceParams(spp=spp, max_depth=base.max_depth, glossy_samples=base.glossy_samples,
-                               area_light_samples=base.area_light_samples, indirect_samples=spp if gi else 0,
-                               indirect_bounces=3 if gi else base.indirect_bounces, seed=seed)
+        return probe_reference_params(spp, gi, INDIRECT_BOUNCES, seed)
 
     rows = []
     for deg in ANGLES:

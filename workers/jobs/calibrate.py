@@ -73,7 +73,7 @@ from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
 __all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene",
-           "probe_cameras", "turned_camera", "view_pivot"]
+           "probe_cameras", "probe_reference_params", "turned_camera", "view_pivot"]
 
 PROBE_STEP_DEG = 8.0
 """Probe views turn the scene's camera by multiples of this angle (+8, -8, +16, -16, ...): near the
@@ -129,6 +129,17 @@ def probe_cameras(cam: CameraParams, n: int, longest: int, pivot: Any = None) ->
     return [turned_camera(cam, a, longest, pivot) for a in angles]
 
 
+def probe_reference_params(spp: int, gi: bool, indirect_bounces: int, seed: int = 0,
+                           max_error: float | None = None) -> ReferenceParams:
+    """How the calibration renders the reference on a probe view: the renderer's defaults, and with
+    the scene's indirect light (``gi``) one indirect path per sample over ``indirect_bounces``."""
+    base = ReferenceParams()
+    return ReferenceParams(spp=spp, max_depth=base.max_depth, glossy_samples=base.glossy_samples,
+                           area_light_samples=base.area_light_samples, indirect_samples=spp if gi else 0,
+                           indirect_bounces=indirect_bounces if gi else base.indirect_bounces, seed=seed,
+                           max_error=max_error)
+
+
 def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     t0 = time.perf_counter()
     out = fn(*args)
@@ -169,9 +180,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
                                   "indirect_per_spp": 1 if gi else 0}
 
     def ref_at(spp: int, seed: int = 0, max_error: float | None = None) -> ReferenceParams:
-        return ReferenceParams(spp=spp, max_depth=base.max_depth, glossy_samples=base.glossy_samples,
-                               area_light_samples=base.area_light_samples, indirect_samples=spp if gi else 0,
-                               indirect_bounces=ref_params["indirect_bounces"], seed=seed, max_error=max_error)
+        return probe_reference_params(spp, gi, indirect_bounces, seed, max_error)
 
     mirror = "mirror" in bake_plan.get("material_kinds", effects.material_kinds)
     has_llf = ldc_renderer.llf is not None
