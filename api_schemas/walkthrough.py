@@ -8,14 +8,14 @@ scene (eyes inside ``view_space``, times inside the animation) are made by the A
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Self
+from typing import Annotated, Any, Literal, Self
 
 from pydantic import Field, model_validator
 from pydantic_core import InitErrorDetails
 
 from api_schemas.common import FiniteFloat, FrozenModel, error_at, raise_errors
 from api_schemas.scene import Camera
-from api_schemas.service import JobPublic, Sha256
+from api_schemas.service import ContractRule, JobPublic, QualityContract, QualityMiss, Sha256
 
 __all__ = [
     "BYTES_PER_BASE_PIXEL",
@@ -23,6 +23,10 @@ __all__ = [
     "INDIRECT_NOISE_RANGE",
     "MAX_WALKTHROUGH_FRAMES",
     "PRESET_SIZES",
+    "WalkthroughCalibrationParams",
+    "WalkthroughCalibrationPublic",
+    "WalkthroughCalibrationRequest",
+    "WalkthroughContractPublic",
     "WalkthroughFrame",
     "WalkthroughPublic",
     "WalkthroughRequest",
@@ -118,10 +122,26 @@ class WalkthroughRequest(FrozenModel):
     """Frames per render job (several workers share a walkthrough)."""
     fps: Annotated[int, Field(strict=True, ge=1, le=120)] = 24
     """Frame rate of the MP4 preview."""
+    quality: QualityContract | None = None
+    """A quality contract instead of ``bake`` and ``fill`` (docs/quality-contracts.md, "Walkthroughs"):
+    ``max_error`` bounds every frame's LRMS against its converged frame, ``max_ms`` every frame's
+    render time in the worker; the planner picks the bake preset and the fill from the scene's
+    walkthrough calibration. ``verify`` is for renders only."""
 
     @model_validator(mode="after")
     def _same_size(self) -> Self:
         errors: list[InitErrorDetails] = []
+        if self.quality is not None:
+            for name in ("bake", "fill"):
+                if name in self.model_fields_set:
+                    errors.append(error_at((name,), "quality_with_settings",
+                                           f"{name} and quality exclude each other: with quality the planner "
+                                           f"chooses the bake preset and the fill", getattr(self, name)))
+            if self.quality.verify:
+                errors.append(error_at(("quality", "verify"), "verify_walkthrough",
+                                       "verify is not offered for walkthroughs (a converged reference of every "
+                                       "frame would cost more than the walkthrough); the error is the "
+                                       "calibration's prediction", True))
         w0, h0 = self.frames[0].camera.width, self.frames[0].camera.height
         for i, f in enumerate(self.frames[1:], start=1):
             if (f.camera.width, f.camera.height) != (w0, h0):
@@ -135,6 +155,47 @@ class WalkthroughRequest(FrozenModel):
                                    f"frame width and height must be even for the MP4 (got {w0} x {h0})", w0))
         raise_errors("WalkthroughRequest", errors)
         return self
+
+
+class WalkthroughContractPublic(FrozenModel):
+    """What a walkthrough's quality contract got: the setting chosen, by which rule, what it predicts
+    and, once the frames are rendered, what they took (docs/quality-contracts.md, "Walkthroughs")."""
+
+    max_error: float | None = None
+    max_ms: float | None = None
+    on_miss: QualityMiss = "fail"
+    rule: ContractRule
+    met: bool
+    """The chosen setting is predicted to meet every target."""
+    unmet: list[str] = []
+    reason: str = ""
+    preset: Quality
+    """The bake preset chosen (``bake.quality``; the bake's other settings at their defaults)."""
+    fill: Fill
+    frames: int
+    width: int
+    height: int
+    predicted_error: float
+    """Every frame's LRMS against its converged frame, from the calibration (its worst probe frame)."""
+    predicted_frame_ms: float
+    """Render time of one frame in the worker (the reconstruction)."""
+    predicted_bake_ms: float = 0.0
+    """The bake's cost when the plan waits for a bake that is not made yet."""
+    predicted_total_ms: float
+    """What was ranked: the bake (when missing) plus every frame."""
+    achieved_frame_ms: dict[str, float] | None = None
+    """Once every frame is rendered: ``median`` and ``max`` of the frames' render times."""
+    estimated_error: float
+    estimated_error_source: Literal["calibration"] = "calibration"
+    """The calibration's prediction: no converged frames are rendered for a walkthrough."""
+    planned_for: dict[str, float] = {}
+    """The targets the choice was planned against: the request's times the margins, or the request's
+    own when no setting keeps the margin (``reason`` says so)."""
+    bake: Literal["ready", "waited"]
+    """``ready``: the preset's bake was in the store; ``waited``: it is made first (its cost counted)."""
+    excluded: dict[str, str] = {}
+    calibration: dict[str, Any] = {}
+    """Which calibration planned it: its key, when it was made, what it cost."""
 
 
 class WalkthroughPublic(FrozenModel):
@@ -158,3 +219,57 @@ class WalkthroughPublic(FrozenModel):
     """First error, when failed."""
     links: dict[str, str] = {}
     """video.mp4 and the frame chunks once finished."""
+    contract: WalkthroughContractPublic | None = None
+    """What the quality contract chose and predicts (a request with ``quality`` only)."""
+
+
+# ------------------------------------------------------------------------------ calibrations
+
+
+class WalkthroughCalibrationParams(FrozenModel):
+    """How a scene's walkthrough settings are calibrated: probe frames spread over the view space and
+    the animation, each rendered converged and from every preset's bake with every fill."""
+
+    presets: Annotated[list[Quality], Field(min_length=1, max_length=3)] = ["low", "medium", "high"]
+    """The bake presets measured (each is baked unless its bake is in the store; the bakes stay, so a
+    walkthrough planned onto one renders at once)."""
+    fills: Annotated[list[Fill], Field(min_length=1, max_length=5)] = ["both", "trace"]
+    """The hole fills measured with each preset."""
+    probes: Annotated[int, Field(strict=True, ge=1, le=8)] = 3
+    """Probe frames (eyes spread over the view space, times over the animation)."""
+    size: Annotated[int, Field(strict=True, ge=16, le=512)] = 64
+    """Longest side of the probe frames (the scene camera's aspect ratio)."""
+    time_scale: Annotated[int, Field(strict=True, ge=2, le=8)] = 4
+    """Frame times are also measured at ``size x time_scale`` (their per-pixel part)."""
+    truth_noise: Annotated[float, Field(ge=0.002, le=0.05)] = 0.01
+    """Relative standard error each converged probe pixel's indirect light is traced to."""
+
+    @model_validator(mode="after")
+    def _distinct(self) -> Self:
+        for name in ("presets", "fills"):
+            v = getattr(self, name)
+            if len(set(v)) != len(v):
+                raise_errors("WalkthroughCalibrationParams", [error_at((name,), "duplicate",
+                                                                       f"{name} lists a value twice", v)])
+        return self
+
+
+class WalkthroughCalibrationRequest(FrozenModel):
+    """Body of ``POST /v1/scenes/{scene_id}/walkthrough-calibrations``."""
+
+    params: WalkthroughCalibrationParams = WalkthroughCalibrationParams()
+
+
+class WalkthroughCalibrationPublic(FrozenModel):
+    """A scene's walkthrough calibration: the job making it, then the fitted model."""
+
+    scene_id: Sha256
+    key: Sha256
+    """Content key of the calibration (scene, params, engine version)."""
+    state: Literal["queued", "running", "finished", "failed", "missing"]
+    cached: bool = False
+    job: JobPublic | None = None
+    model: dict[str, Any] | None = None
+    """The fitted model (``engine.walkthrough.quality.WalkthroughModel``): per setting
+    (``preset/fill``) its error and frame-time fit, each preset's bake and its cost, ``cost_s``."""
+    links: dict[str, str] = {}

@@ -42,12 +42,9 @@ import numpy as np
 
 from api_schemas.scene import load_scene_file
 from bench.docs_writer import replace_block
-from engine.camera import camera_rays, pixel_centers
 from engine.imageio import write_image
 from engine.metrics import REC709_WEIGHTS, lrms
-from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
-from engine.sampler import sample_key
 from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
 from engine.walkthrough.bake import (
@@ -58,7 +55,8 @@ from engine.walkthrough.bake import (
     render_bases,
     walkthrough_preset,
 )
-from engine.walkthrough.range_images import render_cube, surface_points
+from engine.walkthrough.ground_truth import AREA_LIGHT_SAMPLES, converged_frame
+from engine.walkthrough.range_images import render_cube
 from engine.walkthrough.reconstruct import FILL_MODES
 from engine.walkthrough.viewspace import PathSpace, PolygonSpace, ViewSpace
 from workers.scene_loader import directory_resolver, load_animated_scene
@@ -121,39 +119,9 @@ def load(name: str) -> tuple[AnimatedScene, ViewSpace]:
 
 GT_CACHE = Path(os.environ.get("IBR_BENCH_CACHE", "/tmp/ibr-bench-cache")) / "walkthrough_gt"
 """Ground truths are cached here between runs (they depend only on the scene, frames and settings)."""
-GT_AREA_SAMPLES = 1024
-"""Area-light samples per pixel of the ground truth's direct light (a 32 x 32 jittered grid)."""
-GT_STREAM = 6
-"""Sampler stream of the ground truth's indirect paths: sample_key(seed, 6, frame)."""
+GT_AREA_SAMPLES = AREA_LIGHT_SAMPLES
 LADDER = ((1, 1), (4, 4), (4, 16), (9, 64), (16, 256), (64, 256))
 """(area_light_samples, indirect_samples) of the reference renders that price 'render every frame'."""
-
-
-def ground_truth(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
-                 bounces: int) -> tuple[np.ndarray, np.ndarray, dict]:
-    """A converged frame (radiance (h, w, 3), covered mask, stats): the reference renderer at the
-    pixel centres with GT_AREA_SAMPLES light samples and indirect light traced per pixel to
-    ``noise`` (relative standard error of each pixel's luminance)."""
-    t0 = time.perf_counter()
-    direct = rr.render(cam, ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=GT_AREA_SAMPLES,
-                                            indirect_samples=0, seed=seed))
-    t_direct = time.perf_counter() - t0
-    px, py = pixel_centers(cam)
-    o, d = camera_rays(cam, px, py)
-    idx, p, g, s, mat = surface_points(rr, o, d)
-    base = direct.radiance.reshape(-1, 3)[idx].astype(np.float64)
-    receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
-    bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
-    ip = IndirectParams(noise=noise, min_paths=256, max_paths=65536, bounces=bounces, round_paths=16, seed=seed,
-                        area_light_samples=4)
-    ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GT_STREAM, frame),
-                                brightness=bright)
-    out = direct.radiance.reshape(-1, 3).astype(np.float64)
-    out[idx] += ind.radiance
-    st = {k: ind.stats[k] for k in ("rel_stderr_median", "rel_stderr_p95", "rel_stderr_max", "met_target",
-                                    "paths_mean", "paths_max")}
-    st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct)
-    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, st
 
 
 def time_at_error(ladder: list[dict], err: float) -> tuple[float, str]:
@@ -211,14 +179,14 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
     else:
         gts, masks, gt_stats, floor_imgs = [], [], [], []
         for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
-            img, mask, st = ground_truth(renderers[float(t)], cam, i, 0, args.gt_noise, bounces)
+            img, mask, st = converged_frame(renderers[float(t)], cam, i, 0, args.gt_noise, bounces)
             gts.append(img)
             masks.append(mask)
             gt_stats.append(st)
             print(f"[{name}] gt {i}: {st['seconds']:.1f} s, paths/pixel {st['paths_mean']:.0f}", flush=True)
         # noise floor of the ground truth: the same frames with another seed
         for k in args.floor_frames:
-            floor_imgs.append(ground_truth(renderers[float(times[k])], cams[k], k, 1, args.gt_noise, bounces)[0])
+            floor_imgs.append(converged_frame(renderers[float(times[k])], cams[k], k, 1, args.gt_noise, bounces)[0])
         GT_CACHE.mkdir(parents=True, exist_ok=True)
         np.savez(cache, gts=np.stack(gts), masks=np.stack(masks), floor=np.stack(floor_imgs),
                  stats=np.array(json.dumps(gt_stats)))

@@ -17,6 +17,7 @@ __all__ = [
     "JobNotFound",
     "SceneOutputsInUse",
     "UnknownScene",
+    "WalkthroughCalibrationMissing",
     "WalkthroughInUse",
 ]
 
@@ -76,6 +77,18 @@ class CalibrationMissing(LookupError):
             "of quality")
         self.scene_id = scene_id
         self.bake_key = bake_key
+
+
+class WalkthroughCalibrationMissing(CalibrationMissing):
+    """A walkthrough with ``quality`` on a scene whose walkthrough settings were never calibrated (409)."""
+
+    def __init__(self, scene_id: str):
+        LookupError.__init__(
+            self, f"scene {scene_id} has no walkthrough calibration: walkthrough quality contracts are planned "
+                  f"from one; request it with POST /v1/scenes/{scene_id}/walkthrough-calibrations, or name "
+                  "\"bake\" and \"fill\" instead of quality")
+        self.scene_id = scene_id
+        self.bake_key = ""
 
 
 class ContractUnmet(ValueError):

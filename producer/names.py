@@ -11,6 +11,7 @@ from __future__ import annotations
 
 __all__ = [
     "CALIBRATE_JOB",
+    "CALIBRATE_WALKTHROUGH_JOB",
     "COMPOSITE_JOB",
     "COMPOSITE_KIND",
     "DATASET_BAKE_JOB",
@@ -30,6 +31,7 @@ __all__ = [
     "WALKTHROUGH_CHUNK_JOB",
     "WALKTHROUGH_VIDEO_JOB",
     "calibrate_job_id",
+    "calibrate_walkthrough_job_id",
     "dataset_job_id",
     "render_job_id",
     "scene_bake_job_id",
@@ -61,6 +63,8 @@ SCENE_BAKE_MERGE_JOB = "workers.jobs.bake.bake_merge_job"
 
 CALIBRATE_JOB = "workers.jobs.calibrate.calibrate_job"
 """Calibrates a scene's render settings for quality contracts (``bake`` queue)."""
+CALIBRATE_WALKTHROUGH_JOB = "workers.jobs.calibrate_walkthrough.calibrate_walkthrough_job"
+"""Calibrates a scene's walkthrough settings for quality contracts (``bake`` queue)."""
 DATASET_BAKE_JOB = "workers.jobs.datasets.bake_job"
 """Bakes an illumination dataset for relighting (``bake`` queue)."""
 RELIGHT_JOB = "workers.jobs.datasets.relight_job"
@@ -112,6 +116,10 @@ def scene_bake_part_job_id(part_key: str) -> str:
 
 def calibrate_job_id(key: str) -> str:
     return f"calibrate-{key}"
+
+
+def calibrate_walkthrough_job_id(key: str) -> str:
+    return f"wtcalibrate-{key}"
 
 
 def walkthrough_bake_job_id(bake_key: str) -> str:

@@ -16,7 +16,7 @@ from pydantic import Field, ValidationError, model_validator
 from api_schemas.common import FrozenModel
 from api_schemas.datasets import CompositeRequest, DatasetBakeParams, GenerateRequest, RelightRequest
 from api_schemas.service import BakeParams, CalibrationRequest, ContractPublic, RenderRequest, Sha256
-from api_schemas.walkthrough import WalkthroughSettings
+from api_schemas.walkthrough import WalkthroughCalibrationRequest, WalkthroughSettings
 
 __all__ = [
     "CalibrateJobPayload",
@@ -32,6 +32,7 @@ __all__ = [
     "SceneBakeJobPayload",
     "SceneBakePartJobPayload",
     "WalkthroughBakeJobPayload",
+    "WalkthroughCalibrateJobPayload",
     "WalkthroughChunkJobPayload",
     "WalkthroughVideoJobPayload",
     "describe_validation_error",
@@ -76,6 +77,16 @@ class CalibrateJobPayload(FrozenModel):
     key: Sha256
     """The calibration key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
     request: CalibrationRequest
+
+
+class WalkthroughCalibrateJobPayload(FrozenModel):
+    """Payload of ``workers.jobs.calibrate_walkthrough.calibrate_walkthrough_job``."""
+
+    v: Literal[1] = 1
+    scene_id: Sha256
+    key: Sha256
+    """The calibration key the enqueuer computed; the worker recomputes it and refuses a mismatch."""
+    request: WalkthroughCalibrationRequest
 
 
 class SceneBakeJobPayload(FrozenModel):

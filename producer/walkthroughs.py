@@ -53,6 +53,7 @@ from producer.store import NotFound, ObjectStore
 __all__ = [
     "WALKTHROUGH_MAX_BAKE_BYTES",
     "chunk_key",
+    "contract_key",
     "chunks",
     "check_against_scene",
     "delete_walkthrough",
@@ -99,6 +100,12 @@ def walkthrough_index_key(scene_id: str, wkey: str) -> str:
 
 def record_key(wkey: str) -> str:
     return f"walkthroughs/{wkey}.json"
+
+
+def contract_key(wkey: str) -> str:
+    """Where the quality contract of walkthrough ``wkey`` is kept, when it was asked with one
+    (``producer.walkthrough_calibrations``)."""
+    return f"walkthroughs/{wkey}.contract.json"
 
 
 def read_request(store: ObjectStore, wkey: str) -> WalkthroughRequest | None:
@@ -178,6 +185,7 @@ def delete_walkthrough(redis: Redis, store: ObjectStore, wkey: str) -> None:
     for k in ckeys:
         delete_artifact(store, k)
     store.delete(record_key(wkey))
+    store.delete(contract_key(wkey))
     for job in jobs:
         job.delete(remove_from_queue=True)
 

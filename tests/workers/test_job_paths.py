@@ -24,6 +24,7 @@ PATHS = {
     "WALKTHROUGH_CHUNK_JOB": "workers.jobs.walkthrough.walkthrough_chunk_job",
     "WALKTHROUGH_VIDEO_JOB": "workers.jobs.walkthrough.walkthrough_video_job",
     "CALIBRATE_JOB": "workers.jobs.calibrate.calibrate_job",
+    "CALIBRATE_WALKTHROUGH_JOB": "workers.jobs.calibrate_walkthrough.calibrate_walkthrough_job",
     "VERIFY_JOB": "workers.jobs.verify.verify_job",
 }
 
@@ -45,6 +46,7 @@ def test_job_ids_are_unchanged() -> None:
     assert [names.render_job_id(k), names.scene_bake_job_id(k), names.scene_bake_plan_job_id(k),
             names.scene_bake_part_job_id(k), names.walkthrough_bake_job_id(k), names.walkthrough_chunk_job_id(k),
             names.walkthrough_video_job_id(k), names.dataset_job_id(names.DATASET_BAKE_KIND, k),
-            names.calibrate_job_id(k)] == [
+            names.calibrate_job_id(k), names.calibrate_walkthrough_job_id(k)] == [
         f"render-{k}", f"bake-{k}", f"bake-plan-{k}", f"bake-part-{k}", f"wtbake-{k}", f"wtchunk-{k}",
-        f"walkthrough-{k}", f"relight-bake-{k}", f"calibrate-{k}"]
+        f"walkthrough-{k}", f"relight-bake-{k}", f"calibrate-{k}",
+        f"wtcalibrate-{k}"]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ from rq import get_current_job
 
 from api_schemas.common import FrozenModel
 from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
-from api_schemas.walkthrough import WalkthroughRequest
+from api_schemas.walkthrough import WalkthroughRequest, WalkthroughSettings
 from engine import ENGINE_VERSION
 from engine.imageio import write_image
 from engine.walkthrough.animation import AnimatedScene
@@ -48,7 +49,8 @@ from producer.walkthroughs import chunk_key, chunks, read_request, walkthrough_b
 from workers.jobs.common import ProgressReporter, codes_png, dependency_note, worker_store
 from workers.scene_loader import camera_params, load_animated_scene
 
-__all__ = ["WalkthroughUnavailable", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
+__all__ = ["WalkthroughUnavailable", "engine_space", "load_stored_bake", "load_walkthrough_scene",
+           "make_walkthrough_bake", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
 
 EXR = "image/x-exr"
 PNG = "image/png"
@@ -83,7 +85,7 @@ def engine_space(scene: Scene) -> ViewSpace:
     return PolygonSpace(np.asarray(vs.vertices, np.float64), vs.eye_height)
 
 
-def _load_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, AnimatedScene]:
+def load_walkthrough_scene(store: ObjectStore, scene_id: str) -> tuple[Scene, AnimatedScene]:
     scene, mesh_shas, _ = get_scene(store, scene_id)
     an = _scenes.get(scene_id)
     if an is None:
@@ -106,10 +108,22 @@ def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
         return {"artifact_key": p.bake_key, **existing.result}
     progress = ProgressReporter(get_current_job())
     progress.report(0.0, "loading scene", force=True)
-    scene, an = _load_scene(store, p.scene_id)
-    params = walkthrough_preset(p.settings.quality, **p.settings.overrides())
+    _, result = make_walkthrough_bake(store, p.scene_id, p.bake_key, p.settings, progress)
+    result["timings"]["job_total"] = time.perf_counter() - t_start
+    progress.report(1.0, "done", force=True, check=False)
+    return {"artifact_key": p.bake_key, **result}
+
+
+def make_walkthrough_bake(store: ObjectStore, scene_id: str, bkey: str, settings: WalkthroughSettings,
+                          progress: Callable[[float, str], None]) -> tuple[WalkthroughBake, dict[str, Any]]:
+    """Bake the scene for ``settings`` and publish the bake as artifact ``bkey`` (the walkthrough
+    bake job's work; the walkthrough calibration bakes the presets it measures the same way).
+    Returns the bake and the artifact's result (its ``timings.total`` is the bake's wall time)."""
+    t_start = time.perf_counter()
+    scene, an = load_walkthrough_scene(store, scene_id)
+    params = walkthrough_preset(settings.quality, **settings.overrides())
     bake = bake_walkthrough(an, engine_space(scene), params, progress=progress)
-    progress.report(0.95, "writing", force=True)
+    progress(0.95, "writing")  # a ProgressReporter raises here when the job was canceled
     with tempfile.TemporaryDirectory(prefix="ibr-wt-") as tmp:
         path = Path(tmp) / "bake.npz"
         bake.save(path)
@@ -118,11 +132,9 @@ def walkthrough_bake_job(payload: dict[str, Any]) -> dict[str, Any]:
               "indirect_times": bake.indirect_times.tolist(), "face_res": bake.res,
               "indirect": {k: v for k, v in bake.indirect_stats.items() if k != "cubes"},
               "timings": {**bake.timings, "job_total": time.perf_counter() - t_start}}
-    progress.check_canceled()
-    write_artifact(store, p.bake_key, "walkthrough-bake", {"scene": p.scene_id}, p.settings.model_dump(mode="json"),
+    write_artifact(store, bkey, "walkthrough-bake", {"scene": scene_id}, settings.model_dump(mode="json"),
                    ENGINE_VERSION, {"bake.npz": (data, "application/octet-stream")}, result)
-    progress.report(1.0, "done", force=True, check=False)
-    return {"artifact_key": p.bake_key, **result}
+    return bake, result
 
 
 def _stored_request(wkey: str) -> tuple[ObjectStore, WalkthroughRequest]:
@@ -134,7 +146,8 @@ def _stored_request(wkey: str) -> tuple[ObjectStore, WalkthroughRequest]:
     return store, req
 
 
-def _bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
+def load_stored_bake(store: ObjectStore, bkey: str) -> WalkthroughBake:
+    """The stored walkthrough bake ``bkey`` (the last one loaded is kept in the process)."""
     b = _bakes.get(bkey)
     if b is not None:
         return b
@@ -164,8 +177,8 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
         return {"artifact_key": p.chunk_key, **existing.result}
     progress = ProgressReporter(get_current_job())
     progress.report(0.0, "loading bake", force=True)
-    bake = _bake(store, p.bake_key)
-    an = _load_scene(store, req.scene_id)[1] if req.fill == "trace" else None
+    bake = load_stored_bake(store, p.bake_key)
+    an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
     wr = WalkthroughRenderer(bake, an)
     blobs: dict[str, tuple[bytes, str]] = {}
     frame_ms: list[float] = []

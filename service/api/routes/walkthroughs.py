@@ -4,10 +4,13 @@
 inside it, every time inside the animation: 422 naming ``frames.<i>.camera.eye`` /
 ``frames.<i>.time`` with the allowed range), queues the bake, one render job per chunk of frames
 and the video job (``producer/walkthroughs.py``) and answers 202 with ``Location``; a walkthrough
-already rendered answers 200. ``GET /v1/walkthroughs/{key}`` shows the state, the progress
-(frames done) and, once finished, links to ``video.mp4`` and the frame chunks (artifacts).
-``DELETE /v1/walkthroughs/{key}`` removes the video, the frames and the request (204; 409 while
-its jobs are queued or running; the shared bake stays).
+already rendered answers 200. With ``quality`` instead of ``bake`` and ``fill`` the planner picks
+them from the scene's walkthrough calibration (``producer/walkthrough_calibrations.py``; 409
+without one, 422 for a contract no setting meets) and the answer states the contract.
+``GET /v1/walkthroughs/{key}`` shows the state, the progress (frames done) and, once finished,
+links to ``video.mp4`` and the frame chunks (artifacts). ``DELETE /v1/walkthroughs/{key}``
+removes the video, the frames and the request (204; 409 while its jobs are queued or running;
+the shared bake stays).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from producer.costs import Limits, check, stored_scene, walkthrough_costs
 from producer.errors import WalkthroughInUse
 from producer.settings import Settings
 from producer.store import NotFound
+from producer.walkthrough_calibrations import plan_walkthrough_request, with_contract, write_contract
 from producer.walkthroughs import (
     check_against_scene,
     chunk_key,
@@ -79,11 +83,18 @@ def _check(req: WalkthroughRequest, store: Any, owner: str | None, settings: Set
 
 def _request(redis: Any, store: Any, req: WalkthroughRequest, owner: str | None,
              settings: Settings) -> WalkthroughPublic:
+    contract = None
+    if req.quality is not None:
+        _check(req, store, owner, settings)  # the frames against the scene, before the calibration is read
+        req, contract = plan_walkthrough_request(store, req, error_margin=settings.contract_error_margin,
+                                                 time_margin=settings.contract_time_margin)
     _check(req, store, owner, settings)
     key, _finished = enqueue_walkthrough(redis, store, req, owner)
+    if contract is not None:
+        write_contract(store, key, contract)
     pub = walkthrough_status(redis, store, key)
     assert pub is not None
-    return pub
+    return with_contract(store, pub)
 
 
 @router.post(
@@ -93,7 +104,7 @@ def _request(redis: Any, store: Any, req: WalkthroughRequest, owner: str | None,
         200: {"description": "Already rendered: the links name the video and the frames"},
         202: {"model": WalkthroughPublic, "description": "Queued; follow the walkthrough at Location",
               "headers": {"Location": {"schema": {"type": "string"}, "description": "The walkthrough's URL"}}},
-        **problem_responses(400, 401, 404, 413, 422, 429, 503),
+        **problem_responses(400, 401, 404, 409, 413, 422, 429, 503),
     },
 )
 async def request_walkthrough(
@@ -105,7 +116,10 @@ async def request_walkthrough(
     owner: OwnerDep,
     settings: SettingsDep,
 ) -> WalkthroughPublic:
-    """Render every frame of a camera path (with times) through a scene's view space."""
+    """Render every frame of a camera path (with times) through a scene's view space.
+
+    With `quality` instead of `bake` and `fill`, the planner picks both from the scene's walkthrough
+    calibration (`POST /v1/scenes/{id}/walkthrough-calibrations`) and `contract` states the plan."""
     pub = await run_in_threadpool(_request, redis, store, req, owner, settings)
     if pub.status != "finished":
         response.status_code = 202
@@ -120,7 +134,7 @@ def _status(redis: Any, store: Any, key: str, owner: str | None) -> WalkthroughP
     pub = walkthrough_status(redis, store, key)
     if pub is None:
         raise NotFound(key)
-    return pub
+    return with_contract(store, pub)
 
 
 @router.get("/{key}", response_model=WalkthroughPublic, responses=problem_responses(401, 404, 422, 429, 503))

@@ -1,0 +1,285 @@
+"""Quality contracts for walkthroughs: a per-scene model of each walkthrough setting's frame error
+and frame time, and the planner that picks a setting for an error target or a time budget.
+
+Pure Python (no numba, no numpy): the API process plans a walkthrough request when it arrives; the
+calibration job (``workers/jobs/calibrate_walkthrough.py``) measures what :func:`fit_setting` fits.
+
+A walkthrough setting is a bake quality preset (``low`` / ``medium`` / ``high``, the bake's other
+fields at their defaults) and a hole fill (``both``, ``trace``, ...): ``medium/both``. Per scene:
+
+- ``error``: the largest LRMS over the probe frames of a frame reconstructed with the setting
+  against the converged frame (``engine.walkthrough.ground_truth``), the ground truth's noise removed
+  in quadrature (:func:`engine.quality.fit_ldc`), taken as independent of the frame size;
+- ``frame_ms(px) = b + c * px``, fitted on two frame sizes;
+- the bake's cost, measured when the calibration made (or found) the preset's bake.
+
+A walkthrough contract's ``max_error`` bounds every frame's LRMS, ``max_ms`` every frame's render
+time in the worker (the reconstruction, not the bake, queueing or encoding). "Cheapest" is the whole
+walkthrough's predicted time: the bake's cost when its bake is not in the store, plus the frames.
+
+The rules are those of a render contract (:mod:`engine.quality`): the cheapest setting predicted to
+meet ``max_error``; the most accurate within ``max_ms``; with both the cheapest meeting the error
+within the time, else (best effort) the most accurate within the time. Each setting is planned for
+``max_error`` times its calibrated margin and ``max_ms`` times the server's time margin; when nothing
+meets the margined targets, the targets themselves.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+from engine.quality import CandidateFit, Rule, fit_ldc
+
+__all__ = [
+    "CALIBRATED_FILLS",
+    "PRESET_ORDER",
+    "WALKTHROUGH_MODEL_VERSION",
+    "WalkthroughModel",
+    "WalkthroughPlan",
+    "WalkthroughPrediction",
+    "fit_setting",
+    "plan_walkthrough",
+    "predict_walkthrough",
+    "probe_eyes",
+    "probe_times",
+    "setting_name",
+]
+
+WALKTHROUGH_MODEL_VERSION = 1
+PRESET_ORDER: tuple[str, ...] = ("low", "medium", "high")
+CALIBRATED_FILLS: tuple[str, ...] = ("both", "trace")
+"""The hole fills calibrated by default: ``both`` (the request's default; fills from the bases
+alone) and ``trace`` (traces the holes: slower, closer where the bases saw nothing)."""
+
+
+def setting_name(preset: str, fill: str) -> str:
+    """``medium/both``: the bake preset and the fill."""
+    return f"{preset}/{fill}"
+
+
+def fit_setting(preset: str, fill: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
+    """The fit of one setting from its probe frames' ``{"error", "pixels", "ms"}`` (time-only points
+    at the other size have ``error`` None): the largest error with the ground truth's noise removed,
+    time ``b + c px``, the error margin from the probes' spread."""
+    return fit_ldc(setting_name(preset, fill), points, truth_noise)
+
+
+@dataclass
+class WalkthroughModel:
+    """What the walkthrough calibration measured on one scene: a fit per setting (keyed by
+    :func:`setting_name`), the settings excluded and why, each preset's bake (its key and what it
+    cost), the probe frames and what the calibration cost."""
+
+    scene_id: str
+    fits: dict[str, CandidateFit]
+    excluded: dict[str, str]
+    bake_keys: dict[str, str]
+    """Per preset: the artifact key of the bake it was measured on (a request naming only the preset)."""
+    bake_cost_s: dict[str, float]
+    """Per preset: the bake's wall time (the job's, when the calibration found it in the store)."""
+    cost_s: float
+    probe: dict[str, Any]
+    engine_version: str = ""
+    created_at: str = ""
+    version: int = WALKTHROUGH_MODEL_VERSION
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any]) -> WalkthroughModel:
+        if doc.get("version") != WALKTHROUGH_MODEL_VERSION:
+            raise ValueError(f"walkthrough calibration version {doc.get('version')!r}, "
+                             f"expected {WALKTHROUGH_MODEL_VERSION}")
+        d = dict(doc)
+        d["fits"] = {k: CandidateFit(**v) for k, v in d["fits"].items()}
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class WalkthroughPrediction:
+    """A setting's predicted frame error and frame time for a walkthrough of ``frames`` frames;
+    ``bake_ms`` is the bake's cost when its bake is still to be made; ``margin`` the error margin
+    it is planned with."""
+
+    preset: str
+    fill: str
+    error: float
+    frame_ms: float
+    frames: int
+    bake_ms: float = 0.0
+    margin: float = 1.0
+
+    @property
+    def name(self) -> str:
+        return setting_name(self.preset, self.fill)
+
+    @property
+    def total_ms(self) -> float:
+        """What the walkthrough costs: the bake (when missing) plus every frame."""
+        return self.bake_ms + self.frames * self.frame_ms
+
+    def describe(self) -> str:
+        bake = f", bake {self.bake_ms / 1000:.1f} s" if self.bake_ms else ""
+        return f"{self.name} (predicted LRMS {self.error:.3g}, {self.frame_ms:.0f} ms / frame{bake})"
+
+
+@dataclass(frozen=True)
+class WalkthroughPlan:
+    """The planner's answer, as :class:`engine.quality.Plan` for a render."""
+
+    choice: WalkthroughPrediction | None
+    rule: Rule | None
+    unmet: tuple[str, ...] = ()
+    reason: str = ""
+    candidates: int = 0
+    planned_for: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def met(self) -> bool:
+        return self.choice is not None and not self.unmet
+
+
+def predict_walkthrough(model: WalkthroughModel, pixels: int, frames: int, *, bakes_ready: Collection[str],
+                        allow_bake: bool = True, flat_margin: float = 1.0,
+                        calibrated_margins: bool = True) -> list[WalkthroughPrediction]:
+    """Every setting of ``model`` for a walkthrough of ``frames`` frames of ``pixels`` pixels. A
+    preset whose bake is not in ``bakes_ready`` is priced with its bake's cost when ``allow_bake``,
+    left out otherwise. ``margin``: the fit's calibrated one (when ``calibrated_margins`` and it has
+    one), else ``flat_margin``."""
+    if pixels < 1 or frames < 1:
+        raise ValueError("pixels and frames must be >= 1")
+    out = []
+    for name, fit in model.fits.items():
+        if name in model.excluded:
+            continue
+        preset, fill = name.split("/", 1)
+        ready = preset in bakes_ready
+        if not ready and not allow_bake:
+            continue
+        bake_ms = 0.0 if ready else 1000.0 * float(model.bake_cost_s.get(preset, 0.0))
+        margin = fit.margin if calibrated_margins and fit.margin is not None else flat_margin
+        out.append(WalkthroughPrediction(preset, fill, fit.error, fit.ms_at(pixels, None), frames, bake_ms, margin))
+    return out
+
+
+def plan_walkthrough(model: WalkthroughModel, pixels: int, frames: int, *, max_error: float | None = None,
+                     max_ms: float | None = None, best_effort: bool = False, bakes_ready: Collection[str] = (),
+                     allow_bake: bool = True, flat_margin: float = 1.0, time_margin: float = 1.0,
+                     calibrated_margins: bool = True) -> WalkthroughPlan:
+    """Pick a setting for ``max_error`` (every frame's LRMS) and / or ``max_ms`` (every frame's
+    render time): the module docstring's rules, first with the safety margins, then (nothing met
+    them) with the targets themselves."""
+    if max_error is None and max_ms is None:
+        raise ValueError("plan_walkthrough needs max_error, max_ms or both")
+    for name, m in (("flat_margin", flat_margin), ("time_margin", time_margin)):
+        if not 0.0 < m <= 1.0:
+            raise ValueError(f"{name} must be in (0, 1], got {m!r}")
+    margined = predict_walkthrough(model, pixels, frames, bakes_ready=bakes_ready, allow_bake=allow_bake,
+                                   flat_margin=flat_margin, calibrated_margins=calibrated_margins)
+    t = None if max_ms is None else max_ms * time_margin
+    p = _choose(model, margined, max_error, t, best_effort)
+    if p.met and p.choice is not None:
+        e = None if max_error is None else max_error * p.choice.margin
+        return replace(p, planned_for={k: v for k, v in (("max_error", e), ("max_ms", t)) if v is not None})
+    raw = [replace(c, margin=1.0) for c in margined]
+    p = replace(_choose(model, raw, max_error, max_ms, best_effort),
+                planned_for={k: v for k, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None})
+    if p.met:
+        p = replace(p, reason=f"predicted to meet the targets, but not with the safety margin (time x "
+                              f"{time_margin:g}, error x each setting's calibrated margin): nothing does")
+    return p
+
+
+def _choose(model: WalkthroughModel, cands: list[WalkthroughPrediction], max_error: float | None,
+            max_ms: float | None, best_effort: bool) -> WalkthroughPlan:
+    n = len(cands)
+    targets = tuple(t for t, v in (("max_error", max_error), ("max_ms", max_ms)) if v is not None)
+    if not cands:
+        why = ("no walkthrough setting of this scene is available: the calibration excluded every one"
+               if model.fits else "the calibration measured no walkthrough setting")
+        return WalkthroughPlan(None, None, targets, why + _excluded_text(model), 0)
+    in_time = [c for c in cands if max_ms is None or c.frame_ms <= max_ms]
+    good = [c for c in in_time if max_error is None or c.error <= max_error * c.margin]
+    if good:
+        if max_error is None:
+            return WalkthroughPlan(min(good, key=lambda c: (c.error, c.total_ms)), "most_accurate_within_time",
+                                   candidates=n)
+        rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
+        return WalkthroughPlan(min(good, key=lambda c: (c.total_ms, c.error)), rule, candidates=n)
+    if not in_time:
+        fastest = min(cands, key=lambda c: (c.frame_ms, c.error))
+        fixed = min(model.fits[c.name].b_ms for c in cands)
+        assert max_ms is not None
+        if max_ms < fixed:
+            why = (f"max_ms {max_ms:g} is below this scene's fixed overhead: every walkthrough setting needs at "
+                   f"least {fixed:.0f} ms per frame however small the frame; the fastest is {fastest.describe()}")
+        else:
+            why = f"no walkthrough setting renders a frame within {max_ms:g} ms; the fastest is {fastest.describe()}"
+        unmet = ("max_ms",) if max_error is None or fastest.error <= max_error else ("max_ms", "max_error")
+        return WalkthroughPlan(fastest if best_effort else None, "best_effort_fastest" if best_effort else None,
+                               unmet, why, n)
+    assert max_error is not None
+    best = min(in_time, key=lambda c: (c.error, c.total_ms))
+    if max_ms is None:
+        why = f"no walkthrough setting reaches LRMS {max_error:g} on this scene; the most accurate is {best.describe()}"
+        rule_miss: Rule = "best_effort_most_accurate"
+    else:
+        why = (f"no walkthrough setting reaches LRMS {max_error:g} within {max_ms:g} ms per frame; the most "
+               f"accurate within the time is {best.describe()}")
+        rule_miss = "most_accurate_within_time_error_unmet"
+    return WalkthroughPlan(best if best_effort else None, rule_miss if best_effort else None, ("max_error",),
+                           why + _excluded_text(model), n)
+
+
+def _excluded_text(model: WalkthroughModel) -> str:
+    if not model.excluded:
+        return ""
+    return " (excluded: " + "; ".join(f"{k}: {v}" for k, v in sorted(model.excluded.items())) + ")"
+
+
+# ------------------------------------------------------------------------------------ probe frames
+
+
+def _halton(i: int, base: int) -> float:
+    f, r = 1.0, 0.0
+    while i > 0:
+        f /= base
+        r += f * (i % base)
+        i //= base
+    return r
+
+
+def probe_eyes(space: Any, n: int) -> list[tuple[float, float, float]]:
+    """``n`` eye positions spread over a view space (``engine.walkthrough.viewspace``): along a path
+    at the middles of ``n`` equal arc-length pieces; in a box or a polygon the first points of a
+    Halton sequence that fall inside (a polygon's at its eye height). Deterministic."""
+    if n < 1:
+        raise ValueError("n must be >= 1")
+    if hasattr(space, "point_at"):
+        return [tuple(float(x) for x in space.point_at(space.length * (i + 0.5) / n)) for i in range(n)]
+    lo, hi = (list(map(float, b)) for b in space.bounds)
+    out: list[tuple[float, float, float]] = []
+    i = 0
+    while len(out) < n and i < 4096 * n:
+        i += 1
+        u = [_halton(i, b) for b in (2, 3, 5)]
+        p = tuple(lo[k] + u[k] * (hi[k] - lo[k]) for k in range(3))
+        if hasattr(space, "eye_height"):
+            p = (p[0], float(space.eye_height), p[2])
+        if space.contains(p):
+            out.append(p)  # type: ignore[arg-type]
+    if len(out) < n:
+        raise ValueError("found no points inside the view space")
+    return out
+
+
+def probe_times(start: float, end: float, n: int) -> list[float]:
+    """``n`` animation times at the middles of ``n`` equal pieces of [start, end] (all ``start``
+    for a static scene, ``end == start``)."""
+    if not (math.isfinite(start) and math.isfinite(end)) or end < start:
+        raise ValueError("need start <= end")
+    return [start + (end - start) * (i + 0.5) / n for i in range(n)]

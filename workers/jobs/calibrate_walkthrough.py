@@ -1,0 +1,193 @@
+"""The walkthrough calibration job: measure each walkthrough setting (bake preset x hole fill) of a
+scene on probe frames and fit the model walkthrough quality contracts are planned from
+(``engine.walkthrough.quality``, ``docs/quality-contracts.md``, "Walkthroughs").
+
+``calibrate_walkthrough_job(payload)`` runs on the ``bake`` queue:
+
+1. probe frames: ``probes`` eyes spread over the scene's view space
+   (``engine.walkthrough.quality.probe_eyes``) looking the way the scene's camera looks, at times
+   spread over the animation, ``size`` pixels on the longest side;
+2. a converged frame per probe (``engine.walkthrough.ground_truth.converged_frame``: the image
+   model the walkthrough reconstructs, indirect light traced to ``truth_noise``);
+3. per preset: its bake from the store, or baked and published under the key a walkthrough naming
+   only that preset uses (so a walkthrough planned onto it renders at once), its cost the bake's
+   wall time; then every fill on every probe: LRMS against the converged frame over the pixels it
+   covers, render time the median of three; the first probe also at ``size x time_scale`` (the
+   time's per-pixel part). Each setting renders a tiny frame first, untimed (compilation);
+4. fit (``engine.walkthrough.quality.fit_setting``), exclude the settings whose error exceeds
+   ``engine.quality.MAX_USEFUL_ERROR``, store the model (``producer.walkthrough_calibrations``).
+
+What it costs is in the model (``cost_s``, ``probe.cost_breakdown_s``): the bakes it had to make and
+the converged frames.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from rq import get_current_job
+
+from api_schemas.walkthrough import WalkthroughCalibrationParams, WalkthroughSettings
+from engine import ENGINE_VERSION
+from engine.metrics import lrms
+from engine.quality import MAX_USEFUL_ERROR
+from engine.reference import ReferenceRenderer
+from engine.scene import CameraParams
+from engine.walkthrough.animation import AnimatedScene
+from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, walkthrough_preset
+from engine.walkthrough.ground_truth import converged_frame
+from engine.walkthrough.quality import WalkthroughModel, fit_setting, probe_eyes, probe_times
+from producer.artifacts import read_manifest
+from producer.payloads import InvalidPayload, WalkthroughCalibrateJobPayload, describe_validation_error
+from producer.walkthrough_calibrations import walkthrough_calibration_key, write_walkthrough_calibration
+from producer.walkthroughs import walkthrough_bake_key
+from workers.jobs.common import ProgressReporter, json_safe, worker_store
+from workers.jobs.walkthrough import engine_space, load_stored_bake, load_walkthrough_scene, make_walkthrough_bake
+from workers.scene_loader import camera_params
+
+__all__ = ["TIMING_REPEATS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job", "probe_cameras"]
+
+TRUTH_SEED = 7_919
+"""Seed of the converged frames (the bases render with the service's default seed 0)."""
+TIMING_REPEATS = 3
+"""A frame renders in milliseconds: each is timed this many times and the median kept."""
+
+BakeSource = Callable[[str, Callable[[float, str], None]], tuple[WalkthroughBake, str, float]]
+"""``(preset, progress) -> (bake, its artifact key, its cost in seconds)``."""
+
+
+def probe_cameras(camera: CameraParams, space: Any, n: int, longest: int) -> list[CameraParams]:
+    """``n`` probe cameras: ``camera`` (its direction, up and field of view) moved to eyes spread over
+    the view space, resized so that the longest side is ``longest`` pixels."""
+    d = np.subtract(camera.look_at, camera.eye).astype(np.float64)
+    scale = longest / max(camera.width, camera.height)
+    w, h = max(2, round(camera.width * scale)), max(2, round(camera.height * scale))
+    return [replace(camera, eye=e, look_at=(e[0] + float(d[0]), e[1] + float(d[1]), e[2] + float(d[2])),
+                    width=w, height=h) for e in probe_eyes(space, n)]
+
+
+def _timed_median(wr: WalkthroughRenderer, cam: CameraParams, t: float, fill: str) -> tuple[Any, float]:
+    """The frame and the median of :data:`TIMING_REPEATS` timings of its render, in ms."""
+    runs = []
+    for _ in range(TIMING_REPEATS):
+        t0 = time.perf_counter()
+        out = wr.render(cam, t, fill=fill, strict=False)
+        runs.append((out, 1000.0 * (time.perf_counter() - t0)))
+    return runs[0][0], float(np.median([ms for _, ms in runs]))
+
+
+def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, bake_for: BakeSource, *,
+                          params: WalkthroughCalibrationParams, scene_id: str = "0" * 64,
+                          progress: Callable[[float, str], None] | None = None) -> WalkthroughModel:
+    """Measure and fit the walkthrough model of one scene (see the module docstring)."""
+    t_start = time.perf_counter()
+    report = progress or (lambda f, s: None)
+    cams = probe_cameras(camera, space, params.probes, params.size)
+    times = probe_times(an.start, an.end, params.probes) if not an.is_static else [an.start] * params.probes
+    bounces = walkthrough_preset(params.presets[0]).indirect_bounces
+    n_steps = params.probes + len(params.presets)
+    truths: list[tuple[np.ndarray, np.ndarray]] = []
+    truth_stats: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
+        report(i / n_steps, f"converged probe frame {i + 1} of {params.probes}")
+        img, mask, st = converged_frame(ReferenceRenderer(an.scene_at(t)), cam, i, TRUTH_SEED, params.truth_noise,
+                                        bounces)
+        truths.append((img, mask))
+        truth_stats.append(st)
+    truth_s = time.perf_counter() - t0
+    # the converged frames' own noise, removed from the errors in quadrature: their pixels' median
+    # relative standard error (the direct light, 1024 area samples, adds little)
+    truth_noise = float(np.median([st["rel_stderr_median"] for st in truth_stats]))
+    big = replace(cams[0], width=cams[0].width * params.time_scale, height=cams[0].height * params.time_scale)
+    tiny = replace(cams[0], width=4, height=4)
+    fits: dict[str, Any] = {}
+    excluded: dict[str, str] = {}
+    bake_keys: dict[str, str] = {}
+    bake_cost: dict[str, float] = {}
+    bakes_s = measure_s = 0.0
+    for j, preset in enumerate(params.presets):
+        step = params.probes + j
+
+        def sub(f: float, s: str, step: int = step, preset: str = preset) -> None:
+            report((step + 0.8 * f) / n_steps, f"{preset} bake: {s}")
+
+        t0 = time.perf_counter()
+        bake, bkey, cost = bake_for(preset, sub)
+        bakes_s += time.perf_counter() - t0
+        bake_keys[preset], bake_cost[preset] = bkey, cost
+        report((step + 0.8) / n_steps, f"measuring {preset}")
+        t0 = time.perf_counter()
+        for fill in params.fills:
+            wr = WalkthroughRenderer(bake, an if fill == "trace" else None)
+            wr.render(tiny, times[0], fill=fill, strict=False)  # untimed: compilation, lazy set-up
+            points: list[dict[str, Any]] = []
+            for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
+                fr, ms = _timed_median(wr, cam, t, fill)
+                img, mask = truths[i]
+                points.append({"error": float(lrms(fr.radiance, img, mask if mask.any() else None)),
+                               "pixels": cam.width * cam.height, "ms": ms, "probe": i})
+            _, ms = _timed_median(wr, big, times[0], fill)
+            points.append({"error": None, "pixels": big.width * big.height, "ms": ms, "probe": 0})
+            fit = fit_setting(preset, fill, points, truth_noise)
+            fits[fit.key] = fit
+            if fit.error > MAX_USEFUL_ERROR:
+                excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
+                                     f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
+        measure_s += time.perf_counter() - t0
+    cost = time.perf_counter() - t_start
+    probe = {"frames": [{"eye": list(c.eye), "look_at": list(c.look_at), "time": t, "width": c.width,
+                         "height": c.height} for c, t in zip(cams, times, strict=True)],
+             "truth_noise": truth_noise, "truth_noise_target": params.truth_noise,
+             "truth_paths_mean": float(np.mean([st["paths_mean"] for st in truth_stats])),
+             "cost_breakdown_s": {"ground_truth": truth_s, "bakes": bakes_s, "settings": measure_s}}
+    return WalkthroughModel(scene_id=scene_id, fits=fits, excluded=excluded, bake_keys=bake_keys,
+                            bake_cost_s=bake_cost, cost_s=cost, probe=json_safe(probe),
+                            engine_version=ENGINE_VERSION, created_at=datetime.now(UTC).isoformat())
+
+
+def _stored_bake_source(store: Any, scene_id: str) -> BakeSource:
+    """Each preset's bake from the store (its cost: the bake job's wall time), else baked and
+    published under the key of a walkthrough request naming only that preset."""
+
+    def bake_for(preset: str, progress: Callable[[float, str], None]) -> tuple[WalkthroughBake, str, float]:
+        settings = WalkthroughSettings(quality=preset)  # type: ignore[arg-type]
+        bkey = walkthrough_bake_key(scene_id, settings)
+        manifest = read_manifest(store, bkey)
+        if manifest is not None:
+            timings = manifest.result.get("timings") or {}
+            return load_stored_bake(store, bkey), bkey, float(timings.get("job_total") or timings.get("total") or 0.0)
+        t0 = time.perf_counter()
+        bake, _ = make_walkthrough_bake(store, scene_id, bkey, settings, progress)
+        return bake, bkey, time.perf_counter() - t0
+
+    return bake_for
+
+
+def calibrate_walkthrough_job(payload: dict[str, Any]) -> dict[str, Any]:
+    """Calibrate a scene's walkthrough settings and store the model; returns a summary."""
+    try:
+        p = WalkthroughCalibrateJobPayload.model_validate(payload)
+    except ValidationError as exc:
+        raise InvalidPayload(f"invalid walkthrough calibration payload: {describe_validation_error(exc)}") from None
+    if walkthrough_calibration_key(p.scene_id, p.request) != p.key:
+        raise InvalidPayload("walkthrough calibration payload: the key does not match the request")
+    store = worker_store()
+    progress = ProgressReporter(get_current_job())
+    progress.report(0.0, "loading the scene", force=True)
+    scene, an = load_walkthrough_scene(store, p.scene_id)
+    model = calibrate_walkthrough(an, engine_space(scene), camera_params(scene.camera),
+                                  _stored_bake_source(store, p.scene_id), params=p.request.params,
+                                  scene_id=p.scene_id, progress=lambda f, s: progress.report(0.02 + 0.96 * f, s))
+    write_walkthrough_calibration(store, p.scene_id, p.key, p.request.params.model_dump(mode="json"), model)
+    progress.report(1.0, "done", force=True, check=False)
+    summary: dict[str, Any] = json_safe({"scene_id": p.scene_id, "key": p.key, "cost_s": model.cost_s,
+                                         "errors": {k: f.error for k, f in model.fits.items()},
+                                         "excluded": model.excluded})
+    return summary
