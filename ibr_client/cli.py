@@ -9,8 +9,9 @@ ldc+llf`` renders from the scene's bake), ``ibr bake`` (bake a scene, ``--wait``
 parts), ``ibr bakes list|show|delete``, ``ibr fetch``, ``ibr jobs list|show|cancel``, ``ibr batch``;
 illumination datasets: ``ibr datasets upload|list|show|delete|generate|bake``, ``ibr relight``,
 ``ibr composite``; walkthroughs: ``ibr walkthrough`` (request, follow with a progress bar, fetch the
-MP4 / frames), ``ibr walkthroughs show|fetch|delete``. Local, no service: ``ibr schema``,
-``ibr samples``. The service's ``ibr`` (service/cli.py) is this app plus the commands that run the
+MP4 / frames; ``--quality-error`` / ``--quality-ms`` let the planner pick the bake preset and the fill
+after ``ibr calibrate-walkthroughs``), ``ibr walkthroughs show|fetch|delete``. Local, no service:
+``ibr schema``, ``ibr samples``. The service's ``ibr`` (service/cli.py) is this app plus the commands that run the
 service or the engine in their own process.
 
 Exit codes: 0 ok, 2 bad input (with a message naming the field or file), 3 the
@@ -39,7 +40,12 @@ from api_schemas import format_validation_error, load_scene_file, scene_json_sch
 from api_schemas.datasets import DatasetManifest, FileUploadPublic, RelightPublic
 from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
 from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
-from api_schemas.walkthrough import WalkthroughPublic
+from api_schemas.walkthrough import (
+    WalkthroughCalibrationParams,
+    WalkthroughCalibrationPublic,
+    WalkthroughContractPublic,
+    WalkthroughPublic,
+)
 from ibr_client.client import ApiError, Client, InvalidId, JobFailed, read_dataset_dir, with_sha256s
 from samples import SAMPLES_DIR, sample_names, sample_path
 
@@ -1079,16 +1085,34 @@ def walkthrough(
     frames_dir: Annotated[Path | None, typer.Option(help="Save every frame in this directory (implies --wait)")
                           ] = None,
     frame_format: FrameFormatOpt = "png",
+    quality_error: Annotated[float | None, typer.Option(
+        help="Quality contract: largest LRMS of every frame against its converged frame, in (0, 1); the planner "
+             "picks the bake preset and the fill (needs 'ibr calibrate-walkthroughs' of the scene first)")] = None,
+    quality_ms: Annotated[float | None, typer.Option(
+        help="Quality contract: largest render time of a frame in the worker, in ms; the planner picks the bake "
+             "preset and the fill")] = None,
+    best_effort: Annotated[bool, typer.Option(
+        "--best-effort/--strict", help="Quality contract no setting meets: render the closest (marked) "
+                                       "instead of failing")] = False,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the walkthrough with a progress bar")
                     ] = False,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
 ) -> None:
-    """Render a camera path through a scene's view space from walkthrough bases; prints the walkthrough key."""
+    """Render a camera path through a scene's view space from walkthrough bases; prints the walkthrough key.
+
+    With --quality-error / --quality-ms (a quality contract) the service picks the bake preset and the
+    fill from the scene's walkthrough calibration and the plan is printed on stderr."""
     if output is not None and output.suffix.lower() != ".mp4":
         fail(f"-o {output}: the walkthrough video is an .mp4")
     fmt = _frame_format(frame_format)
+    settings = {"--quality": quality, "--fill": fill, "--face-res": face_res, "--indirect": indirect,
+                "--max-views": max_views, "--max-time-samples": max_time_samples}
+    if quality_error is not None or quality_ms is not None:
+        _refuse_settings_with_contract(settings, "--quality-error/--quality-ms")
     req = _path_request(path, width, height)
+    if _walkthrough_contract(req, path, quality_error, quality_ms, best_effort):
+        _refuse_settings_with_contract(settings, f"--path {path}'s 'quality'")
     bake_doc = dict(req.get("bake") or {})
     bake_doc.update({k: v for k, v in {"quality": quality, "face_res": face_res, "indirect_samples": indirect,
                                        "max_views": max_views, "max_time_samples": max_time_samples}.items()
@@ -1098,13 +1122,151 @@ def walkthrough(
     req.update({k: v for k, v in {"fill": fill, "chunk_frames": chunk_frames, "fps": fps}.items() if v is not None})
     req["scene_id"] = _scene_id_of(scene, api_url, api_key)
     with _client(api_url, api_key) as c:
-        w = _call(lambda: c.walkthrough(req))
+        def submit() -> WalkthroughPublic:
+            try:
+                return c.walkthrough(req)
+            except ApiError as exc:  # a contract on a scene never calibrated: say how to calibrate it
+                if exc.status == 409 and "walkthrough-calibrations" in exc.detail:
+                    fail(f"{exc}\n(calibrate it with: ibr calibrate-walkthroughs {scene})")
+                raise
+
+        w = _call(submit)
         typer.echo(f"walkthrough {w.key} ({w.status}, {w.frames} frames, bake {w.bake_key[:12]})", err=True)
+        if w.contract is not None:
+            for line in _walkthrough_contract_lines(w.contract):
+                say(line)
         if wait or output is not None or frames_dir is not None:
             w = _follow_walkthrough(c, w)
             typer.echo(f"finished: {w.frames_done} frames", err=True)
+            if w.contract is not None and w.contract.achieved_frame_ms:
+                a = w.contract.achieved_frame_ms
+                say(f"achieved: {a['median']:.1f} ms / frame median, {a['max']:.1f} ms max "
+                    f"(predicted {w.contract.predicted_frame_ms:.1f} ms)")
             _walkthrough_outputs(c, w.key, output, frames_dir, w.frames, fmt)
     typer.echo(w.key)
+
+
+def _refuse_settings_with_contract(settings: Mapping[str, Any], contract: str) -> None:
+    """Exit 2 when a walkthrough's bake / fill options are given with a quality contract."""
+    given = [flag for flag, v in settings.items() if v is not None]
+    if given:
+        fail(f"{contract} let the planner choose the bake preset and the fill: leave out "
+             f"{', '.join(given)} (a contract plans onto a preset's default bake)")
+
+
+def _walkthrough_contract(req: dict[str, Any], path: Path, quality_error: float | None, quality_ms: float | None,
+                          best_effort: bool) -> bool:
+    """Put the quality contract of the contract options (or the path file's own ``quality``) in ``req``
+    and drop the path file's ``bake`` / ``fill``, which it chooses; False when there is no contract."""
+    if quality_error is not None or quality_ms is not None:
+        if req.get("quality") is not None:
+            say(f"--path {path}: its 'quality' is replaced by --quality-error/--quality-ms")
+        q: dict[str, Any] = {k: v for k, v in {"max_error": quality_error, "max_ms": quality_ms}.items()
+                             if v is not None}
+        if best_effort:
+            q["on_miss"] = "best_effort"
+        req["quality"] = q
+    elif req.get("quality") is None:
+        if best_effort:
+            fail("--best-effort applies to a quality contract: give --quality-error and / or --quality-ms")
+        return False
+    elif best_effort and isinstance(req["quality"], dict):
+        req["quality"]["on_miss"] = "best_effort"
+    dropped = [name for name in ("bake", "fill") if name in req]
+    if dropped:
+        verb = "are" if len(dropped) > 1 else "is"
+        say(f"--path {path}: its {' and '.join(dropped)} {verb} left out: the quality contract chooses them")
+        for name in dropped:
+            del req[name]
+    return True
+
+
+def _walkthrough_contract_lines(con: WalkthroughContractPublic) -> list[str]:
+    """What a walkthrough's quality contract chose, on one line (a second when it does not meet it)."""
+    bake = "" if con.bake == "ready" else f"; its bake is made first, predicted {con.predicted_bake_ms / 1000:.1f} s"
+    lines = [f"contract: {con.preset}/{con.fill}, predicted LRMS {con.predicted_error:.4f}, "
+             f"{con.predicted_frame_ms:.1f} ms / frame (rule {con.rule}{bake})"]
+    if not con.met:
+        lines.append(f"not met: {', '.join(con.unmet) or 'the targets'}" + (f": {con.reason}" if con.reason else ""))
+    return lines
+
+
+def _csv(value: str | None, what: str) -> list[str] | None:
+    """``low,medium`` -> ["low", "medium"] (None when not given)."""
+    if value is None:
+        return None
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if not items:
+        fail(f"{what}: give a comma-separated list, e.g. {what} low,medium")
+    return items
+
+
+@app.command("calibrate-walkthroughs")
+def calibrate_walkthroughs(
+    scene: Annotated[str, typer.Argument(help="Scene id, scene JSON file, or sample name (with a view_space; "
+                                              "uploaded first)")],
+    presets: Annotated[str | None, typer.Option(help="Bake presets measured, comma-separated: low, medium, high "
+                                                     "(default: all three)")] = None,
+    fills: Annotated[str | None, typer.Option(help="Hole fills measured with each preset, comma-separated: none, "
+                                                   "foreground, background, both, trace (default: both,trace)")
+                     ] = None,
+    probes: Annotated[int | None, typer.Option(help="Probe frames (1..8; default 3)")] = None,
+    size: Annotated[int | None, typer.Option(help="Probe frames' longest side, pixels (16..512; default 64)")] = None,
+    time_scale: Annotated[int | None, typer.Option(help="Frame times also measured at size x this (2..8)")] = None,
+    truth_noise: Annotated[float | None, typer.Option(
+        help="Relative standard error the converged probe frames are traced to (0.002..0.05; default 0.01)")] = None,
+    wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the calibration")] = True,
+    api_url: ApiOpt = DEFAULT_API,
+    api_key: KeyOpt = None,
+) -> None:
+    """Calibrate a scene's walkthrough settings (bake preset x fill) for walkthrough quality contracts
+    (walkthrough --quality-error / --quality-ms); prints the calibration key. Bakes the presets whose
+    bake is not stored yet."""
+    params: dict[str, Any] = {k: v for k, v in {
+        "presets": _csv(presets, "--presets"), "fills": _csv(fills, "--fills"), "probes": probes, "size": size,
+        "time_scale": time_scale, "truth_noise": truth_noise}.items() if v is not None}
+    try:  # checked before the scene is uploaded or anything queued
+        WalkthroughCalibrationParams.model_validate(params)
+    except pydantic.ValidationError as exc:
+        lines = []
+        for e in format_validation_error(exc):
+            field = str(e["field"])
+            lines.append(f"  --{field.split('.', 1)[0].replace('_', '-')} (params.{field}): {e['message']}")
+        fail("invalid walkthrough calibration\n" + "\n".join(lines))
+    scene_id = _scene_id_of(scene, api_url, api_key)
+    with _client(api_url, api_key) as c:
+        cal = _call(lambda: c.calibrate_walkthroughs(scene_id, params))
+        say(f"walkthrough calibration {cal.key} ({'cached' if cal.cached else cal.state})")
+        if wait and cal.state != "finished":
+            with _bar("calibrate walkthroughs") as update:
+                def show(p: WalkthroughCalibrationPublic) -> None:
+                    if p.job is not None:
+                        update(p.job.progress.fraction, p.job.progress.stage or p.state)
+
+                cal = _call(lambda: c.wait_walkthrough_calibration(cal, on_progress=show))
+        if cal.model is not None:
+            for line in _walkthrough_model_lines(cal.model):
+                say(line)
+    typer.echo(cal.key)
+
+
+def _walkthrough_model_lines(m: Mapping[str, Any]) -> list[str]:
+    """A walkthrough calibration's model, a line per setting: its error, its time per frame at the probe
+    frames' size and its preset's bake cost."""
+    frames = (m.get("probe") or {}).get("frames") or []
+    w, h = (int(frames[0]["width"]), int(frames[0]["height"])) if frames else (0, 0)
+    parts = (m.get("probe") or {}).get("cost_breakdown_s") or {}
+    split = ", ".join(f"{k.replace('_', ' ')} {v:.1f} s" for k, v in parts.items() if isinstance(v, int | float))
+    lines = [f"cost: {m['cost_s']:.1f} s" + (f" ({split})" if split else "")]
+    excluded: Mapping[str, str] = m.get("excluded") or {}
+    for name, fit in (m.get("fits") or {}).items():
+        preset = name.split("/", 1)[0]
+        bake_s = (m.get("bake_cost_s") or {}).get(preset)
+        bake = f"; bake {bake_s:.1f} s" if isinstance(bake_s, int | float) else ""
+        note = f"; excluded ({excluded[name]})" if name in excluded else ""
+        lines.append(f"{name}: LRMS {fit['error']:.4f}, {fit['b_ms'] + fit['c_ms'] * w * h:.1f} ms / frame "
+                     f"at {w} x {h}{bake}{note}")
+    return lines
 
 
 @walkthroughs_app.command("show")

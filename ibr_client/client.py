@@ -15,6 +15,8 @@
         png = c.download_relight(rel.key, "png")                             # also "exr", "outside"
         w = c.wait_walkthrough(c.walkthrough({"scene_id": scene.id, "frames": [...]}), on_progress=print)
         mp4 = c.download_walkthrough_video(w.key)
+        c.wait_walkthrough_calibration(c.calibrate_walkthroughs(scene.id, {"presets": ["low", "medium"]}))
+        w = c.walkthrough({"scene_id": scene.id, "frames": [...], "quality": {"max_error": 0.1}})  # w.contract
 
 Errors from the API (problem+json) raise :class:`ApiError` with the status, the
 title/detail and the per-field errors; a job that ended failed or canceled raises
@@ -57,7 +59,7 @@ from api_schemas.service import (
     SceneList,
     ScenePublic,
 )
-from api_schemas.walkthrough import WalkthroughPublic
+from api_schemas.walkthrough import WalkthroughCalibrationPublic, WalkthroughPublic
 
 FileData = bytes | Path
 """A file's bytes, or a path to read them from (read when sent)."""
@@ -348,6 +350,42 @@ class Client:
             delay = min(2.0, delay * 1.3)
             c = self.get_calibration(c.scene_id, c.bake_key, c.key)
 
+    def calibrate_walkthroughs(self, scene_id: str,
+                               params: Mapping[str, Any] | None = None) -> WalkthroughCalibrationPublic:
+        """Calibrate a scene's walkthrough settings (bake preset x fill) for walkthrough quality contracts
+        (``WalkthroughCalibrationParams`` fields in ``params``: presets, fills, probes, size, ...); ``cached``
+        when this calibration exists already."""
+        body: dict[str, Any] = {"params": dict(params or {})}
+        r = self._request("POST", f"/v1/scenes/{_id(scene_id, 'scene id')}/walkthrough-calibrations", json=body)
+        return WalkthroughCalibrationPublic.model_validate(r.json())
+
+    def get_walkthrough_calibration(self, scene_id: str, key: str | None = None) -> WalkthroughCalibrationPublic:
+        """The scene's walkthrough calibration (its model once made); with ``key`` (from
+        :meth:`calibrate_walkthroughs`) that calibration's job. ApiError 404 when there is none and no key."""
+        r = self._request("GET", f"/v1/scenes/{_id(scene_id, 'scene id')}/walkthrough-calibrations",
+                          params={"key": key} if key else None)
+        return WalkthroughCalibrationPublic.model_validate(r.json())
+
+    def wait_walkthrough_calibration(
+            self, c: WalkthroughCalibrationPublic, timeout: float = 3600.0, poll: float = 0.5,
+            on_progress: Callable[[WalkthroughCalibrationPublic], None] | None = None) -> WalkthroughCalibrationPublic:
+        """Poll a walkthrough calibration until it is finished (returned) or failed / missing (ApiError)."""
+        deadline = time.monotonic() + timeout
+        delay = poll
+        while True:
+            if on_progress is not None:
+                on_progress(c)
+            if c.state == "finished":
+                return c
+            if c.state in ("failed", "missing"):
+                raise JobFailed(500 if c.state == "failed" else 409, f"walkthrough calibration {c.state}",
+                                (c.job.error if c.job is not None else None) or "")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"walkthrough calibration {c.key} still {c.state} after {timeout} s")
+            time.sleep(delay)
+            delay = min(2.0, delay * 1.3)
+            c = self.get_walkthrough_calibration(c.scene_id, c.key)
+
     # ------------------------------------------------------------------ artifacts
     def artifact(self, key: str) -> ArtifactManifest:
         return ArtifactManifest.model_validate(self._request("GET", f"/v1/artifacts/{_id(key, 'artifact key')}").json())
@@ -541,7 +579,12 @@ class Client:
 
     # ------------------------------------------------------------------ walkthroughs
     def walkthrough(self, request: Mapping[str, Any]) -> WalkthroughPublic:
-        """Request a walkthrough (a ``WalkthroughRequest`` as a dict: scene_id, frames, bake, fill, ...)."""
+        """Request a walkthrough (a ``WalkthroughRequest`` as a dict: scene_id, frames, bake, fill, ...).
+
+        ``quality`` (``{"max_error": 0.1, "max_ms": 20, "on_miss": "best_effort"}``) instead of ``bake`` and
+        ``fill``: the planner picks both from the scene's walkthrough calibration (see
+        :meth:`calibrate_walkthroughs`; ApiError 409 without one, 422 when no setting meets a strict
+        contract); the answer's ``contract`` states the plan."""
         return WalkthroughPublic.model_validate(self._request("POST", "/v1/walkthroughs", json=dict(request)).json())
 
     def get_walkthrough(self, key: str) -> WalkthroughPublic:

@@ -100,3 +100,138 @@ def test_render_refuses_ldc_view_options_where_they_mean_nothing():
         r = runner.invoke(app, ["render", "mirror_box", *args, "--api", "http://127.0.0.1:9"])
         assert r.exit_code == 2, r.output
         assert "--supersample/--antialias set how an LDC method" in r.stderr
+
+
+def _dead_api() -> dict[str, str]:
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        return {"IBR_API_URL": f"http://127.0.0.1:{s.getsockname()[1]}"}
+
+
+def _path_file(tmp_path, **fields):
+    frame = {"time": 0, "camera": {"eye": [0, 0, 0], "look_at": [0, 0, 1], "width": 16, "height": 12}}
+    p = tmp_path / "path.json"
+    p.write_text(json.dumps({"frames": [frame], **fields}))
+    return p
+
+
+def test_walkthrough_contract_options_refuse_the_settings_they_choose(tmp_path):
+    # checked before any request: no service needed
+    env, sid = _dead_api(), "a" * 64
+    path = _path_file(tmp_path)
+    for flag, value in (("--quality", "low"), ("--fill", "both"), ("--face-res", "32"), ("--indirect", "0"),
+                        ("--max-views", "2"), ("--max-time-samples", "3")):
+        for contract in (["--quality-error", "0.1"], ["--quality-ms", "20", "--best-effort"]):
+            r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), *contract, flag, value], env=env)
+            assert r.exit_code == 2, r.output
+            assert "let the planner choose the bake preset and the fill: leave out " + flag in r.stderr
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), "--best-effort"], env=env)
+    assert r.exit_code == 2 and "--best-effort applies to a quality contract" in r.stderr
+    # a path file's own contract refuses them too
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(_path_file(tmp_path, quality={"max_error": 0.1})),
+                            "--fill", "both"], env=env)
+    assert r.exit_code == 2 and "'quality' let the planner choose" in r.stderr and "--fill" in r.stderr
+    # a well-formed contract gets as far as the API; the path file's bake and fill are dropped, said on stderr
+    r = runner.invoke(app, ["walkthrough", sid, "--path",
+                            str(_path_file(tmp_path, bake={"quality": "high"}, fill="trace")),
+                            "--quality-error", "0.1"], env=env)
+    assert r.exit_code == 3 and "cannot reach" in r.stderr, r.output
+    assert "its bake and fill are left out: the quality contract chooses them" in r.stderr
+
+
+def test_calibrate_walkthroughs_checks_its_params_before_calling():
+    env, sid = _dead_api(), "a" * 64
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", "low,ultra", "--probes", "0"], env=env)
+    assert r.exit_code == 2, r.output
+    assert "--presets (params.presets.1)" in r.stderr and "--probes (params.probes)" in r.stderr
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--fills", "both,both"], env=env)
+    assert r.exit_code == 2 and "fills lists a value twice" in r.stderr
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", ","], env=env)
+    assert r.exit_code == 2 and "comma-separated" in r.stderr
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", "low", "--fills", "both"], env=env)
+    assert r.exit_code == 3 and "cannot reach" in r.stderr
+
+
+def _mock_api(monkeypatch, answer):
+    """Route the commands' client to ``answer(request) -> httpx.Response``; returns the requests seen."""
+    import httpx
+
+    import ibr_client.cli as cli
+    from ibr_client.client import Client
+
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return answer(request)
+
+    monkeypatch.setattr(cli, "_client", lambda url, key: Client(url, api_key=key,
+                                                                transport=httpx.MockTransport(handler)))
+    return seen
+
+
+def test_walkthrough_contract_request_and_plan_lines(tmp_path, monkeypatch):
+    import httpx
+
+    sid, key = "a" * 64, "b" * 64
+    contract = {"max_error": 0.01, "on_miss": "best_effort", "rule": "best_effort_most_accurate", "met": False,
+                "unmet": ["max_error"], "reason": "no walkthrough setting reaches LRMS 0.01 (low/both: 0.13)",
+                "preset": "low", "fill": "both", "frames": 1, "width": 16, "height": 12, "predicted_error": 0.13,
+                "predicted_frame_ms": 6.04, "predicted_bake_ms": 2500.0, "predicted_total_ms": 2506.0,
+                "estimated_error": 0.13, "bake": "waited"}
+    pub = {"key": key, "status": "queued", "progress": 0.0, "frames": 1, "frames_done": 0, "bake_key": "c" * 64,
+           "contract": contract}
+    seen = _mock_api(monkeypatch, lambda req: httpx.Response(202, json=pub))
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(_path_file(tmp_path, fill="none", fps=12)),
+                            "--quality-error", "0.01", "--best-effort"])
+    assert r.exit_code == 0, r.output
+    assert r.stdout == key + "\n"  # the key is the only output
+    body = json.loads(seen[0].content)
+    assert body["quality"] == {"max_error": 0.01, "on_miss": "best_effort"} and body["scene_id"] == sid
+    assert "bake" not in body and "fill" not in body and body["fps"] == 12
+    assert ("contract: low/both, predicted LRMS 0.1300, 6.0 ms / frame (rule best_effort_most_accurate; "
+            "its bake is made first, predicted 2.5 s)") in r.stderr
+    assert "not met: max_error: no walkthrough setting reaches LRMS 0.01 (low/both: 0.13)" in r.stderr
+
+    # no calibration: exit 2 naming the command that makes one
+    detail = (f"scene {sid} has no walkthrough calibration: ... request it with POST "
+              f"/v1/scenes/{sid}/walkthrough-calibrations, or name \"bake\" and \"fill\" instead of quality")
+    _mock_api(monkeypatch, lambda req: httpx.Response(409, json={"title": "Calibration missing", "detail": detail}))
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(_path_file(tmp_path)), "--quality-ms", "20"])
+    assert r.exit_code == 2 and "409 Calibration missing" in r.stderr
+    assert f"ibr calibrate-walkthroughs {sid}" in r.stderr and r.stdout == ""
+
+
+def test_calibrate_walkthroughs_prints_the_key_and_each_setting(monkeypatch):
+    import httpx
+
+    sid, key = "a" * 64, "d" * 64
+    model = {"fits": {"low/both": {"method": "low/both", "error": 0.125, "b_ms": 2.0, "c_ms": 0.001},
+                      "low/trace": {"method": "low/trace", "error": 0.6, "b_ms": 3.0, "c_ms": 0.002}},
+             "excluded": {"low/trace": "its error on the probe frames (60%) exceeds 50%"},
+             "bake_keys": {"low": "e" * 64}, "bake_cost_s": {"low": 4.25}, "cost_s": 9.5,
+             "probe": {"frames": [{"width": 32, "height": 24}],
+                       "cost_breakdown_s": {"ground_truth": 3.0, "bakes": 4.5, "settings": 2.0}}}
+    states = iter(["queued", "running", "finished"])
+
+    def answer(req: httpx.Request) -> httpx.Response:
+        state = next(states)
+        doc = {"scene_id": sid, "key": key, "state": state, "model": model if state == "finished" else None,
+               "job": {"id": "calwt-1", "kind": "bake", "state": "started" if state == "running" else state,
+                       "progress": {"fraction": 0.5, "stage": "measuring low"}}}
+        return httpx.Response(202 if req.method == "POST" else 200, json=doc)
+
+    seen = _mock_api(monkeypatch, answer)
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", "low", "--fills", "both,trace",
+                            "--probes", "2", "--size", "32", "--api", "http://127.0.0.1:9"])
+    assert r.exit_code == 0, r.output
+    assert r.stdout == key + "\n"
+    assert json.loads(seen[0].content) == {"params": {"presets": ["low"], "fills": ["both", "trace"], "probes": 2,
+                                                      "size": 32}}
+    assert [q.url.params.get("key") for q in seen[1:]] == [key, key]  # followed by its key
+    assert f"walkthrough calibration {key} (queued)" in r.stderr
+    assert "cost: 9.5 s (ground truth 3.0 s, bakes 4.5 s, settings 2.0 s)" in r.stderr
+    assert "low/both: LRMS 0.1250, 2.8 ms / frame at 32 x 24; bake 4.2 s" in r.stderr
+    assert "low/trace: LRMS 0.6000, 4.5 ms / frame at 32 x 24; bake 4.2 s; excluded (its error" in r.stderr

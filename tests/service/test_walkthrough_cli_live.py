@@ -120,3 +120,58 @@ def test_walkthrough_from_the_command_line(stack: Any, tmp_path: Path) -> None:
     with Client(stack.api_url) as c, pytest.raises(ApiError) as e:
         c.download_walkthrough_video(key)
     assert e.value.status == 404
+
+
+def test_walkthrough_quality_contract_from_the_command_line(stack: Any, tmp_path: Path) -> None:
+    """``ibr calibrate-walkthroughs`` then ``ibr walkthrough --quality-error``: the planner picks the bake
+    preset and the fill, the plan is on stderr, the key alone on stdout (one preset, one fill, two small
+    probes: about ten seconds of calibration)."""
+    runner = CliRunner()
+    api = ["--api", stack.api_url]
+    scene_file = tmp_path / "room.json"
+    scene_file.write_text(json.dumps(ROOM))
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps(_frames(4)))
+    walk = ["walkthrough", str(scene_file), "--path", str(path), "--chunk-frames", "2"]
+
+    # no walkthrough calibration yet: exit 2 saying how to make one
+    res = runner.invoke(app, [*walk, "--quality-error", "0.9", *api])
+    assert res.exit_code == 2, res.output
+    assert "walkthrough calibration" in res.stderr and "ibr calibrate-walkthroughs" in res.stderr
+
+    params = {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32}
+    calibrate = ["calibrate-walkthroughs", str(scene_file), "--presets", "low", "--fills", "both", "--probes", "2",
+                 "--size", "32", *api]
+    res = runner.invoke(app, [*calibrate, "--wait"])
+    assert res.exit_code == 0, res.output
+    cal_key = res.stdout.strip()
+    assert len(cal_key) == 64 and "\n" not in cal_key
+    assert "low/both: LRMS " in res.stderr and "ms / frame at 32 x 24; bake " in res.stderr, res.stderr
+    res = runner.invoke(app, [*calibrate, "--no-wait"])  # the same calibration: cached, nothing queued
+    assert res.exit_code == 0 and res.stdout.strip() == cal_key and "(cached)" in res.stderr, res.output
+
+    with Client(stack.api_url) as c:
+        sid = c.create_scene(ROOM).id
+        cal = c.get_walkthrough_calibration(sid)
+        assert cal.state == "finished" and cal.key == cal_key and cal.model is not None
+        again = c.calibrate_walkthroughs(sid, params)
+        assert again.cached and again.key == cal_key
+        assert c.wait_walkthrough_calibration(again).model == cal.model
+    fit = cal.model["fits"]["low/both"]
+
+    res = runner.invoke(app, [*walk, "--quality-error", "0.9", "--wait", *api])
+    assert res.exit_code == 0, res.output
+    key = res.stdout.strip()
+    assert len(key) == 64 and "\n" not in key  # the key is the only output
+    assert f"contract: low/both, predicted LRMS {fit['error']:.4f}, " in res.stderr, res.stderr
+    assert "ms / frame (rule cheapest_meeting_error)" in res.stderr and "not met" not in res.stderr
+    assert "finished: 4 frames" in res.stderr and "achieved: " in res.stderr
+    # the settings it chooses are refused beside it; a target no setting reaches is a 422 naming it
+    res = runner.invoke(app, [*walk, "--quality-error", "0.9", "--fill", "trace", *api])
+    assert res.exit_code == 2 and "leave out --fill" in res.stderr
+    if fit["error"] / 4 > 0:
+        res = runner.invoke(app, [*walk, "--quality-error", f"{fit['error'] / 4:.6g}", *api])
+        assert res.exit_code == 2 and "quality.max_error" in res.stderr and "low/both" in res.stderr, res.output
+
+    res = runner.invoke(app, ["walkthroughs", "delete", key, *api])
+    assert res.exit_code == 0, res.output
