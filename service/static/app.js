@@ -18,7 +18,7 @@ const perf = { inputAt: null, requests: 0, loads: 0, latencies: [], last: null, 
 const relightPerf = { requests: 0, loads: 0, last: null, scheduled: false, inputAt: null };
 const bakePerf = { state: null, fraction: 0, key: null };
 const comparePerf = { runs: 0, last: null };
-const walkPerf = { status: null, progress: 0, key: null, loaded: 0, frames: 0, shown: -1, played: 0 };
+const walkPerf = { status: null, progress: 0, key: null, loaded: 0, frames: 0, shown: -1, played: 0, contract: null };
 window.__walk = walkPerf;
 window.__preview = perf;
 window.__relight = relightPerf;
@@ -223,6 +223,11 @@ async function loadCapabilities() {
   if ((opts.quality || []).includes("low")) $("wt-quality").value = "low";
   $("wt-fill").replaceChildren(...(opts.fill || []).map((f) => new Option(f, f)));
   if ((opts.fill || []).includes("both")) $("wt-fill").value = "both";
+  if (["settings", "error", "time"].includes(params.get("wt_ask"))) $("wt-ask").value = params.get("wt_ask");
+  if ($("wt-ask").value !== "settings" && Number(params.get("wt_target")) > 0) {
+    walkTargets[$("wt-ask").value] = String(Number(params.get("wt_target")));
+  }
+  walkAskChanged();
   $("datasets-panel").hidden = !(caps.datasets && caps.relights);
   const legend = Object.entries(caps.provenance || {}).map(([code, [name, colour]]) => {
     const s = document.createElement("span");
@@ -438,9 +443,13 @@ function bakeParams() {
 // scene's calibration); null when asking by method.
 function currentQuality() {
   const ask = $("ask").value;
-  if (ask === "method") return null;
-  const t = Number($("target").value);
-  // a time budget nothing meets still renders the closest setting, marked; an error target is strict
+  return ask === "method" ? null : qualityFor(ask, $("target").value);
+}
+
+// The quality contract of an "ask by" control: `ask` "error" (target in per cent) or "time" (ms).
+// A time budget nothing meets still renders the closest setting, marked; an error target is strict.
+function qualityFor(ask, targetText) {
+  const t = Number(targetText);
   return ask === "error" ? { max_error: t / 100 } : { max_ms: t, on_miss: "best_effort" };
 }
 
@@ -640,10 +649,9 @@ function showContract(con, manifest) {
   const plan = p.max_error != null ? `${con.method} adaptive (cap ${p.spp} spp)`
     : `${con.method}${p.spp != null ? ` at ${p.spp} spp` : ""}`
       + (v.supersample > 1 ? `, ${v.supersample}×${v.supersample} samples per ${v.antialias === "uniform" ? "" : "edge "}pixel` : "");
-  const pct = (x) => (typeof x === "number" ? `${(x * 100).toFixed(2)} %` : "–");
-  const ms = (x) => (typeof x === "number" ? `${x.toFixed(1)} ms` : "–");
-  const target = [con.max_error != null ? `error ≤ ${pct(con.max_error)}` : null,
-    con.max_ms != null ? `time ≤ ${ms(con.max_ms)}` : null].filter(Boolean).join(", ");
+  const pct = contractPct;
+  const ms = contractMs;
+  const target = contractTarget(con);
   const src = con.estimated_error_source === "render" ? "estimated by the render" : "calibrated prediction";
   const rows = [["contract", target], ["plan", plan], ["rule", con.rule],
     ["predicted", con.met ? "meets the contract" : `misses ${con.unmet.join(", ")}`],
@@ -654,6 +662,17 @@ function showContract(con, manifest) {
   return { method: con.method, plan, rule: con.rule, met: con.met, predicted_error: con.predicted_error,
     estimated_error: estimated, estimated_error_source: con.estimated_error_source,
     predicted_ms: con.predicted_ms, achieved_ms: achievedMs };
+}
+
+// Numbers in a quality contract's table (the view's and the walkthrough's); "–": not known.
+const contractPct = (x) => (typeof x === "number" ? `${(x * 100).toFixed(2)} %` : "–");
+const contractMs = (x) => (typeof x === "number" ? `${x.toFixed(1)} ms` : "–");
+
+// What a contract asked for, e.g. "error ≤ 5.00 %, time ≤ 200.0 ms"; `per` qualifies each target
+// (a walkthrough's hold for every frame).
+function contractTarget(con, per = "") {
+  return [con.max_error != null ? `error ≤ ${contractPct(con.max_error)}${per}` : null,
+    con.max_ms != null ? `time ≤ ${contractMs(con.max_ms)}${per}` : null].filter(Boolean).join(", ");
 }
 
 function showTimings(manifest, job, status, clientMs) {
@@ -1532,6 +1551,7 @@ function loadWalkList(scenes) {
 
 function closeWalk() {
   stopWalk();
+  stopWalkCalibration();
   walk.scene = null;
   $("walk-panel").hidden = true;
 }
@@ -1552,6 +1572,9 @@ function openWalk(s) {
   stopScene();
   closeDataset();
   stopWalk();
+  stopWalkCalibration(); // another scene: its calibration (if any) is not this one's
+  hideWalkNote();
+  $("wt-contract").hidden = true;
   walk.scene = s;
   walk.info = sampleCameras[s.name];
   markCurrent(`walk-${s.id}`);
@@ -1619,12 +1642,201 @@ function walkRequest() {
     if (params.get(param) !== null) bake[field] = Number(params.get(param));
   }
   const fpsText = $("wt-fps").value.trim();
-  return { scene_id: walk.scene.id, bake, fill: $("wt-fill").value, frames, chunk_frames: 8,
+  const request = { scene_id: walk.scene.id, frames, chunk_frames: 8,
     fps: Number.isFinite(Number(fpsText)) && fpsText !== "" ? Number(fpsText) : fpsText };
+  const quality = walkQuality();
+  // asked by error or time, the planner picks the bake preset and the fill: naming them too is a 422
+  return quality ? { ...request, quality } : { ...request, bake, fill: $("wt-fill").value };
+}
+
+// ---- asking a walkthrough by error or by time (a quality contract instead of a preset and a fill)
+
+// Each kind of target keeps its own value: a per cent is no time budget. Error: every frame's LRMS
+// against its converged frame, in per cent; time: every frame's render time in the worker, in ms.
+const walkTargets = { error: "20", time: "50" };
+let walkAskShown = "settings"; // the ask whose target the input holds
+
+function walkQuality() {
+  const ask = $("wt-ask").value;
+  return ask === "settings" ? null : qualityFor(ask, $("wt-target").value);
+}
+
+function walkAskChanged() {
+  const ask = $("wt-ask").value;
+  if (walkAskShown !== "settings") walkTargets[walkAskShown] = $("wt-target").value;
+  walkAskShown = ask;
+  const bySettings = ask === "settings";
+  $("wt-target-label").hidden = bySettings;
+  $("wt-quality-label").hidden = !bySettings;
+  $("wt-fill-label").hidden = !bySettings;
+  if (bySettings) {
+    // a plan and a contract's problem belong to the contract asked: none is asked now
+    $("wt-contract").hidden = true;
+    hideWalkNote();
+    return;
+  }
+  $("wt-target").value = walkTargets[ask];
+  $("wt-target-unit").textContent = ask === "error" ? "max error % per frame" : "max ms per frame";
+  $("wt-target-label").title = ask === "error"
+    ? "Largest error of every frame: LRMS against its converged frame, in per cent (the planner picks the cheapest "
+      + "bake preset and fill predicted to stay under it; none: the panel says what the scene can do)"
+    : "Largest render time of every frame in the worker, in milliseconds (the planner picks the most accurate "
+      + "setting predicted within it; none: the fastest, marked as missing the budget)";
+}
+
+// The plan a walkthrough's quality contract got: the setting, the rule, the predictions and, once
+// every frame is rendered, the frames' achieved render times. A walkthrough renders no converged
+// frames, so its error is the calibration's prediction only.
+function showWalkContract(con, status) {
+  const achieved = con.achieved_frame_ms;
+  const rows = [
+    ["contract", contractTarget(con, " per frame") + (con.on_miss === "best_effort" ? " (best effort)" : "")],
+    ["plan", `bake preset ${con.preset}, fill ${con.fill}`],
+    ["rule", con.rule],
+    ["predicted", con.met ? "meets the contract" : `misses ${con.unmet.join(", ")}`],
+    ["error predicted", `${contractPct(con.predicted_error)} (the calibration's worst probe frame)`],
+    ["error achieved", "not measured (a walkthrough renders no converged frames)"],
+    ["time predicted", `${contractMs(con.predicted_frame_ms)} per frame`],
+    ["time achieved", achieved ? `median ${contractMs(achieved.median)}, max ${contractMs(achieved.max)} per frame`
+      : status === "finished" ? "–" : "measured once every frame is rendered"],
+    ["bake", con.bake === "ready" ? "ready (in the store)"
+      : `waited: made first, predicted ${(con.predicted_bake_ms / 1000).toFixed(1)} s`],
+  ];
+  if (con.reason) rows.push([con.met ? "note" : "reason", con.reason]);
+  fillTable($("wt-contract"), rows);
+  $("wt-contract").hidden = false;
+  walkPerf.contract = con;
+}
+
+// The panel's note: `parts` are strings and {code} (shown as code); `calibrate` shows the button
+// that makes a walkthrough calibration.
+function showWalkNote(parts, calibrate = false) {
+  $("wt-note-text").replaceChildren(...parts.map((x) => {
+    if (typeof x === "string") return document.createTextNode(x);
+    const c = document.createElement("code");
+    c.textContent = x.code;
+    return c;
+  }));
+  $("wt-calibrate").hidden = !calibrate;
+  $("wt-note").hidden = false;
+}
+
+function hideWalkNote() {
+  $("wt-note").hidden = true;
+  $("wt-note-text").replaceChildren();
+  $("wt-calibrate").hidden = true;
+}
+
+// A contract the API could not plan, said in the panel next to what fixes it: 409 (the scene has no
+// walkthrough calibration: how to make one, and the button) or 422 (no setting meets the target:
+// the API's account of what the scene can do). True when `err` was one of them.
+function showWalkContractProblem(err) {
+  if (!(err instanceof ApiError) || !walk.scene) return false;
+  const type = err.problem && err.problem.type;
+  const sid = walk.scene.id;
+  if (type === "urn:ibr:problem:calibration-missing") {
+    if (walkCal.running) showWalkNote(calibratingNote());
+    else {
+      showWalkNote([`${sceneLabel(walk.scene)} has no walkthrough calibration yet. Asking by error or time plans `
+        + "the bake preset and the fill from one: each setting measured on a few probe frames against converged "
+        + "frames. Calibrate it here, or with ", { code: `POST /v1/scenes/${sid}/walkthrough-calibrations` },
+      " or ", { code: `ibr calibrate-walkthroughs ${sid}` }, "; or ask by settings."], true);
+      $("wt-calibrate").title = `POST /v1/scenes/${sid}/walkthrough-calibrations with params `
+        + `${JSON.stringify(WALK_CALIBRATION_PARAMS).replaceAll(",", ", ").replaceAll(":", ": ")}: bakes each `
+        + "preset not in the store yet and measures it with the fill on a few probe frames against converged "
+        + "frames (the high preset and the other fills are left out, for a shorter calibration); then the "
+        + "walkthrough is asked again";
+    }
+    return true;
+  }
+  if (type === "urn:ibr:problem:contract-unmet") {
+    // the detail alone: the problem's per-target errors repeat it
+    showWalkNote([`${err.problem.title} (HTTP ${err.status}): ${err.problem.detail.replace(/\.$/, "")}. `
+      + "Raise the target, or ask by settings."]);
+    return true;
+  }
+  return false;
+}
+
+// ---- walkthrough calibration (what asking by error or time plans from)
+
+// What "Calibrate walkthroughs" asks for: the two cheaper presets with the fill that covers the most
+// holes; their bakes stay in the store, so a walkthrough planned onto one renders at once. The high
+// preset and the other fills are left out: they would make the calibration several times longer.
+const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"] };
+const walkCal = { running: false, controller: null };
+const walkCalPerf = { state: null, fraction: 0, stage: "", key: null, runs: 0 };
+window.__walkCalibration = walkCalPerf;
+
+function calibratingNote() {
+  return [`Calibrating the walkthroughs of ${walk.scene ? sceneLabel(walk.scene) : "the scene"} (presets `
+    + `${WALK_CALIBRATION_PARAMS.presets.join(" and ")}, fill ${WALK_CALIBRATION_PARAMS.fills.join(", ")}): `
+    + "once it is done, a walkthrough asked by error or time is asked again."];
+}
+
+function stopWalkCalibration() {
+  walkCal.controller?.abort(); // the page stops following it; the job itself runs on
+  walkCal.controller = null;
+  walkCal.running = false;
+  $("wt-calibrate").disabled = false;
+  $("wt-cal-progress").hidden = true;
+}
+
+function showWalkCalibration(cal) {
+  if (cal.job) nameJob(cal.job.id, `${walk.scene ? sceneLabel(walk.scene) : "scene"} · walkthrough calibration`);
+  const pr = (cal.job && cal.job.progress) || {};
+  const fraction = cal.state === "finished" ? 1 : pr.fraction || 0;
+  Object.assign(walkCalPerf, { state: cal.state, fraction, stage: pr.stage || "", key: cal.key });
+  $("wt-cal-progress").hidden = false;
+  $("wt-cal-bar").value = fraction;
+  const cost = cal.model && typeof cal.model.cost_s === "number" ? ` (it took ${cal.model.cost_s.toFixed(1)} s)` : "";
+  const eta = pr.eta_s != null ? `, ~${pr.eta_s.toFixed(0)} s left` : "";
+  $("wt-cal-stage").textContent = cal.state === "finished"
+    ? `walkthrough calibration finished${cal.cached ? ", already made" : ""}${cost}`
+    : `walkthrough calibration ${cal.state}${pr.stage ? ` · ${pr.stage}` : ""} ${Math.round(fraction * 100)}%${eta}`;
+}
+
+async function calibrateWalkthroughs() {
+  if (!walk.scene || walkCal.running) return;
+  const scene = walk.scene;
+  const controller = new AbortController();
+  const { signal } = controller;
+  Object.assign(walkCal, { running: true, controller });
+  $("wt-calibrate").disabled = true;
+  showWalkNote(calibratingNote());
+  const path = `/v1/scenes/${scene.id}/walkthrough-calibrations`;
+  try {
+    let { data: cal } = await api(path, { method: "POST", body: { params: WALK_CALIBRATION_PARAMS } });
+    walkCalPerf.runs += 1;
+    showWalkCalibration(cal);
+    while (cal.state === "queued" || cal.state === "running") {
+      await sleep(500, signal);
+      cal = (await api(`${path}?key=${cal.key}`, { signal })).data;
+      showWalkCalibration(cal);
+    }
+    if (cal.state !== "finished") {
+      throw new ApiError(0, { title: "Walkthrough calibration failed",
+        detail: (cal.job && cal.job.error) || `the calibration is ${cal.state}` });
+    }
+    Object.assign(walkCal, { running: false, controller: null });
+    $("wt-calibrate").disabled = false;
+    hideWalkNote();
+    // the scene can plan contracts now: ask again, unless the page moved on to settings or another walkthrough
+    if (walk.scene === scene && $("wt-ask").value !== "settings" && !walk.controller) startWalk();
+  } catch (err) {
+    if (isAbort(err) || walkCal.controller !== controller) return;
+    Object.assign(walkCal, { running: false, controller: null });
+    $("wt-calibrate").disabled = false;
+    // the problem's title, detail and per-field errors (formatProblemText); the button tries again
+    showWalkNote([String(err.message || err), " "], true);
+  }
 }
 
 function showWalk(pub) {
   for (const j of pub.jobs || []) nameJob(j.id, `${walk.scene ? walk.scene.name : "scene"} · walkthrough`);
+  // only a walkthrough asked by error or time: the API also states the contract of an earlier request
+  // that planned the same frames when they are asked by settings
+  if (pub.contract && walk.request && walk.request.quality) showWalkContract(pub.contract, pub.status);
   walkPerf.status = pub.status;
   walkPerf.progress = pub.progress;
   walkPerf.key = pub.key;
@@ -1643,10 +1855,15 @@ async function startWalk() {
   const { signal } = controller;
   $("wt-go").disabled = true;
   $("wt-player").hidden = true;
+  $("wt-progress").hidden = true; // a previous walkthrough's "done" is not this one's
+  $("wt-contract").hidden = true;
+  if (!walkCal.running) hideWalkNote();
   walkPerf.loaded = 0;
   walkPerf.shown = -1;
+  walkPerf.contract = null;
+  let request = null;
   try {
-    const request = walkRequest();
+    request = walkRequest();
     walk.request = request;
     let { data: pub } = await api("/v1/walkthroughs", { method: "POST", body: request });
     showError(null);
@@ -1660,9 +1877,12 @@ async function startWalk() {
     if (pub.status !== "finished") throw new ApiError(0, { title: "Walkthrough failed", detail: pub.error || pub.status });
     await loadWalkFrames(pub, signal);
   } catch (err) {
-    if (!isAbort(err)) showError(err);
+    if (isAbort(err)) return;
+    if (request && request.quality && showWalkContractProblem(err)) return;
+    showError(err);
   } finally {
     $("wt-go").disabled = false;
+    if (walk.controller === controller) walk.controller = null; // none in flight (a calibration may ask again)
   }
 }
 
@@ -1790,6 +2010,8 @@ async function downloadWalkVideo() {
 
 function bindWalk() {
   $("wt-go").addEventListener("click", () => startWalk());
+  $("wt-ask").addEventListener("change", () => walkAskChanged());
+  $("wt-calibrate").addEventListener("click", () => calibrateWalkthroughs());
   $("wt-play").addEventListener("click", () => playWalk(!walk.timer));
   $("wt-slider").addEventListener("input", () => { playWalk(false); showWalkFrame(Number($("wt-slider").value)); });
   $("wt-video").addEventListener("click", () => downloadWalkVideo());
