@@ -179,7 +179,7 @@ def run_scene(name: str, args: argparse.Namespace) -> dict:
     else:
         gts, masks, gt_stats, floor_imgs = [], [], [], []
         for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
-            img, mask, st = converged_frame(renderers[float(t)], cam, i, 0, args.gt_noise, bounces)
+            img, mask, _, st = converged_frame(renderers[float(t)], cam, i, 0, args.gt_noise, bounces)
             gts.append(img)
             masks.append(mask)
             gt_stats.append(st)

@@ -35,9 +35,11 @@ MAX_PATHS = 65536
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
-                    bounces: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                    bounces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """The converged frame seen by ``cam`` in the scene of ``rr`` (already at the frame's time):
-    radiance (h, w, 3) float32, the mask of the pixels it covers, and stats (the indirect pass's
+    radiance (h, w, 3) float32, the mask of the pixels it covers, the error region (covered and
+    not on or next to an emitter: ``ReferenceRenderer.error_region``, where the project's errors
+    are measured; the quality contracts' frame error is), and stats (the indirect pass's
     relative standard error median / p95 / max, the fraction of pixels that met ``noise``, paths
     per pixel, seconds). ``noise``: target relative standard error of each pixel's luminance;
     ``bounces``: diffuse vertices of the indirect paths (the bake's ``indirect_bounces``)."""
@@ -60,4 +62,5 @@ def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: 
     st = {k: ind.stats[k] for k in ("rel_stderr_median", "rel_stderr_p95", "rel_stderr_max", "met_target",
                                     "paths_mean", "paths_max")}
     st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct)
-    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, st
+    region = rr.error_region(cam, direct.object_id, direct.depth, ReferenceParams().max_depth)
+    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, region, st

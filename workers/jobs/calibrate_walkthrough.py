@@ -5,14 +5,16 @@ scene on probe frames and fit the model walkthrough quality contracts are planne
 ``calibrate_walkthrough_job(payload)`` runs on the ``bake`` queue:
 
 1. probe frames: ``probes`` eyes spread over the scene's view space
-   (``engine.walkthrough.quality.probe_eyes``) looking the way the scene's camera looks, at times
-   spread over the animation, ``size`` pixels on the longest side;
+   (``engine.walkthrough.quality.probe_eyes``) at times spread over the animation, each looking the
+   way the scene's camera looks and, when that is another way, where there is most room in front
+   (:func:`probe_views`), ``size`` pixels on the longest side;
 2. a converged frame per probe (``engine.walkthrough.ground_truth.converged_frame``: the image
-   model the walkthrough reconstructs, indirect light traced to ``truth_noise``);
+   model the walkthrough reconstructs, indirect light traced to ``truth_noise``) and its error
+   region (covered pixels not on or next to an emitter, as for every error the project quotes);
 3. per preset: its bake from the store, or baked and published under the key a walkthrough naming
    only that preset uses (so a walkthrough planned onto it renders at once), its cost the bake's
-   wall time; then every fill on every probe: LRMS against the converged frame over the pixels it
-   covers, render time the median of three; the first probe also at ``size x time_scale`` (the
+   wall time; then every fill on every probe: LRMS against the converged frame over its error
+   region, render time the median of three; the first probe also at ``size x time_scale`` (the
    time's per-pixel part). Each setting renders a tiny frame first, untimed (compilation);
 4. fit (``engine.walkthrough.quality.fit_setting``), exclude the settings whose error exceeds
    ``engine.quality.MAX_USEFUL_ERROR``, store the model (``producer.walkthrough_calibrations``).
@@ -23,6 +25,7 @@ the converged frames.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -51,7 +54,8 @@ from workers.jobs.common import ProgressReporter, json_safe, worker_store
 from workers.jobs.walkthrough import engine_space, load_stored_bake, load_walkthrough_scene, make_walkthrough_bake
 from workers.scene_loader import camera_params
 
-__all__ = ["TIMING_REPEATS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job", "probe_cameras"]
+__all__ = ["HEADINGS", "TIMING_REPEATS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job",
+           "probe_views", "roomiest_heading"]
 
 TRUTH_SEED = 7_919
 """Seed of the converged frames (the bases render with the service's default seed 0)."""
@@ -62,14 +66,62 @@ BakeSource = Callable[[str, Callable[[float, str], None]], tuple[WalkthroughBake
 """``(preset, progress) -> (bake, its artifact key, its cost in seconds)``."""
 
 
-def probe_cameras(camera: CameraParams, space: Any, n: int, longest: int) -> list[CameraParams]:
-    """``n`` probe cameras: ``camera`` (its direction, up and field of view) moved to eyes spread over
-    the view space, resized so that the longest side is ``longest`` pixels."""
-    d = np.subtract(camera.look_at, camera.eye).astype(np.float64)
+HEADINGS = 16
+"""Horizontal headings a probe camera chooses among (every 22.5 degrees about the camera's up axis)."""
+
+
+def probe_views(camera: CameraParams, eye: tuple[float, float, float], longest: int,
+                intersect: Callable[[np.ndarray, np.ndarray], Any] | None = None) -> list[CameraParams]:
+    """The probe cameras at ``eye``, with ``camera``'s up axis, pitch and field of view, resized so
+    that the longest side is ``longest`` pixels: one looking the way ``camera`` looks (what the
+    scene's author framed) and, with ``intersect`` (``ReferenceRenderer.caster.intersect``: rays ->
+    hits with ``t``, inf on a miss), one looking where there is most room (:func:`roomiest_heading`)
+    when that is another way. A walkthrough looks both ways: at the action, and ahead along the way it walks. On
+    ``static_room`` the author's direction from an eye beside the corridor's wall looked at that wall
+    and the corridor's view looked along it; on a test room the roomy view grazed a wall and missed
+    the object the frames looked at. One of them alone left the other kind of frame out of the model."""
+    fwd = np.subtract(camera.look_at, camera.eye).astype(np.float64)
+    fwd /= np.linalg.norm(fwd)
     scale = longest / max(camera.width, camera.height)
     w, h = max(2, round(camera.width * scale)), max(2, round(camera.height * scale))
+    dirs = [fwd]
+    if intersect is not None:
+        roomy = roomiest_heading(camera, np.asarray(eye, np.float64), intersect)
+        if float(roomy @ fwd) < 0.999:
+            dirs.append(roomy)
+    e = eye
     return [replace(camera, eye=e, look_at=(e[0] + float(d[0]), e[1] + float(d[1]), e[2] + float(d[2])),
-                    width=w, height=h) for e in probe_eyes(space, n)]
+                    width=w, height=h) for d in dirs]
+
+
+def roomiest_heading(camera: CameraParams, eye: np.ndarray, intersect: Callable[[np.ndarray, np.ndarray], Any]
+                     ) -> np.ndarray:
+    """The view direction from ``eye``, at ``camera``'s pitch, of the one of :data:`HEADINGS` around
+    its up axis with the most room in front: the mean distance to the first hit of five rays across
+    the middle of the view (a miss counts as no room: a view of nothing is no walkthrough frame);
+    ties go to ``camera``'s own heading."""
+    up = np.asarray(camera.up, np.float64)
+    up /= np.linalg.norm(up)
+    fwd = np.subtract(camera.look_at, camera.eye).astype(np.float64)
+    fwd /= np.linalg.norm(fwd)
+    pitch = float(fwd @ up)
+    ahead = fwd - pitch * up
+    ahead = ahead / np.linalg.norm(ahead) if np.linalg.norm(ahead) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
+    side = np.cross(up, ahead)
+    flat = math.sqrt(max(0.0, 1.0 - pitch * pitch))
+    spread = 0.25 * math.radians(camera.fov_y_deg if camera.kind == "perspective" else 40.0)
+    best, out = -1.0, fwd
+    for k in range(HEADINGS):
+        a = 2.0 * math.pi * k / HEADINGS
+        centre = flat * (math.cos(a) * ahead + math.sin(a) * side) + pitch * up
+        right = np.cross(centre, up)
+        right /= np.linalg.norm(right)
+        rays = np.array([centre] + [math.cos(spread) * centre + math.sin(spread) * v for v in (right, -right, up, -up)])
+        t = np.asarray(intersect(np.repeat(eye[None], 5, axis=0), rays).t)
+        room = float(np.where(np.isfinite(t), t, 0.0).mean())
+        if room > best * (1 + 1e-9):
+            best, out = room, centre
+    return out
 
 
 def _timed_median(wr: WalkthroughRenderer, cam: CameraParams, t: float, fill: str) -> tuple[Any, float]:
@@ -88,16 +140,20 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
     """Measure and fit the walkthrough model of one scene (see the module docstring)."""
     t_start = time.perf_counter()
     report = progress or (lambda f, s: None)
-    cams = probe_cameras(camera, space, params.probes, params.size)
-    times = probe_times(an.start, an.end, params.probes) if not an.is_static else [an.start] * params.probes
+    eye_times = probe_times(an.start, an.end, params.probes) if not an.is_static else [an.start] * params.probes
+    cams, times = [], []
+    for e, t in zip(probe_eyes(space, params.probes), eye_times, strict=True):
+        views = probe_views(camera, e, params.size, ReferenceRenderer(an.scene_at(t)).caster.intersect)
+        cams += views
+        times += [t] * len(views)
     bounces = walkthrough_preset(params.presets[0]).indirect_bounces
-    n_steps = params.probes + len(params.presets)
+    n_steps = len(cams) + len(params.presets)
     truths: list[tuple[np.ndarray, np.ndarray]] = []
     truth_stats: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
-        report(i / n_steps, f"converged probe frame {i + 1} of {params.probes}")
-        img, mask, st = converged_frame(ReferenceRenderer(an.scene_at(t)), cam, i, TRUTH_SEED, params.truth_noise,
+        report(i / n_steps, f"converged probe frame {i + 1} of {len(cams)}")
+        img, _, mask, st = converged_frame(ReferenceRenderer(an.scene_at(t)), cam, i, TRUTH_SEED, params.truth_noise,
                                         bounces)
         truths.append((img, mask))
         truth_stats.append(st)
@@ -113,7 +169,7 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
     bake_cost: dict[str, float] = {}
     bakes_s = measure_s = 0.0
     for j, preset in enumerate(params.presets):
-        step = params.probes + j
+        step = len(cams) + j
 
         def sub(f: float, s: str, step: int = step, preset: str = preset) -> None:
             report((step + 0.8 * f) / n_steps, f"{preset} bake: {s}")

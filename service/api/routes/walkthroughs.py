@@ -94,7 +94,8 @@ def _request(redis: Any, store: Any, req: WalkthroughRequest, owner: str | None,
         write_contract(store, key, contract)
     pub = walkthrough_status(redis, store, key)
     assert pub is not None
-    return with_contract(store, pub)
+    # an explicit request sharing a contract's frames asked for no contract: its answer states none
+    return with_contract(store, pub) if contract is not None else pub
 
 
 @router.post(

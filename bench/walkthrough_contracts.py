@@ -1,0 +1,255 @@
+"""Walkthrough quality contracts against converged frames: how often a planned walkthrough meets its
+error target or time budget, and what the plan costs against the cheapest setting that met it.
+
+Run: ``python -m bench.walkthrough_contracts [--scene NAME] [--presets low,medium]`` from the
+repository root. Writes ``docs/accuracy/walkthrough_contracts.md`` (block ``walkthrough_contracts``),
+``docs/data/walkthrough_contracts.json`` and ``docs/img/walkthrough_contracts.png``.
+
+Per sample scene (``cornell_animated``, ``static_room``):
+
+1. calibrate as the service does (``workers.jobs.calibrate_walkthrough.calibrate_walkthrough``,
+   default parameters: 3 probe frames of 64 px looking the way the scene camera looks), with the
+   shipped presets named by ``--presets`` baked in-process (the bakes' wall time is their cost);
+2. held-out frames: the accuracy benchmark's camera path (``bench.walkthrough_accuracy``, eyes along
+   the view space looking ahead or at the action, so directions the probes never had) at
+   ``--width`` x ``--height``, each with a converged frame (``engine.walkthrough.ground_truth``);
+3. an exhaustive grid: every setting (preset x fill) rendered on every held-out frame, its LRMS
+   against the converged frame and its render time (median of three);
+4. contracts: error targets and per-frame time budgets over the range the settings span, each
+   planned as the service plans (``engine.walkthrough.quality.plan_walkthrough``: every bake
+   stored, the service's margins) and checked on every held-out frame from the grid: a frame meets
+   its contract when its measured error is at most ``max_error`` and its render time at most
+   ``max_ms``; a walkthrough meets it when every frame does. The cost of a plan is its frame time
+   against the fastest setting that met the same target on that frame.
+
+Times are wall-clock on this machine (2 cores shared with other work): compare within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from api_schemas.walkthrough import WalkthroughCalibrationParams
+from bench.docs_writer import replace_block
+from bench.walkthrough_accuracy import load, walkthrough_cameras
+from engine.metrics import lrms
+from engine.reference import ReferenceRenderer
+from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
+from engine.walkthrough.ground_truth import converged_frame
+from engine.walkthrough.quality import WalkthroughModel, plan_walkthrough
+from producer.settings import Settings
+from workers.jobs.calibrate_walkthrough import calibrate_walkthrough
+from workers.scene_loader import camera_params
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "accuracy" / "walkthrough_contracts.md"
+DATA = ROOT / "docs" / "data" / "walkthrough_contracts.json"
+PLOT = ROOT / "docs" / "img" / "walkthrough_contracts.png"
+SCENES = ("cornell_animated", "static_room")
+ERROR_TARGETS = (0.05, 0.08, 0.10, 0.12, 0.15, 0.18, 0.20, 0.25, 0.30, 0.40)
+TIME_BUDGETS_MS = (1.0, 2.0, 3.0, 5.0, 8.0, 12.0, 20.0, 50.0)
+TRUTH_SEED = 31_337
+
+
+def _scene_camera(name: str) -> Any:
+    from api_schemas.scene import load_scene_file
+
+    return camera_params(load_scene_file(ROOT / "samples" / "scenes" / f"{name}.json").camera)
+
+
+def _grid(bakes: dict[str, WalkthroughBake], an: Any, fills: list[str], cams: list[Any], times: np.ndarray,
+          truths: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, list[dict[str, float]]]:
+    out: dict[str, list[dict[str, float]]] = {}
+    for preset, bake in bakes.items():
+        for fill in fills:
+            wr = WalkthroughRenderer(bake, an if fill == "trace" else None)
+            wr.render(cams[0], float(times[0]), fill=fill, strict=False)  # warm-up, untimed
+            rows = []
+            for cam, t, (gt, mask) in zip(cams, times, truths, strict=True):
+                ms = []
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    img = wr.render(cam, float(t), fill=fill, strict=False).radiance
+                    ms.append(1000.0 * (time.perf_counter() - t0))
+                rows.append({"error": float(lrms(img, gt, mask)), "ms": float(np.median(ms))})
+            out[f"{preset}/{fill}"] = rows
+    return out
+
+
+def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]], pixels: int, frames: int,
+               settings: Settings) -> list[dict[str, Any]]:
+    ready = set(model.bake_keys)
+    asks: list[dict[str, float | None]] = [{"max_error": e, "max_ms": None} for e in ERROR_TARGETS]
+    asks += [{"max_error": None, "max_ms": t} for t in TIME_BUDGETS_MS]
+    asks += [{"max_error": e, "max_ms": t} for e in (0.12, 0.2, 0.3) for t in (3.0, 10.0)]
+    out = []
+    for ask in asks:
+        p = plan_walkthrough(model, pixels, frames, max_error=ask["max_error"], max_ms=ask["max_ms"],
+                             bakes_ready=ready, flat_margin=settings.contract_error_margin,
+                             time_margin=settings.contract_time_margin)
+        row: dict[str, Any] = {**ask, "planned": p.choice.name if p.choice else None, "rule": p.rule,
+                               "predicted_error": p.choice.error if p.choice else None,
+                               "predicted_ms": p.choice.frame_ms if p.choice else None, "frames": []}
+        for i in range(frames):
+            def meets(r: dict[str, float], ask: dict[str, float | None] = ask) -> bool:
+                return ((ask["max_error"] is None or r["error"] <= ask["max_error"])
+                        and (ask["max_ms"] is None or r["ms"] <= ask["max_ms"]))
+
+            meeting = [(grid[k][i]["ms"], k) for k in grid if meets(grid[k][i])]
+            cheapest = min(meeting) if meeting else None
+            f: dict[str, Any] = {"feasible": cheapest is not None,
+                                 "cheapest": cheapest[1] if cheapest else None}
+            if p.choice is not None:
+                got = grid[p.choice.name][i]
+                f.update(error=got["error"], ms=got["ms"], met=meets(got),
+                         cost_ratio=got["ms"] / cheapest[0] if cheapest and ask["max_error"] is not None else None)
+            row["frames"].append(f)
+        out.append(row)
+    return out
+
+
+def run_scene(name: str, presets: list[str], fills: list[str], args: argparse.Namespace) -> dict[str, Any]:
+    an, space = load(name)
+    cam = _scene_camera(name)
+    bakes: dict[str, WalkthroughBake] = {}
+    bake_s: dict[str, float] = {}
+
+    def bake_for(preset: str, progress: Any) -> tuple[WalkthroughBake, str, float]:
+        t0 = time.perf_counter()
+        bakes[preset] = bake_walkthrough(an, space, walkthrough_preset(preset), progress=progress)
+        bake_s[preset] = time.perf_counter() - t0
+        print(f"[{name}] bake {preset}: {bake_s[preset]:.1f} s", flush=True)
+        return bakes[preset], preset, bake_s[preset]
+
+    params = WalkthroughCalibrationParams(presets=presets, fills=fills)  # type: ignore[arg-type]
+    t0 = time.perf_counter()
+    model = calibrate_walkthrough(an, space, cam, bake_for, params=params)
+    calib_s = time.perf_counter() - t0
+    print(f"[{name}] calibration {calib_s:.1f} s: "
+          + ", ".join(f"{k} {f.error:.3f} (margin {f.margin:.2f})" for k, f in model.fits.items()), flush=True)
+    cams, times = walkthrough_cameras(name, args.frames, args.width, args.height)
+    truths, truth_s = [], []
+    for i, (c, t) in enumerate(zip(cams, times, strict=True)):
+        img, _, mask, st = converged_frame(ReferenceRenderer(an.scene_at(float(t))), c, i, TRUTH_SEED, args.truth_noise,
+                                        walkthrough_preset(presets[0]).indirect_bounces)
+        truths.append((img, mask))
+        truth_s.append(st["seconds"])
+    print(f"[{name}] {len(cams)} converged frames, {np.mean(truth_s):.1f} s each", flush=True)
+    grid = _grid(bakes, an, fills, cams, times, truths)
+    contracts = _contracts(model, grid, args.width * args.height, len(cams), Settings())
+    return {"model": model.to_json(), "calibration_s": calib_s, "bake_s": bake_s,
+            "truth_s_per_frame": float(np.mean(truth_s)), "grid": grid, "contracts": contracts,
+            "frames": len(cams), "width": args.width, "height": args.height}
+
+
+def _summary(res: dict[str, Any]) -> dict[str, Any]:
+    frames = [f for c in res["contracts"] if c["planned"] for f in c["frames"]]
+    walks = [c for c in res["contracts"] if c["planned"]]
+    ratios = [f["cost_ratio"] for f in frames if f.get("cost_ratio") is not None and f["met"]]
+    return {"requests": len(res["contracts"]), "planned": len(walks),
+            "refused": len(res["contracts"]) - len(walks),
+            "refused_feasible": sum(1 for c in res["contracts"] if not c["planned"]
+                                    and any(f["feasible"] for f in c["frames"])),
+            "frames_met": sum(f["met"] for f in frames) / max(1, len(frames)),
+            "walkthroughs_met": sum(all(f["met"] for f in c["frames"]) for c in walks) / max(1, len(walks)),
+            "cost_median": float(np.median(ratios)) if ratios else math.nan,
+            "cost_p90": float(np.percentile(ratios, 90)) if ratios else math.nan}
+
+
+def _doc(data: dict[str, Any]) -> str:
+    lines = [f"Run: `python -m bench.walkthrough_contracts --presets {','.join(data['presets'])}` "
+             f"({data['machine']}; {data['seconds'] / 60:.0f} min). Presets {', '.join(data['presets'])} "
+             f"(shipped sizes), fills {', '.join(data['fills'])}; held-out frames {data['width']} x "
+             f"{data['height']}, converged to a relative standard error of {data['truth_noise']}.", ""]
+    lines += ["| scene | calibration (s) | of which bakes (s) | requests | planned | refused (a setting met it) "
+              "| frames met | walkthroughs met | cost median / p90 |", "|---|---|---|---|---|---|---|---|---|"]
+    for name, res in data["scenes"].items():
+        s = _summary(res)
+        lines.append(f"| {name} | {res['calibration_s']:.0f} | {sum(res['bake_s'].values()):.0f} | {s['requests']} "
+                     f"| {s['planned']} | {s['refused']} ({s['refused_feasible']}) | {100 * s['frames_met']:.1f} % "
+                     f"| {100 * s['walkthroughs_met']:.0f} % | {s['cost_median']:.2f}x / {s['cost_p90']:.2f}x |")
+    for name, res in data["scenes"].items():
+        lines += ["", f"### {name}", "", "| setting | predicted LRMS (margin) | held-out LRMS mean / max "
+                  "| predicted ms / frame | held-out ms / frame (median) |", "|---|---|---|---|---|"]
+        fits = res["model"]["fits"]
+        for k, rows in res["grid"].items():
+            f = fits[k]
+            pred_ms = f["b_ms"] + f["c_ms"] * res["width"] * res["height"]
+            errs = [r["error"] for r in rows]
+            lines.append(f"| {k} | {f['error']:.3f} ({f['margin']:.2f}) | {np.mean(errs):.3f} / {max(errs):.3f} "
+                         f"| {pred_ms:.1f} | {np.median([r['ms'] for r in rows]):.1f} |")
+        lines += ["", "| max_error | max_ms | planned | frames met | reason it missed |", "|---|---|---|---|---|"]
+        for c in res["contracts"]:
+            met = sum(f.get("met", False) for f in c["frames"])
+            miss = sorted({("error" if c["max_error"] is not None and f["error"] > c["max_error"] else "time")
+                           for f in c["frames"] if c["planned"] and not f["met"]})
+            lines.append(f"| {c['max_error'] if c['max_error'] is not None else '-'} | "
+                         f"{c['max_ms'] if c['max_ms'] is not None else '-'} | {c['planned'] or 'refused'} | "
+                         f"{met}/{len(c['frames']) if c['planned'] else 0} | {', '.join(miss)} |")
+    lines += ["", "![predicted against held-out error](../img/walkthrough_contracts.png)"]
+    return "\n".join(lines)
+
+
+def _plot(data: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for name, res in data["scenes"].items():
+        for k, rows in res["grid"].items():
+            pred = res["model"]["fits"][k]["error"]
+            ax.scatter([pred] * len(rows), [r["error"] for r in rows], s=12, label=f"{name} {k}")
+    lim = ax.get_xlim()[1]
+    ax.plot([0, lim], [0, lim], color="grey", lw=1, ls=":")
+    ax.set_xlabel("predicted LRMS (calibration's worst probe)")
+    ax.set_ylabel("held-out frame LRMS")
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    PLOT.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(PLOT, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", choices=SCENES)
+    ap.add_argument("--presets", default="low,medium")
+    ap.add_argument("--fills", default="both,trace")
+    ap.add_argument("--frames", type=int, default=8)
+    ap.add_argument("--width", type=int, default=96)
+    ap.add_argument("--height", type=int, default=72)
+    ap.add_argument("--truth-noise", type=float, default=0.01)
+    ap.add_argument("--no-doc", action="store_true")
+    args = ap.parse_args()
+    presets, fills = args.presets.split(","), args.fills.split(",")
+    data: dict[str, Any] = {"presets": presets, "fills": fills, "width": args.width, "height": args.height,
+                            "truth_noise": args.truth_noise, "machine": f"{platform.machine()}, "
+                            f"{platform.python_version()}", "scenes": {}}
+    if args.scene and DATA.exists():
+        old = json.loads(DATA.read_text())
+        if old.get("presets") == presets and old.get("fills") == fills:
+            data["scenes"] = old.get("scenes", {})
+    t0 = time.perf_counter()
+    for name in (args.scene,) if args.scene else SCENES:
+        data["scenes"][name] = run_scene(name, presets, fills, args)
+        print(json.dumps({name: _summary(data["scenes"][name])}), flush=True)
+    data["seconds"] = time.perf_counter() - t0
+    if args.no_doc:
+        return
+    DATA.parent.mkdir(parents=True, exist_ok=True)
+    DATA.write_text(json.dumps(data, indent=1))
+    _plot(data)
+    replace_block(DOC, "walkthrough_contracts", _doc(data), title="Walkthrough quality contracts")
+
+
+if __name__ == "__main__":
+    main()
