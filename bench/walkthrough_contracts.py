@@ -40,6 +40,7 @@ import numpy as np
 from api_schemas.walkthrough import WalkthroughCalibrationParams
 from bench.docs_writer import replace_block
 from bench.walkthrough_accuracy import load, walkthrough_cameras
+from engine import ENGINE_VERSION
 from engine.metrics import lrms
 from engine.reference import ReferenceRenderer
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
@@ -123,10 +124,20 @@ def run_scene(name: str, presets: list[str], fills: list[str], args: argparse.Na
     bake_s: dict[str, float] = {}
 
     def bake_for(preset: str, progress: Any) -> tuple[WalkthroughBake, str, float]:
-        t0 = time.perf_counter()
-        bakes[preset] = bake_walkthrough(an, space, walkthrough_preset(preset), progress=progress)
-        bake_s[preset] = time.perf_counter() - t0
-        print(f"[{name}] bake {preset}: {bake_s[preset]:.1f} s", flush=True)
+        cached = None if args.bake_cache is None else Path(args.bake_cache) / f"{name}_{preset}_{ENGINE_VERSION}.npz"
+        reused = cached is not None and cached.exists()
+        if cached is not None and reused:  # the bake and the wall time it took when it was made
+            bakes[preset] = WalkthroughBake.load(cached)
+            bake_s[preset] = float(json.loads(cached.with_suffix(".json").read_text())["seconds"])
+        else:
+            t0 = time.perf_counter()
+            bakes[preset] = bake_walkthrough(an, space, walkthrough_preset(preset), progress=progress)
+            bake_s[preset] = time.perf_counter() - t0
+            if cached is not None:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                bakes[preset].save(cached)
+                cached.with_suffix(".json").write_text(json.dumps({"seconds": bake_s[preset]}))
+        print(f"[{name}] bake {preset}: {bake_s[preset]:.1f} s{' (from the bake cache)' if reused else ''}", flush=True)
         return bakes[preset], preset, bake_s[preset]
 
     params = WalkthroughCalibrationParams(presets=presets, fills=fills)  # type: ignore[arg-type]
@@ -165,8 +176,10 @@ def _summary(res: dict[str, Any]) -> dict[str, Any]:
 
 
 def _doc(data: dict[str, Any]) -> str:
+    replanned = (" Contracts planned again from these measurements with the current rules "
+                 "(`--replan`).") if data.get("replanned") else ""
     lines = [f"Run: `python -m bench.walkthrough_contracts --presets {','.join(data['presets'])}` "
-             f"({data['machine']}; {data['seconds'] / 60:.0f} min). Presets {', '.join(data['presets'])} "
+             f"({data['machine']}; {data['seconds'] / 60:.0f} min).{replanned} Presets {', '.join(data['presets'])} "
              f"(shipped sizes), fills {', '.join(data['fills'])}; held-out frames {data['width']} x "
              f"{data['height']}, converged to a relative standard error of {data['truth_noise']}.", ""]
     lines += ["| scene | calibration (s) | of which bakes (s) | requests | planned | refused (a setting met it) "
@@ -228,8 +241,22 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=96)
     ap.add_argument("--height", type=int, default=72)
     ap.add_argument("--truth-noise", type=float, default=0.01)
+    ap.add_argument("--bake-cache", help="keep the bakes (and their measured bake time) in this directory between "
+                                         "runs: a rerun then measures the calibration's rendering, not the bakes")
+    ap.add_argument("--replan", action="store_true",
+                    help="plan the contracts again from the saved models and grids (docs/data), rendering nothing: "
+                         "for a change of the planner's rules")
     ap.add_argument("--no-doc", action="store_true")
     args = ap.parse_args()
+    if args.replan:
+        data = json.loads(DATA.read_text())
+        for res in data["scenes"].values():
+            model = WalkthroughModel.from_json(res["model"])
+            res["contracts"] = _contracts(model, res["grid"], res["width"] * res["height"], res["frames"], Settings())
+        data["replanned"] = True
+        DATA.write_text(json.dumps(data, indent=1))
+        replace_block(DOC, "walkthrough_contracts", _doc(data), title="Walkthrough quality contracts")
+        return
     presets, fills = args.presets.split(","), args.fills.split(",")
     data: dict[str, Any] = {"presets": presets, "fills": fills, "width": args.width, "height": args.height,
                             "truth_noise": args.truth_noise, "machine": f"{platform.machine()}, "

@@ -65,6 +65,7 @@ __all__ = [
     "model_path",
     "plan_render",
     "read_calibration",
+    "read_json_object",
     "read_served",
     "read_verification",
     "record_served",
@@ -87,11 +88,11 @@ def model_path(scene_id: str, bkey: str) -> str:
 
 def read_calibration(store: ObjectStore, scene_id: str, bkey: str) -> dict[str, Any] | None:
     """The stored calibration document ``{"key", "params", "model"}`` of a scene's bake, or None."""
-    doc = _read_json(store, model_path(scene_id, bkey))
+    doc = read_json_object(store, model_path(scene_id, bkey))
     return doc if doc is not None and doc.get("model", {}).get("engine_version") == ENGINE_VERSION else None
 
 
-def _read_json(store: ObjectStore, key: str) -> dict[str, Any] | None:
+def read_json_object(store: ObjectStore, key: str) -> dict[str, Any] | None:
     """The JSON object stored at ``key``; None when there is none."""
     try:
         doc = json.loads(store.get_bytes(key))
@@ -174,7 +175,7 @@ def read_served(store: ObjectStore, scene_id: str, bkey: str, key: str) -> dict[
     ``{"time": {setting: {"log", "n"}}, "error": {...}}`` (``engine.quality.fold_observation``);
     empty when there are none or they were measured against another calibration (a new one starts
     afresh)."""
-    doc = _read_json(store, served_path(scene_id, bkey))
+    doc = read_json_object(store, served_path(scene_id, bkey))
     if doc is None or doc.get("key") != key or doc.get("engine_version") != ENGINE_VERSION:
         return {}
     return {k: doc.get(k) or {} for k in ("time", "error")}
@@ -336,7 +337,7 @@ def verification_path(scene_id: str, key: str) -> str:
 
 def read_verification(store: ObjectStore, scene_id: str, key: str) -> dict[str, Any] | None:
     """The stored measurement of artifact ``key`` (the verification job's result), or None."""
-    doc = _read_json(store, verification_path(scene_id, key))
+    doc = read_json_object(store, verification_path(scene_id, key))
     return doc if doc is not None and doc.get("engine_version") == ENGINE_VERSION else None
 
 

@@ -36,6 +36,7 @@ from api_schemas.walkthrough import (
 from engine import ENGINE_VERSION
 from engine.walkthrough.quality import WalkthroughModel, plan_walkthrough
 from producer.artifacts import artifact_key, read_manifest
+from producer.calibrations import read_json_object
 from producer.enqueue import enqueue_unique
 from producer.errors import ContractUnmet, UnknownScene, WalkthroughCalibrationMissing
 from producer.names import CALIBRATE_WALKTHROUGH_JOB, calibrate_walkthrough_job_id
@@ -67,18 +68,10 @@ def walkthrough_calibration_path(scene_id: str) -> str:
     return f"calibrations/{scene_id}/walkthrough.json"
 
 
-def _read_json(store: ObjectStore, key: str) -> dict[str, Any] | None:
-    try:
-        doc = json.loads(store.get_bytes(key))
-    except NotFound:
-        return None
-    return doc if isinstance(doc, dict) else None
-
-
 def read_walkthrough_calibration(store: ObjectStore, scene_id: str) -> dict[str, Any] | None:
     """The stored walkthrough calibration ``{"key", "params", "model"}`` of a scene (of this engine
     version), or None."""
-    doc = _read_json(store, walkthrough_calibration_path(scene_id))
+    doc = read_json_object(store, walkthrough_calibration_path(scene_id))
     return doc if doc is not None and doc.get("model", {}).get("engine_version") == ENGINE_VERSION else None
 
 

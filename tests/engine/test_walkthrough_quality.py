@@ -83,10 +83,17 @@ def test_unmeetable_targets_say_why_and_best_effort_marks_them() -> None:
     assert p.choice.name == "high/both" and p.unmet == ("max_error",)
 
 
-def test_the_margin_is_dropped_only_when_nothing_keeps_it() -> None:
+def test_a_plan_without_the_safety_margin_is_best_effort_only() -> None:
     m = _model(fits={"high/both": _fit("high/both", 0.095, 4.0, 4e-5, margin=0.9)})
     p = plan_walkthrough(m, PX, 10, max_error=0.1, bakes_ready=ALL)  # 0.095 > 0.1 x 0.9, but <= 0.1
-    assert p.met and p.planned_for == {"max_error": 0.1} and "not with the safety margin" in p.reason
+    assert p.choice is None and p.unmet == ("max_error",)
+    assert "high/both" in p.reason and "not with the safety margin" in p.reason and "error x 0.9" in p.reason
+    p = plan_walkthrough(m, PX, 10, max_error=0.1, best_effort=True, bakes_ready=ALL)
+    assert p.met and p.choice is not None and p.planned_for == {"max_error": 0.1}
+    assert "not with the safety margin" in p.reason
+    # a time budget kept only without its margin (7.1 ms > 8 x 0.7)
+    p = plan_walkthrough(m, PX, 10, max_ms=8.0, time_margin=0.7, bakes_ready=ALL)
+    assert p.choice is None and p.unmet == ("max_ms",)
     flat = _model(fits={"high/both": _fit("high/both", 0.095, 4.0, 4e-5, margin=None)})
     p = plan_walkthrough(flat, PX, 10, max_error=0.12, flat_margin=0.85, bakes_ready=ALL)
     assert p.planned_for == {"max_error": pytest.approx(0.102)}
@@ -136,3 +143,14 @@ def test_probe_times_cover_the_animation() -> None:
     assert probe_times(1.0, 1.0, 2) == [1.0, 1.0]
     with pytest.raises(ValueError):
         probe_times(2.0, 1.0, 2)
+
+
+def test_the_frame_time_is_planned_for_the_slowest_probe_frame() -> None:
+    from engine.walkthrough.quality import fit_setting
+
+    points = [{"error": 0.1, "pixels": 4096, "ms": ms} for ms in (4.0, 5.0, 9.0)]
+    points.append({"error": None, "pixels": 65536, "ms": 20.0})
+    fit = fit_setting("low", "both", points, 0.0)
+    assert fit.key == "low/both" and fit.error == pytest.approx(0.1)
+    assert all(fit.ms_at(p["pixels"], None) >= p["ms"] - 1e-9 for p in points)
+    assert fit.ms_at(4096, None) == pytest.approx(9.0, rel=0.05)  # the slowest probe, not the middle one
