@@ -365,6 +365,8 @@ def render(
              "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
     if verify and not contract:
         fail("--verify measures a quality contract's render: give --quality-error and / or --quality-ms")
+    if best_effort and not contract:
+        fail("--best-effort applies to a quality contract: give --quality-error and / or --quality-ms")
     if method is None and not contract:
         method = "reference"
     if at_time is not None and (contract or method not in (None, "reference")):

@@ -129,6 +129,8 @@ def test_walkthrough_contract_options_refuse_the_settings_they_choose(tmp_path):
             assert "let the planner choose the bake preset and the fill: leave out " + flag in r.stderr
     r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), "--best-effort"], env=env)
     assert r.exit_code == 2 and "--best-effort applies to a quality contract" in r.stderr
+    r = runner.invoke(app, ["render", sid, "--method", "reference", "--best-effort"], env=env)
+    assert r.exit_code == 2 and "--best-effort applies to a quality contract" in r.stderr  # the same for a render
     # a path file's own contract refuses them too
     r = runner.invoke(app, ["walkthrough", sid, "--path", str(_path_file(tmp_path, quality={"max_error": 0.1})),
                             "--fill", "both"], env=env)
