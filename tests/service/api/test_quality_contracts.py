@@ -18,7 +18,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api_schemas.service import BakeParams, RenderRequest
-from engine.quality import AdaptiveFit, CandidateFit, SceneModel
+from engine.quality import AdaptiveFit, CandidateFit, SceneModel, correction_key
 from producer.bakes import bake_key
 from producer.calibrations import (
     calibration_key,
@@ -312,7 +312,8 @@ def test_calibrate_then_render_by_error_target(client: TestClient, worker_proces
     # the worker folded the render's time into the calibration's corrections (achieved over predicted)
     served = read_served(open_store(f"file://{store_dir}"), sid, con["calibration"]["bake_key"],
                          con["calibration"]["key"])
-    entry = served["time"][con["method"]]
+    # keyed by the setting: an antialiased LDC view (``ldc@2x2``) when the plan chose one
+    entry = served["time"][correction_key(con["method"], con["params"], con["view"])]
     assert entry["n"] == 1 and entry["log"] == pytest.approx(math.log(con["achieved_ms"] / con["predicted_ms"]))
     # the same contract again: the cached artifact, the same plan
     r2 = client.post("/v1/renders", json={"scene_id": sid, "bake": BAKE, "quality": {"max_error": target},
