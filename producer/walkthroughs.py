@@ -52,6 +52,7 @@ from producer.store import NotFound, ObjectStore
 
 __all__ = [
     "WALKTHROUGH_MAX_BAKE_BYTES",
+    "bake_bound_errors",
     "chunk_key",
     "contract_key",
     "chunks",
@@ -117,17 +118,23 @@ def read_request(store: ObjectStore, wkey: str) -> WalkthroughRequest | None:
     return WalkthroughRequest.model_validate_json(data)
 
 
+def bake_bound_errors(settings: WalkthroughSettings, field: str = "bake.face_res") -> list[FieldError]:
+    """A bake whose base images can exceed :data:`WALKTHROUGH_MAX_BAKE_BYTES`, named at ``field``
+    (a walkthrough's ``bake.face_res``, a calibration's preset); empty when it fits."""
+    need = settings.upper_bound_bytes()
+    if need <= WALKTHROUGH_MAX_BAKE_BYTES:
+        return []
+    return [FieldError(
+        field=field, type="bake_too_large",
+        message=f"up to {need / 2**30:.1f} GiB of base images (max_views x max_time_samples x 6 x face_res^2 x "
+                f"32 bytes) exceeds this server's limit of {WALKTHROUGH_MAX_BAKE_BYTES / 2**30:.0f} GiB; lower "
+                f"face_res, max_views or max_time_samples")]
+
+
 def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldError]:
     """Problems of the request that need the scene: no view space, an eye outside it, a time
     outside the animation. Each names the field and the allowed range."""
-    errors: list[FieldError] = []
-    need = req.bake.upper_bound_bytes()
-    if need > WALKTHROUGH_MAX_BAKE_BYTES:
-        errors.append(FieldError(
-            field="bake.face_res", type="bake_too_large",
-            message=f"up to {need / 2**30:.1f} GiB of base images (max_views x max_time_samples x 6 x face_res^2 x "
-                    f"32 bytes) exceeds this server's limit of {WALKTHROUGH_MAX_BAKE_BYTES / 2**30:.0f} GiB; lower "
-                    f"face_res, max_views or max_time_samples"))
+    errors = bake_bound_errors(req.bake)
     vs = scene.view_space
     if vs is None:
         return errors + [FieldError(field="scene_id", type="no_view_space",

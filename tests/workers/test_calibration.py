@@ -170,6 +170,6 @@ def test_an_ldc_view_is_timed_by_the_median_of_its_renders(monkeypatch: pytest.M
 
     monkeypatch.setattr("workers.jobs.calibrate.time.perf_counter", perf_counter)
     assert calibrate.LDC_REPEATS == 3
-    out, ms = calibrate._timed_typical(render, "first")
+    out, ms = calibrate.timed_median(render, "first")
     assert out == "first"
     assert ms == pytest.approx(4.0)

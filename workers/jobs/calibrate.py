@@ -73,7 +73,7 @@ from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
 __all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene",
-           "probe_cameras", "probe_reference_params", "turned_camera", "view_pivot"]
+           "probe_cameras", "probe_reference_params", "timed_median", "turned_camera", "view_pivot"]
 
 PROBE_STEP_DEG = 8.0
 """Probe views turn the scene's camera by multiples of this angle (+8, -8, +16, -16, ...): near the
@@ -153,7 +153,9 @@ fastest: the model predicts what a served render takes, and the fastest of three
 box's LDC views at 0.68-0.71x the time served renders then took (docs/accuracy/contracts.md)."""
 
 
-def _timed_typical(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+def timed_median(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)``'s first output and the median of :data:`LDC_REPEATS` timings of it, in ms (the
+    renders that take milliseconds: LDC views, walkthrough frames)."""
     runs = [_timed(fn, *args) for _ in range(LDC_REPEATS)]
     return runs[0][0], float(np.median([ms for _, ms in runs]))
 
@@ -237,7 +239,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
             done += 1
             report(done / steps, f"reference {spp} spp")
         for name, m, ss in variants:
-            out, ms = _timed_typical(render_ldc, cam, m, ss)
+            out, ms = timed_median(render_ldc, cam, m, ss)
             cost["ldc"] += ms / 1000
             ldc_points[name].append({"pixels": px, "ms": ms, "error": _error(out.radiance, truth.radiance, mask),
                                      "probe": probe})
@@ -245,7 +247,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
             report(done / steps, name)
     big = turned_camera(camera, PROBE_STEP_DEG, params.size * params.time_scale, pivot)
     for name, m, ss in variants:
-        _, ms = _timed_typical(render_ldc, big, m, ss)
+        _, ms = timed_median(render_ldc, big, m, ss)
         cost["ldc"] += ms / 1000
         ldc_points[name].append({"pixels": big.width * big.height, "ms": ms, "error": None, "probe": 0})
         done += 1

@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from datetime import UTC, datetime
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -50,17 +51,16 @@ from producer.artifacts import read_manifest
 from producer.payloads import InvalidPayload, WalkthroughCalibrateJobPayload, describe_validation_error
 from producer.walkthrough_calibrations import walkthrough_calibration_key, write_walkthrough_calibration
 from producer.walkthroughs import walkthrough_bake_key
+from workers.jobs.calibrate import timed_median
 from workers.jobs.common import ProgressReporter, json_safe, worker_store
 from workers.jobs.walkthrough import engine_space, load_stored_bake, load_walkthrough_scene, make_walkthrough_bake
 from workers.scene_loader import camera_params
 
-__all__ = ["HEADINGS", "TIMING_REPEATS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job",
+__all__ = ["HEADINGS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job",
            "probe_views", "roomiest_heading"]
 
 TRUTH_SEED = 7_919
 """Seed of the converged frames (the bases render with the service's default seed 0)."""
-TIMING_REPEATS = 3
-"""A frame renders in milliseconds: each is timed this many times and the median kept."""
 
 BakeSource = Callable[[str, Callable[[float, str], None]], tuple[WalkthroughBake, str, float]]
 """``(preset, progress) -> (bake, its artifact key, its cost in seconds)``."""
@@ -124,16 +124,6 @@ def roomiest_heading(camera: CameraParams, eye: np.ndarray, intersect: Callable[
     return out
 
 
-def _timed_median(wr: WalkthroughRenderer, cam: CameraParams, t: float, fill: str) -> tuple[Any, float]:
-    """The frame and the median of :data:`TIMING_REPEATS` timings of its render, in ms."""
-    runs = []
-    for _ in range(TIMING_REPEATS):
-        t0 = time.perf_counter()
-        out = wr.render(cam, t, fill=fill, strict=False)
-        runs.append((out, 1000.0 * (time.perf_counter() - t0)))
-    return runs[0][0], float(np.median([ms for _, ms in runs]))
-
-
 def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, bake_for: BakeSource, *,
                           params: WalkthroughCalibrationParams, scene_id: str = "0" * 64,
                           progress: Callable[[float, str], None] | None = None) -> WalkthroughModel:
@@ -141,20 +131,23 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
     t_start = time.perf_counter()
     report = progress or (lambda f, s: None)
     eye_times = probe_times(an.start, an.end, params.probes) if not an.is_static else [an.start] * params.probes
-    cams, times = [], []
+    cams: list[CameraParams] = []
+    times: list[float] = []
+    renderers: list[ReferenceRenderer] = []  # per probe frame: its eye's (one scene and BVH per eye)
     for e, t in zip(probe_eyes(space, params.probes), eye_times, strict=True):
-        views = probe_views(camera, e, params.size, ReferenceRenderer(an.scene_at(t)).caster.intersect)
+        rr = ReferenceRenderer(an.scene_at(t))
+        views = probe_views(camera, e, params.size, rr.caster.intersect)
         cams += views
         times += [t] * len(views)
+        renderers += [rr] * len(views)
     bounces = walkthrough_preset(params.presets[0]).indirect_bounces
     n_steps = len(cams) + len(params.presets)
     truths: list[tuple[np.ndarray, np.ndarray]] = []
     truth_stats: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
+    for i, (cam, rr) in enumerate(zip(cams, renderers, strict=True)):
         report(i / n_steps, f"converged probe frame {i + 1} of {len(cams)}")
-        img, _, mask, st = converged_frame(ReferenceRenderer(an.scene_at(t)), cam, i, TRUTH_SEED, params.truth_noise,
-                                        bounces)
+        img, _, mask, st = converged_frame(rr, cam, i, TRUTH_SEED, params.truth_noise, bounces)
         truths.append((img, mask))
         truth_stats.append(st)
     truth_s = time.perf_counter() - t0
@@ -185,11 +178,11 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
             wr.render(tiny, times[0], fill=fill, strict=False)  # untimed: compilation, lazy set-up
             points: list[dict[str, Any]] = []
             for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
-                fr, ms = _timed_median(wr, cam, t, fill)
+                fr, ms = timed_median(partial(wr.render, fill=fill, strict=False), cam, t)
                 img, mask = truths[i]
                 points.append({"error": float(lrms(fr.radiance, img, mask if mask.any() else None)),
                                "pixels": cam.width * cam.height, "ms": ms, "probe": i})
-            _, ms = _timed_median(wr, big, times[0], fill)
+            _, ms = timed_median(partial(wr.render, fill=fill, strict=False), big, times[0])
             points.append({"error": None, "pixels": big.width * big.height, "ms": ms, "probe": 0})
             fit = fit_setting(preset, fill, points, truth_noise)
             fits[fit.key] = fit

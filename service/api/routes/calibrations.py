@@ -22,8 +22,6 @@ from api_schemas.service import CalibrationPublic, CalibrationRequest, Sha256
 from api_schemas.walkthrough import (
     WalkthroughCalibrationPublic,
     WalkthroughCalibrationRequest,
-    WalkthroughFrame,
-    WalkthroughRequest,
     WalkthroughSettings,
 )
 from producer.calibrations import calibration_status, enqueue_calibration, read_calibration
@@ -35,7 +33,7 @@ from producer.walkthrough_calibrations import (
     read_walkthrough_calibration,
     walkthrough_calibration_status,
 )
-from producer.walkthroughs import check_against_scene
+from producer.walkthroughs import bake_bound_errors
 from service.api.deps import OwnerDep, RedisDep, SettingsDep, StoreDep, scene_visible
 from service.api.errors import ValidationProblem, problem_responses
 from service.api.routes.bakes import check_bake_cost
@@ -127,13 +125,9 @@ def _walkthrough_request(redis: Any, store: Any, scene_id: str, req: Walkthrough
                                             message="the scene has no view_space; add one (docs/scene-format.md) "
                                                     "to walk through it")])
     # each preset's bake must fit this server, as a walkthrough naming it must
-    errors: list[FieldError] = []
-    frame = WalkthroughFrame(camera=scene.camera, time=scene.animation.start if scene.animation else 0.0)
-    for i, preset in enumerate(req.params.presets):
-        probe = WalkthroughRequest.model_construct(scene_id=scene_id, bake=WalkthroughSettings(quality=preset),
-                                                   frames=[frame], fill="both")
-        errors += [FieldError(field=f"params.presets.{i}", message=e["message"], type=e["type"])
-                   for e in check_against_scene(scene, probe) if e["type"] == "bake_too_large"]
+    errors = [e for i, preset in enumerate(req.params.presets)
+              for e in bake_bound_errors(WalkthroughSettings.model_validate({"quality": preset}),
+                                         f"params.presets.{i}")]
     if errors:
         raise ValidationProblem(errors)
     key, job = enqueue_walkthrough_calibration(redis, store, scene_id, req, owner)
