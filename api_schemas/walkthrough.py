@@ -22,7 +22,9 @@ __all__ = [
     "INDIRECT_MAX_PATHS_RANGE",
     "INDIRECT_NOISE_RANGE",
     "MAX_WALKTHROUGH_FRAMES",
+    "PATH_NOISE_RANGE",
     "PRESET_SIZES",
+    "PathTracedFrames",
     "WalkthroughCalibrationParams",
     "WalkthroughCalibrationPublic",
     "WalkthroughCalibrationRequest",
@@ -47,6 +49,8 @@ PRESET_SIZES: dict[str, dict[str, int]] = {
 bounds a bake's memory with them before anything is queued."""
 BYTES_PER_BASE_PIXEL = 2 * 12 + 4 + 4
 """direct + indirect (float32 RGB), depth (float32), object id (int32) per cube pixel and time."""
+PATH_NOISE_RANGE = (0.005, 0.5)
+"""Allowed ``path_traced.noise`` (and calibrated ``path_noises``)."""
 Quality = Literal["low", "medium", "high"]
 Fill = Literal["none", "foreground", "background", "both", "trace"]
 
@@ -107,6 +111,19 @@ class WalkthroughSettings(FrozenModel):
         return out
 
 
+class PathTracedFrames(FrozenModel):
+    """Every frame path-traced instead of reconstructed from a bake (docs/walkthrough.md,
+    "Path-traced frames"): no bake to wait for, each frame costs what a reference render of it
+    costs. The image model is the bases': one sample at each pixel centre, direct light plus
+    indirect light of the preset's bounces."""
+
+    noise: Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]
+    """Target relative standard error of each pixel's indirect light against the frame's mean
+    brightness (each pixel traces paths until it reaches it, or 4,096 paths)."""
+    seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1)] = 0
+    """Sampler seed (equal seeds give identical frames)."""
+
+
 class WalkthroughRequest(FrozenModel):
     """Render a camera path through a stored scene from image-based walkthrough bases."""
 
@@ -116,6 +133,9 @@ class WalkthroughRequest(FrozenModel):
     """Bake settings (quality preset)."""
     fill: Fill = "both"
     """Hole fill of the reconstruction: none, foreground, background, both, trace."""
+    path_traced: PathTracedFrames | None = None
+    """Path-trace every frame instead of reconstructing it from a bake (excludes ``bake`` and
+    ``fill``): worth it for short walkthroughs, where the bake costs more than the frames it saves."""
     frames: Annotated[list[WalkthroughFrame], Field(min_length=1, max_length=MAX_WALKTHROUGH_FRAMES)]
     """The camera path with times, in playback order."""
     chunk_frames: Annotated[int, Field(strict=True, ge=1, le=1000)] = 16
@@ -131,6 +151,13 @@ class WalkthroughRequest(FrozenModel):
     @model_validator(mode="after")
     def _same_size(self) -> Self:
         errors: list[InitErrorDetails] = []
+        if self.path_traced is not None:
+            # compared with the defaults, not by presence: a stored request round-trips every field
+            for name, default in (("bake", WalkthroughSettings()), ("fill", "both"), ("quality", None)):
+                if getattr(self, name) != default:
+                    errors.append(error_at((name,), "path_traced_with_settings",
+                                           f"{name} and path_traced exclude each other: path-traced frames need no "
+                                           f"bake and no fill", getattr(self, name)))
         if self.quality is not None:
             for name in ("bake", "fill"):
                 if name in self.model_fields_set:
@@ -169,9 +196,13 @@ class WalkthroughContractPublic(FrozenModel):
     """The chosen setting is predicted to meet every target."""
     unmet: list[str] = []
     reason: str = ""
-    preset: Quality
-    """The bake preset chosen (``bake.quality``; the bake's other settings at their defaults)."""
-    fill: Fill
+    preset: Quality | None
+    """The bake preset chosen (``bake.quality``; the bake's other settings at their defaults); None
+    for path-traced frames."""
+    fill: Fill | None
+    """The hole fill chosen; None for path-traced frames."""
+    path_noise: float | None = None
+    """Path-traced frames chosen (``path_traced.noise``): every frame traced to this noise, no bake."""
     frames: int
     width: int
     height: int
@@ -191,8 +222,9 @@ class WalkthroughContractPublic(FrozenModel):
     planned_for: dict[str, float] = {}
     """The targets the choice was planned against: the request's times the margins, or the request's
     own when no setting keeps the margin (``reason`` says so)."""
-    bake: Literal["ready", "waited"]
-    """``ready``: the preset's bake was in the store; ``waited``: it is made first (its cost counted)."""
+    bake: Literal["ready", "waited", "none"]
+    """``ready``: the preset's bake was in the store; ``waited``: it is made first (its cost counted);
+    ``none``: path-traced frames need no bake."""
     excluded: dict[str, str] = {}
     calibration: dict[str, Any] = {}
     """Which calibration planned it: its key, when it was made, what it cost."""
@@ -211,8 +243,9 @@ class WalkthroughPublic(FrozenModel):
     """Number of frames."""
     frames_done: int
     """Frames rendered so far."""
-    bake_key: Sha256
-    """Key of the walkthrough bake (shared by requests with the same scene and bake settings)."""
+    bake_key: Sha256 | None
+    """Key of the walkthrough bake (shared by requests with the same scene and bake settings); None
+    for path-traced frames."""
     jobs: list[JobPublic] = []
     """The bake job, the chunk jobs and the video job (when known)."""
     error: str | None = None
@@ -235,6 +268,10 @@ class WalkthroughCalibrationParams(FrozenModel):
     walkthrough planned onto one renders at once)."""
     fills: Annotated[list[Fill], Field(min_length=1, max_length=5)] = ["both", "trace"]
     """The hole fills measured with each preset."""
+    path_noises: Annotated[list[Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]],
+                           Field(max_length=6)] = [0.02, 0.05, 0.1]
+    """Path-traced frames measured at these noise targets (``path_traced.noise``; each a setting of
+    its own, ``path/0.05``, needing no bake); empty: none."""
     probes: Annotated[int, Field(strict=True, ge=1, le=8)] = 3
     """Probe frames (eyes spread over the view space, times over the animation)."""
     size: Annotated[int, Field(strict=True, ge=16, le=512)] = 64
@@ -246,7 +283,7 @@ class WalkthroughCalibrationParams(FrozenModel):
 
     @model_validator(mode="after")
     def _distinct(self) -> Self:
-        for name in ("presets", "fills"):
+        for name in ("presets", "fills", "path_noises"):
             v = getattr(self, name)
             if len(set(v)) != len(v):
                 raise_errors("WalkthroughCalibrationParams", [error_at((name,), "duplicate",

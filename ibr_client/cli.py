@@ -1087,6 +1087,9 @@ def walkthrough(
     frames_dir: Annotated[Path | None, typer.Option(help="Save every frame in this directory (implies --wait)")
                           ] = None,
     frame_format: FrameFormatOpt = "png",
+    path_noise: Annotated[float | None, typer.Option(
+        help="Path-trace every frame to this relative standard error per pixel (0.005..0.5) instead of "
+             "reconstructing it from a bake: no bake, each frame costs a path-traced render")] = None,
     quality_error: Annotated[float | None, typer.Option(
         help="Quality contract: largest LRMS of every frame against its converged frame, in (0, 1); the planner "
              "picks the bake preset and the fill (needs 'ibr calibrate-walkthroughs' of the scene first)")] = None,
@@ -1111,7 +1114,11 @@ def walkthrough(
     settings = {"--quality": quality, "--fill": fill, "--face-res": face_res, "--indirect": indirect,
                 "--max-views": max_views, "--max-time-samples": max_time_samples}
     if quality_error is not None or quality_ms is not None:
-        _refuse_settings_with_contract(settings, "--quality-error/--quality-ms")
+        _refuse_settings_with_contract({**settings, "--path-noise": path_noise}, "--quality-error/--quality-ms")
+    if path_noise is not None:
+        given = [flag for flag, v in settings.items() if v is not None]
+        if given:
+            fail(f"--path-noise path-traces every frame without a bake: leave out {', '.join(given)}")
     req = _path_request(path, width, height)
     if _walkthrough_contract(req, path, quality_error, quality_ms, best_effort):
         _refuse_settings_with_contract(settings, f"--path {path}'s 'quality'")
@@ -1119,7 +1126,11 @@ def walkthrough(
     bake_doc.update({k: v for k, v in {"quality": quality, "face_res": face_res, "indirect_samples": indirect,
                                        "max_views": max_views, "max_time_samples": max_time_samples}.items()
                      if v is not None})
-    if bake_doc:
+    if path_noise is not None:
+        req.pop("bake", None)
+        req.pop("fill", None)
+        req["path_traced"] = {"noise": path_noise}
+    elif bake_doc:
         req["bake"] = bake_doc
     req.update({k: v for k, v in {"fill": fill, "chunk_frames": chunk_frames, "fps": fps}.items() if v is not None})
     req["scene_id"] = _scene_id_of(scene, api_url, api_key)
@@ -1133,7 +1144,8 @@ def walkthrough(
                 raise
 
         w = _call(submit)
-        typer.echo(f"walkthrough {w.key} ({w.status}, {w.frames} frames, bake {w.bake_key[:12]})", err=True)
+        source = f"bake {w.bake_key[:12]}" if w.bake_key else "path-traced"
+        typer.echo(f"walkthrough {w.key} ({w.status}, {w.frames} frames, {source})", err=True)
         if w.contract is not None:
             for line in _walkthrough_contract_lines(w.contract):
                 say(line)
@@ -1185,8 +1197,10 @@ def _walkthrough_contract(req: dict[str, Any], path: Path, quality_error: float 
 
 def _walkthrough_contract_lines(con: WalkthroughContractPublic) -> list[str]:
     """What a walkthrough's quality contract chose, on one line (a second when it does not meet it)."""
-    bake = "" if con.bake == "ready" else f"; its bake is made first, predicted {con.predicted_bake_ms / 1000:.1f} s"
-    lines = [f"contract: {con.preset}/{con.fill}, predicted LRMS {con.predicted_error:.4f}, "
+    bake = "" if con.bake != "waited" else f"; its bake is made first, predicted {con.predicted_bake_ms / 1000:.1f} s"
+    setting = f"path-traced frames at noise {con.path_noise:g}" if con.path_noise is not None else \
+        f"{con.preset}/{con.fill}"
+    lines = [f"contract: {setting}, predicted LRMS {con.predicted_error:.4f}, "
              f"{con.predicted_frame_ms:.1f} ms / frame (rule {con.rule}{bake})"]
     if not con.met:
         lines.append(f"not met: {', '.join(con.unmet) or 'the targets'}" + (f": {con.reason}" if con.reason else ""))
@@ -1217,6 +1231,9 @@ def calibrate_walkthroughs(
     time_scale: Annotated[int | None, typer.Option(help="Frame times also measured at size x this (2..8)")] = None,
     truth_noise: Annotated[float | None, typer.Option(
         help="Relative standard error the converged probe frames are traced to (0.002..0.05; default 0.01)")] = None,
+    path_noises: Annotated[str | None, typer.Option(
+        help="Noise targets of the path-traced frames measured, comma-separated (default 0.02,0.05,0.1; "
+             "'none': no path-traced setting)")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the calibration")] = True,
     api_url: ApiOpt = DEFAULT_API,
     api_key: KeyOpt = None,
@@ -1226,7 +1243,8 @@ def calibrate_walkthroughs(
     bake is not stored yet."""
     params: dict[str, Any] = {k: v for k, v in {
         "presets": _csv(presets, "--presets"), "fills": _csv(fills, "--fills"), "probes": probes, "size": size,
-        "time_scale": time_scale, "truth_noise": truth_noise}.items() if v is not None}
+        "time_scale": time_scale, "truth_noise": truth_noise,
+        "path_noises": _noises(path_noises)}.items() if v is not None}
     try:  # checked before the scene is uploaded or anything queued
         WalkthroughCalibrationParams.model_validate(params)
     except pydantic.ValidationError as exc:
@@ -1252,6 +1270,22 @@ def calibrate_walkthroughs(
     typer.echo(cal.key)
 
 
+def _noises(value: str | None) -> list[float | str] | None:
+    """``0.02,0.05`` -> [0.02, 0.05]; ``none`` -> []; an item that is no number is passed on as given,
+    for the request's check to name."""
+    if value is None:
+        return None
+    if value.strip().lower() == "none":
+        return []
+    out: list[float | str] = []
+    for item in _csv(value, "--path-noises") or []:
+        try:
+            out.append(float(item))
+        except ValueError:
+            out.append(item)
+    return out
+
+
 def _walkthrough_model_lines(m: Mapping[str, Any]) -> list[str]:
     """A walkthrough calibration's model, a line per setting: its error, its time per frame at the probe
     frames' size and its preset's bake cost."""
@@ -1263,7 +1297,7 @@ def _walkthrough_model_lines(m: Mapping[str, Any]) -> list[str]:
     excluded: Mapping[str, str] = m.get("excluded") or {}
     for name, fit in (m.get("fits") or {}).items():
         preset = name.split("/", 1)[0]
-        bake_s = (m.get("bake_cost_s") or {}).get(preset)
+        bake_s = None if preset == "path" else (m.get("bake_cost_s") or {}).get(preset)
         bake = f"; bake {bake_s:.1f} s" if isinstance(bake_s, int | float) else ""
         note = f"; excluded ({excluded[name]})" if name in excluded else ""
         lines.append(f"{name}: LRMS {fit['error']:.4f}, {fit['b_ms'] + fit['c_ms'] * w * h:.1f} ms / frame "

@@ -156,6 +156,9 @@ IMAGE_BYTES_PER_PIXEL = 12
 WALKTHROUGH_CPU_S_PER_BASE_PIXEL = 4.0e-6
 """A walkthrough bake's base range images: CPU per base pixel (first hits, shading and indirect
 paths at the preset's samples; sized from the LDC bake's per-sample cost, not measured separately)."""
+WALKTHROUGH_CPU_S_PER_PATH = 1.0e-6
+"""A path-traced walkthrough frame: CPU per indirect path (the reference traces ~1.25 M paths of 3
+bounces a second on one core, docs/accuracy/reference-vs-mitsuba.md)."""
 DATASET_BAKE_BYTES_PER_VALUE = 4 + 4
 """A dataset bake holds the float32 stack and its baked copy (float16 or low-rank factors, at most
 float32)."""
@@ -680,18 +683,32 @@ def composite_cost(req: CompositeRequest, n_images: int, width: int, height: int
 # --------------------------------------------------------------------------- walkthroughs
 
 
+def path_traced_paths(noise: float) -> float:
+    """Expected indirect paths per pixel of a frame path-traced to ``noise``: ``(0.5 / noise)^2``
+    between the pilot's 64 and the cap of 4,096 (measured on ``cornell_animated`` at 96 x 72: 71,
+    125 and 587 paths at noise 0.1, 0.05 and 0.02)."""
+    return min(4096.0, max(64.0, (0.5 / noise) ** 2))
+
+
 def walkthrough_costs(req: WalkthroughRequest, triangles: int,
                       frame_pixels: Callable[[Any], int] | None = None) -> tuple[Cost, Cost]:
-    """``(bake, frames)``: the walkthrough bake (its base range images at their upper bound) and the
-    largest frame-chunk job (``chunk_frames`` LDC-like frames)."""
-    base = req.bake.upper_bound_bytes()
-    base_pixels = base // 32  # BYTES_PER_BASE_PIXEL
-    bake = _plus_scene("walkthrough bake", triangles, base, base_pixels * WALKTHROUGH_CPU_S_PER_BASE_PIXEL,
-                       base_bytes=base)
+    """``(bake, frames)``: the walkthrough bake (its base range images at their upper bound; nothing
+    but the scene for path-traced frames) and the largest frame-chunk job (``chunk_frames`` LDC-like
+    frames, or path-traced ones)."""
     pixels = [f.camera.width * f.camera.height if frame_pixels is None else frame_pixels(f) for f in req.frames]
     chunk = req.chunk_frames
     worst = max(sum(pixels[a:a + chunk]) for a in range(0, len(pixels), chunk))
     n_chunks = -(-len(pixels) // chunk)
+    if req.path_traced is not None:
+        per_px = WALKTHROUGH_CPU_S_PER_PATH * path_traced_paths(req.path_traced.noise)
+        frames = _plus_scene(f"path-traced walkthrough frame chunk of {min(chunk, len(pixels))} frames", triangles,
+                             (REFERENCE_BYTES_PER_PIXEL + IMAGE_BYTES_PER_PIXEL) * max(pixels), per_px * worst,
+                             n_chunks, per_px * sum(pixels))
+        return scene_cost(triangles), frames
+    base = req.bake.upper_bound_bytes()
+    base_pixels = base // 32  # BYTES_PER_BASE_PIXEL
+    bake = _plus_scene("walkthrough bake", triangles, base, base_pixels * WALKTHROUGH_CPU_S_PER_BASE_PIXEL,
+                       base_bytes=base)
     frames = _plus_scene(f"walkthrough frame chunk of {min(chunk, len(pixels))} frames", triangles,
                          base + LDC_BYTES_PER_PIXEL * max(pixels), LDC_CPU_S_PER_PIXEL * worst, n_chunks,
                          LDC_CPU_S_PER_PIXEL * sum(pixels))

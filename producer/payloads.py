@@ -196,7 +196,8 @@ class WalkthroughChunkJobPayload(FrozenModel):
     start: Annotated[int, Field(ge=0)]
     stop: Annotated[int, Field(ge=1)]
     chunk_key: Sha256
-    bake_key: Sha256
+    bake_key: Sha256 | None
+    """None: the frames are path-traced (``WalkthroughRequest.path_traced``)."""
 
 
 class WalkthroughVideoJobPayload(FrozenModel):
@@ -204,7 +205,7 @@ class WalkthroughVideoJobPayload(FrozenModel):
 
     v: Literal[1] = 1
     walkthrough_key: Sha256
-    bake_key: Sha256
+    bake_key: Sha256 | None
 
 
 def describe_validation_error(exc: ValidationError, limit: int = 5) -> str:

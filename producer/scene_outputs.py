@@ -27,7 +27,7 @@ from producer.names import walkthrough_bake_job_id
 from producer.queue import fetch_job
 from producer.status import ids_in_active_jobs
 from producer.store import ObjectStore
-from producer.walkthroughs import delete_walkthrough, read_request, walkthrough_bake_key, walkthrough_index_key
+from producer.walkthroughs import delete_walkthrough, frames_bake_key, read_request, walkthrough_index_key
 
 __all__ = ["SceneOutputs", "delete_scene_outputs", "scene_outputs"]
 
@@ -52,7 +52,9 @@ def scene_outputs(store: ObjectStore, scene_id: str) -> SceneOutputs:
         if req is None or req.scene_id != scene_id:
             continue
         out.walkthroughs.append(wkey)
-        wbakes[walkthrough_bake_key(scene_id, req.bake)] = None
+        bkey = frames_bake_key(req)
+        if bkey is not None:  # path-traced frames have none
+            wbakes[bkey] = None
     out.walkthrough_bakes = list(wbakes)
     return out
 

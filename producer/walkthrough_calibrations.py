@@ -11,7 +11,8 @@ ENGINE_VERSION)``: identical requests share one job.
 
 :func:`plan_walkthrough_request` runs in the API when a walkthrough with ``quality`` arrives: it
 plans (``engine.walkthrough.quality.plan_walkthrough``) and returns the request with the chosen
-bake preset and fill (its key is that of the same explicit request, so the two share frames) and
+bake preset and fill, or path-traced frames (its key is that of the same explicit request, so the
+two share frames), and
 the contract to state. The contract is kept beside the request (:func:`contract_key`) so that the
 walkthrough's status keeps stating it.
 """
@@ -152,14 +153,20 @@ def plan_walkthrough_request(store: ObjectStore, req: WalkthroughRequest, *, err
     if p.choice is None or p.rule is None:
         raise ContractUnmet(p.unmet, p.reason)
     c = p.choice
-    planned = req.model_copy(update={"bake": WalkthroughSettings.model_validate({"quality": c.preset}),
-                                     "fill": c.fill, "quality": None})
+    if c.path_noise is not None:
+        asked = req.model_dump(mode="json", exclude={"bake", "fill", "quality"})
+        planned = WalkthroughRequest.model_validate({**asked, "path_traced": {"noise": c.path_noise}})
+        setting: dict[str, Any] = {"preset": None, "fill": None, "path_noise": c.path_noise, "bake": "none"}
+    else:
+        planned = req.model_copy(update={"bake": WalkthroughSettings.model_validate({"quality": c.preset}),
+                                         "fill": c.fill, "quality": None})
+        setting = {"preset": c.preset, "fill": c.fill, "bake": "ready" if c.preset in ready else "waited"}
     contract = WalkthroughContractPublic(
         max_error=q.max_error, max_ms=q.max_ms, on_miss=q.on_miss, rule=p.rule, met=p.met, unmet=list(p.unmet),
-        reason=p.reason, preset=c.preset, fill=c.fill, frames=len(req.frames),  # type: ignore[arg-type]
+        reason=p.reason, frames=len(req.frames), **setting,
         width=cam.width, height=cam.height, predicted_error=c.error, predicted_frame_ms=c.frame_ms,
         predicted_bake_ms=c.bake_ms, predicted_total_ms=c.total_ms, estimated_error=c.error,
-        planned_for=dict(p.planned_for), bake="ready" if c.preset in ready else "waited",
+        planned_for=dict(p.planned_for),
         excluded=dict(model.excluded),
         calibration={"key": doc["key"], "created_at": model.created_at, "cost_s": model.cost_s,
                      "probes": model.probe.get("frames"), "url": f"/v1/scenes/{req.scene_id}/walkthrough-calibrations"})

@@ -15,8 +15,11 @@ publishing a content-addressed artifact:
   ``video.mp4`` (H.264 through the ffmpeg shipped by ``imageio-ffmpeg``) and publishes the
   walkthrough manifest (its result lists the chunk keys and frame counts).
 
+A request with ``path_traced`` has no bake job: its chunk jobs path-trace their frames.
+
 Keys: ``artifact_key("walkthrough-bake", {"scene"}, settings)``, ``artifact_key("walkthrough",
-{"scene", "bake"}, {fill, frames, chunk_frames, fps})``, ``artifact_key("walkthrough-chunk",
+{"scene", "bake"}, {fill, frames, chunk_frames, fps})`` (path-traced: ``{"scene"}``, ``{path_traced,
+frames, chunk_frames, fps}``), ``artifact_key("walkthrough-chunk",
 {"walkthrough"}, {"index", "start", "stop"})``. The request is kept at
 ``walkthroughs/<key>.json`` (status and the job payloads read it).
 """
@@ -59,6 +62,7 @@ __all__ = [
     "check_against_scene",
     "delete_walkthrough",
     "enqueue_walkthrough",
+    "frames_bake_key",
     "read_request",
     "walkthrough_bake_key",
     "walkthrough_index_key",
@@ -79,9 +83,24 @@ def walkthrough_bake_key(scene_id: str, settings: WalkthroughSettings) -> str:
     return _key("walkthrough-bake", {"scene": scene_id}, settings.model_dump(mode="json"))
 
 
+def frames_bake_key(req: WalkthroughRequest) -> str | None:
+    """The key of the bake ``req``'s frames are reconstructed from; None for path-traced frames."""
+    return None if req.path_traced is not None else walkthrough_bake_key(req.scene_id, req.bake)
+
+
+def walkthrough_inputs(req: WalkthroughRequest) -> tuple[dict[str, str], dict[str, Any]]:
+    """The artifact inputs and parameters of walkthrough ``req`` (its key's and its manifest's)."""
+    bkey = frames_bake_key(req)
+    if bkey is None:
+        return {"scene": req.scene_id}, req.model_dump(mode="json", include={"path_traced", "frames", "chunk_frames",
+                                                                            "fps"})
+    return ({"scene": req.scene_id, "bake": bkey},
+            req.model_dump(mode="json", include={"fill", "frames", "chunk_frames", "fps"}))
+
+
 def walkthrough_key(req: WalkthroughRequest) -> str:
-    params = req.model_dump(mode="json", include={"fill", "frames", "chunk_frames", "fps"})
-    return _key("walkthrough", {"scene": req.scene_id, "bake": walkthrough_bake_key(req.scene_id, req.bake)}, params)
+    inputs, params = walkthrough_inputs(req)
+    return _key("walkthrough", inputs, params)
 
 
 def chunks(req: WalkthroughRequest) -> list[tuple[int, int]]:
@@ -134,7 +153,7 @@ def bake_bound_errors(settings: WalkthroughSettings, field: str = "bake.face_res
 def check_against_scene(scene: Scene, req: WalkthroughRequest) -> list[FieldError]:
     """Problems of the request that need the scene: no view space, an eye outside it, a time
     outside the animation. Each names the field and the allowed range."""
-    errors = bake_bound_errors(req.bake)
+    errors = bake_bound_errors(req.bake) if req.path_traced is None else []
     vs = scene.view_space
     if vs is None:
         return errors + [FieldError(field="scene_id", type="no_view_space",
@@ -209,9 +228,9 @@ def enqueue_walkthrough(redis: Redis, store: ObjectStore, req: WalkthroughReques
     store.put_bytes(record_key(wkey), req.model_dump_json().encode(), "application/json")
     # listed under its scene, so deleting the scene finds it (producer.scene_outputs)
     store.put_bytes(walkthrough_index_key(req.scene_id, wkey), b"", "application/octet-stream")
-    bkey = walkthrough_bake_key(req.scene_id, req.bake)
+    bkey = frames_bake_key(req)
     deps: list[str] = []
-    if read_manifest(store, bkey) is None:
+    if bkey is not None and read_manifest(store, bkey) is None:
         bjob = enqueue_unique(
             redis, "bake", WALKTHROUGH_BAKE_JOB,
             {"scene_id": req.scene_id, "bake_key": bkey, "settings": req.bake.model_dump(mode="json")},
@@ -251,7 +270,7 @@ def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> Walkthrou
     req = read_request(store, wkey)
     if req is None:
         return None
-    bkey = walkthrough_bake_key(req.scene_id, req.bake)
+    bkey = frames_bake_key(req)
     n = len(req.frames)
     links: dict[str, str] = {}
     manifest = read_manifest(store, wkey)
@@ -266,9 +285,9 @@ def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> Walkthrou
                                  links=links)
     jobs: list[JobPublic] = []
     error: str | None = None
-    bake_done = read_manifest(store, bkey) is not None
+    bake_done = bkey is None or read_manifest(store, bkey) is not None
     bake_frac = 1.0 if bake_done else 0.0
-    bjob = fetch_job(redis, walkthrough_bake_job_id(bkey))
+    bjob = None if bkey is None else fetch_job(redis, walkthrough_bake_job_id(bkey))
     if bjob is not None:
         pub = job_public(bjob)
         jobs.append(pub)
@@ -297,7 +316,8 @@ def walkthrough_status(redis: Redis, store: ObjectStore, wkey: str) -> Walkthrou
         jobs.append(pub)
         if pub.state in ("failed", "canceled") and error is None:
             error = f"video: {pub.error or pub.state}"
-    progress = min(0.99, bake_frac / 3 + 2 / 3 * chunk_frac / max(n, 1))
+    # the bake counts as a third of a walkthrough's work; path-traced frames are all of it
+    progress = min(0.99, (chunk_frac / max(n, 1) if bkey is None else bake_frac / 3 + 2 / 3 * chunk_frac / max(n, 1)))
     running = any(j.state == "started" for j in jobs)
     status: Literal["queued", "running", "failed"] = (
         "failed" if error is not None else ("running" if running or done else "queued"))

@@ -1,12 +1,18 @@
-"""A converged walkthrough frame: what a frame reconstructed from the bases is measured against.
+"""Path-traced walkthrough frames: the converged frame a frame reconstructed from the bases is
+measured against, and the frames a walkthrough renders without a bake.
 
 The image model is the one the image-based methods render, one point sample at each pixel centre
-(the reference renderer with ``pixel_jitter=False``, 1 spp): direct light with
-:data:`AREA_LIGHT_SAMPLES` area-light samples per pixel, plus indirect light traced per visible
-surface point with the reference renderer's own indirect paths
-(``engine.newviews.indirect.trace_indirect_points``) until each pixel's relative standard error
-reaches a target. Used by the walkthrough calibration (``workers/jobs/calibrate_walkthrough.py``)
-and the accuracy benchmark (``bench/walkthrough_accuracy.py``).
+(the reference renderer with ``pixel_jitter=False``, 1 spp): direct light with area-light samples
+per pixel, plus indirect light traced per visible surface point with the reference renderer's own
+indirect paths (``engine.newviews.indirect.trace_indirect_points``) until each pixel's relative
+standard error reaches a target.
+
+- :func:`converged_frame`: :data:`AREA_LIGHT_SAMPLES` area-light samples and at least
+  :data:`MIN_PATHS` paths per pixel, for ground truths (the walkthrough calibration,
+  ``workers/jobs/calibrate_walkthrough.py``, and ``bench/walkthrough_accuracy.py``);
+- :func:`path_traced_frame`: the same estimate at a looser target, the area-light samples and the
+  pilot paths sized for it (:func:`path_traced_settings`): a walkthrough frame that needs no bake
+  (``WalkthroughRequest.path_traced``), converging to the same image as the noise target falls.
 """
 
 from __future__ import annotations
@@ -24,7 +30,8 @@ from engine.sampler import sample_key
 from engine.scene import CameraParams
 from engine.walkthrough.range_images import surface_points
 
-__all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "converged_frame"]
+__all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "PATH_TRACED_MAX_PATHS", "converged_frame",
+           "path_traced_frame", "path_traced_settings"]
 
 AREA_LIGHT_SAMPLES = 1024
 """Area-light samples per pixel of the direct light (a 32 x 32 jittered grid)."""
@@ -32,6 +39,33 @@ GROUND_TRUTH_STREAM = 6
 """Sampler stream of the indirect paths: ``sample_key(seed, 6, frame)`` (the bases' own use 5)."""
 MIN_PATHS = 256
 MAX_PATHS = 65536
+PATH_TRACED_MAX_PATHS = 4096
+"""Most indirect paths a pixel of a path-traced walkthrough frame traces (its time bound): a pixel
+that needs more stops short of the target, which the frame's stats report."""
+
+
+def path_traced_settings(noise: float) -> tuple[int, int]:
+    """``(area_light_samples, min_paths)`` of a path-traced frame at relative standard error
+    ``noise``: the direct light's area samples a power of 4 with its own noise (penumbrae only)
+    about a fifth of ``noise`` (``(0.2 / noise)^2``, 4 .. 1024), and a pilot of 32 paths (8 rounds
+    of 4) sizing each pixel's estimate (``engine.newviews.indirect.IndirectParams.min_paths``)."""
+    if not 0.0 < noise < 1.0:
+        raise ValueError(f"noise must be in (0, 1), got {noise!r}")
+    want = (0.2 / noise) ** 2
+    area = 4
+    while area < want and area < AREA_LIGHT_SAMPLES:
+        area *= 4
+    return area, 32
+
+
+def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
+                      bounces: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """A walkthrough frame path-traced to relative standard error ``noise`` per pixel (the module
+    docstring): radiance (h, w, 3) float32, the mask of the pixels it covers, and the stats of
+    :func:`converged_frame`. Deterministic in ``seed``; ``frame`` decorrelates the frames."""
+    area, pilot = path_traced_settings(noise)
+    img, covered, st = _traced(rr, cam, frame, seed, noise, bounces, area, pilot, PATH_TRACED_MAX_PATHS, pilot // 8)
+    return img, covered, st
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
@@ -43,24 +77,34 @@ def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: 
     relative standard error median / p95 / max, the fraction of pixels that met ``noise``, paths
     per pixel, seconds). ``noise``: target relative standard error of each pixel's luminance;
     ``bounces``: diffuse vertices of the indirect paths (the bake's ``indirect_bounces``)."""
+    img, covered, st = _traced(rr, cam, frame, seed, noise, bounces, AREA_LIGHT_SAMPLES, MIN_PATHS, MAX_PATHS, 16)
+    region = rr.error_region(cam, st.pop("object_id"), st.pop("depth"), ReferenceParams().max_depth)
+    return img, covered, region, st
+
+
+def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float, bounces: int,
+            area_light_samples: int, min_paths: int, max_paths: int, round_paths: int
+            ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     t0 = time.perf_counter()
-    direct = rr.render(cam, ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=AREA_LIGHT_SAMPLES,
+    direct = rr.render(cam, ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=area_light_samples,
                                             indirect_samples=0, seed=seed))
     t_direct = time.perf_counter() - t0
     px, py = pixel_centers(cam)
     o, d = camera_rays(cam, px, py)
     idx, p, g, s, mat = surface_points(rr, o, d)
     base = direct.radiance.reshape(-1, 3)[idx].astype(np.float64)
-    receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
-    bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
-    ip = IndirectParams(noise=noise, min_paths=MIN_PATHS, max_paths=MAX_PATHS, bounces=bounces, round_paths=16,
-                        seed=seed, area_light_samples=4)
-    ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GROUND_TRUTH_STREAM, frame),
-                                brightness=bright)
     out = direct.radiance.reshape(-1, 3).astype(np.float64)
-    out[idx] += ind.radiance
-    st = {k: ind.stats[k] for k in ("rel_stderr_median", "rel_stderr_p95", "rel_stderr_max", "met_target",
-                                    "paths_mean", "paths_max")}
-    st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct)
-    region = rr.error_region(cam, direct.object_id, direct.depth, ReferenceParams().max_depth)
-    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, region, st
+    st: dict[str, Any] = {"rel_stderr_median": 0.0, "rel_stderr_p95": 0.0, "rel_stderr_max": 0.0, "met_target": 1.0,
+                          "paths_mean": 0.0, "paths_max": 0}
+    if len(idx):
+        receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
+        bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
+        ip = IndirectParams(noise=noise, min_paths=min_paths, max_paths=max_paths, bounces=bounces,
+                            round_paths=round_paths, seed=seed, area_light_samples=4)
+        ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GROUND_TRUTH_STREAM, frame),
+                                    brightness=bright)
+        out[idx] += ind.radiance
+        st = {k: ind.stats[k] for k in st}
+    st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct, area_light_samples=area_light_samples,
+              object_id=direct.object_id, depth=direct.depth)
+    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, st

@@ -5,14 +5,19 @@ Pure Python (no numba, no numpy): the API process plans a walkthrough request wh
 calibration job (``workers/jobs/calibrate_walkthrough.py``) measures what :func:`fit_setting` fits.
 
 A walkthrough setting is a bake quality preset (``low`` / ``medium`` / ``high``, the bake's other
-fields at their defaults) and a hole fill (``both``, ``trace``, ...): ``medium/both``. Per scene:
+fields at their defaults) and a hole fill (``both``, ``trace``, ...): ``medium/both``; or frames
+path-traced to a noise target without a bake (``WalkthroughRequest.path_traced``): ``path/0.05``.
+Per scene:
 
 - ``error``: the largest LRMS over the probe frames of a frame reconstructed with the setting
   against the converged frame (``engine.walkthrough.ground_truth``), the ground truth's noise removed
   in quadrature (:func:`engine.quality.fit_ldc`), taken as independent of the frame size;
 - ``frame_ms(px) = b + c * px``, fitted on two frame sizes and raised to the slowest probe frame
-  (``max_ms`` bounds every frame);
-- the bake's cost, measured when the calibration made (or found) the preset's bake.
+  (``max_ms`` bounds every frame); for path-traced frames ``c * px``, ``c`` the slowest probe
+  frame's time per pixel (each pixel traces paths to the same target);
+- the bake's cost, measured when the calibration made (or found) the preset's bake (none for
+  path-traced frames: for a short walkthrough they are the cheapest setting, for a long one the
+  bake pays for itself).
 
 A walkthrough contract's ``max_error`` bounds every frame's LRMS, ``max_ms`` every frame's render
 time in the worker (the reconstruction, not the bake, queueing or encoding). "Cheapest" is the whole
@@ -37,12 +42,15 @@ from engine.quality import CandidateFit, Rule, fit_ldc
 
 __all__ = [
     "CALIBRATED_FILLS",
+    "PATH",
     "PRESET_ORDER",
     "WALKTHROUGH_MODEL_VERSION",
     "WalkthroughModel",
     "WalkthroughPlan",
     "WalkthroughPrediction",
+    "fit_path_setting",
     "fit_setting",
+    "path_setting_name",
     "plan_walkthrough",
     "predict_walkthrough",
     "probe_eyes",
@@ -57,9 +65,18 @@ CALIBRATED_FILLS: tuple[str, ...] = ("both", "trace")
 alone) and ``trace`` (traces the holes: slower, closer where the bases saw nothing)."""
 
 
+PATH = "path"
+"""The "preset" of path-traced frames in a setting's name (``path/0.05``: its "fill" is the noise)."""
+
+
 def setting_name(preset: str, fill: str) -> str:
     """``medium/both``: the bake preset and the fill."""
     return f"{preset}/{fill}"
+
+
+def path_setting_name(noise: float) -> str:
+    """``path/0.05``: frames path-traced to relative standard error ``noise`` per pixel."""
+    return setting_name(PATH, f"{float(noise):g}")
 
 
 def fit_setting(preset: str, fill: str, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
@@ -73,6 +90,16 @@ def fit_setting(preset: str, fill: str, points: Sequence[Mapping[str, Any]], tru
     fit = fit_ldc(setting_name(preset, fill), points, truth_noise)
     over = max(float(p["ms"]) - fit.ms_at(int(p["pixels"]), None) for p in points)
     return replace(fit, b_ms=fit.b_ms + max(0.0, over))
+
+
+def fit_path_setting(noise: float, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
+    """The fit of path-traced frames at ``noise`` from their probe frames' ``{"error", "pixels", "ms"}``:
+    the error as :func:`fit_setting`'s, the time proportional to the pixels at the slowest probe
+    frame's time per pixel (the paths per pixel follow from the target, not from the frame's size;
+    a time measured at a second size would cost the calibration tens of seconds per setting)."""
+    fit = fit_ldc(path_setting_name(noise), points, truth_noise)
+    per_px = max(float(p["ms"]) / max(int(p["pixels"]), 1) for p in points)
+    return replace(fit, b_ms=0.0, c_ms=per_px)
 
 
 @dataclass
@@ -126,13 +153,19 @@ class WalkthroughPrediction:
         return setting_name(self.preset, self.fill)
 
     @property
+    def path_noise(self) -> float | None:
+        """The noise target of path-traced frames (``path/0.05``); None for a bake preset."""
+        return float(self.fill) if self.preset == PATH else None
+
+    @property
     def total_ms(self) -> float:
         """What the walkthrough costs: the bake (when missing) plus every frame."""
         return self.bake_ms + self.frames * self.frame_ms
 
     def describe(self) -> str:
         bake = f", bake {self.bake_ms / 1000:.1f} s" if self.bake_ms else ""
-        return f"{self.name} (predicted LRMS {self.error:.3g}, {self.frame_ms:.0f} ms / frame{bake})"
+        what = self.name if self.path_noise is None else f"path-traced frames at noise {self.path_noise:g}"
+        return f"{what} (predicted LRMS {self.error:.3g}, {self.frame_ms:.0f} ms / frame{bake})"
 
 
 @dataclass(frozen=True)
@@ -165,7 +198,7 @@ def predict_walkthrough(model: WalkthroughModel, pixels: int, frames: int, *, ba
         if name in model.excluded:
             continue
         preset, fill = name.split("/", 1)
-        ready = preset in bakes_ready
+        ready = preset == PATH or preset in bakes_ready  # path-traced frames need no bake
         if not ready and not allow_bake:
             continue
         bake_ms = 0.0 if ready else 1000.0 * float(model.bake_cost_s.get(preset, 0.0))

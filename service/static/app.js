@@ -1691,7 +1691,8 @@ function showWalkContract(con, status) {
   const achieved = con.achieved_frame_ms;
   const rows = [
     ["contract", contractTarget(con, " per frame") + (con.on_miss === "best_effort" ? " (best effort)" : "")],
-    ["plan", `bake preset ${con.preset}, fill ${con.fill}`],
+    ["plan", con.path_noise != null
+      ? `path-traced frames (noise ${con.path_noise}, no bake)` : `bake preset ${con.preset}, fill ${con.fill}`],
     ["rule", con.rule],
     ["predicted", con.met ? "meets the contract" : `misses ${con.unmet.join(", ")}`],
     ["error predicted", `${contractPct(con.predicted_error)} (the calibration's worst probe frame)`],
@@ -1699,7 +1700,7 @@ function showWalkContract(con, status) {
     ["time predicted", `${contractMs(con.predicted_frame_ms)} per frame`],
     ["time achieved", achieved ? `median ${contractMs(achieved.median)}, max ${contractMs(achieved.max)} per frame`
       : status === "finished" ? "–" : "measured once every frame is rendered"],
-    ["bake", con.bake === "ready" ? "ready (in the store)"
+    ["bake", con.bake === "ready" ? "ready (in the store)" : con.bake === "none" ? "none needed"
       : `waited: made first, predicted ${(con.predicted_bake_ms / 1000).toFixed(1)} s`],
   ];
   if (con.reason) rows.push([con.met ? "note" : "reason", con.reason]);
@@ -1738,13 +1739,14 @@ function showWalkContractProblem(err) {
     if (walkCal.running) showWalkNote(calibratingNote());
     else {
       showWalkNote([`${sceneLabel(walk.scene)} has no walkthrough calibration yet. Asking by error or time plans `
-        + "the bake preset and the fill from one: each setting measured on a few probe frames against converged "
+        + "the bake preset and the fill, or path-traced frames, from one: each setting measured on a few probe frames against converged "
         + "frames. Calibrate it here, or with ", { code: `POST /v1/scenes/${sid}/walkthrough-calibrations` },
       " or ", { code: `ibr calibrate-walkthroughs ${sid}` }, "; or ask by settings."], true);
       $("wt-calibrate").title = `POST /v1/scenes/${sid}/walkthrough-calibrations with params `
         + `${JSON.stringify(WALK_CALIBRATION_PARAMS).replaceAll(",", ", ").replaceAll(":", ": ")}: bakes each `
-        + "preset not in the store yet and measures it with the fill on a few probe frames against converged "
-        + "frames (the high preset and the other fills are left out, for a shorter calibration); then the "
+        + "preset not in the store yet and measures it with the fill, and path-traced frames, on a few probe "
+        + "frames against converged frames (the high preset and the other fills are left out, for a shorter "
+        + "calibration); then the "
         + "walkthrough is asked again";
     }
     return true;
@@ -1761,16 +1763,18 @@ function showWalkContractProblem(err) {
 // ---- walkthrough calibration (what asking by error or time plans from)
 
 // What "Calibrate walkthroughs" asks for: the two cheaper presets with the fill that covers the most
-// holes; their bakes stay in the store, so a walkthrough planned onto one renders at once. The high
-// preset and the other fills are left out: they would make the calibration several times longer.
-const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"] };
+// holes, and path-traced frames at three noise targets (no bake: seconds of the calibration); the
+// bakes stay in the store, so a walkthrough planned onto one renders at once. The high preset and the
+// other fills are left out: they would make the calibration several times longer.
+const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"], path_noises: [0.02, 0.05, 0.1] };
 const walkCal = { running: false, controller: null };
 const walkCalPerf = { state: null, fraction: 0, stage: "", key: null, runs: 0 };
 window.__walkCalibration = walkCalPerf;
 
 function calibratingNote() {
   return [`Calibrating the walkthroughs of ${walk.scene ? sceneLabel(walk.scene) : "the scene"} (presets `
-    + `${WALK_CALIBRATION_PARAMS.presets.join(" and ")}, fill ${WALK_CALIBRATION_PARAMS.fills.join(", ")}): `
+    + `${WALK_CALIBRATION_PARAMS.presets.join(" and ")}, fill ${WALK_CALIBRATION_PARAMS.fills.join(", ")}; `
+    + `path-traced frames at noise ${WALK_CALIBRATION_PARAMS.path_noises.join(", ")}): `
     + "once it is done, a walkthrough asked by error or time is asked again."];
 }
 

@@ -139,9 +139,9 @@ def test_walkthrough_quality_contract_from_the_command_line(stack: Any, tmp_path
     assert res.exit_code == 2, res.output
     assert "walkthrough calibration" in res.stderr and "ibr calibrate-walkthroughs" in res.stderr
 
-    params = {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32}
+    params = {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32, "path_noises": []}
     calibrate = ["calibrate-walkthroughs", str(scene_file), "--presets", "low", "--fills", "both", "--probes", "2",
-                 "--size", "32", *api]
+                 "--size", "32", "--path-noises", "none", *api]
     res = runner.invoke(app, [*calibrate, "--wait"])
     assert res.exit_code == 0, res.output
     cal_key = res.stdout.strip()

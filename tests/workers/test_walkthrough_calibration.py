@@ -16,7 +16,7 @@ from api_schemas.walkthrough import WalkthroughCalibrationParams
 from engine.metrics import lrms
 from engine.reference import ReferenceRenderer
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
-from engine.walkthrough.ground_truth import converged_frame
+from engine.walkthrough.ground_truth import converged_frame, path_traced_frame
 from engine.walkthrough.quality import plan_walkthrough
 from tests.service.api.test_walkthroughs import ROOM
 from workers.jobs.calibrate_walkthrough import calibrate_walkthrough, probe_views
@@ -40,7 +40,7 @@ def calibrated() -> dict[str, Any]:
         return bakes[preset], preset[0] * 64, time.perf_counter() - t0
 
     params = WalkthroughCalibrationParams(presets=["low", "medium"], fills=["both", "trace"], probes=2, size=32,
-                                          truth_noise=0.02)
+                                          truth_noise=0.02, path_noises=[0.05, 0.2])
     stages: list[tuple[float, str]] = []
     model = calibrate_walkthrough(an, space, camera_params(scene.camera), bake_for, params=params,
                                   progress=lambda f, s: stages.append((f, s)))
@@ -50,14 +50,18 @@ def calibrated() -> dict[str, Any]:
 
 def test_every_preset_and_fill_is_measured(calibrated: dict[str, Any]) -> None:
     m = calibrated["model"]
-    assert set(m.fits) == {"low/both", "low/trace", "medium/both", "medium/trace"}
+    assert set(m.fits) == {"low/both", "low/trace", "medium/both", "medium/trace", "path/0.05", "path/0.2"}
     for fit in m.fits.values():
         assert 0.0 < fit.error < 0.5 and fit.b_ms >= 0 and fit.c_ms >= 0
         assert fit.margin is not None and 0.5 <= fit.margin <= 1.0
         assert len([p for p in fit.points if p["error"] is not None]) == 4  # two eyes, two views each
     assert m.bake_keys == {"low": "l" * 64, "medium": "m" * 64} and all(s > 0 for s in m.bake_cost_s.values())
     assert len(m.probe["frames"]) == 4 and m.cost_s > 0
-    assert set(m.probe["cost_breakdown_s"]) == {"ground_truth", "bakes", "settings"}
+    assert set(m.probe["cost_breakdown_s"]) == {"ground_truth", "bakes", "settings", "path_traced"}
+    # path-traced frames: time per pixel only (this room's little indirect light leaves both targets at
+    # their pilot paths: the noise ordering is tested on a closed box, tests/engine/test_walkthrough.py)
+    fine, coarse = m.fits["path/0.05"], m.fits["path/0.2"]
+    assert fine.b_ms == coarse.b_ms == 0 and fine.c_ms > 0 and coarse.c_ms > 0 and fine.error <= coarse.error
     assert 0 <= m.probe["truth_noise"] < 0.05
     stages = calibrated["stages"]
     converged = [s for _, s in stages if s.startswith("converged")]
@@ -82,10 +86,14 @@ def test_predicted_error_holds_on_a_held_out_frame(calibrated: dict[str, Any]) -
     t = 1.1
     truth, _, mask, _ = converged_frame(ReferenceRenderer(an.scene_at(t)), cam, 9, 123, 0.02, 2)
     ratios = {}
+    rr = ReferenceRenderer(an.scene_at(t))
     for name, fit in m.fits.items():
         preset, fill = name.split("/")
-        wr = WalkthroughRenderer(calibrated["bakes"][preset], an if fill == "trace" else None)
-        img = wr.render(cam, t, fill=fill, strict=False).radiance
+        if preset == "path":
+            img = path_traced_frame(rr, cam, 9, 0, float(fill), 2)[0]
+        else:
+            wr = WalkthroughRenderer(calibrated["bakes"][preset], an if fill == "trace" else None)
+            img = wr.render(cam, t, fill=fill, strict=False).radiance
         ratios[name] = lrms(img, truth, mask) / fit.error
     assert all(1 / 3 < r < 1.5 for r in ratios.values()), ratios
 

@@ -73,7 +73,7 @@ from workers.jobs.bake import load_bake
 from workers.jobs.common import ProgressReporter, json_safe, load_stored_scene, worker_store
 
 __all__ = ["ADAPTIVE_PROBE_SPP", "PROBE_STEP_DEG", "TRUTH_SEED", "calibrate_job", "calibrate_scene",
-           "probe_cameras", "probe_reference_params", "timed_median", "turned_camera", "view_pivot"]
+           "probe_cameras", "probe_reference_params", "timed", "timed_median", "turned_camera", "view_pivot"]
 
 PROBE_STEP_DEG = 8.0
 """Probe views turn the scene's camera by multiples of this angle (+8, -8, +16, -16, ...): near the
@@ -140,7 +140,8 @@ def probe_reference_params(spp: int, gi: bool, indirect_bounces: int, seed: int 
                            max_error=max_error)
 
 
-def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)`` and its wall time in ms (one run: renders long enough to time once)."""
     t0 = time.perf_counter()
     out = fn(*args)
     return out, 1000.0 * (time.perf_counter() - t0)
@@ -156,7 +157,7 @@ box's LDC views at 0.68-0.71x the time served renders then took (docs/accuracy/c
 def timed_median(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     """``fn(*args)``'s first output and the median of :data:`LDC_REPEATS` timings of it, in ms (the
     renders that take milliseconds: LDC views, walkthrough frames)."""
-    runs = [_timed(fn, *args) for _ in range(LDC_REPEATS)]
+    runs = [timed(fn, *args) for _ in range(LDC_REPEATS)]
     return runs[0][0], float(np.median([ms for _, ms in runs]))
 
 
@@ -208,12 +209,12 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     tiny = turned_camera(camera, PROBE_STEP_DEG, 8, pivot)
     cost: dict[str, float] = {"truth": 0.0, "reference": 0.0, "ldc": 0.0, "adaptive": 0.0, "warmup": 0.0}
 
-    _, ms = _timed(ref.render, tiny, ref_at(1))  # compile / build once, untimed
+    _, ms = timed(ref.render, tiny, ref_at(1))  # compile / build once, untimed
     cost["warmup"] += ms / 1000
-    _, ms = _timed(ref.render, tiny, ref_at(4, max_error=0.5))  # the progressive path too
+    _, ms = timed(ref.render, tiny, ref_at(4, max_error=0.5))  # the progressive path too
     cost["warmup"] += ms / 1000
     for _, m, ss in variants:
-        _, ms = _timed(render_ldc, tiny, m, ss)
+        _, ms = timed(render_ldc, tiny, m, ss)
         cost["warmup"] += ms / 1000
 
     ref_points: list[dict[str, Any]] = []
@@ -223,7 +224,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
     done = 0
     for probe, cam in enumerate(cams):
         px = cam.width * cam.height
-        truth, ms = _timed(ref.render, cam, ref_at(params.truth_spp, TRUTH_SEED))
+        truth, ms = timed(ref.render, cam, ref_at(params.truth_spp, TRUTH_SEED))
         cost["truth"] += ms / 1000
         ref_points.append({"spp": params.truth_spp, "pixels": px, "ms": ms, "error": None})  # a time point
         mask = ref.error_region(cam, truth.object_id, truth.depth, base.max_depth)
@@ -232,7 +233,7 @@ def calibrate_scene(scene: RuntimeScene, camera: CameraParams, ldc_renderer: LDC
         report(done / steps, "ground truth")
         for spp in CALIBRATION_SPP:
             for seed in CALIBRATION_SEEDS:
-                out, ms = _timed(ref.render, cam, ref_at(spp, seed))
+                out, ms = timed(ref.render, cam, ref_at(spp, seed))
                 cost["reference"] += ms / 1000
                 ref_points.append({"spp": spp, "pixels": px, "ms": ms, "probe": probe, "seed": seed,
                                    "error": _error(out.radiance, truth.radiance, mask)})
@@ -300,7 +301,7 @@ def _calibrate_adaptive(ref: ReferenceRenderer, cams: list[CameraParams], truths
     points: list[dict[str, Any]] = []
     for i, (cam, (truth, mask)) in enumerate(zip(cams, truths, strict=True)):
         for aim in aims:
-            out, ms = _timed(ref.render, cam, ref_at(max(2, truth_spp), max_error=aim))
+            out, ms = timed(ref.render, cam, ref_at(max(2, truth_spp), max_error=aim))
             cost["adaptive"] += ms / 1000
             rep = out.adaptive or {}
             est = float(rep.get("estimated_error", 0.0))

@@ -16,8 +16,13 @@ scene on probe frames and fit the model walkthrough quality contracts are planne
    wall time; then every fill on every probe: LRMS against the converged frame over its error
    region, render time the median of three; the first probe also at ``size x time_scale`` (the
    time's per-pixel part). Each setting renders a tiny frame first, untimed (compilation);
-4. fit (``engine.walkthrough.quality.fit_setting``), exclude the settings whose error exceeds
-   ``engine.quality.MAX_USEFUL_ERROR``, store the model (``producer.walkthrough_calibrations``).
+4. path-traced frames (``WalkthroughRequest.path_traced``) at each of ``path_noises``, on every
+   probe with the service's seed (not the converged frames'): LRMS and render time, timed once
+   (they take tenths of a second to seconds) as the chunk job renders them (``PathTracedFrames``: a
+   frame of an animated scene builds the scene and BVH of its time);
+5. fit (``engine.walkthrough.quality.fit_setting``, ``fit_path_setting``), exclude the settings
+   whose error exceeds ``engine.quality.MAX_USEFUL_ERROR``, store the model
+   (``producer.walkthrough_calibrations``).
 
 What it costs is in the model (``cost_s``, ``probe.cost_breakdown_s``): the bakes it had to make and
 the converged frames.
@@ -46,14 +51,20 @@ from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, walkthrough_preset
 from engine.walkthrough.ground_truth import converged_frame
-from engine.walkthrough.quality import WalkthroughModel, fit_setting, probe_eyes, probe_times
+from engine.walkthrough.quality import WalkthroughModel, fit_path_setting, fit_setting, probe_eyes, probe_times
 from producer.artifacts import read_manifest
 from producer.payloads import InvalidPayload, WalkthroughCalibrateJobPayload, describe_validation_error
 from producer.walkthrough_calibrations import walkthrough_calibration_key, write_walkthrough_calibration
 from producer.walkthroughs import walkthrough_bake_key
-from workers.jobs.calibrate import timed_median
+from workers.jobs.calibrate import timed, timed_median
 from workers.jobs.common import ProgressReporter, json_safe, worker_store
-from workers.jobs.walkthrough import engine_space, load_stored_bake, load_walkthrough_scene, make_walkthrough_bake
+from workers.jobs.walkthrough import (
+    PathTracedFrames,
+    engine_space,
+    load_stored_bake,
+    load_walkthrough_scene,
+    make_walkthrough_bake,
+)
 from workers.scene_loader import camera_params
 
 __all__ = ["HEADINGS", "TRUTH_SEED", "calibrate_walkthrough", "calibrate_walkthrough_job",
@@ -141,7 +152,7 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
         times += [t] * len(views)
         renderers += [rr] * len(views)
     bounces = walkthrough_preset(params.presets[0]).indirect_bounces
-    n_steps = len(cams) + len(params.presets)
+    n_steps = len(cams) + len(params.presets) + len(params.path_noises)
     truths: list[tuple[np.ndarray, np.ndarray]] = []
     truth_stats: list[dict[str, Any]] = []
     t0 = time.perf_counter()
@@ -190,12 +201,32 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
                 excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
                                      f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
         measure_s += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for j, noise in enumerate(params.path_noises):
+        report((len(cams) + len(params.presets) + j) / n_steps, f"measuring path-traced frames at noise {noise:g}")
+        PathTracedFrames(an, noise, 0, bounces).render(tiny, times[0], 0)  # untimed: compilation
+        shared = PathTracedFrames(an, noise, 0, bounces)
+        points = []
+        for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
+            # as the chunk job renders: a frame of an animated scene builds its time's scene and BVH
+            frames = shared if an.is_static else PathTracedFrames(an, noise, 0, bounces)
+            (img_p, _, _), ms = timed(frames.render, cam, t, i)
+            img, mask = truths[i]
+            points.append({"error": float(lrms(img_p, img, mask if mask.any() else None)),
+                           "pixels": cam.width * cam.height, "ms": ms, "probe": i})
+        fit = fit_path_setting(noise, points, truth_noise)
+        fits[fit.key] = fit
+        if fit.error > MAX_USEFUL_ERROR:
+            excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
+                                 f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
+    path_s = time.perf_counter() - t0
     cost = time.perf_counter() - t_start
     probe = {"frames": [{"eye": list(c.eye), "look_at": list(c.look_at), "time": t, "width": c.width,
                          "height": c.height} for c, t in zip(cams, times, strict=True)],
              "truth_noise": truth_noise, "truth_noise_target": params.truth_noise,
              "truth_paths_mean": float(np.mean([st["paths_mean"] for st in truth_stats])),
-             "cost_breakdown_s": {"ground_truth": truth_s, "bakes": bakes_s, "settings": measure_s}}
+             "cost_breakdown_s": {"ground_truth": truth_s, "bakes": bakes_s, "settings": measure_s,
+                                  "path_traced": path_s}}
     return WalkthroughModel(scene_id=scene_id, fits=fits, excluded=excluded, bake_keys=bake_keys,
                             bake_cost_s=bake_cost, cost_s=cost, probe=json_safe(probe),
                             engine_version=ENGINE_VERSION, created_at=datetime.now(UTC).isoformat())

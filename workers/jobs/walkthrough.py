@@ -3,7 +3,8 @@
 - :func:`walkthrough_bake_job` (``bake`` queue): loads the stored scene, chooses base viewpoints
   and time samples and renders the base range images (``engine.walkthrough.bake``), publishes
   ``bake.npz``;
-- :func:`walkthrough_chunk_job` (``render`` queue): reconstructs frames ``start..stop-1`` and
+- :func:`walkthrough_chunk_job` (``render`` queue): reconstructs frames ``start..stop-1`` (or
+  path-traces them, ``WalkthroughRequest.path_traced``: ``engine.walkthrough.ground_truth``) and
   publishes them as EXR (linear), PNG (sRGB preview) and provenance PNG (8-bit codes);
 - :func:`walkthrough_video_job` (``render`` queue): encodes every frame's PNG into ``video.mp4``
   (H.264, yuv420p, ffmpeg from ``imageio-ffmpeg``) and publishes the walkthrough manifest.
@@ -32,8 +33,11 @@ from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
 from api_schemas.walkthrough import WalkthroughRequest, WalkthroughSettings
 from engine import ENGINE_VERSION
 from engine.imageio import write_image
+from engine.reference import ReferenceRenderer
+from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
+from engine.walkthrough.ground_truth import path_traced_frame
 from engine.walkthrough.viewspace import BoxSpace, PathSpace, PolygonSpace, ViewSpace
 from producer.artifacts import blob_reader, get_scene, read_blob, read_manifest, write_artifact
 from producer.names import walkthrough_bake_job_id, walkthrough_chunk_job_id
@@ -45,17 +49,51 @@ from producer.payloads import (
     describe_validation_error,
 )
 from producer.store import ObjectStore
-from producer.walkthroughs import chunk_key, chunks, read_request, walkthrough_bake_key, walkthrough_key
+from producer.walkthroughs import (
+    chunk_key,
+    chunks,
+    frames_bake_key,
+    read_request,
+    walkthrough_bake_key,
+    walkthrough_inputs,
+    walkthrough_key,
+)
 from workers.jobs.common import ProgressReporter, codes_png, dependency_note, worker_store
 from workers.scene_loader import camera_params, load_animated_scene
 
-__all__ = ["WalkthroughUnavailable", "engine_space", "load_stored_bake", "load_walkthrough_scene",
+__all__ = ["PathTracedFrames", "WalkthroughUnavailable", "engine_space", "load_stored_bake", "load_walkthrough_scene",
            "make_walkthrough_bake", "walkthrough_bake_job", "walkthrough_chunk_job", "walkthrough_video_job"]
 
 EXR = "image/x-exr"
 PNG = "image/png"
 MP4 = "video/mp4"
 PROVENANCE_CODES = {0: "hole", 1: "reprojected", 2: "foreground", 3: "background-fill", 4: "traced", 5: "sky"}
+_TRACED, _SKY = 4, 5
+
+
+class PathTracedFrames:
+    """Renders walkthrough frames by path tracing (no bake): ``render(cam, time, frame)`` returns
+    ``(radiance, provenance, stats)``, the provenance ``traced`` where a surface is seen and ``sky``
+    elsewhere. One reference renderer (scene and BVH) per animation time, the last few kept. The
+    indirect bounces are the default preset's, so the frames show the light the bases do."""
+
+    def __init__(self, an: AnimatedScene, noise: float, seed: int = 0, bounces: int | None = None):
+        self.an, self.noise, self.seed = an, float(noise), int(seed)
+        self.bounces = walkthrough_preset("medium").indirect_bounces if bounces is None else int(bounces)
+        self._renderers: dict[float, ReferenceRenderer] = {}
+
+    def renderer(self, t: float) -> ReferenceRenderer:
+        key = float(self.an.start) if self.an.is_static else float(t)
+        rr = self._renderers.get(key)
+        if rr is None:
+            if len(self._renderers) >= 4:
+                self._renderers.pop(next(iter(self._renderers)))
+            rr = self._renderers[key] = ReferenceRenderer(self.an.scene_at(key))
+        return rr
+
+    def render(self, cam: CameraParams, t: float, frame: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        img, covered, st = path_traced_frame(self.renderer(t), cam, frame, self.seed, self.noise, self.bounces)
+        return img, np.where(covered, _TRACED, _SKY).astype(np.uint8), st
 
 
 class WalkthroughUnavailable(RuntimeError):
@@ -170,16 +208,25 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     store, req = _stored_request(p.walkthrough_key)
     if (chunk_key(p.walkthrough_key, p.index, p.start, p.stop) != p.chunk_key
             or walkthrough_key(req) != p.walkthrough_key or (p.start, p.stop) not in chunks(req)
-            or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key):
+            or frames_bake_key(req) != p.bake_key):
         raise InvalidPayload("chunk payload does not match its walkthrough request")
     existing = read_manifest(store, p.chunk_key)
     if existing is not None:
         return {"artifact_key": p.chunk_key, **existing.result}
     progress = ProgressReporter(get_current_job())
-    progress.report(0.0, "loading bake", force=True)
-    bake = load_stored_bake(store, p.bake_key)
-    an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
-    wr = WalkthroughRenderer(bake, an)
+    traced: PathTracedFrames | None = None
+    wr: WalkthroughRenderer | None = None
+    if req.path_traced is not None:
+        progress.report(0.0, "loading the scene", force=True)
+        traced = PathTracedFrames(load_walkthrough_scene(store, req.scene_id)[1], req.path_traced.noise,
+                                  req.path_traced.seed)
+    else:
+        assert p.bake_key is not None
+        progress.report(0.0, "loading bake", force=True)
+        bake = load_stored_bake(store, p.bake_key)
+        an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
+        wr = WalkthroughRenderer(bake, an)
+    noise: list[float] = []
     blobs: dict[str, tuple[bytes, str]] = {}
     frame_ms: list[float] = []
     counts: dict[str, int] = {}
@@ -189,23 +236,38 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
         for j, i in enumerate(range(p.start, p.stop)):
             f = req.frames[i]
             cam = camera_params(f.camera)
-            fr = wr.render(cam, f.time, fill=req.fill, strict=False)  # the API checked eyes and times
-            frame_ms.append(1e3 * fr.timings["total"])
-            for k, v in fr.counts.items():
-                counts[k] = counts.get(k, 0) + v
-            meta = {"frame": i, "time": f.time, "camera": cam.to_dict(), "fill": req.fill,
-                    "bake_key": p.bake_key, "engine_version": ENGINE_VERSION}
-            for name, pixels, ctype in ((f"frame_{i:05d}.exr", fr.radiance, EXR),
-                                        (f"frame_{i:05d}.png", fr.radiance, PNG)):
+            meta: dict[str, Any] = {"frame": i, "time": f.time, "camera": cam.to_dict(),
+                                    "engine_version": ENGINE_VERSION}
+            if traced is not None:
+                t0 = time.perf_counter()
+                radiance, provenance, st = traced.render(cam, f.time, i)
+                frame_ms.append(1e3 * (time.perf_counter() - t0))
+                noise.append(float(st["rel_stderr_median"]))
+                for code in (_TRACED, _SKY):
+                    name = PROVENANCE_CODES[code]
+                    counts[name] = counts.get(name, 0) + int((provenance == code).sum())
+                meta.update(path_noise=traced.noise, seed=traced.seed)
+            else:
+                assert wr is not None
+                fr = wr.render(cam, f.time, fill=req.fill, strict=False)  # the API checked eyes and times
+                radiance, provenance = fr.radiance, fr.provenance
+                frame_ms.append(1e3 * fr.timings["total"])
+                for k, v in fr.counts.items():
+                    counts[k] = counts.get(k, 0) + v
+                meta.update(fill=req.fill, bake_key=p.bake_key)
+            for name, pixels, ctype in ((f"frame_{i:05d}.exr", radiance, EXR),
+                                        (f"frame_{i:05d}.png", radiance, PNG)):
                 path = tmp / name
                 write_image(path, pixels, metadata=meta)
                 blobs[name] = (path.read_bytes(), ctype)
-            blobs[f"provenance_{i:05d}.png"] = (codes_png(tmp / f"provenance_{i:05d}.png", fr.provenance), PNG)
+            blobs[f"provenance_{i:05d}.png"] = (codes_png(tmp / f"provenance_{i:05d}.png", provenance), PNG)
             progress.report(0.05 + 0.9 * (j + 1) / n, f"frame {i}")
     progress.check_canceled()
-    result = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
-              "provenance_codes": {str(k): v for k, v in PROVENANCE_CODES.items()},
-              "timings": {"job_total": time.perf_counter() - t_start}}
+    result: dict[str, Any] = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
+                              "provenance_codes": {str(k): v for k, v in PROVENANCE_CODES.items()},
+                              "timings": {"job_total": time.perf_counter() - t_start}}
+    if noise:  # what the path-traced frames reached: each frame's median relative standard error
+        result["rel_stderr_median"] = noise
     write_artifact(store, p.chunk_key, "walkthrough-chunk", {"walkthrough": p.walkthrough_key},
                    {"index": p.index, "start": p.start, "stop": p.stop}, ENGINE_VERSION, blobs, result)
     progress.report(1.0, "done", force=True, check=False)
@@ -217,7 +279,7 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     t_start = time.perf_counter()
     p: WalkthroughVideoJobPayload = _validate(WalkthroughVideoJobPayload, payload, "walkthrough video")
     store, req = _stored_request(p.walkthrough_key)
-    if walkthrough_key(req) != p.walkthrough_key or walkthrough_bake_key(req.scene_id, req.bake) != p.bake_key:
+    if walkthrough_key(req) != p.walkthrough_key or frames_bake_key(req) != p.bake_key:
         raise InvalidPayload("video payload does not match its walkthrough request")
     existing = read_manifest(store, p.walkthrough_key)
     if existing is not None:
@@ -256,8 +318,8 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     progress.check_canceled()
     result = {"chunks": keys, "frames": len(req.frames), "fps": req.fps, "width": w, "height": h,
               "timings": {"job_total": time.perf_counter() - t_start}}
-    params = req.model_dump(mode="json", include={"fill", "frames", "chunk_frames", "fps"})
-    write_artifact(store, p.walkthrough_key, "walkthrough", {"scene": req.scene_id, "bake": p.bake_key}, params,
-                   ENGINE_VERSION, {"video.mp4": (data, MP4)}, result)
+    inputs, params = walkthrough_inputs(req)
+    write_artifact(store, p.walkthrough_key, "walkthrough", inputs, params, ENGINE_VERSION, {"video.mp4": (data, MP4)},
+                   result)
     progress.report(1.0, "done", force=True, check=False)
     return {"artifact_key": p.walkthrough_key, **result}

@@ -62,7 +62,8 @@ def test_walkthrough_contract_end_to_end(client: TestClient, worker_process: Any
     bake_worker = worker_process("bake")
     render_worker = worker_process("render")
     sid = _scene(client)
-    body = {"params": {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32, "truth_noise": 0.03}}
+    body = {"params": {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32, "truth_noise": 0.03,
+                       "path_noises": []}}  # bake presets only (path-traced frames: the test below)
     r = client.post(f"/v1/scenes/{sid}/walkthrough-calibrations", json=body)
     assert r.status_code == 202, r.text
     queued = WalkthroughCalibrationPublic.model_validate(r.json())
@@ -114,3 +115,59 @@ def test_walkthrough_contract_end_to_end(client: TestClient, worker_process: Any
     errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
                                                          "quality": {"max_ms": 0.001}}))
     assert "fixed overhead" in errs["quality.max_ms"]
+
+
+def test_path_traced_walkthrough_end_to_end(client: TestClient, worker_process: Any) -> None:
+    """Frames path-traced without a bake: asked explicitly, and chosen by a contract whose target is
+    below what the low preset's bake reaches."""
+    bake_worker = worker_process("bake")
+    render_worker = worker_process("render")
+    sid = _scene(client)
+    frames = _frames(3)
+    # path_traced excludes the bake and the fill; its noise has a range
+    errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "bake": BAKE,
+                                                         "path_traced": {"noise": 0.1}}))
+    assert "bake and path_traced exclude each other" in errs["bake"]
+    errs = _errors(client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames,
+                                                         "path_traced": {"noise": 0.0001}}))
+    assert "path_traced.noise" in errs
+    # explicit: no bake job, every frame traced, what the frames reached in the chunks' results
+    r = client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "chunk_frames": 2,
+                                              "path_traced": {"noise": 0.1}})
+    assert r.status_code == 202, r.text
+    pub = WalkthroughPublic.model_validate(r.json())
+    assert pub.bake_key is None and not any(j.id.startswith("wtbake") for j in pub.jobs)
+    doc = _wait(client, f"/v1/walkthroughs/{pub.key}", ("finished", "failed"))
+    assert doc["status"] == "finished", (doc, render_worker.log()[-3000:])
+    chunk = client.get(doc["links"]["chunk.0"]).json()
+    assert chunk["result"]["provenance"]["traced"] > 0 and len(chunk["result"]["rel_stderr_median"]) == 2
+    png = client.get(f"/v1/walkthroughs/{pub.key}/frames/2.png")
+    assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+    # calibrated with the low preset and path-traced frames at 0.05
+    body = {"params": {"presets": ["low"], "fills": ["both"], "probes": 2, "size": 32, "truth_noise": 0.03,
+                       "path_noises": [0.05]}}
+    r = client.post(f"/v1/scenes/{sid}/walkthrough-calibrations", json=body)
+    assert r.status_code == 202, r.text
+    cal = WalkthroughCalibrationPublic.model_validate(
+        _wait(client, r.headers["location"], ("finished", "failed")))
+    assert cal.state == "finished" and cal.model is not None, bake_worker.log()[-3000:]
+    low, path = cal.model["fits"]["low/both"], cal.model["fits"]["path/0.05"]
+    assert path["error"] < low["error"] and path["b_ms"] == 0 and path["c_ms"] > 0
+    assert cal.model["probe"]["cost_breakdown_s"]["path_traced"] > 0
+    # a target only the path-traced frames keep: planned onto them, no bake
+    target = min(0.99, max(path["error"] / path["margin"] * 1.05, low["error"] * 0.5))
+    assert target < low["error"] * low["margin"]
+    r = client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "chunk_frames": 2,
+                                              "quality": {"max_error": target}})
+    assert r.status_code == 202, r.text
+    pub = WalkthroughPublic.model_validate(r.json())
+    c = pub.contract
+    assert c is not None and c.met and (c.preset, c.fill, c.path_noise, c.bake) == (None, None, 0.05, "none")
+    assert c.predicted_bake_ms == 0 and pub.bake_key is None
+    assert abs(c.predicted_frame_ms - path["c_ms"] * 16 * 12) < 1e-6
+    doc = _wait(client, f"/v1/walkthroughs/{pub.key}", ("finished", "failed"))
+    assert doc["status"] == "finished", (doc, render_worker.log()[-3000:])
+    # the same frames asked explicitly share the key
+    explicit = client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "chunk_frames": 2,
+                                                     "path_traced": {"noise": 0.05}})
+    assert explicit.status_code == 200 and explicit.json()["key"] == pub.key
