@@ -269,7 +269,7 @@ class WalkthroughCalibrationParams(FrozenModel):
     fills: Annotated[list[Fill], Field(min_length=1, max_length=5)] = ["both", "trace"]
     """The hole fills measured with each preset."""
     path_noises: Annotated[list[Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]],
-                           Field(max_length=6)] = [0.02, 0.05, 0.1]
+                           Field(max_length=6)] = [0.02, 0.05, 0.1, 0.2]
     """Path-traced frames measured at these noise targets (``path_traced.noise``; each a setting of
     its own, ``path/0.05``, needing no bake); empty: none."""
     probes: Annotated[int, Field(strict=True, ge=1, le=8)] = 3

@@ -1,7 +1,8 @@
 """Walkthrough quality contracts against converged frames: how often a planned walkthrough meets its
 error target or time budget, and what the plan costs against the cheapest setting that met it.
 
-Run: ``python -m bench.walkthrough_contracts [--scene NAME] [--presets low,medium]`` from the
+Run: ``python -m bench.walkthrough_contracts [--scene NAME] [--presets low,medium] [--path-noises
+0.02,0.05,0.1,0.2]`` from the
 repository root. Writes ``docs/accuracy/walkthrough_contracts.md`` (block ``walkthrough_contracts``),
 ``docs/data/walkthrough_contracts.json`` and ``docs/img/walkthrough_contracts.png``.
 
@@ -9,18 +10,24 @@ Per sample scene (``cornell_animated``, ``static_room``):
 
 1. calibrate as the service does (``workers.jobs.calibrate_walkthrough.calibrate_walkthrough``,
    default parameters: 3 probe frames of 64 px looking the way the scene camera looks), with the
-   shipped presets named by ``--presets`` baked in-process (the bakes' wall time is their cost);
+   shipped presets named by ``--presets`` baked in-process (the bakes' wall time is their cost) and
+   path-traced frames at ``--path-noises``;
 2. held-out frames: the accuracy benchmark's camera path (``bench.walkthrough_accuracy``, eyes along
    the view space looking ahead or at the action, so directions the probes never had) at
    ``--width`` x ``--height``, each with a converged frame (``engine.walkthrough.ground_truth``);
-3. an exhaustive grid: every setting (preset x fill) rendered on every held-out frame, its LRMS
-   against the converged frame and its render time (median of three);
+3. an exhaustive grid: every setting (preset x fill, and path-traced frames) rendered on every
+   held-out frame, its LRMS against the converged frame and its render time (median of three; a
+   path-traced frame, which takes tenths of a second or more, timed once, building its time's scene
+   as the chunk job does);
 4. contracts: error targets and per-frame time budgets over the range the settings span, each
    planned as the service plans (``engine.walkthrough.quality.plan_walkthrough``: every bake
    stored, the service's margins) and checked on every held-out frame from the grid: a frame meets
    its contract when its measured error is at most ``max_error`` and its render time at most
    ``max_ms``; a walkthrough meets it when every frame does. The cost of a plan is its frame time
-   against the fastest setting that met the same target on that frame.
+   against the fastest setting that met the same target on that frame. Every contract is planned
+   twice: with every bake in the store (``ready``, the cost above), and for a scene with no bake yet
+   (``cold``: each preset priced with its bake, as the service prices it; path-traced frames need
+   none), which shows where path-traced frames replace a bake.
 
 Times are wall-clock on this machine (2 cores shared with other work): compare within one run.
 """
@@ -45,9 +52,10 @@ from engine.metrics import lrms
 from engine.reference import ReferenceRenderer
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
 from engine.walkthrough.ground_truth import converged_frame
-from engine.walkthrough.quality import WalkthroughModel, plan_walkthrough
+from engine.walkthrough.quality import PATH, WalkthroughModel, plan_walkthrough
 from producer.settings import Settings
 from workers.jobs.calibrate_walkthrough import calibrate_walkthrough
+from workers.jobs.walkthrough import PathTracedFrames
 from workers.scene_loader import camera_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,8 +63,8 @@ DOC = ROOT / "docs" / "accuracy" / "walkthrough_contracts.md"
 DATA = ROOT / "docs" / "data" / "walkthrough_contracts.json"
 PLOT = ROOT / "docs" / "img" / "walkthrough_contracts.png"
 SCENES = ("cornell_animated", "static_room")
-ERROR_TARGETS = (0.05, 0.08, 0.10, 0.12, 0.15, 0.18, 0.20, 0.25, 0.30, 0.40)
-TIME_BUDGETS_MS = (1.0, 2.0, 3.0, 5.0, 8.0, 12.0, 20.0, 50.0)
+ERROR_TARGETS = (0.02, 0.03, 0.05, 0.08, 0.10, 0.12, 0.15, 0.18, 0.20, 0.25, 0.30, 0.40)
+TIME_BUDGETS_MS = (1.0, 2.0, 3.0, 5.0, 8.0, 12.0, 20.0, 50.0, 200.0, 1000.0)
 TRUTH_SEED = 31_337
 
 
@@ -66,8 +74,8 @@ def _scene_camera(name: str) -> Any:
     return camera_params(load_scene_file(ROOT / "samples" / "scenes" / f"{name}.json").camera)
 
 
-def _grid(bakes: dict[str, WalkthroughBake], an: Any, fills: list[str], cams: list[Any], times: np.ndarray,
-          truths: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, list[dict[str, float]]]:
+def _grid(bakes: dict[str, WalkthroughBake], an: Any, fills: list[str], noises: list[float], cams: list[Any],
+          times: np.ndarray, truths: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, list[dict[str, float]]]:
     out: dict[str, list[dict[str, float]]] = {}
     for preset, bake in bakes.items():
         for fill in fills:
@@ -82,12 +90,24 @@ def _grid(bakes: dict[str, WalkthroughBake], an: Any, fills: list[str], cams: li
                     ms.append(1000.0 * (time.perf_counter() - t0))
                 rows.append({"error": float(lrms(img, gt, mask)), "ms": float(np.median(ms))})
             out[f"{preset}/{fill}"] = rows
+    for noise in noises:
+        PathTracedFrames(an, noise).render(cams[0], float(times[0]), 0)  # warm-up, untimed
+        shared = PathTracedFrames(an, noise)
+        rows = []
+        for i, (cam, t, (gt, mask)) in enumerate(zip(cams, times, truths, strict=True)):
+            frames = shared if an.is_static else PathTracedFrames(an, noise)  # as the chunk job renders
+            t0 = time.perf_counter()
+            img = frames.render(cam, float(t), i)[0]
+            rows.append({"error": float(lrms(img, gt, mask)), "ms": 1000.0 * (time.perf_counter() - t0)})
+        out[f"{PATH}/{noise:g}"] = rows
     return out
 
 
 def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]], pixels: int, frames: int,
-               settings: Settings) -> list[dict[str, Any]]:
-    ready = set(model.bake_keys)
+               settings: Settings, ready: set[str] | None = None) -> list[dict[str, Any]]:
+    """Every contract planned with the bakes ``ready`` (default: every calibrated preset's) and
+    checked frame by frame against the grid."""
+    ready = set(model.bake_keys) if ready is None else ready
     asks: list[dict[str, float | None]] = [{"max_error": e, "max_ms": None} for e in ERROR_TARGETS]
     asks += [{"max_error": None, "max_ms": t} for t in TIME_BUDGETS_MS]
     asks += [{"max_error": e, "max_ms": t} for e in (0.12, 0.2, 0.3) for t in (3.0, 10.0)]
@@ -98,7 +118,8 @@ def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]],
                              time_margin=settings.contract_time_margin)
         row: dict[str, Any] = {**ask, "planned": p.choice.name if p.choice else None, "rule": p.rule,
                                "predicted_error": p.choice.error if p.choice else None,
-                               "predicted_ms": p.choice.frame_ms if p.choice else None, "frames": []}
+                               "predicted_ms": p.choice.frame_ms if p.choice else None,
+                               "predicted_total_ms": p.choice.total_ms if p.choice else None, "frames": []}
         for i in range(frames):
             def meets(r: dict[str, float], ask: dict[str, float | None] = ask) -> bool:
                 return ((ask["max_error"] is None or r["error"] <= ask["max_error"])
@@ -117,7 +138,8 @@ def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]],
     return out
 
 
-def run_scene(name: str, presets: list[str], fills: list[str], args: argparse.Namespace) -> dict[str, Any]:
+def run_scene(name: str, presets: list[str], fills: list[str], noises: list[float],
+              args: argparse.Namespace) -> dict[str, Any]:
     an, space = load(name)
     cam = _scene_camera(name)
     bakes: dict[str, WalkthroughBake] = {}
@@ -140,7 +162,7 @@ def run_scene(name: str, presets: list[str], fills: list[str], args: argparse.Na
         print(f"[{name}] bake {preset}: {bake_s[preset]:.1f} s{' (from the bake cache)' if reused else ''}", flush=True)
         return bakes[preset], preset, bake_s[preset]
 
-    params = WalkthroughCalibrationParams(presets=presets, fills=fills)  # type: ignore[arg-type]
+    params = WalkthroughCalibrationParams(presets=presets, fills=fills, path_noises=noises)  # type: ignore[arg-type]
     t0 = time.perf_counter()
     model = calibrate_walkthrough(an, space, cam, bake_for, params=params)
     calib_s = time.perf_counter() - t0
@@ -154,20 +176,23 @@ def run_scene(name: str, presets: list[str], fills: list[str], args: argparse.Na
         truths.append((img, mask))
         truth_s.append(st["seconds"])
     print(f"[{name}] {len(cams)} converged frames, {np.mean(truth_s):.1f} s each", flush=True)
-    grid = _grid(bakes, an, fills, cams, times, truths)
+    grid = _grid(bakes, an, fills, noises, cams, times, truths)
     contracts = _contracts(model, grid, args.width * args.height, len(cams), Settings())
+    cold = _contracts(model, grid, args.width * args.height, len(cams), Settings(), ready=set())
     return {"model": model.to_json(), "calibration_s": calib_s, "bake_s": bake_s,
-            "truth_s_per_frame": float(np.mean(truth_s)), "grid": grid, "contracts": contracts,
+            "truth_s_per_frame": float(np.mean(truth_s)), "grid": grid, "contracts": contracts, "cold": cold,
             "frames": len(cams), "width": args.width, "height": args.height}
 
 
-def _summary(res: dict[str, Any]) -> dict[str, Any]:
-    frames = [f for c in res["contracts"] if c["planned"] for f in c["frames"]]
-    walks = [c for c in res["contracts"] if c["planned"]]
+def _summary(res: dict[str, Any], which: str = "contracts") -> dict[str, Any]:
+    """The contracts ``which`` (``contracts``: every bake stored; ``cold``: none) of one scene: how many
+    were planned, met frame by frame and in full, and their cost."""
+    frames = [f for c in res[which] if c["planned"] for f in c["frames"]]
+    walks = [c for c in res[which] if c["planned"]]
     ratios = [f["cost_ratio"] for f in frames if f.get("cost_ratio") is not None and f["met"]]
-    return {"requests": len(res["contracts"]), "planned": len(walks),
-            "refused": len(res["contracts"]) - len(walks),
-            "refused_feasible": sum(1 for c in res["contracts"] if not c["planned"]
+    return {"requests": len(res[which]), "planned": len(walks), "refused": len(res[which]) - len(walks),
+            "path_traced": sum(1 for c in walks if c["planned"].startswith(f"{PATH}/")),
+            "refused_feasible": sum(1 for c in res[which] if not c["planned"]
                                     and any(f["feasible"] for f in c["frames"])),
             "frames_met": sum(f["met"] for f in frames) / max(1, len(frames)),
             "walkthroughs_met": sum(all(f["met"] for f in c["frames"]) for c in walks) / max(1, len(walks)),
@@ -178,17 +203,27 @@ def _summary(res: dict[str, Any]) -> dict[str, Any]:
 def _doc(data: dict[str, Any]) -> str:
     replanned = (" Contracts planned again from these measurements with the current rules "
                  "(`--replan`).") if data.get("replanned") else ""
-    lines = [f"Run: `python -m bench.walkthrough_contracts --presets {','.join(data['presets'])}` "
-             f"({data['machine']}; {data['seconds'] / 60:.0f} min).{replanned} Presets {', '.join(data['presets'])} "
-             f"(shipped sizes), fills {', '.join(data['fills'])}; held-out frames {data['width']} x "
-             f"{data['height']}, converged to a relative standard error of {data['truth_noise']}.", ""]
-    lines += ["| scene | calibration (s) | of which bakes (s) | requests | planned | refused (a setting met it) "
-              "| frames met | walkthroughs met | cost median / p90 |", "|---|---|---|---|---|---|---|---|---|"]
+    noises = data.get("path_noises") or []
+    lines = [f"Run: `python -m bench.walkthrough_contracts --presets {','.join(data['presets'])} --path-noises "
+             f"{','.join(f'{n:g}' for n in noises) or 'none'}` ({data['machine']}; {data['seconds'] / 60:.0f} min)."
+             f"{replanned} Presets {', '.join(data['presets'])} (shipped sizes), fills {', '.join(data['fills'])}, "
+             f"path-traced frames at noise {', '.join(f'{n:g}' for n in noises) or '(none)'}; held-out frames "
+             f"{data['width']} x {data['height']}, converged to a relative standard error of {data['truth_noise']}. "
+             "Every bake stored (the cost ratios are per frame), and, in the last columns, none stored (each "
+             "preset priced with its bake).", ""]
+    lines += ["| scene | calibration (s) | of which bakes (s) | requests | planned (path-traced) "
+              "| refused (a setting met it) | frames met | walkthroughs met | cost median / p90 "
+              "| no bake stored: planned (path-traced) | no bake stored: walkthroughs met |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, res in data["scenes"].items():
         s = _summary(res)
+        cold = _summary(res, "cold") if "cold" in res else None
+        cold_cells = (f"{cold['planned']} ({cold['path_traced']}) | {100 * cold['walkthroughs_met']:.0f} %"
+                      if cold else "- | -")
         lines.append(f"| {name} | {res['calibration_s']:.0f} | {sum(res['bake_s'].values()):.0f} | {s['requests']} "
-                     f"| {s['planned']} | {s['refused']} ({s['refused_feasible']}) | {100 * s['frames_met']:.1f} % "
-                     f"| {100 * s['walkthroughs_met']:.0f} % | {s['cost_median']:.2f}x / {s['cost_p90']:.2f}x |")
+                     f"| {s['planned']} ({s['path_traced']}) | {s['refused']} ({s['refused_feasible']}) "
+                     f"| {100 * s['frames_met']:.1f} % | {100 * s['walkthroughs_met']:.0f} % "
+                     f"| {s['cost_median']:.2f}x / {s['cost_p90']:.2f}x | {cold_cells} |")
     for name, res in data["scenes"].items():
         lines += ["", f"### {name}", "", "| setting | predicted LRMS (margin) | held-out LRMS mean / max "
                   "| predicted ms / frame | held-out ms / frame (median) |", "|---|---|---|---|---|"]
@@ -199,14 +234,17 @@ def _doc(data: dict[str, Any]) -> str:
             errs = [r["error"] for r in rows]
             lines.append(f"| {k} | {f['error']:.3f} ({f['margin']:.2f}) | {np.mean(errs):.3f} / {max(errs):.3f} "
                          f"| {pred_ms:.1f} | {np.median([r['ms'] for r in rows]):.1f} |")
-        lines += ["", "| max_error | max_ms | planned | frames met | reason it missed |", "|---|---|---|---|---|"]
-        for c in res["contracts"]:
+        lines += ["", "| max_error | max_ms | planned | frames met | reason it missed | planned, no bake stored |",
+                  "|---|---|---|---|---|---|"]
+        colds = res.get("cold") or [{"planned": "-"}] * len(res["contracts"])
+        for c, cold_c in zip(res["contracts"], colds, strict=True):
             met = sum(f.get("met", False) for f in c["frames"])
             miss = sorted({("error" if c["max_error"] is not None and f["error"] > c["max_error"] else "time")
                            for f in c["frames"] if c["planned"] and not f["met"]})
             lines.append(f"| {c['max_error'] if c['max_error'] is not None else '-'} | "
                          f"{c['max_ms'] if c['max_ms'] is not None else '-'} | {c['planned'] or 'refused'} | "
-                         f"{met}/{len(c['frames']) if c['planned'] else 0} | {', '.join(miss)} |")
+                         f"{met}/{len(c['frames']) if c['planned'] else 0} | {', '.join(miss)} "
+                         f"| {cold_c['planned'] or 'refused'} |")
     lines += ["", "![predicted against held-out error](../img/walkthrough_contracts.png)"]
     return "\n".join(lines)
 
@@ -237,6 +275,8 @@ def main() -> None:
     ap.add_argument("--scene", choices=SCENES)
     ap.add_argument("--presets", default="low,medium")
     ap.add_argument("--fills", default="both,trace")
+    ap.add_argument("--path-noises", default="0.02,0.05,0.1,0.2", help="noise targets of the path-traced frames "
+                                                                  "('none': no path-traced setting)")
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--width", type=int, default=96)
     ap.add_argument("--height", type=int, default=72)
@@ -253,21 +293,25 @@ def main() -> None:
         for res in data["scenes"].values():
             model = WalkthroughModel.from_json(res["model"])
             res["contracts"] = _contracts(model, res["grid"], res["width"] * res["height"], res["frames"], Settings())
+            res["cold"] = _contracts(model, res["grid"], res["width"] * res["height"], res["frames"], Settings(),
+                                     ready=set())
         data["replanned"] = True
         DATA.write_text(json.dumps(data, indent=1))
         replace_block(DOC, "walkthrough_contracts", _doc(data), title="Walkthrough quality contracts")
         return
     presets, fills = args.presets.split(","), args.fills.split(",")
-    data: dict[str, Any] = {"presets": presets, "fills": fills, "width": args.width, "height": args.height,
+    noises = [] if args.path_noises == "none" else [float(x) for x in args.path_noises.split(",")]
+    data: dict[str, Any] = {"presets": presets, "fills": fills, "path_noises": noises, "width": args.width,
+                            "height": args.height,
                             "truth_noise": args.truth_noise, "machine": f"{platform.machine()}, "
                             f"{platform.python_version()}", "scenes": {}}
     if args.scene and DATA.exists():
         old = json.loads(DATA.read_text())
-        if old.get("presets") == presets and old.get("fills") == fills:
+        if old.get("presets") == presets and old.get("fills") == fills and old.get("path_noises") == noises:
             data["scenes"] = old.get("scenes", {})
     t0 = time.perf_counter()
     for name in (args.scene,) if args.scene else SCENES:
-        data["scenes"][name] = run_scene(name, presets, fills, args)
+        data["scenes"][name] = run_scene(name, presets, fills, noises, args)
         print(json.dumps({name: _summary(data["scenes"][name])}), flush=True)
     data["seconds"] = time.perf_counter() - t0
     if args.no_doc:

@@ -1232,7 +1232,7 @@ def calibrate_walkthroughs(
     truth_noise: Annotated[float | None, typer.Option(
         help="Relative standard error the converged probe frames are traced to (0.002..0.05; default 0.01)")] = None,
     path_noises: Annotated[str | None, typer.Option(
-        help="Noise targets of the path-traced frames measured, comma-separated (default 0.02,0.05,0.1; "
+        help="Noise targets of the path-traced frames measured, comma-separated (default 0.02,0.05,0.1,0.2; "
              "'none': no path-traced setting)")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the calibration")] = True,
     api_url: ApiOpt = DEFAULT_API,

@@ -48,6 +48,7 @@ from api_schemas.scene import (
 )
 from api_schemas.service import BakeParams, CalibrationParams, RenderRequest, method_needs_bake
 from api_schemas.walkthrough import WalkthroughRequest
+from engine.walkthrough.path_settings import path_traced_settings
 
 __all__ = [
     "FIXED_BYTES",
@@ -157,8 +158,9 @@ WALKTHROUGH_CPU_S_PER_BASE_PIXEL = 4.0e-6
 """A walkthrough bake's base range images: CPU per base pixel (first hits, shading and indirect
 paths at the preset's samples; sized from the LDC bake's per-sample cost, not measured separately)."""
 WALKTHROUGH_CPU_S_PER_PATH = 1.0e-6
-"""A path-traced walkthrough frame: CPU per indirect path (the reference traces ~1.25 M paths of 3
-bounces a second on one core, docs/accuracy/reference-vs-mitsuba.md)."""
+"""A path-traced walkthrough frame: CPU per indirect path, times the paths a pixel is expected to
+trace (``engine.walkthrough.path_settings``; the reference traces ~1.25 M paths of 3 bounces a
+second on one core, docs/accuracy/reference-vs-mitsuba.md)."""
 DATASET_BAKE_BYTES_PER_VALUE = 4 + 4
 """A dataset bake holds the float32 stack and its baked copy (float16 or low-rank factors, at most
 float32)."""
@@ -683,13 +685,6 @@ def composite_cost(req: CompositeRequest, n_images: int, width: int, height: int
 # --------------------------------------------------------------------------- walkthroughs
 
 
-def path_traced_paths(noise: float) -> float:
-    """Expected indirect paths per pixel of a frame path-traced to ``noise``: ``(0.5 / noise)^2``
-    between the pilot's 64 and the cap of 4,096 (measured on ``cornell_animated`` at 96 x 72: 71,
-    125 and 587 paths at noise 0.1, 0.05 and 0.02)."""
-    return min(4096.0, max(64.0, (0.5 / noise) ** 2))
-
-
 def walkthrough_costs(req: WalkthroughRequest, triangles: int,
                       frame_pixels: Callable[[Any], int] | None = None) -> tuple[Cost, Cost]:
     """``(bake, frames)``: the walkthrough bake (its base range images at their upper bound; nothing
@@ -700,7 +695,7 @@ def walkthrough_costs(req: WalkthroughRequest, triangles: int,
     worst = max(sum(pixels[a:a + chunk]) for a in range(0, len(pixels), chunk))
     n_chunks = -(-len(pixels) // chunk)
     if req.path_traced is not None:
-        per_px = WALKTHROUGH_CPU_S_PER_PATH * path_traced_paths(req.path_traced.noise)
+        per_px = WALKTHROUGH_CPU_S_PER_PATH * path_traced_settings(req.path_traced.noise).expected_paths
         frames = _plus_scene(f"path-traced walkthrough frame chunk of {min(chunk, len(pixels))} frames", triangles,
                              (REFERENCE_BYTES_PER_PIXEL + IMAGE_BYTES_PER_PIXEL) * max(pixels), per_px * worst,
                              n_chunks, per_px * sum(pixels))

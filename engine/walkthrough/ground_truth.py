@@ -11,8 +11,9 @@ standard error reaches a target.
   :data:`MIN_PATHS` paths per pixel, for ground truths (the walkthrough calibration,
   ``workers/jobs/calibrate_walkthrough.py``, and ``bench/walkthrough_accuracy.py``);
 - :func:`path_traced_frame`: the same estimate at a looser target, the area-light samples and the
-  pilot paths sized for it (:func:`path_traced_settings`): a walkthrough frame that needs no bake
-  (``WalkthroughRequest.path_traced``), converging to the same image as the noise target falls.
+  paths sized for it (:func:`path_traced_settings`; a fixed count per pixel for loose targets): a
+  walkthrough frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the same
+  image as the noise target falls.
 """
 
 from __future__ import annotations
@@ -28,44 +29,28 @@ from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
 from engine.scene import CameraParams
+from engine.walkthrough.path_settings import CONVERGED_AREA_LIGHT_SAMPLES, path_traced_settings
 from engine.walkthrough.range_images import surface_points
 
-__all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "PATH_TRACED_MAX_PATHS", "converged_frame",
-           "path_traced_frame", "path_traced_settings"]
+__all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "converged_frame", "path_traced_frame"]
 
-AREA_LIGHT_SAMPLES = 1024
-"""Area-light samples per pixel of the direct light (a 32 x 32 jittered grid)."""
+AREA_LIGHT_SAMPLES = CONVERGED_AREA_LIGHT_SAMPLES
+"""Area-light samples per pixel of the converged frame's direct light (a 32 x 32 jittered grid)."""
 GROUND_TRUTH_STREAM = 6
 """Sampler stream of the indirect paths: ``sample_key(seed, 6, frame)`` (the bases' own use 5)."""
 MIN_PATHS = 256
 MAX_PATHS = 65536
-PATH_TRACED_MAX_PATHS = 4096
-"""Most indirect paths a pixel of a path-traced walkthrough frame traces (its time bound): a pixel
-that needs more stops short of the target, which the frame's stats report."""
-
-
-def path_traced_settings(noise: float) -> tuple[int, int]:
-    """``(area_light_samples, min_paths)`` of a path-traced frame at relative standard error
-    ``noise``: the direct light's area samples a power of 4 with its own noise (penumbrae only)
-    about a fifth of ``noise`` (``(0.2 / noise)^2``, 4 .. 1024), and a pilot of 32 paths (8 rounds
-    of 4) sizing each pixel's estimate (``engine.newviews.indirect.IndirectParams.min_paths``)."""
-    if not 0.0 < noise < 1.0:
-        raise ValueError(f"noise must be in (0, 1), got {noise!r}")
-    want = (0.2 / noise) ** 2
-    area = 4
-    while area < want and area < AREA_LIGHT_SAMPLES:
-        area *= 4
-    return area, 32
 
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
                       bounces: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """A walkthrough frame path-traced to relative standard error ``noise`` per pixel (the module
-    docstring): radiance (h, w, 3) float32, the mask of the pixels it covers, and the stats of
-    :func:`converged_frame`. Deterministic in ``seed``; ``frame`` decorrelates the frames."""
-    area, pilot = path_traced_settings(noise)
-    img, covered, st = _traced(rr, cam, frame, seed, noise, bounces, area, pilot, PATH_TRACED_MAX_PATHS, pilot // 8)
-    return img, covered, st
+    docstring, :func:`path_traced_settings`): radiance (h, w, 3) float32, the mask of the pixels it
+    covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``; ``frame``
+    decorrelates the frames."""
+    ps = path_traced_settings(noise)
+    return _traced(rr, cam, frame, seed, noise, bounces, ps.area_light_samples, ps.min_paths, ps.max_paths,
+                   ps.round_paths)
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,

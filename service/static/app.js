@@ -1763,10 +1763,10 @@ function showWalkContractProblem(err) {
 // ---- walkthrough calibration (what asking by error or time plans from)
 
 // What "Calibrate walkthroughs" asks for: the two cheaper presets with the fill that covers the most
-// holes, and path-traced frames at three noise targets (no bake: seconds of the calibration); the
+// holes, and path-traced frames at four noise targets (no bake: seconds of the calibration); the
 // bakes stay in the store, so a walkthrough planned onto one renders at once. The high preset and the
 // other fills are left out: they would make the calibration several times longer.
-const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"], path_noises: [0.02, 0.05, 0.1] };
+const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"], path_noises: [0.02, 0.05, 0.1, 0.2] };
 const walkCal = { running: false, controller: null };
 const walkCalPerf = { state: null, fraction: 0, stage: "", key: null, runs: 0 };
 window.__walkCalibration = walkCalPerf;

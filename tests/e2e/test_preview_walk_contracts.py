@@ -30,7 +30,7 @@ NAME = "e2e_walk_contract_room"
 SCENE = {**ROOM, "name": NAME}  # two boxes, a point light, an animated occluder, a path view space
 URL = "/preview/?walk={name}&wt_ask=error&wt_target=25"
 FRAMES, WIDTH = 8, 64  # 64 x 48 frames (the room's camera is 4:3)
-CALIBRATE_PARAMS = {"presets": ["low", "medium"], "fills": ["both"], "path_noises": [0.02, 0.05, 0.1]}
+CALIBRATE_PARAMS = {"presets": ["low", "medium"], "fills": ["both"], "path_noises": [0.02, 0.05, 0.1, 0.2]}
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +171,8 @@ def test_calibrating_asks_again_and_shows_the_plan_with_achieved_times(page: Pag
     expect(page.locator("#wt-cal-stage")).to_contain_text("walkthrough calibration finished")
     stored = httpx.get(f"{stack.api_url}/v1/scenes/{scene_id}/walkthrough-calibrations", timeout=30).json()
     assert stored["state"] == "finished" and stored["key"] == cal["key"]
-    assert set(stored["model"]["fits"]) == {"low/both", "medium/both", "path/0.02", "path/0.05", "path/0.1"}
+    assert set(stored["model"]["fits"]) == {"low/both", "medium/both", "path/0.02", "path/0.05", "path/0.1",
+                                              "path/0.2"}
     # then the page asks the same walkthrough again, now planned, and follows it to its frames
     page.wait_for_function("window.__walk.contract && window.__walk.status === 'finished' && "
                            f"window.__walk.loaded === {FRAMES}", timeout=120_000)
@@ -191,8 +192,9 @@ def test_calibrating_asks_again_and_shows_the_plan_with_achieved_times(page: Pag
     table = page.locator("#wt-contract")
     expect(table).to_be_visible()
     expect(table).to_contain_text("error ≤ 25.00 % per frame")
-    expect(table).to_contain_text(f"path-traced frames (noise {con['path_noise']:g}, no bake)"
-                                  if con["path_noise"] is not None else f"bake preset {con['preset']}, fill {con['fill']}")
+    plan = (f"path-traced frames (noise {con['path_noise']:g}, no bake)" if con["path_noise"] is not None
+            else f"bake preset {con['preset']}, fill {con['fill']}")
+    expect(table).to_contain_text(plan)
     expect(table).to_contain_text("cheapest_meeting_error")
     expect(table).to_contain_text(f"{con['predicted_error'] * 100:.2f} %")
     expect(table).to_contain_text("not measured")

@@ -9,7 +9,8 @@ import pytest
 from engine.metrics import lrms
 from engine.reference import ReferenceRenderer
 from engine.scene import CameraParams
-from engine.walkthrough.ground_truth import AREA_LIGHT_SAMPLES, converged_frame, path_traced_frame, path_traced_settings
+from engine.walkthrough.ground_truth import AREA_LIGHT_SAMPLES, converged_frame, path_traced_frame
+from engine.walkthrough.path_settings import PATH_TRACED_MAX_PATHS, PathTracedSettings, path_traced_settings
 from tests.engine.scenes import box_room
 
 CAM = CameraParams(kind="perspective", eye=(0.0, 1.0, 2.6), look_at=(0.0, 0.8, 0.0), up=(0.0, 1.0, 0.0),
@@ -24,26 +25,34 @@ def room() -> dict:
 
 
 def test_settings_scale_with_the_noise_target() -> None:
-    assert path_traced_settings(0.2) == (4, 32)
-    assert path_traced_settings(0.05) == (16, 32)
-    assert path_traced_settings(0.02) == (256, 32)
-    assert path_traced_settings(0.001)[0] == AREA_LIGHT_SAMPLES
+    # loose targets: a fixed count per pixel (no pilot), a power of two about (0.5 / noise)^2
+    assert path_traced_settings(0.2) == PathTracedSettings(4, 8, 8, 2, 8.0)
+    assert path_traced_settings(0.1) == PathTracedSettings(4, 32, 32, 8, 32.0)
+    assert path_traced_settings(0.4) == PathTracedSettings(4, 4, 4, 1, 4.0)
+    # tight ones: a pilot of 32 paths sizes each pixel's estimate
+    assert path_traced_settings(0.05) == PathTracedSettings(16, 32, PATH_TRACED_MAX_PATHS, 4, 100.0)
+    assert path_traced_settings(0.02).area_light_samples == 256 and path_traced_settings(0.02).adaptive
+    assert path_traced_settings(0.005).expected_paths == PATH_TRACED_MAX_PATHS
+    assert path_traced_settings(0.001).area_light_samples == AREA_LIGHT_SAMPLES
     with pytest.raises(ValueError):
         path_traced_settings(0.0)
 
 
 def test_error_falls_with_the_noise_target_toward_the_converged_frame(room: dict) -> None:
-    """Against a converged frame of another seed, the LRMS tracks the target: about the target at
-    0.1 and 0.03 (the converged frame's own 1 % noise adds in quadrature), and a lower target is
-    closer; the stats say what each pixel reached."""
+    """Against a converged frame of another seed, the LRMS tracks the target (the converged frame's
+    own 1 % noise adds in quadrature) and a lower target is closer; the stats say what each pixel
+    traced and reached."""
     errs = {}
-    for noise in (0.1, 0.03):
+    for noise in (0.2, 0.03):
         img, covered, st = path_traced_frame(room["rr"], CAM, 0, 5, noise, 2)
         assert np.array_equal(covered, room["covered"])
         errs[noise] = lrms(img, room["truth"], room["region"])
         assert errs[noise] < 1.5 * noise + 0.01, (noise, errs[noise])
-        assert st["rel_stderr_median"] <= noise * 1.2 and st["paths_mean"] >= 64
-    assert errs[0.03] < errs[0.1] and errs[0.1] > 0.01
+        if noise == 0.2:  # a fixed count
+            assert st["paths_mean"] == 8
+        else:
+            assert st["rel_stderr_median"] <= noise * 1.2 and st["paths_mean"] >= 64
+    assert errs[0.03] < errs[0.2] and errs[0.2] > 0.01
     # the mean agrees with the converged frame's (no bias from stopping per pixel)
     img, _, _ = path_traced_frame(room["rr"], CAM, 0, 6, 0.03, 2)
     m = room["region"]
