@@ -30,7 +30,8 @@ settings):
   light exactly at a dataset light (the exact-hit kernel);
 - ``workers.jobs.datasets.composite_job`` (two relights and ``engine.relighting.composite``);
 - a walkthrough of the warm-up scene with a moving sphere: ``bake_walkthrough`` (the walkthrough
-  bake job's engine call) and ``WalkthroughRenderer.render`` with every fill mode (the chunk job's).
+  bake job's engine call) and ``WalkthroughRenderer.render`` with every fill mode (the chunk job's),
+  and frames path-traced without a bake (``PathTracedFrames``, the chunk job's for ``path_traced``).
 
 The scene, the dataset and the images are made in code; everything is written to a scratch
 object store in a temporary directory (RAM-backed when ``/dev/shm`` is writable) that is
@@ -87,7 +88,7 @@ from workers.jobs.bake import bake_ldc_axis_job, bake_ldc_indirect_job, bake_llf
 from workers.jobs.common import json_safe, load_stored_scene, set_worker_store
 from workers.jobs.datasets import NPZ, baked_to_bytes, composite_job, relight_job, set_caches
 from workers.jobs.render import render_job, set_renderer_cache
-from workers.jobs.walkthrough import engine_space
+from workers.jobs.walkthrough import PathTracedFrames, engine_space
 from workers.scene_loader import camera_params, load_animated_scene
 from workers.warmup_steps import LANES, NEEDS, STEPS, lanes_for, needs_of
 
@@ -473,7 +474,7 @@ class _Run:
     def walkthrough(self) -> None:
         """A walkthrough of the animated warm-up scene: the bake (the bake queue's
         ``engine.walkthrough.bake.bake_walkthrough``, as ``walkthrough_bake_job`` calls it) and
-        frames reconstructed as ``walkthrough_chunk_job`` does, with every fill mode."""
+        frames reconstructed as ``walkthrough_chunk_job`` does, with every fill mode, and path-traced."""
 
         scene = Scene.model_validate(WALKTHROUGH_SCENE)
         an = load_animated_scene(scene)
@@ -484,6 +485,8 @@ class _Run:
         cam = camera_params(scene.camera)
         for fill in FILL_MODES:
             renderer.render(cam, 0.5, fill=fill, strict=False)
+        for noise in (0.2, 0.05):  # path-traced frames: a fixed path count, and a pilot sizing each pixel's
+            PathTracedFrames(an, noise).render(cam, 0.5, 0)
 
     def composite(self) -> None:
 

@@ -219,8 +219,11 @@ async function loadCapabilities() {
   $("compare-label").hidden = !caps.compare;
   $("walks-panel").hidden = !caps.walkthroughs;
   const opts = caps.walkthrough_options || {};
-  $("wt-quality").replaceChildren(...(opts.quality || []).map((q) => new Option(q, q)));
+  // the bake presets, then frames path-traced without a bake at the noise targets a calibration measures
+  $("wt-quality").replaceChildren(...(opts.quality || []).map((q) => new Option(q, q)),
+    ...(opts.path_noise || []).map((n) => new Option(`path-traced, noise ${n}`, `${PATH_PREFIX}${n}`)));
   if ((opts.quality || []).includes("low")) $("wt-quality").value = "low";
+  $("wt-quality").addEventListener("change", walkQualityChanged);
   $("wt-fill").replaceChildren(...(opts.fill || []).map((f) => new Option(f, f)));
   if ((opts.fill || []).includes("both")) $("wt-fill").value = "both";
   if (["settings", "error", "time"].includes(params.get("wt_ask"))) $("wt-ask").value = params.get("wt_ask");
@@ -1636,7 +1639,8 @@ function walkRequest() {
         fov_y_deg: info.camera.fov_y_deg || 60, width: w, height: h },
     });
   }
-  const bake = { quality: $("wt-quality").value };
+  const choice = $("wt-quality").value;
+  const bake = { quality: choice };
   for (const [param, field] of [["wt_face", "face_res"], ["wt_views", "max_views"], ["wt_times", "max_time_samples"],
     ["wt_indirect", "indirect_samples"]]) {
     if (params.get(param) !== null) bake[field] = Number(params.get(param));
@@ -1646,7 +1650,19 @@ function walkRequest() {
     fps: Number.isFinite(Number(fpsText)) && fpsText !== "" ? Number(fpsText) : fpsText };
   const quality = walkQuality();
   // asked by error or time, the planner picks the bake preset and the fill: naming them too is a 422
-  return quality ? { ...request, quality } : { ...request, bake, fill: $("wt-fill").value };
+  if (quality) return { ...request, quality };
+  if (choice.startsWith(PATH_PREFIX)) {  // every frame path-traced: no bake and no fill to name
+    return { ...request, path_traced: { noise: Number(choice.slice(PATH_PREFIX.length)) } };
+  }
+  return { ...request, bake, fill: $("wt-fill").value };
+}
+
+// A walkthrough setting that path-traces every frame: its option's value is this prefix and the noise.
+const PATH_PREFIX = "path:";
+
+function walkQualityChanged() {
+  // path-traced frames fill no holes: the fill does not apply to them
+  $("wt-fill").disabled = $("wt-quality").value.startsWith(PATH_PREFIX);
 }
 
 // ---- asking a walkthrough by error or by time (a quality contract instead of a preset and a fill)

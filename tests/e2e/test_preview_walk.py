@@ -47,7 +47,9 @@ def test_walkthrough_renders_with_progress_and_plays(page: Page, capabilities: d
     page.wait_for_selector("body[data-ready=true]")
     expect(page.locator("#walks-panel")).to_be_visible()
     expect(page.locator("#walk-panel")).to_be_visible()
-    assert page.locator("#wt-quality option").all_inner_texts() == capabilities["walkthrough_options"]["quality"]
+    opts = capabilities["walkthrough_options"]
+    assert page.locator("#wt-quality option").all_inner_texts() == opts["quality"] + [
+        f"path-traced, noise {n}" for n in opts["path_noise"]]
     expect(page.locator("#walk-path-desc")).to_contain_text("along the view-space path")
     page.select_option("#wt-quality", "low")
     page.select_option("#wt-frames", "8")
@@ -167,3 +169,25 @@ def test_static_scene_frame_compares_with_a_reference_render(stack: Stack, brows
         assert pg.evaluate("document.querySelector('#wt-compare-img').naturalWidth") == 64
         expect(pg.locator("#error")).to_be_hidden()
         shot(pg, "33-walkthrough-frame-side")
+
+
+def test_path_traced_frames_need_no_bake(page: Page, stack: Stack) -> None:
+    """The quality choice "path-traced" sends ``path_traced`` (no bake, no fill) and plays its frames."""
+    page.click("#wt-play")  # pause (the previous test may have left it playing)
+    page.select_option("#wt-quality", "path:0.2")
+    expect(page.locator("#wt-fill")).to_be_disabled()
+    page.select_option("#wt-frames", "8")
+    page.select_option("#wt-size", "64")
+    with page.expect_request(lambda q: q.method == "POST" and q.url.endswith("/v1/walkthroughs")) as sent:
+        page.click("#wt-go")
+    body = sent.value.post_data_json
+    assert body["path_traced"] == {"noise": 0.2} and "bake" not in body and "fill" not in body
+    page.wait_for_function("window.__walk.status === 'finished' && window.__walk.loaded === 8", timeout=180_000)
+    key = page.evaluate("window.__walk.key")
+    pub = httpx.get(f"{stack.api_url}/v1/walkthroughs/{key}", timeout=30).json()
+    assert pub["bake_key"] is None and not any(j["id"].startswith("wtbake") for j in pub["jobs"])
+    expect(page.locator("#wt-stage")).to_contain_text("done: 8 frames")
+    expect(page.locator("#error")).to_be_hidden()
+    page.select_option("#wt-quality", "low")
+    expect(page.locator("#wt-fill")).to_be_enabled()
+    shot(page, "32-walkthrough-path-traced")

@@ -143,6 +143,27 @@ def test_walkthrough_contract_options_refuse_the_settings_they_choose(tmp_path):
     assert "its bake and fill are left out: the quality contract chooses them" in r.stderr
 
 
+def test_walkthrough_path_noise_sends_path_traced_and_refuses_bake_options(tmp_path, monkeypatch):
+    import httpx
+
+    env, sid, key = _dead_api(), "a" * 64, "b" * 64
+    path = _path_file(tmp_path, bake={"quality": "high"}, fill="trace")
+    for flag, value in (("--quality", "low"), ("--fill", "both"), ("--face-res", "32")):
+        r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), "--path-noise", "0.05", flag, value], env=env)
+        assert r.exit_code == 2 and "--path-noise path-traces every frame without a bake: leave out " + flag \
+            in r.stderr, r.output
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), "--path-noise", "0.05", "--quality-error", "0.1"],
+                      env=env)
+    assert r.exit_code == 2 and "leave out --path-noise" in r.stderr
+    pub = {"key": key, "status": "queued", "progress": 0.0, "frames": 1, "frames_done": 0, "bake_key": None}
+    seen = _mock_api(monkeypatch, lambda req: httpx.Response(202, json=pub))
+    r = runner.invoke(app, ["walkthrough", sid, "--path", str(path), "--path-noise", "0.05"])
+    assert r.exit_code == 0 and r.stdout == key + "\n", r.output
+    body = json.loads(seen[0].content)
+    assert body["path_traced"] == {"noise": 0.05} and "bake" not in body and "fill" not in body
+    assert "path-traced" in r.stderr
+
+
 def test_calibrate_walkthroughs_checks_its_params_before_calling():
     env, sid = _dead_api(), "a" * 64
     r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", "low,ultra", "--probes", "0"], env=env)
@@ -152,6 +173,8 @@ def test_calibrate_walkthroughs_checks_its_params_before_calling():
     assert r.exit_code == 2 and "fills lists a value twice" in r.stderr
     r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", ","], env=env)
     assert r.exit_code == 2 and "comma-separated" in r.stderr
+    r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--path-noises", "0.05,big"], env=env)
+    assert r.exit_code == 2 and "--path-noises (params.path_noises.1)" in r.stderr, r.output
     r = runner.invoke(app, ["calibrate-walkthroughs", sid, "--presets", "low", "--fills", "both"], env=env)
     assert r.exit_code == 3 and "cannot reach" in r.stderr
 

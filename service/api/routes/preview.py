@@ -168,7 +168,9 @@ class Capabilities(FrozenModel):
     walkthroughs: bool
     compare: bool = True
     walkthrough_options: dict[str, list[str]] = {}
-    """When walkthroughs are routed: the values the walkthrough request accepts for ``quality`` and ``fill``."""
+    """When walkthroughs are routed: the values the walkthrough request accepts for ``quality`` and ``fill``,
+    and ``path_noise``, the noise targets of path-traced frames a walkthrough calibration measures by
+    default (``path_traced.noise`` takes any in its range)."""
     provenance: dict[int, tuple[str, str]] = {}
     """Provenance code -> (name, CSS colour) of ``/v1/preview/artifacts/{key}/provenance.png``."""
     paths: list[str] = []
@@ -177,9 +179,10 @@ class Capabilities(FrozenModel):
 
 @lru_cache(maxsize=1)
 def _walkthrough_options() -> dict[str, list[str]]:
-    """``quality`` and ``fill`` choices of the walkthrough request model (empty without it)."""
+    """``quality`` and ``fill`` choices of the walkthrough request model, and the calibration's default
+    ``path_noises`` (empty without the models)."""
     try:
-        from api_schemas.walkthrough import WalkthroughRequest, WalkthroughSettings
+        from api_schemas.walkthrough import WalkthroughCalibrationParams, WalkthroughRequest, WalkthroughSettings
     except ImportError:
         return {}
     out: dict[str, list[str]] = {}
@@ -188,6 +191,7 @@ def _walkthrough_options() -> dict[str, list[str]]:
         values = [str(v) for v in get_args(info.annotation)] if info is not None else []
         if values:
             out[name] = values
+    out["path_noise"] = [f"{n:g}" for n in WalkthroughCalibrationParams().path_noises]
     return out
 
 
