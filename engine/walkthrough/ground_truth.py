@@ -25,6 +25,7 @@ import numpy as np
 
 from engine.camera import camera_rays, pixel_centers
 from engine.metrics import REC709_WEIGHTS
+from engine.newviews.effects import analyze
 from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
@@ -43,14 +44,19 @@ MAX_PATHS = 65536
 
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
-                      bounces: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                      bounces: int, indirect_skip: str | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """A walkthrough frame path-traced to relative standard error ``noise`` per pixel (the module
     docstring, :func:`path_traced_settings`): radiance (h, w, 3) float32, the mask of the pixels it
     covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``; ``frame``
-    decorrelates the frames."""
+    decorrelates the frames.
+
+    ``indirect_skip``: why no surface of the scene can receive indirect light
+    (``engine.newviews.effects.analyze``; None: analysed here, "" forces the indirect paths): such a
+    frame traces none, and its stats say why (``indirect_skip``)."""
     ps = path_traced_settings(noise)
+    skip = analyze(rr.scene).indirect_skip if indirect_skip is None else indirect_skip
     return _traced(rr, cam, frame, seed, noise, bounces, ps.area_light_samples, ps.min_paths, ps.max_paths,
-                   ps.round_paths)
+                   ps.round_paths, skip)
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
@@ -68,7 +74,7 @@ def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: 
 
 
 def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float, bounces: int,
-            area_light_samples: int, min_paths: int, max_paths: int, round_paths: int
+            area_light_samples: int, min_paths: int, max_paths: int, round_paths: int, indirect_skip: str = ""
             ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     t0 = time.perf_counter()
     direct = rr.render(cam, ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=area_light_samples,
@@ -81,7 +87,7 @@ def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noi
     out = direct.radiance.reshape(-1, 3).astype(np.float64)
     st: dict[str, Any] = {"rel_stderr_median": 0.0, "rel_stderr_p95": 0.0, "rel_stderr_max": 0.0, "met_target": 1.0,
                           "paths_mean": 0.0, "paths_max": 0}
-    if len(idx):
+    if len(idx) and not indirect_skip:
         receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
         bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
         ip = IndirectParams(noise=noise, min_paths=min_paths, max_paths=max_paths, bounces=bounces,
@@ -91,5 +97,5 @@ def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noi
         out[idx] += ind.radiance
         st = {k: ind.stats[k] for k in st}
     st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct, area_light_samples=area_light_samples,
-              object_id=direct.object_id, depth=direct.depth)
+              indirect_skip=indirect_skip, object_id=direct.object_id, depth=direct.depth)
     return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, st

@@ -11,7 +11,7 @@ from engine.reference import ReferenceRenderer
 from engine.scene import CameraParams
 from engine.walkthrough.ground_truth import AREA_LIGHT_SAMPLES, converged_frame, path_traced_frame
 from engine.walkthrough.path_settings import PATH_TRACED_MAX_PATHS, PathTracedSettings, path_traced_settings
-from tests.engine.scenes import box_room
+from tests.engine.scenes import box_room, mat, scene, sphere_mesh
 
 CAM = CameraParams(kind="perspective", eye=(0.0, 1.0, 2.6), look_at=(0.0, 0.8, 0.0), up=(0.0, 1.0, 0.0),
                    fov_y_deg=50.0, width=32, height=24)
@@ -64,3 +64,22 @@ def test_deterministic_per_seed_and_frame(room: dict) -> None:
     b = path_traced_frame(room["rr"], CAM, 3, 1, 0.1, 2)[0]
     c = path_traced_frame(room["rr"], CAM, 4, 1, 0.1, 2)[0]
     assert np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+def test_no_indirect_paths_where_none_can_arrive() -> None:
+    """One convex closed object lit from outside under a black background: every path leaving it
+    escapes, so a path-traced frame traces none (its stats say why) and is the same image as one
+    forced to trace them; the room above is traced."""
+    ball = scene([(sphere_mesh(radius=0.5, subdivisions=3), mat("d", kd=(0.7, 0.6, 0.5)))],
+                 [dict(type="point", position=(0.0, 2.0, 2.0), intensity=(5.0, 5.0, 5.0))])
+    rr = ReferenceRenderer(ball)
+    cam = CameraParams(kind="perspective", eye=(0.0, 0.3, 2.5), look_at=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                       fov_y_deg=40.0, width=24, height=24)
+    skipped, covered, st = path_traced_frame(rr, cam, 0, 3, 0.05, 2)
+    assert covered.any() and skipped[covered].max() > 0
+    assert "convex" in st["indirect_skip"] and st["paths_mean"] == 0
+    forced, _, st_forced = path_traced_frame(rr, cam, 0, 3, 0.05, 2, indirect_skip="")
+    assert st_forced["indirect_skip"] == "" and st_forced["paths_mean"] >= 64
+    assert np.array_equal(skipped, forced)
+    _, _, st_room = path_traced_frame(ReferenceRenderer(box_room()), CAM, 0, 3, 0.2, 2)
+    assert st_room["indirect_skip"] == "" and st_room["paths_mean"] == 8

@@ -33,6 +33,7 @@ from api_schemas.scene import BoxViewSpace, PathViewSpace, Scene
 from api_schemas.walkthrough import WalkthroughRequest, WalkthroughSettings
 from engine import ENGINE_VERSION
 from engine.imageio import write_image
+from engine.newviews.effects import analyze
 from engine.reference import ReferenceRenderer
 from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
@@ -80,19 +81,24 @@ class PathTracedFrames:
     def __init__(self, an: AnimatedScene, noise: float, seed: int = 0, bounces: int | None = None):
         self.an, self.noise, self.seed = an, float(noise), int(seed)
         self.bounces = walkthrough_preset("medium").indirect_bounces if bounces is None else int(bounces)
-        self._renderers: dict[float, ReferenceRenderer] = {}
+        self._renderers: dict[float, tuple[ReferenceRenderer, str]] = {}
 
-    def renderer(self, t: float) -> ReferenceRenderer:
+    def renderer(self, t: float) -> tuple[ReferenceRenderer, str]:
+        """The reference renderer of the scene at time ``t``, and why its surfaces cannot receive
+        indirect light ("" when they can: ``engine.newviews.effects.analyze``, per time, since
+        lights and objects move)."""
         key = float(self.an.start) if self.an.is_static else float(t)
-        rr = self._renderers.get(key)
-        if rr is None:
+        got = self._renderers.get(key)
+        if got is None:
             if len(self._renderers) >= 4:
                 self._renderers.pop(next(iter(self._renderers)))
-            rr = self._renderers[key] = ReferenceRenderer(self.an.scene_at(key))
-        return rr
+            rr = ReferenceRenderer(self.an.scene_at(key))
+            got = self._renderers[key] = (rr, analyze(rr.scene).indirect_skip)
+        return got
 
     def render(self, cam: CameraParams, t: float, frame: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-        img, covered, st = path_traced_frame(self.renderer(t), cam, frame, self.seed, self.noise, self.bounces)
+        rr, skip = self.renderer(t)
+        img, covered, st = path_traced_frame(rr, cam, frame, self.seed, self.noise, self.bounces, skip)
         return img, np.where(covered, _TRACED, _SKY).astype(np.uint8), st
 
 
@@ -227,6 +233,7 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
         an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
         wr = WalkthroughRenderer(bake, an)
     noise: list[float] = []
+    skipped: list[str] = []  # why the path-traced frames traced no indirect light, when they did not
     blobs: dict[str, tuple[bytes, str]] = {}
     frame_ms: list[float] = []
     counts: dict[str, int] = {}
@@ -243,6 +250,8 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
                 radiance, provenance, st = traced.render(cam, f.time, i)
                 frame_ms.append(1e3 * (time.perf_counter() - t0))
                 noise.append(float(st["rel_stderr_median"]))
+                if st["indirect_skip"] and not skipped:
+                    skipped.append(str(st["indirect_skip"]))
                 for code in (_TRACED, _SKY):
                     name = PROVENANCE_CODES[code]
                     counts[name] = counts.get(name, 0) + int((provenance == code).sum())
@@ -268,6 +277,8 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
                               "timings": {"job_total": time.perf_counter() - t_start}}
     if noise:  # what the path-traced frames reached: each frame's median relative standard error
         result["rel_stderr_median"] = noise
+        if skipped:
+            result["indirect"] = {"state": "skipped", "reason": skipped[0]}
     write_artifact(store, p.chunk_key, "walkthrough-chunk", {"walkthrough": p.walkthrough_key},
                    {"index": p.index, "start": p.start, "stop": p.stop}, ENGINE_VERSION, blobs, result)
     progress.report(1.0, "done", force=True, check=False)
