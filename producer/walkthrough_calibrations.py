@@ -5,7 +5,10 @@ bakes each calibrated preset (unless its bake is stored), renders a few probe fr
 each calibrated fill and converged, and fits :class:`engine.walkthrough.quality.WalkthroughModel`.
 
 Store: ``calibrations/<scene_id>/walkthrough.json`` holds the scene's latest walkthrough model
-``{"key", "params", "model"}`` (a new calibration replaces it; removed with the scene). Job id
+``{"key", "params", "model"}`` (a new calibration replaces it; removed with the scene), and
+``calibrations/<scene_id>/walkthrough-served.json`` what the frames of walkthroughs planned from it
+took (:func:`record_served_walkthrough`): per setting a running time correction the planner applies
+(``engine.quality.correction_factor``), as served renders correct a render calibration. Job id
 ``wtcalibrate-<key>``, ``key = artifact_key("walkthrough-calibration", {"scene"}, params,
 ENGINE_VERSION)``: identical requests share one job.
 
@@ -20,7 +23,9 @@ walkthrough's status keeps stating it.
 from __future__ import annotations
 
 import json
+import math
 import statistics
+from dataclasses import replace
 from typing import Any
 
 from redis import Redis
@@ -35,7 +40,8 @@ from api_schemas.walkthrough import (
     WalkthroughSettings,
 )
 from engine import ENGINE_VERSION
-from engine.walkthrough.quality import WalkthroughModel, plan_walkthrough
+from engine.quality import correction_factor, fold_observation
+from engine.walkthrough.quality import WalkthroughModel, path_setting_name, plan_walkthrough, setting_name
 from producer.artifacts import artifact_key, read_manifest
 from producer.calibrations import read_json_object
 from producer.enqueue import enqueue_unique
@@ -50,7 +56,9 @@ __all__ = [
     "enqueue_walkthrough_calibration",
     "plan_walkthrough_request",
     "read_contract",
+    "read_served_walkthroughs",
     "read_walkthrough_calibration",
+    "record_served_walkthrough",
     "walkthrough_calibration_key",
     "walkthrough_calibration_path",
     "walkthrough_calibration_status",
@@ -145,6 +153,10 @@ def plan_walkthrough_request(store: ObjectStore, req: WalkthroughRequest, *, err
     if doc is None:
         raise WalkthroughCalibrationMissing(req.scene_id)
     model = WalkthroughModel.from_json(doc["model"])
+    served = read_served_walkthroughs(store, req.scene_id, doc["key"])
+    applied = {name: correction_factor(served, "time", name) for name in model.fits}
+    applied = {name: f for name, f in applied.items() if f != 1.0}
+    model = with_time_corrections(model, applied)
     cam = req.frames[0].camera
     ready = {preset for preset, bkey in model.bake_keys.items() if read_manifest(store, bkey) is not None}
     p = plan_walkthrough(model, cam.width * cam.height, len(req.frames), max_error=q.max_error, max_ms=q.max_ms,
@@ -169,6 +181,7 @@ def plan_walkthrough_request(store: ObjectStore, req: WalkthroughRequest, *, err
         planned_for=dict(p.planned_for),
         excluded=dict(model.excluded),
         calibration={"key": doc["key"], "created_at": model.created_at, "cost_s": model.cost_s,
+                     "time_corrections": applied,
                      "probes": model.probe.get("frames"), "url": f"/v1/scenes/{req.scene_id}/walkthrough-calibrations"})
     return planned, contract
 
@@ -203,3 +216,63 @@ def with_contract(store: ObjectStore, pub: WalkthroughPublic) -> WalkthroughPubl
             # a finished walkthrough's frames never change: kept, so later answers read no chunk manifest
             write_contract(store, pub.key, contract)
     return pub.model_copy(update={"contract": contract})
+
+
+# ------------------------------------------------------------------------------------ served walkthroughs
+
+
+def served_walkthroughs_path(scene_id: str) -> str:
+    return f"calibrations/{scene_id}/walkthrough-served.json"
+
+
+def read_served_walkthroughs(store: ObjectStore, scene_id: str, key: str) -> dict[str, Any]:
+    """What the frames of walkthroughs planned from the walkthrough calibration ``key`` took:
+    ``{"time": {setting: {"log", "n"}}}`` (``engine.quality.fold_observation``); empty when none, or
+    when they were measured against another calibration (a new one starts afresh)."""
+    doc = read_json_object(store, served_walkthroughs_path(scene_id))
+    if doc is None or doc.get("key") != key or doc.get("engine_version") != ENGINE_VERSION:
+        return {}
+    return {"time": doc.get("time") or {}}
+
+
+def with_time_corrections(model: WalkthroughModel, factors: dict[str, float]) -> WalkthroughModel:
+    """``model`` with each setting's frame time multiplied by its factor in ``factors``."""
+    if not factors:
+        return model
+    fits = {k: replace(f, b_ms=f.b_ms * factors.get(k, 1.0), c_ms=f.c_ms * factors.get(k, 1.0))
+            for k, f in model.fits.items()}
+    return replace(model, fits=fits)
+
+
+def _steady_frame_ms(chunk_frame_ms: list[list[float]]) -> list[float]:
+    """The frame times of every chunk but each chunk's first frame: the first frame a chunk job
+    renders also loads the kernels into its process (measured at ~0.27 s on the test room against
+    ~9 ms for the others), which the model, calibrated after an untimed frame, leaves out."""
+    return [ms for chunk in chunk_frame_ms for ms in chunk[1:]]
+
+
+def record_served_walkthrough(store: ObjectStore, scene_id: str, contract: WalkthroughContractPublic,
+                              chunk_frame_ms: list[list[float]]) -> dict[str, Any] | None:
+    """Fold what the frames of a walkthrough planned from ``contract`` took into the corrections of
+    the calibration that planned it: the slowest frame (each chunk's first left out,
+    :func:`_steady_frame_ms`) against the predicted frame time, made raw again with the factor the
+    plan applied (``calibration.time_corrections``), since the model predicts the slowest frame
+    (``max_ms`` bounds every frame). Read, fold, write, as ``producer.calibrations.record_served``.
+    Returns the document written, or None when there was nothing to fold."""
+    key = contract.calibration.get("key")
+    setting = (path_setting_name(contract.path_noise) if contract.path_noise is not None
+               else setting_name(str(contract.preset), str(contract.fill)))
+    steady = _steady_frame_ms(chunk_frame_ms)
+    if not key or not steady or contract.predicted_frame_ms <= 0:
+        return None
+    applied = float((contract.calibration.get("time_corrections") or {}).get(setting, 1.0))
+    ratio = max(steady) / contract.predicted_frame_ms * applied
+    if not (ratio > 0 and math.isfinite(ratio)):
+        return None
+    doc: dict[str, Any] = {"key": key, "engine_version": ENGINE_VERSION,
+                           **read_served_walkthroughs(store, scene_id, str(key))}
+    table = dict(doc.get("time") or {})
+    table[setting] = fold_observation(table.get(setting), ratio)
+    doc["time"] = table
+    store.put_bytes(served_walkthroughs_path(scene_id), json.dumps(doc, sort_keys=True).encode(), "application/json")
+    return doc

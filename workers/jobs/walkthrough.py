@@ -7,7 +7,9 @@
   path-traces them, ``WalkthroughRequest.path_traced``: ``engine.walkthrough.ground_truth``) and
   publishes them as EXR (linear), PNG (sRGB preview) and provenance PNG (8-bit codes);
 - :func:`walkthrough_video_job` (``render`` queue): encodes every frame's PNG into ``video.mp4``
-  (H.264, yuv420p, ffmpeg from ``imageio-ffmpeg``) and publishes the walkthrough manifest.
+  (H.264, yuv420p, ffmpeg from ``imageio-ffmpeg``) and publishes the walkthrough manifest; a
+  walkthrough planned from a quality contract then folds its frames' times into the calibration's
+  time corrections.
 
 Every job validates its payload, recomputes its artifact key (a mismatch fails the job at once),
 returns early when its artifact already exists (jobs are at-least-once, artifacts written once),
@@ -50,6 +52,7 @@ from producer.payloads import (
     describe_validation_error,
 )
 from producer.store import ObjectStore
+from producer.walkthrough_calibrations import read_contract, record_served_walkthrough
 from producer.walkthroughs import (
     chunk_key,
     chunks,
@@ -59,7 +62,7 @@ from producer.walkthroughs import (
     walkthrough_inputs,
     walkthrough_key,
 )
-from workers.jobs.common import ProgressReporter, codes_png, dependency_note, worker_store
+from workers.jobs.common import ProgressReporter, codes_png, dependency_note, log, worker_store
 from workers.scene_loader import camera_params, load_animated_scene
 
 __all__ = ["PathTracedFrames", "WalkthroughUnavailable", "engine_space", "load_stored_bake", "load_walkthrough_scene",
@@ -285,6 +288,25 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     return {"artifact_key": p.chunk_key, **result}
 
 
+def _fold_served(store: ObjectStore, scene_id: str, wkey: str, chunk_keys: list[str]) -> None:
+    """A walkthrough planned from a quality contract: fold its frames' times into the calibration's
+    corrections (``producer.walkthrough_calibrations.record_served_walkthrough``). Logged, not raised,
+    when it fails: the walkthrough is published already, and a lost observation only slows the
+    correction."""
+    try:
+        contract = read_contract(store, wkey)
+        if contract is None:
+            return
+        chunk_ms = []
+        for ck in chunk_keys:
+            m = read_manifest(store, ck)
+            chunk_ms.append([float(x) for x in (m.result.get("frame_ms") or [])] if m is not None else [])
+        record_served_walkthrough(store, scene_id, contract, chunk_ms)
+    except Exception:  # noqa: BLE001 - see the docstring
+        log.warning("could not fold walkthrough %s's frame times into its calibration's corrections", wkey,
+                    exc_info=True)
+
+
 def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     """Check every chunk, encode ``video.mp4`` and publish the walkthrough."""
     t_start = time.perf_counter()
@@ -332,5 +354,6 @@ def walkthrough_video_job(payload: dict[str, Any]) -> dict[str, Any]:
     inputs, params = walkthrough_inputs(req)
     write_artifact(store, p.walkthrough_key, "walkthrough", inputs, params, ENGINE_VERSION, {"video.mp4": (data, MP4)},
                    result)
+    _fold_served(store, req.scene_id, p.walkthrough_key, keys)
     progress.report(1.0, "done", force=True, check=False)
     return {"artifact_key": p.walkthrough_key, **result}

@@ -10,6 +10,8 @@ from typing import Any
 from fastapi.testclient import TestClient
 
 from api_schemas.walkthrough import WalkthroughCalibrationPublic, WalkthroughPublic
+from producer.store import LocalStore
+from producer.walkthrough_calibrations import read_served_walkthroughs
 from tests.service.api.test_walkthroughs import BAKE, _errors, _frames, _scene
 
 
@@ -95,6 +97,9 @@ def test_walkthrough_contract_end_to_end(client: TestClient, worker_process: Any
     done = WalkthroughPublic.model_validate(doc)
     assert done.contract is not None and done.contract.achieved_frame_ms is not None
     assert 0 < done.contract.achieved_frame_ms["median"] <= done.contract.achieved_frame_ms["max"]
+    # its frame times are folded into the calibration's time corrections (2 chunks of 2 frames)
+    served = read_served_walkthroughs(LocalStore(store_dir), sid, cal.key)
+    assert served["time"]["low/both"]["n"] == 1
     # the same walkthrough asked explicitly shares the frames (same key), and states no contract
     explicit = client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "chunk_frames": 2,
                                                      "bake": {"quality": "low"}, "fill": "both"})
