@@ -21,6 +21,7 @@ __all__ = [
     "BYTES_PER_BASE_PIXEL",
     "INDIRECT_MAX_PATHS_RANGE",
     "INDIRECT_NOISE_RANGE",
+    "DEFAULT_PATH_NOISES",
     "MAX_WALKTHROUGH_FRAMES",
     "PATH_NOISE_RANGE",
     "PRESET_SIZES",
@@ -51,6 +52,10 @@ BYTES_PER_BASE_PIXEL = 2 * 12 + 4 + 4
 """direct + indirect (float32 RGB), depth (float32), object id (int32) per cube pixel and time."""
 PATH_NOISE_RANGE = (0.005, 0.5)
 """Allowed ``path_traced.noise`` (and calibrated ``path_noises``)."""
+DEFAULT_PATH_NOISES: tuple[float, ...] = (0.02, 0.03, 0.05, 0.07, 0.1, 0.14, 0.2)
+"""The path-traced noise targets a walkthrough calibration measures by default: about 1.4x apart, so
+that a contract's error target lands on one at most ~1.4x finer than it needs (a frame's time grows
+as the noise target's inverse square); the finest two cost most of the calibration's path-traced part."""
 Quality = Literal["low", "medium", "high"]
 Fill = Literal["none", "foreground", "background", "both", "trace"]
 
@@ -269,7 +274,7 @@ class WalkthroughCalibrationParams(FrozenModel):
     fills: Annotated[list[Fill], Field(min_length=1, max_length=5)] = ["both", "trace"]
     """The hole fills measured with each preset."""
     path_noises: Annotated[list[Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]],
-                           Field(max_length=6)] = [0.02, 0.05, 0.1, 0.2]
+                           Field(max_length=8)] = list(DEFAULT_PATH_NOISES)
     """Path-traced frames measured at these noise targets (``path_traced.noise``; each a setting of
     its own, ``path/0.05``, needing no bake); empty: none."""
     probes: Annotated[int, Field(strict=True, ge=1, le=8)] = 3

@@ -2,7 +2,7 @@
 error target or time budget, and what the plan costs against the cheapest setting that met it.
 
 Run: ``python -m bench.walkthrough_contracts [--scene NAME] [--presets low,medium] [--path-noises
-0.02,0.05,0.1,0.2]`` from the
+0.02,0.05]`` (default: the calibration's) from the
 repository root. Writes ``docs/accuracy/walkthrough_contracts.md`` (block ``walkthrough_contracts``),
 ``docs/data/walkthrough_contracts.json`` and ``docs/img/walkthrough_contracts.png``.
 
@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from api_schemas.walkthrough import WalkthroughCalibrationParams
+from api_schemas.walkthrough import DEFAULT_PATH_NOISES, WalkthroughCalibrationParams
 from bench.docs_writer import replace_block
 from bench.walkthrough_accuracy import load, walkthrough_cameras
 from engine import ENGINE_VERSION
@@ -288,7 +288,8 @@ def main() -> None:
     ap.add_argument("--scene", choices=SCENES)
     ap.add_argument("--presets", default="low,medium")
     ap.add_argument("--fills", default="both,trace")
-    ap.add_argument("--path-noises", default="0.02,0.05,0.1,0.2", help="noise targets of the path-traced frames "
+    ap.add_argument("--path-noises", default=",".join(f"{n:g}" for n in DEFAULT_PATH_NOISES),
+                    help="noise targets of the path-traced frames "
                                                                   "('none': no path-traced setting)")
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--width", type=int, default=96)

@@ -41,6 +41,7 @@ from api_schemas.datasets import DatasetManifest, FileUploadPublic, RelightPubli
 from api_schemas.scene import MeshFileObject, Scene, SceneFileTooLargeError
 from api_schemas.service import ArtifactManifest, BakePublic, JobPublic
 from api_schemas.walkthrough import (
+    DEFAULT_PATH_NOISES,
     WalkthroughCalibrationParams,
     WalkthroughCalibrationPublic,
     WalkthroughContractPublic,
@@ -1232,7 +1233,8 @@ def calibrate_walkthroughs(
     truth_noise: Annotated[float | None, typer.Option(
         help="Relative standard error the converged probe frames are traced to (0.002..0.05; default 0.01)")] = None,
     path_noises: Annotated[str | None, typer.Option(
-        help="Noise targets of the path-traced frames measured, comma-separated (default 0.02,0.05,0.1,0.2; "
+        help="Noise targets of the path-traced frames measured, comma-separated (default "
+             f"{','.join(f'{n:g}' for n in DEFAULT_PATH_NOISES)}; "
              "'none': no path-traced setting)")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the calibration")] = True,
     api_url: ApiOpt = DEFAULT_API,

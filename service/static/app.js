@@ -224,6 +224,7 @@ async function loadCapabilities() {
     ...(opts.path_noise || []).map((n) => new Option(`path-traced, noise ${n}`, `${PATH_PREFIX}${n}`)));
   if ((opts.quality || []).includes("low")) $("wt-quality").value = "low";
   $("wt-quality").addEventListener("change", walkQualityChanged);
+  WALK_CALIBRATION_PARAMS.path_noises = (opts.path_noise || []).map(Number);
   $("wt-fill").replaceChildren(...(opts.fill || []).map((f) => new Option(f, f)));
   if ((opts.fill || []).includes("both")) $("wt-fill").value = "both";
   if (["settings", "error", "time"].includes(params.get("wt_ask"))) $("wt-ask").value = params.get("wt_ask");
@@ -1779,10 +1780,11 @@ function showWalkContractProblem(err) {
 // ---- walkthrough calibration (what asking by error or time plans from)
 
 // What "Calibrate walkthroughs" asks for: the two cheaper presets with the fill that covers the most
-// holes, and path-traced frames at four noise targets (no bake: seconds of the calibration); the
+// holes, and path-traced frames at the calibration's default noise targets (no bake: seconds of the calibration); the
 // bakes stay in the store, so a walkthrough planned onto one renders at once. The high preset and the
 // other fills are left out: they would make the calibration several times longer.
-const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"], path_noises: [0.02, 0.05, 0.1, 0.2] };
+// (path_noises: the calibration's defaults, from the capabilities)
+const WALK_CALIBRATION_PARAMS = { presets: ["low", "medium"], fills: ["both"], path_noises: [] };
 const walkCal = { running: false, controller: null };
 const walkCalPerf = { state: null, fraction: 0, stage: "", key: null, runs: 0 };
 window.__walkCalibration = walkCalPerf;

@@ -19,6 +19,7 @@ import httpx
 import pytest
 from playwright.sync_api import Browser, Page, Request, Route, expect
 
+from api_schemas.walkthrough import DEFAULT_PATH_NOISES
 from service.up import Stack
 from tests.e2e.conftest import ARTIFACTS, shot
 from tests.service.api.test_walkthroughs import ROOM
@@ -30,7 +31,7 @@ NAME = "e2e_walk_contract_room"
 SCENE = {**ROOM, "name": NAME}  # two boxes, a point light, an animated occluder, a path view space
 URL = "/preview/?walk={name}&wt_ask=error&wt_target=25"
 FRAMES, WIDTH = 8, 64  # 64 x 48 frames (the room's camera is 4:3)
-CALIBRATE_PARAMS = {"presets": ["low", "medium"], "fills": ["both"], "path_noises": [0.02, 0.05, 0.1, 0.2]}
+CALIBRATE_PARAMS = {"presets": ["low", "medium"], "fills": ["both"], "path_noises": list(DEFAULT_PATH_NOISES)}
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +172,8 @@ def test_calibrating_asks_again_and_shows_the_plan_with_achieved_times(page: Pag
     expect(page.locator("#wt-cal-stage")).to_contain_text("walkthrough calibration finished")
     stored = httpx.get(f"{stack.api_url}/v1/scenes/{scene_id}/walkthrough-calibrations", timeout=30).json()
     assert stored["state"] == "finished" and stored["key"] == cal["key"]
-    assert set(stored["model"]["fits"]) == {"low/both", "medium/both", "path/0.02", "path/0.05", "path/0.1",
-                                              "path/0.2"}
+    assert set(stored["model"]["fits"]) == {"low/both", "medium/both",
+                                              *(f"path/{n:g}" for n in DEFAULT_PATH_NOISES)}
     # then the page asks the same walkthrough again, now planned, and follows it to its frames
     page.wait_for_function("window.__walk.contract && window.__walk.status === 'finished' && "
                            f"window.__walk.loaded === {FRAMES}", timeout=120_000)
