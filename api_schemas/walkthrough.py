@@ -123,8 +123,9 @@ class PathTracedFrames(FrozenModel):
     indirect light of the preset's bounces."""
 
     noise: Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]
-    """Target relative standard error of each pixel's indirect light against the frame's mean
-    brightness (each pixel traces paths until it reaches it, or 4,096 paths)."""
+    """The frame LRMS to aim for: every pixel traces ``(0.3 / noise)^2`` indirect paths (a power of two,
+    4..4096), the count that gives about this LRMS on the sample scenes (a walkthrough calibration
+    measures what it gives on yours)."""
     seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1)] = 0
     """Sampler seed (equal seeds give identical frames)."""
 

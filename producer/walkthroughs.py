@@ -66,6 +66,7 @@ __all__ = [
     "read_request",
     "walkthrough_bake_key",
     "walkthrough_index_key",
+    "walkthrough_inputs",
     "walkthrough_key",
     "walkthrough_status",
 ]

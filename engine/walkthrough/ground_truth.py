@@ -10,10 +10,10 @@ standard error reaches a target.
 - :func:`converged_frame`: :data:`AREA_LIGHT_SAMPLES` area-light samples and at least
   :data:`MIN_PATHS` paths per pixel, for ground truths (the walkthrough calibration,
   ``workers/jobs/calibrate_walkthrough.py``, and ``bench/walkthrough_accuracy.py``);
-- :func:`path_traced_frame`: the same estimate at a looser target, the area-light samples and the
-  paths sized for it (:func:`path_traced_settings`; a fixed count per pixel for loose targets): a
-  walkthrough frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the same
-  image as the noise target falls.
+- :func:`path_traced_frame`: the same estimate at a looser target, a fixed count of paths and
+  area-light samples per pixel sized for it (``engine.walkthrough.path_settings``): a walkthrough
+  frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the same image as
+  the noise target falls.
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ MAX_PATHS = 65536
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
                       bounces: int, indirect_skip: str | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """A walkthrough frame path-traced to relative standard error ``noise`` per pixel (the module
-    docstring, :func:`path_traced_settings`): radiance (h, w, 3) float32, the mask of the pixels it
+    """A walkthrough frame path-traced for an LRMS of about ``noise`` (the module docstring,
+    ``engine.walkthrough.path_settings.path_traced_settings``): radiance (h, w, 3) float32, the mask of the pixels it
     covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``; ``frame``
     decorrelates the frames.
 
@@ -55,8 +55,8 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
     frame traces none, and its stats say why (``indirect_skip``)."""
     ps = path_traced_settings(noise)
     skip = analyze(rr.scene).indirect_skip if indirect_skip is None else indirect_skip
-    return _traced(rr, cam, frame, seed, noise, bounces, ps.area_light_samples, ps.min_paths, ps.max_paths,
-                   ps.round_paths, skip)
+    return _traced(rr, cam, frame, seed, noise, bounces, ps.area_light_samples, ps.paths, ps.paths, ps.round_paths,
+                   skip)
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,

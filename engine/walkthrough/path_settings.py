@@ -1,64 +1,60 @@
 """How a path-traced walkthrough frame samples at a noise target (``WalkthroughRequest.path_traced``):
 numba-free, so the API sizes a path-traced walkthrough's cost (``producer/costs.py``) with the rule
-the frames are rendered with (``engine/walkthrough/ground_truth.py``)."""
+the frames are rendered with (``engine/walkthrough/ground_truth.py``).
+
+The rule is measured, not derived (``docs/walkthrough.md``, "Path-traced frames"): on frames of both
+walkthrough sample scenes at 96 x 72, a fixed count of ``n`` indirect paths per pixel gives an LRMS
+against the converged frame of about ``0.3 / sqrt(n)`` (0.10-0.12 at 8 paths, 0.031-0.035 at 64,
+0.016-0.024 at 128, with 64 area-light samples), and the direct light's area-light samples cost
+little next to the paths (4 -> 64 samples: +10-40 ms a frame) while 4 of them leave a floor of 5-7 %.
+A per-pixel adaptive count (a 32-path pilot sizing each pixel's estimate, the pilot's paths
+discarded so that stopping does not bias it) reached the same LRMS at 3-6x the time, so the frames
+trace a fixed count.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["ADAPTIVE_FROM_PATHS", "CONVERGED_AREA_LIGHT_SAMPLES", "PATH_TRACED_MAX_PATHS", "PathTracedSettings",
-           "path_traced_settings"]
+__all__ = ["CONVERGED_AREA_LIGHT_SAMPLES", "PATH_TRACED_MAX_PATHS", "PathTracedSettings", "path_traced_settings"]
 
 CONVERGED_AREA_LIGHT_SAMPLES = 1024
 """Area-light samples per pixel of a converged frame, the most a path-traced frame takes."""
 PATH_TRACED_MAX_PATHS = 4096
-"""Most indirect paths a pixel of a path-traced walkthrough frame traces (its time bound): a pixel
-that needs more stops short of the target, which the frame's stats report."""
+"""Most indirect paths a pixel of a path-traced walkthrough frame traces (its time bound)."""
+PATH_ERROR_PER_PATH = 0.3
+"""A frame's LRMS is about this over the square root of the paths per pixel (the module docstring)."""
+MIN_AREA_LIGHT_SAMPLES = 64
 
 
 @dataclass(frozen=True)
 class PathTracedSettings:
-    """How a path-traced frame at a noise target samples: the direct light's area-light samples,
-    and the indirect paths per pixel (``engine.newviews.indirect.IndirectParams``: a pilot of
-    ``min_paths`` sizing each pixel's estimate up to ``max_paths``; equal, a fixed count)."""
+    """How a path-traced frame at a noise target samples: the direct light's area-light samples per
+    pixel, and the indirect paths every pixel traces (``engine.newviews.indirect.IndirectParams``
+    with ``min_paths = max_paths``: a fixed count, in 4 rounds whose spread gives each pixel's
+    estimated standard error)."""
 
     area_light_samples: int
-    min_paths: int
-    max_paths: int
+    paths: int
     round_paths: int
-    expected_paths: float
-    """Paths per pixel to expect: the fixed count, or about ``(0.5 / noise)^2`` (the pilot and at
-    least as many again, at most ``max_paths``)."""
 
     @property
-    def adaptive(self) -> bool:
-        return self.max_paths > self.min_paths
-
-
-ADAPTIVE_FROM_PATHS = 64
-"""Below this many expected paths per pixel a frame traces a fixed count: the pilot (32 paths, and
-as many again for the estimate) would cost more than the estimate needs."""
+    def expected_paths(self) -> float:
+        return float(self.paths)
 
 
 def path_traced_settings(noise: float) -> PathTracedSettings:
-    """The sampling of a path-traced frame at relative standard error ``noise`` per pixel: area-light
-    samples a power of 4 with the direct light's own noise (penumbrae only) about a fifth of
-    ``noise`` (``(0.2 / noise)^2``, 4 .. 1024). Indirect paths: each pixel's are expected to number
-    about ``(0.5 / noise)^2`` (a path's relative spread against the frame's brightness is about 0.5
-    on the sample scenes: 71, 125 and 587 paths at 0.1, 0.05 and 0.02 on ``cornell_animated``); from
-    :data:`ADAPTIVE_FROM_PATHS` on, a pilot of 32 paths (8 rounds of 4) sizes each pixel's estimate
-    (at most :data:`PATH_TRACED_MAX_PATHS`); below, every pixel traces that many, a power of two
-    (at least 4), in 4 rounds."""
+    """The sampling of a path-traced frame whose LRMS should be about ``noise``: ``(0.3 / noise)^2``
+    paths per pixel rounded up to a power of two (4 .. :data:`PATH_TRACED_MAX_PATHS`), and area-light
+    samples a power of 4 from ``(0.16 / noise)^2``, at least 64 (at most 1024)."""
     if not 0.0 < noise < 1.0:
         raise ValueError(f"noise must be in (0, 1), got {noise!r}")
-    want = (0.2 / noise) ** 2
-    area = 4
+    want = (0.16 / noise) ** 2
+    area = MIN_AREA_LIGHT_SAMPLES
     while area < want and area < CONVERGED_AREA_LIGHT_SAMPLES:
         area *= 4
-    paths = (0.5 / noise) ** 2
-    if paths >= ADAPTIVE_FROM_PATHS:
-        return PathTracedSettings(area, 32, PATH_TRACED_MAX_PATHS, 4, min(float(PATH_TRACED_MAX_PATHS), paths))
+    paths = (PATH_ERROR_PER_PATH / noise) ** 2
     n = 4
-    while n < paths:
+    while n < paths and n < PATH_TRACED_MAX_PATHS:
         n *= 2
-    return PathTracedSettings(area, n, n, n // 4, float(n))
+    return PathTracedSettings(area, n, n // 4)

@@ -100,11 +100,10 @@ def fit_path_setting(noise: float, points: Sequence[Mapping[str, Any]], truth_no
     not from the frame's size; a time measured at a second size would cost the calibration tens of
     seconds per setting).
 
-    Why the floor: every pixel of such a frame stops at (or is sized for) a relative standard error
-    of ``noise``, so a frame's LRMS is about ``noise`` wherever it looks, while the few probe frames
-    can all sit below it: on ``static_room`` the probes' worst was 0.070 at noise 0.1 (a fixed 32
-    paths) and held-out frames reached 0.107; at 0.05, 0.042 and 0.051
-    (docs/accuracy/walkthrough_contracts.md)."""
+    Why the floor: such a frame's paths per pixel are sized for an LRMS of about ``noise``
+    (``engine.walkthrough.path_settings``) wherever it looks, while the few probe frames can all sit
+    below it: on ``static_room`` (an earlier sizing rule) the probes' worst was 0.070 at noise 0.1
+    and held-out frames reached 0.107; at 0.05, 0.042 and 0.051 (docs/accuracy/walkthrough_contracts.md)."""
     fit = fit_ldc(path_setting_name(noise), points, truth_noise)
     per_px = max(float(p["ms"]) / max(int(p["pixels"]), 1) for p in points)
     return replace(fit, error=max(fit.error, float(noise)), b_ms=0.0, c_ms=per_px)

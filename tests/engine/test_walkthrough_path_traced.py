@@ -25,14 +25,14 @@ def room() -> dict:
 
 
 def test_settings_scale_with_the_noise_target() -> None:
-    # loose targets: a fixed count per pixel (no pilot), a power of two about (0.5 / noise)^2
-    assert path_traced_settings(0.2) == PathTracedSettings(4, 8, 8, 2, 8.0)
-    assert path_traced_settings(0.1) == PathTracedSettings(4, 32, 32, 8, 32.0)
-    assert path_traced_settings(0.4) == PathTracedSettings(4, 4, 4, 1, 4.0)
-    # tight ones: a pilot of 32 paths sizes each pixel's estimate
-    assert path_traced_settings(0.05) == PathTracedSettings(16, 32, PATH_TRACED_MAX_PATHS, 4, 100.0)
-    assert path_traced_settings(0.02).area_light_samples == 256 and path_traced_settings(0.02).adaptive
-    assert path_traced_settings(0.005).expected_paths == PATH_TRACED_MAX_PATHS
+    # a fixed count per pixel, a power of two from (0.3 / noise)^2; area-light samples at least 64
+    assert path_traced_settings(0.2) == PathTracedSettings(64, 4, 1)
+    assert path_traced_settings(0.1) == PathTracedSettings(64, 16, 4)
+    assert path_traced_settings(0.05) == PathTracedSettings(64, 64, 16)
+    assert path_traced_settings(0.02) == PathTracedSettings(64, 256, 64)
+    assert path_traced_settings(0.01) == PathTracedSettings(256, 1024, 256)
+    assert path_traced_settings(0.001) == PathTracedSettings(AREA_LIGHT_SAMPLES, PATH_TRACED_MAX_PATHS, 1024)
+    assert path_traced_settings(0.05).expected_paths == 64
     assert path_traced_settings(0.001).area_light_samples == AREA_LIGHT_SAMPLES
     with pytest.raises(ValueError):
         path_traced_settings(0.0)
@@ -48,10 +48,7 @@ def test_error_falls_with_the_noise_target_toward_the_converged_frame(room: dict
         assert np.array_equal(covered, room["covered"])
         errs[noise] = lrms(img, room["truth"], room["region"])
         assert errs[noise] < 1.5 * noise + 0.01, (noise, errs[noise])
-        if noise == 0.2:  # a fixed count
-            assert st["paths_mean"] == 8
-        else:
-            assert st["rel_stderr_median"] <= noise * 1.2 and st["paths_mean"] >= 64
+        assert st["paths_mean"] == path_traced_settings(noise).paths
     assert errs[0.03] < errs[0.2] and errs[0.2] > 0.01
     # the mean agrees with the converged frame's (no bias from stopping per pixel)
     img, _, _ = path_traced_frame(room["rr"], CAM, 0, 6, 0.03, 2)
@@ -79,7 +76,7 @@ def test_no_indirect_paths_where_none_can_arrive() -> None:
     assert covered.any() and skipped[covered].max() > 0
     assert "convex" in st["indirect_skip"] and st["paths_mean"] == 0
     forced, _, st_forced = path_traced_frame(rr, cam, 0, 3, 0.05, 2, indirect_skip="")
-    assert st_forced["indirect_skip"] == "" and st_forced["paths_mean"] >= 64
+    assert st_forced["indirect_skip"] == "" and st_forced["paths_mean"] == 64
     assert np.array_equal(skipped, forced)
     _, _, st_room = path_traced_frame(ReferenceRenderer(box_room()), CAM, 0, 3, 0.2, 2)
-    assert st_room["indirect_skip"] == "" and st_room["paths_mean"] == 8
+    assert st_room["indirect_skip"] == "" and st_room["paths_mean"] == 4
