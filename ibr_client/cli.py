@@ -1107,8 +1107,9 @@ def walkthrough(
 ) -> None:
     """Render a camera path through a scene's view space from walkthrough bases; prints the walkthrough key.
 
-    With --quality-error / --quality-ms (a quality contract) the service picks the bake preset and the
-    fill from the scene's walkthrough calibration and the plan is printed on stderr."""
+    With --path-noise every frame is path-traced instead, without a bake. With --quality-error /
+    --quality-ms (a quality contract) the service picks the bake preset and the fill, or path-traced
+    frames, from the scene's walkthrough calibration and the plan is printed on stderr."""
     if output is not None and output.suffix.lower() != ".mp4":
         fail(f"-o {output}: the walkthrough video is an .mp4")
     fmt = _frame_format(frame_format)
