@@ -4,12 +4,12 @@ measured against, and the frames a walkthrough renders without a bake.
 The image model is the one the image-based methods render, one point sample at each pixel centre
 (the reference renderer with ``pixel_jitter=False``, 1 spp): direct light with area-light samples
 per pixel, plus indirect light traced per visible surface point with the reference renderer's own
-indirect paths (``engine.newviews.indirect.trace_indirect_points``) until each pixel's relative
-standard error reaches a target.
+indirect paths (``engine.newviews.indirect.trace_indirect_points``).
 
-- :func:`converged_frame`: :data:`AREA_LIGHT_SAMPLES` area-light samples and at least
-  :data:`MIN_PATHS` paths per pixel, for ground truths (the walkthrough calibration,
-  ``workers/jobs/calibrate_walkthrough.py``, and ``bench/walkthrough_accuracy.py``);
+- :func:`converged_frame`: :data:`AREA_LIGHT_SAMPLES` area-light samples, and indirect paths until
+  each pixel's relative standard error reaches a target (at least :data:`MIN_PATHS`), for ground
+  truths (the walkthrough calibration, ``workers/jobs/calibrate_walkthrough.py``, and
+  ``bench/walkthrough_accuracy.py``);
 - :func:`path_traced_frame`: the same estimate at a looser target, a fixed count of paths and
   area-light samples per pixel sized for it (``engine.walkthrough.path_settings``): a walkthrough
   frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the same image as
@@ -46,9 +46,9 @@ MAX_PATHS = 65536
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
                       bounces: int, indirect_skip: str | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """A walkthrough frame path-traced for an LRMS of about ``noise`` (the module docstring,
-    ``engine.walkthrough.path_settings.path_traced_settings``): radiance (h, w, 3) float32, the mask of the pixels it
-    covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``; ``frame``
-    decorrelates the frames.
+    ``engine.walkthrough.path_settings.path_traced_settings``): radiance (h, w, 3) float32, the mask
+    of the pixels it covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``;
+    ``frame`` decorrelates the frames.
 
     ``indirect_skip``: why no surface of the scene can receive indirect light
     (``engine.newviews.effects.analyze``; None: analysed here, "" forces the indirect paths): such a
