@@ -20,6 +20,7 @@ answer states.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from typing import Any
 
 from redis import Redis
@@ -65,6 +66,7 @@ __all__ = [
     "model_path",
     "plan_render",
     "read_calibration",
+    "fold_into_document",
     "read_json_object",
     "read_served",
     "read_verification",
@@ -205,12 +207,22 @@ def record_served(store: ObjectStore, scene_id: str, contract: dict[str, Any], *
         obs["error"] = measured_error / float(estimated) * float(applied.get("error", 1.0))
     if not obs:
         return None
-    doc: dict[str, Any] = {"key": key, "engine_version": ENGINE_VERSION, **read_served(store, scene_id, bkey, key)}
+    return fold_into_document(store, served_path(scene_id, bkey), key, read_served(store, scene_id, bkey, key),
+                              setting, obs)
+
+
+def fold_into_document(store: ObjectStore, path: str, key: str, current: Mapping[str, Any], setting: str,
+                       obs: Mapping[str, float]) -> dict[str, Any]:
+    """Fold the observations ``obs`` (kind -> measured-over-predicted ratio) of ``setting`` into the
+    corrections ``current`` (``{kind: {setting: {"log", "n"}}}``, measured against calibration
+    ``key``) and write them to ``path``; returns the document written. Served renders' and served
+    walkthroughs' corrections are kept this way."""
+    doc: dict[str, Any] = {"key": key, "engine_version": ENGINE_VERSION, **current}
     for kind, ratio in obs.items():
         table = dict(doc.get(kind) or {})
         table[setting] = fold_observation(table.get(setting), ratio)
         doc[kind] = table
-    store.put_bytes(served_path(scene_id, bkey), json.dumps(doc, sort_keys=True).encode(), "application/json")
+    store.put_bytes(path, json.dumps(doc, sort_keys=True).encode(), "application/json")
     return doc
 
 

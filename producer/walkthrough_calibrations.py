@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import statistics
-from dataclasses import replace
 from typing import Any
 
 from redis import Redis
@@ -40,10 +39,15 @@ from api_schemas.walkthrough import (
     WalkthroughSettings,
 )
 from engine import ENGINE_VERSION
-from engine.quality import correction_factor, fold_observation
-from engine.walkthrough.quality import WalkthroughModel, path_setting_name, plan_walkthrough, setting_name
+from engine.walkthrough.quality import (
+    WalkthroughModel,
+    apply_time_corrections,
+    path_setting_name,
+    plan_walkthrough,
+    setting_name,
+)
 from producer.artifacts import artifact_key, read_manifest
-from producer.calibrations import read_json_object
+from producer.calibrations import fold_into_document, read_json_object
 from producer.enqueue import enqueue_unique
 from producer.errors import ContractUnmet, UnknownScene, WalkthroughCalibrationMissing
 from producer.names import CALIBRATE_WALKTHROUGH_JOB, calibrate_walkthrough_job_id
@@ -153,10 +157,7 @@ def plan_walkthrough_request(store: ObjectStore, req: WalkthroughRequest, *, err
     if doc is None:
         raise WalkthroughCalibrationMissing(req.scene_id)
     model = WalkthroughModel.from_json(doc["model"])
-    served = read_served_walkthroughs(store, req.scene_id, doc["key"])
-    applied = {name: correction_factor(served, "time", name) for name in model.fits}
-    applied = {name: f for name, f in applied.items() if f != 1.0}
-    model = with_time_corrections(model, applied)
+    model, applied = apply_time_corrections(model, read_served_walkthroughs(store, req.scene_id, doc["key"]))
     cam = req.frames[0].camera
     ready = {preset for preset, bkey in model.bake_keys.items() if read_manifest(store, bkey) is not None}
     p = plan_walkthrough(model, cam.width * cam.height, len(req.frames), max_error=q.max_error, max_ms=q.max_ms,
@@ -235,15 +236,6 @@ def read_served_walkthroughs(store: ObjectStore, scene_id: str, key: str) -> dic
     return {"time": doc.get("time") or {}}
 
 
-def with_time_corrections(model: WalkthroughModel, factors: dict[str, float]) -> WalkthroughModel:
-    """``model`` with each setting's frame time multiplied by its factor in ``factors``."""
-    if not factors:
-        return model
-    fits = {k: replace(f, b_ms=f.b_ms * factors.get(k, 1.0), c_ms=f.c_ms * factors.get(k, 1.0))
-            for k, f in model.fits.items()}
-    return replace(model, fits=fits)
-
-
 def _steady_frame_ms(chunk_frame_ms: list[list[float]]) -> list[float]:
     """The frame times of every chunk but each chunk's first frame: the first frame a chunk job
     renders also loads the kernels into its process (measured at ~0.27 s on the test room against
@@ -269,10 +261,5 @@ def record_served_walkthrough(store: ObjectStore, scene_id: str, contract: Walkt
     ratio = max(steady) / contract.predicted_frame_ms * applied
     if not (ratio > 0 and math.isfinite(ratio)):
         return None
-    doc: dict[str, Any] = {"key": key, "engine_version": ENGINE_VERSION,
-                           **read_served_walkthroughs(store, scene_id, str(key))}
-    table = dict(doc.get("time") or {})
-    table[setting] = fold_observation(table.get(setting), ratio)
-    doc["time"] = table
-    store.put_bytes(served_walkthroughs_path(scene_id), json.dumps(doc, sort_keys=True).encode(), "application/json")
-    return doc
+    return fold_into_document(store, served_walkthroughs_path(scene_id), str(key),
+                              read_served_walkthroughs(store, scene_id, str(key)), setting, {"time": ratio})

@@ -39,7 +39,7 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
-from engine.quality import CandidateFit, Rule, fit_ldc
+from engine.quality import CandidateFit, Rule, correction_factor, fit_ldc
 
 __all__ = [
     "CALIBRATED_FILLS",
@@ -49,6 +49,7 @@ __all__ = [
     "WalkthroughModel",
     "WalkthroughPlan",
     "WalkthroughPrediction",
+    "apply_time_corrections",
     "fit_path_setting",
     "fit_setting",
     "path_setting_name",
@@ -139,6 +140,22 @@ class WalkthroughModel:
         d = dict(doc)
         d["fits"] = {k: CandidateFit(**v) for k, v in d["fits"].items()}
         return cls(**d)
+
+
+def apply_time_corrections(model: WalkthroughModel, corrections: Mapping[str, Any] | None
+                           ) -> tuple[WalkthroughModel, dict[str, float]]:
+    """``model`` with what served walkthroughs measured folded in (``corrections``: ``{"time":
+    {setting: {"log", "n"}}}``, ``producer.walkthrough_calibrations``): each setting's frame time
+    times its factor (:func:`engine.quality.correction_factor`), as
+    :func:`engine.quality.apply_corrections` does for a render's model; and the factors applied
+    (those other than 1)."""
+    factors = {k: correction_factor(corrections, "time", k) for k in model.fits}
+    factors = {k: f for k, f in factors.items() if f != 1.0}
+    if not factors:
+        return model, {}
+    fits = {k: replace(f, b_ms=f.b_ms * factors.get(k, 1.0), c_ms=f.c_ms * factors.get(k, 1.0))
+            for k, f in model.fits.items()}
+    return replace(model, fits=fits), factors
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ from rq import get_current_job
 from api_schemas.walkthrough import WalkthroughCalibrationParams, WalkthroughSettings
 from engine import ENGINE_VERSION
 from engine.metrics import lrms
-from engine.quality import MAX_USEFUL_ERROR
+from engine.quality import MAX_USEFUL_ERROR, CandidateFit
 from engine.reference import ReferenceRenderer
 from engine.scene import CameraParams
 from engine.walkthrough.animation import AnimatedScene
@@ -167,7 +167,7 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
     truth_noise = float(np.median([st["rel_stderr_median"] for st in truth_stats]))
     big = replace(cams[0], width=cams[0].width * params.time_scale, height=cams[0].height * params.time_scale)
     tiny = replace(cams[0], width=4, height=4)
-    fits: dict[str, Any] = {}
+    fits: dict[str, CandidateFit] = {}
     excluded: dict[str, str] = {}
     bake_keys: dict[str, str] = {}
     bake_cost: dict[str, float] = {}
@@ -195,16 +195,13 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
                                "pixels": cam.width * cam.height, "ms": ms, "probe": i})
             _, ms = timed_median(partial(wr.render, fill=fill, strict=False), big, times[0])
             points.append({"error": None, "pixels": big.width * big.height, "ms": ms, "probe": 0})
-            fit = fit_setting(preset, fill, points, truth_noise)
-            fits[fit.key] = fit
-            if fit.error > MAX_USEFUL_ERROR:
-                excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
-                                     f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
+            _keep(fit_setting(preset, fill, points, truth_noise), fits, excluded)
         measure_s += time.perf_counter() - t0
     t0 = time.perf_counter()
+    if params.path_noises:  # untimed: compilation (the same kernels at every noise)
+        PathTracedFrames(an, params.path_noises[0], 0, bounces).render(tiny, times[0], 0)
     for j, noise in enumerate(params.path_noises):
         report((len(cams) + len(params.presets) + j) / n_steps, f"measuring path-traced frames at noise {noise:g}")
-        PathTracedFrames(an, noise, 0, bounces).render(tiny, times[0], 0)  # untimed: compilation
         shared = PathTracedFrames(an, noise, 0, bounces)
         points = []
         for i, (cam, t) in enumerate(zip(cams, times, strict=True)):
@@ -214,11 +211,7 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
             img, mask = truths[i]
             points.append({"error": float(lrms(img_p, img, mask if mask.any() else None)),
                            "pixels": cam.width * cam.height, "ms": ms, "probe": i})
-        fit = fit_path_setting(noise, points, truth_noise)
-        fits[fit.key] = fit
-        if fit.error > MAX_USEFUL_ERROR:
-            excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
-                                 f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
+        _keep(fit_path_setting(noise, points, truth_noise), fits, excluded)
     path_s = time.perf_counter() - t0
     cost = time.perf_counter() - t_start
     probe = {"frames": [{"eye": list(c.eye), "look_at": list(c.look_at), "time": t, "width": c.width,
@@ -230,6 +223,15 @@ def calibrate_walkthrough(an: AnimatedScene, space: Any, camera: CameraParams, b
     return WalkthroughModel(scene_id=scene_id, fits=fits, excluded=excluded, bake_keys=bake_keys,
                             bake_cost_s=bake_cost, cost_s=cost, probe=json_safe(probe),
                             engine_version=ENGINE_VERSION, created_at=datetime.now(UTC).isoformat())
+
+
+def _keep(fit: CandidateFit, fits: dict[str, CandidateFit], excluded: dict[str, str]) -> None:
+    """Add ``fit`` to ``fits``, and to ``excluded`` (with the reason) when its error exceeds
+    ``engine.quality.MAX_USEFUL_ERROR``."""
+    fits[fit.key] = fit
+    if fit.error > MAX_USEFUL_ERROR:
+        excluded[fit.key] = (f"its error on the probe frames ({fit.error:.0%}) exceeds "
+                             f"{MAX_USEFUL_ERROR:.0%}: it does not render what the scene holds")
 
 
 def _stored_bake_source(store: Any, scene_id: str) -> BakeSource:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +104,44 @@ class PathTracedFrames:
         rr, skip = self.renderer(t)
         img, covered, st = path_traced_frame(rr, cam, frame, self.seed, self.noise, self.bounces, skip)
         return img, np.where(covered, _TRACED, _SKY).astype(np.uint8), st
+
+    def frame(self, cam: CameraParams, t: float, frame: int) -> _ChunkFrame:
+        """Frame ``frame`` as the chunk job publishes it."""
+        t0 = time.perf_counter()
+        radiance, provenance, st = self.render(cam, t, frame)
+        ms = 1e3 * (time.perf_counter() - t0)
+        counts = {PROVENANCE_CODES[c]: int((provenance == c).sum()) for c in (_TRACED, _SKY)}
+        return _ChunkFrame(radiance, provenance, ms, counts, {"path_noise": self.noise, "seed": self.seed},
+                           st["rel_stderr_median"], str(st["indirect_skip"]))
+
+
+@dataclass
+class _ChunkFrame:
+    """A frame as the chunk job publishes it: its pixels, provenance codes, render time, provenance
+    counts, the metadata written into its images, and for a path-traced frame what it reached (its
+    pixels' median relative standard error) and why it traced no indirect light, if it did not."""
+
+    radiance: np.ndarray
+    provenance: np.ndarray
+    ms: float
+    counts: dict[str, int]
+    meta: dict[str, Any]
+    rel_stderr_median: float | None = None
+    indirect_skip: str = ""
+
+
+@dataclass
+class _BakedFrames:
+    """Frames reconstructed from a walkthrough bake with a hole fill, as the chunk job publishes them."""
+
+    renderer: WalkthroughRenderer
+    fill: str
+    bake_key: str
+
+    def frame(self, cam: CameraParams, t: float, frame: int) -> _ChunkFrame:
+        fr = self.renderer.render(cam, t, fill=self.fill, strict=False)  # the API checked eyes and times
+        return _ChunkFrame(fr.radiance, fr.provenance, 1e3 * fr.timings["total"], dict(fr.counts),
+                           {"fill": self.fill, "bake_key": self.bake_key})
 
 
 class WalkthroughUnavailable(RuntimeError):
@@ -223,20 +262,19 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     if existing is not None:
         return {"artifact_key": p.chunk_key, **existing.result}
     progress = ProgressReporter(get_current_job())
-    traced: PathTracedFrames | None = None
-    wr: WalkthroughRenderer | None = None
+    source: PathTracedFrames | _BakedFrames
     if req.path_traced is not None:
         progress.report(0.0, "loading the scene", force=True)
-        traced = PathTracedFrames(load_walkthrough_scene(store, req.scene_id)[1], req.path_traced.noise,
+        source = PathTracedFrames(load_walkthrough_scene(store, req.scene_id)[1], req.path_traced.noise,
                                   req.path_traced.seed)
     else:
         assert p.bake_key is not None
         progress.report(0.0, "loading bake", force=True)
         bake = load_stored_bake(store, p.bake_key)
         an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
-        wr = WalkthroughRenderer(bake, an)
+        source = _BakedFrames(WalkthroughRenderer(bake, an), req.fill, p.bake_key)
     noise: list[float] = []
-    skipped: list[str] = []  # why the path-traced frames traced no indirect light, when they did not
+    skipped = ""  # why the path-traced frames traced no indirect light, when they did not
     blobs: dict[str, tuple[bytes, str]] = {}
     frame_ms: list[float] = []
     counts: dict[str, int] = {}
@@ -246,33 +284,19 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
         for j, i in enumerate(range(p.start, p.stop)):
             f = req.frames[i]
             cam = camera_params(f.camera)
-            meta: dict[str, Any] = {"frame": i, "time": f.time, "camera": cam.to_dict(),
-                                    "engine_version": ENGINE_VERSION}
-            if traced is not None:
-                t0 = time.perf_counter()
-                radiance, provenance, st = traced.render(cam, f.time, i)
-                frame_ms.append(1e3 * (time.perf_counter() - t0))
-                noise.append(float(st["rel_stderr_median"]))
-                if st["indirect_skip"] and not skipped:
-                    skipped.append(str(st["indirect_skip"]))
-                for code in (_TRACED, _SKY):
-                    name = PROVENANCE_CODES[code]
-                    counts[name] = counts.get(name, 0) + int((provenance == code).sum())
-                meta.update(path_noise=traced.noise, seed=traced.seed)
-            else:
-                assert wr is not None
-                fr = wr.render(cam, f.time, fill=req.fill, strict=False)  # the API checked eyes and times
-                radiance, provenance = fr.radiance, fr.provenance
-                frame_ms.append(1e3 * fr.timings["total"])
-                for k, v in fr.counts.items():
-                    counts[k] = counts.get(k, 0) + v
-                meta.update(fill=req.fill, bake_key=p.bake_key)
-            for name, pixels, ctype in ((f"frame_{i:05d}.exr", radiance, EXR),
-                                        (f"frame_{i:05d}.png", radiance, PNG)):
+            fr = source.frame(cam, f.time, i)
+            frame_ms.append(fr.ms)
+            for k, v in fr.counts.items():
+                counts[k] = counts.get(k, 0) + v
+            if fr.rel_stderr_median is not None:
+                noise.append(float(fr.rel_stderr_median))
+            skipped = skipped or fr.indirect_skip
+            meta = {"frame": i, "time": f.time, "camera": cam.to_dict(), **fr.meta, "engine_version": ENGINE_VERSION}
+            for name, ctype in ((f"frame_{i:05d}.exr", EXR), (f"frame_{i:05d}.png", PNG)):
                 path = tmp / name
-                write_image(path, pixels, metadata=meta)
+                write_image(path, fr.radiance, metadata=meta)
                 blobs[name] = (path.read_bytes(), ctype)
-            blobs[f"provenance_{i:05d}.png"] = (codes_png(tmp / f"provenance_{i:05d}.png", provenance), PNG)
+            blobs[f"provenance_{i:05d}.png"] = (codes_png(tmp / f"provenance_{i:05d}.png", fr.provenance), PNG)
             progress.report(0.05 + 0.9 * (j + 1) / n, f"frame {i}")
     progress.check_canceled()
     result: dict[str, Any] = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
@@ -281,7 +305,7 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     if noise:  # what the path-traced frames reached: each frame's median relative standard error
         result["rel_stderr_median"] = noise
         if skipped:
-            result["indirect"] = {"state": "skipped", "reason": skipped[0]}
+            result["indirect"] = {"state": "skipped", "reason": skipped}
     write_artifact(store, p.chunk_key, "walkthrough-chunk", {"walkthrough": p.walkthrough_key},
                    {"index": p.index, "start": p.start, "stop": p.stop}, ENGINE_VERSION, blobs, result)
     progress.report(1.0, "done", force=True, check=False)
