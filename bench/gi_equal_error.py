@@ -24,7 +24,7 @@ the mirror / glossy box at the Mitsuba cross-check's ``MIRROR_BOUNCES`` / ``MIRR
 (bench/mitsuba_crosscheck.py), so ground truth and Mitsuba count path lengths alike; the LDC bake
 traces the same bounce count.
 
-Equal error: for each image-based setting (LDC resolution, indirect noise target, method,
+Equal error: for each image-based setting (LDC resolution, indirect noise level, method,
 supersampling and ``antialias``; direct light at ``LDC_AREA_SAMPLES`` rect-light points per LDC
 sample), its LRMS against the ground truth over the views (``comparison_mask``: covered pixels not
 next to an emitter, nor showing a rect light directly or through mirrors), its render time; and the time our
@@ -92,7 +92,9 @@ LDC_AREA_SAMPLES = 64  # rect-light points per LDC sample (docs/accuracy/ldc.md,
 @dataclass(frozen=True)
 class SceneSpec:
     """How one scene is measured: bounce counts, mirror / glossy depth, the LDC settings (resolution,
-    indirect noise target, indirect stride), the view method and an LLF for it (f, resolution, or None)."""
+    indirect noise level, indirect stride; the pass's default fixed sampler, so the noise level sets
+    the paths per side: 0.02 -> 256, 0.014 -> 512, 0.03 -> 128), the view method and an LLF for it
+    (f, resolution, or None)."""
 
     bounces: int
     max_depth: int
@@ -103,9 +105,9 @@ class SceneSpec:
 
 
 SCENES = {
-    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02, 1), (256, 0.01, 1),
-                                                                             (512, 0.01, 2)), gt_ms=140_000.0),
-    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.05, 1),),
+    "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02, 1), (256, 0.014, 1),
+                                                                             (512, 0.014, 2)), gt_ms=140_000.0),
+    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.03, 1),),
                                        gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48)),
 }
 QUICK_LDC = ((64, 0.05, 1), (128, 0.05, 2))
@@ -167,6 +169,17 @@ def converged_view(ren: ReferenceRenderer, name: str, cam: CameraParams, params:
         np.savez(f, radiance=r.radiance, object_id=r.object_id, depth=r.depth,
                  adaptive=np.array(json.dumps(out["adaptive"])), seconds=np.float64(out["seconds"]))
     return out
+
+
+def _paths_label(row: dict) -> str:
+    """The indirect pass's paths per traced side: the fixed count, or the adaptive sampler's mean."""
+    axes = (row.get("indirect") or {}).get("axes") or []
+    sides = sum(a.get("sides", 0) for a in axes)
+    if not sides:
+        return "-"
+    mean = sum(a.get("paths_total", 0) for a in axes) / sides
+    fixed = all(a.get("sampling") == "fixed" for a in axes)
+    return f"{mean:.0f}" if fixed else f"{mean:.0f} mean, adaptive"
 
 
 def _ldc_label(row: dict) -> str:
@@ -476,9 +489,9 @@ def scene_block(res: dict) -> list[str]:
                      f"the ground truth's {100 * c['gt_noise_lrms']:.2f} %; both taken out in quadrature "
                      f"{100 * c['lrms_vs_gt_corrected']:.2f} %. Mean brightness ratio ours / Mitsuba "
                      f"{c['mean_ratio_gt_over_mitsuba']:.4f}.")
-    lines += ["", "| LDC | indirect noise target | ss | antialias | LRMS mean (max) | corrected | view ms (CPU ms) | "
-                  "our reference s at that LRMS | Mitsuba s at that LRMS | x vs reference | x vs Mitsuba | "
-                  "bake s (CPU s) | LDC MiB | break-even views | worst 1 % of pixels' share of error | "
+    lines += ["", "| LDC | indirect noise (paths per side) | ss | antialias | LRMS mean (max) | corrected | "
+                  "view ms (CPU ms) | our reference s at that LRMS | Mitsuba s at that LRMS | x vs reference | "
+                  "x vs Mitsuba | bake s (CPU s) | LDC MiB | break-even views | worst 1 % of pixels' share of error | "
                   "LRMS without worst 2 % | mean brightness ratio |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["settings"]:
@@ -486,7 +499,7 @@ def scene_block(res: dict) -> list[str]:
         xr = r["ref_s_at_error"] / t_view if r["ref_s_at_error"] else None
         xm = r["mitsuba_s_at_error"] / t_view if r["mitsuba_s_at_error"] else None
         lines.append(
-            f"| {_ldc_label(r)} | {r['noise']:.3f} | {r['supersample']} | "
+            f"| {_ldc_label(r)} | {r['noise']:.3f} ({_paths_label(r)}) | {r['supersample']} | "
             f"{r['antialias'] if r['supersample'] > 1 else '-'} | {100 * r['lrms']:.2f} % "
             f"({100 * r['lrms_max']:.2f} %) | {100 * r['lrms_corrected']:.2f} % | "
             f"{r['render_ms']:.1f} ({r['render_cpu_ms']:.1f}) | "

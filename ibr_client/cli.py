@@ -457,7 +457,10 @@ def bake(
     llf_chunk: Annotated[int | None, typer.Option(help="LLF directions per bake job")] = None,
     indirect: Annotated[str | None, typer.Option(help="Indirect light: auto (when it can arrive) or off")] = None,
     noise: Annotated[float | None, typer.Option(
-        "--noise", "--indirect-noise", help="Indirect light: relative noise target per sample")] = None,
+        "--noise", "--indirect-noise", help="Indirect light: noise level (sizes the paths per sample side)")] = None,
+    sampling: Annotated[str | None, typer.Option(
+        "--sampling", help="Indirect light: fixed (one path count for every sample, sized from the noise) or "
+                           "adaptive (a pilot per sample sizes its own)")] = None,
     max_paths: Annotated[int | None, typer.Option(help="Indirect light: most paths per sample side")] = None,
     bounces: Annotated[int | None, typer.Option(help="Indirect light: diffuse bounces per path")] = None,
     indirect_chunks: Annotated[int | None, typer.Option(help="Indirect light: jobs per LDC axis")] = None,
@@ -469,7 +472,8 @@ def bake(
     params: dict[str, Any] = {k: v for k, v in {"ldc_resolution": ldc_resolution, "max_layers": max_layers, "llf": llf,
                                 "llf_f": llf_f, "llf_resolution": llf_resolution,
                                 "llf_chunk": llf_chunk}.items() if v is not None}
-    ind = {k: v for k, v in {"mode": indirect, "noise": noise, "max_paths": max_paths, "bounces": bounces,
+    ind = {k: v for k, v in {"mode": indirect, "sampling": sampling, "noise": noise, "max_paths": max_paths,
+                             "bounces": bounces,
                              "chunks": indirect_chunks}.items() if v is not None}
     if ind:
         params["indirect"] = ind

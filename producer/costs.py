@@ -48,6 +48,7 @@ from api_schemas.scene import (
 )
 from api_schemas.service import BakeParams, CalibrationParams, RenderRequest, method_needs_bake
 from api_schemas.walkthrough import WalkthroughRequest
+from engine.newviews.indirect_sampling import expected_paths_per_side
 from engine.walkthrough.path_settings import path_traced_settings
 
 __all__ = [
@@ -536,11 +537,12 @@ def _ldi_bytes(pixels: int, max_layers: int, sample_bytes: int) -> int:
 
 
 def expected_paths(params: BakeParams) -> float:
-    """Expected indirect paths per LDC sample side, over all sides: a traced side stops between
-    ``min_paths`` and ``max_paths``, and at ``stride`` s about one side in s^2 is traced (the others
-    are interpolated, ``engine/newviews/sparse_indirect.py``)."""
+    """Expected indirect paths per LDC sample side, over all sides: a traced side takes the fixed
+    sampler's count or stops between ``min_paths`` and ``max_paths``
+    (``engine.newviews.indirect_sampling``), and at ``stride`` s about one side in s^2 is traced (the
+    others are interpolated, ``engine/newviews/sparse_indirect.py``)."""
     ip = params.indirect
-    return (ip.min_paths + 0.2 * (ip.max_paths - ip.min_paths)) / ip.stride ** 2
+    return expected_paths_per_side(ip.sampling, ip.noise, ip.min_paths, ip.max_paths, ip.round_paths) / ip.stride ** 2
 
 
 def _axis_grids(scene: Scene, resolution: int) -> list[int]:

@@ -15,28 +15,30 @@ at every vertex, mirror and glossy lobes followed where paths meet them, up to `
 diffuse vertices. A view rendered from the LDC thus shows the light of the reference renderer
 with ``indirect_bounces = bounces``, without paying for it per view.
 
-Sampling (adaptive, per sample side, deterministic, unbiased):
+Sampling (per sample side, deterministic, unbiased; ``sampling``, the rule and why fixed is the
+default in ``engine/newviews/indirect_sampling.py``):
 
 - paths come in rounds of ``round_paths``; path j of a sample side is sample j of its own
   pixel of an Owen-scrambled Sobol sequence (``engine/sampler.py``), so every round, and every
-  union of rounds, is a stratified set of directions;
-- a pilot of ``min_paths`` paths (8 rounds by default: with fewer, the spread of the round means is
-  itself so noisy that sizing on it picks the sides whose error it underestimates; measured on
-  a two-wall room, two seeds differ by more than 3 estimated standard errors on 5.2 % of the sides
-  with 2 rounds of 16 paths and on none with 8 rounds of 8) measures the standard error of the
-  side's mean luminance from the spread of its round means (batch means). It sizes the estimate:
-  ``SIZE_MARGIN`` times the rounds that bring that error to ``noise`` times the side's brightness (direct + indirect,
-  never less than ``floor`` times the axis's mean direct brightness, so that dark samples do not
-  take ``max_paths`` for light nobody sees), at least as many as the pilot's (or what
-  ``max_paths`` leaves), pilot and estimate together at most ``max_paths``;
-- the estimate is a fresh set of paths from an independent sequence, and the pilot's paths are not
-  part of it. A side that stopped on its own paths would be biased wherever the integrand is
-  heavy-tailed: paths that reach the light through a mirror or glossy surface are rare and bright,
-  and a side whose first paths missed them looks converged and stops low. Measured on the mirror /
-  glossy Cornell box (the back wall's indirect light against the reference's ``shade_hits`` with 256
-  paths per point): 6.4 % low with stopping on the same paths at ``min_paths`` 64, 4.0 % low at 256,
-  0.8 % high (noise) at a fixed 1024; on the plain Cornell box 0.3 % low. With ``min_paths`` =
-  ``max_paths`` nothing is sized, and those paths are the estimate;
+  union of rounds, is a stratified set of directions; the spread of the round means (batch means)
+  gives the standard error of the side's mean luminance;
+- ``fixed``: every side that receives light traces the same count, sized from ``noise``;
+- ``adaptive``: a pilot of ``min_paths`` paths (8 rounds by default: with fewer, the spread of the
+  round means is itself so noisy that sizing on it picks the sides whose error it underestimates;
+  measured on a two-wall room, two seeds differ by more than 3 estimated standard errors on 5.2 % of
+  the sides with 2 rounds of 16 paths and on none with 8 rounds of 8) sizes the estimate:
+  ``SIZE_MARGIN`` times the rounds that bring the pilot's standard error to ``noise`` times the
+  side's brightness (direct + indirect, never less than ``floor`` times the axis's mean direct
+  brightness, so that dark samples do not take ``max_paths`` for light nobody sees), at least as
+  many as the pilot's (or what ``max_paths`` leaves), pilot and estimate together at most
+  ``max_paths``. The estimate is a fresh set of paths from an independent sequence, and the pilot's
+  paths are not part of it. A side that stopped on its own paths would be biased wherever the
+  integrand is heavy-tailed: paths that reach the light through a mirror or glossy surface are rare
+  and bright, and a side whose first paths missed them looks converged and stops low. Measured on
+  the mirror / glossy Cornell box (the back wall's indirect light against the reference's
+  ``shade_hits`` with 256 paths per point): 6.4 % low with stopping on the same paths at
+  ``min_paths`` 64, 4.0 % low at 256, 0.8 % high (noise) at a fixed 1024; on the plain Cornell box
+  0.3 % low. With ``min_paths`` = ``max_paths`` nothing is sized, and those paths are the estimate;
 - every decision depends only on the side's own paths and on the axis's mean, so the result
   is the same whatever the batching or the split of an axis into chunks.
 
@@ -55,6 +57,7 @@ import numpy as np
 
 from engine.errors import InvalidInputError
 from engine.metrics import REC709_WEIGHTS
+from engine.newviews.indirect_sampling import SAMPLINGS, fixed_paths
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import derive_key, sample_key
 
@@ -82,13 +85,16 @@ _STREAM = 3
 class IndirectParams:
     """Settings of the indirect-light bake.
 
-    noise: target relative standard error of each sample side's radiance (luminance), e.g. 0.01
-        = 1 % of its brightness; a side's pilot paths size its estimate for it.
-    min_paths: the pilot's paths per side, which size its estimate (a multiple of ``round_paths``,
-        at least two rounds, since the error is estimated from the spread of round means); the
-        estimate traces at least as many again.
-    max_paths: the most paths any side traces, pilot and estimate together (the bake's cost bound);
-        equal to ``min_paths``: a fixed count, no pilot.
+    sampling: ``fixed`` (every side the count ``fixed_paths`` sizes from ``noise``) or
+        ``adaptive`` (a pilot per side sizes its own estimate); ``engine/newviews/indirect_sampling.py``.
+    noise: the noise level asked for, e.g. 0.02. ``fixed``: sizes the count,
+        ``(FIXED_PATHS_SCALE / noise)^2`` paths; ``adaptive``: the target relative standard error of
+        each sample side's radiance (luminance), 0.02 = 2 % of its brightness.
+    min_paths: the fewest paths a side traces (a multiple of ``round_paths``, at least two rounds,
+        since the error is estimated from the spread of round means); ``adaptive``: the pilot's
+        paths per side, which size its estimate, and the estimate traces at least as many again.
+    max_paths: the most paths any side traces (the bake's cost bound; ``adaptive``: pilot and
+        estimate together); equal to ``min_paths``: that count, no pilot, in either sampler.
     bounces: diffuse vertices per path (1 = one bounce of light, the colour bleeding; more =
         interreflection of higher order). Mirror and glossy lobes met on the way do not count.
     round_paths: paths per side per round, a power of two (a stratified block of the sequence).
@@ -102,6 +108,7 @@ class IndirectParams:
     """
 
     noise: float = 0.02
+    sampling: str = "fixed"
     min_paths: int = 64
     max_paths: int = 1024
     bounces: int = 3
@@ -134,6 +141,21 @@ class IndirectParams:
         if self.max_paths < self.min_paths:
             raise InvalidInputError(f"indirect max_paths ({self.max_paths}) must be at least min_paths "
                                     f"({self.min_paths})")
+        if self.sampling not in SAMPLINGS:
+            raise InvalidInputError(f"indirect sampling must be one of {', '.join(SAMPLINGS)}, got {self.sampling!r}")
+
+    @property
+    def adaptive(self) -> bool:
+        """Does a pilot size each side's estimate? (``adaptive`` with room above the pilot.)"""
+        return self.sampling == "adaptive" and self.max_paths > self.min_paths
+
+    @property
+    def paths_per_side(self) -> int:
+        """Paths every traced side takes when nothing is sized (``min_paths`` for the adaptive
+        sampler's pilot)."""
+        if self.sampling == "fixed":
+            return fixed_paths(self.noise, self.min_paths, self.max_paths, self.round_paths)
+        return self.min_paths
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -260,13 +282,13 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
     receives = np.any(renderer.scene.materials.kd[mat] > 0.0, axis=1) if m_pts else np.zeros(0, np.bool_)
     r_paths = params.round_paths
     max_rounds = params.max_paths // r_paths
-    min_rounds = params.min_paths // r_paths
+    min_rounds = params.paths_per_side // r_paths
     rparams = params.reference_params()
     timings: dict[str, float] = {}
     counts: dict[str, int] = {}
     floor = params.floor * brightness
     per_batch = max(1, MAX_RAYS_PER_BATCH // r_paths)
-    adaptive = max_rounds > min_rounds
+    adaptive = params.adaptive
     pilot_rounds = np.where(receives, min_rounds, 0).astype(np.int64)
     expected = int(pilot_rounds.sum()) * (2 if adaptive else 1)  # for progress; refined after the pilot
     done_rounds = 0
@@ -346,9 +368,10 @@ def summarize(rel: np.ndarray, paths: np.ndarray, params: IndirectParams) -> dic
     """Achieved noise level of traced sample sides: relative standard error (median, p95, max),
     the fraction that met ``params.noise``, and path counts (total, mean, max)."""
     if rel.size == 0:
-        return {"sides": 0, "noise_target": params.noise, "rel_stderr_median": 0.0, "rel_stderr_p95": 0.0,
+        return {"sides": 0, "sampling": params.sampling, "noise_target": params.noise,
+                "rel_stderr_median": 0.0, "rel_stderr_p95": 0.0,
                 "rel_stderr_max": 0.0, "met_target": 1.0, "paths_total": 0, "paths_mean": 0.0, "paths_max": 0}
-    return {"sides": int(rel.size), "noise_target": params.noise,
+    return {"sides": int(rel.size), "sampling": params.sampling, "noise_target": params.noise,
             "rel_stderr_median": float(np.median(rel)), "rel_stderr_p95": float(np.percentile(rel, 95)),
             "rel_stderr_max": float(rel.max()), "met_target": float(np.mean(rel <= params.noise * (1 + 1e-9))),
             "paths_total": int(paths.sum()), "paths_mean": float(paths.mean()), "paths_max": int(paths.max())}
@@ -382,7 +405,7 @@ def merge_summaries(parts: list[dict], params: IndirectParams) -> dict:
     def weighted(name: str) -> float:
         return float(sum(wi * s[name] for wi, s in zip(w, live, strict=True)))
 
-    return {"sides": sides, "noise_target": params.noise,
+    return {"sides": sides, "sampling": params.sampling, "noise_target": params.noise,
             "rel_stderr_median_of_chunks": weighted("rel_stderr_median"),
             "rel_stderr_p95_of_chunks": weighted("rel_stderr_p95"),
             "rel_stderr_max": float(max(s["rel_stderr_max"] for s in live)),

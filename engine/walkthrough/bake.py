@@ -126,8 +126,9 @@ class WalkthroughParams:
     def indirect_params(self) -> IndirectParams:
         """Settings of the bases' converged indirect pass: the reference renderer's paths
         (``indirect_bounces`` diffuse vertices, its light sampling and mirror / glossy depth)
-        traced per base pixel until ``indirect_noise`` or ``indirect_max_paths``."""
-        return IndirectParams(noise=float(self.indirect_noise), min_paths=INDIRECT_MIN_PATHS,
+        traced per base pixel until ``indirect_noise`` or ``indirect_max_paths`` (the adaptive sampler:
+        the presets' noise levels were measured with it, docs/accuracy/walkthrough.md)."""
+        return IndirectParams(noise=float(self.indirect_noise), sampling="adaptive", min_paths=INDIRECT_MIN_PATHS,
                               max_paths=self.indirect_max_paths, bounces=self.indirect_bounces,
                               round_paths=INDIRECT_ROUND_PATHS, floor=INDIRECT_FLOOR, seed=self.seed,
                               area_light_samples=min(self.area_light_samples, 1024),

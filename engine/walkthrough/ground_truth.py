@@ -90,7 +90,7 @@ def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noi
     if len(idx) and not indirect_skip:
         receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
         bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
-        ip = IndirectParams(noise=noise, min_paths=min_paths, max_paths=max_paths, bounces=bounces,
+        ip = IndirectParams(noise=noise, sampling="adaptive", min_paths=min_paths, max_paths=max_paths, bounces=bounces,
                             round_paths=round_paths, seed=seed, area_light_samples=4)
         ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GROUND_TRUTH_STREAM, frame),
                                     brightness=bright)

@@ -34,7 +34,7 @@ def test_closed_sphere_interreflection_matches_the_geometric_series(bounces):
     sc = _inner_sphere(a, intensity)
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 2, 16)
-    params = IndirectParams(noise=0.005, min_paths=64, max_paths=4096, bounces=bounces)
+    params = IndirectParams(noise=0.005, sampling="adaptive", min_paths=64, max_paths=4096, bounces=bounces)
     res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, params)
     l_d = a / np.pi * intensity
     want = l_d * sum(a ** k for k in range(1, bounces + 1))
@@ -52,10 +52,14 @@ def test_open_quad_under_a_uniform_sky_is_kd_times_the_sky_exactly():
     sc = scene([(quad((0, 0, 0), 1.0), mat("m", kd=tuple(kd)))], [], background=tuple(sky))
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 1, 8)
-    res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(bounces=2))
+    res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(bounces=2, sampling="adaptive"))
     np.testing.assert_allclose(res.radiance, np.broadcast_to(kd * sky, res.radiance.shape), rtol=1e-6)
     # no spread: the pilot's 64 paths size the estimate to its floor, as many again
     assert np.all(res.stderr < 1e-6) and np.all(res.paths == 128)
+    # the fixed sampler (the default) traces its count, 256 at noise 0.02, whatever the spread
+    fixed = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(bounces=2))
+    np.testing.assert_allclose(fixed.radiance, res.radiance, rtol=1e-6)
+    assert np.all(fixed.paths == 256) and fixed.stats["sampling"] == "fixed"
 
 
 def test_estimator_agrees_with_the_reference_renderers_indirect_paths():
@@ -79,7 +83,8 @@ def test_estimator_agrees_with_the_reference_renderers_indirect_paths():
     side = np.where(np.einsum("ij,ij->i", ng, d) < 0, 0, 1)
     res = trace_indirect_points(ren, p, g2[np.arange(n), side], s2[np.arange(n), side],
                                 sc.tri_material[hits.prim].astype(np.int32), without,
-                                IndirectParams(noise=0.005, min_paths=256, max_paths=4096, bounces=2),
+                                IndirectParams(noise=0.005, sampling="adaptive", min_paths=256, max_paths=4096,
+                                               bounces=2),
                                 key=sample_key(11, 5), brightness=float((without @ LUMA).mean()))
     y_ref, y_ours = ref_ind @ LUMA, res.radiance.astype(np.float64) @ LUMA
     assert y_ref.mean() > 0.05 * (without @ LUMA).mean()  # there is indirect light to compare
@@ -91,12 +96,14 @@ def test_estimator_agrees_with_the_reference_renderers_indirect_paths():
     assert rg[red_side].mean() > 1.2 * rg[green_side].mean()
 
 
-def test_reported_error_is_honest_across_seeds():
+@pytest.mark.parametrize("sampling", ["fixed", "adaptive"])
+def test_reported_error_is_honest_across_seeds(sampling):
     # two seeds' estimates differ by about sqrt(se1^2 + se2^2): the batch-means error is not optimistic
     sc = box_room()
     caster = EmbreeCaster(sc)
     ax = bake_ldc_axis(sc, caster, 1, 12)
-    runs = [indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.03, seed=s, bounces=2))
+    runs = [indirect_chunk(sc, caster, ax, 0, ax.n_samples,
+                           IndirectParams(noise=0.03, seed=s, bounces=2, sampling=sampling))
             for s in (1, 2)]
     y1, y2 = (r.radiance.reshape(-1, 3).astype(np.float64) @ LUMA for r in runs)
     se = np.hypot(runs[0].stderr.reshape(-1), runs[1].stderr.reshape(-1))
@@ -105,14 +112,17 @@ def test_reported_error_is_honest_across_seeds():
     z = np.abs(y1 - y2)[live] / se[live]
     assert np.mean(z < 3.0) > 0.97
     # ... and a tighter target buys a lower error with more paths
-    tight = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.01, seed=1, bounces=2))
+    tight = indirect_chunk(sc, caster, ax, 0, ax.n_samples,
+                           IndirectParams(noise=0.01, seed=1, bounces=2, sampling=sampling))
     assert tight.stats["paths_total"] > 2 * runs[0].stats["paths_total"]
     assert tight.stats["rel_stderr_p95"] < runs[0].stats["rel_stderr_p95"]
-    assert tight.stats["met_target"] > 0.8
+    if sampling == "adaptive":  # it sizes each side for the target; the fixed count only on average
+        assert tight.stats["met_target"] > 0.8
 
 
 @pytest.mark.slow
-def test_rare_bright_paths_through_a_mirror_are_not_stopped_away():
+@pytest.mark.parametrize("sampling", ["fixed", "adaptive"])
+def test_rare_bright_paths_through_a_mirror_are_not_stopped_away(sampling):
     # The back wall of the mirror / glossy Cornell box gets part of its indirect light along paths
     # that reach the light through the mirror sphere or a glossy object: rare, bright samples. A side
     # that stopped on its own paths stopped early exactly when its first paths missed them, and came
@@ -129,7 +139,8 @@ def test_rare_bright_paths_through_a_mirror_are_not_stopped_away():
     sel = diffuse_samples(sc, ax)
     assert sel.size > 400
     want = reference_indirect(ren, sc, ax, sel, paths=256, seed=3)
-    res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.02, bounces=3), renderer=ren)
+    res = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.02, bounces=3, sampling=sampling),
+                         renderer=ren)
     got = float((res.radiance[sel, 0] @ LUMA).mean())
     assert abs(got / want - 1.0) < 0.025, got / want
 
@@ -201,6 +212,7 @@ def test_baked_axis_reports_the_achieved_noise_level():
     (dict(min_paths=20), "multiple of round_paths"),
     (dict(min_paths=64, max_paths=32), "at least min_paths"),
     (dict(bounces=True), "bounces"),
+    (dict(sampling="stratified"), "sampling must be one of fixed, adaptive"),
 ])
 def test_out_of_range_settings_name_the_allowed_range(kwargs, match):
     with pytest.raises(InvalidInputError, match=match):

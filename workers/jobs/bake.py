@@ -20,11 +20,11 @@ Estimates (the plan job, before anything is baked; refused over ``Settings.max_b
   ~560 MiB); an LLF chunk as ``estimate_llf_bytes``;
 - CPU time, dominated by the indirect pass: expected LDC samples (each triangle's area projected on
   the axis / pixel area: the rays of an axis's grid that cross it, capped at ``max_layers`` per
-  pixel) x 2 sides x expected paths per side (``min_paths + 20 %`` of the way to ``max_paths``:
-  118-122 measured on the Cornell box at the defaults; divided by ``stride^2``, the share of sides
-  traced) / ``Settings.bake_paths_per_s`` (scaled by
-  ``4 / (bounces + 1)``, the rate being measured at 3 bounces), plus the light field's indirect
-  paths when it has them.
+  pixel) x 2 sides x expected paths per side (``engine.newviews.indirect_sampling``: the fixed
+  sampler's count; the adaptive sampler's ``min_paths + 20 %`` of the way to ``max_paths``, 118-122
+  measured on the Cornell box at noise 0.02; divided by ``stride^2``, the share of sides traced)
+  / ``Settings.bake_paths_per_s`` (scaled by ``4 / (bounces + 1)``, the rate being measured at 3
+  bounces), plus the light field's indirect paths when it has them.
 """
 
 from __future__ import annotations
@@ -191,7 +191,8 @@ def indirect_params(params: BakeParams) -> IndirectParams | None:
     ip = params.indirect
     if ip.mode == "off":
         return None
-    return IndirectParams(noise=ip.noise, min_paths=ip.min_paths, max_paths=ip.max_paths, bounces=ip.bounces,
+    return IndirectParams(noise=ip.noise, sampling=ip.sampling, min_paths=ip.min_paths, max_paths=ip.max_paths,
+                          bounces=ip.bounces,
                           round_paths=ip.round_paths, stride=ip.stride, seed=params.seed)
 
 
@@ -202,8 +203,8 @@ def bakes_indirect(params: BakeParams, plan: EffectPlan) -> bool:
 
 def llf_indirect_samples(params: BakeParams, plan_doc: Mapping[str, Any]) -> int:
     """Indirect paths per LLF sample: ``min_paths`` when the bake has indirect light (the LLF is
-    rendered by the reference renderer's ``shade_hits``, not adaptively: each LLF sample gets the
-    paths an LDC sample side traces before its first noise test), else 0."""
+    rendered by the reference renderer's ``shade_hits`` with a fixed count per sample: the fewest
+    paths an LDC sample side traces), else 0."""
     ind = plan_doc.get("indirect") or {}
     return params.indirect.min_paths if ind.get("state") in ("planned", "baked") else 0
 
@@ -226,7 +227,8 @@ def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> 
     else:
         indirect = {"state": "skipped", "reason": plan.indirect_skip}
     indirect |= {"mode": ip.mode, "chunks_per_axis": ip.chunks if indirect["state"] == "planned" else 0,
-                 "noise_target": ip.noise, "min_paths": ip.min_paths, "max_paths": ip.max_paths,
+                 "sampling": ip.sampling, "noise_target": ip.noise, "min_paths": ip.min_paths,
+                 "max_paths": ip.max_paths,
                  "bounces": ip.bounces, "stride": ip.stride,
                  "llf_indirect_samples": ip.min_paths if indirect["state"] == "planned" and with_llf else 0}
     return {**plan.to_dict(), "indirect": indirect, "bake_llf": with_llf, "llf_mode": params.llf,
@@ -281,7 +283,9 @@ def bake_estimates(scene: RuntimeScene, params: BakeParams, plan_doc: Mapping[st
         per_side = expected_paths(params)
         est["indirect_paths_per_side_expected"] = per_side
         est["indirect_paths_expected"] = int(sum(sides) * per_side)
-        est["indirect_paths_max"] = int(sum(sides) * params.indirect.max_paths)
+        most = params.indirect.max_paths if params.indirect.sampling == "adaptive" else \
+            per_side * params.indirect.stride ** 2  # the fixed count
+        est["indirect_paths_max"] = int(sum(sides) * most)
         est["indirect_cpu_s"] = sum(sides) * per_side / rate
         cpu += est["indirect_cpu_s"]
         batch = [min(MAX_RAYS_PER_BATCH, -(-sd // k) * params.indirect.round_paths) * INDIRECT_RAY_BYTES
