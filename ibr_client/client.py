@@ -33,7 +33,7 @@ import re
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import httpx
 
@@ -255,18 +255,9 @@ class Client:
     def wait_job(self, job_id: str, timeout: float = 600.0, poll: float = 0.2,
                  on_progress: Callable[[JobPublic], None] | None = None) -> JobPublic:
         """Poll a job until it ends (finished / failed / canceled) or ``timeout`` seconds pass."""
-        deadline = time.monotonic() + timeout
-        delay = poll
-        while True:
-            j = self.job(job_id)
-            if on_progress is not None:
-                on_progress(j)
-            if j.state in ("finished", "failed", "canceled"):
-                return j
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"job {job_id} still {j.state} after {timeout} s")
-            time.sleep(delay)
-            delay = min(2.0, delay * 1.3)
+        return _poll(self.job(job_id), lambda x: self.job(job_id),
+                     lambda x: x.state in ("finished", "failed", "canceled"), lambda x: None,
+                     lambda x: f"job {job_id} still {x.state}", timeout, poll, on_progress)
 
     def wait_render(self, r: RenderPublic, timeout: float = 600.0,
                     on_progress: Callable[[JobPublic], None] | None = None) -> ArtifactManifest:
@@ -299,20 +290,13 @@ class Client:
     def wait_bake(self, b: BakePublic, timeout: float = 3600.0, poll: float = 0.3,
                   on_progress: Callable[[BakePublic], None] | None = None) -> BakePublic:
         """Poll a bake until it is finished (returned) or failed / canceled / missing (ApiError)."""
-        deadline = time.monotonic() + timeout
-        delay = poll
-        while True:
-            if on_progress is not None:
-                on_progress(b)
-            if b.state == "finished":
-                return b
-            if b.state in ("failed", "canceled", "missing"):
-                raise JobFailed(500 if b.state == "failed" else 409, f"bake {b.state}", b.error or "")
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"bake {b.key} still {b.state} after {timeout} s")
-            time.sleep(delay)
-            delay = min(2.0, delay * 1.3)
-            b = self.get_bake(b.scene_id, b.key)
+        def failed(x: BakePublic) -> JobFailed | None:
+            if x.state in ("failed", "canceled", "missing"):
+                return JobFailed(500 if x.state == "failed" else 409, f"bake {x.state}", x.error or "")
+            return None
+
+        return _poll(b, lambda x: self.get_bake(x.scene_id, x.key), lambda x: x.state == "finished", failed,
+                     lambda x: f"bake {x.key} still {x.state}", timeout, poll, on_progress)
 
     # ------------------------------------------------------------------ calibrations
     def calibrate(self, scene_id: str, bake: Mapping[str, Any] | None = None,
@@ -334,21 +318,9 @@ class Client:
     def wait_calibration(self, c: CalibrationPublic, timeout: float = 3600.0, poll: float = 0.5,
                          on_progress: Callable[[CalibrationPublic], None] | None = None) -> CalibrationPublic:
         """Poll a calibration until it is finished (returned) or failed / missing (ApiError)."""
-        deadline = time.monotonic() + timeout
-        delay = poll
-        while True:
-            if on_progress is not None:
-                on_progress(c)
-            if c.state == "finished":
-                return c
-            if c.state in ("failed", "missing"):
-                raise JobFailed(500 if c.state == "failed" else 409, f"calibration {c.state}",
-                                (c.job.error if c.job is not None else None) or "")
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"calibration {c.key} still {c.state} after {timeout} s")
-            time.sleep(delay)
-            delay = min(2.0, delay * 1.3)
-            c = self.get_calibration(c.scene_id, c.bake_key, c.key)
+        return _poll(c, lambda x: self.get_calibration(x.scene_id, x.bake_key, x.key), lambda x: x.state == "finished",
+                     lambda x: _calibration_failed(x, "calibration"), lambda x: f"calibration {x.key} still {x.state}",
+                     timeout, poll, on_progress)
 
     def calibrate_walkthroughs(self, scene_id: str,
                                params: Mapping[str, Any] | None = None) -> WalkthroughCalibrationPublic:
@@ -370,21 +342,9 @@ class Client:
             self, c: WalkthroughCalibrationPublic, timeout: float = 3600.0, poll: float = 0.5,
             on_progress: Callable[[WalkthroughCalibrationPublic], None] | None = None) -> WalkthroughCalibrationPublic:
         """Poll a walkthrough calibration until it is finished (returned) or failed / missing (ApiError)."""
-        deadline = time.monotonic() + timeout
-        delay = poll
-        while True:
-            if on_progress is not None:
-                on_progress(c)
-            if c.state == "finished":
-                return c
-            if c.state in ("failed", "missing"):
-                raise JobFailed(500 if c.state == "failed" else 409, f"walkthrough calibration {c.state}",
-                                (c.job.error if c.job is not None else None) or "")
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"walkthrough calibration {c.key} still {c.state} after {timeout} s")
-            time.sleep(delay)
-            delay = min(2.0, delay * 1.3)
-            c = self.get_walkthrough_calibration(c.scene_id, c.key)
+        return _poll(c, lambda x: self.get_walkthrough_calibration(x.scene_id, x.key), lambda x: x.state == "finished",
+                     lambda x: _calibration_failed(x, "walkthrough calibration"),
+                     lambda x: f"walkthrough calibration {x.key} still {x.state}", timeout, poll, on_progress)
 
     # ------------------------------------------------------------------ artifacts
     def artifact(self, key: str) -> ArtifactManifest:
@@ -598,20 +558,9 @@ class Client:
     def wait_walkthrough(self, w: WalkthroughPublic, timeout: float = 3600.0, poll: float = 0.3,
                          on_progress: Callable[[WalkthroughPublic], None] | None = None) -> WalkthroughPublic:
         """Poll a walkthrough until it is finished (returned) or failed (ApiError naming the first error)."""
-        deadline = time.monotonic() + timeout
-        delay = poll
-        while True:
-            if on_progress is not None:
-                on_progress(w)
-            if w.status == "finished":
-                return w
-            if w.status == "failed":
-                raise JobFailed(500, "walkthrough failed", w.error or "")
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"walkthrough {w.key} still {w.status} after {timeout} s")
-            time.sleep(delay)
-            delay = min(2.0, delay * 1.3)
-            w = self.get_walkthrough(w.key)
+        return _poll(w, lambda x: self.get_walkthrough(x.key), lambda x: x.status == "finished",
+                     lambda x: JobFailed(500, "walkthrough failed", x.error or "") if x.status == "failed" else None,
+                     lambda x: f"walkthrough {x.key} still {x.status}", timeout, poll, on_progress)
 
     def download_walkthrough_video(self, key: str) -> bytes:
         """The finished walkthrough's MP4 (H.264) preview."""
@@ -630,6 +579,40 @@ class Client:
         j = self.wait_job(job.id, timeout=timeout, on_progress=on_progress)
         if j.state != "finished":
             raise JobFailed(500 if j.state == "failed" else 409, f"{what} job {j.state}", j.error or "")
+
+
+_T = TypeVar("_T")
+
+
+def _poll(first: _T, refresh: Callable[[_T], _T], done: Callable[[_T], bool],
+          failed: Callable[[_T], Exception | None], still: Callable[[_T], str], timeout: float, poll: float,
+          on_progress: Callable[[_T], None] | None) -> _T:
+    """Poll a resource until ``done`` (returned) or ``failed`` (its error raised): ``on_progress``
+    with each state, ``refresh`` every ``poll`` seconds, growing 1.3x to 2 s between polls, and
+    TimeoutError (``still(state)`` and the timeout) after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    delay = poll
+    x = first
+    while True:
+        if on_progress is not None:
+            on_progress(x)
+        if done(x):
+            return x
+        err = failed(x)
+        if err is not None:
+            raise err
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{still(x)} after {timeout} s")
+        time.sleep(delay)
+        delay = min(2.0, delay * 1.3)
+        x = refresh(x)
+
+
+def _calibration_failed(c: CalibrationPublic | WalkthroughCalibrationPublic, what: str) -> JobFailed | None:
+    if c.state in ("failed", "missing"):
+        return JobFailed(500 if c.state == "failed" else 409, f"{what} {c.state}",
+                         (c.job.error if c.job is not None else None) or "")
+    return None
 
 
 def _bytes(data: FileData) -> bytes:
