@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from engine.methods import IBRT_GENERATIONS, LDC, LDC_IBRT, LDC_LLF, REFERENCE, parse_method
 
@@ -95,6 +95,7 @@ __all__ = [
     "ldc_view",
     "plan",
     "predict",
+    "select_meeting",
     "spp_for_error",
 ]
 
@@ -672,6 +673,27 @@ def _margins_text(model: SceneModel, flat: float, calibrated: bool) -> str:
     return f"{min(ms):.3g}" if len(ms) == 1 else f"{min(ms):.3g}-{max(ms):.3g}"
 
 
+_C = TypeVar("_C")
+
+
+def select_meeting(cands: Sequence[_C], max_error: float | None, max_ms: float | None, *,
+                   error: Callable[[_C], float], margin: Callable[[_C], float], time: Callable[[_C], float],
+                   cost: Callable[[_C], float]) -> tuple[_C | None, Rule | None, list[_C]]:
+    """The contract rules shared by renders and walkthroughs: among the candidates whose ``time``
+    fits ``max_ms`` and whose ``error`` is at most ``max_error`` times their ``margin``, the cheapest
+    (by ``cost``, then error) for an error target, the most accurate (then cheapest) for a time
+    budget alone. Returns (choice or None, its rule, the candidates within the time) so the caller
+    can explain a miss."""
+    in_time = [c for c in cands if max_ms is None or time(c) <= max_ms]
+    good = [c for c in in_time if max_error is None or error(c) <= max_error * margin(c)]
+    if not good:
+        return None, None, in_time
+    if max_error is None:
+        return min(good, key=lambda c: (error(c), cost(c))), "most_accurate_within_time", in_time
+    rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
+    return min(good, key=lambda c: (cost(c), error(c))), rule, in_time
+
+
 def _plan_once(model: SceneModel, pixels: int, max_error: float | None, max_ms: float | None,
                render_ms: float | None, *, best_effort: bool, bake_ready: bool, allow_bake: bool,
                allowed: Callable[[Setting], bool] | None, error_margin: float, calibrated_margins: bool) -> Plan:
@@ -686,13 +708,10 @@ def _plan_once(model: SceneModel, pixels: int, max_error: float | None, max_ms: 
                     "no setting of this scene can render this image on this server (its limits)", 0)
     cheapest = min(cands, key=lambda p: (p.ms, p.error))
     most_accurate = min(cands, key=lambda p: (p.error, p.ms))
-    in_time = [p for p in cands if max_ms is None or p.ms <= max_ms]
-    good = [p for p in in_time if max_error is None or p.error <= max_error * p.margin]
-    if good:
-        if max_error is None:
-            return Plan(min(good, key=lambda p: (p.error, p.ms)), "most_accurate_within_time", candidates=n)
-        rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
-        return Plan(min(good, key=lambda p: (p.ms, p.error)), rule, candidates=n)
+    choice, rule, in_time = select_meeting(cands, max_error, max_ms, error=lambda p: p.error,
+                                           margin=lambda p: p.margin, time=lambda p: p.ms, cost=lambda p: p.ms)
+    if choice is not None:
+        return Plan(choice, rule, candidates=n)
     if not in_time:  # a time budget nothing fits
         fixed = min([model.reference.b_ms] + [f.b_ms for k, f in model.methods.items() if k not in model.excluded])
         if max_ms is not None and max_ms < fixed:

@@ -39,7 +39,7 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
-from engine.quality import CandidateFit, Rule, correction_factor, fit_ldc
+from engine.quality import CandidateFit, Rule, correction_factor, fit_ldc, select_meeting
 
 __all__ = [
     "CALIBRATED_FILLS",
@@ -277,14 +277,12 @@ def _choose(model: WalkthroughModel, cands: list[WalkthroughPrediction], max_err
         why = ("no walkthrough setting of this scene is available: the calibration excluded every one"
                if model.fits else "the calibration measured no walkthrough setting")
         return WalkthroughPlan(None, None, targets, why + _excluded_text(model), 0)
-    in_time = [c for c in cands if max_ms is None or c.frame_ms <= max_ms]
-    good = [c for c in in_time if max_error is None or c.error <= max_error * c.margin]
-    if good:
-        if max_error is None:
-            return WalkthroughPlan(min(good, key=lambda c: (c.error, c.total_ms)), "most_accurate_within_time",
-                                   candidates=n)
-        rule: Rule = "cheapest_meeting_error" if max_ms is None else "cheapest_meeting_error_within_time"
-        return WalkthroughPlan(min(good, key=lambda c: (c.total_ms, c.error)), rule, candidates=n)
+    # every frame within max_ms; the cheapest is the whole walkthrough's time, its bake included
+    choice, rule, in_time = select_meeting(cands, max_error, max_ms, error=lambda c: c.error,
+                                           margin=lambda c: c.margin, time=lambda c: c.frame_ms,
+                                           cost=lambda c: c.total_ms)
+    if choice is not None:
+        return WalkthroughPlan(choice, rule, candidates=n)
     if not in_time:
         fastest = min(cands, key=lambda c: (c.frame_ms, c.error))
         fixed = min(model.fits[c.name].b_ms for c in cands)
