@@ -65,8 +65,9 @@ def run_scene(name: str, res: int, paths: list[tuple[int, int]], ref_paths: int,
     rows = []
     for lo, hi in paths:
         t0 = time.perf_counter()
-        ch = indirect_chunk(sc, caster, ax, 0, ax.n_samples, IndirectParams(noise=0.02, bounces=3, min_paths=lo,
-                                                                             max_paths=hi), renderer=ren)
+        # lo < hi: the adaptive sampler (a pilot of lo paths sizes each side); lo = hi: that fixed count
+        ip = IndirectParams(noise=0.02, bounces=3, min_paths=lo, max_paths=hi, sampling="adaptive")
+        ch = indirect_chunk(sc, caster, ax, 0, ax.n_samples, ip, renderer=ren)
         ours = float((ch.radiance[sel, 0] @ LUMA).mean())
         rows.append({"scene": name, "min_paths": lo, "max_paths": hi, "points": int(sel.size),
                      "ratio": ours / ref, "paths_mean": ch.stats["paths_mean"], "met_target": ch.stats["met_target"],
