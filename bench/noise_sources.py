@@ -1,0 +1,122 @@
+"""Where a path-traced view's noise comes from: the mirror / glossy Cornell box against itself with
+the mirror or the glossy lobe switched off, and against the plain Cornell box.
+
+``flock /tmp/bench.lock python -m bench.noise_sources`` renders view 0 of ``bench.gi_equal_error``
+(256 x 256) with that benchmark's ladder settings (one indirect path and one rect-light sample per
+camera sample, 256 spp) twice, with two seeds, for each scene variant: the sample scene as it is,
+its mirror material's ``kr`` set to 0 (a black sphere: no light reaches anything through it), its
+glossy material's ``kg`` set to 0, both, and the plain Cornell box. Half the squared difference of
+the two renders is each pixel's variance of one render; the LRMS of one render is its root over the
+compared pixels (``comparison_mask``) against the mean image, and the variance is split by the
+object each pixel shows. Variances add: the part a lobe brings is the variance with it minus the
+variance without it. Writes the ``noise_sources`` block of ``docs/accuracy/gi.md`` (``--no-doc``:
+print it).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import gi_equal_error as gi
+from bench.docs_writer import replace_block
+from engine.metrics import REC709_WEIGHTS
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "accuracy" / "gi.md"
+SPP = 256
+SIZE = 256
+
+VARIANTS: dict[str, tuple[str, dict[str, dict[str, list[float]]]]] = {
+    # label: (sample scene, {material: fields replaced})
+    "mirror / glossy box": ("cornell_mirror_glossy", {}),
+    "  without the mirror (kr = 0)": ("cornell_mirror_glossy", {"mirror": {"kr": [0.0, 0.0, 0.0]}}),
+    "  without the gloss (kg = 0)": ("cornell_mirror_glossy", {"glossy_box": {"kg": [0.0, 0.0, 0.0]}}),
+    "  without either": ("cornell_mirror_glossy", {"mirror": {"kr": [0.0, 0.0, 0.0]},
+                                                   "glossy_box": {"kg": [0.0, 0.0, 0.0]}}),
+    "Cornell box": ("cornell_box", {}),
+}
+
+
+def _variant(scene: str, changes: dict[str, dict[str, list[float]]]):
+    """The sample scene with ``changes`` applied to its materials, loaded: (runtime scene, camera)."""
+    from api_schemas import load_scene_file
+    from bench.ibrt_throughput import sample_path
+    from samples import SAMPLES_DIR
+    from workers.scene_loader import directory_resolver, load_scene
+
+    doc = json.loads(Path(sample_path(scene)).read_text())
+    for m in doc["materials"]:
+        m.update(changes.get(m["name"], {}))
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / f"{scene}.json"
+        f.write_text(json.dumps(doc))
+        ls = load_scene(load_scene_file(f), directory_resolver(SAMPLES_DIR))
+    return ls.runtime, ls.camera
+
+
+def measure(scene: str, changes: dict[str, dict[str, list[float]]]) -> dict:
+    from engine.raycast import EmbreeCaster
+    from engine.reference import ReferenceRenderer
+
+    sc, cam0 = _variant(scene, changes)
+    spec = gi.SCENES["cornell_mirror_glossy"]  # the same bounces and depth for every variant
+    ren = ReferenceRenderer(sc, EmbreeCaster(sc))
+    lo, hi = sc.bounds
+    cam = gi.orbit_views(0.5 * (np.asarray(lo) + np.asarray(hi)), cam0.eye, cam0.fov_y_deg, SIZE, 6)[0]
+    ys, t0 = [], time.perf_counter()
+    for seed in (1, 2):
+        r = ren.render(cam, dataclasses.replace(gi.ladder_params(spec, SPP), seed=seed))
+        ys.append(r.radiance.reshape(-1, 3).astype(np.float64) @ np.asarray(REC709_WEIGHTS))
+    light = gi.sees_rect_light(sc, cam, r.depth) | gi.mirrored_emitters(sc, cam, spec.max_depth)
+    mask, _ = gi.comparison_mask(sc, r.object_id, light)
+    m = mask.reshape(-1)
+    var = (ys[0] - ys[1]) ** 2 / 2.0
+    mean = (ys[0] + ys[1]) / 2.0
+    oid = r.object_id.reshape(-1)
+    total = float(var[m].sum())
+    by_object = {sc.object_names[o]: float(var[m & (oid == o)].sum() / total) for o in np.unique(oid[m]) if o >= 0}
+    return {"lrms": float(np.sqrt(total / (mean[m] ** 2).sum())), "variance": total / float((mean[m] ** 2).sum()),
+            "by_object": by_object, "seconds": time.perf_counter() - t0}
+
+
+def doc_block(res: dict) -> str:
+    base = res["rows"]["mirror / glossy box"]["variance"]
+    lines = [f"Command: `{res['command']}` (view 0 of the benchmark above at {SIZE}x{SIZE}, {SPP} spp with one "
+             "indirect path (6 diffuse bounces, mirror / glossy depth 8) and one rect-light sample each, two seeds "
+             f"per variant; {res['total_s']:.0f} s).", "",
+             "| scene | LRMS of one render | variance, share of the mirror / glossy box's | where the variance is "
+             "(share by object) |", "|---|---|---|---|"]
+    for label, r in res["rows"].items():
+        top = sorted(r["by_object"].items(), key=lambda kv: -kv[1])[:3]
+        lines.append(f"| {label.strip()} | {100 * r['lrms']:.2f} % | {r['variance'] / base:.2f} | "
+                     + ", ".join(f"{k} {100 * v:.0f} %" for k, v in top) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--no-doc", action="store_true")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    rows = {}
+    for label, (scene, changes) in VARIANTS.items():
+        rows[label] = measure(scene, changes)
+        print(f"{label.strip()}: LRMS {rows[label]['lrms']:.4f}", flush=True)
+    res = {"rows": rows, "command": "python -m bench.noise_sources", "total_s": time.perf_counter() - t0}
+    block = doc_block(res)
+    if args.no_doc:
+        print(block)
+    else:
+        replace_block(DOC, "noise_sources", block)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
