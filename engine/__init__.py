@@ -37,7 +37,9 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # corner covers, not only those whose centre ray sees it).
 # 0.11.0: progressive reference renders of scenes with mirrors and emitters (the error region
 # leaves out the pixels around an emitter seen in a mirror).
-ENGINE_VERSION = "0.11.0"
+# 0.12.0: LDC bakes and walkthrough bases (their indirect pass traces one path count per sample side
+# or base pixel, sized from the noise level, instead of a pilot-sized count per side).
+ENGINE_VERSION = "0.12.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0

@@ -46,10 +46,10 @@ INDIRECT_NOISE_RANGE = (0.001, 0.5)
 INDIRECT_MAX_PATHS_RANGE = (128, 65536)
 """Allowed ``indirect_max_paths``."""
 INDIRECT_MIN_PATHS = 128
-"""Paths every base pixel traces before its noise test: eight rounds of ``INDIRECT_ROUND_PATHS``.
-The standard error is estimated from the spread of the round means; from two rounds (one degree
-of freedom) it is often far too small, the pixel stops early, and the RMS error of a cube came
-out ~2x its target (tests/engine/test_walkthrough_indirect.py's scene); from eight it is 0.9x."""
+"""The fewest paths a base pixel traces: eight rounds of ``INDIRECT_ROUND_PATHS``, whose spread
+gives its standard error (from two rounds, one degree of freedom, the estimate is often far too
+small: an adaptive pass that stopped on it left a cube's RMS error ~2x its target,
+tests/engine/test_walkthrough_indirect.py's scene; from eight, 0.9x)."""
 INDIRECT_ROUND_PATHS = 16
 INDIRECT_FLOOR = 0.25
 """The brightness a pixel's noise is measured against is at least this fraction of its cube's
@@ -68,11 +68,11 @@ class WalkthroughParams:
     decompositions; spp / area_light_samples / indirect_bounces: reference renderer settings of
     the base images; indirect_samples: 0 = no global illumination, > 0 = indirect light on (the
     bases' indirect part is then traced to ``indirect_noise``; holes traced by fill="trace" use
-    indirect_samples paths per pixel); indirect_noise: target relative standard error of each
-    base pixel's indirect light, measured against the pixel's brightness (direct + indirect, at
-    least ``INDIRECT_FLOOR`` times its cube's mean direct brightness); indirect_max_paths: the
-    most paths any base pixel traces (the bake's cost bound; pixels that reach it are counted in
-    the achieved-noise summary); max_views / max_time_samples: caps; min_spacing: smallest base
+    indirect_samples paths per pixel); indirect_noise: the noise level that sizes the paths every
+    base pixel traces (``indirect_params``; the bake reports each pixel's achieved relative standard
+    error, measured against its brightness: direct + indirect, at least ``INDIRECT_FLOOR`` times its
+    cube's mean direct brightness); indirect_max_paths: the most paths any base pixel traces (the
+    bake's cost bound); max_views / max_time_samples: caps; min_spacing: smallest base
     spacing (None: view-space diagonal / 32); depth_tol: relative depth tolerance of the
     reprojection; n_bases: bases reprojected per frame."""
 
@@ -126,9 +126,11 @@ class WalkthroughParams:
     def indirect_params(self) -> IndirectParams:
         """Settings of the bases' converged indirect pass: the reference renderer's paths
         (``indirect_bounces`` diffuse vertices, its light sampling and mirror / glossy depth)
-        traced per base pixel until ``indirect_noise`` or ``indirect_max_paths`` (the adaptive sampler:
-        the presets' noise levels were measured with it, docs/accuracy/walkthrough.md)."""
-        return IndirectParams(noise=float(self.indirect_noise), sampling="adaptive", min_paths=INDIRECT_MIN_PATHS,
+        traced per base pixel, a fixed count sized from ``indirect_noise`` (``(0.32 / noise)^2``, a
+        power of two within ``INDIRECT_MIN_PATHS`` .. ``indirect_max_paths``,
+        ``engine/newviews/indirect_sampling.py``): on both walkthrough sample scenes it gave the
+        frames the adaptive sampler's error in 0.49-0.60x the bake time (docs/walkthrough.md)."""
+        return IndirectParams(noise=float(self.indirect_noise), min_paths=INDIRECT_MIN_PATHS,
                               max_paths=self.indirect_max_paths, bounces=self.indirect_bounces,
                               round_paths=INDIRECT_ROUND_PATHS, floor=INDIRECT_FLOOR, seed=self.seed,
                               area_light_samples=min(self.area_light_samples, 1024),

@@ -72,8 +72,11 @@ def test_converged_cube_reaches_its_noise_target(room) -> None:
                                                                             area_light_samples=1)).radiance
                        for f in range(6)])
     noise = 0.03
-    params = WalkthroughParams(face_res=RES, indirect_res_div=1, spp=1, area_light_samples=1, indirect_noise=noise,
-                               indirect_max_paths=65536, indirect_bounces=2).indirect_params()
+    # the adaptive sampler (the bases trace a fixed count, checked at the end; the adaptive one is
+    # what a converged frame uses, engine/walkthrough/ground_truth.py)
+    params = replace(WalkthroughParams(face_res=RES, indirect_res_div=1, spp=1, area_light_samples=1,
+                                       indirect_noise=noise, indirect_max_paths=65536,
+                                       indirect_bounces=2).indirect_params(), sampling="adaptive")
     cube = trace_cube_indirect(rr, EYE, RES, direct, params, key=sample_key(7, 5, 0))
     # the pilot sizes each pixel's estimate with a margin: the median pixel meets the target, most do,
     # and the rest land near it (measured: median 0.026, p95 0.046, 66 % met)
@@ -105,12 +108,24 @@ def test_converged_cube_reaches_its_noise_target(room) -> None:
     z = np.abs(err) / np.sqrt((cube.stderr.reshape(-1) / bright) ** 2 + ref_noise ** 2)
     assert float(np.mean(z > 3.0)) <= 0.05 and float(z.max()) <= 8.0, (float(np.mean(z > 3.0)), float(z.max()))
     # a target of four times the noise traces fewer paths and reaches a larger error
-    loose = trace_cube_indirect(rr, EYE, RES, direct, WalkthroughParams(
+    loose = trace_cube_indirect(rr, EYE, RES, direct, replace(WalkthroughParams(
         face_res=RES, indirect_res_div=1, spp=1, area_light_samples=1, indirect_noise=4 * noise,
-        indirect_max_paths=65536).indirect_params(), key=sample_key(7, 5, 0))
+        indirect_max_paths=65536).indirect_params(), sampling="adaptive"), key=sample_key(7, 5, 0))
     assert loose.paths.sum() < cube.paths.sum() / 2
     err_loose = (loose.radiance.reshape(-1, 3).astype(np.float64) @ Y - ref.reshape(-1, 3) @ Y) / bright
     assert float(np.sqrt(np.mean(err_loose ** 2))) > rms
+
+    # the bases' own sampler: (0.32 / 0.03)^2 -> 128 paths on every pixel, unbiased, and each
+    # pixel's estimated standard error describes its error as well
+    fixed = trace_cube_indirect(rr, EYE, RES, direct, WalkthroughParams(
+        face_res=RES, indirect_res_div=1, spp=1, area_light_samples=1, indirect_noise=noise,
+        indirect_max_paths=65536, indirect_bounces=2).indirect_params(), key=sample_key(7, 5, 0))
+    assert np.all(fixed.paths == 128) and fixed.stats["sampling"] == "fixed"
+    err_f = (fixed.radiance.reshape(-1, 3).astype(np.float64) @ Y - ref.reshape(-1, 3) @ Y) / bright
+    rms_f = float(np.sqrt(np.mean(err_f ** 2)))
+    assert abs(float(err_f.mean())) <= 4.0 * math.hypot(rms_f, ref_noise) / math.sqrt(err_f.size)
+    z_f = np.abs(err_f) / np.sqrt((fixed.stderr.reshape(-1) / bright) ** 2 + ref_noise ** 2)
+    assert float(np.mean(z_f > 3.0)) <= 0.05 and float(z_f.max()) <= 8.0
 
 
 def test_bases_are_deterministic_and_report_their_noise(room) -> None:
