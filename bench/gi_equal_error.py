@@ -150,6 +150,27 @@ def orbit_views(target, eye, fov: float, size: int, n: int) -> list[CameraParams
     return out
 
 
+def scene_views(name: str, sc: RuntimeScene, size: int, n: int) -> list[CameraParams]:
+    """The benchmark's ``n`` views of sample scene ``name``: ``orbit_views`` around the centre of
+    its bounds through its own camera's eye, ``size`` x ``size``."""
+    from api_schemas import load_scene_file
+    from bench.ibrt_throughput import sample_path
+
+    cam0 = load_scene_file(sample_path(name)).camera
+    lo, hi = sc.bounds
+    return orbit_views(0.5 * (np.asarray(lo) + np.asarray(hi)), cam0.eye, cam0.fov_y_deg, size, n)
+
+
+def compared_pixels(sc: RuntimeScene, spec: SceneSpec, cam: CameraParams, depth: np.ndarray,
+                    object_id: np.ndarray) -> np.ndarray:
+    """The pixels every LRMS of a view is taken over (``comparison_mask``): covered, not next to an
+    emitter seen directly or, in a scene with mirrors, through them."""
+    light_px = sees_rect_light(sc, cam, depth)
+    if spec.max_depth > 0:
+        light_px |= mirrored_emitters(sc, cam, spec.max_depth)
+    return comparison_mask(sc, object_id, light_px)[0]
+
+
 def converged_view(ren: ReferenceRenderer, name: str, cam: CameraParams, params: ReferenceParams,
                    cache: Path | None) -> dict:
     """The ground truth of one view (module docstring), from ``cache`` when it holds it (a reference
@@ -218,13 +239,7 @@ def time_at(err: float, ladder: list[dict]) -> tuple[float | None, bool]:
 def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick: bool = False) -> dict:
     spec = SCENES[scene_name]
     sc, caster, plan, _, ren = scene_setup(scene_name, size, 1)
-    lo, hi = sc.bounds
-    target = 0.5 * (np.asarray(lo) + np.asarray(hi))
-    from api_schemas import load_scene_file
-    from bench.ibrt_throughput import sample_path
-
-    cam0 = load_scene_file(sample_path(scene_name)).camera
-    cams = orbit_views(target, cam0.eye, cam0.fov_y_deg, size, n_views)
+    cams = scene_views(scene_name, sc, size, n_views)
     out: dict[str, Any] = {"scene": scene_name, "size": size, "views": n_views, "bounces": spec.bounces,
                            "max_depth": spec.max_depth, "method": spec.method, "plan": plan.to_dict(),
                            "load_start": os.getloadavg()[0]}
@@ -233,10 +248,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
     gts = []
     for i, cam in enumerate(cams):
         g = converged_view(ren, scene_name, cam, gt_params(spec, GT_SEED, quick), cache)
-        light_px = sees_rect_light(sc, cam, g["depth"])
-        if spec.max_depth > 0:
-            light_px |= mirrored_emitters(sc, cam, spec.max_depth)
-        g["mask"], _ = comparison_mask(sc, g["object_id"], light_px)
+        g["mask"] = compared_pixels(sc, spec, cam, g["depth"], g["object_id"])
         gts.append(g)
         a = g["adaptive"]
         log(f"gt view {i}: {g['seconds']:.1f} s{' (cached)' if g['cached'] else ''}, estimated "

@@ -50,19 +50,11 @@ def run_scene(name: str, n_views: int, cache: Path | None, log) -> dict[str, Any
     spec = gi.SCENES[name]
     res, rows = SETTINGS[name]
     sc, caster, plan, _, ren = gi.scene_setup(name, 512, 1)
-    lo, hi = sc.bounds
-    from api_schemas import load_scene_file
-    from bench.ibrt_throughput import sample_path
-
-    cam0 = load_scene_file(sample_path(name)).camera
-    cams = gi.orbit_views(0.5 * (np.asarray(lo) + np.asarray(hi)), cam0.eye, cam0.fov_y_deg, 512, n_views)
+    cams = gi.scene_views(name, sc, 512, n_views)
     gts = []
     for cam in cams:
         g = gi.converged_view(ren, name, cam, gi.gt_params(spec, gi.GT_SEED), cache)
-        light_px = gi.sees_rect_light(sc, cam, g["depth"])
-        if spec.max_depth > 0:
-            light_px |= gi.mirrored_emitters(sc, cam, spec.max_depth)
-        g["mask"], _ = gi.comparison_mask(sc, g["object_id"], light_px)
+        g["mask"] = gi.compared_pixels(sc, spec, cam, g["depth"], g["object_id"])
         gts.append(g)
     log(f"{name}: {n_views} ground truths ready")
     llf = None

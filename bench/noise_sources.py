@@ -18,7 +18,6 @@ import argparse
 import dataclasses
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -45,8 +44,8 @@ VARIANTS: dict[str, tuple[str, dict[str, dict[str, list[float]]]]] = {
 
 
 def _variant(scene: str, changes: dict[str, dict[str, list[float]]]):
-    """The sample scene with ``changes`` applied to its materials, loaded: (runtime scene, camera)."""
-    from api_schemas import load_scene_file
+    """The sample scene with ``changes`` applied to its materials, loaded (its runtime scene)."""
+    from api_schemas.scene import load_scene_json
     from bench.ibrt_throughput import sample_path
     from samples import SAMPLES_DIR
     from workers.scene_loader import directory_resolver, load_scene
@@ -54,29 +53,22 @@ def _variant(scene: str, changes: dict[str, dict[str, list[float]]]):
     doc = json.loads(Path(sample_path(scene)).read_text())
     for m in doc["materials"]:
         m.update(changes.get(m["name"], {}))
-    with tempfile.TemporaryDirectory() as tmp:
-        f = Path(tmp) / f"{scene}.json"
-        f.write_text(json.dumps(doc))
-        ls = load_scene(load_scene_file(f), directory_resolver(SAMPLES_DIR))
-    return ls.runtime, ls.camera
+    return load_scene(load_scene_json(json.dumps(doc).encode()), directory_resolver(SAMPLES_DIR)).runtime
 
 
 def measure(scene: str, changes: dict[str, dict[str, list[float]]]) -> dict:
     from engine.raycast import EmbreeCaster
     from engine.reference import ReferenceRenderer
 
-    sc, cam0 = _variant(scene, changes)
+    sc = _variant(scene, changes)
     spec = gi.SCENES["cornell_mirror_glossy"]  # the same bounces and depth for every variant
     ren = ReferenceRenderer(sc, EmbreeCaster(sc))
-    lo, hi = sc.bounds
-    cam = gi.orbit_views(0.5 * (np.asarray(lo) + np.asarray(hi)), cam0.eye, cam0.fov_y_deg, SIZE, 6)[0]
+    cam = gi.scene_views(scene, sc, SIZE, 6)[0]
     ys, t0 = [], time.perf_counter()
     for seed in (1, 2):
         r = ren.render(cam, dataclasses.replace(gi.ladder_params(spec, SPP), seed=seed))
         ys.append(r.radiance.reshape(-1, 3).astype(np.float64) @ np.asarray(REC709_WEIGHTS))
-    light = gi.sees_rect_light(sc, cam, r.depth) | gi.mirrored_emitters(sc, cam, spec.max_depth)
-    mask, _ = gi.comparison_mask(sc, r.object_id, light)
-    m = mask.reshape(-1)
+    m = gi.compared_pixels(sc, spec, cam, r.depth, r.object_id).reshape(-1)
     var = (ys[0] - ys[1]) ** 2 / 2.0
     mean = (ys[0] + ys[1]) / 2.0
     oid = r.object_id.reshape(-1)

@@ -282,15 +282,15 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
     receives = np.any(renderer.scene.materials.kd[mat] > 0.0, axis=1) if m_pts else np.zeros(0, np.bool_)
     r_paths = params.round_paths
     max_rounds = params.max_paths // r_paths
-    min_rounds = params.paths_per_side // r_paths
+    first_rounds = params.paths_per_side // r_paths  # the fixed count (the estimate) or the adaptive pilot
     rparams = params.reference_params()
     timings: dict[str, float] = {}
     counts: dict[str, int] = {}
     floor = params.floor * brightness
     per_batch = max(1, MAX_RAYS_PER_BATCH // r_paths)
     adaptive = params.adaptive
-    pilot_rounds = np.where(receives, min_rounds, 0).astype(np.int64)
-    expected = int(pilot_rounds.sum()) * (2 if adaptive else 1)  # for progress; refined after the pilot
+    first_pass = np.where(receives, first_rounds, 0).astype(np.int64)
+    expected = int(first_pass.sum()) * (2 if adaptive else 1)  # for progress; refined after the pilot
     done_rounds = 0
 
     def trace_rounds(k: np.uint64, want: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -324,8 +324,8 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
                 progress(min(1.0, done_rounds / max(1, expected)))
         return total, s1, s2sq, rounds
 
-    n_rounds = min_rounds
-    total, s1, s2sq, rounds = trace_rounds(key, pilot_rounds)
+    n_rounds = first_rounds
+    total, s1, s2sq, rounds = trace_rounds(key, first_pass)
     spent = rounds.copy()
     if adaptive:
         # The pilot only sizes the estimate (see the module docstring, "Sampling and stopping"): rounds
@@ -334,9 +334,9 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
         se = np.where(rounds > 1, _stderr(s1, s2sq, k_p), 0.0)
         tol = params.noise * np.maximum(y_base + s1 / k_p, floor)
         with np.errstate(divide="ignore", invalid="ignore"):
-            need = np.ceil(SIZE_MARGIN * min_rounds * np.where(tol > 0, (se / np.where(tol > 0, tol, 1.0)) ** 2, 0.0))
-        lo = min(min_rounds, max_rounds - min_rounds)
-        fresh = np.where(receives, np.clip(need, lo, max_rounds - min_rounds), 0).astype(np.int64)
+            need = np.ceil(SIZE_MARGIN * first_rounds * np.where(tol > 0, (se / np.where(tol > 0, tol, 1.0)) ** 2, 0.0))
+        lo = min(first_rounds, max_rounds - first_rounds)
+        fresh = np.where(receives, np.clip(need, lo, max_rounds - first_rounds), 0).astype(np.int64)
         expected = done_rounds + int(fresh.sum())
         total, s1, s2sq, rounds = trace_rounds(derive_key(key, _ESTIMATE_DIM, 0), fresh)
         spent += rounds

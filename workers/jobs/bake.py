@@ -47,6 +47,7 @@ from engine import ENGINE_VERSION
 from engine.errors import InvalidInputError
 from engine.newviews.effects import EffectPlan, analyze
 from engine.newviews.indirect import MAX_RAYS_PER_BATCH, IndirectParams, IndirectResult
+from engine.newviews.indirect_sampling import fixed_paths
 from engine.newviews.ldc import (
     LDC_ATTR_BYTES,
     LDCAxis,
@@ -283,8 +284,9 @@ def bake_estimates(scene: RuntimeScene, params: BakeParams, plan_doc: Mapping[st
         per_side = expected_paths(params)
         est["indirect_paths_per_side_expected"] = per_side
         est["indirect_paths_expected"] = int(sum(sides) * per_side)
-        most = params.indirect.max_paths if params.indirect.sampling == "adaptive" else \
-            per_side * params.indirect.stride ** 2  # the fixed count
+        ip = params.indirect
+        most = ip.max_paths if ip.sampling == "adaptive" else fixed_paths(ip.noise, ip.min_paths, ip.max_paths,
+                                                                           ip.round_paths)
         est["indirect_paths_max"] = int(sum(sides) * most)
         est["indirect_cpu_s"] = sum(sides) * per_side / rate
         cpu += est["indirect_cpu_s"]
