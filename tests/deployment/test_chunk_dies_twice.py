@@ -76,8 +76,11 @@ def test_a_chunk_whose_job_process_dies_twice_fails_the_bake_named_and_is_redone
     assert victim.job_id is not None
 
     kill_running(redis_conn, victim.job_id, w, 300)  # first death: a retry is left
+    # the status and the retry count are separate writes: a read between them sees "scheduled" with
+    # the count not yet lowered, so wait for both (a count that never drops still fails here)
     again = wait_for(lambda: (j := fetch_job(redis_conn, victim.job_id)) is not None  # type: ignore[arg-type]
-                     and j.get_status(refresh=False) == "scheduled" and j, 20, "the retry to be scheduled")
+                     and j.get_status(refresh=False) == "scheduled" and j.retries_left == 0 and j, 20,
+                     "the retry to be scheduled with no retry left")
     assert again.retries_left == 0
     kill_running(redis_conn, victim.job_id, w, 30)  # second death: no retry left
     st = wait_bake(redis_conn, worker_store, scene.id, key, PARAMS, 120, w)
