@@ -222,9 +222,11 @@ IndirectMode = Literal["auto", "off"]
 
 IndirectSampling = Literal["fixed", "adaptive"]
 
+IndirectCaustics = Literal["photons", "paths"]
+
 INDIRECT_RANGES: dict[str, tuple[float, float]] = {
     "noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
-    "round_paths": (1, 256), "stride": (1, 8)}
+    "round_paths": (1, 256), "stride": (1, 8), "caustic_photons": (1024, 1 << 26), "caustic_radius": (0.0005, 0.1)}
 """Allowed ranges of the indirect settings: those of ``engine.newviews.indirect.IndirectParams.RANGES``
 (the API process imports no numba, so they are repeated here; tests/workers/test_indirect_parts.py
 checks that they agree, and the worker re-validates with the engine's own class)."""
@@ -292,6 +294,21 @@ class IndirectBakeParams(FrozenModel):
     LDC's full resolution. Indirect light varies slowly over a surface, so a fine LDC at stride 2
     costs about what the LDC at half its resolution costs at stride 1
     (docs/accuracy/gi.md)."""
+    caustics: IndirectCaustics = "photons"
+    """How light that reaches a diffuse surface through mirror or glossy surfaces (a caustic) is
+    found: ``photons``, a caustic photon map traced from the rect lights through the scene's mirror
+    and glossy surfaces (``engine/caustics.py``; built only when the scene has both), or ``paths``,
+    the indirect paths alone, which find it rarely and noisily. On the mirror / glossy Cornell box
+    the photon map takes the view error away from the caustics' speckles (docs/accuracy/gi.md,
+    "Caustics from a photon map")."""
+    caustic_photons: Annotated[int, _in_range("caustic_photons"),
+                               _range_doc("caustic_photons", "photons aimed at mirror / glossy surfaces")] = 1 << 20
+    """Photons aimed at the mirror and glossy surfaces (each chunk job traces the same map; ~0.5 s
+    per million on the sample scenes)."""
+    caustic_radius: Annotated[float, _in_range("caustic_radius"),
+                              _range_doc("caustic_radius", "photon kernel radius, fraction of the diagonal")] = 0.005
+    """The photon kernel's radius as a fraction of the scene's bounding-box diagonal: larger is
+    smoother and blurs a caustic's edges over that distance."""
     chunks: Annotated[int, Field(ge=1, le=MAX_INDIRECT_CHUNKS)] = 4
     """Jobs per LDC axis for the indirect pass (the unit of parallelism across bake workers)."""
 

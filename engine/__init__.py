@@ -39,7 +39,9 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # leaves out the pixels around an emitter seen in a mirror).
 # 0.12.0: LDC bakes and walkthrough bases (their indirect pass traces one path count per sample side
 # or base pixel, sized from the noise level, instead of a pilot-sized count per side).
-ENGINE_VERSION = "0.12.0"
+# 0.13.0: LDC bakes and walkthrough bases of scenes with caustics (rect lights and mirror / glossy
+# surfaces): a caustic photon map brings the light the paths found through mirror / glossy lobes.
+ENGINE_VERSION = "0.13.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0

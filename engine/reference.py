@@ -60,7 +60,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numba as nb
 import numpy as np
@@ -77,6 +77,9 @@ from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import run_pieces_parallel
 from engine.shading import phong_pow
+
+if TYPE_CHECKING:
+    from engine.caustics import CausticMap
 
 INV_PI = 1.0 / math.pi
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
@@ -357,7 +360,7 @@ def _row_lobes(ca, has_spec, spec_cut, shin, rect, c_b, ge, tmax, mag, cos_l, ar
 def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks, shin, spec_cut, kr, kg, gexp,
                 max_depth, glossy_samples, mis,
                 pt_pos, pt_int, dir_dir, dir_irr,
-                rc, ru, rv, r_n, r_area, rL, r2s, r_g, pix, sidx, skey, vertex,
+                rc, ru, rv, r_n, r_area, rL, r2s, r_g, pix, sidx, skey, vertex, path_glossy,
                 center, extent, o_out, d_out, tmax_out, c_out, alive):
     """One shadow ray per (hit, light sample) with its unshadowed contribution.
 
@@ -372,7 +375,8 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
     MIS_MODES): the light strategy's density is g*g / (pdf of a point of the light in solid angle),
     the BSDF strategy's c_b (g+1)/(2 pi) cos^g(alpha), c_b the hit's glossy rays (M or 1 at chain
     hits, the lobe's choice probability at path vertices). A hit that sends no glossy ray (a chain
-    at max_depth) gets no kg light from either strategy, as before.
+    at max_depth) gets no kg light from either strategy, as before. ``path_glossy`` False: path
+    vertices get no kg light here either (a caustic photon map brings it, engine/caustics.py).
     """
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
@@ -393,6 +397,8 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
         ad, ar, ag = _mean_albedos(kd[m, 0], kd[m, 1], kd[m, 2], kr[m, 0], kr[m, 1], kr[m, 2], kg[m, 0], kg[m, 1],
                                    kg[m, 2])
         c_b = _glossy_rays_sent(ad, ar, ag, kind[i], depth[i], bounces[i], max_depth, glossy_samples)
+        if not path_glossy and kind[i] != KIND_CHAIN:
+            c_b = 0.0
         ge = gexp[m]
         base = i * per
         lkey = derive_key(skey[i], vertex, DIM_LIGHT)
@@ -759,8 +765,8 @@ def _emitter_mis(bpdf, dist, cos_l, area, gg, mis):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, center, rc, ru, rv, r_n, r_area, rL, r2s,
-               lit, c_out):
+def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, spec_lit, tri_p, center, rc, ru, rv, r_n,
+               r_area, rL, r2s, lit, c_out):
     """Rect lights seen by the rays that see lights: camera rays and mirror / glossy continuations
     (``kind`` KIND_CHAIN or KIND_SPEC; diffuse path rays never do, next-event estimation covers
     them). A ray that meets a rect light's emitting side (either side if two-sided) before its
@@ -773,7 +779,9 @@ def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, c
     from its barycentrics. A glossy ray (``bpdf`` > 0: its density times its expected count)
     brings the light with the multiple importance sampling weight of the BSDF strategy against
     the gg light samples next-event estimation takes (``_light_rays`` weighs the other side);
-    camera and mirror rays (``bpdf`` 0) with weight 1."""
+    camera and mirror rays (``bpdf`` 0) with weight 1. ``spec_lit`` False: path rays of mirror /
+    glossy lobes (KIND_SPEC) still end on a light's emitting side, bringing nothing (a caustic
+    photon map brings that light, engine/caustics.py, and its photons end there too)."""
     nrect = rc.shape[0]
     for i in range(lo, hi):
         lit[i] = False
@@ -805,6 +813,8 @@ def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, tri_p, c
             lit[i] = True
             wm = _emitter_mis(bpdf[i], best, abs(_dot(dx, dy, dz, r_n[hit, 0], r_n[hit, 1], r_n[hit, 2])),
                               r_area[hit], gg, mis)
+            if kind[i] == KIND_SPEC and not spec_lit:
+                wm = 0.0
             c_out[i, 0] = weight[i, 0] * rL[hit, 0] * wm
             c_out[i, 1] = weight[i, 1] * rL[hit, 1] * wm
             c_out[i, 2] = weight[i, 2] * rL[hit, 2] * wm
@@ -1218,7 +1228,8 @@ class ReferenceRenderer:
     def trace_diffuse_paths(self, p: np.ndarray, ng: np.ndarray, ns: np.ndarray, mat: np.ndarray,
                             pix: np.ndarray, sidx: np.ndarray, key: np.uint64, bounces: int, acc: np.ndarray, *,
                             pix_base: int = 0, params: ReferenceParams | None = None,
-                            timings: dict[str, float] | None = None, counts: dict[str, int] | None = None) -> None:
+                            timings: dict[str, float] | None = None, counts: dict[str, int] | None = None,
+                            caustics: CausticMap | None = None) -> None:
         """Indirect diffuse light leaving surface points, one path per row, added to ``acc``.
 
         Row i starts a diffuse path at point ``p[i]`` on the side its geometric normal ``ng[i]``
@@ -1230,7 +1241,10 @@ class ReferenceRenderer:
         ``sidx[i]`` (int64) of pixel ``pix[i]`` (int64) under ``key``: give the rows of one point
         one pixel and consecutive indices and its paths are one stratified sequence, whatever the
         batching. ``params`` supplies the light sampling and lobe settings (area_light_samples,
-        max_depth); ``timings`` / ``counts`` collect the stage times and ray counts."""
+        max_depth); ``timings`` / ``counts`` collect the stage times and ray counts. ``caustics``: a
+        caustic photon map of the scene (engine/caustics.py) brings the light that reaches the
+        paths' diffuse vertices through mirror / glossy lobes (``_trace``); the caustic light of
+        the start points themselves is the caller's (``CausticMap.irradiance``)."""
         params = params or ReferenceParams()
         if not isinstance(bounces, (int, np.integer)) or not 1 <= bounces <= 64:
             raise InvalidInputError(f"bounces must be an integer in [1, 64], got {bounces!r}")
@@ -1262,7 +1276,7 @@ class ReferenceRenderer:
             self._trace(params, o32[live], d[live], d32[live], w[live], np.full(k, KIND_PATH, np.int8),
                         np.zeros(k, np.int32), np.full(k, int(bounces) - 1, np.int32), pix[live], sidx[live],
                         np.full(k, np.uint64(key), np.uint64), acc, timer, c, serial=False, pix_base=pix_base,
-                        wref=w[live].max(axis=1), total_bounces=int(bounces))
+                        wref=w[live].max(axis=1), total_bounces=int(bounces), caustics=caustics)
         if timings is not None:
             for name, dt in timer.t.items():
                 timings[name] = timings.get(name, 0.0) + dt
@@ -1344,14 +1358,17 @@ class ReferenceRenderer:
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
                timer, counts, serial: bool, first_hits=None, pix_base: int = 0, wref=None,
-               total_bounces: int | None = None) -> None:
+               total_bounces: int | None = None, caustics: CausticMap | None = None) -> None:
         """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix - pix_base];
         ``sidx`` (int64) and ``skey`` (uint64) are each ray's sample index and dimension key
         (engine/sampler.py). ``first_hits`` = (prim int32, u, v float32): the first intersection of
         every ray is given (no Embree query for it), e.g. a sample of a layered depth image.
         ``wref``: the throughput reference of Russian roulette of path rays (``_spawn``; default 0:
         none); ``total_bounces``: the bounce budget the paths started with (default
-        ``params.indirect_bounces``)."""
+        ``params.indirect_bounces``). ``caustics``: a caustic photon map (engine/caustics.py) that
+        brings the light paths would find through mirror / glossy lobes to lights: path vertices
+        then neither see lights through those lobes nor take the glossy lobe's next-event
+        estimation, and every diffuse path vertex gets the map's irradiance."""
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
@@ -1382,9 +1399,9 @@ class ReferenceRenderer:
                 lit = np.empty(n, np.bool_)
                 lit_c = np.empty((n, 3))
                 run_pieces_parallel(_rect_hits, n, _MIN_ITEMS, serial, o32, d, prim, u, v, kind, weight, bpdf,
-                                    r_g * r_g, self._mis, sc.tri_p, sc.center, lt.rect_corner, lt.rect_edge_u,
-                                    lt.rect_edge_v, self._rect_n, self._rect_area, lt.rect_radiance, lt.rect_two_sided,
-                                    lit, lit_c)
+                                    r_g * r_g, self._mis, caustics is None, sc.tri_p, sc.center, lt.rect_corner,
+                                    lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area, lt.rect_radiance,
+                                    lt.rect_two_sided, lit, lit_c)
                 # a ray that ends on a light hits nothing; a last vertex's light-seeking ray (bounces
                 # -1, see _plan) only counts the light it meets
                 idx = np.flatnonzero((prim >= 0) & ~lit & (bounces >= 0))
@@ -1410,6 +1427,11 @@ class ReferenceRenderer:
             _accumulate_misses_and_emission(acc, prim, weight, pix - pix_base if pix_base else pix, sc.background,
                                             idx, mat, kind_h, w_h, pix_h - pix_base if pix_base else pix_h,
                                             mt.emission, mt.kd, sc.ambient, lit, lit_c)
+            if caustics is not None and m:
+                # a vertex with no bounce left gets no caustic light, as with paths alone: its light
+                # through a mirror would be a path one segment longer than the bounce budget
+                caustics.add_path_light(acc, pix_h, pix_base, (kind_h != KIND_CHAIN) & (bnc_h > 0), mat, w_h, p, ng,
+                                        mt.kd)
             timer.add("shading", time.perf_counter() - t0)
             if m == 0:
                 break
@@ -1417,7 +1439,7 @@ class ReferenceRenderer:
             # ---- direct light (next-event estimation) at every hit
             if lt.count:
                 self._direct(params, it, p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h, skey_h,
-                             r_g, acc, timer, counts, serial, pix_base)
+                             r_g, acc, timer, counts, serial, pix_base, path_glossy=caustics is None)
 
             # ---- secondary rays
             t0 = time.perf_counter()
@@ -1428,7 +1450,8 @@ class ReferenceRenderer:
             # hits of the glossy rays of a first glossy bounce: depth 1, arrived by a glossy ray (bpdf > 0)
             split = (depth_h == 1) & (bpdf[idx] > 0.0) if k_per_hit > 1 else np.zeros(m, np.bool_)
             run_pieces_parallel(_plan, m, _MIN_COPY, serial, mat, w_h, kind_h, depth_h, bnc_h, split, mt.kd, mt.kr,
-                                mt.kg, params.max_depth, params.glossy_samples, k_per_hit, lt.n_rect > 0, n_mirror,
+                                mt.kg, params.max_depth, params.glossy_samples, k_per_hit,
+                                lt.n_rect > 0 and caustics is None, n_mirror,
                                 n_glossy, n_ind, count)
             first = np.zeros(m, np.int64)
             np.cumsum(count[:-1], out=first[1:])
@@ -1483,7 +1506,7 @@ class ReferenceRenderer:
             timer.add("shading", time.perf_counter() - t0)
 
     def _direct(self, params: ReferenceParams, it, p, ng, ns, d_h, mat, w_h, kind_h, depth_h, bnc_h, pix_h, sidx_h,
-                skey_h, r_g, acc, timer, counts, serial, pix_base: int = 0):
+                skey_h, r_g, acc, timer, counts, serial, pix_base: int = 0, path_glossy: bool = True):
         sc, mt, lt = self.scene, self.scene.materials, self.scene.lights
         gg = r_g * r_g
         per = lt.n_point + lt.n_directional + lt.n_rect * gg
@@ -1506,7 +1529,7 @@ class ReferenceRenderer:
                                 lt.point_position, lt.point_intensity, lt.dir_direction, lt.dir_irradiance,
                                 lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._rect_n, self._rect_area,
                                 lt.rect_radiance, lt.rect_two_sided, r_g, pix_h[sl], sidx_h[sl], skey_h[sl], it,
-                                sc.center, sc.extent, so, sd, tmax, contrib, alive)
+                                path_glossy, sc.center, sc.extent, so, sd, tmax, contrib, alive)
             live = np.flatnonzero(alive)
             timer.add("shading", time.perf_counter() - t0)
             if live.size == 0:

@@ -463,6 +463,9 @@ def bake(
                            "adaptive (a pilot per sample sizes its own)")] = None,
     max_paths: Annotated[int | None, typer.Option(help="Indirect light: most paths per sample side")] = None,
     bounces: Annotated[int | None, typer.Option(help="Indirect light: diffuse bounces per path")] = None,
+    caustics: Annotated[str | None, typer.Option(
+        "--caustics", help="Indirect light through mirrors / glossy surfaces: photons (a caustic photon map) or "
+                           "paths (the paths alone)")] = None,
     indirect_chunks: Annotated[int | None, typer.Option(help="Indirect light: jobs per LDC axis")] = None,
     wait: Annotated[bool, typer.Option("--wait/--no-wait", help="Follow the bake's parts with a progress bar")] = False,
     api_url: ApiOpt = DEFAULT_API,
@@ -473,7 +476,7 @@ def bake(
                                 "llf_f": llf_f, "llf_resolution": llf_resolution,
                                 "llf_chunk": llf_chunk}.items() if v is not None}
     ind = {k: v for k, v in {"mode": indirect, "sampling": sampling, "noise": noise, "max_paths": max_paths,
-                             "bounces": bounces,
+                             "bounces": bounces, "caustics": caustics,
                              "chunks": indirect_chunks}.items() if v is not None}
     if ind:
         params["indirect"] = ind

@@ -55,6 +55,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from engine.caustics import caustic_map
 from engine.errors import InvalidInputError
 from engine.metrics import REC709_WEIGHTS
 from engine.newviews.indirect_sampling import SAMPLINGS, fixed_paths
@@ -75,6 +76,9 @@ the sides would end above their target; with it most end below (test_indirect.py
 _ESTIMATE_DIM = 0x5EED
 """The estimate's paths draw from ``derive_key(key, _ESTIMATE_DIM, 0)``, a sequence independent of
 the pilot's (``key``), so the number of rounds the pilot sets says nothing about their values."""
+
+CAUSTICS = ("photons", "paths")
+"""How the indirect pass finds caustic light (``IndirectParams.caustics``)."""
 
 _STREAM = 3
 """The sampler stream of indirect paths (the reference renderer's camera paths use 0, its
@@ -105,6 +109,11 @@ class IndirectParams:
         as in ``engine.reference.ReferenceParams``.
     stride: trace every ``stride``-th LDI pixel in each direction and interpolate the samples in
         between on the same surface (``engine.newviews.sparse_indirect``); 1 traces every sample.
+    caustics: how light that reaches a diffuse surface through mirror / glossy lobes (a caustic)
+        is found: ``photons`` (a caustic photon map, engine/caustics.py; only in scenes that have
+        caustics, rect lights and mirror / glossy surfaces) or ``paths`` (by the paths alone).
+    caustic_photons: photons aimed at the scene's mirror / glossy surfaces.
+    caustic_radius: the photon kernel's radius, a fraction of the scene's diagonal.
     """
 
     noise: float = 0.02
@@ -118,10 +127,13 @@ class IndirectParams:
     area_light_samples: int = 4
     max_depth: int = 4
     stride: int = 1
+    caustics: str = "photons"
+    caustic_photons: int = 1 << 20
+    caustic_radius: float = 0.005
 
     RANGES = {"noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
               "round_paths": (1, 256), "floor": (0.0, 1.0), "area_light_samples": (1, 1024), "max_depth": (0, 16),
-              "stride": (1, 8)}
+              "stride": (1, 8), "caustic_photons": (1024, 1 << 26), "caustic_radius": (0.0005, 0.1)}
 
     def __post_init__(self) -> None:
         for name, (lo, hi) in self.RANGES.items():
@@ -141,6 +153,8 @@ class IndirectParams:
         if self.max_paths < self.min_paths:
             raise InvalidInputError(f"indirect max_paths ({self.max_paths}) must be at least min_paths "
                                     f"({self.min_paths})")
+        if self.caustics not in CAUSTICS:
+            raise InvalidInputError(f"indirect caustics must be one of {', '.join(CAUSTICS)}, got {self.caustics!r}")
         if self.sampling not in SAMPLINGS:
             raise InvalidInputError(f"indirect sampling must be one of {', '.join(SAMPLINGS)}, got {self.sampling!r}")
 
@@ -269,7 +283,10 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
     fraction of. Point j draws its paths as pixel ``pixel_base + j`` of the sampler stream ``key``,
     so a point's result depends only on (key, its pixel, its own data, brightness): split the
     points over calls or jobs with matching ``pixel_base`` and the results are identical.
-    Points whose material has kd = 0 receive nothing and trace nothing."""
+    Points whose material has kd = 0 receive nothing and trace nothing. With ``caustics`` =
+    ``photons`` in a scene with caustics, the caustic light comes from the renderer's photon map
+    (``engine.caustics.caustic_map``): at the points themselves by its kernel estimate, added to
+    the paths' mean (its noise is not in ``stderr``), and at the paths' vertices by its cells."""
     t_start = time.perf_counter()
     m_pts = int(p.shape[0])
     if g.shape != (m_pts, 3) or s.shape != (m_pts, 3) or mat.shape != (m_pts,) or base.shape != (m_pts, 3):
@@ -288,6 +305,11 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
     counts: dict[str, int] = {}
     floor = params.floor * brightness
     per_batch = max(1, MAX_RAYS_PER_BATCH // r_paths)
+    cmap = None
+    if params.caustics == "photons" and np.any(receives):
+        t_map = time.perf_counter()
+        cmap = caustic_map(renderer, params.caustic_photons, params.caustic_radius, params.max_depth, params.seed)
+        timings["caustic_map"] = time.perf_counter() - t_map
     adaptive = params.adaptive
     first_pass = np.where(receives, first_rounds, 0).astype(np.int64)
     expected = int(first_pass.sum()) * (2 if adaptive else 1)  # for progress; refined after the pilot
@@ -310,7 +332,7 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
                 sidx = rounds[rows] * r_paths + np.tile(np.arange(r_paths, dtype=np.int64), ids.size)
                 renderer.trace_diffuse_paths(p64[rows], g64[rows], s64[rows], mat[rows], rows + pixel_base, sidx, k,
                                              params.bounces, acc, pix_base=pixel_base, params=rparams,
-                                             timings=timings, counts=counts)
+                                             timings=timings, counts=counts, caustics=cmap)
             m = acc[active] / r_paths
             acc[active] = 0.0
             total[active] += m
@@ -343,6 +365,11 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
         n_rounds += int(fresh.max(initial=0))
     k_all = np.maximum(rounds, 1)
     radiance = total / k_all[:, None]
+    if cmap is not None:
+        t_c = time.perf_counter()
+        lit = np.flatnonzero(receives)
+        radiance[lit] += renderer.scene.materials.kd[mat[lit]] / np.pi * cmap.irradiance(p64[lit], g64[lit])
+        timings["caustic_lookup"] = time.perf_counter() - t_c
     if not np.all(np.isfinite(radiance)):
         raise InvalidInputError("indirect bake produced non-finite radiance")
     stderr = np.where(rounds > 1, _stderr(s1, s2sq, k_all), 0.0)
@@ -352,9 +379,19 @@ def trace_indirect_points(renderer: ReferenceRenderer, p: np.ndarray, g: np.ndar
     stats = summarize(rel[traced], paths[traced], params)
     stats.update(time=time.perf_counter() - t_start, rounds=n_rounds,
                  rays={k2: int(v) for k2, v in counts.items()},
-                 stages={k2: float(v) for k2, v in timings.items()}, brightness=float(brightness))
+                 stages={k2: float(v) for k2, v in timings.items()}, brightness=float(brightness),
+                 caustics=_caustic_stats(cmap, params))
     return PointsIndirect(radiance=radiance.astype(np.float32), stderr=stderr.astype(np.float32), paths=paths,
                           stats=stats)
+
+
+def _caustic_stats(cmap, params: IndirectParams) -> dict:
+    """What found the caustic light: ``paths``, or the photon map's counts (no times: stored chunks
+    keep this)."""
+    if cmap is None:
+        return {"method": "paths"}
+    return {"method": "photons", "photons": cmap.stats["photons"], "stored": cmap.stats["stored"],
+            "radius": params.caustic_radius}
 
 
 def _stderr(s1: np.ndarray, s2sq: np.ndarray, k: np.ndarray) -> np.ndarray:

@@ -90,8 +90,10 @@ def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noi
     if len(idx) and not indirect_skip:
         receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
         bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
+        # paths alone, caustics included: a ground truth must not share the photon map's blur with
+        # the bases it measures
         ip = IndirectParams(noise=noise, sampling="adaptive", min_paths=min_paths, max_paths=max_paths, bounces=bounces,
-                            round_paths=round_paths, seed=seed, area_light_samples=4)
+                            round_paths=round_paths, seed=seed, area_light_samples=4, caustics="paths")
         ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GROUND_TRUTH_STREAM, frame),
                                     brightness=bright)
         out[idx] += ind.radiance

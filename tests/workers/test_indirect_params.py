@@ -21,7 +21,7 @@ def test_ranges_and_defaults_are_the_engines() -> None:
         assert IndirectParams.RANGES[name] == rng, name
     engine_defaults = {f.name: f.default for f in dataclasses.fields(IndirectParams)}
     api = IndirectBakeParams()
-    for name in [*INDIRECT_RANGES, "sampling"]:
+    for name in [*INDIRECT_RANGES, "sampling", "caustics"]:
         assert getattr(api, name) == engine_defaults[name], name
 
 

@@ -193,8 +193,8 @@ def indirect_params(params: BakeParams) -> IndirectParams | None:
     if ip.mode == "off":
         return None
     return IndirectParams(noise=ip.noise, sampling=ip.sampling, min_paths=ip.min_paths, max_paths=ip.max_paths,
-                          bounces=ip.bounces,
-                          round_paths=ip.round_paths, stride=ip.stride, seed=params.seed)
+                          bounces=ip.bounces, round_paths=ip.round_paths, stride=ip.stride, seed=params.seed,
+                          caustics=ip.caustics, caustic_photons=ip.caustic_photons, caustic_radius=ip.caustic_radius)
 
 
 def bakes_indirect(params: BakeParams, plan: EffectPlan) -> bool:
@@ -230,7 +230,7 @@ def bake_plan_doc(scene: RuntimeScene, params: BakeParams, plan: EffectPlan) -> 
     indirect |= {"mode": ip.mode, "chunks_per_axis": ip.chunks if indirect["state"] == "planned" else 0,
                  "sampling": ip.sampling, "noise_target": ip.noise, "min_paths": ip.min_paths,
                  "max_paths": ip.max_paths,
-                 "bounces": ip.bounces, "stride": ip.stride,
+                 "bounces": ip.bounces, "stride": ip.stride, "caustics": ip.caustics,
                  "llf_indirect_samples": ip.min_paths if indirect["state"] == "planned" and with_llf else 0}
     return {**plan.to_dict(), "indirect": indirect, "bake_llf": with_llf, "llf_mode": params.llf,
             "llf_directions": llf_direction_count(params.llf_f) if with_llf else 0,
