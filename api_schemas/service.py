@@ -306,7 +306,7 @@ class IndirectBakeParams(FrozenModel):
     """Photons aimed at the mirror and glossy surfaces (each chunk job traces the same map; ~0.5 s
     per million on the sample scenes)."""
     caustic_radius: Annotated[float, _in_range("caustic_radius"),
-                              _range_doc("caustic_radius", "photon kernel radius, fraction of the diagonal")] = 0.005
+                              _range_doc("caustic_radius", "photon kernel radius, fraction of the diagonal")] = 0.01
     """The photon kernel's radius as a fraction of the scene's bounding-box diagonal: larger is
     smoother and blurs a caustic's edges over that distance."""
     chunks: Annotated[int, Field(ge=1, le=MAX_INDIRECT_CHUNKS)] = 4

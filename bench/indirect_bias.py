@@ -4,7 +4,8 @@
 axis of an LDC of ``--res`` (default 32) px; for its samples on materials with a diffuse and no
 mirror or glossy lobe, the indirect radiance of the front side (a) as the indirect pass
 (``engine.newviews.ldc.indirect_chunk``, noise 0.02, 3 bounces) estimates it with each
-``(min_paths, max_paths)`` of ``--paths`` and (b) as the reference renderer's ``shade_hits``
+``(min_paths, max_paths, caustics)`` of ``--paths`` (caustics: ``paths`` or ``photons``, the
+caustic photon map of engine/caustics.py) and (b) as the reference renderer's ``shade_hits``
 estimates it with ``--ref-paths`` paths per point (full radiance minus its direct-only radiance;
 ``shade_hits`` traces a fixed number of paths, so it has no stopping rule that could bias it).
 The ratio of the means (a) / (b) shows a bias of the pass's stopping rule beyond the noise of both
@@ -55,7 +56,7 @@ def reference_indirect(ren: ReferenceRenderer, sc, ax, sel: np.ndarray, paths: i
     return float(((full - direct) @ LUMA).mean())
 
 
-def run_scene(name: str, res: int, paths: list[tuple[int, int]], ref_paths: int, log) -> list[dict]:
+def run_scene(name: str, res: int, paths: list[tuple[int, int, str]], ref_paths: int, log) -> list[dict]:
     sc, _cam = load_sample(name)
     caster = EmbreeCaster(sc)
     ren = ReferenceRenderer(sc, caster)
@@ -63,25 +64,26 @@ def run_scene(name: str, res: int, paths: list[tuple[int, int]], ref_paths: int,
     sel = diffuse_samples(sc, ax)
     ref = reference_indirect(ren, sc, ax, sel, ref_paths)
     rows = []
-    for lo, hi in paths:
+    for lo, hi, caustics in paths:
         t0 = time.perf_counter()
         # lo < hi: the adaptive sampler (a pilot of lo paths sizes each side); lo = hi: that fixed count
-        ip = IndirectParams(noise=0.02, bounces=3, min_paths=lo, max_paths=hi, sampling="adaptive")
+        ip = IndirectParams(noise=0.02, bounces=3, min_paths=lo, max_paths=hi, sampling="adaptive", caustics=caustics)
         ch = indirect_chunk(sc, caster, ax, 0, ax.n_samples, ip, renderer=ren)
         ours = float((ch.radiance[sel, 0] @ LUMA).mean())
-        rows.append({"scene": name, "min_paths": lo, "max_paths": hi, "points": int(sel.size),
+        rows.append({"scene": name, "min_paths": lo, "max_paths": hi, "caustics": caustics, "points": int(sel.size),
                      "ratio": ours / ref, "paths_mean": ch.stats["paths_mean"], "met_target": ch.stats["met_target"],
                      "rel_stderr_median": ch.stats["rel_stderr_median"], "seconds": time.perf_counter() - t0})
-        log(f"{name} paths {lo}..{hi}: ratio {ours / ref:.4f}, {ch.stats['paths_mean']:.0f} paths per side")
+        log(f"{name} paths {lo}..{hi}, caustics by {caustics}: ratio {ours / ref:.4f}, "
+            f"{ch.stats['paths_mean']:.0f} paths per side")
     return rows
 
 
 def _table(rows: list[dict], ref_paths: int) -> str:
-    lines = ["| scene | min_paths .. max_paths | mean paths per side | sides at the 2 % target | median side's "
-             "rel. error | indirect light, pass / reference |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| scene | min_paths .. max_paths | caustics | mean paths per side | sides at the 2 % target | "
+             "median side's rel. error | indirect light, pass / reference |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['min_paths']} .. {r['max_paths']} | {r['paths_mean']:.0f} "
+        lines.append(f"| {r['scene']} | {r['min_paths']} .. {r['max_paths']} | {r['caustics']} | {r['paths_mean']:.0f} "
                      f"| {100 * r['met_target']:.0f} % | {100 * r['rel_stderr_median']:.2f} % | {r['ratio']:.4f} |")
     lines += ["", f"Reference: ``shade_hits`` with {ref_paths} paths per point; {rows[0]['points']} points of "
                   "the z axis on the first scene. min = max: a fixed count, nothing stops early."]
@@ -93,11 +95,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--scenes", nargs="+", default=["cornell_box", "cornell_mirror_glossy"])
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--ref-paths", type=int, default=256)
-    ap.add_argument("--paths", nargs="+", default=["64:1024", "256:1024", "1024:1024"],
-                    help="min_paths:max_paths settings of the pass")
+    ap.add_argument("--paths", nargs="+",
+                    default=["64:1024:paths", "256:1024:paths", "1024:1024:paths", "256:256:photons",
+                             "1024:1024:photons"],
+                    help="min_paths:max_paths:caustics settings of the pass (caustics: paths or photons)")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
-    paths = [tuple(int(x) for x in s.split(":")) for s in args.paths]
+    paths = [(int(lo), int(hi), caustics) for lo, hi, caustics in (s.split(":") for s in args.paths)]
     rows = [r for s in args.scenes for r in run_scene(s, args.res, paths, args.ref_paths,  # type: ignore[arg-type]
                                                       lambda m: print(m, flush=True))]
     table = _table(rows, args.ref_paths)

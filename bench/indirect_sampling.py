@@ -1,14 +1,17 @@
-"""The LDC's indirect pass: the fixed path count against the adaptive sampler, at equal view error.
+"""The LDC's indirect pass: the fixed path count against the adaptive sampler, and caustics from a
+photon map against caustics from paths alone, at equal view error.
 
 ``flock /tmp/bench.lock python -m bench.indirect_sampling --gt-cache DIR`` bakes each scene's LDC
 with each sampler setting (``IndirectParams.sampling``, ``engine/newviews/indirect_sampling.py``)
-one after the other in one process, renders the same views of each as ``bench.gi_equal_error``
-does (6 views of 512 x 512 orbiting the scene, the scene's view method, one sample per pixel and
-4 x 4 edge supersampling) and compares them with that benchmark's ground truths (``--gt-cache``
-shares them; missing ones are rendered first, ~2 min per view). Per setting: the bake's wall and
-CPU time, its mean paths per traced side, each view's LRMS (mean over the views) and the one-sample
-LRMS without its worst 2 % of pixels (where the speckles of rare bright paths sit). Writes the
-``indirect_sampling`` block of ``docs/accuracy/gi.md`` and ``docs/data/indirect_sampling.json``.
+and caustic setting (``IndirectParams.caustics``, ``engine/caustics.py``) one after the other in
+one process, renders the same views of each as ``bench.gi_equal_error`` does (6 views of 512 x 512
+orbiting the scene, the scene's view method, one sample per pixel and 4 x 4 edge supersampling)
+and compares them with that benchmark's ground truths (``--gt-cache`` shares them; missing ones
+are rendered first, ~2 min per view). Per setting: the bake's wall and CPU time, its mean paths
+per traced side, each view's LRMS (mean over the views), the one-sample LRMS without its worst
+2 % of pixels (where the speckles of rare bright paths sit) and outside the surfaces with a glossy
+lobe (kg > 0: the light field renders them, not the LDC's diffuse light this pass bakes). Writes
+the ``indirect_sampling`` block of ``docs/accuracy/gi.md`` and ``docs/data/indirect_sampling.json``.
 
 Settings: the Cornell box at LDC 128 (the API's default resolution), the mirror / glossy Cornell
 box at LDC 256 with its light field (the resolution ``bench.gi_equal_error`` bakes it at).
@@ -34,19 +37,34 @@ from engine.newviews.indirect import IndirectParams
 from engine.newviews.ldc import bake_ldc
 from engine.newviews.llf import bake_llf
 from engine.newviews.renderer import LDCViewRenderer
+from engine.scene import RuntimeScene
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "accuracy" / "gi.md"
 DATA = ROOT / "docs" / "data" / "indirect_sampling.json"
 
-SETTINGS: dict[str, tuple[int, list[tuple[str, float, str]]]] = {
-    # scene: (LDC resolution, [(sampling, noise, caustics), ...]) -- the fixed counts bracket the
-    # adaptive row; the Cornell box has no caustics (no mirror / glossy surface), so its photon
-    # setting is its path setting
-    "cornell_box": (128, [("adaptive", 0.02, "paths"), ("fixed", 0.02, "paths"), ("fixed", 0.014, "paths")]),
-    "cornell_mirror_glossy": (256, [("adaptive", 0.05, "paths"), ("fixed", 0.05, "paths"), ("fixed", 0.03, "paths"),
-                                    ("fixed", 0.05, "photons"), ("fixed", 0.03, "photons")]),
+DEFAULT = IndirectParams()
+
+PHOTONS_4M = {"caustic_photons": 1 << 22, "caustic_radius": 0.005}
+"""Four times the default photons at half its radius: the same photons per kernel disk, half the blur."""
+
+SETTINGS: dict[str, tuple[int, list[tuple[str, float, str, dict[str, Any]]]]] = {
+    # scene: (LDC resolution, [(sampling, noise, caustics, other IndirectParams), ...]) -- the fixed
+    # counts bracket the adaptive row; the Cornell box has no caustics (no mirror / glossy surface),
+    # so its photon setting would be its path setting
+    "cornell_box": (128, [("adaptive", 0.02, "paths", {}), ("fixed", 0.02, "paths", {}),
+                          ("fixed", 0.014, "paths", {})]),
+    "cornell_mirror_glossy": (256, [("adaptive", 0.05, "paths", {}), ("fixed", 0.05, "paths", {}),
+                                    ("fixed", 0.03, "paths", {}), ("fixed", 0.05, "photons", {}),
+                                    ("fixed", 0.05, "photons", PHOTONS_4M), ("fixed", 0.03, "photons", {})]),
 }
+
+
+def glossy_objects(sc: RuntimeScene) -> np.ndarray:
+    """Per object id: does any of its triangles have a glossy lobe (kg > 0)?"""
+    out = np.zeros(int(sc.tri_object.max(initial=-1)) + 1, np.bool_)
+    out[sc.tri_object[np.any(sc.materials.kg[sc.tri_material] > 0.0, axis=1)]] = True
+    return out
 
 
 def run_scene(name: str, n_views: int, cache: Path | None, log) -> dict[str, Any]:
@@ -64,8 +82,9 @@ def run_scene(name: str, n_views: int, cache: Path | None, log) -> dict[str, Any
     if spec.llf is not None:
         llf = bake_llf(sc, caster, spec.llf[0], spec.llf[1], params=gi.llf_params(spec), max_bytes=16 << 30)
     out_rows = []
-    for sampling, noise, caustics in rows:
-        ip = IndirectParams(noise=noise, sampling=sampling, bounces=spec.bounces, caustics=caustics)
+    outside = [g["mask"] & ~glossy_objects(sc)[np.maximum(g["object_id"], 0)] for g in gts]
+    for sampling, noise, caustics, extra in rows:
+        ip = IndirectParams(noise=noise, sampling=sampling, bounces=spec.bounces, caustics=caustics, **extra)
         c0, t0 = time.process_time(), time.perf_counter()
         ldc = bake_ldc(sc, caster, res, plan=plan, area_light_samples=gi.LDC_AREA_SAMPLES, indirect=ip,
                        max_bytes=gi.LDC_MAX_BYTES)
@@ -76,12 +95,15 @@ def run_scene(name: str, n_views: int, cache: Path | None, log) -> dict[str, Any
         r = LDCViewRenderer(sc, ldc, llf, plan)
         one = [r.render(cam, spec.method) for cam in cams]
         e1 = [lrms(v.radiance, g["radiance"], g["mask"]) for v, g in zip(one, gts, strict=True)]
+        e_out = [lrms(v.radiance, g["radiance"], m) for v, g, m in zip(one, gts, outside, strict=True)]
         rest = [gi.error_breakdown(v.radiance, g["radiance"], g["mask"],
                                    edge_classes(v, r.silhouette_rel_depth, ldc.background))["lrms_without_top2pct"]
                 for v, g in zip(one, gts, strict=True)]
         e4 = [lrms(r.render(cam, spec.method, supersample=gi.EDGES_SS, antialias="edges").radiance, g["radiance"],
                    g["mask"]) for cam, g in zip(cams, gts, strict=True)]
-        row = {"sampling": sampling, "noise": noise, "caustics": caustics,
+        row = {"sampling": sampling, "noise": noise, "caustics": caustics, **extra,
+               "lrms_1_outside_glossy": float(np.mean(e_out)), "glossy_pixels": float(np.mean(
+                   [1.0 - m.sum() / max(g["mask"].sum(), 1) for m, g in zip(outside, gts, strict=True)])),
                "paths": ip.paths_per_side if sampling == "fixed" else None,
                "bake_s": bake_s, "bake_cpu_s": bake_cpu, "paths_mean": paths_mean,
                "lrms_1": float(np.mean(e1)), "lrms_1_without_top2pct": float(np.mean(rest)),
@@ -103,16 +125,24 @@ def doc_block(res: dict[str, Any]) -> str:
         lines += [f"**`{s['scene']}`**, LDC {s['ldc_resolution']}, view method `{s['method']}`, {s['views']} views "
                   "of 512x512:", "",
                   "| sampling | caustics | noise | paths per side | bake s (CPU s) | bake time vs adaptive | LRMS, one "
-                  "sample | without its worst 2 % | LRMS, 4x4 edges (max) |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "sample | without its worst 2 % | outside glossy surfaces | LRMS, 4x4 edges (max) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         base = next(r["bake_s"] for r in s["rows"] if r["sampling"] == "adaptive")
         for r in s["rows"]:
             paths = f"{r['paths']}" if r["paths"] else f"{r['paths_mean']:.0f} (mean)"
-            lines.append(f"| {r['sampling']} | {r['caustics']} | {r['noise']:g} | {paths} | "
+            caustics = r["caustics"]
+            if caustics == "photons":
+                caustics += f" ({r.get('caustic_photons', DEFAULT.caustic_photons) / 2 ** 20:g} M, radius " \
+                            f"{r.get('caustic_radius', DEFAULT.caustic_radius):g})"
+            lines.append(f"| {r['sampling']} | {caustics} | {r['noise']:g} | {paths} | "
                          f"{r['bake_s']:.1f} ({r['bake_cpu_s']:.1f}) | "
                          f"{r['bake_s'] / base:.2f}x | {100 * r['lrms_1']:.2f} % | "
-                         f"{100 * r['lrms_1_without_top2pct']:.2f} % | {100 * r['lrms_edges']:.2f} % "
+                         f"{100 * r['lrms_1_without_top2pct']:.2f} % | {100 * r['lrms_1_outside_glossy']:.2f} % | "
+                         f"{100 * r['lrms_edges']:.2f} % "
                          f"({100 * r['lrms_edges_max']:.2f} %) |")
+        glossy = s["rows"][0]["glossy_pixels"]
+        if glossy > 0:
+            lines.append(f"\nGlossy surfaces cover {100 * glossy:.0f} % of the compared pixels.")
         lines.append("")
     return "\n".join(lines)
 

@@ -129,7 +129,7 @@ class IndirectParams:
     stride: int = 1
     caustics: str = "photons"
     caustic_photons: int = 1 << 20
-    caustic_radius: float = 0.005
+    caustic_radius: float = 0.01
 
     RANGES = {"noise": (0.001, 0.5), "min_paths": (2, 65536), "max_paths": (2, 65536), "bounces": (1, 16),
               "round_paths": (1, 256), "floor": (0.0, 1.0), "area_light_samples": (1, 1024), "max_depth": (0, 16),
