@@ -41,6 +41,7 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # or base pixel, sized from the noise level, instead of a pilot-sized count per side).
 # 0.13.0: LDC bakes and walkthrough bases of scenes with caustics (rect lights and mirror / glossy
 # surfaces): a caustic photon map brings the light the paths found through mirror / glossy lobes.
+# LDC views: the glossy lobe's reflection of the rect lights is shaded with the highlights.
 ENGINE_VERSION = "0.13.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground

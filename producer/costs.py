@@ -155,6 +155,10 @@ PATHS_RATE_BOUNCES = 3
 """``workers.jobs.bake.PATHS_RATE_BOUNCES``: ``Settings.bake_paths_per_s`` is measured at this many bounces."""
 IMAGE_BYTES_PER_PIXEL = 12
 """A float32 RGB image."""
+CAUSTIC_CPU_S_PER_PHOTON = 1.0e-6
+"""``workers.jobs.bake.CAUSTIC_CPU_S_PER_PHOTON``: an indirect chunk job's caustic photon map."""
+CAUSTIC_BYTES_PER_PHOTON = 400
+"""``workers.jobs.bake.CAUSTIC_BYTES_PER_PHOTON``."""
 WALKTHROUGH_CPU_S_PER_BASE_PIXEL = 4.0e-6
 """A walkthrough bake's base range images: CPU per base pixel (first hits, shading and indirect
 paths at the preset's samples; sized from the LDC bake's per-sample cost, not measured separately)."""
@@ -545,6 +549,13 @@ def expected_paths(params: BakeParams) -> float:
     return expected_paths_per_side(ip.sampling, ip.noise, ip.min_paths, ip.max_paths, ip.round_paths) / ip.stride ** 2
 
 
+def _has_caustics(scene: Scene, params: BakeParams) -> bool:
+    """Will the indirect pass build a caustic photon map (``engine.caustics.has_caustics``: a rect light
+    and a mirror or glossy material, with ``caustics`` = ``photons``)?"""
+    spec = any(max(m.kr) > 0 or max(m.kg) > 0 for m in scene.materials)
+    return params.indirect.caustics == "photons" and spec and any(lt.type == "rect" for lt in scene.lights)
+
+
 def _axis_grids(scene: Scene, resolution: int) -> list[int]:
     """Pixels of the LDC's three axis grids (``engine.newviews.ldi.axis_frame``, one pixel of padding);
     without bounds (a mesh file) every axis at the cube's ``(resolution + 2)^2``."""
@@ -583,14 +594,18 @@ def bake_cost(scene: Scene, params: BakeParams, triangles: int, paths_per_s: flo
         samples = 0.0
     rate = paths_per_s * (PATHS_RATE_BOUNCES + 1) / (params.indirect.bounces + 1)
     sides = 2.0 * samples
-    indirect_cpu = sides * expected_paths(params) / rate
+    photons = params.indirect.caustic_photons if samples and _has_caustics(scene, params) else 0
+    caustic_cpu = 3 * params.indirect.chunks * photons * CAUSTIC_CPU_S_PER_PHOTON
+    indirect_cpu = sides * expected_paths(params) / rate + caustic_cpu
     chunk_paths = min(MAX_RAYS_PER_BATCH, math.ceil(sides / 3 / params.indirect.chunks) * params.indirect.round_paths)
-    chunk_bytes = max(axis_bytes) + chunk_paths * INDIRECT_RAY_BYTES if samples else 0
+    chunk_bytes = (max(axis_bytes) + max(chunk_paths * INDIRECT_RAY_BYTES, photons * CAUSTIC_BYTES_PER_PHOTON)
+                   if samples else 0)
     n_dir = 4 * params.llf_f ** 2 + 2
     llf_bytes = min(params.llf_chunk, n_dir) * _ldi_bytes(params.llf_resolution ** 2, layers, LLF_SAMPLE_BYTES)
     part = max(max(axis_bytes), chunk_bytes, llf_bytes if params.llf != "never" else 0)
     jobs = 3 + (3 * params.indirect.chunks if samples else 0) + 2
     detail.update({"ldc_samples_expected": int(samples), "indirect_cpu_s": round(indirect_cpu, 1),
+                   "caustic_map_cpu_s": round(caustic_cpu, 1),
                    "indirect_chunk_bytes_max": chunk_bytes, "llf_chunk_bytes_max": llf_bytes})
     s = scene_cost(triangles)
     per_job_cpu = indirect_cpu / max(1, 3 * params.indirect.chunks) + s.cpu_s

@@ -565,6 +565,7 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
     radiance, normal, prov, lookups = out.radiance, out.normal, out.prov, out.lookups
     ray_o, ray_d, ray_ng, ray_thr, ray_live = rays.o, rays.d, rays.ng, rays.thr, rays.live
     ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+    kg, gexp, gloss_cut = hp.kg, hp.gloss_exponent, hp.gloss_cut
     pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
     rc_, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
     rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
@@ -624,9 +625,9 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
             pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
             pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
             if want_hl and (force or hl_mat[m]):
-                h0, h1, h2 = highlight_point_u(cam_pix[i], pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
-                                               pt_int, dir_dir, dir_irr, rc_, ru, rv, r_n, r_area, rL, r2s, r_g,
-                                               stream, center, extent)
+                h0, h1, h2 = highlight_point_u(cam_pix[i], pt, m, bits, brow, force, ks, shin, spec_cut, kg, gexp,
+                                               gloss_cut, pt_pos, pt_int, dir_dir, dir_irr, rc_, ru, rv, r_n, r_area,
+                                               rL, r2s, r_g, stream, center, extent)
                 radiance[r, 0] += h0
                 radiance[r, 1] += h1
                 radiance[r, 2] += h2
@@ -1272,6 +1273,7 @@ def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups,
     refine = mesh.neighbours.shape[0] > 0
     max_move = 3.0 * mesh.ldc_h
     ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+    kg, gexp, gloss_cut = hp.kg, hp.gloss_exponent, hp.gloss_cut
     pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
     rc, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
     rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
@@ -1305,9 +1307,9 @@ def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups,
             wo0, wo1, wo2 = -d0, -d1, -d2
             pt[0], pt[1], pt[2], pt[3], pt[4], pt[5] = px, py, pz, g0, g1, g2
             pt[6], pt[7], pt[8], pt[9], pt[10], pt[11] = n0, n1, n2, wo0, wo1, wo2
-            h0, h1, h2 = highlight_point_u(i, pt, m, vis2, 2 * s + sd, force, ks, shin, spec_cut, pt_pos, pt_int,
-                                           dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center,
-                                           extent)
+            h0, h1, h2 = highlight_point_u(i, pt, m, vis2, 2 * s + sd, force, ks, shin, spec_cut, kg, gexp, gloss_cut,
+                                           pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g,
+                                           stream, center, extent)
             l0 = diff[s, sd, 0] + h0
             l1 = diff[s, sd, 1] + h1
             l2 = diff[s, sd, 2] + h2
@@ -1527,6 +1529,9 @@ class LDCViewRenderer:
         self._has_ks = (np.any(mt.ks > 0, axis=1) & (mt.shininess > 0))
         self._has_kr = np.any(mt.kr > 0, axis=1)
         self._has_kg = np.any(mt.kg > 0, axis=1)
+        # materials the highlight kernel shades: Phong highlights, and the glossy lobe's reflection of
+        # the rect lights (the light field holds surfaces, never a light)
+        self._has_hl = self._has_ks | (self._has_kg & (scene.lights.n_rect > 0))
 
     # ------------------------------------------------------------------ resources
     @property
@@ -1932,7 +1937,7 @@ class LDCViewRenderer:
                     raise InvalidInputError(f"method {spec.wire!r} needs the bake's LLF (the scene has glossy or "
                                             "mirror materials) but this bake has none; use method 'ldc' or rebake "
                                             "with an LLF")
-        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_ks, refl_mat, bool(want_vp),
+        vp_pix, n_hl, n_rf = _select_view_pass(fr.obj_id, fr.mat_id, self._has_hl, refl_mat, bool(want_vp),
                                                bool(want_rf), force)
         counts["view_pass_pixels"] = int(vp_pix.size)
         counts["highlight_pixels"] = int(n_hl)
@@ -1943,7 +1948,7 @@ class LDCViewRenderer:
         lookups = np.zeros(nv, np.int64)
         rays = mirror_rays(nv if (trace_mirror and n_rf) else 0)
         if nv:
-            sw = ViewPassSwitches(hl_mat=self._has_ks, rf_mat=refl_mat,
+            sw = ViewPassSwitches(hl_mat=self._has_hl, rf_mat=refl_mat,
                                   gathered_mat=self._has_kg if trace_mirror else refl_mat, want_hl=bool(want_vp),
                                   want_rf=bool(want_rf), force=force, mirror=not trace_mirror,
                                   trace=rays.live.size > 0, refine=self.refine_surface)

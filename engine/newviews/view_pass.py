@@ -17,7 +17,11 @@ visible), so a highlight in its penumbra is too bright by the blocked fraction; 
 points are each shaded point's own stratified (Owen-scrambled Sobol) sequence over the light,
 deterministic per seed (``engine.newviews.ldc.rect_net_point``). Diffuse (LDC) + highlights equals the
 reference's direct lighting at the same point (tested to 1e-5 for point and directional
-lights).
+lights). The glossy lobe's reflection of the rect lights, ``kg (g + 2) / (2 pi) cos^g(wl . wr) E
+cos(ns . wl)``, is a highlight too, shaded here with the same samples: the light field holds
+surfaces, never a light, so its gather cannot show it (rect lights only, as in the reference,
+where no ray meets a point or directional light; tested against a quadrature of the lobe over the
+light).
 
 **Light-field gather** (``gather_reflections``), paper section 4.2. The radiance arriving
 at p from LLF direction d is read in LLF view d: p projected onto the view's reference
@@ -88,6 +92,9 @@ class HighlightParams(NamedTuple):
     ks: np.ndarray  #: (n_materials, 3) float64 Phong specular colour
     shininess: np.ndarray  #: (n_materials,) float64 Phong exponent s (0: no highlight)
     spec_cut: np.ndarray  #: (n_materials,) float64 cos(wl, wr) below which cos^s < e^-40 is skipped (-1: none)
+    kg: np.ndarray  #: (n_materials, 3) float64 glossy reflectance (its rect lights' reflection is a highlight)
+    gloss_exponent: np.ndarray  #: (n_materials,) float64 glossy lobe exponent g
+    gloss_cut: np.ndarray  #: (n_materials,) float64 cos(wl, wr) below which cos^g < e^-40 is skipped (-1: none)
     point_position: np.ndarray  #: (n_point, 3) float64 point lights' positions
     point_intensity: np.ndarray  #: (n_point, 3) float64 their intensities
     dir_direction: np.ndarray  #: (n_dir, 3) float64 directional lights' directions (of travel)
@@ -106,9 +113,10 @@ class HighlightParams(NamedTuple):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv,
-                      r_n, r_area, rL, r2s, r_g, stream, center, extent):
-    """Phong highlights (r, g, b) at one point (module docstring). Inlined into the callers'
+def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, kg, gexp, gloss_cut, pt_pos, pt_int, dir_dir,
+                      dir_irr, rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center, extent):
+    """Phong highlights (r, g, b) at one point (module docstring), and the rect lights' reflection
+    in its glossy lobe. Inlined into the callers'
     loops, so its parameters are flat: an inlined function's tuple would be unpacked per point,
     and each unpacking increfs and decrefs every array, atomically, on counters both threads
     share (~6 % of an LDC render's CPU time when it was done per pixel); the callers unpack
@@ -123,18 +131,20 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     bits, brow: ``bits[brow]`` are the point's (W,) uint64 light-visibility words (W = 0: every
         light in front of the surface counts as visible).
     force: evaluate every light even where the material has no highlight.
-    ks ... extent: the fields of ``HighlightParams``, in its order (ks, shininess, spec_cut,
-        point_position, point_intensity, dir_direction, dir_irradiance, rect_corner,
+    ks ... extent: the fields of ``HighlightParams``, in its order (ks, shininess, spec_cut, kg,
+        gloss_exponent, gloss_cut, point_position, point_intensity, dir_direction, dir_irradiance, rect_corner,
         rect_edge_u, rect_edge_v, rect_normal, rect_area, rect_radiance, rect_two_sided,
         rect_grid, stream, center, extent).
     """
     px, py, pz, g0, g1, g2 = pt[0], pt[1], pt[2], pt[3], pt[4], pt[5]
     n0, n1, n2, wo0, wo1, wo2 = pt[6], pt[7], pt[8], pt[9], pt[10], pt[11]
-    if not force and (not (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) or not shin[m] > 0.0):
-        return 0.0, 0.0, 0.0
     npt = pt_pos.shape[0]
     ndir = dir_dir.shape[0]
     nrect = rc.shape[0]
+    has_ks = (ks[m, 0] > 0.0 or ks[m, 1] > 0.0 or ks[m, 2] > 0.0) and shin[m] > 0.0
+    has_kg = (kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0) and nrect > 0
+    if not (force or has_ks or has_kg):
+        return 0.0, 0.0, 0.0
     gg = r_g * r_g
     per = npt + ndir + nrect * gg
     words = bits.shape[1]
@@ -144,6 +154,7 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
     mag = OFFSET_REL * (mx + OFFSET_EXTENT * extent)
     ox, oy, oz = px + mag * g0, py + mag * g1, pz + mag * g2
     spec_norm = (shin[m] + 2.0) * 0.5 * INV_PI
+    gloss_norm = (gexp[m] + 2.0) * 0.5 * INV_PI
     a0 = a1 = a2 = 0.0
     for j in range(per):
         li = j
@@ -194,12 +205,13 @@ def highlight_point_u(key, pt, m, bits, brow, force, ks, shin, spec_cut, pt_pos,
         if cos_g <= 0.0 or cos_s <= 0.0 or tmax <= 0.0:
             continue
         ca = wr0 * lx + wr1 * ly + wr2 * lz
-        if ca <= spec_cut[m]:
-            continue
-        fs = spec_norm * _phong_pow(ca, shin[m]) * cos_s
-        a0 += ks[m, 0] * fs * e0
-        a1 += ks[m, 1] * fs * e1
-        a2 += ks[m, 2] * fs * e2
+        fs = spec_norm * _phong_pow(ca, shin[m]) * cos_s if ca > spec_cut[m] else 0.0
+        # the glossy lobe sees rect lights only, as in the reference renderer (a ray never meets a
+        # point or directional light)
+        fg = gloss_norm * _phong_pow(ca, gexp[m]) * cos_s if j >= npt + ndir and ca > gloss_cut[m] else 0.0
+        a0 += (ks[m, 0] * fs + kg[m, 0] * fg) * e0
+        a1 += (ks[m, 1] * fs + kg[m, 1] * fg) * e1
+        a2 += (ks[m, 2] * fs + kg[m, 2] * fg) * e2
     return a0, a1, a2
 
 
@@ -212,6 +224,7 @@ def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
     n = p.shape[0]
     for b in range((n + _BLOCK - 1) // _BLOCK):
         ks, shin, spec_cut, stream = hp.ks, hp.shininess, hp.spec_cut, hp.stream
+        kg, gexp, gloss_cut = hp.kg, hp.gloss_exponent, hp.gloss_cut
         pt_pos, pt_int, dir_dir, dir_irr = hp.point_position, hp.point_intensity, hp.dir_direction, hp.dir_irradiance
         rc, ru, rv, r_n, r_area = hp.rect_corner, hp.rect_edge_u, hp.rect_edge_v, hp.rect_normal, hp.rect_area
         rL, r2s, r_g, center, extent = hp.rect_radiance, hp.rect_two_sided, hp.rect_grid, hp.center, hp.extent
@@ -220,8 +233,9 @@ def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
             for c in range(3):
                 pt[c], pt[3 + c], pt[6 + c], pt[9 + c] = p[i, c], ng[i, c], ns[i, c], wo[i, c]
             out[i, 0], out[i, 1], out[i, 2] = highlight_point_u(i, pt, mat[i], bits, i, force, ks, shin, spec_cut,
-                                                                pt_pos, pt_int, dir_dir, dir_irr, rc, ru, rv, r_n,
-                                                                r_area, rL, r2s, r_g, stream, center, extent)
+                                                                kg, gexp, gloss_cut, pt_pos, pt_int, dir_dir, dir_irr,
+                                                                rc, ru, rv, r_n, r_area, rL, r2s, r_g, stream, center,
+                                                                extent)
 
 
 def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: int = 0) -> HighlightParams:
@@ -231,10 +245,11 @@ def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: in
     r_area = np.linalg.norm(a, axis=1)
     r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
     spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
+    gloss_cut = np.where(mt.gloss_exponent > 0, np.exp(-40.0 / np.maximum(mt.gloss_exponent, 1e-300)), -1.0)
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
-    return HighlightParams(mt.ks, mt.shininess, spec_cut, lt.point_position, lt.point_intensity, lt.dir_direction,
-                           lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
-                           lt.rect_radiance, lt.rect_two_sided, r_g, sample_key(seed, 11),
+    return HighlightParams(mt.ks, mt.shininess, spec_cut, mt.kg, mt.gloss_exponent, gloss_cut, lt.point_position,
+                           lt.point_intensity, lt.dir_direction, lt.dir_irradiance, lt.rect_corner, lt.rect_edge_u,
+                           lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, r_g, sample_key(seed, 11),
                            np.asarray(scene.center, np.float64), float(scene.extent))
 
 

@@ -208,6 +208,26 @@ def test_diffuse_plus_highlights_equals_reference_direct_light():
     assert n_bad <= 1e-3 * n_total, (n_bad, n_total)
 
 
+@pytest.mark.parametrize("g", [1.0, 20.0, 200.0])
+def test_glossy_lobe_reflects_rect_lights_as_a_highlight(g):
+    """The light field holds surfaces, never a light, so the glossy lobe's reflection of a rect
+    light is shaded per view with the highlights: it must be the reference's, the quadrature of the
+    lobe over the light (tests/engine/test_reference_caustics.py checks the reference against the
+    same quadrature). A glossy lobe does not see point or directional lights (nor does the
+    reference's: no ray meets them)."""
+    from tests.engine.test_reference_caustics import _down_light, _glossy_quadrature
+
+    le, size, h, rho = 2.0, 2.0, 1.0, 0.8
+    glossy = mat("f", kd=(0, 0, 0), kg=(rho,) * 3, gloss_exponent=g)
+    up = np.array([[0.0, 1.0, 0.0]])
+    m = np.zeros(1, np.int32)
+    sc = scene([(quad((0, 0, 0), 40.0), glossy)], [_down_light(size, h, le)])
+    got = highlights(sc, np.zeros((1, 3)), up, up, up, m, area_light_samples=4096)
+    assert got[0, 0] == pytest.approx(rho * _glossy_quadrature(g, size, h, le), rel=0.01)
+    only_points = scene([(quad((0, 0, 0), 40.0), glossy)], LIGHTS)
+    assert np.all(highlights(only_points, np.zeros((1, 3)), up, up, up, m) == 0.0)
+
+
 def test_huge_exponents_stay_finite_hard_case_8(env):
     sc0, llf = env
     rng = np.random.default_rng(3)

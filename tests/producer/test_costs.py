@@ -86,12 +86,19 @@ def test_mirrored_engine_constants_agree() -> None:
     from engine.newviews.llf import LLF_SAMPLE_BYTES
     from engine.quality import CALIBRATION_SPP
     from engine.reference import ReferenceParams
-    from workers.jobs.bake import INDIRECT_RAY_BYTES, PATHS_RATE_BOUNCES
+    from workers.jobs.bake import (
+        CAUSTIC_BYTES_PER_PHOTON,
+        CAUSTIC_CPU_S_PER_PHOTON,
+        INDIRECT_RAY_BYTES,
+        PATHS_RATE_BOUNCES,
+    )
     from workers.jobs.calibrate import LDC_REPEATS
 
     assert (costs.MAX_RAYS_PER_BATCH, costs.LDC_ATTR_BYTES, costs.LDI_SAMPLE_BYTES, costs.LLF_SAMPLE_BYTES) == (
         MAX_RAYS_PER_BATCH, LDC_ATTR_BYTES, LDI_SAMPLE_BYTES, LLF_SAMPLE_BYTES)
     assert (costs.INDIRECT_RAY_BYTES, costs.PATHS_RATE_BOUNCES) == (INDIRECT_RAY_BYTES, PATHS_RATE_BOUNCES)
+    assert (costs.CAUSTIC_CPU_S_PER_PHOTON, costs.CAUSTIC_BYTES_PER_PHOTON) == (CAUSTIC_CPU_S_PER_PHOTON,
+                                                                               CAUSTIC_BYTES_PER_PHOTON)
     assert costs.REFERENCE_CHUNK_PIXELS == ReferenceParams().chunk_pixels
     assert costs.CALIBRATION_SPP_TOTAL == sum(CALIBRATION_SPP) and costs.CALIBRATION_LDC_RUNS == LDC_REPEATS
 

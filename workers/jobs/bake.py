@@ -17,14 +17,16 @@ Estimates (the plan job, before anything is baked; refused over ``Settings.max_b
 - memory per job: an LDC axis at its worst case (every pixel full to ``max_layers``); an indirect
   chunk holds that axis plus its path-tracing batch, ``min(MAX_RAYS_PER_BATCH, sides x round_paths)``
   rays of ``INDIRECT_RAY_BYTES`` each (measured: a batch of 2^20 rays raised the peak RSS by
-  ~560 MiB); an LLF chunk as ``estimate_llf_bytes``;
+  ~560 MiB), or its caustic photon map's ``CAUSTIC_BYTES_PER_PHOTON`` per photon if more; an LLF
+  chunk as ``estimate_llf_bytes``;
 - CPU time, dominated by the indirect pass: expected LDC samples (each triangle's area projected on
   the axis / pixel area: the rays of an axis's grid that cross it, capped at ``max_layers`` per
   pixel) x 2 sides x expected paths per side (``engine.newviews.indirect_sampling``: the fixed
   sampler's count; the adaptive sampler's ``min_paths + 20 %`` of the way to ``max_paths``, 118-122
   measured on the Cornell box at noise 0.02; divided by ``stride^2``, the share of sides traced)
   / ``Settings.bake_paths_per_s`` (scaled by ``4 / (bounces + 1)``, the rate being measured at 3
-  bounces), plus the light field's indirect paths when it has them.
+  bounces), plus the light field's indirect paths when it has them, plus a caustic photon map
+  per indirect chunk job in a scene with caustics (``CAUSTIC_CPU_S_PER_PHOTON``).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from rq import get_current_job
 
 from api_schemas.service import BakeParams
 from engine import ENGINE_VERSION
+from engine.caustics import has_caustics
 from engine.errors import InvalidInputError
 from engine.newviews.effects import EffectPlan, analyze
 from engine.newviews.indirect import MAX_RAYS_PER_BATCH, IndirectParams, IndirectResult
@@ -184,6 +187,12 @@ INDIRECT_RAY_BYTES = 576
 an indirect chunk of the Cornell box by ~560 MiB)."""
 PATHS_RATE_BOUNCES = 3
 """``Settings.bake_paths_per_s`` is measured at this many bounces."""
+CAUSTIC_CPU_S_PER_PHOTON = 1.0e-6
+"""The caustic photon map that every indirect chunk job of a scene with caustics builds
+(``engine/caustics.py``): CPU per photon, tracing and indexing (~0.5 s of wall time on 2 cores per
+million photons on the mirror / glossy Cornell box, warm)."""
+CAUSTIC_BYTES_PER_PHOTON = 400
+"""The map's working memory per photon while it is built (rays, hits, stored photons, its index)."""
 
 
 def indirect_params(params: BakeParams) -> IndirectParams | None:
@@ -288,10 +297,12 @@ def bake_estimates(scene: RuntimeScene, params: BakeParams, plan_doc: Mapping[st
         most = ip.max_paths if ip.sampling == "adaptive" else fixed_paths(ip.noise, ip.min_paths, ip.max_paths,
                                                                            ip.round_paths)
         est["indirect_paths_max"] = int(sum(sides) * most)
-        est["indirect_cpu_s"] = sum(sides) * per_side / rate
+        photons = ip.caustic_photons if ip.caustics == "photons" and has_caustics(scene) else 0
+        est["caustic_map_cpu_s"] = 3 * k * photons * CAUSTIC_CPU_S_PER_PHOTON
+        est["indirect_cpu_s"] = sum(sides) * per_side / rate + est["caustic_map_cpu_s"]
         cpu += est["indirect_cpu_s"]
-        batch = [min(MAX_RAYS_PER_BATCH, -(-sd // k) * params.indirect.round_paths) * INDIRECT_RAY_BYTES
-                 for sd in sides]
+        batch = [max(min(MAX_RAYS_PER_BATCH, -(-sd // k) * params.indirect.round_paths) * INDIRECT_RAY_BYTES,
+                     photons * CAUSTIC_BYTES_PER_PHOTON) for sd in sides]
         est["indirect_chunk_bytes_max"] = [ab + b for ab, b in zip(axis_bytes, batch, strict=True)]
     if plan_doc["bake_llf"]:
         est["llf_chunk_bytes_max"] = estimate_llf_bytes(
