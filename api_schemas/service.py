@@ -269,7 +269,7 @@ class IndirectBakeParams(FrozenModel):
     ``(0.32 / noise)^2`` rounded to a power of two (0.02 -> 256, 0.014 -> 512, 0.03 -> 128) within
     ``min_paths`` .. ``max_paths``. ``adaptive``: a pilot of ``min_paths`` paths per side sizes that
     side's estimate for ``noise`` relative to its brightness. At equal view error the fixed count
-    bakes in 0.43-0.64x the time on the sample scenes (docs/accuracy/gi.md, "Sampling the indirect
+    bakes in 0.43-0.63x the time on the sample scenes (docs/accuracy/gi.md, "Sampling the indirect
     pass"), so it is the default."""
     noise: Annotated[float, _in_range("noise"), _range_doc("noise", "noise level that sizes the paths per side")] = 0.02
     """The noise level asked for: ``fixed`` sizes its path count from it; ``adaptive`` takes it as

@@ -17,7 +17,7 @@ the pixels (LRMS is relative to the image, not to each sample), and the adaptive
 its paths on the sides whose relative error is large: dark sides and the sides whose pilot caught a
 rare bright path (through a mirror), while a side whose pilot missed those paths gets a small
 estimate and, if its fresh paths meet one, ends as a bright speckle. Its discarded pilot costs
-another 64 paths a side. At equal view error the fixed count baked the Cornell box in 0.64x the time
+another 64 paths a side. At equal view error the fixed count baked the Cornell box in 0.63x the time
 (256 paths against the adaptive sampler at noise 0.02) and the mirror / glossy Cornell box in 0.43x
 (128 paths against noise 0.05). ``FIXED_PATHS_SCALE`` puts noise 0.02, the API's default, at the
 256 paths that matched the adaptive sampler's view error there.

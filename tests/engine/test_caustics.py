@@ -125,6 +125,25 @@ def test_photon_map_is_deterministic_whatever_the_threads():
     assert not np.array_equal(a.pos, c.pos)
 
 
+def test_chunks_with_a_photon_map_give_the_same_bits_as_one_pass():
+    """Every chunk job builds the same map (one seed), so an axis split over jobs, each with its
+    own renderer, bakes what one pass bakes."""
+    from engine.newviews.ldc import with_indirect
+
+    sc = _floor_under_a_mirror()
+    caster = EmbreeCaster(sc)
+    ax = bake_ldc_axis(sc, caster, 1, 12)
+    params = IndirectParams(min_paths=16, max_paths=16, bounces=2, seed=7, caustic_photons=1 << 14,
+                            caustic_radius=0.02)
+    n = ax.n_samples
+    whole = with_indirect(ax, [indirect_chunk(sc, caster, ax, 0, n, params)], params)
+    k = n // 3
+    parts = [indirect_chunk(sc, caster, ax, a, b, params, renderer=ReferenceRenderer(sc, caster))
+             for a, b in ((k, n), (0, k))]
+    assert np.array_equal(whole.diffuse, with_indirect(ax, parts, params).diffuse)
+    assert parts[0].stats["caustics"]["method"] == "photons"
+
+
 def test_scene_without_caustics_has_no_map_and_the_same_bake():
     """No mirror or glossy surface (or no rect light): nothing to map, and the photon setting
     bakes exactly what paths alone bake."""
