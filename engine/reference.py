@@ -60,7 +60,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numba as nb
 import numpy as np
@@ -77,9 +77,6 @@ from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import run_pieces_parallel
 from engine.shading import phong_pow
-
-if TYPE_CHECKING:
-    from engine.caustics import CausticMap
 
 INV_PI = 1.0 / math.pi
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
@@ -1050,6 +1047,14 @@ def run_pieces(run_piece: Callable[[int, _Timer, dict[str, int], bool], None], n
             raise
 
 
+class PathLight(Protocol):
+    """Light that paths get from elsewhere at their diffuse vertices (``engine.caustics.CausticMap``:
+    the caustics), in place of the paths that would find it through mirror / glossy lobes."""
+
+    def add_path_light(self, acc: np.ndarray, pix: np.ndarray, pix_base: int, is_path: np.ndarray, mat: np.ndarray,
+                       w: np.ndarray, p: np.ndarray, ng: np.ndarray, kd: np.ndarray) -> None: ...
+
+
 class ReferenceRenderer:
     """Reusable renderer bound to one scene (keeps its Embree scene warm)."""
 
@@ -1229,7 +1234,7 @@ class ReferenceRenderer:
                             pix: np.ndarray, sidx: np.ndarray, key: np.uint64, bounces: int, acc: np.ndarray, *,
                             pix_base: int = 0, params: ReferenceParams | None = None,
                             timings: dict[str, float] | None = None, counts: dict[str, int] | None = None,
-                            caustics: CausticMap | None = None) -> None:
+                            caustics: PathLight | None = None) -> None:
         """Indirect diffuse light leaving surface points, one path per row, added to ``acc``.
 
         Row i starts a diffuse path at point ``p[i]`` on the side its geometric normal ``ng[i]``
@@ -1358,7 +1363,7 @@ class ReferenceRenderer:
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
                timer, counts, serial: bool, first_hits=None, pix_base: int = 0, wref=None,
-               total_bounces: int | None = None, caustics: CausticMap | None = None) -> None:
+               total_bounces: int | None = None, caustics: PathLight | None = None) -> None:
         """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix - pix_base];
         ``sidx`` (int64) and ``skey`` (uint64) are each ray's sample index and dimension key
         (engine/sampler.py). ``first_hits`` = (prim int32, u, v float32): the first intersection of
