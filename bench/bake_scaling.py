@@ -164,7 +164,8 @@ def run_once(redis: Any, store: Any, scene_id: str, params: Any, n: int, env: di
             serial[name] = (j.ended_at - j.started_at).total_seconds()
     ind = manifest.result["plan"].get("indirect", {})
     summary = ind.get("summary", {})
-    ind_time = sum(float(a.get("time", 0.0)) for a in ind.get("axes", []))
+    # the chunk jobs' own times: the merged summary has none (the merge job loads the chunks from the store)
+    ind_time = sum(jobs.get(p.name, 0.0) for p in st.parts if p.kind == "ldc_indirect")
     result = {"workers": n, "wall_s": wall, "cpu_s": cpu, "redis_ops": redis_ops, "redis_ops_by_command": by_cmd,
               "jobs": len(st.parts) + 2,
               "store_bytes_written": written, "indirect": {
@@ -313,8 +314,11 @@ def write_gi_docs(report: dict[str, Any]) -> None:
         "",
         f"`flock /tmp/bench.lock {report['command'].strip()}` — scene `{report['scene']}`, LDC "
         f"{p['ldc_resolution']} px x {p['max_layers']} layers, indirect light to a noise target of "
-        f"{ip['noise'] * 100:g} % ({ip['min_paths']}..{ip['max_paths']} paths per sample side, {ip['bounces']} "
-        f"bounces) in {ip['chunks']} chunks per axis: {one['parts']} parts ({one['n_chunks']} indirect chunks) + "
+        f"{ip['noise'] * 100:g} % ("
+        + (f"the fixed sampler: {ind['paths_mean']:.0f} paths per sample side" if ip.get("sampling") == "fixed" else
+           f"{ip['min_paths']}..{ip['max_paths']} paths per sample side")
+        + f", {ip['bounces']} bounces) in {ip['chunks']} chunks per axis: {one['parts']} parts "
+        f"({one['n_chunks']} indirect chunks) + "
         f"plan + merge jobs. {report['threads_per_worker']} numba thread per worker, {report['cpu_count']} cores "
         f"(1-minute load average {lb:.1f} before, {la:.1f} after: the cores are shared with other work).",
         "",

@@ -70,11 +70,12 @@ from engine.raycast import SHADOW_SHORTEN, RayCaster
 from engine.reference import (
     DIM_LIGHT,
     DIM_LOBE,
+    KIND_SPEC,
     _dot,
     _lobe_direction,
     _mean_albedos,
     _offset_mag,
-    _rect_light_t,
+    _rect_hits,
     _surface_frame,
 )
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
@@ -223,38 +224,6 @@ def _scatter(lo, hi, prim, bu, bv, d, w, pid, key, vertex, store, go_on, kd, kr,
         d32_out[i, 0], d32_out[i, 1], d32_out[i, 2] = x0, x1, x2
         w_out[i, 0], w_out[i, 1], w_out[i, 2] = w[i, 0] * f0 * scale, w[i, 1] * f1 * scale, w[i, 2] * f2 * scale
         alive[i] = True
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _ends_on_light(lo, hi, o32, d, prim, u, v, tri_p, center, rc, ru, rv, r_n, r_area, r2s, out):
-    """Does photon segment i end on a rect light before its triangle? Where the reversed segment
-    (a ray of the path tracer) would meet the light's emitting side: the photon crosses the light
-    along its normal (from its back), or the light is two-sided; a triangle nearer than the light
-    by more than the shadow rays' margin hides it (``engine.reference._rect_hits``)."""
-    for i in range(lo, hi):
-        out[i] = False
-        ox = np.float64(o32[i, 0]) + center[0]
-        oy = np.float64(o32[i, 1]) + center[1]
-        oz = np.float64(o32[i, 2]) + center[2]
-        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        t_tri = np.inf
-        t = prim[i]
-        if t >= 0:
-            uu = np.float64(u[i])
-            vv = np.float64(v[i])
-            w0 = 1.0 - uu - vv
-            hx = w0 * tri_p[t, 0, 0] + uu * tri_p[t, 1, 0] + vv * tri_p[t, 2, 0]
-            hy = w0 * tri_p[t, 0, 1] + uu * tri_p[t, 1, 1] + vv * tri_p[t, 2, 1]
-            hz = w0 * tri_p[t, 0, 2] + uu * tri_p[t, 1, 2] + vv * tri_p[t, 2, 2]
-            t_tri = _dot(hx - ox, hy - oy, hz - oz, dx, dy, dz)
-        for q in range(rc.shape[0]):
-            if not (r2s[q] or _dot(dx, dy, dz, r_n[q, 0], r_n[q, 1], r_n[q, 2]) > 0.0):
-                continue
-            tq = _rect_light_t(ox, oy, oz, dx, dy, dz, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2],
-                               rv[q, 0], rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], True)
-            if tq < np.inf and not (t_tri < tq * (1.0 - SHADOW_SHORTEN)):
-                out[i] = True
-                break
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -495,10 +464,15 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
             break
         prim, bu, bv = caster.intersect_local(o2[go], d2_32[go], serial)
         rays += go.size
-        ends = np.empty(go.size, np.bool_)
-        run_pieces_parallel(_ends_on_light, go.size, _MIN_ITEMS, serial, o2[go], d2[go], prim, bu, bv, scene.tri_p,
-                            scene.center, lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, r_n, r_area,
-                            lt.rect_two_sided, ends)
+        # a photon ends on a rect light where the path tracer's mirror / glossy ray along the same
+        # segment, travelling the other way, would end (on the light's emitting side): _rect_hits' test
+        # on the lights turned around (edges swapped, so the normal is negated)
+        k = go.size
+        ends = np.empty(k, np.bool_)
+        run_pieces_parallel(_rect_hits, k, _MIN_ITEMS, serial, o2[go], d2[go], prim, bu, bv,
+                            np.full(k, KIND_SPEC, np.int8), np.zeros((k, 3)), np.zeros(k), 1, 0, True, scene.tri_p,
+                            scene.center, lt.rect_corner, lt.rect_edge_v, lt.rect_edge_u, -r_n, r_area,
+                            lt.rect_radiance, lt.rect_two_sided, ends, np.empty((k, 3)))
         hit = (prim >= 0) & ~ends
         go = go[hit]
         pid, d, w = pid[go], d2[go], w2[go]

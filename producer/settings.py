@@ -167,11 +167,12 @@ class Settings(BaseSettings):
     max_bake_cpu_s: Annotated[float, Field(gt=0)] = 24 * 3600.0
     """Largest estimated CPU time of one bake (all its jobs on one core, dominated by the indirect
     pass): the plan job refuses a bake over it with the estimate and what to lower. 24 h."""
-    bake_paths_per_s: Annotated[float, Field(gt=0)] = 4.0e5
+    bake_paths_per_s: Annotated[float, Field(gt=0)] = 8.0e5
     """Indirect paths one bake worker traces per second at 3 bounces, for the plan's time estimate:
-    on this project's 2-core machine ~0.67 M per CPU second on the Cornell box, ~0.41 M per second
-    of job time with the cores shared by other work (``bench/bake_scaling.py --gi`` prints both);
-    the default is the latter. Set it to the deployment's own measurement."""
+    on this project's 2-core machine ~0.86 M per second of chunk job time and ~0.84 M per CPU second
+    of the whole bake on the Cornell box with the fixed sampler (``bench/bake_scaling.py --gi``
+    prints both; docs/scaling.md); the default rounds down. Set it to the deployment's own
+    measurement."""
     malloc_keep_mib: Annotated[int, Field(ge=0, le=2047)] = 256
     """Freed memory (MiB) a worker keeps mapped for its next job instead of returning it to the
     kernel, and blocks up to 32 MiB served from the heap (``engine.memory.keep_freed_memory``):
