@@ -46,7 +46,8 @@ Lookups:
 What the path tracer leaves to the map (``engine.reference.ReferenceRenderer.trace_diffuse_paths``
 with a map): a path vertex's rect lights met through mirror / glossy rays and its glossy lobe's
 next-event estimation, i.e. every path diffuse -> (mirror | glossy)+ -> light; each diffuse
-vertex gets the map's irradiance instead. The estimate is biased by the kernel's blur (edges of a
+vertex with a bounce left gets the map's irradiance instead (the paths' own budget: a last vertex
+would need one more segment to reach a light through a mirror). The estimate is biased by the kernel's blur (edges of a
 caustic spread over ``radius``) and consistent: more photons and a smaller radius converge to the
 path tracer's mean. Point and directional lights have no caustics here, as in the reference
 renderer (a ray never meets them).

@@ -1373,7 +1373,8 @@ class ReferenceRenderer:
         ``params.indirect_bounces``). ``caustics``: a caustic photon map (engine/caustics.py) that
         brings the light paths would find through mirror / glossy lobes to lights: path vertices
         then neither see lights through those lobes nor take the glossy lobe's next-event
-        estimation, and every diffuse path vertex gets the map's irradiance."""
+        estimation, and every diffuse path vertex with a bounce left gets the map's irradiance (a
+        last vertex's light through a mirror would be a path longer than the bounce budget)."""
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
