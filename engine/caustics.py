@@ -101,6 +101,8 @@ the other side of a thin wall, or on the floor near a wall, light neither."""
 
 _MIN_ITEMS = 4096
 
+_AREA_BATCH = 1 << 20
+
 AREA_SAMPLES_PER_CELL = 16
 """Points per cell (on average over the diffuse surfaces' cells) that measure each cell's surface
 area for ``cell_irradiance``: its relative noise is about 1 / sqrt(16) = 25 % per cell, averaged
@@ -529,29 +531,32 @@ def _index(scene: RuntimeScene, pos: np.ndarray, nrm: np.ndarray, pw: np.ndarray
 
 def _cell_areas(scene: RuntimeScene, okeys: np.ndarray, origin: np.ndarray, radius: float) -> tuple[np.ndarray, int]:
     """Area of the diffuse surfaces in each (cell, orientation) of ``okeys`` (sorted), measured by
-    points spread uniformly over them (a fixed seed: the same map every time), each point counting
-    for both sides; a cell no point fell in gets one point's area. Returns (areas, points)."""
+    points spread uniformly over them (a fixed seed: the same map every time; in batches of
+    ``_AREA_BATCH`` points, so memory stays bounded), each point counting for both sides; a cell no
+    point fell in gets one point's area. Returns (areas, points)."""
     mt = scene.materials
     diffuse = np.flatnonzero(np.any(mt.kd[scene.tri_material] > 0.0, axis=1))
     tri = scene.tri_p[diffuse]
     a = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     total = float(a.sum())
     n = int(np.clip(AREA_SAMPLES_PER_CELL * total / radius ** 2, 1 << 16, 1 << 23))
+    cdf = np.cumsum(a) / total
     rng = np.random.default_rng(0x0A7EA)
-    k = np.minimum(np.searchsorted(np.cumsum(a) / total, rng.random(n), side="right"), a.size - 1)
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    p = (1.0 - u - v)[:, None] * tri[k, 0] + u[:, None] * tri[k, 1] + v[:, None] * tri[k, 2]
-    ng = scene.tri_ng[diffuse[k]]
-    keys = np.empty(n, np.int64)
-    okeys_pos = np.empty(n, np.int64)
-    okeys_neg = np.empty(n, np.int64)
-    _keys(0, n, p, ng, origin, 1.0 / radius, keys, okeys_pos)
-    _keys(0, n, p, -ng, origin, 1.0 / radius, keys, okeys_neg)
-    both = np.concatenate([okeys_pos, okeys_neg])
-    j = np.searchsorted(okeys, both)
-    j = np.minimum(j, max(okeys.size - 1, 0))
-    hit = okeys.size > 0
-    counts = np.bincount(j[okeys[j] == both], minlength=okeys.size) if hit else np.zeros(0, np.int64)
+    counts = np.zeros(okeys.size, np.int64)
+    for start in range(0, n, _AREA_BATCH):
+        m = min(_AREA_BATCH, n - start)
+        k = np.minimum(np.searchsorted(cdf, rng.random(m), side="right"), a.size - 1)
+        u, v = rng.random(m), rng.random(m)
+        flip = u + v > 1.0
+        u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+        p = (1.0 - u - v)[:, None] * tri[k, 0] + u[:, None] * tri[k, 1] + v[:, None] * tri[k, 2]
+        ng = scene.tri_ng[diffuse[k]]
+        keys = np.empty(m, np.int64)
+        sides = np.empty((2, m), np.int64)
+        _keys(0, m, p, ng, origin, 1.0 / radius, keys, sides[0])
+        _keys(0, m, p, -ng, origin, 1.0 / radius, keys, sides[1])
+        if okeys.size:
+            both = sides.reshape(-1)
+            j = np.minimum(np.searchsorted(okeys, both), okeys.size - 1)
+            counts += np.bincount(j[okeys[j] == both], minlength=okeys.size)
     return total * np.maximum(counts, 1) / n, n

@@ -189,10 +189,12 @@ PATHS_RATE_BOUNCES = 3
 """``Settings.bake_paths_per_s`` is measured at this many bounces."""
 CAUSTIC_CPU_S_PER_PHOTON = 1.0e-6
 """The caustic photon map that every indirect chunk job of a scene with caustics builds
-(``engine/caustics.py``): CPU per photon, tracing and indexing (~0.5 s of wall time on 2 cores per
-million photons on the mirror / glossy Cornell box, warm)."""
+(``engine/caustics.py``): CPU per photon, tracing and indexing (measured 0.76 CPU s, 0.68 s of wall
+time, per million photons on the mirror / glossy Cornell box, warm)."""
 CAUSTIC_BYTES_PER_PHOTON = 400
-"""The map's working memory per photon while it is built (rays, hits, stored photons, its index)."""
+"""The map's working memory per photon while it is built (rays, hits, stored photons, its index;
+measured: a 132 MiB peak of numpy memory for a million photons on the mirror / glossy Cornell box,
+tracemalloc; the rest is room for scenes that store more of them)."""
 
 
 def indirect_params(params: BakeParams) -> IndirectParams | None:
