@@ -37,20 +37,19 @@ Lookups:
   vertex, millions per bake): per grid cell of size ``radius`` and orientation (the normal's
   dominant axis and sign), the power of the photons that landed there over the area of the
   diffuse surfaces there, measured by points spread uniformly over those surfaces
-  (``AREA_SAMPLES_PER_CELL`` per cell on average). Not the photons' own kernel estimates averaged:
-  an estimate at a photon's own position counts that photon, which in sparse regions (a few
-  photons per disk) doubles it or more; on a floor under a mirror that made the light of
-  second-order caustics 1.8x what paths find. Its blur (one cell) is smoothed further by the
-  diffuse bounce that follows.
+  (``AREA_SAMPLES_PER_CELL`` per cell on average). Not the photons' own kernel estimates averaged
+  per cell: an estimate at a photon's own position counts that photon, which biases it up where
+  photons are sparse (with a few photons per disk, by a large factor). Its blur (one cell) is
+  smoothed further by the diffuse bounce that follows.
 
 What the path tracer leaves to the map (``engine.reference.ReferenceRenderer.trace_diffuse_paths``
 with a map): a path vertex's rect lights met through mirror / glossy rays and its glossy lobe's
 next-event estimation, i.e. every path diffuse -> (mirror | glossy)+ -> light; each diffuse
 vertex with a bounce left gets the map's irradiance instead (the paths' own budget: a last vertex
-would need one more segment to reach a light through a mirror). The estimate is biased by the kernel's blur (edges of a
-caustic spread over ``radius``) and consistent: more photons and a smaller radius converge to the
-path tracer's mean. Point and directional lights have no caustics here, as in the reference
-renderer (a ray never meets them).
+would need one more segment to reach a light through a mirror). The estimate is biased by the
+kernel's blur (edges of a caustic spread over ``radius``) and consistent: more photons and a
+smaller radius converge to the path tracer's mean. Point and directional lights have no caustics
+here, as in the reference renderer (a ray never meets them).
 """
 
 from __future__ import annotations
