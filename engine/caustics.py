@@ -291,9 +291,9 @@ def _kernel_irradiance(lo, hi, qp, qn, keys, pos, nrm, pw, origin, inv_cell, r2,
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _cell_lookup(x0, x1, x2, n0, n1, n2, origin, inv_cell, okeys, irr):
-    """Index into ``irr`` of the (cell, orientation) of point x with normal n, -1 when no photon
-    landed there."""
+def _cell_lookup(x0, x1, x2, n0, n1, n2, origin, inv_cell, okeys):
+    """Index into ``okeys`` (and the map's ``irr``) of the (cell, orientation) of point x with
+    normal n, -1 when no photon landed there."""
     ix = _cell_of(x0, origin[0], inv_cell)
     iy = _cell_of(x1, origin[1], inv_cell)
     iz = _cell_of(x2, origin[2], inv_cell)
@@ -316,12 +316,20 @@ def add_cell_light(acc, pix, pix_base, is_path, mat, w, p, ng, kd, origin, inv_c
         m = mat[j]
         if not (kd[m, 0] > 0.0 or kd[m, 1] > 0.0 or kd[m, 2] > 0.0):
             continue
-        c = _cell_lookup(p[j, 0], p[j, 1], p[j, 2], ng[j, 0], ng[j, 1], ng[j, 2], origin, inv_cell, okeys, irr)
+        c = _cell_lookup(p[j, 0], p[j, 1], p[j, 2], ng[j, 0], ng[j, 1], ng[j, 2], origin, inv_cell, okeys)
         if c < 0:
             continue
         q = pix[j] - pix_base
         for k in range(3):
             acc[q, k] += w[j, k] * kd[m, k] * (1.0 / math.pi) * irr[c, k]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _cell_irradiances(p, n, origin, inv_cell, okeys, irr, out):
+    for j in range(p.shape[0]):
+        c = _cell_lookup(p[j, 0], p[j, 1], p[j, 2], n[j, 0], n[j, 1], n[j, 2], origin, inv_cell, okeys)
+        if c >= 0:
+            out[j, 0], out[j, 1], out[j, 2] = irr[c, 0], irr[c, 1], irr[c, 2]
 
 
 @dataclass(frozen=True)
@@ -367,11 +375,8 @@ class CausticMap:
     def cell_irradiance(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
         """The piecewise-constant caustic irradiance (m, 3) that path vertices get."""
         out = np.zeros((p.shape[0], 3))
-        for j in range(p.shape[0]):
-            c = _cell_lookup(p[j, 0], p[j, 1], p[j, 2], n[j, 0], n[j, 1], n[j, 2], self.origin, self.inv_cell,
-                             self.okeys, self.irr)
-            if c >= 0:
-                out[j] = self.irr[c]
+        _cell_irradiances(np.ascontiguousarray(p, np.float64), np.ascontiguousarray(n, np.float64), self.origin,
+                          self.inv_cell, self.okeys, self.irr, out)
         return out
 
 
@@ -383,16 +388,29 @@ def caustic_surfaces(scene: RuntimeScene) -> np.ndarray:
 
 
 def has_caustics(scene: RuntimeScene) -> bool:
-    """Can light reach a diffuse surface through a mirror or a glossy lobe? (rect lights and at
-    least one mirror / glossy triangle; the map is built only then.)"""
-    lt = scene.lights
-    return bool(lt.n_rect and np.any(_rect_power(scene) > 0.0) and caustic_surfaces(scene).size)
+    """Can light reach a diffuse surface through a mirror or a glossy lobe? (a rect light that
+    emits and mirror / glossy triangles of some area; the map is built only then.)"""
+    return _sources(scene) is not None
 
 
-def _rect_power(scene: RuntimeScene) -> np.ndarray:
+def _triangle_areas(tri: np.ndarray) -> np.ndarray:
+    """Areas of triangles given by their corners (m, 3, 3)."""
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def _sources(scene: RuntimeScene) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """What photons leave and aim at: the rect lights' power (picking weights), the mirror / glossy
+    triangles and their areas; None when the scene has no caustics."""
     lt = scene.lights
-    area = np.linalg.norm(np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3), axis=1)
-    return area * lt.rect_radiance.reshape(-1, 3).mean(axis=1) * np.where(lt.rect_two_sided, 2.0, 1.0)
+    if not lt.n_rect:
+        return None
+    _, area = lt.rect_frames()
+    power = area * lt.rect_radiance.reshape(-1, 3).mean(axis=1) * np.where(lt.rect_two_sided, 2.0, 1.0)
+    sg = caustic_surfaces(scene).astype(np.int64)
+    tri_area = _triangle_areas(scene.tri_p[sg])
+    if not (np.any(power > 0.0) and tri_area.sum() > 0.0):
+        return None
+    return power, sg, tri_area
 
 
 def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radius: float, max_depth: int,
@@ -405,21 +423,16 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
         raise InvalidInputError(f"caustic photons must be a positive integer, got {photons!r}")
     if not (isinstance(radius, (int, float)) and 0.0 < radius < 1.0):
         raise InvalidInputError(f"caustic radius must be in (0, 1) of the scene's diagonal, got {radius!r}")
-    if not has_caustics(scene):
+    sources = _sources(scene)
+    if sources is None:
         return None
     t0 = time.perf_counter()
     lt, mt = scene.lights, scene.materials
-    power = _rect_power(scene)
+    power, sg, tri_area = sources
     light_cdf = np.concatenate([[0.0], np.cumsum(power) / power.sum()])
-    sg = caustic_surfaces(scene).astype(np.int64)
-    e1 = scene.tri_p[sg, 1] - scene.tri_p[sg, 0]
-    e2 = scene.tri_p[sg, 2] - scene.tri_p[sg, 0]
-    tri_area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
     a_sg = float(tri_area.sum())
     tri_cdf = np.concatenate([[0.0], np.cumsum(tri_area) / a_sg])
-    r_cross = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
-    r_area = np.linalg.norm(r_cross, axis=1)
-    r_n = r_cross / np.where(r_area > 0, r_area, 1.0)[:, None]
+    r_n, r_area = lt.rect_frames()
     key = sample_key(int(seed), _STREAM)
     n = int(photons)
     so = np.empty((n, 3), np.float32)
@@ -536,7 +549,7 @@ def _cell_areas(scene: RuntimeScene, okeys: np.ndarray, origin: np.ndarray, radi
     mt = scene.materials
     diffuse = np.flatnonzero(np.any(mt.kd[scene.tri_material] > 0.0, axis=1))
     tri = scene.tri_p[diffuse]
-    a = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    a = _triangle_areas(tri)
     total = float(a.sum())
     n = int(np.clip(AREA_SAMPLES_PER_CELL * total / radius ** 2, 1 << 16, 1 << 23))
     cdf = np.cumsum(a) / total

@@ -1073,9 +1073,7 @@ class ReferenceRenderer:
         self.scene = scene
         self.caster = caster if caster is not None else make_caster(scene, "embree")
         lt = scene.lights
-        a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
-        self._rect_area = np.linalg.norm(a, axis=1)
-        self._rect_n = a / np.where(self._rect_area > 0, self._rect_area, 1.0)[:, None]
+        self._rect_n, self._rect_area = lt.rect_frames()
         # cos(alpha) below which cos^s < e^-40 (negligible next to the lobe's peak (s+2)/2pi)
         shin = scene.materials.shininess
         self._spec_cut = np.where(shin > 0, np.exp(-40.0 / np.maximum(shin, 1e-300)), -1.0)

@@ -109,6 +109,13 @@ class LightTable:
     def count(self) -> int:
         return self.n_point + self.n_directional + self.n_rect
 
+    def rect_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rect lights' unit normals (n_rect, 3), edge_u x edge_v normalised (the side a one-sided
+        light emits toward), and areas (n_rect,)."""
+        a = np.cross(self.rect_edge_u, self.rect_edge_v).reshape(-1, 3)
+        area = np.linalg.norm(a, axis=1)
+        return a / np.where(area > 0, area, 1.0)[:, None], area
+
     @staticmethod
     def from_rows(rows: list[dict]) -> LightTable:
         """rows: dicts with type 'point' | 'directional' | 'rect' and the schema's fields."""

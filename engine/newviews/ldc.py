@@ -344,9 +344,7 @@ def shade_samples(scene: RuntimeScene, caster: RayCaster, p: np.ndarray, ng: np.
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
     gg = r_g * r_g
     per = lt.n_point + lt.n_directional + lt.n_rect * gg
-    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
-    r_area = np.linalg.norm(a, axis=1)
-    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
+    r_n, r_area = lt.rect_frames()
     occl = np.ascontiguousarray(np.asarray(occludable, dtype=np.bool_).reshape(-1))
     if occl.shape[0] != n_l:
         raise InvalidInputError(f"occludable must have one flag per light ({n_l}), got {occl.shape[0]}")

@@ -241,9 +241,7 @@ def _highlights(p, ng, ns, wo, mat, bits, force, hp, out):
 def highlight_params(scene: RuntimeScene, area_light_samples: int = 16, seed: int = 0) -> HighlightParams:
     """The scene's material and light tables as ``highlight_point_u`` takes them."""
     mt, lt = scene.materials, scene.lights
-    a = np.cross(lt.rect_edge_u, lt.rect_edge_v).reshape(-1, 3)
-    r_area = np.linalg.norm(a, axis=1)
-    r_n = a / np.where(r_area > 0, r_area, 1.0)[:, None]
+    r_n, r_area = lt.rect_frames()
     spec_cut = np.where(mt.shininess > 0, np.exp(-40.0 / np.maximum(mt.shininess, 1e-300)), -1.0)
     gloss_cut = np.where(mt.gloss_exponent > 0, np.exp(-40.0 / np.maximum(mt.gloss_exponent, 1e-300)), -1.0)
     r_g = max(1, int(round(math.sqrt(area_light_samples))))
