@@ -53,9 +53,9 @@ BYTES_PER_BASE_PIXEL = 2 * 12 + 4 + 4
 PATH_NOISE_RANGE = (0.005, 0.5)
 """Allowed ``path_traced.noise`` (and calibrated ``path_noises``)."""
 DEFAULT_PATH_NOISES: tuple[float, ...] = (0.02, 0.03, 0.05, 0.07, 0.1, 0.14, 0.2)
-"""The path-traced noise targets a walkthrough calibration measures by default: about 1.4x apart, so
-that a contract's error target lands on one at most ~1.4x finer than it needs (a frame's time grows
-as the noise target's inverse square); the finest two cost most of the calibration's path-traced part."""
+"""The path-traced noise targets a walkthrough calibration measures by default, about 1.4x apart; the
+planner weighs targets between them too (``engine.walkthrough.quality.interpolated_path_fit``), and
+the finest two cost most of the calibration's path-traced part."""
 Quality = Literal["low", "medium", "high"]
 Fill = Literal["none", "foreground", "background", "both", "trace"]
 

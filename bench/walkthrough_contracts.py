@@ -42,6 +42,7 @@ import json
 import math
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -56,7 +57,13 @@ from engine.metrics import lrms
 from engine.reference import ReferenceRenderer
 from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
 from engine.walkthrough.ground_truth import converged_frame
-from engine.walkthrough.quality import PATH, WalkthroughModel, fit_path_setting, plan_walkthrough
+from engine.walkthrough.quality import (
+    PATH,
+    WalkthroughModel,
+    fit_path_setting,
+    interpolated_path_fit,
+    plan_walkthrough,
+)
 from producer.settings import Settings
 from workers.jobs.calibrate_walkthrough import calibrate_walkthrough
 from workers.jobs.walkthrough import PathTracedFrames
@@ -95,22 +102,34 @@ def _grid(bakes: dict[str, WalkthroughBake], an: Any, fills: list[str], noises: 
                 rows.append({"error": float(lrms(img, gt, mask)), "ms": float(np.median(ms))})
             out[f"{preset}/{fill}"] = rows
     for noise in noises:
-        PathTracedFrames(an, noise).render(cams[0], float(times[0]), 0)  # warm-up, untimed
-        shared = PathTracedFrames(an, noise)
-        rows = []
-        for i, (cam, t, (gt, mask)) in enumerate(zip(cams, times, truths, strict=True)):
-            frames = shared if an.is_static else PathTracedFrames(an, noise)  # as the chunk job renders
-            t0 = time.perf_counter()
-            img = frames.render(cam, float(t), i)[0]
-            rows.append({"error": float(lrms(img, gt, mask)), "ms": 1000.0 * (time.perf_counter() - t0)})
-        out[f"{PATH}/{noise:g}"] = rows
+        out[f"{PATH}/{noise:g}"] = _path_rows(an, noise, cams, times, truths)
     return out
 
 
+def _path_rows(an: Any, noise: float, cams: list[Any], times: np.ndarray,
+               truths: list[tuple[np.ndarray, np.ndarray]]) -> list[dict[str, float]]:
+    """Path-traced frames at ``noise`` on the held-out frames: each one's LRMS and time (one timing,
+    building its time's scene as the chunk job does), and what the frame estimated and traced."""
+    PathTracedFrames(an, noise).render(cams[0], float(times[0]), 0)  # warm-up, untimed
+    shared = PathTracedFrames(an, noise)
+    rows = []
+    for i, (cam, t, (gt, mask)) in enumerate(zip(cams, times, truths, strict=True)):
+        frames = shared if an.is_static else PathTracedFrames(an, noise)  # as the chunk job renders
+        t0 = time.perf_counter()
+        img, _, st = frames.render(cam, float(t), i)
+        rows.append({"error": float(lrms(img, gt, mask)), "ms": 1000.0 * (time.perf_counter() - t0),
+                     "estimated_error": float(st.get("estimated_error", math.nan)),
+                     "paths": float(st.get("paths_mean", math.nan))})
+    return rows
+
+
 def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]], pixels: int, frames: int,
-               settings: Settings, ready: set[str] | None = None) -> list[dict[str, Any]]:
+               settings: Settings, ready: set[str] | None = None,
+               measure: Callable[[str], list[dict[str, float]]] | None = None) -> list[dict[str, Any]]:
     """Every contract planned with the bakes ``ready`` (default: every calibrated preset's) and
-    checked frame by frame against the grid."""
+    checked frame by frame: against the grid, or, for a path-traced noise target the planner chose
+    between the calibrated ones, against ``measure(setting)`` (its frames rendered on the held-out
+    frames). The cheapest setting that met a target is the grid's."""
     ready = set(model.bake_keys) if ready is None else ready
     asks: list[dict[str, float | None]] = [{"max_error": e, "max_ms": None} for e in ERROR_TARGETS]
     asks += [{"max_error": None, "max_ms": t} for t in TIME_BUDGETS_MS]
@@ -124,6 +143,14 @@ def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]],
                                "predicted_error": p.choice.error if p.choice else None,
                                "predicted_ms": p.choice.frame_ms if p.choice else None,
                                "predicted_total_ms": p.choice.total_ms if p.choice else None, "frames": []}
+        got_rows = None
+        if p.choice is not None:
+            if p.choice.name in grid:
+                got_rows = grid[p.choice.name]
+            elif measure is None:
+                raise SystemExit(f"{p.choice.name} was planned and is not in the grid: rerun without --replan")
+            else:
+                got_rows = measure(p.choice.name)
         for i in range(frames):
             def meets(r: dict[str, float], ask: dict[str, float | None] = ask) -> bool:
                 return ((ask["max_error"] is None or r["error"] <= ask["max_error"])
@@ -133,8 +160,8 @@ def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]],
             cheapest = min(meeting) if meeting else None
             f: dict[str, Any] = {"feasible": cheapest is not None,
                                  "cheapest": cheapest[1] if cheapest else None}
-            if p.choice is not None:
-                got = grid[p.choice.name][i]
+            if got_rows is not None:
+                got = got_rows[i]
                 f.update(error=got["error"], ms=got["ms"], met=meets(got),
                          cost_ratio=got["ms"] / cheapest[0] if cheapest and ask["max_error"] is not None else None)
             row["frames"].append(f)
@@ -181,11 +208,18 @@ def run_scene(name: str, presets: list[str], fills: list[str], noises: list[floa
         truth_s.append(st["seconds"])
     print(f"[{name}] {len(cams)} converged frames, {np.mean(truth_s):.1f} s each", flush=True)
     grid = _grid(bakes, an, fills, noises, cams, times, truths)
-    contracts = _contracts(model, grid, args.width * args.height, len(cams), Settings())
-    cold = _contracts(model, grid, args.width * args.height, len(cams), Settings(), ready=set())
+    between: dict[str, list[dict[str, float]]] = {}  # path-traced targets planned between the calibrated ones
+
+    def measure(setting: str) -> list[dict[str, float]]:
+        if setting not in between:
+            between[setting] = _path_rows(an, float(setting.split("/", 1)[1]), cams, times, truths)
+        return between[setting]
+
+    contracts = _contracts(model, grid, args.width * args.height, len(cams), Settings(), measure=measure)
+    cold = _contracts(model, grid, args.width * args.height, len(cams), Settings(), ready=set(), measure=measure)
     return {"model": model.to_json(), "calibration_s": calib_s, "bake_s": bake_s,
-            "truth_s_per_frame": float(np.mean(truth_s)), "grid": grid, "contracts": contracts, "cold": cold,
-            "frames": len(cams), "width": args.width, "height": args.height}
+            "truth_s_per_frame": float(np.mean(truth_s)), "grid": grid, "between": between, "contracts": contracts,
+            "cold": cold, "frames": len(cams), "width": args.width, "height": args.height}
 
 
 def _refit_paths(model: WalkthroughModel) -> WalkthroughModel:
@@ -205,6 +239,9 @@ def _summary(res: dict[str, Any], which: str = "contracts") -> dict[str, Any]:
     walks = [c for c in res[which] if c["planned"]]
     ratios = [f["cost_ratio"] for f in frames if f.get("cost_ratio") is not None and f["met"]]
     whole = [r for c in walks if (r := _walkthrough_cost_ratio(c, res["grid"])) is not None]
+    path_grid = {k: v for k, v in res["grid"].items() if k.startswith(f"{PATH}/")}
+    by_path = [r for c in walks if c["planned"].startswith(f"{PATH}/")
+               and (r := _walkthrough_cost_ratio(c, path_grid)) is not None]
     return {"requests": len(res[which]), "planned": len(walks), "refused": len(res[which]) - len(walks),
             "path_traced": sum(1 for c in walks if c["planned"].startswith(f"{PATH}/")),
             "refused_feasible": sum(1 for c in res[which] if not c["planned"]
@@ -214,22 +251,24 @@ def _summary(res: dict[str, Any], which: str = "contracts") -> dict[str, Any]:
             "cost_median": float(np.median(ratios)) if ratios else math.nan,
             "cost_p90": float(np.percentile(ratios, 90)) if ratios else math.nan,
             "walk_cost_median": float(np.median(whole)) if whole else math.nan,
-            "walk_cost_p90": float(np.percentile(whole, 90)) if whole else math.nan}
+            "walk_cost_p90": float(np.percentile(whole, 90)) if whole else math.nan,
+            "path_cost_median": float(np.median(by_path)) if by_path else math.nan,
+            "path_cost_max": float(np.max(by_path)) if by_path else math.nan}
 
 
 def _walkthrough_cost_ratio(c: dict[str, Any], grid: dict[str, list[dict[str, float]]]) -> float | None:
     """An error contract met on every frame: its setting's time over all frames over that of the
     cheapest single setting that met it on every frame (what a planner choosing one setting per
     walkthrough, as a request does, could at best have picked); None for a time budget alone or a
-    missed walkthrough."""
+    missed walkthrough, or when no setting of ``grid`` met it on every frame."""
     if c["max_error"] is None or not all(f.get("met") for f in c["frames"]):
         return None
 
     def meets_all(rows: list[dict[str, float]]) -> bool:
         return all(r["error"] <= c["max_error"] and (c["max_ms"] is None or r["ms"] <= c["max_ms"]) for r in rows)
 
-    best = min(sum(r["ms"] for r in rows) for rows in grid.values() if meets_all(rows))
-    return sum(r["ms"] for r in grid[c["planned"]]) / best
+    costs = [sum(r["ms"] for r in rows) for rows in grid.values() if meets_all(rows)]
+    return sum(f["ms"] for f in c["frames"]) / min(costs) if costs else None
 
 
 def _doc(data: dict[str, Any]) -> str:
@@ -244,12 +283,15 @@ def _doc(data: dict[str, Any]) -> str:
              "Every bake stored, and, in the last columns, none stored (each preset priced with its bake). Cost "
              "per frame: the planned setting's frame time over the fastest setting that met the target on that "
              "frame; per walkthrough: its frames' time over that of the cheapest single setting that met the "
-             "target on every frame. Bakes: the wall time of each preset's bake when it was made.", ""]
+             "target on every frame; path-traced plans against path-traced frames alone: the same over the "
+             "cheapest calibrated noise target that met it (how well the planner picks a noise target, "
+             "apart from whether path tracing was the right choice). Bakes: the wall time of each preset's "
+             "bake when it was made.", ""]
     lines += ["| scene | calibration without the bakes (s) | bakes (s) | requests | planned (path-traced) "
               "| refused (a setting met it) | frames met | walkthroughs met | cost per frame median / p90 "
-              "| cost per walkthrough median / p90 | no bake stored: planned (path-traced) "
-              "| no bake stored: walkthroughs met |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| cost per walkthrough median / p90 | path-traced plans against path-traced frames median / max "
+              "| no bake stored: planned (path-traced) | no bake stored: walkthroughs met |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, res in data["scenes"].items():
         s = _summary(res)
         cold = _summary(res, "cold") if "cold" in res else None
@@ -261,16 +303,19 @@ def _doc(data: dict[str, Any]) -> str:
                      f"| {s['planned']} ({s['path_traced']}) | {s['refused']} ({s['refused_feasible']}) "
                      f"| {100 * s['frames_met']:.1f} % | {100 * s['walkthroughs_met']:.0f} % "
                      f"| {s['cost_median']:.2f}x / {s['cost_p90']:.2f}x "
-                     f"| {s['walk_cost_median']:.2f}x / {s['walk_cost_p90']:.2f}x | {cold_cells} |")
+                     f"| {s['walk_cost_median']:.2f}x / {s['walk_cost_p90']:.2f}x "
+                     f"| {s['path_cost_median']:.2f}x / {s['path_cost_max']:.2f}x | {cold_cells} |")
     for name, res in data["scenes"].items():
         lines += ["", f"### {name}", "", "| setting | predicted LRMS (margin) | held-out LRMS mean / max "
                   "| predicted ms / frame | held-out ms / frame (median) |", "|---|---|---|---|---|"]
-        fits = res["model"]["fits"]
-        for k, rows in res["grid"].items():
-            f = fits[k]
-            pred_ms = f["b_ms"] + f["c_ms"] * res["width"] * res["height"]
+        model = WalkthroughModel.from_json(res["model"])
+        between = res.get("between") or {}
+        for k, rows in sorted({**res["grid"], **between}.items(), key=lambda kv: _setting_order(kv[0])):
+            f = model.fits[k] if k in model.fits else interpolated_path_fit(model, float(k.split("/", 1)[1]))
+            pred_ms = f.b_ms + f.c_ms * res["width"] * res["height"]
             errs = [r["error"] for r in rows]
-            lines.append(f"| {k} | {f['error']:.3f} ({f['margin']:.2f}) | {np.mean(errs):.3f} / {max(errs):.3f} "
+            name = k if k in res["grid"] else f"{k} (between the calibrated)"
+            lines.append(f"| {name} | {f.error:.3f} ({f.margin:.2f}) | {np.mean(errs):.3f} / {max(errs):.3f} "
                          f"| {pred_ms:.1f} | {np.median([r['ms'] for r in rows]):.1f} |")
         lines += ["", "| max_error | max_ms | planned | frames met | reason it missed | planned, no bake stored |",
                   "|---|---|---|---|---|---|"]
@@ -285,6 +330,12 @@ def _doc(data: dict[str, Any]) -> str:
                          f"| {cold_c['planned'] or 'refused'} |")
     lines += ["", "![predicted against held-out error](../img/walkthrough_contracts.png)"]
     return "\n".join(lines)
+
+
+def _setting_order(name: str) -> tuple[int, float, str]:
+    """Bake presets first (as named), then path-traced targets from the finest."""
+    preset, fill = name.split("/", 1)
+    return (1, float(fill), "") if preset == PATH else (0, 0.0, name)
 
 
 def _plot(data: dict[str, Any]) -> None:

@@ -42,7 +42,9 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # 0.13.0: LDC bakes and walkthrough bases of scenes with caustics (rect lights and mirror / glossy
 # surfaces): a caustic photon map brings the light the paths found through mirror / glossy lobes.
 # LDC views: the glossy lobe's reflection of the rect lights is shaded with the highlights.
-ENGINE_VERSION = "0.13.0"
+# 0.14.0: path-traced walkthrough frames (each frame traces the paths its pilot says its noise
+# target needs, instead of one count from a rule); walkthrough calibrations measured before it.
+ENGINE_VERSION = "0.14.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0

@@ -45,6 +45,7 @@ from engine.walkthrough.quality import (
     path_setting_name,
     plan_walkthrough,
     setting_name,
+    time_key,
 )
 from producer.artifacts import artifact_key, read_manifest
 from producer.calibrations import fold_into_document, read_json_object
@@ -252,8 +253,8 @@ def record_served_walkthrough(store: ObjectStore, scene_id: str, contract: Walkt
     (``max_ms`` bounds every frame). Read, fold, write, as ``producer.calibrations.record_served``.
     Returns the document written, or None when there was nothing to fold."""
     key = contract.calibration.get("key")
-    setting = (path_setting_name(contract.path_noise) if contract.path_noise is not None
-               else setting_name(str(contract.preset), str(contract.fill)))
+    setting = time_key(path_setting_name(contract.path_noise) if contract.path_noise is not None
+                       else setting_name(str(contract.preset), str(contract.fill)))
     steady = _steady_frame_ms(chunk_frame_ms)
     if not key or not steady or contract.predicted_frame_ms <= 0:
         return None

@@ -10,15 +10,17 @@ indirect paths (``engine.newviews.indirect.trace_indirect_points``).
   each pixel's relative standard error reaches a target (at least :data:`MIN_PATHS`), for ground
   truths (the walkthrough calibration, ``workers/jobs/calibrate_walkthrough.py``, and
   ``bench/walkthrough_accuracy.py``);
-- :func:`path_traced_frame`: the same estimate at a looser target, a fixed count of paths and
-  area-light samples per pixel sized for it (``engine.walkthrough.path_settings``): a walkthrough
-  frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the same image as
-  the noise target falls.
+- :func:`path_traced_frame`: the same estimate to a target LRMS of the whole frame, every pixel
+  tracing the paths a pilot of the frame says that target needs (``engine.walkthrough.path_settings``):
+  a walkthrough frame that needs no bake (``WalkthroughRequest.path_traced``), converging to the
+  same image as the noise target falls.
 """
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +32,7 @@ from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
 from engine.scene import CameraParams
-from engine.walkthrough.path_settings import CONVERGED_AREA_LIGHT_SAMPLES, path_traced_settings
+from engine.walkthrough.path_settings import CONVERGED_AREA_LIGHT_SAMPLES, path_traced_settings, whole_rounds
 from engine.walkthrough.range_images import surface_points
 
 __all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "converged_frame", "path_traced_frame"]
@@ -45,18 +47,66 @@ MAX_PATHS = 65536
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
                       bounces: int, indirect_skip: str | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """A walkthrough frame path-traced for an LRMS of about ``noise`` (the module docstring,
-    ``engine.walkthrough.path_settings.path_traced_settings``): radiance (h, w, 3) float32, the mask
-    of the pixels it covers, and the stats of :func:`converged_frame`. Deterministic in ``seed``;
-    ``frame`` decorrelates the frames.
+    """A walkthrough frame path-traced to an estimated LRMS of ``noise`` against the converged frame
+    (``engine.walkthrough.path_settings``): radiance (h, w, 3) float32, the mask of the pixels it
+    covers, and the stats of :func:`converged_frame` plus ``estimated_error`` (the frame's LRMS
+    estimated from its pixels' standard errors over its error region), ``pilot_paths`` and
+    ``pilot_error``. Deterministic in ``seed``; ``frame`` decorrelates the frames.
+
+    Every pixel traces the pilot's paths, then as many more as the pilot's estimate of the frame's
+    LRMS says the target needs (at most ``max_paths``): one count for the whole frame. The count
+    depends on the pilot's spread over thousands of pixels and each pixel keeps its pilot paths:
+    what one pixel's own paths move of that count is far below its noise.
 
     ``indirect_skip``: why no surface of the scene can receive indirect light
     (``engine.newviews.effects.analyze``; None: analysed here, "" forces the indirect paths): such a
     frame traces none, and its stats say why (``indirect_skip``)."""
     ps = path_traced_settings(noise)
     skip = analyze(rr.scene).indirect_skip if indirect_skip is None else indirect_skip
-    return _traced(rr, cam, frame, seed, noise, bounces, ps.area_light_samples, ps.paths, ps.paths, ps.round_paths,
-                   skip)
+    t0 = time.perf_counter()
+    fp = _frame_points(rr, cam, seed, ps.area_light_samples)
+    st: dict[str, Any] = {**_UNTRACED, "estimated_error": 0.0, "pilot_paths": 0, "pilot_error": 0.0}
+    if len(fp.idx) and not skip:
+        region = rr.error_region(cam, fp.direct.object_id, fp.direct.depth, ReferenceParams().max_depth)
+        in_region = region.reshape(-1)[fp.idx]
+        luma = np.asarray(REC709_WEIGHTS)
+        y_direct = fp.out @ luma
+
+        def trace(paths: float, part: int) -> tuple[np.ndarray, np.ndarray, int]:
+            n, r = whole_rounds(paths)
+            ip = IndirectParams(noise=noise, sampling="adaptive", min_paths=n, max_paths=n, bounces=bounces,
+                                round_paths=r, seed=seed, area_light_samples=4, caustics="paths")
+            ind = trace_indirect_points(rr, fp.p, fp.g, fp.s, fp.mat, fp.base, ip,
+                                        key=sample_key(seed, GROUND_TRUTH_STREAM, frame, part), brightness=fp.bright)
+            return ind.radiance.astype(np.float64), ind.stderr.astype(np.float64), n
+
+        def frame_error(radiance: np.ndarray, se: np.ndarray) -> float:
+            # LRMS = RMS(Y - Y_true) / mean(Y_true) over the error region: a pixel's expected square
+            # error is its indirect estimate's variance (the direct light's 64+ samples add little)
+            y = y_direct.copy()
+            y[fp.idx] += radiance @ luma
+            mean = float(y[region.reshape(-1)].mean()) if region.any() else 0.0
+            return math.sqrt(float(np.sum(se[in_region] ** 2)) / max(1, int(region.sum()))) / mean if mean > 0 else 0.0
+
+        radiance, se, n_total = trace(ps.pilot_paths, 0)
+        pilot_error = frame_error(radiance, se)
+        need = min(float(ps.max_paths), n_total * (pilot_error / noise) ** 2)
+        if need > n_total:
+            rest, se_rest, n_rest = trace(need - n_total, 1)
+            radiance = (n_total * radiance + n_rest * rest) / (n_total + n_rest)
+            se = np.hypot(n_total * se, n_rest * se_rest) / (n_total + n_rest)
+            n_total += n_rest
+        fp.out[fp.idx] += radiance
+        traced = np.any(rr.scene.materials.kd[fp.mat] > 0.0, axis=1)
+        rel = se[traced] / np.maximum((fp.base[traced] + radiance[traced]) @ luma, max(0.25 * fp.bright, 1e-300))
+        if rel.size:
+            st.update(rel_stderr_median=float(np.median(rel)), rel_stderr_p95=float(np.percentile(rel, 95)),
+                      rel_stderr_max=float(rel.max()), met_target=float(np.mean(rel <= noise)),
+                      paths_mean=float(n_total), paths_max=int(n_total))
+        st.update(estimated_error=frame_error(radiance, se), pilot_paths=ps.pilot_paths, pilot_error=pilot_error)
+    st.update(seconds=time.perf_counter() - t0, direct_seconds=fp.direct_seconds,
+              area_light_samples=ps.area_light_samples, indirect_skip=skip)
+    return fp.out.reshape(cam.height, cam.width, 3).astype(np.float32), fp.direct.object_id >= 0, st
 
 
 def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
@@ -73,9 +123,29 @@ def converged_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: 
     return img, covered, region, st
 
 
-def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float, bounces: int,
-            area_light_samples: int, min_paths: int, max_paths: int, round_paths: int, indirect_skip: str = ""
-            ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+_UNTRACED: dict[str, Any] = {"rel_stderr_median": 0.0, "rel_stderr_p95": 0.0, "rel_stderr_max": 0.0,
+                             "met_target": 1.0, "paths_mean": 0.0, "paths_max": 0}
+"""The indirect stats of a frame that traced no paths."""
+
+
+@dataclass
+class _FramePoints:
+    """A frame's direct light (``out``: (h * w, 3) float64, the indirect light is added to it) and the
+    surface points its pixels see (``idx`` their pixels; ``base`` their direct radiance)."""
+
+    direct: Any
+    direct_seconds: float
+    out: np.ndarray
+    idx: np.ndarray
+    p: np.ndarray
+    g: np.ndarray
+    s: np.ndarray
+    mat: np.ndarray
+    base: np.ndarray
+    bright: float
+
+
+def _frame_points(rr: ReferenceRenderer, cam: CameraParams, seed: int, area_light_samples: int) -> _FramePoints:
     t0 = time.perf_counter()
     direct = rr.render(cam, ReferenceParams(spp=1, pixel_jitter=False, area_light_samples=area_light_samples,
                                             indirect_samples=0, seed=seed))
@@ -83,21 +153,28 @@ def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noi
     px, py = pixel_centers(cam)
     o, d = camera_rays(cam, px, py)
     idx, p, g, s, mat = surface_points(rr, o, d)
-    base = direct.radiance.reshape(-1, 3)[idx].astype(np.float64)
     out = direct.radiance.reshape(-1, 3).astype(np.float64)
-    st: dict[str, Any] = {"rel_stderr_median": 0.0, "rel_stderr_p95": 0.0, "rel_stderr_max": 0.0, "met_target": 1.0,
-                          "paths_mean": 0.0, "paths_max": 0}
-    if len(idx) and not indirect_skip:
-        receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
-        bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
+    base = out[idx]
+    receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
+    bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
+    return _FramePoints(direct, t_direct, out, idx, p, g, s, mat, base, bright)
+
+
+def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float, bounces: int,
+            area_light_samples: int, min_paths: int, max_paths: int, round_paths: int
+            ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    t0 = time.perf_counter()
+    fp = _frame_points(rr, cam, seed, area_light_samples)
+    st: dict[str, Any] = dict(_UNTRACED)
+    if len(fp.idx):
         # paths alone, caustics included: a ground truth must not share the photon map's blur with
         # the bases it measures
         ip = IndirectParams(noise=noise, sampling="adaptive", min_paths=min_paths, max_paths=max_paths, bounces=bounces,
                             round_paths=round_paths, seed=seed, area_light_samples=4, caustics="paths")
-        ind = trace_indirect_points(rr, p, g, s, mat, base, ip, key=sample_key(seed, GROUND_TRUTH_STREAM, frame),
-                                    brightness=bright)
-        out[idx] += ind.radiance
+        ind = trace_indirect_points(rr, fp.p, fp.g, fp.s, fp.mat, fp.base, ip,
+                                    key=sample_key(seed, GROUND_TRUTH_STREAM, frame), brightness=fp.bright)
+        fp.out[fp.idx] += ind.radiance
         st = {k: ind.stats[k] for k in st}
-    st.update(seconds=time.perf_counter() - t0, direct_seconds=t_direct, area_light_samples=area_light_samples,
-              indirect_skip=indirect_skip, object_id=direct.object_id, depth=direct.depth)
-    return out.reshape(cam.height, cam.width, 3).astype(np.float32), direct.object_id >= 0, st
+    st.update(seconds=time.perf_counter() - t0, direct_seconds=fp.direct_seconds, area_light_samples=area_light_samples,
+              indirect_skip="", object_id=fp.direct.object_id, depth=fp.direct.depth)
+    return fp.out.reshape(cam.height, cam.width, 3).astype(np.float32), fp.direct.object_id >= 0, st

@@ -2,59 +2,75 @@
 numba-free, so the API sizes a path-traced walkthrough's cost (``producer/costs.py``) with the rule
 the frames are rendered with (``engine/walkthrough/ground_truth.py``).
 
-The rule is measured, not derived (``docs/walkthrough.md``, "Path-traced frames"): on frames of both
-walkthrough sample scenes at 96 x 72, a fixed count of ``n`` indirect paths per pixel gives an LRMS
-against the converged frame of about ``0.3 / sqrt(n)`` (0.10-0.12 at 8 paths, 0.031-0.035 at 64,
-0.016-0.024 at 128, with 64 area-light samples), and the direct light's area-light samples cost
-little next to the paths (4 -> 64 samples: +10-40 ms a frame) while 4 of them leave a floor of 5-7 %.
-A per-pixel adaptive count (a 32-path pilot sizing each pixel's estimate, the pilot's paths
-discarded so that stopping does not bias it) reached the same LRMS at 3-6x the time, so the frames
-trace a fixed count.
+A path-traced frame aims at a frame LRMS of ``noise`` against the converged frame, frame by frame:
+every pixel first traces :data:`PILOT_PATHS` indirect paths, the spread of their rounds estimates
+the whole frame's LRMS at that count (the pixels' standard errors over the mean brightness), and
+every pixel then traces the paths that bring that estimate to ``noise`` (error ~ 1 / sqrt(paths)),
+the pilot's included. Why per frame and not per pixel: a per-pixel count (a 32-path pilot sizing
+each pixel's estimate) reached the same LRMS at 3-6x the time, since a frame's LRMS weighs every
+pixel's absolute error against the frame's mean brightness; and why not one rule for every frame:
+a fixed ``(0.3 / noise)^2`` paths per pixel (the count measured on frames of both walkthrough sample
+scenes, 0.3 / sqrt(n) being their typical LRMS at n paths) left frames from 0.6x to 1.3x the target
+(docs/accuracy/walkthrough_contracts.md), so a contract had to plan for the worst of them.
+
+:data:`PATH_ERROR_PER_PATH` remains the rule a cost estimate uses before a frame is traced; the
+direct light's area-light samples are sized from the target alone (they cost little next to the
+paths: 4 -> 64 samples, +10-40 ms a frame at 96 x 72, while 4 of them leave a floor of 5-7 %).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-__all__ = ["CONVERGED_AREA_LIGHT_SAMPLES", "PATH_TRACED_MAX_PATHS", "PathTracedSettings", "path_traced_settings"]
+__all__ = ["CONVERGED_AREA_LIGHT_SAMPLES", "PATH_ERROR_PER_PATH", "PATH_TRACED_MAX_PATHS", "PILOT_PATHS",
+           "PathTracedSettings", "path_traced_settings", "whole_rounds"]
 
 CONVERGED_AREA_LIGHT_SAMPLES = 1024
 """Area-light samples per pixel of a converged frame, the most a path-traced frame takes."""
 PATH_TRACED_MAX_PATHS = 4096
 """Most indirect paths a pixel of a path-traced walkthrough frame traces (its time bound)."""
 PATH_ERROR_PER_PATH = 0.3
-"""A frame's LRMS is about this over the square root of the paths per pixel (the module docstring)."""
+"""A frame's LRMS is typically this over the square root of the paths per pixel (the module
+docstring): what a frame is expected to trace before its pilot measures it."""
+PILOT_PATHS = 4
+"""Paths per pixel of a frame's pilot, in four rounds of one (their spread is the estimate)."""
 MIN_AREA_LIGHT_SAMPLES = 64
+
+
+def whole_rounds(paths: float) -> tuple[int, int]:
+    """``(count, round)``: at least ``paths`` paths (and at least 2) in whole rounds of a power of two
+    paths, 8 to 16 rounds once there are 8 paths or more, so that rounding costs at most 1/8 more
+    paths (the indirect pass draws a round as one stratified block of its sequence and needs two
+    rounds for a standard error)."""
+    n = max(2, math.ceil(paths - 1e-9))
+    r = 1
+    while 16 * r <= n:
+        r *= 2
+    return -(-n // r) * r, r
 
 
 @dataclass(frozen=True)
 class PathTracedSettings:
     """How a path-traced frame at a noise target samples: the direct light's area-light samples per
-    pixel, and the indirect paths every pixel traces (``engine.newviews.indirect.IndirectParams``
-    with ``min_paths = max_paths``: a fixed count, in 4 rounds whose spread gives each pixel's
-    estimated standard error)."""
+    pixel, the pilot's paths, and the paths a pixel is expected to trace in all (:data:`PATH_ERROR_PER_PATH`;
+    the frame's pilot decides), at most :data:`PATH_TRACED_MAX_PATHS`."""
 
     area_light_samples: int
-    paths: int
-    round_paths: int
-
-    @property
-    def expected_paths(self) -> float:
-        return float(self.paths)
+    expected_paths: int
+    pilot_paths: int = PILOT_PATHS
+    max_paths: int = PATH_TRACED_MAX_PATHS
 
 
 def path_traced_settings(noise: float) -> PathTracedSettings:
-    """The sampling of a path-traced frame whose LRMS should be about ``noise``: ``(0.3 / noise)^2``
-    paths per pixel rounded up to a power of two (4 .. :data:`PATH_TRACED_MAX_PATHS`), and area-light
-    samples a power of 4 from ``(0.16 / noise)^2``, at least 64 (at most 1024)."""
+    """The sampling of a path-traced frame whose LRMS should be ``noise``: area-light samples a power
+    of 4 from ``(0.16 / noise)^2``, at least 64 (at most 1024), and ``(0.3 / noise)^2`` paths per pixel
+    expected (in whole rounds, at least the pilot's, at most :data:`PATH_TRACED_MAX_PATHS`)."""
     if not 0.0 < noise < 1.0:
         raise ValueError(f"noise must be in (0, 1), got {noise!r}")
     want = (0.16 / noise) ** 2
     area = MIN_AREA_LIGHT_SAMPLES
     while area < want and area < CONVERGED_AREA_LIGHT_SAMPLES:
         area *= 4
-    paths = (PATH_ERROR_PER_PATH / noise) ** 2
-    n = 4
-    while n < paths and n < PATH_TRACED_MAX_PATHS:
-        n *= 2
-    return PathTracedSettings(area, n, n // 4)
+    expected = min(whole_rounds(max(PILOT_PATHS, (PATH_ERROR_PER_PATH / noise) ** 2))[0], PATH_TRACED_MAX_PATHS)
+    return PathTracedSettings(area, expected)

@@ -52,15 +52,18 @@ __all__ = [
     "apply_time_corrections",
     "fit_path_setting",
     "fit_setting",
+    "interpolated_path_fit",
+    "path_noises",
     "path_setting_name",
     "plan_walkthrough",
     "predict_walkthrough",
     "probe_eyes",
     "probe_times",
     "setting_name",
+    "time_key",
 ]
 
-WALKTHROUGH_MODEL_VERSION = 1
+WALKTHROUGH_MODEL_VERSION = 2
 PRESET_ORDER: tuple[str, ...] = ("low", "medium", "high")
 CALIBRATED_FILLS: tuple[str, ...] = ("both", "trace")
 """The hole fills calibrated by default: ``both`` (the request's default; fills from the bases
@@ -97,17 +100,73 @@ def fit_setting(preset: str, fill: str, points: Sequence[Mapping[str, Any]], tru
 def fit_path_setting(noise: float, points: Sequence[Mapping[str, Any]], truth_noise: float) -> CandidateFit:
     """The fit of path-traced frames at ``noise`` from their probe frames' ``{"error", "pixels", "ms"}``:
     the error as :func:`fit_setting`'s but at least ``noise`` itself, the time proportional to the
-    pixels at the slowest probe frame's time per pixel (the paths per pixel follow from the target,
-    not from the frame's size; a time measured at a second size would cost the calibration tens of
-    seconds per setting).
+    pixels at the slowest probe frame's time per pixel (the paths per pixel follow from the target
+    and the frame, not from its size; a time measured at a second size would cost the calibration
+    tens of seconds per setting).
 
-    Why the floor: such a frame's paths per pixel are sized for an LRMS of about ``noise``
-    (``engine.walkthrough.path_settings``) wherever it looks, while the few probe frames can all sit
-    below it: on ``static_room`` (an earlier sizing rule) the probes' worst was 0.070 at noise 0.1
-    and held-out frames reached 0.107; at 0.05, 0.042 and 0.051 (docs/accuracy/walkthrough_contracts.md)."""
+    Why the floor: each frame traces the paths its own pilot says ``noise`` needs
+    (``engine.walkthrough.path_settings``), so its error stays under ``noise`` wherever it looks (at
+    most 0.91x it on 16 held-out frames of the two sample scenes at 15 targets), while the probes'
+    own errors can sit well under that: on ``static_room`` they put the held-out frames at 0.68x the
+    target where they measured up to 0.82x, and 5 of 16 walkthroughs planned from the probes alone
+    missed (docs/accuracy/walkthrough_contracts.md)."""
     fit = fit_ldc(path_setting_name(noise), points, truth_noise)
     per_px = max(float(p["ms"]) / max(int(p["pixels"]), 1) for p in points)
     return replace(fit, error=max(fit.error, float(noise)), b_ms=0.0, c_ms=per_px)
+
+
+PATH_STEPS_PER_OCTAVE = 8
+"""Path-traced noise targets the planner weighs between the calibrated ones: this many per halving
+of the noise (each ~9 % finer than the one before), so a contract's error target lands on a noise
+target at most ~9 % finer than it needs, not on the next calibrated one (up to ~1.4x finer, ~2x the
+time)."""
+
+
+def path_noises(model: WalkthroughModel) -> list[float]:
+    """The calibrated path-traced noise targets of ``model``, ascending (none excluded)."""
+    return sorted(float(name.split("/", 1)[1]) for name in model.fits
+                  if name.startswith(f"{PATH}/") and name not in model.excluded)
+
+
+def interpolated_path_fit(model: WalkthroughModel, noise: float) -> CandidateFit:
+    """The fit of path-traced frames at a ``noise`` between two calibrated ones: the error over the
+    noise, the margin and the time per pixel interpolated linearly in log noise between the nearest
+    calibrated targets below and above (a calibrated target's own fit at it)."""
+    noises = path_noises(model)
+    if not noises or not noises[0] <= noise <= noises[-1]:
+        raise ValueError(f"noise {noise!r} is outside the calibrated path-traced targets {noises}")
+    hi = next(n for n in noises if n >= noise)
+    if hi == noise:
+        return model.fits[path_setting_name(hi)]
+    lo = max(n for n in noises if n < noise)
+    f_lo, f_hi = model.fits[path_setting_name(lo)], model.fits[path_setting_name(hi)]
+    w = math.log(noise / lo) / math.log(hi / lo)
+
+    def lerp(a: float, b: float) -> float:
+        return (1.0 - w) * a + w * b
+
+    margin = None if f_lo.margin is None or f_hi.margin is None else lerp(f_lo.margin, f_hi.margin)
+    c_ms = math.exp(lerp(math.log(max(f_lo.c_ms, 1e-12)), math.log(max(f_hi.c_ms, 1e-12))))
+    return CandidateFit(path_setting_name(noise), noise * lerp(f_lo.error / lo, f_hi.error / hi), 0.0, c_ms, [],
+                        margin=margin)
+
+
+def _path_grid(model: WalkthroughModel) -> list[float]:
+    """The noise targets between the calibrated ones the planner weighs (:data:`PATH_STEPS_PER_OCTAVE`),
+    rounded to three significant digits (a request carries them)."""
+    noises = path_noises(model)
+    out = []
+    for lo, hi in zip(noises, noises[1:], strict=False):
+        steps = max(1, math.ceil(PATH_STEPS_PER_OCTAVE * math.log2(hi / lo)))
+        out += [float(f"{lo * (hi / lo) ** (i / steps):.3g}") for i in range(1, steps)]
+    return sorted(set(out) - set(noises))
+
+
+def time_key(setting: str) -> str:
+    """The key a setting's served frame times fold under: ``path`` for every path-traced setting (the
+    planner weighs noise targets between the calibrated ones, which share one time model), the
+    setting's name otherwise."""
+    return PATH if setting.startswith(f"{PATH}/") else setting
 
 
 @dataclass
@@ -145,15 +204,15 @@ class WalkthroughModel:
 def apply_time_corrections(model: WalkthroughModel, corrections: Mapping[str, Any] | None
                            ) -> tuple[WalkthroughModel, dict[str, float]]:
     """``model`` with what served walkthroughs measured folded in (``corrections``: ``{"time":
-    {setting: {"log", "n"}}}``, ``producer.walkthrough_calibrations``): each setting's frame time
-    times its factor (:func:`engine.quality.correction_factor`), as
+    {key: {"log", "n"}}}``, ``producer.walkthrough_calibrations``, keyed by :func:`time_key`): each
+    setting's frame time times its factor (:func:`engine.quality.correction_factor`), as
     :func:`engine.quality.apply_corrections` does for a render's model; and the factors applied
-    (those other than 1)."""
-    factors = {k: correction_factor(corrections, "time", k) for k in model.fits}
+    (those other than 1) by :func:`time_key`."""
+    factors = {time_key(k): correction_factor(corrections, "time", time_key(k)) for k in model.fits}
     factors = {k: f for k, f in factors.items() if f != 1.0}
     if not factors:
         return model, {}
-    fits = {k: replace(f, b_ms=f.b_ms * factors.get(k, 1.0), c_ms=f.c_ms * factors.get(k, 1.0))
+    fits = {k: replace(f, b_ms=f.b_ms * factors.get(time_key(k), 1.0), c_ms=f.c_ms * factors.get(time_key(k), 1.0))
             for k, f in model.fits.items()}
     return replace(model, fits=fits), factors
 
@@ -228,6 +287,10 @@ def predict_walkthrough(model: WalkthroughModel, pixels: int, frames: int, *, ba
         bake_ms = 0.0 if ready else 1000.0 * float(model.bake_cost_s.get(preset, 0.0))
         margin = fit.margin if calibrated_margins and fit.margin is not None else flat_margin
         out.append(WalkthroughPrediction(preset, fill, fit.error, fit.ms_at(pixels, None), frames, bake_ms, margin))
+    for noise in _path_grid(model):
+        fit = interpolated_path_fit(model, noise)
+        margin = fit.margin if calibrated_margins and fit.margin is not None else flat_margin
+        out.append(WalkthroughPrediction(PATH, f"{noise:g}", fit.error, fit.ms_at(pixels, None), frames, 0.0, margin))
     return out
 
 
@@ -285,7 +348,7 @@ def _choose(model: WalkthroughModel, cands: list[WalkthroughPrediction], max_err
         return WalkthroughPlan(choice, rule, candidates=n)
     if not in_time:
         fastest = min(cands, key=lambda c: (c.frame_ms, c.error))
-        fixed = min(model.fits[c.name].b_ms for c in cands)
+        fixed = min(model.fits[c.name].b_ms if c.name in model.fits else 0.0 for c in cands)
         assert max_ms is not None
         if max_ms < fixed:
             why = (f"max_ms {max_ms:g} is below this scene's fixed overhead: every walkthrough setting needs at "

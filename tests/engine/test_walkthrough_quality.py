@@ -154,3 +154,46 @@ def test_the_frame_time_is_planned_for_the_slowest_probe_frame() -> None:
     assert fit.key == "low/both" and fit.error == pytest.approx(0.1)
     assert all(fit.ms_at(p["pixels"], None) >= p["ms"] - 1e-9 for p in points)
     assert fit.ms_at(4096, None) == pytest.approx(9.0, rel=0.05)  # the slowest probe, not the middle one
+
+
+def _path_model() -> WalkthroughModel:
+    """Path-traced frames calibrated at noise 0.05 and 0.1 (their probes' errors 0.8x the target, margins
+    0.9 and 0.8, 4x the time per pixel at the finer one) and one bake preset."""
+    fits = {"path/0.05": _fit("path/0.05", 0.04, 0.0, 4e-3, margin=0.9),
+            "path/0.1": _fit("path/0.1", 0.08, 0.0, 1e-3, margin=0.8),
+            "low/both": _fit("low/both", 0.20, 2.0, 1e-5)}
+    return _model(fits=fits)
+
+
+def test_path_traced_targets_between_the_calibrated_ones_are_planned() -> None:
+    from engine.walkthrough.quality import PATH_STEPS_PER_OCTAVE, interpolated_path_fit
+
+    m = _path_model()
+    mid = interpolated_path_fit(m, 0.0707)
+    # halfway in log noise: the error over the noise (0.8), the margin and log time interpolated
+    assert mid.error == pytest.approx(0.8 * 0.0707) and mid.margin == pytest.approx(0.85, abs=1e-3)
+    assert mid.c_ms == pytest.approx(2e-3, rel=0.01)
+    assert interpolated_path_fit(m, 0.1) is m.fits["path/0.1"]
+    with pytest.raises(ValueError, match="outside"):
+        interpolated_path_fit(m, 0.2)
+    noises = sorted(float(c.fill) for c in predict_walkthrough(m, PX, 10, bakes_ready=ALL) if c.preset == "path")
+    assert len(noises) == PATH_STEPS_PER_OCTAVE + 1 and noises[0] == 0.05 and noises[-1] == 0.1
+    # a target of 0.07: the calibrated 0.05 meets it (0.04 <= 0.063), but a coarser target between
+    # them meets it too and costs less; the plan takes the coarsest that does, not the next calibrated
+    p = plan_walkthrough(m, PX, 10, max_error=0.07, bakes_ready=ALL)
+    assert p.met and p.choice is not None and p.choice.preset == "path"
+    n = float(p.choice.fill)
+    assert 0.05 < n < 0.1
+    assert p.choice.error <= 0.07 * p.choice.margin
+    coarser = interpolated_path_fit(m, min(n * 2 ** (1 / PATH_STEPS_PER_OCTAVE), 0.1))  # the next step would miss
+    assert coarser.margin is not None and coarser.error > 0.07 * coarser.margin
+
+
+def test_served_path_traced_times_fold_under_one_key() -> None:
+    from engine.walkthrough.quality import apply_time_corrections, time_key
+
+    assert time_key("path/0.0707") == time_key("path/0.05") == "path" and time_key("low/both") == "low/both"
+    m = _path_model()
+    corrected, applied = apply_time_corrections(m, {"time": {"path": {"log": float(np.log(2.0)), "n": 5}}})
+    assert applied == {"path": pytest.approx(2.0)}
+    assert corrected.fits["path/0.1"].c_ms == pytest.approx(2e-3) and corrected.fits["low/both"] == m.fits["low/both"]

@@ -112,14 +112,16 @@ class PathTracedFrames:
         ms = 1e3 * (time.perf_counter() - t0)
         counts = {PROVENANCE_CODES[c]: int((provenance == c).sum()) for c in (_TRACED, _SKY)}
         return _ChunkFrame(radiance, provenance, ms, counts, {"path_noise": self.noise, "seed": self.seed},
-                           st["rel_stderr_median"], str(st["indirect_skip"]))
+                           st["rel_stderr_median"], str(st["indirect_skip"]), st["estimated_error"],
+                           int(st["paths_mean"]))
 
 
 @dataclass
 class _ChunkFrame:
     """A frame as the chunk job publishes it: its pixels, provenance codes, render time, provenance
     counts, the metadata written into its images, and for a path-traced frame what it reached (its
-    pixels' median relative standard error) and why it traced no indirect light, if it did not."""
+    pixels' median relative standard error, its estimated LRMS, the paths per pixel its pilot sized)
+    and why it traced no indirect light, if it did not."""
 
     radiance: np.ndarray
     provenance: np.ndarray
@@ -128,6 +130,8 @@ class _ChunkFrame:
     meta: dict[str, Any]
     rel_stderr_median: float | None = None
     indirect_skip: str = ""
+    estimated_error: float | None = None
+    paths: int | None = None
 
 
 @dataclass
@@ -274,6 +278,8 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
         an = load_walkthrough_scene(store, req.scene_id)[1] if req.fill == "trace" else None
         source = _BakedFrames(WalkthroughRenderer(bake, an), req.fill, p.bake_key)
     noise: list[float] = []
+    estimated: list[float] = []
+    paths: list[int] = []
     skipped = ""  # why the path-traced frames traced no indirect light, when they did not
     blobs: dict[str, tuple[bytes, str]] = {}
     frame_ms: list[float] = []
@@ -290,6 +296,8 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
                 counts[k] = counts.get(k, 0) + v
             if fr.rel_stderr_median is not None:
                 noise.append(float(fr.rel_stderr_median))
+                estimated.append(float(fr.estimated_error or 0.0))
+                paths.append(int(fr.paths or 0))
             skipped = skipped or fr.indirect_skip
             meta = {"frame": i, "time": f.time, "camera": cam.to_dict(), **fr.meta, "engine_version": ENGINE_VERSION}
             for name, ctype in ((f"frame_{i:05d}.exr", EXR), (f"frame_{i:05d}.png", PNG)):
@@ -302,8 +310,9 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     result: dict[str, Any] = {"frames": [p.start, p.stop], "frame_ms": frame_ms, "provenance": counts,
                               "provenance_codes": {str(k): v for k, v in PROVENANCE_CODES.items()},
                               "timings": {"job_total": time.perf_counter() - t_start}}
-    if noise:  # what the path-traced frames reached: each frame's median relative standard error
-        result["rel_stderr_median"] = noise
+    if noise:  # what the path-traced frames reached: per frame, the pixels' median relative standard
+        # error, the frame's estimated LRMS and the paths per pixel its pilot sized
+        result.update(rel_stderr_median=noise, estimated_error=estimated, paths_per_pixel=paths)
         if skipped:
             result["indirect"] = {"state": "skipped", "reason": skipped}
     write_artifact(store, p.chunk_key, "walkthrough-chunk", {"walkthrough": p.walkthrough_key},

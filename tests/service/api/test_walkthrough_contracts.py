@@ -146,6 +146,7 @@ def test_path_traced_walkthrough_end_to_end(client: TestClient, worker_process: 
     assert doc["status"] == "finished", (doc, render_worker.log()[-3000:])
     chunk = client.get(doc["links"]["chunk.0"]).json()
     assert chunk["result"]["provenance"]["traced"] > 0 and len(chunk["result"]["rel_stderr_median"]) == 2
+    assert len(chunk["result"]["estimated_error"]) == 2 and min(chunk["result"]["paths_per_pixel"]) >= 4
     png = client.get(f"/v1/walkthroughs/{pub.key}/frames/2.png")
     assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
     # calibrated with the low preset and path-traced frames at 0.05
