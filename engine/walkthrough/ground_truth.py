@@ -43,6 +43,11 @@ GROUND_TRUTH_STREAM = 6
 """Sampler stream of the indirect paths: ``sample_key(seed, 6, frame)`` (the bases' own use 5)."""
 MIN_PATHS = 256
 MAX_PATHS = 65536
+SPLIT_ABOVE_PATHS = 16
+"""A path-traced frame whose pilot asks for more paths than this traces half of them first and sizes
+the rest from those: the pilot sizes as if the error fell as 1 / sqrt(paths), and past ~16 paths the
+stratified samples make it fall faster (a frame sized from its pilot alone landed at 0.65x a target
+of 0.02 on the Cornell box, tracing ~1.6x the paths it needed)."""
 
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
@@ -54,9 +59,10 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
     ``pilot_error``. Deterministic in ``seed``; ``frame`` decorrelates the frames.
 
     Every pixel traces the pilot's paths, then as many more as the pilot's estimate of the frame's
-    LRMS says the target needs (at most ``max_paths``): one count for the whole frame. The count
-    depends on the pilot's spread over thousands of pixels and each pixel keeps its pilot paths:
-    what one pixel's own paths move of that count is far below its noise.
+    LRMS says the target needs (at most ``max_paths``; above :data:`SPLIT_ABOVE_PATHS` half of them,
+    then the rest as the estimate of those says): one count for the whole frame. The count depends
+    on the spread over thousands of pixels and each pixel keeps every path it traced: what one
+    pixel's own paths move of that count is far below its noise.
 
     ``indirect_skip``: why no surface of the scene can receive indirect light
     (``engine.newviews.effects.analyze``; None: analysed here, "" forces the indirect paths): such a
@@ -90,12 +96,23 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
 
         radiance, se, n_total = trace(ps.pilot_paths, 0)
         pilot_error = frame_error(radiance, se)
-        need = min(float(ps.max_paths), n_total * (pilot_error / noise) ** 2)
-        if need > n_total:
-            rest, se_rest, n_rest = trace(need - n_total, 1)
-            radiance = (n_total * radiance + n_rest * rest) / (n_total + n_rest)
-            se = np.hypot(n_total * se, n_rest * se_rest) / (n_total + n_rest)
-            n_total += n_rest
+        per_path = n_total * pilot_error ** 2  # the frame's relative variance of one path
+        for stage in (1, 2):
+            # the total N at which the paths so far plus N - n_total more at per_path each reach the
+            # target: (n^2 V + (N - n) per_path) / N^2 = noise^2
+            known = n_total ** 2 * frame_error(radiance, se) ** 2 - n_total * per_path
+            disc = per_path ** 2 + 4.0 * noise ** 2 * known
+            need = (per_path + math.sqrt(max(disc, 0.0))) / (2.0 * noise ** 2)
+            extra = min(float(ps.max_paths), need) - n_total
+            if extra <= 1e-9:
+                break
+            if stage == 1 and extra > SPLIT_ABOVE_PATHS:
+                extra /= 2.0  # see SPLIT_ABOVE_PATHS
+            more, se_more, n_more = trace(extra, stage)
+            per_path = n_more * frame_error(more, se_more) ** 2
+            radiance = (n_total * radiance + n_more * more) / (n_total + n_more)
+            se = np.hypot(n_total * se, n_more * se_more) / (n_total + n_more)
+            n_total += n_more
         fp.out[fp.idx] += radiance
         traced = np.any(rr.scene.materials.kd[fp.mat] > 0.0, axis=1)
         rel = se[traced] / np.maximum((fp.base[traced] + radiance[traced]) @ luma, max(0.25 * fp.bright, 1e-300))

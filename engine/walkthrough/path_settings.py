@@ -6,12 +6,14 @@ A path-traced frame aims at a frame LRMS of ``noise`` against the converged fram
 every pixel first traces :data:`PILOT_PATHS` indirect paths, the spread of their rounds estimates
 the whole frame's LRMS at that count (the pixels' standard errors over the mean brightness), and
 every pixel then traces the paths that bring that estimate to ``noise`` (error ~ 1 / sqrt(paths)),
-the pilot's included. Why per frame and not per pixel: a per-pixel count (a 32-path pilot sizing
-each pixel's estimate) reached the same LRMS at 3-6x the time, since a frame's LRMS weighs every
-pixel's absolute error against the frame's mean brightness; and why not one rule for every frame:
+the pilot's included; when that is many, half of them first and the rest sized from those
+(``engine.walkthrough.ground_truth.SPLIT_ABOVE_PATHS``). Why per frame and not per pixel: a
+per-pixel count (a 32-path pilot sizing each pixel's estimate) reached the same LRMS at 3-6x the
+time, since a frame's LRMS weighs every pixel's absolute error against the frame's mean brightness;
+and why not one rule for every frame:
 a fixed ``(0.3 / noise)^2`` paths per pixel (the count measured on frames of both walkthrough sample
-scenes, 0.3 / sqrt(n) being their typical LRMS at n paths) left frames from 0.6x to 1.3x the target
-(docs/accuracy/walkthrough_contracts.md), so a contract had to plan for the worst of them.
+scenes, 0.3 / sqrt(n) being their typical LRMS at n paths) left the worst frames at up to 1.3x the
+error the rule expected (docs/accuracy/walkthrough_contracts.md), so a contract had to plan for them.
 
 :data:`PATH_ERROR_PER_PATH` remains the rule a cost estimate uses before a frame is traced; the
 direct light's area-light samples are sized from the target alone (they cost little next to the
