@@ -123,9 +123,10 @@ class PathTracedFrames(FrozenModel):
     indirect light of the preset's bounces."""
 
     noise: Annotated[float, Field(ge=PATH_NOISE_RANGE[0], le=PATH_NOISE_RANGE[1])]
-    """The frame LRMS to aim for: every pixel traces ``(0.3 / noise)^2`` indirect paths (a power of two,
-    4..4096), the count that gives about this LRMS on the sample scenes (a walkthrough calibration
-    measures what it gives on yours)."""
+    """The frame LRMS to aim for, against the converged frame: each frame traces a pilot of indirect
+    paths, estimates its own LRMS from them and traces the paths per pixel that bring it to this
+    (4..4096; about ``(0.3 / noise)^2`` on the sample scenes); each frame's result states its
+    estimate."""
     seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1)] = 0
     """Sampler seed (equal seeds give identical frames)."""
 

@@ -1096,8 +1096,9 @@ def walkthrough(
                           ] = None,
     frame_format: FrameFormatOpt = "png",
     path_noise: Annotated[float | None, typer.Option(
-        help="Path-trace every frame to this relative standard error per pixel (0.005..0.5) instead of "
-             "reconstructing it from a bake: no bake, each frame costs a path-traced render")] = None,
+        help="Path-trace every frame to this LRMS against its converged frame (0.005..0.5; each frame sizes "
+             "its paths for it) instead of reconstructing it from a bake: no bake, each frame costs a "
+             "path-traced render")] = None,
     quality_error: Annotated[float | None, typer.Option(
         help="Quality contract: largest LRMS of every frame against its converged frame, in (0, 1); the planner "
              "picks the bake preset and the fill (needs 'ibr calibrate-walkthroughs' of the scene first)")] = None,
