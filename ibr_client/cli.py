@@ -1166,6 +1166,10 @@ def walkthrough(
                 a = w.contract.achieved_frame_ms
                 say(f"achieved: {a['median']:.1f} ms / frame median, {a['max']:.1f} ms max "
                     f"(predicted {w.contract.predicted_frame_ms:.1f} ms)")
+                if w.contract.achieved_estimated_error:
+                    e = w.contract.achieved_estimated_error
+                    say(f"estimated error: {100 * e['median']:.1f} % median, {100 * e['max']:.1f} % max over the "
+                        f"frames (each frame's own estimate; predicted {100 * w.contract.predicted_error:.1f} %)")
             _walkthrough_outputs(c, w.key, output, frames_dir, w.frames, fmt)
     typer.echo(w.key)
 

@@ -201,7 +201,8 @@ def read_contract(store: ObjectStore, wkey: str) -> WalkthroughContractPublic | 
 
 def with_contract(store: ObjectStore, pub: WalkthroughPublic) -> WalkthroughPublic:
     """``pub`` with the contract its walkthrough was asked with (none: ``pub`` itself); once the
-    walkthrough is finished, with the frames' achieved render times (``median`` and ``max``)."""
+    walkthrough is finished, with the frames' achieved render times (``median`` and ``max``) and, for
+    path-traced frames, their own estimates of their error."""
     contract = read_contract(store, pub.key)
     if contract is None:
         return pub
@@ -209,12 +210,16 @@ def with_contract(store: ObjectStore, pub: WalkthroughPublic) -> WalkthroughPubl
         else None
     if manifest is not None:
         ms: list[float] = []
+        est: list[float] = []
         for k in manifest.result.get("chunks", []):
             m = read_manifest(store, k)
             ms += [] if m is None else [float(x) for x in m.result.get("frame_ms", [])]
+            est += [] if m is None else [float(x) for x in m.result.get("estimated_error", [])]
         if ms:
-            contract = contract.model_copy(update={"achieved_frame_ms": {"median": statistics.median(ms),
-                                                                         "max": max(ms)}})
+            update: dict[str, Any] = {"achieved_frame_ms": {"median": statistics.median(ms), "max": max(ms)}}
+            if est:  # path-traced frames: each frame's own estimate of its LRMS
+                update["achieved_estimated_error"] = {"median": statistics.median(est), "max": max(est)}
+            contract = contract.model_copy(update=update)
             # a finished walkthrough's frames never change: kept, so later answers read no chunk manifest
             write_contract(store, pub.key, contract)
     return pub.model_copy(update={"contract": contract})

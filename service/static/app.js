@@ -1703,7 +1703,7 @@ function walkAskChanged() {
 
 // The plan a walkthrough's quality contract got: the setting, the rule, the predictions and, once
 // every frame is rendered, the frames' achieved render times. A walkthrough renders no converged
-// frames, so its error is the calibration's prediction only.
+// frames: its error is the calibration's prediction, and path-traced frames' own estimates.
 function showWalkContract(con, status) {
   const achieved = con.achieved_frame_ms;
   const rows = [
@@ -1713,7 +1713,11 @@ function showWalkContract(con, status) {
     ["rule", con.rule],
     ["predicted", con.met ? "meets the contract" : `misses ${con.unmet.join(", ")}`],
     ["error predicted", `${contractPct(con.predicted_error)} (the calibration's worst probe frame)`],
-    ["error achieved", "not measured (a walkthrough renders no converged frames)"],
+    ["error achieved", con.achieved_estimated_error
+      ? `estimated by the frames: median ${contractPct(con.achieved_estimated_error.median)}, `
+        + `max ${contractPct(con.achieved_estimated_error.max)}`
+      : con.path_noise != null && status !== "finished" ? "estimated by each frame once every frame is rendered"
+        : "not measured (a walkthrough renders no converged frames)"],
     ["time predicted", `${contractMs(con.predicted_frame_ms)} per frame`],
     ["time achieved", achieved ? `median ${contractMs(achieved.median)}, max ${contractMs(achieved.max)} per frame`
       : status === "finished" ? "–" : "measured once every frame is rendered"],

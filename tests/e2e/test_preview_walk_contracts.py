@@ -198,6 +198,13 @@ def test_calibrating_asks_again_and_shows_the_plan_with_achieved_times(page: Pag
     expect(table).to_contain_text(plan)
     expect(table).to_contain_text("cheapest_meeting_error")
     expect(table).to_contain_text(f"{con['predicted_error'] * 100:.2f} %")
+    if con["path_noise"] is not None:  # path-traced frames state their own estimates of their error
+        est = con["achieved_estimated_error"]
+        assert est and 0 < est["median"] <= est["max"]
+        expect(table).to_contain_text(f"estimated by the frames: median {est['median'] * 100:.2f} %")
+    else:
+        assert con["achieved_estimated_error"] is None
+        expect(table).to_contain_text("not measured")
     expect(table).to_contain_text("not measured")
     expect(table).to_contain_text(f"{con['predicted_frame_ms']:.1f} ms per frame")
     expect(table).to_contain_text(f"median {achieved['median']:.1f} ms, max {achieved['max']:.1f} ms per frame")

@@ -97,6 +97,7 @@ def test_walkthrough_contract_end_to_end(client: TestClient, worker_process: Any
     done = WalkthroughPublic.model_validate(doc)
     assert done.contract is not None and done.contract.achieved_frame_ms is not None
     assert 0 < done.contract.achieved_frame_ms["median"] <= done.contract.achieved_frame_ms["max"]
+    assert done.contract.achieved_estimated_error is None  # reconstructed frames estimate nothing
     # its frame times are folded into the calibration's time corrections (2 chunks of 2 frames)
     served = read_served_walkthroughs(LocalStore(store_dir), sid, cal.key)
     assert served["time"]["low/both"]["n"] == 1
@@ -173,6 +174,9 @@ def test_path_traced_walkthrough_end_to_end(client: TestClient, worker_process: 
     assert abs(c.predicted_frame_ms - path["c_ms"] * 16 * 12) < 1e-6
     doc = _wait(client, f"/v1/walkthroughs/{pub.key}", ("finished", "failed"))
     assert doc["status"] == "finished", (doc, render_worker.log()[-3000:])
+    # once finished, the contract states the frames' own estimates of their error (each sized for 0.05)
+    est = WalkthroughPublic.model_validate(doc).contract.achieved_estimated_error  # type: ignore[union-attr]
+    assert est is not None and 0 < est["median"] <= est["max"] <= 0.06, est
     # the same frames asked explicitly share the key
     explicit = client.post("/v1/walkthroughs", json={"scene_id": sid, "frames": frames, "chunk_frames": 2,
                                                      "path_traced": {"noise": 0.05}})
