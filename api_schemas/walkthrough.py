@@ -129,6 +129,11 @@ class PathTracedFrames(FrozenModel):
     estimate."""
     seed: Annotated[int, Field(strict=True, ge=0, le=2**31 - 1)] = 0
     """Sampler seed (equal seeds give identical frames)."""
+    max_ms: Annotated[float | None, Field(gt=0, le=3_600_000)] = None
+    """Each frame's time budget in the worker, milliseconds: a frame traces no more paths than the time
+    left allows (its direct light and its pilot always), so one that runs out of time ends above
+    ``noise`` and its estimate says by how much. A quality contract with ``max_ms`` planned onto
+    path-traced frames sets it."""
 
 
 class WalkthroughRequest(FrozenModel):

@@ -169,7 +169,10 @@ def plan_walkthrough_request(store: ObjectStore, req: WalkthroughRequest, *, err
     c = p.choice
     if c.path_noise is not None:
         asked = req.model_dump(mode="json", exclude={"bake", "fill", "quality"})
-        planned = WalkthroughRequest.model_validate({**asked, "path_traced": {"noise": c.path_noise}})
+        # a time budget bounds each frame's paths too: a frame that needs more paths than its probes did
+        # stops at the budget, above the noise target (its estimate says by how much), instead of late
+        budget = {} if q.max_ms is None else {"max_ms": q.max_ms}
+        planned = WalkthroughRequest.model_validate({**asked, "path_traced": {"noise": c.path_noise, **budget}})
         setting: dict[str, Any] = {"preset": None, "fill": None, "path_noise": c.path_noise, "bake": "none"}
     else:
         planned = req.model_copy(update={"bake": WalkthroughSettings.model_validate({"quality": c.preset}),

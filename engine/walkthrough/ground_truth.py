@@ -51,7 +51,8 @@ of 0.02 on the Cornell box, tracing ~1.6x the paths it needed)."""
 
 
 def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float,
-                      bounces: int, indirect_skip: str | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                      bounces: int, indirect_skip: str | None = None, max_ms: float | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """A walkthrough frame path-traced to an estimated LRMS of ``noise`` against the converged frame
     (``engine.walkthrough.path_settings``): radiance (h, w, 3) float32, the mask of the pixels it
     covers, and the stats of :func:`converged_frame` plus ``estimated_error`` (the frame's LRMS
@@ -64,6 +65,10 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
     on the spread over thousands of pixels and each pixel keeps every path it traced: what one
     pixel's own paths move of that count is far below its noise.
 
+    ``max_ms``: the frame's time budget: no more paths than the time left at the last stage's
+    time per path allows (the direct light and the pilot are always traced), so a frame that runs out
+    of time ends above ``noise`` and says so (``stopped_by``: ``time``; else ``noise``).
+
     ``indirect_skip``: why no surface of the scene can receive indirect light
     (``engine.newviews.effects.analyze``; None: analysed here, "" forces the indirect paths): such a
     frame traces none, and its stats say why (``indirect_skip``)."""
@@ -71,7 +76,8 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
     skip = analyze(rr.scene).indirect_skip if indirect_skip is None else indirect_skip
     t0 = time.perf_counter()
     fp = _frame_points(rr, cam, seed, ps.area_light_samples)
-    st: dict[str, Any] = {**_UNTRACED, "estimated_error": 0.0, "pilot_paths": 0, "pilot_error": 0.0}
+    st: dict[str, Any] = {**_UNTRACED, "estimated_error": 0.0, "pilot_paths": 0, "pilot_error": 0.0,
+                          "stopped_by": "noise"}
     if len(fp.idx) and not skip:
         region = rr.error_region(cam, fp.direct.object_id, fp.direct.depth, ReferenceParams().max_depth)
         in_region = region.reshape(-1)[fp.idx]
@@ -94,7 +100,9 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
             mean = float(y[region.reshape(-1)].mean()) if region.any() else 0.0
             return math.sqrt(float(np.sum(se[in_region] ** 2)) / max(1, int(region.sum()))) / mean if mean > 0 else 0.0
 
+        t_stage = time.perf_counter()
         radiance, se, n_total = trace(ps.pilot_paths, 0)
+        s_per_path = (time.perf_counter() - t_stage) / n_total
         pilot_error = frame_error(radiance, se)
         per_path = n_total * pilot_error ** 2  # the frame's relative variance of one path
         for stage in (1, 2):
@@ -108,7 +116,16 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
                 break
             if stage == 1 and extra > SPLIT_ABOVE_PATHS:
                 extra /= 2.0  # see SPLIT_ABOVE_PATHS
+            if max_ms is not None:
+                affordable = (max_ms / 1000.0 - (time.perf_counter() - t0)) / s_per_path
+                if affordable < extra:  # whole rounds may overshoot it by 1/8 at most
+                    st["stopped_by"] = "time"
+                    if affordable < 2.0:
+                        break
+                    extra = affordable
+            t_stage = time.perf_counter()
             more, se_more, n_more = trace(extra, stage)
+            s_per_path = (time.perf_counter() - t_stage) / n_more
             per_path = n_more * frame_error(more, se_more) ** 2
             radiance = (n_total * radiance + n_more * more) / (n_total + n_more)
             se = np.hypot(n_total * se, n_more * se_more) / (n_total + n_more)

@@ -123,3 +123,15 @@ def test_no_indirect_paths_where_none_can_arrive() -> None:
     assert np.array_equal(skipped, forced)
     _, _, st_room = path_traced_frame(ReferenceRenderer(box_room()), CAM, 0, 3, 0.2, 2)
     assert st_room["indirect_skip"] == "" and st_room["paths_mean"] >= PILOT_PATHS
+
+
+def test_a_time_budget_stops_the_paths_and_the_frame_says_so(room: dict) -> None:
+    """With a budget a frame cannot keep, it traces its direct light and pilot, stops there, and its
+    estimate states the error it reached; without one (or with room to spare) it reaches the target."""
+    free = path_traced_frame(room["rr"], CAM, 0, 5, 0.02, 2)[2]
+    assert free["stopped_by"] == "noise" and free["paths_mean"] > 2 * PILOT_PATHS
+    tight = path_traced_frame(room["rr"], CAM, 0, 5, 0.02, 2, max_ms=1e-3)[2]
+    assert tight["stopped_by"] == "time" and tight["paths_mean"] == PILOT_PATHS
+    assert tight["estimated_error"] == pytest.approx(tight["pilot_error"]) and tight["estimated_error"] > 0.02
+    roomy = path_traced_frame(room["rr"], CAM, 0, 5, 0.02, 2, max_ms=600_000.0)[2]
+    assert roomy["stopped_by"] == "noise" and roomy["paths_mean"] == free["paths_mean"]

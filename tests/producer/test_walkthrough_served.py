@@ -88,3 +88,11 @@ def test_nothing_to_fold_and_another_calibration_starts_afresh(store: LocalStore
     assert read_served_walkthroughs(store, SCENE, "j" * 64) == {}
     _, c2 = plan_walkthrough_request(store, _request())
     assert c2.predicted_frame_ms == pytest.approx(c.predicted_frame_ms)
+
+
+def test_a_time_budget_planned_onto_path_traced_frames_bounds_each_frame(store: LocalStore) -> None:
+    planned, c = plan_walkthrough_request(store, _request(max_ms=12.0))
+    assert c.path_noise is not None and planned.path_traced is not None
+    assert planned.path_traced.max_ms == 12.0 and planned.path_traced.noise == c.path_noise
+    planned, c = plan_walkthrough_request(store, _request())  # an error target alone: no budget
+    assert planned.path_traced is not None and planned.path_traced.max_ms is None

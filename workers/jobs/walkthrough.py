@@ -82,8 +82,9 @@ class PathTracedFrames:
     elsewhere. One reference renderer (scene and BVH) per animation time, the last few kept. The
     indirect bounces are the default preset's, so the frames show the light the bases do."""
 
-    def __init__(self, an: AnimatedScene, noise: float, seed: int = 0, bounces: int | None = None):
-        self.an, self.noise, self.seed = an, float(noise), int(seed)
+    def __init__(self, an: AnimatedScene, noise: float, seed: int = 0, bounces: int | None = None,
+                 max_ms: float | None = None):
+        self.an, self.noise, self.seed, self.max_ms = an, float(noise), int(seed), max_ms
         self.bounces = walkthrough_preset("medium").indirect_bounces if bounces is None else int(bounces)
         self._renderers: dict[float, tuple[ReferenceRenderer, str]] = {}
 
@@ -102,7 +103,8 @@ class PathTracedFrames:
 
     def render(self, cam: CameraParams, t: float, frame: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         rr, skip = self.renderer(t)
-        img, covered, st = path_traced_frame(rr, cam, frame, self.seed, self.noise, self.bounces, skip)
+        img, covered, st = path_traced_frame(rr, cam, frame, self.seed, self.noise, self.bounces, skip,
+                                             max_ms=self.max_ms)
         return img, np.where(covered, _TRACED, _SKY).astype(np.uint8), st
 
     def frame(self, cam: CameraParams, t: float, frame: int) -> _ChunkFrame:
@@ -270,7 +272,7 @@ def walkthrough_chunk_job(payload: dict[str, Any]) -> dict[str, Any]:
     if req.path_traced is not None:
         progress.report(0.0, "loading the scene", force=True)
         source = PathTracedFrames(load_walkthrough_scene(store, req.scene_id)[1], req.path_traced.noise,
-                                  req.path_traced.seed)
+                                  req.path_traced.seed, max_ms=req.path_traced.max_ms)
     else:
         assert p.bake_key is not None
         progress.report(0.0, "loading bake", force=True)
