@@ -131,7 +131,7 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
             se = np.hypot(n_total * se, n_more * se_more) / (n_total + n_more)
             n_total += n_more
         fp.out[fp.idx] += radiance
-        traced = np.any(rr.scene.materials.kd[fp.mat] > 0.0, axis=1)
+        traced = fp.receives
         rel = se[traced] / np.maximum((fp.base[traced] + radiance[traced]) @ luma, max(0.25 * fp.bright, 1e-300))
         if rel.size:
             st.update(rel_stderr_median=float(np.median(rel)), rel_stderr_p95=float(np.percentile(rel, 95)),
@@ -165,7 +165,8 @@ _UNTRACED: dict[str, Any] = {"rel_stderr_median": 0.0, "rel_stderr_p95": 0.0, "r
 @dataclass
 class _FramePoints:
     """A frame's direct light (``out``: (h * w, 3) float64, the indirect light is added to it) and the
-    surface points its pixels see (``idx`` their pixels; ``base`` their direct radiance)."""
+    surface points its pixels see (``idx`` their pixels; ``base`` their direct radiance; ``receives``
+    those whose material has kd > 0, the ones that trace indirect paths)."""
 
     direct: Any
     direct_seconds: float
@@ -176,6 +177,7 @@ class _FramePoints:
     s: np.ndarray
     mat: np.ndarray
     base: np.ndarray
+    receives: np.ndarray
     bright: float
 
 
@@ -191,7 +193,7 @@ def _frame_points(rr: ReferenceRenderer, cam: CameraParams, seed: int, area_ligh
     base = out[idx]
     receives = np.any(rr.scene.materials.kd[mat] > 0.0, axis=1)
     bright = float((base[receives] @ np.asarray(REC709_WEIGHTS)).mean()) if receives.any() else 0.0
-    return _FramePoints(direct, t_direct, out, idx, p, g, s, mat, base, bright)
+    return _FramePoints(direct, t_direct, out, idx, p, g, s, mat, base, receives, bright)
 
 
 def _traced(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed: int, noise: float, bounces: int,
