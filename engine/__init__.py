@@ -44,7 +44,9 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # LDC views: the glossy lobe's reflection of the rect lights is shaded with the highlights.
 # 0.14.0: path-traced walkthrough frames (each frame traces the paths its pilot says its noise
 # target needs, instead of one count from a rule); walkthrough calibrations measured before it.
-ENGINE_VERSION = "0.14.0"
+# 0.15.0: LDC views with ldc+ibrt:k (traced mirror rays show the rect lights they meet; the glossy lobe
+# can be traced, view.glossy_rays).
+ENGINE_VERSION = "0.15.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0

@@ -293,6 +293,15 @@ SUPERSAMPLE = Param("supersample", 1, 1, 4, "s: s x s samples per pixel on a reg
                     "(1: one sample per pixel, no antialiasing)")
 """The LDC methods' antialiasing factor (``engine.newviews.renderer.LDCViewRenderer.render``)."""
 
+GLOSSY_RAYS = Param("glossy_rays", 0, 0, 256, "n: image-based rays traced per glossy pixel through its lobe, "
+                    "followed through mirrors to the lights (ldc+ibrt:k with k >= 1; 0: the lobe is gathered from "
+                    "the light field)")
+"""The LDC views' traced glossy lobe (``engine.newviews.renderer.LDCViewRenderer.render``)."""
+
+GLOSSY_FILTER = Param("glossy_filter", 3, 0, 8, "radius in pixels over which the traced glossy term is averaged "
+                      "among the pixels of the same surface (0: not filtered)")
+"""The filter of the traced glossy term (``glossy_rays``)."""
+
 ANTIALIAS_MODES: tuple[str, ...] = ("edges", "uniform")
 """Where the LDC methods supersample: ``edges`` only the pixels at an edge of the one-sample image
 (the default: on the sample scenes it reaches uniform supersampling's error at a fraction of its

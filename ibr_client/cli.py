@@ -338,6 +338,9 @@ def render(
     antialias: Annotated[str | None, typer.Option(
         help="LDC methods: where --supersample applies: edges (default: pixels at an edge of the one-sample "
              "image) or uniform (every pixel)")] = None,
+    glossy_rays: Annotated[int | None, typer.Option(
+        help="--method ldc+ibrt:k (k >= 1): trace this many rays through each glossy pixel's lobe instead of "
+             "gathering it from the light field (0..256; shows lights seen in mirrors)")] = None,
     quality_error: Annotated[float | None, typer.Option(
         help="Quality contract: largest LRMS against the converged image, in (0, 1); the planner picks the "
              "method (needs 'ibr calibrate' of the scene first)")] = None,
@@ -376,9 +379,11 @@ def render(
     if method not in (None, "reference") and params:
         fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
              "the bake's settings")
-    view = {k: v for k, v in {"supersample": supersample, "antialias": antialias}.items() if v is not None}
+    view = {k: v for k, v in {"supersample": supersample, "antialias": antialias,
+                              "glossy_rays": glossy_rays}.items() if v is not None}
     if view and (contract or method in (None, "reference")):
-        fail("--supersample/--antialias set how an LDC method (--method ldc, ldc+llf or ldc+ibrt:k) renders; "
+        fail("--supersample/--antialias/--glossy-rays set how an LDC method (--method ldc, ldc+llf or ldc+ibrt:k) "
+             "renders; "
              "--method reference takes --spp, and --quality-error/--quality-ms plan the method")
     if re.fullmatch(r"[0-9a-f]{64}", scene):
         scene_id = scene

@@ -48,11 +48,13 @@ from api_schemas.scene import (
 )
 from api_schemas.service import BakeParams, CalibrationParams, RenderRequest, method_needs_bake
 from api_schemas.walkthrough import WalkthroughRequest
+from engine.methods import parse_method
 from engine.newviews.indirect_sampling import expected_paths_per_side
 from engine.walkthrough.path_settings import path_traced_settings
 
 __all__ = [
     "FIXED_BYTES",
+    "GLOSSY_RAY_CPU_S",
     "INDIRECT_RAY_BYTES",
     "LDC_ATTR_BYTES",
     "LDC_BYTES_PER_PIXEL",
@@ -130,6 +132,10 @@ grew 74-90 bytes per pixel (1024 x 1024, 2048 x 2048); about twice that for ``ld
 LDC_CPU_S_PER_PIXEL = 0.6e-6
 """LDC methods: CPU seconds per pixel (0.42-0.46 us measured at 1024 x 1024 for ``ldc``, ``ldc+llf``
 and ``ldc+ibrt:1`` on the warm-up scene; a third more for busier scenes)."""
+GLOSSY_RAY_CPU_S = 2.0e-6
+"""LDC views with ``view.glossy_rays`` n: CPU seconds per traced glossy-lobe ray and generation (each
+ray's image-based trace and the shading of its hit); priced as if every pixel were glossy, an upper
+bound (the rays are traced in chunks, so their memory is bounded and not priced)."""
 FIXED_BYTES = 32 << 20
 """Per-job overhead that does not scale with the image (kernels' scratch, encoder state)."""
 MARGIN = 1.25
@@ -509,6 +515,10 @@ def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0)
         body, cpu = float(LDC_BYTES_PER_PIXEL * pixels * s * s), LDC_CPU_S_PER_PIXEL * pixels * s * s
         where = "edge pixel" if req.view.antialias == "edges" else "pixel"
         spp = f" at {s} x {s} samples per {where}" if s > 1 else ""
+        if req.view.glossy_rays:
+            generations = (parse_method(req.method).ibrt_generations or 0) + 1
+            cpu += GLOSSY_RAY_CPU_S * pixels * s * s * req.view.glossy_rays * generations
+            spp += f", {req.view.glossy_rays} glossy rays per glossy pixel"
     else:
         body, cpu = _reference_bytes(req.params, pixels), _reference_cpu_s(req.params, pixels)
         spp = f" at {req.params.spp} spp"

@@ -39,7 +39,12 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
         params.pop("quality", None)
     if method_needs_bake(req.method):
         params.pop("params")  # the LDC methods shade with the bake's settings
-        if req.view == LDCViewParams():  # one sample per pixel (the default): keys as before
+        view = req.view
+        if not view.glossy_rays:  # no glossy lobe traced: its filter changes nothing, keys as before
+            params["view"].pop("glossy_rays")
+            params["view"].pop("glossy_filter")
+            view = view.model_copy(update={"glossy_filter": LDCViewParams().glossy_filter})
+        if view == LDCViewParams():  # one sample per pixel (the default): keys as before
             params.pop("view")
     else:
         params.pop("bake")

@@ -66,7 +66,15 @@ import numpy as np
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.geometry.adjacency import locate_on_mesh, triangle_neighbours
-from engine.methods import ANTIALIAS_MODES, IBRT_GENERATIONS, LDC_IBRT, MethodSpec, allowed_forms
+from engine.methods import (
+    ANTIALIAS_MODES,
+    GLOSSY_FILTER,
+    GLOSSY_RAYS,
+    IBRT_GENERATIONS,
+    LDC_IBRT,
+    MethodSpec,
+    allowed_forms,
+)
 from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
 from engine.newviews.ldc import LDC, shade_samples, surface_attributes
@@ -82,6 +90,8 @@ from engine.newviews.view_pass import (
 )
 from engine.newviews.warp import WarpResult, warp_ldc
 from engine.raycast import RayCaster, make_caster
+from engine.reference import _lobe_dir, _rect_light_t
+from engine.sampler import sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import next_block
 
@@ -231,6 +241,7 @@ class ViewPassSwitches(NamedTuple):
     force: bool  #: every pass on every covered pixel (adds exact zeros)
     mirror: bool  #: the gather includes the mirror cone (not traced)
     trace: bool  #: write each reflecting pixel's mirror ray (``MirrorRays``)
+    glossy: bool  #: write each glossy pixel's surface (``GlossySurfaces``): its lobe is traced, not gathered
     refine: bool  #: refine each sample's point onto its triangle at the pixel ray
 
 
@@ -258,6 +269,24 @@ def mirror_rays(n: int) -> MirrorRays:
     return MirrorRays(np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(n, np.bool_))
 
 
+class GlossySurfaces(NamedTuple):
+    """The surface points whose glossy lobe is traced (``glossy_rays``; row = the view pass's pixel,
+    rows with ``live`` False are unused)."""
+
+    p: np.ndarray  #: (n, 3) float64 points
+    ng: np.ndarray  #: (n, 3) float64 geometric normals (facing the viewer)
+    ns: np.ndarray  #: (n, 3) float64 shading normals (facing the viewer)
+    wo: np.ndarray  #: (n, 3) float64 unit directions toward the viewer
+    mat: np.ndarray  #: (n,) int32 materials
+    live: np.ndarray  #: (n,) bool the row holds a surface
+
+
+def glossy_surfaces(n: int) -> GlossySurfaces:
+    """n empty rows (none live)."""
+    return GlossySurfaces(np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+                          np.zeros(n, np.int32), np.zeros(n, np.bool_))
+
+
 class RayHits(NamedTuple):
     """Where image-based rays hit the LDC (``engine.newviews.ibrt.trace_prepared``)."""
 
@@ -283,6 +312,7 @@ class Generation(NamedTuple):
     gather_mat: np.ndarray  #: (n_materials,) bool the gather does anything (glossy; mirrors on the last)
     force: bool  #: every term at every hit (adds exact zeros)
     background: np.ndarray  #: (3,) float64 radiance of a miss
+    emitters: bool  #: the rays see the rect lights (the nearest of a light and the LDC's hit counts)
 
 
 # ----------------------------------------------------------------------------- fused per-pixel kernels
@@ -530,7 +560,7 @@ def _select_view_pass(obj_id, mat_id, hl_mat, rf_mat, want_hl, want_rf, force):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays):
+def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs):
     """One parallel group of ``_view_pass_kernel``: the whole view-dependent pass of the camera
     pixels ``pix`` whose sample is on LDC axis ``axis`` (-1: the raycast fill's records), in one
     pass: surface record, refinement onto the sample's triangle, direction to the eye,
@@ -552,6 +582,7 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
     hp, gp: ``HighlightParams``, ``GatherParams`` (``engine.newviews.view_pass``).
     out: ``ViewPassImage``, added to.
     rays: ``MirrorRays`` written with ``sw.trace`` (row = position in pix).
+    gs: ``GlossySurfaces`` written with ``sw.glossy`` (row = position in pix).
     """
     # Everything a pixel reads is taken out of the bundles here, once per thread: inlined helpers
     # given a bundle would unpack it per pixel (``highlight_point_u``).
@@ -561,6 +592,8 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
     h, nu = ax.h, ax.nu
     hl_mat, rf_mat, gathered_mat = sw.hl_mat, sw.rf_mat, sw.gathered_mat
     want_hl, want_rf, force, mirror, trace, refine = sw.want_hl, sw.want_rf, sw.force, sw.mirror, sw.trace, sw.refine
+    glossy = sw.glossy
+    gs_p, gs_ng, gs_ns, gs_wo, gs_mat, gs_live = gs.p, gs.ng, gs.ns, gs.wo, gs.mat, gs.live
     rc_row, rc_p, rc_ng, rc_ns, rc_mat = rc.row, rc.p, rc.ng, rc.ns, rc.mat
     radiance, normal, prov, lookups = out.radiance, out.normal, out.prov, out.lookups
     ray_o, ray_d, ray_ng, ray_thr, ray_live = rays.o, rays.d, rays.ng, rays.thr, rays.live
@@ -643,6 +676,13 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
                     lookups[i] = u
                 if gathered_mat[m]:
                     prov[r] = 3
+                if glossy and (force or kg[m, 0] > 0.0 or kg[m, 1] > 0.0 or kg[m, 2] > 0.0):
+                    gs_live[i] = True
+                    gs_p[i, 0], gs_p[i, 1], gs_p[i, 2] = px, py, pz
+                    gs_ng[i, 0], gs_ng[i, 1], gs_ng[i, 2] = g0, g1, g2
+                    gs_ns[i, 0], gs_ns[i, 1], gs_ns[i, 2] = n0, n1, n2
+                    gs_wo[i, 0], gs_wo[i, 1], gs_wo[i, 2] = wo0, wo1, wo2
+                    gs_mat[i] = m
                 if trace:
                     c = n0 * wo0 + n1 * wo1 + n2 * wo2
                     d0, d1, d2 = 2.0 * c * n0 - wo0, 2.0 * c * n1 - wo1, 2.0 * c * n2 - wo2
@@ -661,7 +701,7 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _view_pass_kernel(groups, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, ax0, ax1, ax2):
+def _view_pass_kernel(groups, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs, ax0, ax1, ax2):
     """The view-dependent pass of every pixel in ``pix`` in ONE parallel launch: the pixels whose
     sample is on LDC axis 0, 1, 2 (``AxisArrays`` ``ax0``, ``ax1``, ``ax2``) and, when ``rc`` has
     records, those of the raycast fill (axis -1). Each part has its own block counter and a thread
@@ -678,11 +718,11 @@ def _view_pass_kernel(groups, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, 
     # the axis as a run-time int64, not a literal: numba would compile the group once per literal value
     # (four copies of the largest LDC kernel, three quarters of its cold compile; docs/performance.md)
     for _ in nb.prange(groups):
-        _view_pass_group(c_0, np.int64(0), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_1, np.int64(1), ax1, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
-        _view_pass_group(c_2, np.int64(2), ax2, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+        _view_pass_group(c_0, np.int64(0), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs)
+        _view_pass_group(c_1, np.int64(1), ax1, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs)
+        _view_pass_group(c_2, np.int64(2), ax2, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs)
         if with_rc:  # the raycast fill's pixels (no LDC sample; axis 0's arrays are placeholders)
-            _view_pass_group(c_r, np.int64(-1), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays)
+            _view_pass_group(c_r, np.int64(-1), ax0, pix, cam_pix, samples, rc, cam, mesh, sw, hp, gp, out, rays, gs)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -778,6 +818,11 @@ def _rays_meet_box(pix, cam, lo, hi):
 
 
 _RAY_TILE = 16  # mirror rays are traced in 16 x 16 pixel tiles (see _tile_order)
+_GLOSSY_STREAM = 23  # sampler stream of the glossy lobe rays: sample_key(seed, _GLOSSY_STREAM)
+_GLOSSY_CHUNK_RAYS = 1 << 16  # glossy lobe rays traced at once (~10 MiB of ray and hit arrays)
+_GLOSSY_FILTER_DEFAULT = int(GLOSSY_FILTER.default or 0)
+_GLOSSY_FILTER_COS = 0.95  # the glossy filter's same-surface tests: normals within ~18 degrees,
+_GLOSSY_FILTER_DEPTH = 0.05  # depths within 5 %
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1269,6 +1314,7 @@ def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups,
     o, d, owner, thr = rays.o, rays.d, rays.owner, rays.thr
     geo, nrm, mat_a, diff, vis2, prim = ax.geo_normal, ax.normal, ax.material, ax.diffuse, ax.visibility, ax.prim
     last, has_llf, gather_mat, force, bg = gen.last, gen.has_llf, gen.gather_mat, gen.force, gen.background
+    emitters = gen.emitters
     cont, n_o, n_d, n_ng, n_thr = nxt.live, nxt.o, nxt.d, nxt.ng, nxt.thr
     refine = mesh.neighbours.shape[0] > 0
     max_move = 3.0 * mesh.ldc_h
@@ -1289,6 +1335,20 @@ def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups,
             if hit_axis[i] != axis:
                 continue
             q = owner[i]
+            if emitters:  # the nearest rect light in front of the LDC's hit (or of nothing) is what the ray sees
+                tl = np.inf
+                lq = -1
+                for j in range(r_area.shape[0]):
+                    tj = _rect_light_t(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], rc[j, 0], rc[j, 1],
+                                       rc[j, 2], ru[j, 0], ru[j, 1], ru[j, 2], rv[j, 0], rv[j, 1], rv[j, 2], r_n[j, 0],
+                                       r_n[j, 1], r_n[j, 2], r_area[j], r2s[j])
+                    if tj < tl:
+                        tl = tj
+                        lq = j
+                if lq >= 0 and (axis < 0 or tl < hit_t[i]):
+                    for c in range(3):
+                        acc[q, c] += thr[i, c] * rL[lq, c]
+                    continue
             if axis < 0:
                 for c in range(3):
                     acc[q, c] += thr[i, c] * bg[c]
@@ -1348,7 +1408,8 @@ def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, a
     """One generation of traced mirror rays (``_shade_group``'s parameters): at each hit the
     sample's diffuse radiance + its highlights toward the ray + its glossy gather (+ the mirror
     cone on the ``last`` generation) times the ray's throughput into ``acc[owner]``; a miss adds
-    the background. Hits on mirrors continue (``nxt``: the next generation's rays). The misses
+    the background; with ``gen.emitters`` a rect light nearer than the hit adds its radiance
+    instead (and the ray ends). Hits on mirrors continue (``nxt``: the next generation's rays). The misses
     (axis -1) and the hits on each LDC axis (``AxisArrays`` ``ax0``, ``ax1``, ``ax2``) in ONE
     call: each Python -> numba call pays ~150 us of argument typing for bundles this size, and
     one call per axis was ~1 % of a render. Each axis has its own block counter; a thread done
@@ -1365,6 +1426,88 @@ def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, a
         _shade_group(c_0, np.int64(0), ax0, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
         _shade_group(c_1, np.int64(1), ax1, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
         _shade_group(c_2, np.int64(2), ax2, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr):
+    """``n_rays`` rays per glossy surface ``gs`` row in ``rows`` (ray ``j n_rays + k`` of row
+    ``rows[j]``): directions from the cos^g lobe around the mirror direction of ``gs.wo`` about
+    ``gs.ns`` (the reference renderer's lobe sampling: ``engine.reference._lobe_direction``), the
+    2-D points ``sample_2d(key, cam_pix[row], k)`` (one stratified set per pixel), throughput
+    ``kg (g + 2) / (g + 1) cos_i / n_rays``: the reference's glossy estimator, averaged. A
+    direction below the shading or the geometric surface gets throughput 0."""
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        m = gs.mat[i]
+        n0, n1, n2 = gs.ns[i, 0], gs.ns[i, 1], gs.ns[i, 2]
+        w0, w1, w2 = gs.wo[i, 0], gs.wo[i, 1], gs.wo[i, 2]
+        c = n0 * w0 + n1 * w1 + n2 * w2
+        e0, e1, e2 = 2.0 * c * n0 - w0, 2.0 * c * n1 - w1, 2.0 * c * n2 - w2
+        ln = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        e0 /= ln
+        e1 /= ln
+        e2 /= ln
+        ge = gexp[m]
+        for k in range(n_rays):
+            r = j * n_rays + k
+            u0, u1 = sample_2d(key, cam_pix[i], k)
+            cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
+            x0, x1, x2 = _lobe_dir(e0, e1, e2, cos_a, 2.0 * math.pi * u1)
+            lx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+            x0 /= lx
+            x1 /= lx
+            x2 /= lx
+            cos_i = n0 * x0 + n1 * x1 + n2 * x2
+            up = gs.ng[i, 0] * x0 + gs.ng[i, 1] * x1 + gs.ng[i, 2] * x2
+            f = (ge + 2.0) / (ge + 1.0) * cos_i / n_rays if (cos_i > 0.0 and up > 0.0) else 0.0
+            o[r, 0], o[r, 1], o[r, 2] = gs.p[i, 0], gs.p[i, 1], gs.p[i, 2]
+            d[r, 0], d[r, 1], d[r, 2] = x0, x1, x2
+            ng[r, 0], ng[r, 1], ng[r, 2] = gs.ng[i, 0], gs.ng[i, 1], gs.ng[i, 2]
+            for c3 in range(3):
+                thr[r, c3] = kg[m, c3] * f
+
+
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _filter_glossy(has, term, normal, depth, mat, w, h, radius, min_cos, rel_depth, out):
+    """The traced glossy term of each pixel that has one (``has``), averaged over the pixels within
+    ``radius`` (a square window) that have one too and lie on the same surface: the same material,
+    shading normals within ``min_cos``, depths within ``rel_depth`` of the pixel's. A glossy lobe's
+    reflection changes slowly across a surface next to the noise of a few rays per pixel (module
+    docstring of ``_mirrors``); the surface tests keep the filter off other objects and creases."""
+    for y in nb.prange(h):
+        for x in range(w):
+            i = y * w + x
+            if not has[i]:
+                continue
+            s0 = s1 = s2 = 0.0
+            cnt = 0
+            m = mat[i]
+            n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
+            di = depth[i]
+            for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+                for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                    j = yy * w + xx
+                    if not has[j] or mat[j] != m:
+                        continue
+                    if n0 * normal[j, 0] + n1 * normal[j, 1] + n2 * normal[j, 2] < min_cos:
+                        continue
+                    if abs(depth[j] - di) > rel_depth * di:
+                        continue
+                    s0 += term[j, 0]
+                    s1 += term[j, 1]
+                    s2 += term[j, 2]
+                    cnt += 1
+            out[i, 0], out[i, 1], out[i, 2] = s0 / cnt, s1 / cnt, s2 / cnt
+
+
+class _Glossy(NamedTuple):
+    """How a render traces glossy lobes: rays per pixel (0: gathered) and the filter's radius."""
+
+    rays: int
+    filter: int
+
+
+_NO_GLOSSY = _Glossy(0, 0)
 
 
 def _ldc_axes(ldc: LDC) -> tuple[AxisArrays, AxisArrays, AxisArrays]:
@@ -1423,6 +1566,9 @@ class _Frame:
     #: None: row = flat camera pixel; a compact frame (``LDCViewRenderer._subpixel_frame``):
     #: (n,) int64 the camera pixel of each row
     pixels: np.ndarray | None = None
+    #: an image frame's traced glossy term, filtered (``_mirrors``): (h w, 3) float64, and which rows hold one
+    glossy: np.ndarray | None = None
+    glossy_has: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     passes: dict[str, dict] = field(default_factory=dict)
@@ -1457,12 +1603,14 @@ class _FillRays:
 
 @dataclass
 class _ViewPassOut:
-    """What the view pass leaves for the mirror stage: its pixels, how many reflect, and their
-    mirror rays (``rays.live`` rows; none unless mirrors are traced)."""
+    """What the view pass leaves for the mirror stage: its pixels, how many reflect, their
+    mirror rays (``rays.live`` rows; none unless mirrors are traced) and the surfaces whose glossy
+    lobe is traced (``glossy.live`` rows; none unless ``glossy_rays``)."""
 
     pix: np.ndarray
     n_reflect: int
     rays: MirrorRays
+    glossy: GlossySurfaces
 
 
 class LDCViewRenderer:
@@ -1585,7 +1733,8 @@ class LDCViewRenderer:
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
                progress: Callable[[float, str], None] | None = None, force_all_passes: bool = False,
                fill: str = "ibrt", supersample: int = 1, antialias: str = "uniform",
-               edge_contrast: float = EDGE_CONTRAST) -> LDCRenderResult:
+               edge_contrast: float = EDGE_CONTRAST, glossy_rays: int = 0,
+               glossy_filter: int = _GLOSSY_FILTER_DEFAULT) -> LDCRenderResult:
         """Render ``camera`` with ``method`` ("ldc", "ldc+llf", "ldc+ibrt" (+ ``ibrt_generations``
         0..8) or "ldc+ibrt:k"); see the module docstring. ``supersample`` s (1..4) renders s x s
         samples per pixel on a regular grid and box-filters the radiance (antialiasing).
@@ -1595,9 +1744,17 @@ class LDCViewRenderer:
         a depth jump, or a luminance step of more than ``edge_contrast`` in the 3 x 3
         neighbourhood) get the s x s samples, on the sub-pixel rays of uniform supersampling
         but without a second warp (``_render_edges``); every other pixel, and every pixel's
-        depth, normal, ids and provenance, is the one-sample render's, bit for bit. Raises
-        InvalidInputError for a bad method / fill / supersample / antialias or when the method
-        needs an LLF the bake doesn't have."""
+        depth, normal, ids and provenance, is the one-sample render's, bit for bit.
+        ``glossy_rays`` n (``ldc+ibrt:k`` with k >= 1 only; 0: the light field's gather) traces n
+        image-based rays of each glossy pixel's lobe instead of gathering it from the light field
+        (``_mirrors``): a glossy surface then shows what its lobe sees through mirrors, lights
+        included, at the price of n rays per glossy pixel. Their noise is filtered over the
+        neighbouring pixels of the same surface within ``glossy_filter`` pixels (0..8; 0: none;
+        ``_filter_glossy``). A supersampled pixel's sub-pixels share its n rays
+        (``_glossy_rays_per_subpixel``); at the edges (``antialias="edges"``) a sub-pixel on the
+        surface its pixel shows takes the pixel's filtered term. Raises
+        InvalidInputError for a bad method / fill / supersample / antialias / glossy_rays or when
+        the method needs an LLF the bake doesn't have."""
         spec = method_spec(method, ibrt_generations)
         if fill not in FILLS:
             raise InvalidInputError(f"fill must be one of {list(FILLS)}, got {fill!r}")
@@ -1609,15 +1766,21 @@ class LDCViewRenderer:
         if not isinstance(edge_contrast, (int, float)) or isinstance(edge_contrast, bool) or \
                 not (0.0 < float(edge_contrast) <= 1.0):
             raise InvalidInputError(f"edge_contrast must be a number in (0, 1], got {edge_contrast!r}")
+        g = int(GLOSSY_RAYS.check(glossy_rays, "glossy_rays"))
+        gf = int(GLOSSY_FILTER.check(glossy_filter, "glossy_filter"))
+        if g and spec.ibrt_generations < 1:
+            raise InvalidInputError(f"glossy_rays traces image-based rays: it needs method 'ldc+ibrt:k' with k >= 1, "
+                                    f"got {spec.wire!r}")
         with self._lock:
             if supersample == 1:
-                return self._render(camera, spec, progress, bool(force_all_passes), fill)
+                return self._render(camera, spec, progress, bool(force_all_passes), fill, _Glossy(g, gf))
             s = int(supersample)
             if antialias == "edges":
                 return self._render_edges(camera, spec, progress, bool(force_all_passes), fill, s,
-                                          float(edge_contrast))
+                                          float(edge_contrast), _Glossy(g, gf))
             big = replace(camera, width=camera.width * s, height=camera.height * s)
-            r = self._render(big, spec, progress, bool(force_all_passes), fill)
+            r = self._render(big, spec, progress, bool(force_all_passes), fill,
+                             _Glossy(_glossy_rays_per_subpixel(g, s), gf * s))
             H, W = camera.height, camera.width
             rad = r.radiance.astype(np.float64).reshape(H, s, W, s, 3).mean(axis=(1, 3)).astype(np.float32)
             c = s // 2
@@ -1634,23 +1797,25 @@ class LDCViewRenderer:
                                    hole_mask=r.hole_mask.reshape(H, s, W, s).any(axis=(1, 3)),
                                    timings=r.timings, counts=r.counts, plan=r.plan)
 
-    def _render(self, camera, spec: MethodSpec, progress, force, fill) -> LDCRenderResult:
+    def _render(self, camera, spec: MethodSpec, progress, force, fill,
+                glossy: _Glossy = _NO_GLOSSY) -> LDCRenderResult:
         """One render (``render``'s arguments, checked): the stages of the module docstring in
         order, each timed under its name in ``timings``."""
-        return self._render_frame(camera, spec, progress, force, fill)[1]
+        return self._render_frame(camera, spec, progress, force, fill, glossy)[1]
 
-    def _render_frame(self, camera, spec: MethodSpec, progress, force, fill) -> tuple[_Frame, LDCRenderResult]:
+    def _render_frame(self, camera, spec: MethodSpec, progress, force, fill,
+                      glossy: _Glossy = _NO_GLOSSY) -> tuple[_Frame, LDCRenderResult]:
         """``_render``, with the frame it ran on."""
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
         rc = self._fill(fr, fill)
         self._smooth_diffuse(fr, None)
-        vp = self._view_pass(fr, spec, force, rc)
-        self._mirrors(fr, vp, spec, force)
+        vp = self._view_pass(fr, spec, force, rc, glossy.rays)
+        self._mirrors(fr, vp, spec, force, glossy)
         return fr, self._result(fr, spec, fill, force, t_start)
 
     def _render_edges(self, camera: CameraParams, spec: MethodSpec, progress, force: bool, fill: str, s: int,
-                      contrast: float) -> LDCRenderResult:
+                      contrast: float, glossy: _Glossy = _NO_GLOSSY) -> LDCRenderResult:
         """``render(..., supersample=s, antialias="edges")``: the one-sample render, its edge
         pixels (``_edge_pixels``), then s x s sub-pixel rays in each edge pixel: the very rays
         of uniform supersampling (``camera`` at s times the width and height). No second warp:
@@ -1667,7 +1832,7 @@ class LDCViewRenderer:
         def part(lo: float, hi: float):
             return None if progress is None else (lambda f, st: progress(lo + (hi - lo) * f, st))
 
-        fr1, r1 = self._render_frame(camera, spec, part(0.0, 0.6), force, fill)
+        fr1, r1 = self._render_frame(camera, spec, part(0.0, 0.6), force, fill, glossy)
         H, W = camera.height, camera.width
         t0 = time.perf_counter()
         bg = np.asarray(self.ldc.background, np.float64)
@@ -1687,11 +1852,12 @@ class LDCViewRenderer:
             timings["edge_rays"] = time.perf_counter() - t0
             self._smooth_diffuse(fr, np.flatnonzero(fr.obj_id >= 0))
             timings["edge_diffuse"] = fr.timings["diffuse"]
-            vp = self._view_pass(fr, spec, force, None)
-            self._mirrors(fr, vp, spec, force)
+            g_sub = _Glossy(_glossy_rays_per_subpixel(glossy.rays, s), 0)
+            vp = self._view_pass(fr, spec, force, None, g_sub.rays)
+            self._mirrors(fr, vp, spec, force, g_sub, inherit=(fr1, pix, s))
             timings["edge_surfaces"] = fr.timings["surfaces"]
             timings["edge_ibrt"] = fr.timings["ibrt"]
-            for k in ("view_pass_pixels", "traced_rays", "gather_lookups"):
+            for k in ("view_pass_pixels", "traced_rays", "gather_lookups", "glossy_rays"):
                 counts["edge_" + k] = int(fr.counts.get(k, 0))
             rad = r1.radiance.copy()
             if _box_filter_pixels(pix, fr.radiance, s * s, rad.reshape(-1, 3)):
@@ -1915,12 +2081,13 @@ class LDCViewRenderer:
         return RaycastRecords(row, c(p, np.float64), c(g, np.float64), c(n, np.float64), c(mat, np.int32),
                               c(bits, np.uint64))
 
-    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None) -> _ViewPassOut:
+    def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None,
+                   glossy_rays: int = 0) -> _ViewPassOut:
         """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
         them): on the covered pixels whose material needs it (the effect plan, or every one
         with ``force``), the surface record, its refinement, the highlights and the light-field
         gather (``_view_pass_kernel``); with ``ldc+ibrt:k`` (k >= 1) the mirror rays instead of
-        the mirror cone."""
+        the mirror cone, and with ``glossy_rays`` the glossy surfaces instead of the glossy gather."""
         t0 = time.perf_counter()
         counts, passes = fr.counts, fr.passes
         want_vp = force or self.plan.needs_view_pass
@@ -1947,15 +2114,19 @@ class LDCViewRenderer:
         nv = vp_pix.size
         lookups = np.zeros(nv, np.int64)
         rays = mirror_rays(nv if (trace_mirror and n_rf) else 0)
+        trace_glossy = bool(glossy_rays) and trace_mirror and bool(n_rf)
+        gsurf = glossy_surfaces(nv if trace_glossy else 0)
         if nv:
-            sw = ViewPassSwitches(hl_mat=self._has_hl, rf_mat=refl_mat,
-                                  gathered_mat=self._has_kg if trace_mirror else refl_mat, want_hl=bool(want_vp),
+            gathered = self._has_kg if trace_mirror else refl_mat
+            if trace_glossy:
+                gathered = np.zeros_like(gathered)
+            sw = ViewPassSwitches(hl_mat=self._has_hl, rf_mat=refl_mat, gathered_mat=gathered, want_hl=bool(want_vp),
                                   want_rf=bool(want_rf), force=force, mirror=not trace_mirror,
-                                  trace=rays.live.size > 0, refine=self.refine_surface)
+                                  trace=rays.live.size > 0, glossy=gsurf.live.size > 0, refine=self.refine_surface)
             _view_pass_kernel(_groups(), vp_pix, fr.camera_pixels(vp_pix), fr.samples,
                               rc if rc is not None else _no_raycast_records(self.ldc.visibility_words), fr.cam,
                               self._mesh, sw, self._hp, self._gp,
-                              ViewPassImage(fr.radiance, fr.normal, fr.prov, lookups), rays, *self._axes)
+                              ViewPassImage(fr.radiance, fr.normal, fr.prov, lookups), rays, gsurf, *self._axes)
         fr.timings["surfaces"] = time.perf_counter() - t0
         fr.timings["highlights"] = 0.0
         fr.timings["gather"] = 0.0
@@ -1964,32 +2135,79 @@ class LDCViewRenderer:
         counts["gather_lookups"] = int(lookups.sum())
         # provenance is at most PROV_FILLED before this pass: the gathered ones were set by the kernel
         counts["gather_pixels"] = int(np.count_nonzero(fr.prov[vp_pix] == PROV_GATHERED)) if n_rf else 0
-        passes["gather"] = {"ran": bool(n_rf),
+        passes["gather"] = {"ran": bool(n_rf) and not trace_glossy,
                             "what": ("glossy lobe" if trace_mirror else "mirror cone + glossy lobe"),
-                            "why": ("method 'ldc' has no reflections" if not reflect else why_vp)}
+                            "why": ("method 'ldc' has no reflections" if not reflect else
+                                    "the glossy lobe is traced (glossy_rays)" if trace_glossy else why_vp)}
         fr.report(0.75, "gather")
-        return _ViewPassOut(vp_pix, int(n_rf), rays)
+        return _ViewPassOut(vp_pix, int(n_rf), rays, gsurf)
 
-    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, spec: MethodSpec, force: bool) -> None:
+    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, spec: MethodSpec, force: bool, glossy: _Glossy = _NO_GLOSSY,
+                 inherit: tuple[_Frame, np.ndarray, int] | None = None) -> None:
         """Stage 4, timed as "ibrt": with ``ldc+ibrt:k`` (k >= 1) the view pass's mirror rays,
-        traced through the LDC for k generations (``_trace_mirrors``) in 16 x 16 pixel tiles
-        (``_tile_order``; the view pass's pixels are row-major)."""
+        traced through the LDC for k generations (``_trace_rays``) in 16 x 16 pixel tiles
+        (``_tile_order``; the view pass's pixels are row-major); with ``glossy.rays`` n, n rays
+        of each glossy pixel's lobe (``_glossy_lobe_rays``), traced for k + 1 generations: the
+        lobe's own ray, then k mirror bounces. A ray of the lobe that meets a rect light straight
+        away adds nothing (the highlights shade the lobe's reflection of the rect lights); one
+        that meets it after a mirror does (the glossy reflection of a light seen in a mirror).
+        In an image frame the traced glossy term is then filtered (``_filter_glossy``, radius
+        ``glossy.filter``); in the compact frame of an edge render (``inherit``: the one-sample
+        frame, its edge pixels, s) a sub-pixel on the glossy surface its pixel shows takes the
+        pixel's filtered term instead of tracing."""
         k = spec.ibrt_generations
         trace_mirror = k > 0
         rays = vp.rays
         t0 = time.perf_counter()
         fr.counts["traced_rays"] = 0
         fr.counts["ibrt_steps"] = 0
+        fr.counts["glossy_rays"] = 0
         if rays.live.size:
             live = np.flatnonzero(rays.live)
             live = live[_tile_order(fr.camera_pixels(vp.pix[live]), fr.width, _RAY_TILE)]
             traced = vp.pix[live]
-            self._trace_mirrors(traced, rays.o[live], rays.d[live], rays.ng[live], rays.thr[live], k, fr.radiance,
-                                fr.counts, force)
+            acc = self._trace_rays(rays.o[live], rays.d[live], rays.ng[live], rays.thr[live], k, 1, fr.counts, force)
+            fr.radiance[traced] += acc
             fr.prov[traced[self._has_kr[fr.mat_id[traced]]]] = PROV_TRACED
+        gs = vp.glossy
+        if gs.live.size:
+            rows = np.flatnonzero(gs.live)
+            fr.prov[vp.pix[rows]] = PROV_TRACED
+            if inherit is not None:
+                fr1, parent_pix, ss = inherit
+                if fr1.glossy is not None and fr1.glossy_has is not None:
+                    sub = vp.pix[rows]
+                    par = parent_pix[sub // (ss * ss)]
+                    same = (fr1.glossy_has[par] & (fr1.obj_id[par] == fr.obj_id[sub])
+                            & (fr1.mat_id[par] == fr.mat_id[sub]))
+                    fr.radiance[sub[same]] += fr1.glossy[par[same]]
+                    fr.counts["glossy_inherited"] = int(same.sum())
+                    rows = rows[~same]
+            term = self._trace_glossy(fr, vp, rows, k, glossy.rays, force)
+            frows = vp.pix[rows]
+            if fr.pixels is None and glossy.filter > 0 and rows.size:
+                has = np.zeros(fr.radiance.shape[0], np.bool_)
+                has[frows] = True
+                img = np.zeros_like(fr.radiance)
+                img[frows] = term
+                out = np.zeros_like(img)
+                _filter_glossy(has, img, fr.normal, fr.depth, fr.mat_id, fr.width, fr.height, glossy.filter,
+                               _GLOSSY_FILTER_COS, _GLOSSY_FILTER_DEPTH, out)
+                fr.radiance[frows] += out[frows]
+                fr.glossy, fr.glossy_has = out, has
+            else:
+                fr.radiance[frows] += term
+                if fr.pixels is None and rows.size:
+                    has = np.zeros(fr.radiance.shape[0], np.bool_)
+                    has[frows] = True
+                    img = np.zeros_like(fr.radiance)
+                    img[frows] = term
+                    fr.glossy, fr.glossy_has = img, has
         fr.timings["ibrt"] = time.perf_counter() - t0
         why_vp = self._why_view_pass(force)
         fr.passes["ibrt"] = {"ran": bool(trace_mirror and vp.n_reflect), "generations": k,
+                             "glossy_rays": int(glossy.rays) if gs.live.size else 0,
+                             "glossy_filter": int(glossy.filter) if gs.live.size else 0,
                              "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
         fr.report(0.95, "ibrt")
 
@@ -2030,13 +2248,40 @@ class LDCViewRenderer:
         return trace_prepared(self.ldc, self._trace_args, self.accel, np.ascontiguousarray(o, np.float64),
                               np.ascontiguousarray(d, np.float64), origin_normals=origin_normals)
 
-    def _trace_mirrors(self, pix, o, d, ng_o, thr, k, radiance, counts, force) -> None:
-        """k generations of image-based mirror rays (origins o, unit directions d, surface
-        normals ng_o at the origins, throughput thr = kr) ending in the cone gather (module
-        docstring); adds the traced radiance to ``radiance[pix]``."""
+    def _trace_glossy(self, fr: _Frame, vp: _ViewPassOut, rows: np.ndarray, k: int, n_rays: int,
+                      force: bool) -> np.ndarray:
+        """The traced glossy term (len(rows), 3) of the view pass's glossy surfaces ``rows``: n_rays
+        lobe rays each (``_glossy_lobe_rays``), traced for k + 1 generations, the rect lights seen
+        from the second on, summed per surface in ray order (the same term for any chunking)."""
+        term = np.zeros((rows.size, 3))
+        if not rows.size:
+            return term
+        order = _tile_order(fr.camera_pixels(vp.pix[rows]), fr.width, _RAY_TILE)
+        cam_pix = fr.camera_pixels(vp.pix)
+        key = sample_key(self.seed, _GLOSSY_STREAM)
+        step = max(1, _GLOSSY_CHUNK_RAYS // n_rays)  # bounded memory: the rays of a chunk of pixels at a time
+        for lo in range(0, rows.size, step):
+            part = order[lo:lo + step]
+            n = part.size * n_rays
+            o, d, ng, thr = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+            _glossy_lobe_rays(rows[part], vp.glossy, cam_pix, self._hp.kg, self._hp.gloss_exponent, n_rays, key,
+                              o, d, ng, thr)
+            keep = np.flatnonzero(thr.max(axis=1) > 0.0)
+            fr.counts["glossy_rays"] += int(keep.size)
+            acc = self._trace_rays(o[keep], d[keep], ng[keep], thr[keep], k + 1, 2, fr.counts, force)
+            per = np.zeros((part.size, 3))
+            np.add.at(per, keep // n_rays, acc)
+            term[part] = per
+        return term
+
+    def _trace_rays(self, o, d, ng_o, thr, k, emitters_from, counts, force) -> np.ndarray:
+        """The radiance (n, 3) each of n image-based rays brings (origins o, unit directions d,
+        surface normals ng_o at the origins, throughput thr) over k generations: the rays, then
+        the mirror rays of their hits, the last generation ending in the mirror-cone gather at its
+        hit (module docstring). Rays of generation ``emitters_from`` and later see the rect lights."""
         bg = np.asarray(self.ldc.background, np.float64)
-        owner = np.arange(pix.size)
-        acc = np.zeros((pix.size, 3))
+        owner = np.arange(o.shape[0])
+        acc = np.zeros((o.shape[0], 3))
         for gen in range(1, k + 1):
             n = owner.size
             if not n:
@@ -2051,15 +2296,22 @@ class LDCViewRenderer:
                              np.zeros(n, np.bool_))
             gather_mat = (self._has_kg | self._has_kr) if last else self._has_kg
             _shade_hits(_groups(), RayHits(h_axis, h_sample, h_t), TracedRays(o, d, owner, thr),
-                        Generation(last, self.llf is not None, gather_mat, force, bg), self._hp, self._gp, self._mesh,
-                        acc, lookups, nxt, *self._axes)
+                        Generation(last, self.llf is not None, gather_mat, force, bg, gen >= emitters_from),
+                        self._hp, self._gp, self._mesh, acc, lookups, nxt, *self._axes)
             counts["gather_lookups"] += int(lookups.sum())
             if last:
                 break
             go = np.flatnonzero(nxt.live)
             owner = owner[go]
             o, d, ng_o, thr = nxt.o[go], nxt.d[go], nxt.ng[go], nxt.thr[go]
-        radiance[pix] += acc
+        return acc
+
+
+def _glossy_rays_per_subpixel(glossy_rays: int, s: int) -> int:
+    """The glossy lobe rays each of a pixel's s x s sub-pixels traces: ``glossy_rays`` per pixel
+    shared among them (at least one each), so supersampling antialiases a glossy pixel without
+    multiplying its rays."""
+    return 0 if not glossy_rays else max(1, -(-glossy_rays // (s * s)))
 
 
 def _groups() -> int:

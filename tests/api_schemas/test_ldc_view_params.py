@@ -69,3 +69,32 @@ def test_the_memory_estimate_counts_the_sub_pixels() -> None:
     fixed = estimate_render_bytes(plain, 1, 1)
     one, four = estimate_render_bytes(plain, 512, 512) - fixed, estimate_render_bytes(x4, 512, 512) - fixed
     assert four == pytest.approx(16 * one, rel=1e-3)  # 4 x 4 sub-pixels per pixel, the fixed part once
+
+
+def test_glossy_rays_need_a_traced_method_and_key_their_render() -> None:
+    for method in ("ldc", "ldc+llf", "ldc+ibrt:0"):
+        with pytest.raises(ValidationError, match="glossy_rays traces image-based rays") as exc:
+            RenderRequest.model_validate({"scene_id": SID, "method": method, "view": {"glossy_rays": 16}})
+        assert exc.value.errors()[0]["loc"] == ("view", "glossy_rays")
+    for view, needle in (({"glossy_rays": 257}, "less than or equal to 256"), ({"glossy_filter": 9}, "less than"),
+                         ({"glossy_rays": -1}, "greater than or equal to 0")):
+        with pytest.raises(ValidationError, match=needle):
+            RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1", "view": view})
+    plain = RenderRequest(scene_id=SID, method="ldc+ibrt:1")
+    traced = RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_rays": 16}})
+    unfiltered = RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1",
+                                               "view": {"glossy_rays": 16, "glossy_filter": 0}})
+    assert len({render_artifact_key(r) for r in (plain, traced, unfiltered)}) == 3
+    assert render_params(traced)["view"] == {"supersample": 1, "antialias": "edges", "glossy_rays": 16,
+                                             "glossy_filter": 3}
+    # without traced rays the filter means nothing: the plain render's key
+    assert render_artifact_key(RenderRequest.model_validate(
+        {"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_filter": 5}})) == render_artifact_key(plain)
+
+
+def test_the_cost_counts_the_glossy_rays() -> None:
+    from producer.costs import render_cost
+
+    plain = RenderRequest(scene_id=SID, method="ldc+ibrt:1")
+    traced = RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_rays": 16}})
+    assert render_cost(traced, 512, 512).cpu_s > render_cost(plain, 512, 512).cpu_s + 16 * 512 * 512 * 1e-6

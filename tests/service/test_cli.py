@@ -99,7 +99,7 @@ def test_render_refuses_ldc_view_options_where_they_mean_nothing():
                  ["--quality-error", "0.05", "--supersample", "4"]):
         r = runner.invoke(app, ["render", "mirror_box", *args, "--api", "http://127.0.0.1:9"])
         assert r.exit_code == 2, r.output
-        assert "--supersample/--antialias set how an LDC method" in r.stderr
+        assert "--supersample/--antialias/--glossy-rays set how an LDC method" in r.stderr
 
 
 def _dead_api() -> dict[str, str]:

@@ -338,7 +338,8 @@ def _render_from_bake(req: RenderRequest, key: str, store: ObjectStore, progress
     progress.report(LOAD_END, "render", force=True)
     t0 = time.perf_counter()
     out = entry.renderer.render(camera, req.method, progress=progress, supersample=req.view.supersample,
-                                antialias=req.view.antialias)
+                                antialias=req.view.antialias, glossy_rays=req.view.glossy_rays,
+                                glossy_filter=req.view.glossy_filter)
     t_render = time.perf_counter() - t0
     renderer_cache().resize(f"bake:{bkey}", runtime_scene_bytes(loaded.runtime) + int(entry.renderer.nbytes))
     progress.report(RENDER_END, "writing", force=True)

@@ -1,0 +1,105 @@
+"""LDC views with the glossy lobe traced (``glossy_rays``) and image-based rays that see the rect
+lights: a glossy floor shows a light seen in a mirror, as the reference renderer does, where the
+light field's gather cannot (the light field holds surfaces, never a light)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import binary_erosion
+
+from engine.errors import InvalidInputError
+from engine.newviews.effects import analyze
+from engine.newviews.ldc import bake_ldc
+from engine.newviews.llf import bake_llf
+from engine.newviews.renderer import PROV_TRACED, LDCViewRenderer
+from engine.raycast import EmbreeCaster
+from engine.reference import ReferenceParams, render_reference
+from engine.scene import CameraParams
+from tests.engine.scenes import mat, quad, scene
+
+# a rect light facing down, a mirror wall behind it facing +z, a purely glossy floor: the floor's
+# radiance is its glossy lobe's alone, the light's reflection seen straight (a highlight) and in
+# the mirror (light -> mirror -> floor -> eye), nothing else
+LIGHT = dict(type="rect", corner=(-0.2, 2.0, -0.7), edge_u=(0.4, 0.0, 0.0), edge_v=(0.0, 0.0, 0.4),
+             radiance=(20.0, 20.0, 20.0))
+KR = 0.9
+CAM = CameraParams("perspective", (0.0, 1.2, 2.5), (0.0, 0.0, -0.5), (0, 1, 0), 64, 64, 50.0)
+MIRROR_CAM = CameraParams("perspective", (0.0, 0.6, 2.5), (0.0, 1.5, -1.5), (0, 1, 0), 64, 64, 50.0)
+REF = ReferenceParams(spp=16, max_depth=3, glossy_samples=64)
+
+
+def _scene(mirror: bool = True):
+    floor = (quad((0.0, 0.0, -0.25), 4.0, normal_axis=1), mat("floor", kd=(0, 0, 0), kg=(0.5, 0.5, 0.5),
+                                                               gloss_exponent=60.0))
+    wall = (quad((0.0, 1.0, -1.5), 3.0, normal_axis=2), mat("mirror", kd=(0, 0, 0), kr=(KR, KR, KR)))
+    return scene([floor, wall] if mirror else [floor], [LIGHT])
+
+
+@pytest.fixture(scope="module")
+def mirrored_light():
+    sc = _scene()
+    caster = EmbreeCaster(sc)
+    plan = analyze(sc)
+    ldc = bake_ldc(sc, caster, 64, plan=plan)
+    llf = bake_llf(sc, caster, 2, 16, params=ReferenceParams(max_depth=2, glossy_samples=4))
+    ref = render_reference(sc, CAM, REF)
+    return sc, plan, ldc, llf, ref
+
+
+def _floor_spot(ref, floor):
+    """The floor's pixels lit by the light's image in the mirror: bright in the reference, dark
+    without the mirror (where the light's direct highlight is negligible)."""
+    no_mirror = render_reference(_scene(mirror=False), CAM, REF).radiance.mean(axis=2)
+    y = ref.radiance.mean(axis=2)
+    return floor & (no_mirror < 0.01) & (y > 0.1)
+
+
+def test_glossy_rays_show_a_light_seen_in_a_mirror(mirrored_light):
+    sc, plan, ldc, llf, ref = mirrored_light
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    floor = binary_erosion(ref.object_id == 0, iterations=2)
+    spot = _floor_spot(ref, floor)
+    assert spot.sum() >= 50
+    y_ref = ref.radiance.mean(axis=2)
+    gathered = r.render(CAM, "ldc+ibrt:1")
+    traced = r.render(CAM, "ldc+ibrt:1", glossy_rays=64)
+    y_g, y_t = gathered.radiance.mean(axis=2), traced.radiance.mean(axis=2)
+    print(f"spot mean: reference {y_ref[spot].mean():.4f}, gathered {y_g[spot].mean():.4f}, "
+          f"traced {y_t[spot].mean():.4f}; floor mean {y_ref[floor].mean():.4f} / {y_g[floor].mean():.4f} / "
+          f"{y_t[floor].mean():.4f}")
+    # the light field cannot show the light's image: the gathered spot is dark
+    assert y_g[spot].mean() < 0.05 * y_ref[spot].mean()
+    # the traced lobe finds it through the mirror, with the reference's brightness
+    assert y_t[spot].mean() == pytest.approx(y_ref[spot].mean(), rel=0.1)
+    assert y_t[floor].mean() == pytest.approx(y_ref[floor].mean(), rel=0.05)
+    assert (traced.provenance[floor] == PROV_TRACED).all()
+    assert traced.counts["glossy_rays"] > 0 and traced.plan["passes"]["ibrt"]["glossy_rays"] == 64
+    assert not traced.plan["passes"]["gather"]["ran"]
+    # deterministic
+    again = r.render(CAM, "ldc+ibrt:1", glossy_rays=64)
+    assert np.array_equal(again.radiance, traced.radiance)
+
+
+def test_mirror_rays_show_the_light(mirrored_light):
+    """A traced mirror ray that meets a rect light shows the light's radiance (times kr), as the
+    reference renderer's mirror chain does; before that it showed what lay behind the light."""
+    sc, plan, ldc, llf, ref = mirrored_light
+    res = LDCViewRenderer(sc, ldc, llf, plan).render(MIRROR_CAM, "ldc+ibrt:1")
+    ref = render_reference(sc, MIRROR_CAM, REF)
+    mirror = res.object_id == 1
+    # the reference's pixels wholly on the light's image (the light seen straight, 20, is not the LDC's to show)
+    lit = mirror & (np.abs(ref.radiance.mean(axis=2) - KR * 20.0) < 0.01 * KR * 20.0)
+    assert lit.sum() >= 4
+    np.testing.assert_allclose(res.radiance[lit], KR * 20.0, rtol=1e-5)
+
+
+def test_glossy_rays_need_traced_methods(mirrored_light):
+    sc, plan, ldc, llf, _ = mirrored_light
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    for method in ("ldc", "ldc+llf", "ldc+ibrt:0"):
+        with pytest.raises(InvalidInputError, match="glossy_rays"):
+            r.render(CAM, method, glossy_rays=4)
+    for bad in (-1, 257, 2.5, True):
+        with pytest.raises(InvalidInputError, match="glossy_rays"):
+            r.render(CAM, "ldc+ibrt:1", glossy_rays=bad)
