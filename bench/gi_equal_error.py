@@ -25,9 +25,11 @@ the mirror / glossy box at the Mitsuba cross-check's ``MIRROR_BOUNCES`` / ``MIRR
 traces the same bounce count.
 
 Equal error: for each image-based setting (LDC resolution, indirect noise level, method,
-supersampling and ``antialias``; direct light at ``LDC_AREA_SAMPLES`` rect-light points per LDC
-sample), its LRMS against the ground truth over the views (``comparison_mask``: covered pixels not
-next to an emitter, nor showing a rect light directly or through mirrors), its render time; and the time our
+supersampling and ``antialias``, the glossy lobe gathered or traced with ``glossy_rays`` per
+pixel (the scene's ``glossy_rays``, at one sample and at 4 x 4 edges); direct light at
+``LDC_AREA_SAMPLES`` rect-light points per LDC sample), its LRMS against the ground truth over the
+views (``comparison_mask``: covered pixels not next to an emitter, nor showing a rect light directly
+or through mirrors), its render time; and the time our
 reference (``spp`` = indirect paths per pixel raised along ``REF_LADDER``) and Mitsuba 3
 (multijitter, ``MI_LADDER``) each need to reach that LRMS, interpolated log-log on their ladders
 (measured on 2 of the views; beyond a ladder's end extrapolated with error ~ time^-1/2, marked).
@@ -102,13 +104,14 @@ class SceneSpec:
     gt_ms: float  # the ground truth's time budget per view
     method: str = "ldc"
     llf: tuple[int, int] | None = None
+    glossy_rays: tuple[int, ...] = ()  # traced glossy lobes rendered besides the gathered one (``view.glossy_rays``)
 
 
 SCENES = {
     "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02, 1), (256, 0.014, 1),
                                                                              (512, 0.014, 2)), gt_ms=140_000.0),
     "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.03, 1),),
-                                       gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48)),
+                                       gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48), glossy_rays=(16, 64)),
 }
 QUICK_LDC = ((64, 0.05, 1), (128, 0.05, 2))
 
@@ -207,6 +210,11 @@ def _ldc_label(row: dict) -> str:
     """The LDC column: its resolution, and the indirect pass's stride when it is not 1."""
     stride = row.get("stride", 1)
     return f"{row['ldc_resolution']}" + (f", indirect every {stride}" if stride > 1 else "")
+
+
+def _glossy_label(row: dict) -> str:
+    """How a setting's view renders the glossy lobe: the light field's gather, or traced rays."""
+    return f"traced, {row['glossy_rays']} rays" if row.get("glossy_rays") else "gathered"
 
 
 def corrected(err: float, floor: float) -> float:
@@ -311,14 +319,16 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
             f"{ldc.nbytes / 2**20:.1f} MiB")
         r = LDCViewRenderer(sc, ldc, llf, plan)
         classes = [edge_classes(r.render(cam, spec.method), r.silhouette_rel_depth, ldc.background) for cam in cams]
-        for ss, aa in ((1, "uniform"), (2, "uniform"), (EDGES_SS, "edges")):
-            r.render(cams[0], spec.method, supersample=ss, antialias=aa)  # warm
+        rows = [(1, "uniform", 0), (2, "uniform", 0), (EDGES_SS, "edges", 0)]
+        rows += [(ss, aa, m) for m in spec.glossy_rays for ss, aa in ((1, "uniform"), (EDGES_SS, "edges"))]
+        for ss, aa, gr in rows:
+            r.render(cams[0], spec.method, supersample=ss, antialias=aa, glossy_rays=gr)  # warm
             errs, ts, cpus, breakdown, ratios = [], [], [], [], []
             for cam, g, cls in zip(cams, gts, classes, strict=True):
                 dts, dcs = [], []
                 for _ in range(3):
                     c1, t1 = time.process_time(), time.perf_counter()
-                    v = r.render(cam, spec.method, supersample=ss, antialias=aa)
+                    v = r.render(cam, spec.method, supersample=ss, antialias=aa, glossy_rays=gr)
                     dts.append(time.perf_counter() - t1)
                     dcs.append(time.process_time() - c1)
                 ts.append(min(dts))
@@ -327,7 +337,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
                 breakdown.append(error_breakdown(v.radiance, g["radiance"], g["mask"], cls))
                 ratios.append(_mean_y(v.radiance, g["mask"]) / _mean_y(g["radiance"], g["mask"]))
             row = {"ldc_resolution": res, "noise": noise, "stride": stride, "supersample": ss, "antialias": aa,
-                   "lrms": float(np.mean(errs)),
+                   "glossy_rays": gr, "lrms": float(np.mean(errs)),
                    "lrms_max": float(np.max(errs)), "render_ms": 1000 * float(np.median(ts)),
                    "render_cpu_ms": 1000 * float(np.median(cpus)), "bake_s": t_bake, "bake_cpu_s": c_bake,
                    "bake_peak_rss_growth_mib": max(0, rss1 - rss0) / 1024.0, "ldc_mib": ldc.nbytes / 2**20,
@@ -347,7 +357,7 @@ def run(scene_name: str, size: int, n_views: int, log, cache: Path | None, quick
                 per_view_gain = t_ref - row["render_ms"] / 1000
                 row["break_even_views"] = math.ceil(t_bake / per_view_gain) if per_view_gain > 0 else None
             settings.append(row)
-            log(f"  ss{ss} {aa}: lrms {row['lrms']:.4f} (corrected {row['lrms_corrected']:.4f}) "
+            log(f"  ss{ss} {aa} glossy_rays {gr}: lrms {row['lrms']:.4f} (corrected {row['lrms_corrected']:.4f}) "
                 f"{row['render_ms']:.1f} ms; reference {t_ref} s, mitsuba {t_mi} s")
     # the smallest bake without indirect light, for the record of what indirect light adds
     res0 = (QUICK_LDC if quick else spec.ldc)[0][0]
@@ -501,18 +511,19 @@ def scene_block(res: dict) -> list[str]:
                      f"the ground truth's {100 * c['gt_noise_lrms']:.2f} %; both taken out in quadrature "
                      f"{100 * c['lrms_vs_gt_corrected']:.2f} %. Mean brightness ratio ours / Mitsuba "
                      f"{c['mean_ratio_gt_over_mitsuba']:.4f}.")
-    lines += ["", "| LDC | indirect noise (paths per side) | ss | antialias | LRMS mean (max) | corrected | "
-                  "view ms (CPU ms) | our reference s at that LRMS | Mitsuba s at that LRMS | x vs reference | "
-                  "x vs Mitsuba | bake s (CPU s) | LDC MiB | break-even views | worst 1 % of pixels' share of error | "
+    lines += ["", "| LDC | indirect noise (paths per side) | ss | antialias | glossy lobe | LRMS mean (max) | "
+                  "corrected | view ms (CPU ms) | our reference s at that LRMS | Mitsuba s at that LRMS | "
+                  "x vs reference | x vs Mitsuba | bake s (CPU s) | LDC MiB | break-even views | "
+                  "worst 1 % of pixels' share of error | "
                   "LRMS without worst 2 % | mean brightness ratio |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["settings"]:
         t_view = r["render_ms"] / 1000
         xr = r["ref_s_at_error"] / t_view if r["ref_s_at_error"] else None
         xm = r["mitsuba_s_at_error"] / t_view if r["mitsuba_s_at_error"] else None
         lines.append(
             f"| {_ldc_label(r)} | {r['noise']:.3f} ({_paths_label(r)}) | {r['supersample']} | "
-            f"{r['antialias'] if r['supersample'] > 1 else '-'} | {100 * r['lrms']:.2f} % "
+            f"{r['antialias'] if r['supersample'] > 1 else '-'} | {_glossy_label(r)} | {100 * r['lrms']:.2f} % "
             f"({100 * r['lrms_max']:.2f} %) | {100 * r['lrms_corrected']:.2f} % | "
             f"{r['render_ms']:.1f} ({r['render_cpu_ms']:.1f}) | "
             f"{_s(r['ref_s_at_error'], r['ref_extrapolated'])} | "
@@ -527,12 +538,13 @@ def scene_block(res: dict) -> list[str]:
                   "part of the LRMS (the region's squared error over all compared pixels; the parts add in "
                   "quadrature to the LRMS). The interior part includes the ground truth's noise "
                   f"({100 * gt['noise_lrms_seed_to_seed']:.2f} % over the whole image).", "",
-              "| LDC | noise | ss | antialias | geometric edges (pixels) | shading edges (pixels) | interior |",
-              "|---|---|---|---|---|---|---|"]
+              "| LDC | noise | ss | antialias | glossy lobe | geometric edges (pixels) | shading edges (pixels) | "
+              "interior |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in res["settings"]:
         g = r["regions"]
         lines.append(f"| {_ldc_label(r)} | {r['noise']:.3f} | {r['supersample']} | "
-                     f"{r['antialias'] if r['supersample'] > 1 else '-'} | "
+                     f"{r['antialias'] if r['supersample'] > 1 else '-'} | {_glossy_label(r)} | "
                      f"{100 * g['geometric_share']:.0f} % / {100 * g['geometric_lrms']:.2f} % "
                      f"({100 * g['geometric_pixels']:.1f} %) | {100 * g['shading_share']:.0f} % / "
                      f"{100 * g['shading_lrms']:.2f} % ({100 * g['shading_pixels']:.1f} %) | "
@@ -581,7 +593,8 @@ def plot(res: dict) -> Path:
     for r in res["settings"]:
         aa = f" {r['antialias']}" if r["supersample"] > 1 else ""
         ax.loglog([r["render_ms"] / 1000], [r["lrms"]], "*", markersize=12,
-                  label=f"LDC {_ldc_label(r)} noise {r['noise']} ss{r['supersample']}{aa} "
+                  label=f"LDC {_ldc_label(r)} noise {r['noise']} ss{r['supersample']}{aa}"
+                        f"{' glossy ' + str(r['glossy_rays']) if r.get('glossy_rays') else ''} "
                         f"(bake {r['bake_s']:.0f} s)")
     ax.axhline(res["ground_truth"]["noise_lrms_seed_to_seed"], color="grey", ls=":", label="ground truth noise")
     ax.set_xlabel("seconds per view")

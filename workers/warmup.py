@@ -431,6 +431,8 @@ class _Run:
     def ldc_render(self, method: str, *, with_llf: bool) -> None:
         bake = self.bake_params if with_llf else self.no_llf_params
         self.render(method=method, bake=bake.model_dump(mode="json"))
+        if method == "ldc+ibrt:1":  # the traced glossy lobe's kernels (view.glossy_rays; the floor is glossy)
+            self.render(method=method, bake=bake.model_dump(mode="json"), view={"glossy_rays": 2})
 
     def relight_bake(self) -> None:
         """Bake the synthetic dataset into every store kind and publish each as ``bake_job`` does."""

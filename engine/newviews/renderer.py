@@ -1497,7 +1497,10 @@ def _filter_glossy(has, term, normal, depth, mat, w, h, radius, min_cos, rel_dep
                     s1 += term[j, 1]
                     s2 += term[j, 2]
                     cnt += 1
-            out[i, 0], out[i, 1], out[i, 2] = s0 / cnt, s1 / cnt, s2 / cnt
+            if cnt == 0:  # a degenerate normal fails even its own test: the pixel's term unfiltered
+                out[i, 0], out[i, 1], out[i, 2] = term[i, 0], term[i, 1], term[i, 2]
+            else:
+                out[i, 0], out[i, 1], out[i, 2] = s0 / cnt, s1 / cnt, s2 / cnt
 
 
 class _Glossy(NamedTuple):

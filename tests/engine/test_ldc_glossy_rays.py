@@ -103,3 +103,40 @@ def test_glossy_rays_need_traced_methods(mirrored_light):
     for bad in (-1, 257, 2.5, True):
         with pytest.raises(InvalidInputError, match="glossy_rays"):
             r.render(CAM, "ldc+ibrt:1", glossy_rays=bad)
+
+
+def _filter_slow(has, term, normal, depth, mat, w, h, radius, min_cos, rel_depth):
+    out = term.copy()
+    for i in np.flatnonzero(has):
+        y, x = divmod(int(i), w)
+        pick = [j for yy in range(max(0, y - radius), min(h, y + radius + 1))
+                for xx in range(max(0, x - radius), min(w, x + radius + 1))
+                for j in [yy * w + xx]
+                if has[j] and mat[j] == mat[i] and float(normal[i] @ normal[j]) >= min_cos
+                and abs(depth[j] - depth[i]) <= rel_depth * depth[i]]
+        if pick:
+            out[i] = term[pick].mean(axis=0)
+    return out
+
+
+def test_glossy_filter_is_the_plain_same_surface_average():
+    from engine.newviews.renderer import _filter_glossy
+
+    rng = np.random.default_rng(3)
+    w, h = 23, 17
+    n = w * h
+    has = rng.random(n) < 0.7
+    term = rng.random((n, 3))
+    normal = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (n, 1))
+    normal[rng.random(n) < 0.2] = (0.0, 0.6, 0.8)  # a crease: another surface by the normal test
+    normal[5] = 0.0  # degenerate: fails its own test, keeps its own term
+    has[5] = True
+    depth = (1.0 + 0.1 * rng.random(n)).astype(np.float32)
+    depth[rng.random(n) < 0.1] *= 2.0  # a depth step
+    mat = rng.integers(0, 2, n).astype(np.int32)
+    for radius in (0, 1, 3):
+        out = np.zeros_like(term)
+        _filter_glossy(has, term, normal, depth, mat, w, h, radius, 0.95, 0.05, out)
+        want = _filter_slow(has, term, normal, depth, mat, w, h, radius, 0.95, 0.05)
+        np.testing.assert_allclose(out[has], want[has], rtol=1e-12)
+    assert np.array_equal(out[5], term[5])

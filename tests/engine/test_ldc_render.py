@@ -401,18 +401,21 @@ def test_render_is_identical_for_any_thread_count(shiny):
     r = LDCViewRenderer(sc, ldc, llf, plan)
     cam = CameraParams("perspective", (1.4, 0.8, 2.4), (-0.2, -0.1, 0.0), (0, 1, 0), 80, 72, 45.0)
     before = nb.get_num_threads()
-    outs = []
+    outs, glossy = [], []
     try:
         for th in (1, min(2, nb.config.NUMBA_NUM_THREADS), 1):
             nb.set_num_threads(th)
             outs.append(r.render(cam, "ldc+ibrt:2"))
+            glossy.append(r.render(cam, "ldc+ibrt:2", glossy_rays=8, supersample=2, antialias="edges"))
     finally:
         nb.set_num_threads(before)
     assert outs[0].counts["traced_rays"] > 100 and outs[0].counts["hole_rays"] > 0
-    for o in outs[1:]:
-        for key in ("radiance", "depth", "normal", "object_id", "provenance"):
-            assert np.array_equal(getattr(outs[0], key), getattr(o, key)), key
-        assert o.counts == outs[0].counts
+    assert glossy[0].counts["glossy_rays"] > 1000
+    for runs in (outs, glossy):
+        for o in runs[1:]:
+            for key in ("radiance", "depth", "normal", "object_id", "provenance"):
+                assert np.array_equal(getattr(runs[0], key), getattr(o, key)), key
+            assert o.counts == runs[0].counts
 
 
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])
