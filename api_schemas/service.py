@@ -206,10 +206,12 @@ class LDCViewParams(FrozenModel):
     """``edges``: the s x s sub-pixel samples only in the pixels at an edge of the one-sample image
     (silhouettes, depth jumps, shadow and light borders; the other pixels are the one-sample image's);
     ``uniform``: in every pixel (s^2 the work). No effect at ``supersample`` 1."""
-    glossy_rays: Annotated[int, _bounds(GLOSSY_RAYS)] = int(GLOSSY_RAYS.default or 0)
-    """``ldc+ibrt:k`` (k >= 1) only: n image-based rays traced through each glossy pixel's lobe, followed
-    through k mirror bounces to the lights, instead of gathering the lobe from the light field (docs/ldc.md,
-    *Traced glossy reflections*): a glossy surface then shows lights seen in mirrors. 0: gathered."""
+    glossy_rays: Annotated[int, _bounds(GLOSSY_RAYS)] | Literal["auto"] = "auto"
+    """n image-based rays traced through each glossy pixel's lobe, followed through k mirror bounces to the
+    lights, instead of gathering the lobe from the light field (``ldc+ibrt:k`` with k >= 1 only; docs/ldc.md,
+    *Traced glossy reflections*): a glossy surface then shows lights seen in mirrors. 0: gathered. ``auto``
+    (the default): 16 rays where a glossy surface may see a rect light in a mirror (the scene has glossy and
+    mirror surfaces and rect lights) and the method traces rays, else 0."""
     glossy_filter: Annotated[int, _bounds(GLOSSY_FILTER)] = int(GLOSSY_FILTER.default or 0)
     """With ``glossy_rays``: the radius in pixels over which the traced glossy term is averaged among the
     pixels of the same surface (0: not filtered; the rays' noise against a little blur)."""
@@ -500,7 +502,8 @@ class RenderRequest(FrozenModel):
             raise_errors("RenderRequest", [error_at(
                 ("view",), "view_with_reference", f"view sets how the LDC methods render from a bake; method "
                 f"'{self.method}' takes its settings in params: leave out view", self.view.model_dump())])
-        if self.view.glossy_rays and self.quality is None and not (parse_method(self.method).ibrt_generations or 0):
+        if self.view.glossy_rays not in (0, "auto") and self.quality is None and \
+                not (parse_method(self.method).ibrt_generations or 0):
             raise_errors("RenderRequest", [error_at(
                 ("view", "glossy_rays"), "glossy_rays_untraced", f"glossy_rays traces image-based rays: it needs "
                 f"method 'ldc+ibrt:k' with k >= 1, got '{self.method}'", self.view.glossy_rays)])

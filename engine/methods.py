@@ -298,6 +298,11 @@ GLOSSY_RAYS = Param("glossy_rays", 0, 0, 256, "n: image-based rays traced per gl
                     "the light field)")
 """The LDC views' traced glossy lobe (``engine.newviews.renderer.LDCViewRenderer.render``)."""
 
+GLOSSY_RAYS_AUTO = 16
+"""``glossy_rays="auto"`` (the default): this many rays where a glossy surface may see a rect light in
+a mirror (the scene has glossy and mirror surfaces and rect lights; ``ldc+ibrt:k``, k >= 1), else 0
+(the light field's gather holds everything else the lobe sees)."""
+
 GLOSSY_FILTER = Param("glossy_filter", 3, 0, 8, "radius in pixels over which the traced glossy term is averaged "
                       "among the pixels of the same surface (0: not filtered)")
 """The filter of the traced glossy term (``glossy_rays``)."""

@@ -48,7 +48,7 @@ from api_schemas.scene import (
 )
 from api_schemas.service import BakeParams, CalibrationParams, RenderRequest, method_needs_bake
 from api_schemas.walkthrough import WalkthroughRequest
-from engine.methods import parse_method
+from engine.methods import GLOSSY_RAYS_AUTO, parse_method
 from engine.newviews.indirect_sampling import expected_paths_per_side
 from engine.walkthrough.path_settings import path_traced_settings
 
@@ -89,6 +89,7 @@ __all__ = [
     "reference_chunk_pixels",
     "relight_cost",
     "render_cost",
+    "scene_auto_glossy_rays",
     "scene_bounds",
     "scene_cost",
     "scene_triangles",
@@ -504,10 +505,11 @@ def _reference_cpu_s(p: Any, pixels: int) -> float:
                                    + REFERENCE_CPU_S_PER_AREA_RAY * p.area_light_samples))
 
 
-def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0) -> Cost:
+def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0, auto_glossy_rays: int = 0) -> Cost:
     """A render job of ``req`` at ``width`` x ``height`` (the request's camera, or the scene's) of a scene
-    of ``triangles``, in a worker (``WORKER_KEPT_BYTES`` included). The memory's image part is
-    ``estimate_render_bytes``."""
+    of ``triangles``, in a worker (``WORKER_KEPT_BYTES`` included); ``auto_glossy_rays``: what
+    ``view.glossy_rays="auto"`` means for the scene (``scene_auto_glossy_rays``). The memory's image part
+    is ``estimate_render_bytes``."""
     pixels = width * height
     if method_needs_bake(req.method):
         # supersampling renders s x s sub-pixels: in every pixel (uniform) or, at most, in every pixel at an edge
@@ -515,15 +517,26 @@ def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0)
         body, cpu = float(LDC_BYTES_PER_PIXEL * pixels * s * s), LDC_CPU_S_PER_PIXEL * pixels * s * s
         where = "edge pixel" if req.view.antialias == "edges" else "pixel"
         spp = f" at {s} x {s} samples per {where}" if s > 1 else ""
-        if req.view.glossy_rays:
-            generations = (parse_method(req.method).ibrt_generations or 0) + 1
-            cpu += GLOSSY_RAY_CPU_S * pixels * s * s * req.view.glossy_rays * generations
-            spp += f", {req.view.glossy_rays} glossy rays per glossy pixel"
+        k = parse_method(req.method).ibrt_generations or 0
+        rays = auto_glossy_rays if req.view.glossy_rays == "auto" else req.view.glossy_rays
+        if rays and k:
+            cpu += GLOSSY_RAY_CPU_S * pixels * rays * (k + 1)  # a pixel's rays are shared by its sub-pixels
+            spp += f", {rays} glossy rays per glossy pixel"
     else:
         body, cpu = _reference_bytes(req.params, pixels), _reference_cpu_s(req.params, pixels)
         spp = f" at {req.params.spp} spp"
     return _plus_scene(f"{req.method} render of {width} x {height}{spp}", triangles, body, cpu,
                        render_bytes=int(MARGIN * (body + FIXED_BYTES)))
+
+
+def scene_auto_glossy_rays(scene: Scene) -> int:
+    """The glossy lobe rays ``view.glossy_rays="auto"`` traces per glossy pixel in ``scene``
+    (``engine.methods.GLOSSY_RAYS_AUTO`` when its materials include glossy and mirror ones and it has a
+    rect light, as the renderer decides from the materials its triangles use), for pricing."""
+    glossy = any(max(m.kg) > 0 for m in scene.materials)
+    mirror = any(max(m.kr) > 0 for m in scene.materials)
+    rect = any(getattr(li, "type", "") == "rect" for li in scene.lights)
+    return GLOSSY_RAYS_AUTO if glossy and mirror and rect else 0
 
 
 def estimate_render_bytes(req: RenderRequest, width: int, height: int) -> int:

@@ -39,12 +39,14 @@ def render_params(req: RenderRequest) -> dict[str, Any]:
         params.pop("quality", None)
     if method_needs_bake(req.method):
         params.pop("params")  # the LDC methods shade with the bake's settings
-        view = req.view
-        if not view.glossy_rays:  # no glossy lobe traced: its filter changes nothing, keys as before
-            params["view"].pop("glossy_rays")
+        view, default = req.view, LDCViewParams()
+        if view.glossy_rays == 0:  # no glossy lobe traced: its filter changes nothing
             params["view"].pop("glossy_filter")
-            view = view.model_copy(update={"glossy_filter": LDCViewParams().glossy_filter})
-        if view == LDCViewParams():  # one sample per pixel (the default): keys as before
+            view = view.model_copy(update={"glossy_filter": default.glossy_filter})
+        elif (view.glossy_rays, view.glossy_filter) == (default.glossy_rays, default.glossy_filter):
+            params["view"].pop("glossy_rays")  # the default glossy lobes: a supersampled view's key as before
+            params["view"].pop("glossy_filter")
+        if view == default:  # one sample per pixel (the default): keys as before
             params.pop("view")
     else:
         params.pop("bake")

@@ -259,7 +259,9 @@ WARMUP_SCENE: dict[str, Any] = {
     "background": [0.05, 0.06, 0.08],
 }
 """The warm-up scene: a glossy floor, a diffuse and a highlight box, a mirror and an emitting
-sphere, lit by a point, a directional and a rect light (every light kind of the scene format)."""
+sphere, lit by a point, a directional and a rect light (every light kind of the scene format; the
+glossy floor under the mirror and the rect light makes ``ldc+ibrt:k`` trace glossy lobes, the view's
+``glossy_rays="auto"``)."""
 
 WALKTHROUGH_SCENE: dict[str, Any] = {
     **WARMUP_SCENE,
@@ -431,8 +433,6 @@ class _Run:
     def ldc_render(self, method: str, *, with_llf: bool) -> None:
         bake = self.bake_params if with_llf else self.no_llf_params
         self.render(method=method, bake=bake.model_dump(mode="json"))
-        if method == "ldc+ibrt:1":  # the traced glossy lobe's kernels (view.glossy_rays; the floor is glossy)
-            self.render(method=method, bake=bake.model_dump(mode="json"), view={"glossy_rays": 2})
 
     def relight_bake(self) -> None:
         """Bake the synthetic dataset into every store kind and publish each as ``bake_job`` does."""

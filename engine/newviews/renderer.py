@@ -70,6 +70,7 @@ from engine.methods import (
     ANTIALIAS_MODES,
     GLOSSY_FILTER,
     GLOSSY_RAYS,
+    GLOSSY_RAYS_AUTO,
     IBRT_GENERATIONS,
     LDC_IBRT,
     MethodSpec,
@@ -1504,10 +1505,11 @@ def _filter_glossy(has, term, normal, depth, mat, w, h, radius, min_cos, rel_dep
 
 
 class _Glossy(NamedTuple):
-    """How a render traces glossy lobes: rays per pixel (0: gathered) and the filter's radius."""
+    """How a render traces glossy lobes: rays per pixel (0: gathered), the filter's radius and why."""
 
     rays: int
     filter: int
+    why: str = "requested"
 
 
 _NO_GLOSSY = _Glossy(0, 0)
@@ -1683,6 +1685,14 @@ class LDCViewRenderer:
         # materials the highlight kernel shades: Phong highlights, and the glossy lobe's reflection of
         # the rect lights (the light field holds surfaces, never a light)
         self._has_hl = self._has_ks | (self._has_kg & (scene.lights.n_rect > 0))
+        # glossy_rays="auto": trace the lobes only where one may see a rect light in a mirror, the one
+        # thing the light field cannot hold (it stores surfaces, never a light)
+        used = np.unique(scene.tri_material) if scene.tri_material.size else np.zeros(0, np.int64)
+        glossy, mirror, rect = bool(self._has_kg[used].any()), bool(self._has_kr[used].any()), scene.lights.n_rect > 0
+        self.auto_glossy_rays = GLOSSY_RAYS_AUTO if (glossy and mirror and rect) else 0
+        self._auto_glossy_why = (
+            "glossy surfaces may see rect lights in mirrors" if self.auto_glossy_rays else
+            "no glossy surface" if not glossy else "no mirror" if not mirror else "no rect light")
 
     # ------------------------------------------------------------------ resources
     @property
@@ -1736,7 +1746,7 @@ class LDCViewRenderer:
     def render(self, camera: CameraParams, method: str, *, ibrt_generations: int = 0,
                progress: Callable[[float, str], None] | None = None, force_all_passes: bool = False,
                fill: str = "ibrt", supersample: int = 1, antialias: str = "uniform",
-               edge_contrast: float = EDGE_CONTRAST, glossy_rays: int = 0,
+               edge_contrast: float = EDGE_CONTRAST, glossy_rays: int | str = "auto",
                glossy_filter: int = _GLOSSY_FILTER_DEFAULT) -> LDCRenderResult:
         """Render ``camera`` with ``method`` ("ldc", "ldc+llf", "ldc+ibrt" (+ ``ibrt_generations``
         0..8) or "ldc+ibrt:k"); see the module docstring. ``supersample`` s (1..4) renders s x s
@@ -1748,7 +1758,9 @@ class LDCViewRenderer:
         neighbourhood) get the s x s samples, on the sub-pixel rays of uniform supersampling
         but without a second warp (``_render_edges``); every other pixel, and every pixel's
         depth, normal, ids and provenance, is the one-sample render's, bit for bit.
-        ``glossy_rays`` n (``ldc+ibrt:k`` with k >= 1 only; 0: the light field's gather) traces n
+        ``glossy_rays`` n (``ldc+ibrt:k`` with k >= 1 only; 0: the light field's gather; "auto", the
+        default: ``GLOSSY_RAYS_AUTO`` where a glossy surface may see a rect light in a mirror,
+        ``auto_glossy_rays``, else 0) traces n
         image-based rays of each glossy pixel's lobe instead of gathering it from the light field
         (``_mirrors``): a glossy surface then shows what its lobe sees through mirrors, lights
         included, at the price of n rays per glossy pixel. Their noise is filtered over the
@@ -1769,21 +1781,27 @@ class LDCViewRenderer:
         if not isinstance(edge_contrast, (int, float)) or isinstance(edge_contrast, bool) or \
                 not (0.0 < float(edge_contrast) <= 1.0):
             raise InvalidInputError(f"edge_contrast must be a number in (0, 1], got {edge_contrast!r}")
-        g = int(GLOSSY_RAYS.check(glossy_rays, "glossy_rays"))
         gf = int(GLOSSY_FILTER.check(glossy_filter, "glossy_filter"))
-        if g and spec.ibrt_generations < 1:
-            raise InvalidInputError(f"glossy_rays traces image-based rays: it needs method 'ldc+ibrt:k' with k >= 1, "
-                                    f"got {spec.wire!r}")
+        if isinstance(glossy_rays, str) and glossy_rays == "auto":
+            g = self.auto_glossy_rays if spec.ibrt_generations >= 1 else 0
+            why = f"auto: {self._auto_glossy_why}" if spec.ibrt_generations >= 1 else "auto: the method traces no rays"
+        else:
+            g = int(GLOSSY_RAYS.check(glossy_rays, "glossy_rays"))
+            if g and spec.ibrt_generations < 1:
+                raise InvalidInputError(f"glossy_rays traces image-based rays: it needs method 'ldc+ibrt:k' with "
+                                        f"k >= 1, got {spec.wire!r}")
+            why = "requested"
+        glossy = _Glossy(g, gf, why)
         with self._lock:
             if supersample == 1:
-                return self._render(camera, spec, progress, bool(force_all_passes), fill, _Glossy(g, gf))
+                return self._render(camera, spec, progress, bool(force_all_passes), fill, glossy)
             s = int(supersample)
             if antialias == "edges":
                 return self._render_edges(camera, spec, progress, bool(force_all_passes), fill, s,
-                                          float(edge_contrast), _Glossy(g, gf))
+                                          float(edge_contrast), glossy)
             big = replace(camera, width=camera.width * s, height=camera.height * s)
             r = self._render(big, spec, progress, bool(force_all_passes), fill,
-                             _Glossy(_glossy_rays_per_subpixel(g, s), gf * s))
+                             _Glossy(_glossy_rays_per_subpixel(g, s), gf * s, why))
             H, W = camera.height, camera.width
             rad = r.radiance.astype(np.float64).reshape(H, s, W, s, 3).mean(axis=(1, 3)).astype(np.float32)
             c = s // 2
@@ -1855,7 +1873,7 @@ class LDCViewRenderer:
             timings["edge_rays"] = time.perf_counter() - t0
             self._smooth_diffuse(fr, np.flatnonzero(fr.obj_id >= 0))
             timings["edge_diffuse"] = fr.timings["diffuse"]
-            g_sub = _Glossy(_glossy_rays_per_subpixel(glossy.rays, s), 0)
+            g_sub = _Glossy(_glossy_rays_per_subpixel(glossy.rays, s), 0, glossy.why)
             vp = self._view_pass(fr, spec, force, None, g_sub.rays)
             self._mirrors(fr, vp, spec, force, g_sub, inherit=(fr1, pix, s))
             timings["edge_surfaces"] = fr.timings["surfaces"]
@@ -2211,6 +2229,7 @@ class LDCViewRenderer:
         fr.passes["ibrt"] = {"ran": bool(trace_mirror and vp.n_reflect), "generations": k,
                              "glossy_rays": int(glossy.rays) if gs.live.size else 0,
                              "glossy_filter": int(glossy.filter) if gs.live.size else 0,
+                             "glossy_why": glossy.why,
                              "why": ("method is not ldc+ibrt:k with k >= 1" if not trace_mirror else why_vp)}
         fr.report(0.95, "ibrt")
 

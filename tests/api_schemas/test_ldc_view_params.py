@@ -87,14 +87,35 @@ def test_glossy_rays_need_a_traced_method_and_key_their_render() -> None:
     assert len({render_artifact_key(r) for r in (plain, traced, unfiltered)}) == 3
     assert render_params(traced)["view"] == {"supersample": 1, "antialias": "edges", "glossy_rays": 16,
                                              "glossy_filter": 3}
-    # without traced rays the filter means nothing: the plain render's key
+    # without traced rays the filter means nothing; "auto" is the default and keeps the plain key
+    gathered = [RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1", "view": v})
+                for v in ({"glossy_rays": 0}, {"glossy_rays": 0, "glossy_filter": 5})]
+    assert render_artifact_key(gathered[0]) == render_artifact_key(gathered[1]) != render_artifact_key(plain)
+    assert render_params(gathered[1])["view"] == {"supersample": 1, "antialias": "edges", "glossy_rays": 0}
     assert render_artifact_key(RenderRequest.model_validate(
-        {"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_filter": 5}})) == render_artifact_key(plain)
+        {"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_rays": "auto"}})) == render_artifact_key(plain)
+    # "auto" is no request for rays: any LDC method takes it
+    for method in ("ldc", "ldc+llf"):
+        RenderRequest.model_validate({"scene_id": SID, "method": method, "view": {"glossy_rays": "auto"}})
 
 
 def test_the_cost_counts_the_glossy_rays() -> None:
     from producer.costs import render_cost
 
-    plain = RenderRequest(scene_id=SID, method="ldc+ibrt:1")
+    plain = RenderRequest(scene_id=SID, method="ldc+ibrt:1", view={"glossy_rays": 0})
     traced = RenderRequest.model_validate({"scene_id": SID, "method": "ldc+ibrt:1", "view": {"glossy_rays": 16}})
+    auto = RenderRequest(scene_id=SID, method="ldc+ibrt:1")
     assert render_cost(traced, 512, 512).cpu_s > render_cost(plain, 512, 512).cpu_s + 16 * 512 * 512 * 1e-6
+    # "auto" is priced by what it means for the scene
+    assert render_cost(auto, 512, 512, auto_glossy_rays=0).cpu_s == render_cost(plain, 512, 512).cpu_s
+    assert render_cost(auto, 512, 512, auto_glossy_rays=16).cpu_s == render_cost(traced, 512, 512).cpu_s
+
+
+def test_auto_glossy_rays_of_a_scene() -> None:
+    from api_schemas import load_scene_file
+    from producer.costs import scene_auto_glossy_rays
+    from samples import sample_path
+
+    assert scene_auto_glossy_rays(load_scene_file(sample_path("cornell_mirror_glossy"))) == 16
+    for name in ("cornell_box", "mirror_box", "teapot_glossy"):  # no glossy, no rect light, no mirror
+        assert scene_auto_glossy_rays(load_scene_file(sample_path(name))) == 0, name

@@ -62,7 +62,7 @@ def test_glossy_rays_show_a_light_seen_in_a_mirror(mirrored_light):
     spot = _floor_spot(ref, floor)
     assert spot.sum() >= 50
     y_ref = ref.radiance.mean(axis=2)
-    gathered = r.render(CAM, "ldc+ibrt:1")
+    gathered = r.render(CAM, "ldc+ibrt:1", glossy_rays=0)
     traced = r.render(CAM, "ldc+ibrt:1", glossy_rays=64)
     y_g, y_t = gathered.radiance.mean(axis=2), traced.radiance.mean(axis=2)
     print(f"spot mean: reference {y_ref[spot].mean():.4f}, gathered {y_g[spot].mean():.4f}, "
@@ -140,3 +140,27 @@ def test_glossy_filter_is_the_plain_same_surface_average():
         want = _filter_slow(has, term, normal, depth, mat, w, h, radius, 0.95, 0.05)
         np.testing.assert_allclose(out[has], want[has], rtol=1e-12)
     assert np.array_equal(out[5], term[5])
+
+
+def test_auto_traces_only_where_a_lobe_may_see_a_light_in_a_mirror(mirrored_light):
+    """glossy_rays="auto" (the default) traces GLOSSY_RAYS_AUTO rays on the glossy floor under the
+    mirror and the rect light, and nothing without the mirror: that image is the gathered one, bit
+    for bit, and the plan says why."""
+    from engine.methods import GLOSSY_RAYS_AUTO
+
+    sc, plan, ldc, llf, _ = mirrored_light
+    r = LDCViewRenderer(sc, ldc, llf, plan)
+    auto = r.render(CAM, "ldc+ibrt:1")
+    assert np.array_equal(auto.radiance, r.render(CAM, "ldc+ibrt:1", glossy_rays=GLOSSY_RAYS_AUTO).radiance)
+    assert auto.plan["passes"]["ibrt"]["glossy_rays"] == GLOSSY_RAYS_AUTO
+    assert "mirrors" in auto.plan["passes"]["ibrt"]["glossy_why"]
+    assert r.render(CAM, "ldc+llf").counts["glossy_rays"] == 0  # no traced method: nothing to trace
+
+    sc2 = _scene(mirror=False)
+    caster = EmbreeCaster(sc2)
+    plan2 = analyze(sc2)
+    r2 = LDCViewRenderer(sc2, bake_ldc(sc2, caster, 32, plan=plan2),
+                         bake_llf(sc2, caster, 2, 8, params=ReferenceParams(max_depth=2, glossy_samples=4)), plan2)
+    a, g = r2.render(CAM, "ldc+ibrt:1"), r2.render(CAM, "ldc+ibrt:1", glossy_rays=0)
+    assert a.counts["glossy_rays"] == 0 and np.array_equal(a.radiance, g.radiance)
+    assert a.plan["passes"]["ibrt"]["glossy_why"] == "auto: no mirror"
