@@ -95,6 +95,7 @@ from engine.reference import _lobe_dir, _rect_light_t
 from engine.sampler import sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import next_block
+from engine.shading import mirror_direction
 
 PROV_NONE = 0
 PROV_WARPED = 1
@@ -685,12 +686,7 @@ def _view_pass_group(counter, axis, ax, pix, cam_pix, samples, rc, cam, mesh, sw
                     gs_wo[i, 0], gs_wo[i, 1], gs_wo[i, 2] = wo0, wo1, wo2
                     gs_mat[i] = m
                 if trace:
-                    c = n0 * wo0 + n1 * wo1 + n2 * wo2
-                    d0, d1, d2 = 2.0 * c * n0 - wo0, 2.0 * c * n1 - wo1, 2.0 * c * n2 - wo2
-                    ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                    d0 /= ln
-                    d1 /= ln
-                    d2 /= ln
+                    d0, d1, d2 = mirror_direction(n0, n1, n2, wo0, wo1, wo2)
                     live = force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
                                      g0 * d0 + g1 * d1 + g2 * d2 > 0.0)
                     ray_live[i] = live
@@ -1388,12 +1384,7 @@ def _shade_group(counter, axis, ax, hits, rays, gen, hp, gp, mesh, acc, lookups,
             acc[q, 2] += thr[i, 2] * l2
             if last:
                 continue
-            c = n0 * wo0 + n1 * wo1 + n2 * wo2
-            e0, e1, e2 = 2.0 * c * n0 - wo0, 2.0 * c * n1 - wo1, 2.0 * c * n2 - wo2
-            ln = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-            e0 /= ln
-            e1 /= ln
-            e2 /= ln
+            e0, e1, e2 = mirror_direction(n0, n1, n2, wo0, wo1, wo2)
             go = force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and g0 * e0 + g1 * e1 + g2 * e2 > 0.0)
             cont[i] = go
             if go:
@@ -1442,12 +1433,7 @@ def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr):
         m = gs.mat[i]
         n0, n1, n2 = gs.ns[i, 0], gs.ns[i, 1], gs.ns[i, 2]
         w0, w1, w2 = gs.wo[i, 0], gs.wo[i, 1], gs.wo[i, 2]
-        c = n0 * w0 + n1 * w1 + n2 * w2
-        e0, e1, e2 = 2.0 * c * n0 - w0, 2.0 * c * n1 - w1, 2.0 * c * n2 - w2
-        ln = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        e0 /= ln
-        e1 /= ln
-        e2 /= ln
+        e0, e1, e2 = mirror_direction(n0, n1, n2, w0, w1, w2)
         ge = gexp[m]
         for k in range(n_rays):
             r = j * n_rays + k

@@ -66,6 +66,7 @@ from engine.newviews.llf import LLF, candidate_directions, direction_to_lattice
 from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN
 from engine.sampler import sample_key
 from engine.scene import RuntimeScene
+from engine.shading import mirror_direction
 from engine.shading import phong_pow as _phong_pow
 
 INV_PI = 1.0 / math.pi
@@ -565,12 +566,7 @@ def gather_point(pt, m, do_mirror, do_glossy, force, cand, best_c, gp):
     s0, s1, s2, wo0, wo1, wo2 = pt[6], pt[7], pt[8], pt[9], pt[10], pt[11]
     r0 = r1 = r2 = 0.0
     lookups = 0
-    c = s0 * wo0 + s1 * wo1 + s2 * wo2
-    d0, d1, d2 = 2 * c * s0 - wo0, 2 * c * s1 - wo1, 2 * c * s2 - wo2
-    ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    d0 /= ln
-    d1 /= ln
-    d2 /= ln
+    d0, d1, d2 = mirror_direction(s0, s1, s2, wo0, wo1, wo2)
     if do_mirror and (force or ((kr[m, 0] > 0.0 or kr[m, 1] > 0.0 or kr[m, 2] > 0.0) and
                                 g0 * d0 + g1 * d1 + g2 * d2 > 0.0)):
         l0, l1, l2, u = _cone(px, py, pz, g0, g1, g2, d0, d1, d2, n_c, k_dirs, f, c_off, c_idx, c_xyz, cand, best_c,
