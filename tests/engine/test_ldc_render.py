@@ -302,14 +302,16 @@ def test_huge_exponents_and_degenerate_cameras_hard_cases_8_11(shiny):
         plan = analyze(sc)
         ldc = bake_ldc(sc, caster, 32, plan=plan)
         llf = bake_llf(sc, caster, 2, 16, params=ReferenceParams(max_depth=1, glossy_samples=2))
-        res = LDCViewRenderer(sc, ldc, llf, plan).render(
-            CameraParams("perspective", (1.0, 1.5, 2.5), (0, -0.3, 0), (0, 1, 0), 32, 32, 45.0), "ldc+ibrt:1")
-        assert np.all(np.isfinite(res.radiance)) and res.radiance.min() >= 0
+        for glossy_rays in (0, 8):  # the lobe gathered, and traced (a lobe narrower than any ray spacing)
+            res = LDCViewRenderer(sc, ldc, llf, plan).render(
+                CameraParams("perspective", (1.0, 1.5, 2.5), (0, -0.3, 0), (0, 1, 0), 32, 32, 45.0), "ldc+ibrt:1",
+                glossy_rays=glossy_rays)
+            assert np.all(np.isfinite(res.radiance)) and res.radiance.min() >= 0
     cams = degenerate_cameras(ldc0.axes[2].ldi.frame.origin, 24, 16)
     r = LDCViewRenderer(sc0, ldc0, llf0, plan0)
     for cam in cams:
-        for method in ("ldc", "ldc+llf", "ldc+ibrt:3"):
-            res = r.render(cam, method)
+        for method, glossy_rays in (("ldc", 0), ("ldc+llf", 0), ("ldc+ibrt:3", 0), ("ldc+ibrt:3", 4)):
+            res = r.render(cam, method, glossy_rays=glossy_rays)
             assert np.all(np.isfinite(res.radiance)) and np.all(np.isfinite(res.depth))
             assert res.radiance.shape == (cam.height, cam.width, 3)
 
