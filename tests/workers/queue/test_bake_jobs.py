@@ -141,10 +141,11 @@ def test_mirror_scene_bakes_light_field_chunks(
 
     results = {}
     keys = {}
-    for method, view in (("ldc+llf", None), ("ldc+ibrt:2", None), ("ldc+llf", {"supersample": 2})):
+    for method, view in (("ldc+llf", None), ("ldc+ibrt:2", None), ("ldc+llf", {"supersample": 2}),
+                         ("ldc+ibrt:2", {"glossy_rays": 4, "glossy_filter": 1})):
         req = RenderRequest.model_validate({"scene_id": pub.id, "method": method, "bake": params.model_dump(),
                                             **({"view": view} if view else {})})
-        name = method + (" edges x2" if view else "")
+        name = method + ((" edges x2" if "supersample" in view else " glossy rays") if view else "")
         rkey, rjob = enqueue_render(redis_conn, req, owner=None, store=worker_store)
         assert rjob is not None
         deadline = time.monotonic() + 90
@@ -164,6 +165,10 @@ def test_mirror_scene_bakes_light_field_chunks(
     assert results["ldc+ibrt:2"]["counts"]["provenance"]["traced"] > 0
     assert "gather" in results["ldc+llf"]["timings"] and "ibrt" in results["ldc+ibrt:2"]["timings"]
     assert results["ldc+llf"]["bake_key"] == key
+    # the view's glossy lobe settings reach the renderer (this scene's default, "auto", traces none: no rect light)
+    assert results["ldc+ibrt:2"]["plan"]["passes"]["ibrt"]["glossy_why"] == "auto: no glossy surface"
+    traced = results["ldc+ibrt:2 glossy rays"]["plan"]["passes"]["ibrt"]
+    assert traced["glossy_why"] == "requested" and keys["ldc+ibrt:2 glossy rays"] != keys["ldc+ibrt:2"]
 
 
 def test_canceling_the_bake_job_cancels_its_parts_then_it_can_be_deleted(
