@@ -1420,20 +1420,20 @@ def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, a
         _shade_group(c_2, np.int64(2), ax2, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr):
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr, live):
     """``n_rays`` rays per glossy surface ``gs`` row in ``rows`` (ray ``j n_rays + k`` of row
     ``rows[j]``): directions from the cos^g lobe around the mirror direction of ``gs.wo`` about
     ``gs.ns`` (the reference renderer's lobe sampling: ``engine.reference._lobe_direction``), the
     2-D points ``sample_2d(key, cam_pix[row], k)`` (one stratified set per pixel), throughput
     ``kg (g + 2) / (g + 1) cos_i / n_rays``: the reference's glossy estimator, averaged. A
-    direction below the shading or the geometric surface gets throughput 0."""
-    for j in range(rows.shape[0]):
+    direction below the shading or the geometric surface gets throughput 0 and ``live`` False."""
+    p, gng, ns, wo, mat = gs.p, gs.ng, gs.ns, gs.wo, gs.mat
+    for j in nb.prange(rows.shape[0]):
         i = rows[j]
-        m = gs.mat[i]
-        n0, n1, n2 = gs.ns[i, 0], gs.ns[i, 1], gs.ns[i, 2]
-        w0, w1, w2 = gs.wo[i, 0], gs.wo[i, 1], gs.wo[i, 2]
-        e0, e1, e2 = mirror_direction(n0, n1, n2, w0, w1, w2)
+        m = mat[i]
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        e0, e1, e2 = mirror_direction(n0, n1, n2, wo[i, 0], wo[i, 1], wo[i, 2])
         ge = gexp[m]
         for k in range(n_rays):
             r = j * n_rays + k
@@ -1445,13 +1445,14 @@ def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr):
             x1 /= lx
             x2 /= lx
             cos_i = n0 * x0 + n1 * x1 + n2 * x2
-            up = gs.ng[i, 0] * x0 + gs.ng[i, 1] * x1 + gs.ng[i, 2] * x2
+            up = gng[i, 0] * x0 + gng[i, 1] * x1 + gng[i, 2] * x2
             f = (ge + 2.0) / (ge + 1.0) * cos_i / n_rays if (cos_i > 0.0 and up > 0.0) else 0.0
-            o[r, 0], o[r, 1], o[r, 2] = gs.p[i, 0], gs.p[i, 1], gs.p[i, 2]
+            o[r, 0], o[r, 1], o[r, 2] = p[i, 0], p[i, 1], p[i, 2]
             d[r, 0], d[r, 1], d[r, 2] = x0, x1, x2
-            ng[r, 0], ng[r, 1], ng[r, 2] = gs.ng[i, 0], gs.ng[i, 1], gs.ng[i, 2]
+            ng[r, 0], ng[r, 1], ng[r, 2] = gng[i, 0], gng[i, 1], gng[i, 2]
             for c3 in range(3):
                 thr[r, c3] = kg[m, c3] * f
+            live[r] = thr[r, 0] > 0.0 or thr[r, 1] > 0.0 or thr[r, 2] > 0.0
 
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -2272,14 +2273,14 @@ class LDCViewRenderer:
             part = order[lo:lo + step]
             n = part.size * n_rays
             o, d, ng, thr = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+            live = np.empty(n, np.bool_)
             _glossy_lobe_rays(rows[part], vp.glossy, cam_pix, self._hp.kg, self._hp.gloss_exponent, n_rays, key,
-                              o, d, ng, thr)
-            keep = np.flatnonzero(thr.max(axis=1) > 0.0)
+                              o, d, ng, thr, live)
+            keep = np.flatnonzero(live)
             fr.counts["glossy_rays"] += int(keep.size)
-            acc = self._trace_rays(o[keep], d[keep], ng[keep], thr[keep], k + 1, 2, fr.counts, force)
-            per = np.zeros((part.size, 3))
-            np.add.at(per, keep // n_rays, acc)
-            term[part] = per
+            acc = np.zeros((n, 3))
+            acc[keep] = self._trace_rays(o[keep], d[keep], ng[keep], thr[keep], k + 1, 2, fr.counts, force)
+            term[part] = acc.reshape(part.size, n_rays, 3).sum(axis=1)  # a pixel's rays are consecutive
         return term
 
     def _trace_rays(self, o, d, ng_o, thr, k, emitters_from, counts, force) -> np.ndarray:
