@@ -256,6 +256,7 @@ function methodChanged(render = true) {
   const m = currentMethod();
   $("k-label").hidden = !m.hasK || $("ask").value !== "method";
   $("aa-label").hidden = !m.needsBake || $("ask").value !== "method";
+  $("glossy-label").hidden = !m.hasK || $("ask").value !== "method"; // traced lobes: ldc+ibrt only
   $("spp-label").hidden = m.needsBake || $("ask").value !== "method"; // the LDC methods render from the bake
   $("provenance-label").hidden = !m.needsBake;
   if (!m.needsBake) $("provenance").checked = false;
@@ -466,6 +467,7 @@ function askChanged(render = true) {
   if (!byMethod) {
     $("k-label").hidden = true;
     $("aa-label").hidden = true;
+    $("glossy-label").hidden = true;
     $("target-unit").textContent = ask === "error" ? "max error %" : "max ms";
     if (ask === "time" && Number($("target").value) < 20) $("target").value = "200";
     if (ask === "error" && Number($("target").value) > 50) $("target").value = "5";
@@ -501,7 +503,14 @@ function requestBody(explicit = null) {
   if (method.needsBake) {
     body.bake = bakeParams();
     const [s, mode] = $("aa").value.split("-");
-    if (Number(s) > 1) body.view = { supersample: Number(s), antialias: mode };
+    const v = {};
+    if (Number(s) > 1) Object.assign(v, { supersample: Number(s), antialias: mode });
+    // the glossy lobes: "auto" is the server's default (left out, so the artifact key stays the plain view's)
+    // (with k >= 1 only: ldc+ibrt:0 traces no rays)
+    if (method.hasK && !method.name.endsWith(":0") && $("glossy").value !== "auto") {
+      v.glossy_rays = Number($("glossy").value);
+    }
+    if (Object.keys(v).length) body.view = v;
   }
   return body;
 }
@@ -2186,6 +2195,7 @@ function bindControls() {
   $("target").addEventListener("change", () => changed());
   $("ibrt-k").addEventListener("change", () => changed());
   $("aa").addEventListener("change", () => changed());
+  $("glossy").addEventListener("change", () => changed());
   $("spp").addEventListener("change", () => changed());
   $("size").addEventListener("change", () => { sizeViewport(); changed(); });
   $("reset-camera").addEventListener("click", () => { if (view.base) { setCamera(view.base); changed(); } });

@@ -153,6 +153,37 @@ def test_antialiasing_an_ldc_view(page: Page, stack: Stack) -> None:
     page.wait_for_function(SETTLED, timeout=60_000)
 
 
+def test_glossy_lobes_of_an_ldc_ibrt_view(page: Page, stack: Stack) -> None:
+    """The Glossy control (ldc+ibrt only) sends the request's ``view.glossy_rays``; "auto", the
+    server's default, is left out, so that view keeps the plain artifact."""
+    expect(page.locator("#glossy-label")).to_be_hidden()  # ldc: no traced rays
+    loads = page.evaluate("window.__preview.loads")
+    page.select_option("#method", "ldc+ibrt")
+    wait_for_load(page, loads)
+    page.wait_for_function(SETTLED, timeout=60_000)
+    expect(page.locator("#glossy-label")).to_be_visible()
+    key_auto = page.locator("#view").get_attribute("data-key")
+    assert "view" not in httpx.get(f"{stack.api_url}/v1/artifacts/{key_auto}", timeout=30).json()["params"]
+    loads = page.evaluate("window.__preview.loads")
+    page.select_option("#glossy", "16")
+    wait_for_load(page, loads)
+    page.wait_for_function(SETTLED, timeout=60_000)
+    key_16 = page.locator("#view").get_attribute("data-key")
+    assert key_16 != key_auto
+    manifest = httpx.get(f"{stack.api_url}/v1/artifacts/{key_16}", timeout=30).json()
+    assert manifest["params"]["view"]["glossy_rays"] == 16
+    assert manifest["result"]["plan"]["passes"]["ibrt"]["glossy_why"] == "requested"
+    shot(page, "13c-ldc-ibrt-glossy-rays")
+    page.select_option("#glossy", "auto")
+    page.wait_for_function(f"({SETTLED}) && document.querySelector('#view').dataset.key === {key_auto!r}",
+                           timeout=60_000)
+    loads = page.evaluate("window.__preview.loads")
+    page.select_option("#method", "ldc")
+    wait_for_load(page, loads)
+    page.wait_for_function(SETTLED, timeout=60_000)
+    expect(page.locator("#glossy-label")).to_be_hidden()
+
+
 def test_provenance_view(page: Page, capabilities: dict[str, Any]) -> None:
     page.check("#provenance")
     img = page.locator("#provenance-img")
