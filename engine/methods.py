@@ -281,10 +281,13 @@ IBRT_GENERATIONS = Param("k", 1, 0, 8, "reflection generations traced through th
 LDC_IBRT = Method(
     name="ldc+ibrt",
     summary="ldc+llf with the mirror term traced through the LDC for k generations (image-based ray "
-            "tracing), the last ending in the light-field gather; glossy terms are always gathered.",
+            "tracing), the last ending in the light-field gather; glossy terms are gathered, or traced "
+            "through k + 1 generations where a glossy surface may see a rect light in a mirror "
+            "(view.glossy_rays).",
     bake=("LDC", "LLF"),
     cost="ldc+llf + k image-based rays per mirror pixel, each hit shaded (diffuse, highlights, glossy "
-         "gather): grows about linearly with k on mirror pixels only.",
+         "gather): grows about linearly with k on mirror pixels only; traced glossy lobes add their rays "
+         "(16 per glossy pixel by default where they are traced).",
     arg=IBRT_GENERATIONS,
     gathers=True,
 )

@@ -40,9 +40,10 @@
    - ``ldc+ibrt`` with ``ibrt_generations`` = k: the mirror term (kr) is traced through the
      LDC for k generations (at each hit: the sample's diffuse radiance + its highlights
      toward the ray + its glossy gather + kr x the next generation), the last generation
-     ending in the mirror-cone gather at its hit; the glossy term is always gathered (one
-     ray cannot sample a lobe). k = 0 is ``ldc+llf``. Rays that leave the LDC see the
-     background.
+     ending in the mirror-cone gather at its hit; a ray that meets a rect light first shows
+     it. The glossy term is gathered, or traced with ``glossy_rays`` (``_mirrors``; by
+     default where a glossy surface may see a rect light in a mirror). k = 0 is ``ldc+llf``.
+     Rays that leave the LDC see the background.
 
 The radiance of a pixel is the sample's view-independent radiance (direct diffuse with
 shadows + ambient + emission, from the bake) + highlights + reflections.

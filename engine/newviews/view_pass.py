@@ -640,7 +640,8 @@ def gather_reflections(scene: RuntimeScene, llf: LLF, p, ng, ns, wo, mat, *, mir
                        force: bool = False) -> tuple[np.ndarray, int]:
     """Reflected radiance (n, 3) float64 toward wo by light-field gather (mirror cone and
     glossy lobe, see module docstring) and the number of LLF lookups made. ``mirror=False``
-    leaves out the mirror term (the glossy lobe is always gathered, as in the renderer).
+    leaves out the mirror term (the glossy lobe is still gathered, as in the renderer unless it
+    traces the lobe: ``engine.newviews.renderer``, ``glossy_rays``).
     ``force``: gather for every point even where kr / kg are 0 (adds exact zeros there)."""
     p, ng, ns, wo, mat = _check_points(p, ng, ns, wo, mat)
     gp = gather_params(scene, llf, cone_directions, background)
