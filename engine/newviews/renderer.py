@@ -2194,24 +2194,20 @@ class LDCViewRenderer:
                     rows = rows[~same]
             term = self._trace_glossy(fr, vp, rows, k, glossy.rays, force)
             frows = vp.pix[rows]
-            if fr.pixels is None and glossy.filter > 0 and rows.size:
+            if fr.pixels is None and rows.size:  # an image frame: the term per pixel, filtered, kept for the edges
                 has = np.zeros(fr.radiance.shape[0], np.bool_)
                 has[frows] = True
                 img = np.zeros_like(fr.radiance)
                 img[frows] = term
-                out = np.zeros_like(img)
-                _filter_glossy(has, img, fr.normal, fr.depth, fr.mat_id, fr.width, fr.height, glossy.filter,
-                               _GLOSSY_FILTER_COS, _GLOSSY_FILTER_DEPTH, out)
-                fr.radiance[frows] += out[frows]
-                fr.glossy, fr.glossy_has = out, has
+                if glossy.filter > 0:
+                    out = np.zeros_like(img)
+                    _filter_glossy(has, img, fr.normal, fr.depth, fr.mat_id, fr.width, fr.height, glossy.filter,
+                                   _GLOSSY_FILTER_COS, _GLOSSY_FILTER_DEPTH, out)
+                    img = out
+                fr.radiance[frows] += img[frows]
+                fr.glossy, fr.glossy_has = img, has
             else:
                 fr.radiance[frows] += term
-                if fr.pixels is None and rows.size:
-                    has = np.zeros(fr.radiance.shape[0], np.bool_)
-                    has[frows] = True
-                    img = np.zeros_like(fr.radiance)
-                    img[frows] = term
-                    fr.glossy, fr.glossy_has = img, has
         fr.timings["ibrt"] = time.perf_counter() - t0
         why_vp = self._why_view_pass(force)
         fr.passes["ibrt"] = {"ran": bool(trace_mirror and vp.n_reflect), "generations": k,
