@@ -205,7 +205,6 @@ def test_calibrating_asks_again_and_shows_the_plan_with_achieved_times(page: Pag
     else:
         assert con["achieved_estimated_error"] is None
         expect(table).to_contain_text("not measured")
-    expect(table).to_contain_text("not measured")
     expect(table).to_contain_text(f"{con['predicted_frame_ms']:.1f} ms per frame")
     expect(table).to_contain_text(f"median {achieved['median']:.1f} ms, max {achieved['max']:.1f} ms per frame")
     expect(table).to_contain_text("none needed" if con["path_noise"] is not None else "ready (in the store)")
