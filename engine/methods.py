@@ -306,6 +306,13 @@ GLOSSY_RAYS_AUTO = 16
 a mirror (the scene has glossy and mirror surfaces and rect lights; ``ldc+ibrt:k``, k >= 1), else 0
 (the light field's gather holds everything else the lobe sees)."""
 
+
+def auto_glossy_rays(glossy: bool, mirror: bool, rect_light: bool) -> int:
+    """The rays per glossy pixel ``glossy_rays="auto"`` traces in a scene with (or without) glossy and
+    mirror surfaces and rect lights: :data:`GLOSSY_RAYS_AUTO` when it has all three, else 0. The
+    renderer decides from the materials its triangles use, the API prices a request from the scene's."""
+    return GLOSSY_RAYS_AUTO if glossy and mirror and rect_light else 0
+
 GLOSSY_FILTER = Param("glossy_filter", 3, 0, 8, "radius in pixels over which the traced glossy term is averaged "
                       "among the pixels of the same surface (0: not filtered)")
 """The filter of the traced glossy term (``glossy_rays``)."""

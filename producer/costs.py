@@ -48,7 +48,7 @@ from api_schemas.scene import (
 )
 from api_schemas.service import BakeParams, CalibrationParams, RenderRequest, method_needs_bake
 from api_schemas.walkthrough import WalkthroughRequest
-from engine.methods import GLOSSY_RAYS_AUTO, parse_method
+from engine.methods import auto_glossy_rays, parse_method
 from engine.newviews.indirect_sampling import expected_paths_per_side
 from engine.walkthrough.path_settings import path_traced_settings
 
@@ -531,12 +531,10 @@ def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0,
 
 def scene_auto_glossy_rays(scene: Scene) -> int:
     """The glossy lobe rays ``view.glossy_rays="auto"`` traces per glossy pixel in ``scene``
-    (``engine.methods.GLOSSY_RAYS_AUTO`` when its materials include glossy and mirror ones and it has a
-    rect light, as the renderer decides from the materials its triangles use), for pricing."""
-    glossy = any(max(m.kg) > 0 for m in scene.materials)
-    mirror = any(max(m.kr) > 0 for m in scene.materials)
-    rect = any(getattr(li, "type", "") == "rect" for li in scene.lights)
-    return GLOSSY_RAYS_AUTO if glossy and mirror and rect else 0
+    (``engine.methods.auto_glossy_rays`` of its declared materials and lights; the renderer asks it of
+    the materials its triangles use), for pricing."""
+    return auto_glossy_rays(any(max(m.kg) > 0 for m in scene.materials), any(max(m.kr) > 0 for m in scene.materials),
+                            any(getattr(li, "type", "") == "rect" for li in scene.lights))
 
 
 def estimate_render_bytes(req: RenderRequest, width: int, height: int) -> int:

@@ -71,11 +71,11 @@ from engine.methods import (
     ANTIALIAS_MODES,
     GLOSSY_FILTER,
     GLOSSY_RAYS,
-    GLOSSY_RAYS_AUTO,
     IBRT_GENERATIONS,
     LDC_IBRT,
     MethodSpec,
     allowed_forms,
+    auto_glossy_rays,
 )
 from engine.methods import parse_method as parse_wire_method
 from engine.newviews.effects import EffectPlan, analyze, plan_from_dict
@@ -1497,10 +1497,7 @@ class _Glossy(NamedTuple):
 
     rays: int
     filter: int
-    why: str = "requested"
-
-
-_NO_GLOSSY = _Glossy(0, 0)
+    why: str
 
 
 def _ldc_axes(ldc: LDC) -> tuple[AxisArrays, AxisArrays, AxisArrays]:
@@ -1677,7 +1674,7 @@ class LDCViewRenderer:
         # thing the light field cannot hold (it stores surfaces, never a light)
         used = np.unique(scene.tri_material) if scene.tri_material.size else np.zeros(0, np.int64)
         glossy, mirror, rect = bool(self._has_kg[used].any()), bool(self._has_kr[used].any()), scene.lights.n_rect > 0
-        self.auto_glossy_rays = GLOSSY_RAYS_AUTO if (glossy and mirror and rect) else 0
+        self.auto_glossy_rays = auto_glossy_rays(glossy, mirror, rect)
         self._auto_glossy_why = (
             "glossy surfaces may see rect lights in mirrors" if self.auto_glossy_rays else
             "no glossy surface" if not glossy else "no mirror" if not mirror else "no rect light")
@@ -1807,13 +1804,13 @@ class LDCViewRenderer:
                                    timings=r.timings, counts=r.counts, plan=r.plan)
 
     def _render(self, camera, spec: MethodSpec, progress, force, fill,
-                glossy: _Glossy = _NO_GLOSSY) -> LDCRenderResult:
+                glossy: _Glossy) -> LDCRenderResult:
         """One render (``render``'s arguments, checked): the stages of the module docstring in
         order, each timed under its name in ``timings``."""
         return self._render_frame(camera, spec, progress, force, fill, glossy)[1]
 
     def _render_frame(self, camera, spec: MethodSpec, progress, force, fill,
-                      glossy: _Glossy = _NO_GLOSSY) -> tuple[_Frame, LDCRenderResult]:
+                      glossy: _Glossy) -> tuple[_Frame, LDCRenderResult]:
         """``_render``, with the frame it ran on."""
         t_start = time.perf_counter()
         fr = self._warp(camera, progress)
@@ -1824,7 +1821,7 @@ class LDCViewRenderer:
         return fr, self._result(fr, spec, fill, force, t_start)
 
     def _render_edges(self, camera: CameraParams, spec: MethodSpec, progress, force: bool, fill: str, s: int,
-                      contrast: float, glossy: _Glossy = _NO_GLOSSY) -> LDCRenderResult:
+                      contrast: float, glossy: _Glossy) -> LDCRenderResult:
         """``render(..., supersample=s, antialias="edges")``: the one-sample render, its edge
         pixels (``_edge_pixels``), then s x s sub-pixel rays in each edge pixel: the very rays
         of uniform supersampling (``camera`` at s times the width and height). No second warp:
@@ -2091,7 +2088,7 @@ class LDCViewRenderer:
                               c(bits, np.uint64))
 
     def _view_pass(self, fr: _Frame, spec: MethodSpec, force: bool, rc: RaycastRecords | None,
-                   glossy_rays: int = 0) -> _ViewPassOut:
+                   glossy_rays: int) -> _ViewPassOut:
         """Stage 3, timed as "surfaces" ("highlights" and "gather" are 0: one fused kernel does
         them): on the covered pixels whose material needs it (the effect plan, or every one
         with ``force``), the surface record, its refinement, the highlights and the light-field
@@ -2151,7 +2148,7 @@ class LDCViewRenderer:
         fr.report(0.75, "gather")
         return _ViewPassOut(vp_pix, int(n_rf), rays, gsurf)
 
-    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, spec: MethodSpec, force: bool, glossy: _Glossy = _NO_GLOSSY,
+    def _mirrors(self, fr: _Frame, vp: _ViewPassOut, spec: MethodSpec, force: bool, glossy: _Glossy,
                  inherit: tuple[_Frame, np.ndarray, int] | None = None) -> None:
         """Stage 4, timed as "ibrt": with ``ldc+ibrt:k`` (k >= 1) the view pass's mirror rays,
         traced through the LDC for k generations (``_trace_rays``) in 16 x 16 pixel tiles
