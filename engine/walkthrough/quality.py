@@ -214,8 +214,8 @@ def apply_time_corrections(model: WalkthroughModel, corrections: Mapping[str, An
     factors = {k: f for k, f in factors.items() if f != 1.0}
     if not factors:
         return model, {}
-    fits = {k: replace(f, b_ms=f.b_ms * factors.get(time_key(k), 1.0), c_ms=f.c_ms * factors.get(time_key(k), 1.0))
-            for k, f in model.fits.items()}
+    scale = {k: factors.get(time_key(k), 1.0) for k in model.fits}
+    fits = {k: replace(f, b_ms=f.b_ms * scale[k], c_ms=f.c_ms * scale[k]) for k, f in model.fits.items()}
     return replace(model, fits=fits), factors
 
 
