@@ -170,10 +170,11 @@ def _number_in(p: Param) -> AfterValidator:
 
 def _number_doc(p: Param) -> Any:
     """The float parameter's description and range in the JSON schema; left out of dumps when not
-    set, so a request without it dumps (and hashes into its artifact key) as before it existed."""
+    set (or set to its default), so a request without it dumps (and hashes into its artifact key)
+    as before it existed."""
     bounds: dict[str, Any] = {"exclusiveMinimum" if p.low_open else "minimum": p.low,
                               "exclusiveMaximum" if p.high_open else "maximum": p.high}
-    return Field(description=p.doc, json_schema_extra=bounds, exclude_if=lambda v: v is None)
+    return Field(description=p.doc, json_schema_extra=bounds, exclude_if=lambda v: v is None or v == p.default)
 
 
 class ReferenceRenderParams(FrozenModel):
@@ -191,6 +192,8 @@ class ReferenceRenderParams(FrozenModel):
     seed: Annotated[int, _bounds(_ref("seed"))] = _int_default("seed")
     max_error: Annotated[FiniteFloat | None, _number_in(_ref("max_error")), _number_doc(_ref("max_error"))] = None
     max_ms: Annotated[FiniteFloat | None, _number_in(_ref("max_ms")), _number_doc(_ref("max_ms"))] = None
+    light_paths: Annotated[FiniteFloat, _number_in(_ref("light_paths")), _number_doc(_ref("light_paths"))] = float(
+        _ref("light_paths").default or 0.0)
 
 
 Antialias = Literal["edges", "uniform"]

@@ -1,9 +1,10 @@
 """Cost of the reference renderer's rect-light test (rays that see lights, engine/reference.py) on
 a scene without mirrors or glossy surfaces: the diffuse Cornell box, one rect light in view.
 
-Wraps ``engine.reference._rect_hits`` with a timer and prints, per render, the render's wall time,
-the time spent in the test (summed over the threads that ran it: the pipelines, or the pieces of a
-batch split over the thread pool) and the rays it tested. Run under the benchmark lock:
+Wraps the reference renderer's ``_rect_hits`` (engine/path_vertex.py) with a timer and prints, per
+render, the render's wall time, the time spent in the test (summed over the threads that ran it:
+the pipelines, or the pieces of a batch split over the thread pool) and the rays it tested.
+Run under the benchmark lock:
 
     flock /tmp/bench.lock python -m bench.reference_light_test_cost
 """

@@ -46,10 +46,13 @@ per technique: ``newviews`` (layered depth cube, light field, image-based ray tr
 # target needs, instead of one count from a rule); walkthrough calibrations measured before it.
 # 0.15.0: LDC views with ldc+ibrt:k (traced mirror rays show the rect lights they meet; the glossy lobe
 # can be traced, view.glossy_rays).
-ENGINE_VERSION = "0.15.0"
+# 0.16.0: reference renders with indirect paths of scenes with caustics seen on diffuse surfaces:
+# the light reaching them through mirror / glossy lobes is light-traced (ReferenceParams.light_paths).
+ENGINE_VERSION = "0.16.0"
 
 # The last ENGINE_VERSION that changed what the reference renderer draws: benchmarks key the ground
 # truths they cache on it, so a change elsewhere in the engine does not throw them away. (0.10.0
 # and 0.11.0 change the error region, which moves an adaptive render's samples between a few
-# pixels near emitters; the cached ground truths stay as converged, so it keeps 0.8.0.)
-REFERENCE_VERSION = "0.8.0"
+# pixels near emitters; the cached ground truths stay as converged, so they kept 0.8.0. 0.16.0's
+# light tracing keeps the converged image and lowers the noise of scenes with caustics.)
+REFERENCE_VERSION = "0.16.0"

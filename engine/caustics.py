@@ -20,12 +20,12 @@ Photons (``build_caustic_map``):
   on a caustic: on the Cornell box the sphere covers about 5 % of the light's hemisphere;
 - at z and every later mirror / glossy hit the photon goes on through the mirror lobe (kr) or the
   glossy lobe (cos^g around the mirror direction, as the reference renderer samples it:
-  ``engine.reference._lobe_direction``), chosen with probability equal to the lobes' mean albedos
+  ``engine.path_vertex._lobe_direction``), chosen with probability equal to the lobes' mean albedos
   (the rest is absorbed), at most ``max_depth`` times;
 - after its first mirror / glossy bounce, every hit on a surface with a diffuse lobe (kd > 0) stores
   the photon (position, the side it arrived on, power). A photon ends on a rect light where the
   renderer's mirror / glossy ray along the same segment, travelling the other way, would end
-  (``engine.reference._rect_hits``: on the light's emitting side): the photon then passes the
+  (``engine.path_vertex._rect_hits``: on the light's emitting side): the photon then passes the
   light from its back, one-sided lights being transparent from the back in that direction only.
 
 Lookups:
@@ -66,8 +66,7 @@ import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
 from engine.errors import InvalidInputError
-from engine.raycast import SHADOW_SHORTEN, RayCaster
-from engine.reference import (
+from engine.path_vertex import (
     DIM_LIGHT,
     DIM_LOBE,
     KIND_SPEC,
@@ -78,6 +77,7 @@ from engine.reference import (
     _rect_hits,
     _surface_frame,
 )
+from engine.raycast import SHADOW_SHORTEN, RayCaster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import RuntimeScene
 from engine.sched import run_pieces_parallel
@@ -116,21 +116,23 @@ def _pick(cdf, u):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _emit(lo, hi, key, n_total, light_cdf, rc, ru, rv, r_n, r_area, rL, r2s, tri_cdf, sg_tri, tri_p, tri_ng, a_sg,
-          center, extent, so_out, sd_out, tmax_out, d_out, prim_out, bu_out, bv_out, w_out, ok_out):
+def _emit(lo, hi, key, first, n_total, light_cdf, rc, ru, rv, r_n, r_area, rL, r2s, tri_cdf, sg_tri, tri_p, tri_ng,
+          a_sg, center, extent, so_out, sd_out, tmax_out, d_out, prim_out, bu_out, bv_out, w_out, ok_out):
     """Photon i: a point y on a rect light (picked by power), a point z on a mirror / glossy
     triangle (picked by area), the power L cos_y cos_z / |y - z|^2 over their density, and the
-    shadow ray from z back to y that decides whether the photon gets there."""
+    shadow ray from z back to y that decides whether the photon gets there. Row i is photon
+    ``first + i`` (its sample index)."""
     for i in range(lo, hi):
         ok_out[i] = False
-        q = _pick(light_cdf, sample_1d(derive_key(key, 0, _DIM_PICK_LIGHT), 0, i))
-        su, sv = sample_2d(derive_key(key, 0, DIM_LIGHT), 0, i)
+        pid = first + i
+        q = _pick(light_cdf, sample_1d(derive_key(key, 0, _DIM_PICK_LIGHT), 0, pid))
+        su, sv = sample_2d(derive_key(key, 0, DIM_LIGHT), 0, pid)
         y0 = rc[q, 0] + su * ru[q, 0] + sv * rv[q, 0]
         y1 = rc[q, 1] + su * ru[q, 1] + sv * rv[q, 1]
         y2 = rc[q, 2] + su * ru[q, 2] + sv * rv[q, 2]
-        k = _pick(tri_cdf, sample_1d(derive_key(key, 0, _DIM_PICK_TRI), 0, i))
+        k = _pick(tri_cdf, sample_1d(derive_key(key, 0, _DIM_PICK_TRI), 0, pid))
         t = sg_tri[k]
-        a, b = sample_2d(derive_key(key, 0, _DIM_TRI_POS), 0, i)
+        a, b = sample_2d(derive_key(key, 0, _DIM_TRI_POS), 0, pid)
         if a + b > 1.0:
             a, b = 1.0 - a, 1.0 - b
         c = 1.0 - a - b
@@ -444,7 +446,7 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
     bv = np.empty(n, np.float32)
     w = np.empty((n, 3))
     ok = np.empty(n, np.bool_)
-    run_pieces_parallel(_emit, n, _MIN_ITEMS, serial, key, float(n), light_cdf, lt.rect_corner, lt.rect_edge_u,
+    run_pieces_parallel(_emit, n, _MIN_ITEMS, serial, key, 0, float(n), light_cdf, lt.rect_corner, lt.rect_edge_u,
                         lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, tri_cdf, sg, scene.tri_p,
                         scene.tri_ng, a_sg, scene.center, scene.extent, so, sd, tmax, d, prim, bu, bv, w, ok)
     live = np.flatnonzero(ok)

@@ -251,6 +251,10 @@ REFERENCE = Method(
         Param("max_ms", None, 0.0, MAX_RENDER_MS, "progressive render that stops when this many milliseconds "
               "of render time are spent (alone or with max_error); not set: no time budget",
               kind="float", low_open=True),
+        Param("light_paths", 1.0, 0.0, 64.0, "light paths per camera sample for the caustics seen on diffuse "
+              "surfaces (light through mirror / glossy surfaces, traced from the lights and joined to the camera; "
+              "pinhole cameras with indirect paths only); 0: the camera's paths find that light too (noisier)",
+              kind="float"),
     ),
 )
 

@@ -83,7 +83,7 @@ import numpy as np
 from engine.errors import NonFiniteOutputError
 from engine.metrics import REC709_WEIGHTS
 
-__all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "RenderRows",
+__all__ = ["AIM", "FIRST_PASS", "GROWTH", "MIN_PASS", "STOP_REASONS", "AdaptiveReport", "LightPass", "RenderRows",
            "estimate_error", "pass_pieces", "run_progressive"]
 
 FIRST_PASS = 4
@@ -214,6 +214,10 @@ def pass_pieces(cnt: np.ndarray, npix: int, chunk_pixels: int, spp: int, pipelin
     return [(int(a), int(b)) for a, b in zip(np.r_[0, cuts], np.r_[cuts, cnt.size], strict=True) if b > a]
 
 
+LightPass = Callable[[int], tuple[np.ndarray, np.ndarray]]
+"""``light_pass(samples)``: light paths for a pass of ``samples`` camera samples traced; returns the
+light-traced part of every pixel (P, 3) as half A's and half B's independent estimates."""
+
 RenderRows = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Callable[[], None]], None]
 """``render_rows(rid, start, cnt, acc, tick)``: samples ``start[a] .. start[a] + cnt[a] - 1`` of
 each virtual pixel ``rid[a]`` added to ``acc[rid]``; ``tick()`` between pieces (it may raise to
@@ -223,14 +227,18 @@ cancel)."""
 def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, max_error: float | None,
                     max_ms: float | None, t_start: float, add_time: Callable[[str, float], None],
                     progress: Callable[[float, str], None] | None = None,
-                    region: np.ndarray | None = None) -> tuple[np.ndarray, AdaptiveReport]:
+                    region: np.ndarray | None = None,
+                    light_pass: LightPass | None = None) -> tuple[np.ndarray, AdaptiveReport]:
     """The passes of a progressive render (see the module docstring) of a ``width`` x ``height``
     image with at most ``spp`` samples per pixel, until ``max_error`` (estimated LRMS over
     ``region`` (h, w) bool, ``ReferenceRenderer.error_region``; None or empty: the whole image) or
     ``max_ms`` after ``t_start`` (``time.perf_counter()``) is reached, or every pixel that could
     improve is at the cap. Returns the radiance (h, w, 3) float64 and the report;
     ``add_time(stage, seconds)`` collects the estimate's time. The renderer
-    (``engine.reference.ReferenceRenderer``) supplies ``render_rows``."""
+    (``engine.reference.ReferenceRenderer``) supplies ``render_rows``, and ``light_pass`` where part
+    of the image is light-traced (engine/light_tracing.py): called after each pass's rows with the
+    pass's camera samples, it traces light paths in proportion and returns the light-traced part of
+    each pixel as two independent estimates, (half A, half B), each added to its half buffer's mean."""
     h, w = height, width
     npix = w * h
     if region is None or not np.any(region):
@@ -270,6 +278,8 @@ def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, 
         cnt = np.concatenate([add[rows], add[rows]])
         t0 = time.perf_counter()
         render_rows(rid, start, cnt, acc, lambda: report(shown[0]))
+        if light_pass is not None:
+            light_a, light_b = light_pass(int(cnt.sum()))
         # seconds per sample of the last pass: later passes sample the noisy (costlier) pixels
         per_sample = (time.perf_counter() - t0) / max(1, int(cnt.sum()))
         n_half += add
@@ -278,7 +288,12 @@ def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, 
         bad = ~np.isfinite(acc)
         if np.any(bad):  # before any estimate or plan reads it
             raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
-        err, v = estimate_error(acc[:npix], acc[npix:], n_half, region)
+        sums = acc
+        if light_pass is not None:  # each half's light-traced estimate, as sums of its samples
+            sums = acc + np.concatenate([light_a, light_b]) * np.tile(n_half, 2)[:, None]
+            if not np.all(np.isfinite(sums)):
+                raise NonFiniteOutputError("light tracing produced non-finite values")
+        err, v = estimate_error(sums[:npix], sums[npix:], n_half, region)
         if first_err is None:
             first_err = err
         add_time("estimate", time.perf_counter() - t0)
@@ -289,7 +304,7 @@ def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, 
         if deadline is not None and time.perf_counter() >= deadline:
             reason = "time"
             break
-        y_mean = float(np.mean(((acc[:npix] + acc[npix:]) @ _LUM / (2.0 * n_half))[region]))
+        y_mean = float(np.mean(((sums[:npix] + sums[npix:]) @ _LUM / (2.0 * n_half))[region]))
         add = _plan(n_half, v, (h, w), cap_half, max_error, y_mean, region)
         if add.sum() == 0:
             reason = "spp_cap"
@@ -303,7 +318,7 @@ def run_progressive(render_rows: RenderRows, width: int, height: int, spp: int, 
                     reason = "time"
                     break
 
-    radiance = ((acc[:npix] + acc[npix:]) / (2.0 * n_half)[:, None]).reshape(h, w, 3)
+    radiance = ((sums[:npix] + sums[npix:]) / (2.0 * n_half)[:, None]).reshape(h, w, 3)
     spp_px = 2 * n_half
     rep = AdaptiveReport(
         estimated_error=float(err), target_met=None if max_error is None else bool(err <= max_error),

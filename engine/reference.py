@@ -71,28 +71,38 @@ from engine.error_region import emitter_pixels, region_around
 from engine.errors import InvalidInputError, NonFiniteOutputError
 from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.methods import REFERENCE
+from engine.path_vertex import (
+    DIM_DIR,
+    DIM_LIGHT,
+    DIM_LOBE,
+    DIM_PIXEL,
+    DIM_RR,
+    INV_PI,
+    KIND_BASE,
+    KIND_CHAIN,
+    KIND_PATH,
+    KIND_SPEC,
+    LIGHT_TRACED,
+    _camera_frame,
+    _dot,
+    _lobe_dir,
+    _lobe_direction,
+    _mean_albedos,
+    _mis_weight,
+    _offset_mag,
+    _rect_hits,
+    _surface_frame,
+)
 from engine.progressive import pass_pieces, run_progressive
-from engine.raycast import OFFSET_EXTENT, OFFSET_REL, SHADOW_SHORTEN, RayCaster, make_caster
+from engine.raycast import SHADOW_SHORTEN, RayCaster, make_caster
 from engine.sampler import derive_key, sample_1d, sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import run_pieces_parallel
 from engine.shading import phong_pow
 
-INV_PI = 1.0 / math.pi
 _NO_LIT = np.zeros(0, np.bool_)  # "no ray ended on a rect light" for _accumulate_misses_and_emission
 _NO_LIT_C = np.zeros((0, 3))
 
-# ray kinds in a wavefront batch
-KIND_CHAIN = 0  # camera ray or a mirror / glossy continuation of one
-KIND_PATH = 1  # an indirect path ray whose last lobe was diffuse
-KIND_SPEC = 2  # an indirect path ray whose last lobe was mirror or glossy (it sees rect lights)
-
-# sample dimensions at a path vertex: derive_key(ray key, vertex, purpose)
-DIM_PIXEL = 1  # (vertex 0) position in the pixel
-DIM_LIGHT = 2  # rect-light positions (then derive_key(., light, stratum))
-DIM_LOBE = 3  # lobe choice at a path vertex
-DIM_DIR = 4  # BSDF direction
-DIM_RR = 5  # Russian roulette at a path vertex
 # a chain hit's children: their key is derive_key(key, vertex, BRANCH_*)
 BRANCH_MIRROR = 10
 BRANCH_GLOSSY = 11
@@ -105,21 +115,6 @@ MIS_MODES = {"power": 0, "balance": 1, "light": 2, "bsdf": 3}
 RR_MIN_BOUNCES = 3
 # jittered samples per pixel that look for emitters seen through mirrors (ReferenceRenderer.error_region)
 MIRROR_EMITTER_SPP = 16
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _mis_weight(mode, a, b):
-    """Weight of strategy a (density x sample count ``a``) against strategy b (``b``): power
-    heuristic (mode 0), balance heuristic (1); mode 2: light sampling alone (a = the light),
-    mode 3: BSDF sampling alone (a = the light: weight 0)."""
-    if mode == 0:
-        a2 = a * a
-        den = a2 + b * b
-        return a2 / den if den > 0.0 else 0.0
-    if mode == 1:
-        den = a + b
-        return a / den if den > 0.0 else 0.0
-    return 1.0 if mode == 2 else 0.0
 
 
 @dataclass(frozen=True)
@@ -153,6 +148,12 @@ class ReferenceParams:
     max_ms: progressive rendering that stops when this many milliseconds of render time are
         spent, in (0, engine.methods.MAX_RENDER_MS] (the render job's timeout), alone or with
         ``max_error``; None: no time budget.
+    light_paths: light paths per camera sample that bring the caustics the camera sees
+        (engine/light_tracing.py): where light reaches a directly seen diffuse surface through
+        mirror / glossy lobes (a pinhole camera, indirect paths, a rect light, mirror or glossy
+        triangles), those paths are traced from the lights and joined to the camera, and the
+        camera's paths leave them out; 0: the camera's paths find them too (unbiased either way,
+        far noisier on a mirror scene: docs/reference-renderer.md).
     """
 
     spp: int = 4
@@ -167,6 +168,7 @@ class ReferenceParams:
     pixel_jitter: bool = True
     max_error: float | None = None
     max_ms: float | None = None
+    light_paths: float = 1.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -178,6 +180,7 @@ class ReferenceParams:
             v = getattr(self, name)
             if not isinstance(v, int) or not (lo <= v <= hi):
                 raise InvalidInputError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+        REFERENCE.param("light_paths").check(self.light_paths)
         if not isinstance(self.pixel_jitter, bool):
             raise InvalidInputError(f"pixel_jitter must be true or false, got {self.pixel_jitter!r}")
         for name in ("max_error", "max_ms"):  # ranges: the registry's (engine/methods.py)
@@ -254,42 +257,6 @@ _MIN_ITEMS = 4096  # per item: a surface frame, a ray's rect-light test, a camer
 _MIN_COPY = 16384  # per item: a few loads and stores (_plan, compactions)
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _dot(a0, a1, a2, b0, b1, b2):
-    return a0 * b0 + a1 * b1 + a2 * b2
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _offset_mag(px, py, pz, center, extent):
-    m = max(abs(px - center[0]), abs(py - center[1]), abs(pz - center[2]))
-    return OFFSET_REL * (m + OFFSET_EXTENT * extent)
-
-
-@nb.njit(cache=True, inline="always", error_model="numpy")
-def _surface_frame(t, uu, vv, dx, dy, dz, tri_n, tri_ng):
-    """Geometric and shading normals of triangle t at barycentrics (uu, vv), both flipped to
-    face a ray travelling along (dx, dy, dz); a shading normal on the wrong side of the
-    geometric one falls back to it. Returns (g0, g1, g2, s0, s1, s2)."""
-    w0 = 1.0 - uu - vv
-    g0, g1, g2 = tri_ng[t, 0], tri_ng[t, 1], tri_ng[t, 2]
-    s0 = w0 * tri_n[t, 0, 0] + uu * tri_n[t, 1, 0] + vv * tri_n[t, 2, 0]
-    s1 = w0 * tri_n[t, 0, 1] + uu * tri_n[t, 1, 1] + vv * tri_n[t, 2, 1]
-    s2 = w0 * tri_n[t, 0, 2] + uu * tri_n[t, 1, 2] + vv * tri_n[t, 2, 2]
-    ls = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-    if ls > 1e-12:
-        s0 /= ls
-        s1 /= ls
-        s2 /= ls
-    else:
-        s0, s1, s2 = g0, g1, g2
-    if _dot(g0, g1, g2, dx, dy, dz) > 0.0:  # back side: flip both
-        g0, g1, g2 = -g0, -g1, -g2
-        s0, s1, s2 = -s0, -s1, -s2
-    if _dot(s0, s1, s2, g0, g1, g2) <= 0.0:  # shading normal on the wrong side
-        s0, s1, s2 = g0, g1, g2
-    return g0, g1, g2, s0, s1, s2
-
-
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _surface(lo, hi, d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out):
     """Hit point, and geometric / shading normals flipped to face the incoming ray."""
@@ -308,12 +275,6 @@ def _surface(lo, hi, d, prim, u, v, tri_p, tri_n, tri_ng, p_out, ng_out, ns_out)
 # function called with arrays pays atomic reference counts on them at every call (on counters both
 # cores share), and a call with more than 30 arguments compiles as a call with *args, which numba
 # neither inlines nor passes cheaply.
-
-@nb.njit(cache=True, error_model="numpy")
-def _mean_albedos(kd0, kd1, kd2, kr0, kr1, kr2, kg0, kg1, kg2):
-    """The diffuse, mirror and glossy lobes' mean albedos (ad, ar, ag)."""
-    return (kd0 + kd1 + kd2) / 3.0, (kr0 + kr1 + kr2) / 3.0, (kg0 + kg1 + kg2) / 3.0
-
 
 @nb.njit(cache=True, error_model="numpy")
 def _glossy_rays_sent(ad, ar, ag, kind, depth, bounces, max_depth, glossy_samples):
@@ -394,7 +355,7 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
         ad, ar, ag = _mean_albedos(kd[m, 0], kd[m, 1], kd[m, 2], kr[m, 0], kr[m, 1], kr[m, 2], kg[m, 0], kg[m, 1],
                                    kg[m, 2])
         c_b = _glossy_rays_sent(ad, ar, ag, kind[i], depth[i], bounces[i], max_depth, glossy_samples)
-        if not path_glossy and kind[i] != KIND_CHAIN:
+        if (not path_glossy and kind[i] != KIND_CHAIN) or kind[i] & LIGHT_TRACED:
             c_b = 0.0
         ge = gexp[m]
         base = i * per
@@ -451,25 +412,6 @@ def _light_rays(lo, hi, p, ng, ns, d, mat, weight, kind, depth, bounces, kd, ks,
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _frame(n0, n1, n2):
-    # orthonormal basis around (n0, n1, n2) (Duff et al. 2017)
-    sign = 1.0 if n2 >= 0.0 else -1.0
-    a = -1.0 / (sign + n2)
-    b = n0 * n1 * a
-    return (1.0 + sign * n0 * n0 * a, sign * b, -sign * n0,
-            b, sign + n1 * n1 * a, -n1)
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _lobe_dir(a0, a1, a2, cos_t, phi):
-    sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
-    t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
-    x = sin_t * math.cos(phi)
-    y = sin_t * math.sin(phi)
-    return (x * t0 + y * b0 + cos_t * a0, x * t1 + y * b1 + cos_t * a1, x * t2 + y * b2 + cos_t * a2)
-
-
-@nb.njit(cache=True, error_model="numpy")
 def _path_lobe(ad, ar, ag, bounces, key, vertex, pix, cidx):
     """The lobe a path vertex continues with, (lobe, scale): 0 mirror, 1 glossy, 2 diffuse, picked
     with probability proportional to the lobes' mean albedos (dimension DIM_LOBE); ``scale`` is the
@@ -486,27 +428,6 @@ def _path_lobe(ad, ar, ag, bounces, key, vertex, pix, cidx):
     if u < ad + ar:
         return 0, tot / ar
     return 1, tot / ag
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _lobe_direction(lb, ckey, vertex, pix, cidx, scale, wr0, wr1, wr2, n0, n1, n2, ge):
-    """A direction from lobe ``lb`` (0 mirror: the unit mirror direction wr itself, 1 glossy: cos^g
-    around wr, 2 diffuse: cosine-weighted around the shading normal n; dimension DIM_DIR of
-    ``ckey``), not normalised, with ``fk``, the factor of the lobe's albedo in the ray's weight (the
-    BSDF times cos over the density: 1, or (g+2)/(g+1) cos_i for the glossy lobe, 0 below n), and
-    ``bp``, a glossy ray's density over ``scale`` (the BSDF strategy of multiple importance
-    sampling, 0 for the other lobes): (x0, x1, x2, fk, bp)."""
-    if lb == 0:
-        return wr0, wr1, wr2, 1.0, 0.0
-    u0, u1 = sample_2d(derive_key(ckey, vertex, DIM_DIR), pix, cidx)
-    if lb == 1:
-        cos_a = math.exp(math.log(max(u0, 1e-300)) / (ge + 1.0))
-        x0, x1, x2 = _lobe_dir(wr0, wr1, wr2, cos_a, 2.0 * math.pi * u1)
-        bp = (ge + 1.0) * 0.5 * INV_PI * phong_pow(cos_a, ge) / scale
-        cos_i = _dot(n0, n1, n2, x0, x1, x2)
-        return x0, x1, x2, (ge + 2.0) / (ge + 1.0) * cos_i if cos_i > 0.0 else 0.0, bp
-    x0, x1, x2 = _lobe_dir(n0, n1, n2, math.sqrt(u0), 2.0 * math.pi * u1)
-    return x0, x1, x2, 1.0, 0.0
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -560,7 +481,7 @@ def _plan(lo, hi, mat, weight, kind, depth, bounces, split, kd, kr, kg, max_dept
                     nin = (k_per_hit + glossy_samples - 1) // glossy_samples
         elif bounces[i] > 0 and (has_kd or has_kr or has_kg):
             npath = 1
-        elif bounces[i] == 0 and rect_lights and (has_kr or has_kg):
+        elif bounces[i] == 0 and rect_lights and (has_kr or has_kg) and not (kind[i] & LIGHT_TRACED):
             npath = 1
         n_mirror[i] = nm
         n_glossy[i] = ngl
@@ -570,7 +491,7 @@ def _plan(lo, hi, mat, weight, kind, depth, bounces, split, kd, kr, kg, max_dept
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, sidx, skey, first, n_mirror, n_glossy,
-           n_ind, count, vertex, total_bounces, rr_min, kd, kr, kg, gexp, center, extent,
+           n_ind, count, vertex, total_bounces, rr_min, light_traced, kd, kr, kg, gexp, center, extent,
            o_out, d_out, d32_out, w_out, kind_out, depth_out, bounces_out, pix_out, sidx_out, skey_out, bpdf_out,
            wref_out, alive):
     """Fill the secondary rays planned by ``_plan``. Lobes: mirror, glossy (cos^g around the
@@ -662,11 +583,15 @@ def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, s
             else:
                 bounces_out[r] = bounces[i]
             if lb == 2:
-                kind_out[r] = KIND_PATH
+                if kind[i] == KIND_CHAIN:
+                    lt = light_traced and depth[i] == 0
+                else:
+                    lt = kind[i] == (KIND_PATH | LIGHT_TRACED)
+                kind_out[r] = (KIND_PATH | LIGHT_TRACED) if lt else KIND_PATH
             elif kind[i] == KIND_CHAIN:
                 kind_out[r] = KIND_CHAIN
             else:
-                kind_out[r] = KIND_SPEC
+                kind_out[r] = KIND_SPEC | (kind[i] & LIGHT_TRACED)
             depth_out[r] = depth[i] if lb == 2 else depth[i] + 1
 
 
@@ -724,97 +649,6 @@ def _gather_hits(lo, hi, idx, prim, u, v, d, w, wref, kind, depth, bounces, pix,
         pix_out[j] = pix[i]
         sidx_out[j] = sidx[i]
         skey_out[j] = skey[i]
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _rect_light_t(ox, oy, oz, dx, dy, dz, c0, c1, c2, u0, u1, u2, v0, v1, v2, n0, n1, n2, area, two_sided):
-    """Distance along a ray (float64 origin, unit direction) to a rect light (corner c, edges u and
-    v, unit normal n) where it meets the light's emitting side (either side if ``two_sided``); inf
-    where it does not."""
-    if area <= 0.0:
-        return np.inf
-    den = _dot(dx, dy, dz, n0, n1, n2)
-    if not (den < 0.0 or (two_sided and den > 0.0)):
-        return np.inf  # parallel, or the back of a one-sided light
-    wx, wy, wz = c0 - ox, c1 - oy, c2 - oz
-    tq = _dot(wx, wy, wz, n0, n1, n2) / den
-    if not tq > 0.0:
-        return np.inf
-    # the hit point's coordinates along the edges: x - corner = a edge_u + b edge_v
-    px, py, pz = tq * dx - wx, tq * dy - wy, tq * dz - wz
-    a = _dot(py * v2 - pz * v1, pz * v0 - px * v2, px * v1 - py * v0, n0, n1, n2) / area
-    b = _dot(u1 * pz - u2 * py, u2 * px - u0 * pz, u0 * py - u1 * px, n0, n1, n2) / area
-    if 0.0 <= a <= 1.0 and 0.0 <= b <= 1.0:
-        return tq
-    return np.inf
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _emitter_mis(bpdf, dist, cos_l, area, gg, mis):
-    """The weight of a rect light met by a ray at distance ``dist`` (cos_l: the cosine at the
-    light): 1 for camera and mirror rays (``bpdf`` 0); for a glossy ray (``bpdf``: its density times
-    its expected count) the BSDF strategy's multiple importance sampling weight against the gg
-    light samples next-event estimation takes (``_row_lobes`` weighs the other side)."""
-    if not bpdf > 0.0:
-        return 1.0
-    n_l = gg * dist * dist / (cos_l * area) if cos_l > 0.0 else np.inf
-    return 1.0 - _mis_weight(mis, n_l, bpdf) if n_l < np.inf else 1.0
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def _rect_hits(lo, hi, o32, d, prim, u, v, kind, weight, bpdf, gg, mis, spec_lit, tri_p, center, rc, ru, rv, r_n,
-               r_area, rL, r2s, lit, c_out):
-    """Rect lights seen by the rays that see lights: camera rays and mirror / glossy continuations
-    (``kind`` KIND_CHAIN or KIND_SPEC; diffuse path rays never do, next-event estimation covers
-    them). A ray that meets a rect light's emitting side (either side if two-sided) before its
-    first triangle ends there: ``lit`` True and ``c_out`` = weight x the light's radiance. A
-    triangle hides the light only when it is nearer than the light by more than the shadow rays'
-    margin (SHADOW_SHORTEN), so an emissive object modelled at the light never counts twice and a
-    light seen by a mirror ray is visible exactly where a shadow ray would reach it. A light's
-    back side (one-sided lights) is not there: the ray goes on, as every other ray does.
-    Origins are float32 relative to ``center``; the triangle's distance is rebuilt in float64
-    from its barycentrics. A glossy ray (``bpdf`` > 0: its density times its expected count)
-    brings the light with the multiple importance sampling weight of the BSDF strategy against
-    the gg light samples next-event estimation takes (``_light_rays`` weighs the other side);
-    camera and mirror rays (``bpdf`` 0) with weight 1. ``spec_lit`` False: path rays of mirror /
-    glossy lobes (KIND_SPEC) still end on a light's emitting side, bringing nothing (a caustic
-    photon map brings that light, engine/caustics.py, and its photons end there too)."""
-    nrect = rc.shape[0]
-    for i in range(lo, hi):
-        lit[i] = False
-        if kind[i] == KIND_PATH:
-            continue
-        ox = np.float64(o32[i, 0]) + center[0]
-        oy = np.float64(o32[i, 1]) + center[1]
-        oz = np.float64(o32[i, 2]) + center[2]
-        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
-        t_tri = np.inf
-        t = prim[i]
-        if t >= 0:
-            uu = np.float64(u[i])
-            vv = np.float64(v[i])
-            w0 = 1.0 - uu - vv
-            hx = w0 * tri_p[t, 0, 0] + uu * tri_p[t, 1, 0] + vv * tri_p[t, 2, 0]
-            hy = w0 * tri_p[t, 0, 1] + uu * tri_p[t, 1, 1] + vv * tri_p[t, 2, 1]
-            hz = w0 * tri_p[t, 0, 2] + uu * tri_p[t, 1, 2] + vv * tri_p[t, 2, 2]
-            t_tri = _dot(hx - ox, hy - oy, hz - oz, dx, dy, dz)
-        best = np.inf
-        hit = -1
-        for q in range(nrect):
-            tq = _rect_light_t(ox, oy, oz, dx, dy, dz, rc[q, 0], rc[q, 1], rc[q, 2], ru[q, 0], ru[q, 1], ru[q, 2],
-                               rv[q, 0], rv[q, 1], rv[q, 2], r_n[q, 0], r_n[q, 1], r_n[q, 2], r_area[q], r2s[q])
-            if tq < best:
-                best = tq
-                hit = q
-        if hit >= 0 and not (t_tri < best * (1.0 - SHADOW_SHORTEN)):
-            lit[i] = True
-            wm = _emitter_mis(bpdf[i], best, abs(_dot(dx, dy, dz, r_n[hit, 0], r_n[hit, 1], r_n[hit, 2])),
-                              r_area[hit], gg, mis)
-            if kind[i] == KIND_SPEC and not spec_lit:
-                wm = 0.0
-            c_out[i, 0] = weight[i, 0] * rL[hit, 0] * wm
-            c_out[i, 1] = weight[i, 1] * rL[hit, 1] * wm
-            c_out[i, 2] = weight[i, 2] * rL[hit, 2] * wm
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -987,16 +821,6 @@ def _compact_shadow(lo, hi, live, so, sd, tmax, so_out, sd_out, tm_out):
         tm_out[j] = tmax[i]
 
 
-def _camera_frame(camera: CameraParams):
-    """(right, up, forward, x scale, y scale) of the camera kernels: perspective scales are
-    tan(fov/2) * aspect and tan(fov/2), orthographic ones the half extents."""
-    right, up, fwd = camera.basis()
-    if camera.kind == "perspective":
-        th = math.tan(math.radians(camera.fov_y_deg) * 0.5)
-        return right, up, fwd, th * camera.width / camera.height, th
-    return right, up, fwd, 0.5 * camera.ortho_height * camera.width / camera.height, 0.5 * camera.ortho_height
-
-
 # ============================================================================ driver
 
 
@@ -1105,10 +929,18 @@ class ReferenceRenderer:
         chunk = max(1, min(params.chunk_pixels, max(1024, -(-npix // 8))))
         n_chunks = (npix + chunk - 1) // chunk
         chunks = [np.arange(ci * chunk, min(npix, (ci + 1) * chunk)) for ci in range(n_chunks)]
-        run_pieces(lambda ci, t, c, serial: self._render_chunk(camera, params, chunks[ci], ci, acc, t, c, serial),
+        tracer = self._light_tracer(camera, params)
+        run_pieces(lambda ci, t, c, serial: self._render_chunk(camera, params, chunks[ci], ci, acc, t, c, serial,
+                                                               tracer is not None),
                    n_chunks, min(params.pipelines, n_chunks), timer, counts,
                    None if progress is None else (lambda f: progress(f, "render")))
-        radiance = (acc / params.spp).reshape(h, w, 3)
+        radiance = acc / params.spp
+        if tracer is not None:
+            n_light = max(1, round(params.light_paths * params.spp * npix))
+            light = np.zeros((npix, 3))
+            tracer.trace(0, n_light, 0, light, timer.add, counts)
+            radiance += light / n_light
+        radiance = radiance.reshape(h, w, 3)
         bad = ~np.isfinite(radiance)
         if np.any(bad):
             raise NonFiniteOutputError(f"reference render produced {int(bad.sum())} non-finite values")
@@ -1129,25 +961,50 @@ class ReferenceRenderer:
         depth, normal, oid, mid = self._aovs(camera, timer)
         npix = camera.width * camera.height
 
+        tracer = self._light_tracer(camera, params)
+
         def render_rows(rid, start, cnt, acc, tick) -> None:
             pieces = pass_pieces(cnt, npix, params.chunk_pixels, params.spp, params.pipelines)
 
             def piece(i: int, t: _Timer, c: dict[str, int], serial: bool) -> None:
                 a, b = pieces[i]
-                self._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial)
+                self._render_rows(camera, params, rid[a:b], start[a:b], cnt[a:b], acc, t, c, serial,
+                                  tracer is not None)
 
             run_pieces(piece, len(pieces), min(params.pipelines, len(pieces)), timer, counts, lambda _: tick())
+
+        light_pass = None
+        if tracer is not None:
+            light = np.zeros((2, npix, 3))
+            traced = [0, 0]
+
+            def light_pass(samples: int) -> tuple[np.ndarray, np.ndarray]:
+                # each half buffer gets light paths in proportion to the camera samples of the pass
+                k = max(1, round(params.light_paths * samples / 2))
+                for half in (0, 1):
+                    tracer.trace(traced[half], k, half, light[half], timer.add, counts)
+                    traced[half] += k
+                return light[0] / traced[0], light[1] / traced[1]
 
         t0 = time.perf_counter()
         region = self.error_region(camera, oid, depth, params.max_depth)
         timer.add("error_region", time.perf_counter() - t0)
         radiance, rep = run_progressive(render_rows, camera.width, camera.height, params.spp, params.max_error,
-                                        params.max_ms, t_start, timer.add, progress, region)
+                                        params.max_ms, t_start, timer.add, progress, region, light_pass)
         timer.add("total", time.perf_counter() - t_start)
         if progress is not None:
             progress(1.0, "render")
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict(),
                             region)
+
+    def _light_tracer(self, camera: CameraParams, params: ReferenceParams):
+        """The render's ``engine.light_tracing.CausticLightTracer``, None where no path is light-traced
+        (``light_paths`` 0, or ``engine.light_tracing.applies`` says no)."""
+        from engine import light_tracing  # it builds on this module's kernels
+
+        if params.light_paths <= 0.0 or not light_tracing.applies(self.scene, camera, params.indirect_samples):
+            return None
+        return light_tracing.CausticLightTracer(self.scene, self.caster, camera, params.indirect_bounces, params.seed)
 
     def error_region(self, camera: CameraParams, object_id: np.ndarray, depth: np.ndarray,
                      max_depth: int) -> np.ndarray:
@@ -1315,7 +1172,7 @@ class ReferenceRenderer:
         return depth, normal.reshape(h, w, 3).astype(np.float32), oid, mid
 
     def _render_chunk(self, camera, params: ReferenceParams, ids, ci, acc, timer, counts,
-                      serial: bool) -> None:
+                      serial: bool, light_traced: bool = False) -> None:
         right, up, fwd, sxs, sys_ = _camera_frame(camera)
         gx = int(math.ceil(math.sqrt(params.spp)))
 
@@ -1326,10 +1183,10 @@ class ReferenceRenderer:
                                 sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix, sidx, skey,
                                 bool(params.pixel_jitter))
 
-        self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial)
+        self._trace_camera_rays(params, ids.shape[0] * params.spp, fill, acc, timer, counts, serial, light_traced)
 
     def _render_rows(self, camera, params: ReferenceParams, rid, start, cnt, acc, timer, counts,
-                     serial: bool) -> None:
+                     serial: bool, light_traced: bool = False) -> None:
         """Samples ``start[a] .. start[a] + cnt[a] - 1`` of each virtual pixel ``rid[a]`` (see
         ``_camera_rows``), accumulated into ``acc[rid]`` (acc has a row per virtual pixel)."""
         first = np.zeros(rid.shape[0], np.int64)
@@ -1342,10 +1199,12 @@ class ReferenceRenderer:
                                 camera.kind == "orthographic", np.asarray(camera.eye, np.float64), right, up, fwd, sxs,
                                 sys_, sample_key(params.seed, 0), self.scene.center, o32, d, d32, pix, sidx, skey)
 
-        self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial)
+        self._trace_camera_rays(params, int(cnt.sum()), fill, acc, timer, counts, serial, light_traced)
 
-    def _trace_camera_rays(self, params: ReferenceParams, n: int, fill, acc, timer, counts, serial: bool) -> None:
-        """n camera rays, written by ``fill(o32, d, d32, pix, sidx, skey)``, traced into ``acc``."""
+    def _trace_camera_rays(self, params: ReferenceParams, n: int, fill, acc, timer, counts, serial: bool,
+                           light_traced: bool = False) -> None:
+        """n camera rays, written by ``fill(o32, d, d32, pix, sidx, skey)``, traced into ``acc``
+        (``light_traced``: see ``_trace``)."""
         t0 = time.perf_counter()
         o32 = np.empty((n, 3), np.float32)
         d = np.empty((n, 3))
@@ -1357,11 +1216,12 @@ class ReferenceRenderer:
         counts["camera"] += n
         timer.add("camera_rays", time.perf_counter() - t0)
         self._trace(params, o32, d, d32, np.ones((n, 3)), np.zeros(n, np.int8), np.zeros(n, np.int32),
-                    np.full(n, params.indirect_bounces, np.int32), pix, sidx, skey, acc, timer, counts, serial)
+                    np.full(n, params.indirect_bounces, np.int32), pix, sidx, skey, acc, timer, counts, serial,
+                    light_traced=light_traced)
 
     def _trace(self, params: ReferenceParams, o32, d, d32, weight, kind, depth, bounces, pix, sidx, skey, acc,
                timer, counts, serial: bool, first_hits=None, pix_base: int = 0, wref=None,
-               total_bounces: int | None = None, caustics: PathLight | None = None) -> None:
+               total_bounces: int | None = None, caustics: PathLight | None = None, light_traced: bool = False) -> None:
         """Trace a batch of chain rays and everything they spawn, accumulating into acc[pix - pix_base];
         ``sidx`` (int64) and ``skey`` (uint64) are each ray's sample index and dimension key
         (engine/sampler.py). ``first_hits`` = (prim int32, u, v float32): the first intersection of
@@ -1372,7 +1232,9 @@ class ReferenceRenderer:
         brings the light paths would find through mirror / glossy lobes to lights: path vertices
         then neither see lights through those lobes nor take the glossy lobe's next-event
         estimation, and every diffuse path vertex with a bounce left gets the map's irradiance (a
-        last vertex's light through a mirror would be a path longer than the bounce budget)."""
+        last vertex's light through a mirror would be a path longer than the bounce budget).
+        ``light_traced``: the diffuse paths of direct camera hits carry the LIGHT_TRACED flag (their
+        light through mirror / glossy lobes is a ``CausticLightTracer``'s, engine/light_tracing.py)."""
         sc = self.scene
         mt = sc.materials
         lt = sc.lights
@@ -1399,7 +1261,7 @@ class ReferenceRenderer:
             # rect lights seen by camera / mirror / glossy rays (a given first hit has no ray to test)
             lit = _NO_LIT
             lit_c = _NO_LIT_C
-            if lt.n_rect and not (it == 1 and first_hits is not None) and np.any(kind != KIND_PATH):
+            if lt.n_rect and not (it == 1 and first_hits is not None) and np.any((kind & KIND_BASE) != KIND_PATH):
                 lit = np.empty(n, np.bool_)
                 lit_c = np.empty((n, 3))
                 run_pieces_parallel(_rect_hits, n, _MIN_ITEMS, serial, o32, d, prim, u, v, kind, weight, bpdf,
@@ -1478,8 +1340,8 @@ class ReferenceRenderer:
             d2_32 = np.empty((tot, 3), np.float32)
             run_pieces_parallel(_spawn, m, _MIN_HEAVY, serial, p, ng, ns, d_h, mat, w_h, wref_h, kind_h, depth_h, bnc_h,
                                 pix_h, sidx_h, skey_h, first, n_mirror, n_glossy, n_ind, count, it, total, self._rr_min,
-                                mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent, o2, d2, d2_32, w2, kind2,
-                                depth2, bnc2, pix2, sidx2, skey2, bpdf2, wref2, alive)
+                                light_traced, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.center, sc.extent, o2, d2,
+                                d2_32, w2, kind2, depth2, bnc2, pix2, sidx2, skey2, bpdf2, wref2, alive)
             n_alive = int(np.count_nonzero(alive))
             if n_alive >= 0.95 * tot:
                 # few dead rays: tracing them (weight 0, they spawn nothing) is cheaper than a copy

@@ -91,8 +91,8 @@ from engine.newviews.view_pass import (
     highlight_point_u,
 )
 from engine.newviews.warp import WarpResult, warp_ldc
+from engine.path_vertex import _lobe_dir, _rect_light_t
 from engine.raycast import RayCaster, make_caster
-from engine.reference import _lobe_dir, _rect_light_t
 from engine.sampler import sample_2d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import next_block
@@ -1425,7 +1425,7 @@ def _shade_hits(groups, hits, rays, gen, hp, gp, mesh, acc, lookups, nxt, ax0, a
 def _glossy_lobe_rays(rows, gs, cam_pix, kg, gexp, n_rays, key, o, d, ng, thr, live):
     """``n_rays`` rays per glossy surface ``gs`` row in ``rows`` (ray ``j n_rays + k`` of row
     ``rows[j]``): directions from the cos^g lobe around the mirror direction of ``gs.wo`` about
-    ``gs.ns`` (the reference renderer's lobe sampling: ``engine.reference._lobe_direction``), the
+    ``gs.ns`` (the reference renderer's lobe sampling: ``engine.path_vertex._lobe_direction``), the
     2-D points ``sample_2d(key, cam_pix[row], k)`` (one stratified set per pixel), throughput
     ``kg (g + 2) / (g + 1) cos_i / n_rays``: the reference's glossy estimator, averaged. A
     direction below the shading or the geometric surface gets throughput 0 and ``live`` False."""
