@@ -325,6 +325,9 @@ def render(
              "this, in (0, 1) (--spp is then the cap per pixel)")] = None,
     max_ms: Annotated[float | None, typer.Option(
         help="Reference: render progressively, stopping after this many milliseconds of render time")] = None,
+    light_paths: Annotated[float | None, typer.Option(
+        help="Reference: light paths per camera sample for caustics seen on diffuse surfaces (light through "
+             "mirrors / glossy surfaces), in [0, 64]; 0: camera paths alone (default 1)")] = None,
     method: Annotated[str | None, typer.Option(help="reference (default), ldc, ldc+llf or ldc+ibrt:k (k = 0..8)")
                       ] = None,
     ldc_resolution: Annotated[int | None, typer.Option(help="LDC methods: the bake's LDC resolution")] = None,
@@ -361,12 +364,13 @@ def render(
 ) -> None:
     """Request a render from the service, follow it with a progress bar and fetch the image."""
     params = {k: v for k, v in {"spp": spp, "indirect_samples": indirect, "indirect_bounces": bounces,
-                                "seed": seed, "max_error": max_error, "max_ms": max_ms}.items() if v is not None}
+                                "seed": seed, "max_error": max_error, "max_ms": max_ms,
+                                "light_paths": light_paths}.items() if v is not None}
     bake = _bake_choice(ldc_resolution, llf_f, indirect_noise)
     contract = quality_error is not None or quality_ms is not None
     if contract and (method is not None or params):
         fail("--quality-error/--quality-ms let the planner choose the method: leave out --method and "
-             "--spp/--indirect/--bounces/--seed/--max-error/--max-ms")
+             "--spp/--indirect/--bounces/--seed/--max-error/--max-ms/--light-paths")
     if verify and not contract:
         fail("--verify measures a quality contract's render: give --quality-error and / or --quality-ms")
     if best_effort and not contract:
@@ -377,8 +381,8 @@ def render(
         fail("--time renders an animated scene at that moment with --method reference; the LDC methods and "
              "--quality-error/--quality-ms work from the bake of the scene as stored")
     if method not in (None, "reference") and params:
-        fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms apply to --method reference; LDC methods use "
-             "the bake's settings")
+        fail("--spp/--indirect/--bounces/--seed/--max-error/--max-ms/--light-paths apply to --method reference; "
+             "LDC methods use the bake's settings")
     view = {k: v for k, v in {"supersample": supersample, "antialias": antialias,
                               "glossy_rays": glossy_rays}.items() if v is not None}
     if view and (contract or method in (None, "reference")):

@@ -17,7 +17,8 @@ settings):
 
 - ``workers.jobs.render.render_job`` for ``reference`` (a 1-chunk image, its kernels split over
   the cores, and a 2-chunk image, two pipelines in threads, with mirror, glossy and indirect
-  paths: the same kernels, each compiled once), and for ``ldc``, ``ldc+llf``, ``ldc+ibrt:1``, ``ldc+ibrt:2`` from a
+  paths and the light-traced caustics of the rect light in the mirror: the same kernels, each
+  compiled once), and for ``ldc``, ``ldc+llf``, ``ldc+ibrt:1``, ``ldc+ibrt:2`` from a
   bake with a light field, plus ``ldc`` from a bake without one (the highlight pass then takes
   other parameter types); every output encoder (preview PNG, EXRs, provenance PNG);
 - the bake those renders read: the bake queue's part jobs (``bake_ldc_axis_job``,

@@ -114,3 +114,19 @@ def test_cli_reports_how_a_progressive_render_ended(api_url: str, worker_process
     assert r.exit_code == 0, (r.output, worker.log())
     assert "estimated error" in r.stderr and "stopped by" in r.stderr and "spp mean" in r.stderr, r.stderr
     assert out.exists()
+
+
+def test_light_paths_reach_the_api_and_the_default_keeps_the_key(api_url: str, tmp_path: Path) -> None:
+    """``--light-paths`` (the reference's light-traced caustics, engine/light_tracing.py) is a render
+    parameter checked by the API; asking for the default is the request without it (the same key)."""
+    scene = _scene_file(tmp_path)
+    r = ibr(api_url, "render", scene, "--light-paths", "65", "--no-wait")
+    assert r.exit_code == 2 and "light_paths must be a number in [0, 64]" in r.stderr, r.output
+    sid = ibr(api_url, "scenes", "add", scene).stdout.strip()
+    r = ibr(api_url, "render", sid, "--light-paths", "4", "--no-wait")
+    assert r.exit_code == 0, r.output
+    req = RenderRequest.model_validate({"scene_id": sid, "params": {"light_paths": 4}})
+    assert r.stdout.strip() == f"render-{render_artifact_key(req)}"
+    default = RenderRequest.model_validate({"scene_id": sid, "params": {"light_paths": 1}})
+    assert render_artifact_key(default) == render_artifact_key(RenderRequest.model_validate({"scene_id": sid}))
+    assert render_artifact_key(default) != render_artifact_key(req)
