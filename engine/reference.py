@@ -507,7 +507,11 @@ def _spawn(lo, hi, p, ng, ns, d, mat, weight, wref, kind, depth, bounces, pix, s
     along the path), the reference of Russian roulette: a path vertex that has used ``rr_min``
     (RR_MIN_BOUNCES; larger: no roulette) of its ``total_bounces`` bounces or more continues with probability
     q = min(1, max(new weight) / wref), decided by dimension DIM_RR, and a survivor's weight is
-    divided by q (so its expected contribution is unchanged)."""
+    divided by q (so its expected contribution is unchanged). ``light_traced``: the diffuse
+    children of direct camera hits (chain depth 0) carry LIGHT_TRACED; a flagged path keeps it
+    through diffuse vertices, then through mirror / glossy ones, and loses it at a diffuse vertex
+    after a mirror / glossy one (engine/light_tracing.py: the light tracer's paths are
+    light -> (mirror | glossy)+ -> diffuse+ -> camera)."""
     for i in range(lo, hi):
         if count[i] == 0:
             continue
