@@ -59,7 +59,7 @@ import threading
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -415,6 +415,90 @@ def _sources(scene: RuntimeScene) -> tuple[np.ndarray, np.ndarray, np.ndarray] |
     return power, sg, tri_area
 
 
+@dataclass(frozen=True)
+class PhotonSources:
+    """What photons leave and aim at (``photon_sources``): the rect lights' picking CDF (by power), the
+    mirror / glossy triangles (``sg``), their picking CDF (by area) and total area, and the rect
+    lights' unit normals and areas."""
+
+    light_cdf: np.ndarray
+    sg: np.ndarray
+    tri_cdf: np.ndarray
+    a_sg: float
+    r_n: np.ndarray
+    r_area: np.ndarray
+
+
+def photon_sources(scene: RuntimeScene) -> PhotonSources | None:
+    """The scene's ``PhotonSources``; None when it has no caustics (``has_caustics``)."""
+    sources = _sources(scene)
+    if sources is None:
+        return None
+    power, sg, tri_area = sources
+    a_sg = float(tri_area.sum())
+    r_n, r_area = scene.lights.rect_frames()
+    return PhotonSources(np.concatenate([[0.0], np.cumsum(power) / power.sum()]), sg,
+                         np.concatenate([[0.0], np.cumsum(tri_area) / a_sg]), a_sg, r_n, r_area)
+
+
+class Emitted(NamedTuple):
+    """Photons that reached a mirror / glossy point (``emit_photons``): their numbers (int64), directions,
+    triangles, barycentrics and power; the shadow rays cast and the seconds Embree took for them."""
+
+    pid: np.ndarray
+    d: np.ndarray
+    prim: np.ndarray
+    bu: np.ndarray
+    bv: np.ndarray
+    w: np.ndarray
+    shadow_rays: int
+    embree_s: float
+
+
+def emit_photons(scene: RuntimeScene, caster: RayCaster, src: PhotonSources, key: Any, first: int, n: int,
+                 n_total: float, serial: bool | None = None) -> Emitted:
+    """Photons ``first`` .. ``first + n - 1`` of ``key`` (``_emit``, power over ``n_total``), kept where
+    the segment from the light to the mirror / glossy point is clear."""
+    lt = scene.lights
+    so = np.empty((n, 3), np.float32)
+    sd = np.empty((n, 3), np.float32)
+    tmax = np.empty(n, np.float32)
+    d = np.empty((n, 3))
+    prim = np.empty(n, np.int32)
+    bu = np.empty(n, np.float32)
+    bv = np.empty(n, np.float32)
+    w = np.empty((n, 3))
+    ok = np.empty(n, np.bool_)
+    run_pieces_parallel(_emit, n, _MIN_ITEMS, serial, key, first, float(n_total), src.light_cdf, lt.rect_corner,
+                        lt.rect_edge_u, lt.rect_edge_v, src.r_n, src.r_area, lt.rect_radiance, lt.rect_two_sided,
+                        src.tri_cdf, src.sg, scene.tri_p, scene.tri_ng, src.a_sg, scene.center, scene.extent, so, sd,
+                        tmax, d, prim, bu, bv, w, ok)
+    live = np.flatnonzero(ok)
+    t0 = time.perf_counter()
+    occ = caster.occluded_local(so[live], sd[live], tmax[live], serial)
+    embree_s = time.perf_counter() - t0
+    rays = int(live.size)
+    live = live[~occ]
+    return Emitted((first + live).astype(np.int64), d[live], prim[live], bu[live], bv[live], w[live], rays, embree_s)
+
+
+def passes_light_toward_origin(scene: RuntimeScene, src: PhotonSources, o32: np.ndarray, d: np.ndarray,
+                               prim: np.ndarray, bu: np.ndarray, bv: np.ndarray,
+                               serial: bool | None = None) -> np.ndarray:
+    """(k,) bool: the segment from each origin to its hit passes a rect light whose emitting side faces
+    the origin, where the path tracer's mirror / glossy ray along the same segment, travelling the
+    other way, would end: ``_rect_hits``' test on the lights turned around (edges swapped, so the
+    normal is negated)."""
+    lt = scene.lights
+    k = o32.shape[0]
+    out = np.empty(k, np.bool_)
+    run_pieces_parallel(_rect_hits, k, _MIN_ITEMS, serial, o32, d, prim, bu, bv, np.full(k, KIND_SPEC, np.int8),
+                        np.zeros((k, 3)), np.zeros(k), 1, 0, True, scene.tri_p, scene.center, lt.rect_corner,
+                        lt.rect_edge_v, lt.rect_edge_u, -src.r_n, src.r_area, lt.rect_radiance, lt.rect_two_sided,
+                        out, np.empty((k, 3)))
+    return out
+
+
 def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radius: float, max_depth: int,
                       seed: int = 0, serial: bool | None = None) -> CausticMap | None:
     """Trace ``photons`` photons aimed at the scene's mirror / glossy surfaces and store those that
@@ -425,35 +509,15 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
         raise InvalidInputError(f"caustic photons must be a positive integer, got {photons!r}")
     if not (isinstance(radius, (int, float)) and 0.0 < radius < 1.0):
         raise InvalidInputError(f"caustic radius must be in (0, 1) of the scene's diagonal, got {radius!r}")
-    sources = _sources(scene)
-    if sources is None:
+    src = photon_sources(scene)
+    if src is None:
         return None
     t0 = time.perf_counter()
-    lt, mt = scene.lights, scene.materials
-    power, sg, tri_area = sources
-    light_cdf = np.concatenate([[0.0], np.cumsum(power) / power.sum()])
-    a_sg = float(tri_area.sum())
-    tri_cdf = np.concatenate([[0.0], np.cumsum(tri_area) / a_sg])
-    r_n, r_area = lt.rect_frames()
+    mt = scene.materials
     key = sample_key(int(seed), _STREAM)
     n = int(photons)
-    so = np.empty((n, 3), np.float32)
-    sd = np.empty((n, 3), np.float32)
-    tmax = np.empty(n, np.float32)
-    d = np.empty((n, 3))
-    prim = np.empty(n, np.int32)
-    bu = np.empty(n, np.float32)
-    bv = np.empty(n, np.float32)
-    w = np.empty((n, 3))
-    ok = np.empty(n, np.bool_)
-    run_pieces_parallel(_emit, n, _MIN_ITEMS, serial, key, 0, float(n), light_cdf, lt.rect_corner, lt.rect_edge_u,
-                        lt.rect_edge_v, r_n, r_area, lt.rect_radiance, lt.rect_two_sided, tri_cdf, sg, scene.tri_p,
-                        scene.tri_ng, a_sg, scene.center, scene.extent, so, sd, tmax, d, prim, bu, bv, w, ok)
-    live = np.flatnonzero(ok)
-    occ = caster.occluded_local(so[live], sd[live], tmax[live], serial)
-    live = live[~occ]
-    pid = live.astype(np.int64)
-    d, prim, bu, bv, w = d[live], prim[live], bu[live], bv[live], w[live]
+    pid, d, prim, bu, bv, w, _, _ = emit_photons(scene, caster, src, key, 0, n, n, serial)
+    reached = pid.size
     parts_pos, parts_nrm, parts_pw = [], [], []
     rays = int(n)
     for vertex in range(1, max_depth + 2):
@@ -482,14 +546,8 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
         prim, bu, bv = caster.intersect_local(o2[go], d2_32[go], serial)
         rays += go.size
         # a photon ends on a rect light where the path tracer's mirror / glossy ray along the same
-        # segment, travelling the other way, would end (on the light's emitting side): _rect_hits' test
-        # on the lights turned around (edges swapped, so the normal is negated)
-        k = go.size
-        ends = np.empty(k, np.bool_)
-        run_pieces_parallel(_rect_hits, k, _MIN_ITEMS, serial, o2[go], d2[go], prim, bu, bv,
-                            np.full(k, KIND_SPEC, np.int8), np.zeros((k, 3)), np.zeros(k), 1, 0, True, scene.tri_p,
-                            scene.center, lt.rect_corner, lt.rect_edge_v, lt.rect_edge_u, -r_n, r_area,
-                            lt.rect_radiance, lt.rect_two_sided, ends, np.empty((k, 3)))
+        # segment, travelling the other way, would end (on the light's emitting side)
+        ends = passes_light_toward_origin(scene, src, o2[go], d2[go], prim, bu, bv, serial)
         hit = (prim >= 0) & ~ends
         go = go[hit]
         pid, d, w = pid[go], d2[go], w2[go]
@@ -498,7 +556,7 @@ def build_caustic_map(scene: RuntimeScene, caster: RayCaster, photons: int, radi
     nrm = np.concatenate(parts_nrm) if parts_nrm else np.zeros((0, 3))
     pw = np.concatenate(parts_pw) if parts_pw else np.zeros((0, 3))
     return _index(scene, pos, nrm, pw, float(radius) * scene.extent, serial,
-                  {"photons": n, "reached": int(live.size), "stored": int(pos.shape[0]), "rays": rays,
+                  {"photons": n, "reached": int(reached), "stored": int(pos.shape[0]), "rays": rays,
                    "radius": float(radius), "max_depth": int(max_depth), "trace_s": time.perf_counter() - t0})
 
 

@@ -19,7 +19,7 @@ E D+ S+ L: a direct camera hit, diffuse path vertices, then mirror / glossy vert
 rect light, whether the light is met by the last mirror / glossy ray or by the glossy lobe's
 next-event estimation (rays of such paths carry the ``LIGHT_TRACED`` flag of their kind). This
 module traces exactly those paths from the light: a point on a rect light (by power) joined to a
-point on a mirror / glossy triangle (by area; ``engine.caustics._emit``), one or more mirror /
+point on a mirror / glossy triangle (by area; ``engine.caustics.emit_photons``), one or more mirror /
 glossy bounces, then diffuse bounces, and every vertex with a diffuse lobe after at least one
 mirror / glossy one is joined to the camera. The bounce budget is the camera side's: a path of
 s mirror / glossy and d diffuse vertices before the one joined to the camera is counted when
@@ -63,16 +63,14 @@ import numba as nb
 import numpy as np
 
 from engine import _numba_setup  # noqa: F401  (numba's configuration before any kernel)
-from engine.caustics import _emit, _sources
+from engine.caustics import PhotonSources, emit_photons, has_caustics, passes_light_toward_origin, photon_sources
 from engine.path_vertex import (
     DIM_LOBE,
     INV_PI,
-    KIND_SPEC,
     _camera_frame,
     _dot,
     _lobe_direction,
     _offset_mag,
-    _rect_hits,
     _rect_light_t,
     _surface_frame,
 )
@@ -81,7 +79,7 @@ from engine.sampler import derive_key, sample_1d, sample_key
 from engine.scene import CameraParams, RuntimeScene
 from engine.sched import run_pieces_parallel
 
-__all__ = ["BATCH", "CausticLightTracer", "applies"]
+__all__ = ["BATCH", "CausticLightTracer", "applies", "light_tracer"]
 
 _STREAM = 24
 """The sampler stream of light paths: sample_key(seed, _STREAM, half), apart from every other
@@ -94,15 +92,26 @@ render of the mirror / glossy box peaked 19 MiB higher with light paths than wit
 _MIN_ITEMS = 4096
 
 
+def _may_apply(scene: RuntimeScene, camera: CameraParams, indirect_samples: int) -> bool:
+    """A pinhole camera, indirect paths and a diffuse surface: what ``applies`` needs besides caustics."""
+    return (camera.kind == "perspective" and indirect_samples > 0 and scene.n_triangles > 0
+            and bool(np.any(scene.materials.kd[scene.tri_material] > 0.0)))
+
+
 def applies(scene: RuntimeScene, camera: CameraParams, indirect_samples: int) -> bool:
     """Are some paths of this render light-traced? A pinhole camera, indirect paths, and light that
-    can reach a diffuse surface through a mirror or a glossy lobe (``engine.caustics._sources``: a
-    rect light that emits and mirror / glossy triangles)."""
-    if camera.kind != "perspective" or indirect_samples <= 0 or not scene.n_triangles:
-        return False
-    if not np.any(scene.materials.kd[scene.tri_material] > 0.0):
-        return False
-    return _sources(scene) is not None
+    can reach a diffuse surface through a mirror or a glossy lobe (``engine.caustics.has_caustics``:
+    a rect light that emits and mirror / glossy triangles)."""
+    return _may_apply(scene, camera, indirect_samples) and has_caustics(scene)
+
+
+def light_tracer(scene: RuntimeScene, caster: RayCaster, camera: CameraParams, indirect_samples: int, bounces: int,
+                 seed: int) -> CausticLightTracer | None:
+    """The render's tracer, None where ``applies`` says no (the scene's photon sources are built once)."""
+    if not _may_apply(scene, camera, indirect_samples):
+        return None
+    src = photon_sources(scene)
+    return None if src is None else CausticLightTracer(scene, caster, camera, src, bounces, seed)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -243,16 +252,11 @@ class CausticLightTracer:
     paths ``first .. first + count - 1`` of a stream to an image's sums; the image's estimate is
     those sums over the paths traced (``counts["light_paths"]``)."""
 
-    def __init__(self, scene: RuntimeScene, caster: RayCaster, camera: CameraParams, bounces: int, seed: int):
-        sources = _sources(scene)
-        if sources is None or camera.kind != "perspective":
-            raise ValueError("light tracing needs a pinhole camera and a scene with caustics (applies())")
-        self.scene, self.caster, self.bounces, self.seed = scene, caster, int(bounces), int(seed)
-        power, self._sg, tri_area = sources
-        self._light_cdf = np.concatenate([[0.0], np.cumsum(power) / power.sum()])
-        self._a_sg = float(tri_area.sum())
-        self._tri_cdf = np.concatenate([[0.0], np.cumsum(tri_area) / self._a_sg])
-        self._r_n, self._r_area = scene.lights.rect_frames()
+    def __init__(self, scene: RuntimeScene, caster: RayCaster, camera: CameraParams, src: PhotonSources,
+                 bounces: int, seed: int):
+        if camera.kind != "perspective":
+            raise ValueError("light tracing joins light paths to a pinhole camera only")
+        self.scene, self.caster, self.src, self.bounces, self.seed = scene, caster, src, int(bounces), int(seed)
         right, up, fwd, sxs, sys_ = _camera_frame(camera)
         pix_area = (2.0 * sxs / camera.width) * (2.0 * sys_ / camera.height)
         self._cam = np.concatenate([np.asarray(camera.eye, np.float64), right, up, fwd,
@@ -273,28 +277,8 @@ class CausticLightTracer:
                counts: dict[str, int], serial: bool | None) -> None:
         sc, lt, mt, caster = self.scene, self.scene.lights, self.scene.materials, self.caster
         t0 = time.perf_counter()
-        so = np.empty((n, 3), np.float32)
-        sd = np.empty((n, 3), np.float32)
-        tmax = np.empty(n, np.float32)
-        d = np.empty((n, 3))
-        prim = np.empty(n, np.int32)
-        bu = np.empty(n, np.float32)
-        bv = np.empty(n, np.float32)
-        w = np.empty((n, 3))
-        ok = np.empty(n, np.bool_)
-        run_pieces_parallel(_emit, n, _MIN_ITEMS, serial, key, first, 1.0, self._light_cdf, lt.rect_corner,
-                            lt.rect_edge_u, lt.rect_edge_v, self._r_n, self._r_area, lt.rect_radiance,
-                            lt.rect_two_sided, self._tri_cdf, self._sg, sc.tri_p, sc.tri_ng, self._a_sg, sc.center,
-                            sc.extent, so, sd, tmax, d, prim, bu, bv, w, ok)
-        live = np.flatnonzero(ok)
-        t1 = time.perf_counter()
-        occ = caster.occluded_local(so[live], sd[live], tmax[live], serial)
-        t_rays = time.perf_counter() - t1
-        rays = int(live.size)
-        live = live[~occ]
-        pid = (first + live).astype(np.int64)
-        d, prim, bu, bv, w = d[live], prim[live], bu[live], bv[live], w[live]
-        k = live.size
+        pid, d, prim, bu, bv, w, rays, t_rays = emit_photons(sc, caster, self.src, key, first, n, 1.0, serial)
+        k = pid.size
         n_spec = np.zeros(k, np.int32)
         n_diff = np.zeros(k, np.int32)
         through = np.zeros(k, np.bool_)
@@ -318,7 +302,7 @@ class CausticLightTracer:
             run_pieces_parallel(_light_vertex, k, _MIN_ITEMS, serial, prim, bu, bv, d, w, pid, n_spec, n_diff,
                                 through, key, vertex, self.bounces, mt.kd, mt.kr, mt.kg, mt.gloss_exponent, sc.tri_p,
                                 sc.tri_n, sc.tri_ng, sc.tri_material, sc.center, sc.extent, self._cam,
-                                lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self._r_n, self._r_area,
+                                lt.rect_corner, lt.rect_edge_u, lt.rect_edge_v, self.src.r_n, self.src.r_area,
                                 lt.rect_two_sided, j_o, j_d, j_tmax, j_pix, j_c, j_ok, o2, d2, d2_32, w2, ns2, nd2,
                                 alive)
             rows = np.flatnonzero(j_ok)
@@ -335,13 +319,8 @@ class CausticLightTracer:
             t_rays += time.perf_counter() - t1
             rays += int(go.size)
             # a segment that passes a light's emitting side seen from its far end: the camera side's
-            # mirror / glossy ray along it would end there (_rect_hits on the lights turned around)
-            m = go.size
-            passed = np.empty(m, np.bool_)
-            run_pieces_parallel(_rect_hits, m, _MIN_ITEMS, serial, o2[go], d2[go], prim, bu, bv,
-                                np.full(m, KIND_SPEC, np.int8), np.zeros((m, 3)), np.zeros(m), 1, 0, True, sc.tri_p,
-                                sc.center, lt.rect_corner, lt.rect_edge_v, lt.rect_edge_u, -self._r_n, self._r_area,
-                                lt.rect_radiance, lt.rect_two_sided, passed, np.empty((m, 3)))
+            # mirror / glossy ray along it would end there
+            passed = passes_light_toward_origin(sc, self.src, o2[go], d2[go], prim, bu, bv, serial)
             hit = prim >= 0
             go = go[hit]
             prim, bu, bv, through = prim[hit], bu[hit], bv[hit], passed[hit]

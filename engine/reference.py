@@ -69,6 +69,7 @@ from engine import _numba_setup  # noqa: F401  (numba's configuration before any
 from engine.camera import camera_rays, pixel_centers
 from engine.error_region import emitter_pixels, region_around
 from engine.errors import InvalidInputError, NonFiniteOutputError
+from engine.light_tracing import CausticLightTracer, light_tracer
 from engine.lights import directional_light_sample, point_light_sample, rect_cell_point, rect_light_sample
 from engine.methods import REFERENCE
 from engine.path_vertex import (
@@ -1001,14 +1002,13 @@ class ReferenceRenderer:
         return RenderOutput(radiance.astype(np.float32), depth, normal, oid, mid, timer.t, counts, rep.to_dict(),
                             region)
 
-    def _light_tracer(self, camera: CameraParams, params: ReferenceParams):
-        """The render's ``engine.light_tracing.CausticLightTracer``, None where no path is light-traced
+    def _light_tracer(self, camera: CameraParams, params: ReferenceParams) -> CausticLightTracer | None:
+        """The render's light tracer (engine/light_tracing.py), None where no path is light-traced
         (``light_paths`` 0, or ``engine.light_tracing.applies`` says no)."""
-        from engine import light_tracing  # it builds on this module's kernels
-
-        if params.light_paths <= 0.0 or not light_tracing.applies(self.scene, camera, params.indirect_samples):
+        if params.light_paths <= 0.0:
             return None
-        return light_tracing.CausticLightTracer(self.scene, self.caster, camera, params.indirect_bounces, params.seed)
+        return light_tracer(self.scene, self.caster, camera, params.indirect_samples, params.indirect_bounces,
+                            params.seed)
 
     def error_region(self, camera: CameraParams, object_id: np.ndarray, depth: np.ndarray,
                      max_depth: int) -> np.ndarray:

@@ -110,17 +110,22 @@ def _object_means(img: np.ndarray, oid: np.ndarray) -> dict[int, float]:
     return {int(k): float(y[o == k].mean()) for k in np.unique(o) if k >= 0 and np.count_nonzero(o == k) >= 40}
 
 
+def _mirror_glossy_box(size: int, spp: int) -> tuple[ReferenceRenderer, CameraParams, ReferenceParams]:
+    """The mirror / glossy Cornell box's renderer, its camera at size x size, and path-traced settings
+    of ``spp`` samples with one path and one rect-light sample each."""
+    ld = sample_scene("cornell_mirror_glossy")
+    cam = dataclasses.replace(ld.camera, width=size, height=size)
+    params = ReferenceParams(spp=spp, indirect_samples=spp, indirect_bounces=4, max_depth=6, area_light_samples=1,
+                             glossy_samples=1)
+    return ReferenceRenderer(ld.runtime, EmbreeCaster(ld.runtime)), cam, params
+
+
 def test_light_tracing_agrees_with_the_camera_paths_on_the_mirror_glossy_box():
     """The mirror / glossy Cornell box (a smooth-shaded mirror sphere, a glossy box, a rect light):
     the light-traced split and the camera's paths alone estimate the same image. Each object's mean
     brightness agrees within 4 standard errors of the two estimates (measured over seeds); the
     ceiling and the back wall, lit mostly through the sphere, hold most of the caustics."""
-    ld = sample_scene("cornell_mirror_glossy")
-    sc = ld.runtime
-    cam = dataclasses.replace(ld.camera, width=40, height=40)
-    ren = ReferenceRenderer(sc, EmbreeCaster(sc))
-    base = ReferenceParams(spp=128, indirect_samples=128, indirect_bounces=4, max_depth=6, area_light_samples=1,
-                           glossy_samples=1)
+    ren, cam, base = _mirror_glossy_box(40, 128)
     runs: dict[float, list[dict[int, float]]] = {0.0: [], 1.0: []}
     for lp in runs:
         for seed in (1, 2, 3):
@@ -131,18 +136,13 @@ def test_light_tracing_agrees_with_the_camera_paths_on_the_mirror_glossy_box():
         a = np.array([r[k] for r in runs[0.0]])
         b = np.array([r[k] for r in runs[1.0]])
         se = math.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size)
-        assert abs(a.mean() - b.mean()) <= 4.0 * se + 0.003 * a.mean(), (sc.object_names[k], a, b)
+        assert abs(a.mean() - b.mean()) <= 4.0 * se + 0.003 * a.mean(), (ren.scene.object_names[k], a, b)
 
 
 def test_light_tracing_lowers_the_noise_where_the_light_comes_through_the_mirror():
     """Seed to seed, the light-traced split is less noisy on the mirror / glossy box's walls (its
     caustics) than the camera's paths alone, at the same camera samples."""
-    ld = sample_scene("cornell_mirror_glossy")
-    sc = ld.runtime
-    cam = dataclasses.replace(ld.camera, width=32, height=32)
-    ren = ReferenceRenderer(sc, EmbreeCaster(sc))
-    base = ReferenceParams(spp=32, indirect_samples=32, indirect_bounces=4, max_depth=6, area_light_samples=1,
-                           glossy_samples=1)
+    ren, cam, base = _mirror_glossy_box(32, 32)
 
     def noise(lp: float) -> float:
         outs = [ren.render(cam, dataclasses.replace(base, light_paths=lp, seed=s)) for s in (1, 2)]
