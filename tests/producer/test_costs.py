@@ -171,3 +171,37 @@ def test_a_stride_prices_only_the_traced_share_of_the_indirect_pass() -> None:
     one, two = (costs.bake_cost(scene, BakeParams(ldc_resolution=128, indirect={"stride": s}), tri, 4.0e5)
                 for s in (1, 2))
     assert two.detail["indirect_cpu_s"] == pytest.approx(one.detail["indirect_cpu_s"] / 4, rel=0.01)
+
+
+def test_light_traced_caustics_are_priced_where_a_reference_render_traces_them() -> None:
+    """A pinhole view of a scene with a rect light and a mirror, with indirect paths, prices
+    ``light_paths`` light paths per sample; an orthographic view, a scene without mirror / glossy
+    materials or without a rect light, direct light only, and ``light_paths`` 0 price none."""
+    rect = {"type": "rect", "corner": [-0.5, 2.9, -0.5], "edge_u": [1, 0, 0], "edge_v": [0, 0, 1],
+            "radiance": [5, 5, 5]}
+    objects = [{"type": "sphere", "radius": 0.5, "material": "black"},
+               {"type": "plane", "size": [4, 4], "material": "m", "center": [0, -1, 0]}]
+    caustic = Scene.model_validate({**_scene(objects).model_dump(mode="json"), "lights": [rect]})
+    diffuse = Scene.model_validate({**caustic.model_dump(mode="json"),
+                                    "materials": [{"name": "m", "kd": [0.5] * 3}, {"name": "black", "kd": [0.1] * 3}]})
+    no_rect = _scene(objects)
+    ortho = {"type": "orthographic", "eye": [0, 1, 6], "look_at": [0, 0, 0], "ortho_height": 4.0, "width": 64,
+             "height": 48}
+    assert costs.scene_light_traced(caustic, caustic.camera)
+    assert not costs.scene_light_traced(diffuse, diffuse.camera)
+    assert not costs.scene_light_traced(no_rect, no_rect.camera)
+    assert not costs.scene_light_traced(caustic, Scene.model_validate(
+        {**caustic.model_dump(mode="json"), "camera": ortho}).camera)
+
+    def cpu(light_paths: float, indirect: int, traced: bool = True) -> float:
+        params = {"spp": 4, "indirect_samples": indirect, "light_paths": light_paths}
+        req = RenderRequest(scene_id="0" * 64, params=params)
+        return costs.render_cost(req, 256, 256, 1000, light_traced=traced).cpu_s
+
+    base = cpu(0.0, 4)
+    assert cpu(1.0, 4, traced=False) == base and cpu(1.0, 0) == cpu(0.0, 0)
+    one, four = cpu(1.0, 4) - base, cpu(4.0, 4) - base
+    assert one == pytest.approx(256 * 256 * 4 * costs.REFERENCE_CPU_S_PER_LIGHT_PATH, rel=1e-9)
+    assert four == pytest.approx(4 * one, rel=1e-9)
+    req = RenderRequest(scene_id="0" * 64, params={"spp": 4, "indirect_samples": 4, "light_paths": 2})
+    assert "2 light paths per sample" in costs.render_cost(req, 64, 64, light_traced=True).kind

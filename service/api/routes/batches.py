@@ -32,6 +32,8 @@ from producer.costs import (
     check,
     mesh_triangles,
     render_cost,
+    scene_auto_glossy_rays,
+    scene_light_traced,
     scene_triangles,
     stored_scene,
 )
@@ -200,7 +202,8 @@ def _submit(store: ObjectStore, redis: Redis, batch: BatchRequest, files: SceneF
                 settings.max_image_pixels:
             scene, triangles = scenes[req.scene_id]
             cam = req.camera if req.camera is not None else scene.camera
-            cost = render_cost(req, cam.width, cam.height, triangles)
+            cost = render_cost(req, cam.width, cam.height, triangles, scene_auto_glossy_rays(scene),
+                               scene_light_traced(scene, cam))
             try:
                 costs.append(check(cost, Limits.for_job(settings, "render"),
                                    "camera.height" if req.camera is not None else "scene_id",

@@ -24,7 +24,15 @@ from api_schemas.service import (
 from producer.artifacts import read_manifest
 from producer.bakes import bake_key, bake_status
 from producer.calibrations import enqueue_verification, plan_render, verification_status
-from producer.costs import Cost, Limits, check, render_cost, scene_auto_glossy_rays, stored_scene
+from producer.costs import (
+    Cost,
+    Limits,
+    check,
+    render_cost,
+    scene_auto_glossy_rays,
+    scene_light_traced,
+    stored_scene,
+)
 from producer.renders import enqueue_render, render_artifact_key
 from producer.store import NotFound
 from producer.wait import wait_for_job
@@ -148,7 +156,8 @@ def _check_request(req: RenderRequest, store: Any, owner: str | None, settings: 
                     f"server's limit of {settings.max_image_pixels}",
             type="image_too_large",
         )])
-    cost = render_cost(req, cam.width, cam.height, triangles, scene_auto_glossy_rays(scene))
+    cost = render_cost(req, cam.width, cam.height, triangles, scene_auto_glossy_rays(scene),
+                       scene_light_traced(scene, cam))
     lower = "render a smaller image" + ("" if method_needs_bake(req.method) else " or with fewer samples")
     return check(cost, Limits.for_job(settings, "render"), where, lower, "render_too_large")
 
