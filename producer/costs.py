@@ -551,14 +551,19 @@ def scene_auto_glossy_rays(scene: Scene) -> int:
                             any(getattr(li, "type", "") == "rect" for li in scene.lights))
 
 
+def _scene_has_caustics(scene: Scene) -> bool:
+    """Can light reach a diffuse surface through a mirror or a glossy lobe (``engine.caustics.has_caustics``:
+    a rect light and a mirror or glossy material)? Declared materials stand for the triangles' (an unused
+    mirror material prices caustics the engine will not trace: an over-estimate)."""
+    return (any(max(m.kr) > 0 or max(m.kg) > 0 for m in scene.materials)
+            and any(getattr(li, "type", "") == "rect" for li in scene.lights))
+
+
 def scene_light_traced(scene: Scene, camera: Any) -> bool:
     """Could a reference render of ``scene`` through ``camera`` light-trace caustics
-    (``engine.light_tracing.applies``: a pinhole camera, a rect light, mirror or glossy materials; the
-    render's own parameters decide the rest), for pricing. Declared materials stand for the triangles'
-    (an unused mirror material prices light paths the render will not trace: an over-estimate)."""
-    return (getattr(camera, "type", "perspective") == "perspective"
-            and any(getattr(li, "type", "") == "rect" for li in scene.lights)
-            and any(max(m.kg) > 0 or max(m.kr) > 0 for m in scene.materials))
+    (``engine.light_tracing.applies``: a pinhole camera and a scene with caustics; the render's own
+    parameters decide the rest), for pricing."""
+    return getattr(camera, "type", "perspective") == "perspective" and _scene_has_caustics(scene)
 
 
 def estimate_render_bytes(req: RenderRequest, width: int, height: int) -> int:
@@ -597,8 +602,7 @@ def expected_paths(params: BakeParams) -> float:
 def _has_caustics(scene: Scene, params: BakeParams) -> bool:
     """Will the indirect pass build a caustic photon map (``engine.caustics.has_caustics``: a rect light
     and a mirror or glossy material, with ``caustics`` = ``photons``)?"""
-    spec = any(max(m.kr) > 0 or max(m.kg) > 0 for m in scene.materials)
-    return params.indirect.caustics == "photons" and spec and any(lt.type == "rect" for lt in scene.lights)
+    return params.indirect.caustics == "photons" and _scene_has_caustics(scene)
 
 
 def _axis_grids(scene: Scene, resolution: int) -> list[int]:
