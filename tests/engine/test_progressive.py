@@ -5,6 +5,7 @@ unbiasedness over seeds against closed forms, determinism."""
 from __future__ import annotations
 
 import math
+import time
 from typing import NamedTuple
 
 import numpy as np
@@ -14,6 +15,7 @@ from engine.error_region import error_region
 from engine.errors import InvalidInputError
 from engine.methods import MAX_RENDER_MS, REFERENCE
 from engine.metrics import lrms
+from engine.progressive import run_progressive
 from engine.reference import ReferenceParams, ReferenceRenderer, render_reference
 from engine.scene import CameraParams
 from tests.engine.scenes import mat, quad, scene, sphere_mesh
@@ -181,6 +183,28 @@ def test_time_budget_stops_the_render(setup):
     assert a["elapsed_ms"] < 1500, a
     alone = r.render(CAM, ReferenceParams(spp=4096, indirect_samples=4096, max_ms=200, **BASE)).adaptive
     assert alone is not None and alone["stop_reason"] == "time" and alone["target_met"] is None
+
+
+@pytest.mark.parametrize("budget_ms", [300.0, 700.0])
+def test_a_time_budget_holds_when_later_passes_cost_more_per_sample(budget_ms):
+    """Later passes sample the noisier pixels, whose samples cost more than the pass before's (up to
+    18 % on the Cornell box), and each pass has a fixed cost: a render must still end within its
+    budget, which a contract's ``max_ms`` bounds, and use most of it. Here each pass's samples cost
+    20 % more than the pass before's, plus 3 ms a pass."""
+    w = h = 16
+    rng = np.random.default_rng(5)
+    passes: list[int] = []
+
+    def render_rows(rid, start, cnt, acc, tick):
+        acc[rid] += cnt[:, None] + np.sqrt(cnt)[:, None] * rng.standard_normal((rid.size, 3))
+        time.sleep(0.003 + int(cnt.sum()) * 2e-6 * 1.2 ** len(passes))
+        passes.append(int(cnt.sum()))
+
+    t_start = time.perf_counter()
+    _, rep = run_progressive(render_rows, w, h, 1 << 20, 1e-6, budget_ms, t_start, lambda stage, s: None)
+    assert rep.stop_reason == "time" and rep.target_met is False
+    assert rep.elapsed_ms <= budget_ms, (rep, passes)
+    assert rep.elapsed_ms >= 0.7 * budget_ms, (rep, passes)
 
 
 def test_deterministic_per_seed_whatever_the_pipelines(setup):
