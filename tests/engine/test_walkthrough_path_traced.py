@@ -4,6 +4,9 @@ reached reported."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -123,6 +126,27 @@ def test_no_indirect_paths_where_none_can_arrive() -> None:
     assert np.array_equal(skipped, forced)
     _, _, st_room = path_traced_frame(ReferenceRenderer(box_room()), CAM, 0, 3, 0.2, 2)
     assert st_room["indirect_skip"] == "" and st_room["paths_mean"] >= PILOT_PATHS
+
+
+def test_a_frame_cut_by_its_budget_ends_within_it(room: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stage cut to the time left must leave room for the paths whole rounds add (up to 1/8 more
+    than it asks for): with a clock that advances exactly 1 ms per traced path, a 105 ms budget cut
+    to 101 more paths after the pilot's 4 would trace 104 and end at 108 ms. The frame ends within
+    its budget and spends most of it."""
+    from engine.walkthrough import ground_truth
+
+    clock = [0.0]
+    trace = ground_truth.trace_indirect_points
+
+    def timed_trace(*args: Any, **kwargs: Any) -> Any:
+        clock[0] += 1e-3 * args[6].max_paths  # the stage's paths (IndirectParams), 1 ms each
+        return trace(*args, **kwargs)
+
+    monkeypatch.setattr(ground_truth, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(ground_truth, "trace_indirect_points", timed_trace)
+    st = path_traced_frame(room["rr"], CAM, 0, 5, 0.005, 2, max_ms=105.0)[2]
+    assert st["stopped_by"] == "time"
+    assert 0.7 * 105.0 <= 1000.0 * clock[0] <= 105.0
 
 
 def test_a_time_budget_stops_the_paths_and_the_frame_says_so(room: dict) -> None:
