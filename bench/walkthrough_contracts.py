@@ -169,6 +169,24 @@ def _contracts(model: WalkthroughModel, grid: dict[str, list[dict[str, float]]],
     return out
 
 
+def cached_bake(name: str, preset: str, an: Any, space: Any, cache: str | Path | None,
+                progress: Any = None) -> tuple[WalkthroughBake, float, bool]:
+    """The shipped ``preset``'s bake of scene ``name``: from ``cache`` (``NAME_PRESET_ENGINE.npz``, with
+    the wall time it took when it was made beside it) when it is there, else baked now (and kept there
+    when ``cache`` is given). Returns (bake, its wall time in seconds, whether it came from the cache)."""
+    path = None if cache is None else Path(cache) / f"{name}_{preset}_{ENGINE_VERSION}.npz"
+    if path is not None and path.exists():
+        return WalkthroughBake.load(path), float(json.loads(path.with_suffix(".json").read_text())["seconds"]), True
+    t0 = time.perf_counter()
+    bake = bake_walkthrough(an, space, walkthrough_preset(preset), progress=progress)
+    seconds = time.perf_counter() - t0
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        bake.save(path)
+        path.with_suffix(".json").write_text(json.dumps({"seconds": seconds}))
+    return bake, seconds, False
+
+
 def run_scene(name: str, presets: list[str], fills: list[str], noises: list[float],
               args: argparse.Namespace) -> dict[str, Any]:
     an, space = load(name)
@@ -177,19 +195,7 @@ def run_scene(name: str, presets: list[str], fills: list[str], noises: list[floa
     bake_s: dict[str, float] = {}
 
     def bake_for(preset: str, progress: Any) -> tuple[WalkthroughBake, str, float]:
-        cached = None if args.bake_cache is None else Path(args.bake_cache) / f"{name}_{preset}_{ENGINE_VERSION}.npz"
-        reused = cached is not None and cached.exists()
-        if cached is not None and reused:  # the bake and the wall time it took when it was made
-            bakes[preset] = WalkthroughBake.load(cached)
-            bake_s[preset] = float(json.loads(cached.with_suffix(".json").read_text())["seconds"])
-        else:
-            t0 = time.perf_counter()
-            bakes[preset] = bake_walkthrough(an, space, walkthrough_preset(preset), progress=progress)
-            bake_s[preset] = time.perf_counter() - t0
-            if cached is not None:
-                cached.parent.mkdir(parents=True, exist_ok=True)
-                bakes[preset].save(cached)
-                cached.with_suffix(".json").write_text(json.dumps({"seconds": bake_s[preset]}))
+        bakes[preset], bake_s[preset], reused = cached_bake(name, preset, an, space, args.bake_cache, progress)
         print(f"[{name}] bake {preset}: {bake_s[preset]:.1f} s{' (from the bake cache)' if reused else ''}", flush=True)
         return bakes[preset], preset, bake_s[preset]
 

@@ -3,8 +3,8 @@ frame reprojects and fills predicts it: the evidence behind the per-scene (not p
 model of walkthrough contracts (``docs/accuracy/walkthrough_contracts.md``, *Why a walkthrough's
 error is planned per scene*).
 
-Per scene: the shipped presets' bakes (``--bake-cache``, as ``bench/walkthrough_contracts.py`` keeps
-them; baked here when missing), then frames along the accuracy benchmark's camera path
+Per scene: the shipped presets' bakes (``--bake-cache``: ``bench.walkthrough_contracts.cached_bake``, baked
+there when missing), then frames along the accuracy benchmark's camera path
 (``bench.walkthrough_accuracy.walkthrough_cameras``) with a converged frame each
 (``engine.walkthrough.ground_truth.converged_frame``, another seed than the bases'). Per frame and
 setting (preset x fill): the LRMS, the share of the error region's pixels of each provenance
@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 
 from bench.walkthrough_accuracy import load, walkthrough_cameras
-from engine import ENGINE_VERSION
+from bench.walkthrough_contracts import cached_bake
 from engine.metrics import REC709_WEIGHTS
 from engine.reference import ReferenceRenderer
-from engine.walkthrough.bake import WalkthroughBake, WalkthroughRenderer, bake_walkthrough, walkthrough_preset
+from engine.walkthrough.bake import WalkthroughRenderer, walkthrough_preset
 from engine.walkthrough.ground_truth import converged_frame
 from engine.walkthrough.reconstruct import (
     PROV_BACKGROUND_FILL,
@@ -60,27 +60,13 @@ TRUTH_SEED = 31_337
 FILLS = ("both", "trace")
 
 
-def _bake(name: str, preset: str, cache: Path | None) -> WalkthroughBake:
-    path = None if cache is None else cache / f"{name}_{preset}_{ENGINE_VERSION}.npz"
-    if path is not None and path.exists():
-        return WalkthroughBake.load(path)
-    an, space = load(name)
-    t0 = time.perf_counter()
-    bake = bake_walkthrough(an, space, walkthrough_preset(preset))
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        bake.save(path)
-        path.with_suffix(".json").write_text(json.dumps({"seconds": time.perf_counter() - t0}))
-    return bake
-
-
 def measure(name: str, presets: list[str], frames: int, width: int, height: int, noise: float,
             cache: Path | None) -> list[dict[str, Any]]:
     """One row per frame: its time, and per setting its error, provenance shares and squared errors
     (relative to the converged frame's mean luminance squared), and the distances to the bases."""
-    an, _ = load(name)
+    an, space = load(name)
     cams, times = walkthrough_cameras(name, frames, width, height)
-    bakes = {p: _bake(name, p, cache) for p in presets}
+    bakes = {p: cached_bake(name, p, an, space, cache)[0] for p in presets}
     lum = np.asarray(REC709_WEIGHTS, np.float64)
     rows = []
     t0 = time.perf_counter()

@@ -507,9 +507,15 @@ def _reference_bytes(p: Any, pixels: int) -> float:
     return float(REFERENCE_BYTES_PER_PIXEL * pixels + in_flight * chunk * max(p.spp, 2) * per_sample)
 
 
+def _light_paths_priced(p: Any, light_traced: bool) -> float:
+    """Light paths per pixel sample a reference render with ``p`` traces where the scene is
+    ``light_traced``: its ``light_paths`` when it traces indirect paths, else none."""
+    return float(getattr(p, "light_paths", 0.0)) if light_traced and getattr(p, "indirect_samples", 0) > 0 else 0.0
+
+
 def _reference_cpu_s(p: Any, pixels: int, light_traced: bool = False) -> float:
     glossy = p.glossy_samples + getattr(p, "indirect_samples", 0) * getattr(p, "indirect_bounces", 1)
-    light = getattr(p, "light_paths", 0.0) if light_traced and getattr(p, "indirect_samples", 0) > 0 else 0.0
+    light = _light_paths_priced(p, light_traced)
     return float(pixels * p.spp * (REFERENCE_CPU_S_PER_SAMPLE + REFERENCE_CPU_S_PER_GLOSSY_RAY * glossy
                                    + REFERENCE_CPU_S_PER_AREA_RAY * p.area_light_samples
                                    + REFERENCE_CPU_S_PER_LIGHT_PATH * light))
@@ -537,8 +543,8 @@ def render_cost(req: RenderRequest, width: int, height: int, triangles: int = 0,
     else:
         body, cpu = _reference_bytes(req.params, pixels), _reference_cpu_s(req.params, pixels, light_traced)
         spp = f" at {req.params.spp} spp"
-        if light_traced and req.params.indirect_samples > 0 and req.params.light_paths > 0:
-            spp += f", {req.params.light_paths:g} light paths per sample"
+        if (light := _light_paths_priced(req.params, light_traced)) > 0:
+            spp += f", {light:g} light paths per sample"
     return _plus_scene(f"{req.method} render of {width} x {height}{spp}", triangles, body, cpu,
                        render_bytes=int(MARGIN * (body + FIXED_BYTES)))
 
