@@ -8,6 +8,12 @@ the wall time of its compilations including the kernels compiled inside them (``
 and without them (``exclusive``, the time that kernel's own typing, lowering and LLVM
 optimisation took). ``--write`` puts the tables into docs/performance.md.
 
+``--first-ldc`` profiles instead what the first image-based view on a fresh machine compiles: a
+direct-light LDC bake of the diffuse Cornell box (``bench.first_run.DIFFUSE_BAKE``, its part jobs run
+in this process) and then one ``ldc`` render of it at 128 x 128, each phase's wall and CPU time and
+kernels apart -- the work a user who asks for an ``ldc`` view the moment ``/healthz`` answers waits
+for (``python -m bench.first_run --at-healthz`` times that on a live stack).
+
 Run it under the shared benchmark lock (``flock /tmp/bench.lock``): it keeps one core busy for
 the whole warm-up.
 """
@@ -22,6 +28,7 @@ import tempfile
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 
@@ -113,14 +120,63 @@ def profile(top: int, steps: list[str] | None = None) -> tuple[str, Any, Compile
         "|---|---:|---:|",
     ]
     lines += [f"| {s.name} | {s.seconds:.1f} | {s.compiled} |" for s in report.steps]
-    lines += ["", f"Kernels by own compile time (top {top}; exclusive = without the kernels compiled inside it):", "",
-              "| kernel | signatures | exclusive s | inclusive s |", "|---|---:|---:|---:|"]
-    for k in kernels[:top]:
-        lines.append(f"| `{k.name}` | {len(k.signatures)} | {k.exclusive:.1f} | {k.inclusive:.1f} |")
+    lines += ["", f"Kernels by own compile time (top {top}; exclusive = without the kernels compiled inside it):", ""]
+    lines += _kernel_lines(rec, top)
     return "\n".join(lines), report, rec
 
 
 _LOAD_BEFORE = ""
+
+
+def _kernel_lines(rec: CompileRecorder, top: int) -> list[str]:
+    kernels = sorted(rec.kernels.values(), key=lambda k: -k.exclusive)
+    lines = ["| kernel | signatures | exclusive s | inclusive s |", "|---|---:|---:|---:|"]
+    lines += [f"| `{k.name}` | {len(k.signatures)} | {k.exclusive:.1f} | {k.inclusive:.1f} |" for k in kernels[:top]]
+    return lines
+
+
+def profile_first_ldc(top: int) -> str:
+    """Cold compile of a direct-light LDC bake of the diffuse Cornell box and of its first ``ldc``
+    render (module docstring), per phase and kernel; markdown."""
+    import json
+
+    from numba.core import event as ev
+
+    from api_schemas.scene import Scene
+    from api_schemas.service import BakeParams
+    from bench.first_run import DIFFUSE_BAKE, DIFFUSE_SCENE, SIZE
+    from producer.artifacts import put_scene
+    from producer.store.local import LocalStore
+    from samples import SAMPLES_DIR, sample_path
+    from workers.warmup import _Run, _scratch_jobs
+
+    doc = json.loads(sample_path(DIFFUSE_SCENE).read_text())
+    meshes = {o["path"]: (SAMPLES_DIR / o["path"]).read_bytes() for o in doc.get("objects", []) if o.get("path")}
+    lines = [f"Cold compile of the first `ldc` view of `{DIFFUSE_SCENE}` ({SIZE['width']} x {SIZE['height']}) "
+             f"and of its direct-light bake, one process; {os.cpu_count()} cores, load average before "
+             f"{_LOAD_BEFORE}.", ""]
+    with tempfile.TemporaryDirectory(prefix="ibr-first-ldc-") as tmp:
+        run = _Run(LocalStore(Path(tmp)))
+        with _scratch_jobs(run.store):
+            run.scene_id = put_scene(run.store, Scene.model_validate(doc), meshes, owner=None).id
+            params = BakeParams.model_validate(DIFFUSE_BAKE)
+            phases: list[tuple[str, Any]] = [
+                ("direct-light LDC bake (bake worker)", lambda: run._publish_bake(params, with_llf=False)),
+                ("first `ldc` render (render worker)",
+                 lambda: run.render(method="ldc", bake=params.model_dump(mode="json"),
+                                    camera={**doc["camera"], **SIZE}))]
+            for title, fn in phases:
+                rec = CompileRecorder()
+                cpu0, t0 = _cpu(), time.perf_counter()
+                with ev.install_listener("numba:compile", _listener(rec)):
+                    fn()
+                wall, cpu = time.perf_counter() - t0, _cpu() - cpu0
+                n_sigs = sum(len(k.signatures) for k in rec.kernels.values())
+                excl = sum(k.exclusive for k in rec.kernels.values())
+                lines += [f"**{title}**: {wall:.1f} s wall, {cpu:.1f} s CPU, {n_sigs} signatures of "
+                          f"{len(rec.kernels)} kernels compiled in {excl:.1f} s.", ""]
+                lines += _kernel_lines(rec, top) + [""]
+    return "\n".join(lines)
 
 
 def _with_needs(steps: list[str]) -> list[str]:
@@ -145,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--signatures", action="store_true", help="also print every compiled signature")
     p.add_argument("--write", action="store_true", help="write the tables into docs/performance.md")
     p.add_argument("--label", default="cold-compile")
+    p.add_argument("--first-ldc", action="store_true",
+                   help="profile the first ldc view of a diffuse scene and its bake instead of the warm-up")
     p.add_argument("--steps", help="comma-separated warm-up steps to run (default: all); the steps they "
                                    "need are added (workers.warmup)")
     args = p.parse_args(argv)
@@ -153,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     _LOAD_BEFORE = f"{os.getloadavg()[0]:.2f}"
     with tempfile.TemporaryDirectory(prefix="ibr-numba-cold-") as tmp:
         os.environ["NUMBA_CACHE_DIR"] = args.cache_dir or tmp
+        if args.first_ldc:
+            print(profile_first_ldc(args.top))
+            return 0
         text, report, rec = profile(args.top, _with_needs(args.steps.split(",")) if args.steps else None)
     print(report.table())
     print(text)
