@@ -110,7 +110,8 @@ class SceneSpec:
 SCENES = {
     "cornell_box": SceneSpec(bounces=BOUNCES, max_depth=0, ldc=((256, 0.02, 1), (256, 0.014, 1),
                                                                              (512, 0.014, 2)), gt_ms=140_000.0),
-    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH, ldc=((256, 0.03, 1),),
+    "cornell_mirror_glossy": SceneSpec(bounces=MIRROR_BOUNCES, max_depth=MIRROR_DEPTH,
+                                       ldc=((256, 0.03, 1), (256, 0.014, 1)),
                                        gt_ms=90_000.0, method="ldc+ibrt:1", llf=(4, 48), glossy_rays=(16, 64)),
 }
 QUICK_LDC = ((64, 0.05, 1), (128, 0.05, 2))
@@ -584,15 +585,21 @@ def plot(res: dict) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 4.8))
     rl = res["reference_ladder"]
     ax.loglog([r["seconds"] for r in rl], [r["lrms"] for r in rl], "o-", label="our reference (spp raised)")
     ml = res["mitsuba"].get("ladder", [])
     if ml:
         ax.loglog([r["seconds"] for r in ml], [r["lrms"] for r in ml], "s-", label="Mitsuba 3 path (spp raised)")
-    for r in res["settings"]:
+    bakes: list[tuple] = []  # one marker shape per bake, one colour per setting
+    colours = plt.get_cmap("tab20")
+    for i, r in enumerate(res["settings"]):
         aa = f" {r['antialias']}" if r["supersample"] > 1 else ""
-        ax.loglog([r["render_ms"] / 1000], [r["lrms"]], "*", markersize=12,
+        bake = (r["ldc_resolution"], r["noise"], r["stride"])
+        if bake not in bakes:
+            bakes.append(bake)
+        ax.loglog([r["render_ms"] / 1000], [r["lrms"]], "*DP^v"[bakes.index(bake) % 5], color=colours(i % 20),
+                  markersize=11 if bakes.index(bake) == 0 else 8,
                   label=f"LDC {_ldc_label(r)} noise {r['noise']} ss{r['supersample']}{aa}"
                         f"{' glossy ' + str(r['glossy_rays']) if r.get('glossy_rays') else ''} "
                         f"(bake {r['bake_s']:.0f} s)")
@@ -600,7 +607,7 @@ def plot(res: dict) -> Path:
     ax.set_xlabel("seconds per view")
     ax.set_ylabel("LRMS against the converged image")
     ax.set_title(f"{res['scene']} {res['size']}x{res['size']}, {res['bounces']} bounces")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     path = PLOT_DIR / f"gi_equal_error_{res['scene']}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
