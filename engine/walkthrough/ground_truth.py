@@ -32,7 +32,12 @@ from engine.newviews.indirect import IndirectParams, trace_indirect_points
 from engine.reference import ReferenceParams, ReferenceRenderer
 from engine.sampler import sample_key
 from engine.scene import CameraParams
-from engine.walkthrough.path_settings import CONVERGED_AREA_LIGHT_SAMPLES, path_traced_settings, whole_rounds
+from engine.walkthrough.path_settings import (
+    CONVERGED_AREA_LIGHT_SAMPLES,
+    WHOLE_ROUNDS_MAX_EXCESS,
+    path_traced_settings,
+    whole_rounds,
+)
 from engine.walkthrough.range_images import surface_points
 
 __all__ = ["AREA_LIGHT_SAMPLES", "GROUND_TRUTH_STREAM", "converged_frame", "path_traced_frame"]
@@ -122,9 +127,9 @@ def path_traced_frame(rr: ReferenceRenderer, cam: CameraParams, frame: int, seed
             if stage == 1 and extra > SPLIT_ABOVE_PATHS:
                 extra /= 2.0  # see SPLIT_ABOVE_PATHS
             if max_ms is not None:
-                # whole rounds add up to 1/8 more paths than asked for
+                # whole rounds add up to WHOLE_ROUNDS_MAX_EXCESS more paths than asked for
                 left = max_ms / 1000.0 - (time.perf_counter() - t0)
-                affordable = PATH_TIME_SHARE * left / s_per_path / 1.125
+                affordable = PATH_TIME_SHARE * left / s_per_path / (1.0 + WHOLE_ROUNDS_MAX_EXCESS)
                 if affordable < extra:
                     st["stopped_by"] = "time"
                     if affordable < 2.0:

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 
 __all__ = ["CONVERGED_AREA_LIGHT_SAMPLES", "PATH_ERROR_PER_PATH", "PATH_TRACED_MAX_PATHS", "PILOT_PATHS",
-           "PathTracedSettings", "path_traced_settings", "whole_rounds"]
+           "WHOLE_ROUNDS_MAX_EXCESS", "PathTracedSettings", "path_traced_settings", "whole_rounds"]
 
 CONVERGED_AREA_LIGHT_SAMPLES = 1024
 """Area-light samples per pixel of a converged frame, the most a path-traced frame takes."""
@@ -38,13 +38,15 @@ docstring): what a frame is expected to trace before its pilot measures it."""
 PILOT_PATHS = 4
 """Paths per pixel of a frame's pilot, in four rounds of one (their spread is the estimate)."""
 MIN_AREA_LIGHT_SAMPLES = 64
+WHOLE_ROUNDS_MAX_EXCESS = 0.125
+"""The most :func:`whole_rounds` adds to the paths asked for, as a fraction of them (8 to 16 rounds)."""
 
 
 def whole_rounds(paths: float) -> tuple[int, int]:
     """``(count, round)``: at least ``paths`` paths (and at least 2) in whole rounds of a power of two
-    paths, 8 to 16 rounds once there are 8 paths or more, so that rounding costs at most 1/8 more
-    paths (the indirect pass draws a round as one stratified block of its sequence and needs two
-    rounds for a standard error)."""
+    paths, 8 to 16 rounds once there are 8 paths or more, so that rounding costs at most
+    :data:`WHOLE_ROUNDS_MAX_EXCESS` more paths (the indirect pass draws a round as one stratified
+    block of its sequence and needs two rounds for a standard error)."""
     n = max(2, math.ceil(paths - 1e-9))
     r = 1
     while 16 * r <= n:
